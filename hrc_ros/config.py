@@ -1,0 +1,301 @@
+"""Configuration of the HRC decision model: load, validate, hash.
+
+Every number of the model (MODEL.md) comes from a YAML file; `config/default.yaml` holds the
+defaults of MODEL.md and `config/paper.yaml` the paper's own values. A configuration file is
+complete: a missing or unknown key is an error naming the field, so a typo never silently falls
+back to a default. Programmatic variants (for example the reduced rho = sigma = 1 model of the
+tests) are made with `load_config(path, overrides={...})`.
+
+Sections:
+
+- `model`: rho, sigma, p_accept (per em), p_delta (per ea, Delta = -1, 0, +1), emotion chains
+  (down, stay, up) per action group and emotion variable;
+- `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
+- `solver`: gamma, eta, sweeps (null = run to eta; an integer = the paper's fixed sweep count);
+- `observation`: the Table 5 rows, the bayes-mode epsilon and the belief mode (MODEL.md 6).
+
+The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
+sections that determine the policy (`model`, `cost`, `solver`). Observation settings do not
+change the policy, so editing them does not invalidate a solved policy file.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+EMOTION_GROUPS = ('base', 'motivate', 'request')
+ALPHAS = tuple(f'alpha{i}' for i in range(1, 14))
+BETAS = tuple(f'beta{i}' for i in range(1, 7))
+BELIEF_MODES = ('table', 'bayes')
+
+# The schema: section -> key -> kind. Kinds are checked by _check_* below.
+_SCHEMA: dict[str, dict[str, str]] = {
+    'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
+              'p_delta': 'rows[3x3]', 'emotion': 'chains'},
+    'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
+    'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'int>=1|null'},
+    'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode'},
+}
+
+PROBABILITY_TOLERANCE = 1e-9
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message names the field."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """A validated configuration. `data` is the plain nested dict (YAML-shaped)."""
+
+    data: dict
+    source: str = '<memory>'
+
+    # -- sections as numpy ---------------------------------------------------------------
+    @property
+    def rho(self) -> int:
+        return int(self.data['model']['rho'])
+
+    @property
+    def sigma(self) -> int:
+        return int(self.data['model']['sigma'])
+
+    @property
+    def p_accept(self) -> np.ndarray:
+        return np.asarray(self.data['model']['p_accept'], dtype=float)
+
+    @property
+    def p_delta(self) -> np.ndarray:
+        """Shape (3, 3): row ea, columns Delta = -1, 0, +1."""
+        return np.asarray(self.data['model']['p_delta'], dtype=float)
+
+    def emotion_chain(self, group: str, variable: str) -> np.ndarray:
+        """(down, stay, up) of `variable` ('em' or 'ea') under action group `group`."""
+        return np.asarray(self.data['model']['emotion'][group][variable], dtype=float)
+
+    @property
+    def cost(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.data['cost'].items()}
+
+    @property
+    def gamma(self) -> float:
+        return float(self.data['solver']['gamma'])
+
+    @property
+    def eta(self) -> float:
+        return float(self.data['solver']['eta'])
+
+    @property
+    def sweeps(self) -> int | None:
+        s = self.data['solver']['sweeps']
+        return None if s is None else int(s)
+
+    @property
+    def observation_table(self) -> np.ndarray:
+        """Shape (3, 9): Table 5, row O-1, column h = 3*em + ea."""
+        return np.asarray(self.data['observation']['table'], dtype=float)
+
+    @property
+    def epsilon(self) -> float:
+        return float(self.data['observation']['epsilon'])
+
+    @property
+    def belief_mode(self) -> str:
+        return str(self.data['observation']['mode'])
+
+    # -- identity ------------------------------------------------------------------------
+    @property
+    def policy_sections(self) -> dict:
+        return {k: self.data[k] for k in ('model', 'cost', 'solver')}
+
+    @property
+    def policy_hash(self) -> str:
+        """SHA-256 of the sections that determine the policy (model, cost, solver)."""
+        return config_hash(self.policy_sections)
+
+    def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
+        data = copy.deepcopy(self.data)
+        _merge(data, overrides, '')
+        return Config(validate(data), source=f'{self.source} (with overrides)')
+
+
+def config_hash(sections: Mapping[str, Any]) -> str:
+    canonical = json.dumps(_canonical(sections), sort_keys=True, separators=(',', ':'))
+    return hashlib.sha256(canonical.encode('utf-8')).hexdigest()
+
+
+def _canonical(value: Any) -> Any:
+    """Numbers as floats (so 1 and 1.0 hash alike), except the integer sizes."""
+    if isinstance(value, Mapping):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    return value
+
+
+def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
+    for key, value in overrides.items():
+        name = f'{prefix}{key}'
+        if key not in base:
+            raise ConfigError(f'unknown configuration key {name!r}')
+        if isinstance(value, Mapping) and isinstance(base[key], dict):
+            _merge(base[key], value, name + '.')
+        else:
+            base[key] = copy.deepcopy(value)
+
+
+def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Load and validate a configuration YAML file (complete; see module docstring)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f'cannot read configuration file {path}: {exc.strerror}') from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'{path} is not valid YAML: {exc}') from None
+    if overrides:
+        if not isinstance(data, dict):
+            raise ConfigError(f'{path}: the top level must be a mapping of sections')
+        _merge(data, overrides, '')
+    try:
+        return Config(validate(data), source=str(path))
+    except ConfigError as exc:
+        raise ConfigError(f'{path}: {exc}') from None
+
+
+def validate(data: Any) -> dict:
+    """Check a YAML-shaped configuration; return it with plain Python numbers."""
+    if not isinstance(data, dict):
+        raise ConfigError('the top level must be a mapping with sections '
+                          + ', '.join(_SCHEMA))
+    for section in data:
+        if section not in _SCHEMA:
+            raise ConfigError(f'unknown section {section!r} (known: {", ".join(_SCHEMA)})')
+    out: dict = {}
+    for section, keys in _SCHEMA.items():
+        body = data.get(section)
+        if not isinstance(body, dict):
+            raise ConfigError(f'missing section {section!r}')
+        for key in body:
+            if key not in keys:
+                raise ConfigError(f'unknown key {section}.{key}')
+        out[section] = {}
+        for key, kind in keys.items():
+            name = f'{section}.{key}'
+            if key not in body:
+                raise ConfigError(f'missing key {name}')
+            out[section][key] = _check(name, kind, body[key])
+    return out
+
+
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f'{name} must be a number, got {value!r}')
+    if not math.isfinite(value):
+        raise ConfigError(f'{name} must be finite, got {value!r}')
+    return float(value)
+
+
+def _prob_vector(name: str, value: Any, length: int) -> list[float]:
+    if not isinstance(value, (list, tuple)) or len(value) != length:
+        raise ConfigError(f'{name} must be a list of {length} probabilities, got {value!r}')
+    row = [_number(f'{name}[{i}]', v) for i, v in enumerate(value)]
+    for i, p in enumerate(row):
+        if not 0.0 <= p <= 1.0:
+            raise ConfigError(f'{name}[{i}] = {p} is not a probability in [0, 1]')
+    return row
+
+
+def _prob_rows(name: str, value: Any, rows: int, cols: int) -> list[list[float]]:
+    if not isinstance(value, (list, tuple)) or len(value) != rows:
+        raise ConfigError(f'{name} must be {rows} rows of {cols} probabilities')
+    out = []
+    for r, row in enumerate(value):
+        checked = _prob_vector(f'{name}[{r}]', row, cols)
+        total = sum(checked)
+        if abs(total - 1.0) > PROBABILITY_TOLERANCE:
+            raise ConfigError(f'{name}[{r}] sums to {total:.12g}, not 1')
+        out.append(checked)
+    return out
+
+
+def _check(name: str, kind: str, value: Any) -> Any:
+    if kind in ('int>=1', 'int>=1|null'):
+        if value is None and kind.endswith('|null'):
+            return None
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f'{name} must be an integer >= 1, got {value!r}')
+        return int(value)
+    if kind == 'weight':
+        v = _number(name, value)
+        if v < 0:
+            raise ConfigError(f'{name} is a cost weight and must be >= 0, got {v}')
+        return v
+    if kind == 'positive':
+        v = _number(name, value)
+        if v <= 0:
+            raise ConfigError(f'{name} must be > 0, got {v}')
+        return v
+    if kind == 'open01':
+        v = _number(name, value)
+        if not 0.0 < v < 1.0:
+            raise ConfigError(f'{name} must lie in the open interval (0, 1), got {v}')
+        return v
+    if kind == 'prob':
+        v = _number(name, value)
+        if not 0.0 <= v <= 1.0:
+            raise ConfigError(f'{name} must be a probability in [0, 1], got {v}')
+        return v
+    if kind == 'prob[3]':
+        return _prob_vector(name, value, 3)
+    if kind == 'rows[3x3]':
+        return _prob_rows(name, value, 3, 3)
+    if kind == 'rows[3x9]':
+        rows = _prob_rows(name, value, 3, 9)
+        column_mass = np.asarray(rows).sum(axis=0)
+        if np.any(column_mass <= 0):
+            h = int(np.argmin(column_mass))
+            raise ConfigError(f'{name}: hidden state h={h} has zero probability under every '
+                              'observation, so the bayes likelihood is undefined')
+        return rows
+    if kind == 'chains':
+        if not isinstance(value, dict):
+            raise ConfigError(f'{name} must map the groups {", ".join(EMOTION_GROUPS)}')
+        for group in value:
+            if group not in EMOTION_GROUPS:
+                raise ConfigError(f'unknown key {name}.{group}')
+        out = {}
+        for group in EMOTION_GROUPS:
+            body = value.get(group)
+            if not isinstance(body, dict):
+                raise ConfigError(f'missing key {name}.{group}')
+            for var in body:
+                if var not in ('em', 'ea'):
+                    raise ConfigError(f'unknown key {name}.{group}.{var}')
+            out[group] = {}
+            for var in ('em', 'ea'):
+                if var not in body:
+                    raise ConfigError(f'missing key {name}.{group}.{var}')
+                out[group][var] = _prob_rows(f'{name}.{group}.{var}', [body[var]], 1, 3)[0]
+        return out
+    if kind == 'belief_mode':
+        if value not in BELIEF_MODES:
+            raise ConfigError(f'{name} must be one of {", ".join(BELIEF_MODES)}, '
+                              f'got {value!r}')
+        return value
+    raise AssertionError(f'unknown schema kind {kind}')

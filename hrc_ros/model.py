@@ -1,0 +1,327 @@
+"""The HRC decision model of MODEL.md: state space, transition rules and cost.
+
+Symbols follow the paper (MODEL.md section 1): the state is the 11-tuple
+``(em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d)``:
+
+- em, ea: the human's hidden motivation and aggression (0 low .. 2 high); h = 3*em + ea;
+- tp, tc, tx, ty: task priority (0 = no task), remaining epochs, nature (0 robot, 1 human,
+  2 either, 3 both), commitment (0 none, 1 human, 2 robot, 3 joint);
+- hp, hc / bp, bc: human / robot activity priority and remaining epochs;
+- d: distance level (0 collision, 1 inner, 2 middle, 3 outer circle or beyond).
+
+The flat index is row-major over these variables with dims
+``[3, 3, rho+1, sigma+1, 4, 4, rho+1, sigma+1, rho+1, sigma+1, 4]``, so a value vector of
+length N reshapes to ``(9, n_task, 4)``: hidden part h, the task/activity part
+``y = (tp, tc, tx, ty, hp, hc, bp, bc)`` and the distance d. The solver exploits that split.
+
+One decision epoch (MODEL.md 3): three independent random events, then deterministic rules.
+
+1. Acceptance: rh1 is eligible when ``tp > 0, ty = 0, tx in {1, 2}``, rh2 when
+   ``tp > 0, ty = 0, tx = 3``; an eligible request is accepted with ``p_accept[em]``.
+2. Commitment and activities (`step_task`): an accepted rh1 gives ``ty'=1, hp'=tp, hc'=tc``;
+   an accepted rh2 ``ty'=3`` and both agents take (tp, tc); an effective ct
+   (``tp > 0, ty = 0, tx in {0, 2}``) ``ty'=2, bp'=tp, bc'=tc``. Otherwise counters count
+   down (``hc' = max(0, hc-1)``, ``hp' = hp if hc != 0 else 0``, the same for the robot),
+   except that under dn the robot is paused (``bc' = bc``). A committed task whose committed
+   agents' counters are all 0 is complete and resets ``tp = tc = tx = ty = 0``; otherwise
+   ``tc'`` is the largest committed counter. An uncommitted task waits unchanged.
+3. Distance: Delta in {-1, 0, +1} drawn from ``p_delta[ea]``; dp: ``min(3, d+1-Delta)``,
+   dm: ``max(1, d-1-Delta)``, otherwise ``min(3, max(0, d-Delta))``.
+4. Emotions: em and ea each follow a bounded (down, stay, up) chain chosen by the action's
+   group (base, motivate = mh, request = rh1/rh2); the 9x9 matrix is their Kronecker product.
+
+Cost (MODEL.md 4): ``J(s, a) = k1*f1(s) + k2*f2(s) + g(a)``; see `state_cost`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from .config import Config
+
+ACTIONS = ('nw', 'rh1', 'rh2', 'ct', 'dp', 'dm', 'mh', 'dn')
+ACTION_INDEX = {name: i for i, name in enumerate(ACTIONS)}
+NW, RH1, RH2, CT, DP, DM, MH, DN = range(8)
+# Ties go to the first action of this order: an idle robot stops rather than "works".
+SAFETY_ORDER = (DN, DP, NW, CT, RH1, RH2, MH, DM)
+# Which emotion chain each action uses (MODEL.md 3.4).
+ACTION_EMOTION_GROUP = {NW: 'base', CT: 'base', DP: 'base', DM: 'base', DN: 'base',
+                        MH: 'motivate', RH1: 'request', RH2: 'request'}
+
+STATE_VARIABLES = ('em', 'ea', 'tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc', 'd')
+TASK_VARIABLES = ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc')
+N_HIDDEN = 9
+N_DISTANCE = 4
+DELTAS = (-1, 0, 1)
+
+
+def action_index(action: str | int) -> int:
+    """Index of an action given by name (`'ct'`) or index; a clear error otherwise."""
+    if isinstance(action, (int, np.integer)) and not isinstance(action, bool):
+        if 0 <= int(action) < len(ACTIONS):
+            return int(action)
+        raise ValueError(f'action index {action} is out of range 0..{len(ACTIONS) - 1}')
+    if isinstance(action, str) and action in ACTION_INDEX:
+        return ACTION_INDEX[action]
+    raise ValueError(f'unknown action {action!r}; expected one of {" ".join(ACTIONS)}')
+
+
+def chain_matrix(down: float, stay: float, up: float) -> np.ndarray:
+    """3x3 bounded chain: mass that would leave [0, 2] stays at the boundary."""
+    m = np.zeros((3, 3))
+    for i in range(3):
+        m[i, max(i - 1, 0)] += down
+        m[i, i] += stay
+        m[i, min(i + 1, 2)] += up
+    return m
+
+
+def next_distance(d, action: int, delta):
+    """MODEL.md 3.3 (works on scalars and arrays)."""
+    if action == DP:
+        return np.minimum(3, d + 1 - delta)
+    if action == DM:
+        return np.maximum(1, d - 1 - delta)
+    return np.minimum(3, np.maximum(0, d - delta))
+
+
+def request_eligible(action: int, tp, tx, ty):
+    """Whether `action` is an eligible request (MODEL.md 3.1); False for non-requests."""
+    open_task = (tp > 0) & (ty == 0)
+    if action == RH1:
+        return open_task & ((tx == 1) | (tx == 2))
+    if action == RH2:
+        return open_task & (tx == 3)
+    return np.zeros(np.shape(tp), dtype=bool) if np.ndim(tp) else False
+
+
+def step_task(task: dict, action: int, accepted) -> dict:
+    """MODEL.md 3.2: the next (tp, tc, tx, ty, hp, hc, bp, bc), vectorised.
+
+    `task` maps the variable names to equal-shape integer arrays (the epoch's start values);
+    `accepted` is whether the human accepted (ignored unless the request is eligible).
+    """
+    tp, tc, tx, ty = task['tp'], task['tc'], task['tx'], task['ty']
+    hp, hc, bp, bc = task['hp'], task['hc'], task['bp'], task['bc']
+    accepted = np.asarray(accepted, dtype=bool)
+    human_takes = request_eligible(action, tp, tx, ty) & accepted & (action == RH1)
+    joint = request_eligible(action, tp, tx, ty) & accepted & (action == RH2)
+    robot_commits = ((action == CT) & (tp > 0) & (ty == 0) & ((tx == 0) | (tx == 2)))
+    human_new = human_takes | joint
+    robot_new = joint | robot_commits
+
+    hc_n = np.where(human_new, tc, np.maximum(0, hc - 1))
+    hp_n = np.where(human_new, tp, np.where(hc != 0, hp, 0))
+    bc_run = bc if action == DN else np.maximum(0, bc - 1)
+    bc_n = np.where(robot_new, tc, bc_run)
+    bp_n = np.where(robot_new, tp, np.where(bc != 0, bp, 0))
+    ty_n = np.where(human_takes, 1, np.where(joint, 3, np.where(robot_commits, 2, ty)))
+
+    human_in = (ty_n == 1) | (ty_n == 3)
+    robot_in = (ty_n == 2) | (ty_n == 3)
+    remaining = np.maximum(np.where(human_in, hc_n, 0), np.where(robot_in, bc_n, 0))
+    committed = ty_n != 0
+    complete = committed & (remaining == 0)
+    tc_n = np.where(committed, remaining, tc)
+    return {
+        'tp': np.where(complete, 0, tp), 'tc': np.where(complete, 0, tc_n),
+        'tx': np.where(complete, 0, tx), 'ty': np.where(complete, 0, ty_n),
+        'hp': hp_n, 'hc': hc_n, 'bp': bp_n, 'bc': bc_n,
+    }
+
+
+@dataclass(frozen=True)
+class Transition:
+    """Sparse rows of P(. | s, a) for a batch of source states (flat indices)."""
+
+    source: np.ndarray  # position of the source state in the batch, per entry
+    target: np.ndarray  # flat index of s', per entry
+    probability: np.ndarray
+
+
+class HRCModel:
+    """The exact model of MODEL.md for one configuration."""
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.rho = config.rho
+        self.sigma = config.sigma
+        p, c = self.rho + 1, self.sigma + 1
+        self.dims = (3, 3, p, c, 4, 4, p, c, p, c, N_DISTANCE)
+        self.task_dims = (p, c, 4, 4, p, c, p, c)
+        self.n_task = int(np.prod(self.task_dims))
+        self.n_states = N_HIDDEN * self.n_task * N_DISTANCE
+        self.gamma = config.gamma
+
+    # -- indexing ------------------------------------------------------------------------
+    def index(self, state) -> int | np.ndarray:
+        """Flat index of an 11-tuple (or of an (..., 11) array of states)."""
+        state = np.asarray(state)
+        if state.shape[-1:] != (11,):
+            raise ValueError(f'a state has 11 variables {STATE_VARIABLES}, got shape '
+                             f'{state.shape}')
+        for k, (name, size) in enumerate(zip(STATE_VARIABLES, self.dims)):
+            v = state[..., k]
+            if np.any((v < 0) | (v >= size)):
+                raise ValueError(f'state variable {name} must lie in 0..{size - 1}, got {v}')
+        idx = np.ravel_multi_index(tuple(state[..., k] for k in range(11)), self.dims)
+        return int(idx) if np.ndim(idx) == 0 else idx
+
+    def state(self, index) -> tuple | np.ndarray:
+        """The 11-tuple of a flat index (or an (n, 11) array for an array of indices)."""
+        parts = np.unravel_index(index, self.dims)
+        if np.ndim(index) == 0:
+            return tuple(int(v) for v in parts)
+        return np.stack(parts, axis=-1)
+
+    @cached_property
+    def task_grid(self) -> dict:
+        """Task/activity variables of every y = 0..n_task-1 (int8 arrays)."""
+        grid = np.unravel_index(np.arange(self.n_task), self.task_dims)
+        return {name: g.astype(np.int64) for name, g in zip(TASK_VARIABLES, grid)}
+
+    def task_index(self, task: dict) -> np.ndarray:
+        return np.ravel_multi_index(tuple(task[n] for n in TASK_VARIABLES), self.task_dims)
+
+    # -- dynamics pieces -----------------------------------------------------------------
+    @cached_property
+    def emotion_matrices(self) -> dict:
+        """Group -> 9x9 matrix P(h' | h) = kron(em chain, ea chain)."""
+        out = {}
+        for group in ('base', 'motivate', 'request'):
+            em = chain_matrix(*self.config.emotion_chain(group, 'em'))
+            ea = chain_matrix(*self.config.emotion_chain(group, 'ea'))
+            out[group] = np.kron(em, ea)
+        return out
+
+    def action_emotion_matrix(self, action: int) -> np.ndarray:
+        return self.emotion_matrices[ACTION_EMOTION_GROUP[action]]
+
+    def distance_matrix(self, action: int) -> np.ndarray:
+        """Shape (3, 4, 4): P(d' | d, ea) under `action`."""
+        p_delta = self.config.p_delta
+        out = np.zeros((3, N_DISTANCE, N_DISTANCE))
+        for ea in range(3):
+            for d in range(N_DISTANCE):
+                for k, delta in enumerate(DELTAS):
+                    out[ea, d, next_distance(d, action, delta)] += p_delta[ea, k]
+        return out
+
+    def acceptance_probability(self, action: int, em, tp, tx, ty):
+        """P(accepted | s, a): p_accept[em] for an eligible request, else 0."""
+        return np.where(request_eligible(action, tp, tx, ty), self.config.p_accept[em], 0.0)
+
+    # -- cost ----------------------------------------------------------------------------
+    @cached_property
+    def action_cost(self) -> np.ndarray:
+        """g(a) for the 8 actions (MODEL.md 4)."""
+        c = self.config.cost
+        g = np.zeros(len(ACTIONS))
+        g[MH] = c['alpha11']
+        g[[RH1, RH2]] = c['alpha12']
+        g[[DP, DM]] = c['alpha13']
+        return g
+
+    def state_cost(self, states: np.ndarray) -> np.ndarray:
+        """k1*f1 + k2*f2 of an (n, 11) array of states (the action-free part of J)."""
+        c = self.config.cost
+        s = np.asarray(states, dtype=float)
+        em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d = (s[..., k] for k in range(11))
+        f1 = (c['alpha1'] * (ty == 3) * d * hc * bc
+              + (c['alpha2'] + c['alpha3'] * (bp == 0) + c['alpha4'] * (hp == 0))
+              * (ty == 0) * (tp != 0)
+              + c['alpha5'] * (2 - em) * (tx == 2) * (ty == 0)
+              + c['alpha6'] * (tx == 3) * (ty != 3)
+              + c['alpha7'] * (tp > bp) * (ty == 0)
+              + c['alpha8'] * bc + c['alpha9'] * hc
+              + c['alpha10'] * (d == 0))
+        f2 = (c['beta1'] * (3 - d)
+              + (ty != 3) * (c['beta2'] * np.exp(c['beta3'] * (ea - 3) * d)
+                             + c['beta4'] * np.exp(-c['beta5'] * (em + 1) * d)
+                             + ea * c['beta6'] * np.exp(-d)))
+        return c['k1'] * f1 + c['k2'] * f2
+
+    @cached_property
+    def state_cost_vector(self) -> np.ndarray:
+        """k1*f1 + k2*f2 for every flat state, shape (N,), computed by parts."""
+        grid = self.task_grid
+        h = np.arange(N_HIDDEN)
+        em = (h // 3)[:, None, None].astype(float)
+        ea = (h % 3)[:, None, None].astype(float)
+        tp, tc, tx, ty, hp, hc, bp, bc = (grid[n][None, :, None].astype(float)
+                                          for n in TASK_VARIABLES)
+        d = np.arange(N_DISTANCE, dtype=float)[None, None, :]
+        stacked = np.broadcast_arrays(em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d)
+        return self.state_cost(np.stack(stacked, axis=-1)).reshape(-1)
+
+    def cost(self, states: np.ndarray, action: int) -> np.ndarray:
+        """J(s, a) for an (n, 11) array of states."""
+        return self.state_cost(states) + self.action_cost[action]
+
+    # -- explicit transition rows --------------------------------------------------------
+    def transition(self, sources: np.ndarray, action: int) -> Transition:
+        """P(. | s, a) for the flat states `sources`, enumerated explicitly.
+
+        Every combination of acceptance, Delta and (em', ea') is one entry (duplicates of a
+        target are kept; sum them, as scipy.sparse does). This is the rule-by-rule form of
+        the model, used for explicit sparse matrices and for Q of a few states online.
+        """
+        action = action_index(action)
+        sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
+        s = self.state(sources)
+        em, ea, d = s[:, 0], s[:, 1], s[:, 10]
+        task = {name: s[:, 2 + k] for k, name in enumerate(TASK_VARIABLES)}
+        p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
+        emotion = self.action_emotion_matrix(action)
+        p_delta = self.config.p_delta
+        batch = np.arange(len(sources))
+        src, tgt, prob = [], [], []
+        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
+            nxt = step_task(task, action, accepted)
+            y_next = self.task_index(nxt)
+            for k, delta in enumerate(DELTAS):
+                d_next = next_distance(d, action, delta)
+                p_ad = p_a * p_delta[ea, k]
+                for h_next in range(N_HIDDEN):
+                    p = p_ad * emotion[3 * em + ea, h_next]
+                    keep = p > 0
+                    flat = (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep]
+                    src.append(batch[keep])
+                    tgt.append(flat)
+                    prob.append(p[keep])
+        return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
+
+    def q_values(self, value: np.ndarray, sources) -> np.ndarray:
+        """Q(s, a) = -J(s, a) + gamma * E[V(s')] for a few states; shape (len(sources), 8)."""
+        sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
+        states = self.state(sources)
+        q = np.empty((len(sources), len(ACTIONS)))
+        for a in range(len(ACTIONS)):
+            t = self.transition(sources, a)
+            expected = np.bincount(t.source, weights=t.probability * value[t.target],
+                                   minlength=len(sources))
+            q[:, a] = -self.cost(states, a) + self.gamma * expected
+        return q
+
+    def sparse_matrices(self, chunk: int = 1 << 16):
+        """The 8 explicit N x N transition matrices (scipy.sparse CSR), rows = s."""
+        from scipy import sparse
+
+        matrices = []
+        for a in range(len(ACTIONS)):
+            rows, cols, vals = [], [], []
+            for start in range(0, self.n_states, chunk):
+                sources = np.arange(start, min(start + chunk, self.n_states))
+                t = self.transition(sources, a)
+                rows.append(sources[t.source].astype(np.int32))
+                cols.append(t.target.astype(np.int32))
+                vals.append(t.probability)
+            m = sparse.csr_matrix(
+                (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                shape=(self.n_states, self.n_states))
+            m.sum_duplicates()
+            matrices.append(m)
+        return matrices

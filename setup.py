@@ -1,0 +1,40 @@
+"""ament_python package hrc_ros: colcon build (ROS 2 Jazzy) and pip install alike."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'hrc_ros'
+
+NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node']
+TOOLS = {
+    'hrc-solve': 'hrc_ros.solve_cli:main',
+    'hrc-simulate': 'hrc_ros.simulator:main',
+    'hrc-evaluate': 'hrc_ros.evaluate:main',
+    'hrc-bag': 'hrc_ros.bag:main',
+    'hrc-case-study': 'hrc_ros.case_study:main',
+}
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml', 'README.md']),
+        ('share/' + PACKAGE + '/config', sorted(glob('config/*.yaml'))),
+        ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
+        ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
+    ],
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib'],
+    zip_safe=False,
+    maintainer='hrc_ros maintainers',
+    maintainer_email='maintainers@hrc-ros.invalid',
+    description='POMDP decision making for human-robot collaboration (ROS 2 Jazzy nodes)',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [f'{n} = hrc_ros.nodes.{n}:main' for n in NODES]
+        + [f'{name} = {target}' for name, target in TOOLS.items()],
+    },
+)
