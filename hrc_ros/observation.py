@@ -1,0 +1,293 @@
+"""Human motion -> discrete observations (MODEL.md section 6), and the inverse for simulation.
+
+The paper's observation set (eq. observations) is 14 variables: the position of the human centre
+of mass q0 and the joint angles of the left/right shoulder, elbow and hand (ls, rs, le, re, lh,
+rh), and their velocities. Each is discretised into a few levels; the planner only sees levels.
+The case study uses one of them, the human velocity level
+
+    O = 1  if  mean_j |qdot_j| <  t1          (low)
+    O = 2  if  t1 <= mean_j |qdot_j| < t2     (medium)
+    O = 3  otherwise                          (high),
+
+with thresholds t1 < t2 in rad/s (`velocity_level`). A decision epoch spans many sensor
+samples; each sample gets a level and the epoch's O is their majority, ties to the higher (the
+more cautious) level (`window_level`). A vote makes O independent of how many samples a window
+happens to hold, so a replay with other timing yields the same O.
+
+The distance level d of the tri-circle safety approach comes from the skeleton keypoints
+(metres, robot base frame) and three radii r0 < r1 < r2 around the robot reference point p:
+
+    rmin = min_k ||x_k - p||;   d = 0 if rmin < r0 (collision), 1 if < r1 (inner),
+                                    2 if < r2 (middle), 3 otherwise (outer or beyond).
+
+`synthesize_joint_velocities` and `synthesize_skeleton` invert these maps for the simulated
+cell: they draw motion whose level is, by construction, the requested one (strictly inside the
+band, so no rounding at an edge can flip it).
+
+Several features (`ObservationModel`): feature i has thresholds and a likelihood table
+L_i[level, h] = P(level | h), h = 3*em + ea. Features are taken as conditionally independent
+given h (naive Bayes), so the evidence of one observation vector is
+
+    P(o_1, ..., o_n | h) = prod_i L_i[o_i, h],
+
+a (9,) vector that `BeliefFilter.update` accepts in place of an integer O. The case study is the
+single velocity feature whose table is the belief filter's likelihood (`velocity_model`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+N_HIDDEN = 9
+VELOCITY_LEVELS = (1, 2, 3)
+DISTANCE_LEVELS = (0, 1, 2, 3)
+# Node defaults of DESIGN.md (rad/s and metres).
+DEFAULT_VELOCITY_THRESHOLDS = (0.3, 0.8)
+DEFAULT_SAFETY_RADII = (0.2, 0.6, 1.2)
+# How far the synthesized level-3 speeds and d = 3 distances reach beyond the last edge.
+LEVEL3_SPEED_FACTOR = 2.0
+OUTER_BAND_WIDTH = 1.0  # metres beyond the middle radius for d = 3
+# Synthesized values stay this fraction of the band width away from the band's edges.
+BAND_MARGIN = 0.05
+# Offsets of the other keypoints from the closest one (metres): a body-sized cluster.
+BODY_EXTENT = 0.5
+
+
+def _increasing_positive(name: str, values, length: int) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be {length} numbers, got {values!r}') from None
+    if arr.shape != (length,):
+        raise ValueError(f'{name} must be {length} numbers, got shape {arr.shape}')
+    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f'{name} must be finite and positive, got {arr.tolist()}')
+    if np.any(np.diff(arr) <= 0):
+        raise ValueError(f'{name} must be strictly increasing, got {arr.tolist()}')
+    return arr
+
+
+def _finite_array(name: str, values) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be numbers, got {values!r}') from None
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f'{name} must be finite (no NaN or inf), got {arr.tolist()}')
+    return arr
+
+
+def _level_arg(name: str, level, allowed: Sequence[int]) -> int:
+    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) \
+            or int(level) not in allowed:
+        raise ValueError(f'{name} must be one of {tuple(allowed)}, got {level!r}')
+    return int(level)
+
+
+def mean_speed(speeds) -> float:
+    """Mean absolute value of joint velocities (rad/s); finite and non-empty."""
+    arr = _finite_array('speeds', speeds)
+    if arr.size == 0:
+        raise ValueError('speeds is empty: a velocity level needs at least one joint velocity')
+    return float(np.mean(np.abs(arr)))
+
+
+def velocity_level(speeds, thresholds=DEFAULT_VELOCITY_THRESHOLDS) -> int:
+    """O in {1, 2, 3} of joint velocities: mean |v| below t1 -> 1, below t2 -> 2, else 3."""
+    t = _increasing_positive('thresholds', thresholds, 2)
+    v = mean_speed(speeds)
+    return 1 if v < t[0] else 2 if v < t[1] else 3
+
+
+def window_level(levels) -> int:
+    """Majority of per-sample levels over an epoch window; a tie goes to the higher level."""
+    values = levels.reshape(-1).tolist() if isinstance(levels, np.ndarray) else list(levels)
+    if not values:
+        raise ValueError('levels is empty: an epoch window needs at least one sample')
+    counts: dict[int, int] = {}
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ValueError(f'levels must be non-negative integers, got {v!r}')
+        counts[int(v)] = counts.get(int(v), 0) + 1
+    return max(counts, key=lambda level: (counts[level], level))
+
+
+def closest_distance(keypoints, robot_point) -> float:
+    """min_k ||x_k - p|| of keypoints (n, 3) to the robot reference point p (3,), metres."""
+    kp = _finite_array('keypoints', keypoints)
+    if kp.ndim != 2 or kp.shape[1] != 3 or kp.shape[0] == 0:
+        raise ValueError(f'keypoints must have shape (n, 3) with n >= 1, got {kp.shape}')
+    p = _finite_array('robot_point', robot_point)
+    if p.shape != (3,):
+        raise ValueError(f'robot_point must have shape (3,), got {p.shape}')
+    return float(np.sqrt(np.min(np.sum((kp - p) ** 2, axis=1))))
+
+
+def distance_level(keypoints, robot_point=(0.0, 0.0, 0.0), radii=DEFAULT_SAFETY_RADII) -> int:
+    """d in {0..3}: closest keypoint < r0 -> 0 (collision), < r1 -> 1, < r2 -> 2, else 3."""
+    r = _increasing_positive('radii', radii, 3)
+    rmin = closest_distance(keypoints, robot_point)
+    return int(np.searchsorted(r, rmin, side='right'))
+
+
+def _inside(lo: float, hi: float, rng: np.random.Generator) -> float:
+    """A uniform draw strictly inside (lo, hi), BAND_MARGIN of the width from either edge."""
+    pad = BAND_MARGIN * (hi - lo)
+    return float(rng.uniform(lo + pad, hi - pad))
+
+
+def synthesize_joint_velocities(level: int, n_joints: int,
+                                thresholds=DEFAULT_VELOCITY_THRESHOLDS,
+                                rng: np.random.Generator | None = None) -> np.ndarray:
+    """Signed joint velocities (n_joints,) whose mean |v| lies strictly inside `level`'s band.
+
+    Bands: level 1 (0, t1), level 2 (t1, t2), level 3 (t2, 2*t2). A target mean m is drawn
+    inside the band; the magnitudes spread around m (uniform weights in [0.5, 1.5], rescaled so
+    that their mean is exactly m) and the signs are random.
+    """
+    level = _level_arg('level', level, VELOCITY_LEVELS)
+    if isinstance(n_joints, bool) or not isinstance(n_joints, (int, np.integer)) \
+            or n_joints < 1:
+        raise ValueError(f'n_joints must be an integer >= 1, got {n_joints!r}')
+    t = _increasing_positive('thresholds', thresholds, 2)
+    rng = np.random.default_rng() if rng is None else rng
+    edges = (0.0, t[0], t[1], LEVEL3_SPEED_FACTOR * t[1])
+    target = _inside(edges[level - 1], edges[level], rng)
+    weights = rng.uniform(0.5, 1.5, size=int(n_joints))
+    magnitudes = weights * (target / weights.mean())
+    signs = rng.choice((-1.0, 1.0), size=int(n_joints))
+    return signs * magnitudes
+
+
+def synthesize_skeleton(d: int, radii=DEFAULT_SAFETY_RADII, robot_point=(0.0, 0.0, 0.0),
+                        rng: np.random.Generator | None = None,
+                        n_keypoints: int = 7) -> np.ndarray:
+    """Keypoints (n_keypoints, 3) whose closest distance to the robot is strictly inside d's band.
+
+    Bands: d=0 (0, r0), 1 (r0, r1), 2 (r1, r2), 3 (r2, r2 + 1 m). The closest keypoint sits at a
+    drawn distance r along a random direction u; the others are offsets o from it with
+    u.o > 0 (pointing away from the robot), so ||r u + o||^2 = r^2 + 2 r u.o + |o|^2 > r^2 and
+    the closest distance is exactly r. The keypoint order is shuffled.
+    """
+    d = _level_arg('d', d, DISTANCE_LEVELS)
+    if isinstance(n_keypoints, bool) or not isinstance(n_keypoints, (int, np.integer)) \
+            or n_keypoints < 1:
+        raise ValueError(f'n_keypoints must be an integer >= 1, got {n_keypoints!r}')
+    r = _increasing_positive('radii', radii, 3)
+    p = _finite_array('robot_point', robot_point)
+    if p.shape != (3,):
+        raise ValueError(f'robot_point must have shape (3,), got {p.shape}')
+    rng = np.random.default_rng() if rng is None else rng
+    edges = (0.0, r[0], r[1], r[2], r[2] + OUTER_BAND_WIDTH)
+    distance = _inside(edges[d], edges[d + 1], rng)
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    closest = distance * u
+    offsets = rng.uniform(-BODY_EXTENT, BODY_EXTENT, size=(int(n_keypoints) - 1, 3))
+    along = offsets @ u
+    # Reflect the component along u so that every offset points away from the robot.
+    offsets += np.outer(np.abs(along) - along + 1e-3, u)
+    points = np.vstack([closest, closest + offsets])
+    rng.shuffle(points, axis=0)
+    return points + p
+
+
+@dataclass(frozen=True)
+class ObservationFeature:
+    """One discretised observation variable.
+
+    `thresholds` (increasing, length L-1) split a scalar value into levels 1..L: value below
+    thresholds[0] -> 1, ..., at or above thresholds[-1] -> L. An array value (the velocities
+    of a joint's axes, say) is reduced to its mean absolute value first, as `velocity_level`
+    does. `likelihood` (L, 9) is P(level | h); each column sums to 1.
+    """
+
+    name: str
+    thresholds: tuple
+    likelihood: np.ndarray
+
+    def __post_init__(self):
+        t = _finite_array(f'{self.name}.thresholds', self.thresholds).reshape(-1)
+        if t.size == 0 or np.any(np.diff(t) <= 0):
+            raise ValueError(f'{self.name}.thresholds must be a non-empty strictly increasing '
+                             f'list, got {t.tolist()}')
+        lik = _finite_array(f'{self.name}.likelihood', self.likelihood)
+        if lik.shape != (t.size + 1, N_HIDDEN):
+            raise ValueError(f'{self.name}.likelihood must have shape ({t.size + 1}, 9) '
+                             f'(levels x h), got {lik.shape}')
+        if np.any(lik < 0):
+            raise ValueError(f'{self.name}.likelihood has negative probabilities')
+        mass = lik.sum(axis=0)
+        if np.any(np.abs(mass - 1.0) > 1e-6):
+            h = int(np.argmax(np.abs(mass - 1.0)))
+            raise ValueError(f'{self.name}.likelihood column h={h} sums to {mass[h]:.9g}; '
+                             'each column P(. | h) must sum to 1')
+        lik = lik.copy()
+        lik.flags.writeable = False
+        object.__setattr__(self, 'thresholds', tuple(float(v) for v in t))
+        object.__setattr__(self, 'likelihood', lik)
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.thresholds) + 1
+
+    def level(self, value) -> int:
+        """Level 1..L of a value (a number, or an array reduced by its mean |.|)."""
+        arr = _finite_array(self.name, value)
+        if arr.size == 0:
+            raise ValueError(f'{self.name}: empty value')
+        v = float(arr) if arr.ndim == 0 else float(np.mean(np.abs(arr)))
+        return 1 + int(np.searchsorted(self.thresholds, v, side='right'))
+
+
+class ObservationModel:
+    """Independent features: levels of a reading, and their joint likelihood over h."""
+
+    def __init__(self, features: Sequence[ObservationFeature]):
+        features = tuple(features)
+        if not features:
+            raise ValueError('an ObservationModel needs at least one feature')
+        names = [f.name for f in features]
+        if len(set(names)) != len(names):
+            raise ValueError(f'feature names must be unique, got {names}')
+        self.features = features
+        self.names = tuple(names)
+
+    def levels(self, values: Mapping[str, object] | Sequence) -> tuple:
+        """Levels (1-based) of one reading: a mapping name -> value, or values in order."""
+        if isinstance(values, Mapping):
+            missing = [n for n in self.names if n not in values]
+            unknown = [n for n in values if n not in self.names]
+            if missing or unknown:
+                raise ValueError(f'values: missing features {missing}, unknown {unknown}')
+            ordered = [values[n] for n in self.names]
+        else:
+            ordered = list(values)
+            if len(ordered) != len(self.features):
+                raise ValueError(f'values must hold {len(self.features)} values '
+                                 f'({", ".join(self.names)}), got {len(ordered)}')
+        return tuple(f.level(v) for f, v in zip(self.features, ordered))
+
+    def likelihood(self, levels: Sequence[int]) -> np.ndarray:
+        """P(levels | h), shape (9,): the product of the features' P(level_i | h)."""
+        levels = tuple(levels)
+        if len(levels) != len(self.features):
+            raise ValueError(f'levels must hold {len(self.features)} levels, got {levels}')
+        out = np.ones(N_HIDDEN)
+        for f, level in zip(self.features, levels):
+            level = _level_arg(f'level of {f.name}', level, range(1, f.n_levels + 1))
+            out *= f.likelihood[level - 1]
+        return out
+
+
+def velocity_model(likelihood, thresholds=DEFAULT_VELOCITY_THRESHOLDS) -> ObservationModel:
+    """The case study's model: the velocity level alone, likelihood (3, 9) P(O | h).
+
+    Pass `BeliefFilter.likelihood` so that the evidence vector of level O is exactly the
+    filter's row O.
+    """
+    t = _increasing_positive('thresholds', thresholds, 2)
+    return ObservationModel([ObservationFeature('velocity', tuple(t), likelihood)])
