@@ -1,0 +1,188 @@
+"""The belief over the hidden emotions h = 3*em + ea (MODEL.md section 6).
+
+The belief b is a probability vector over h = 0..8 (the paper's Table 5 "State 1..9").
+Table 5 gives, for each velocity level O, a distribution T[O, h] over h. Two modes:
+
+- ``table`` (the paper's case study): after an observation O the belief *is* row T[O]; the
+  previous belief and the action are ignored.
+- ``bayes`` (the default): a discrete Bayes filter. Table 5 is read as P(h | O) under a uniform
+  prior on O, so by Bayes' rule the likelihood is each column normalised over O, mixed with
+  epsilon of uniform so that no observation has probability zero:
+
+      L[O, h] = (1 - epsilon) * T[O, h] / sum_O' T[O', h] + epsilon / 3,      sum_O L[O, h] = 1.
+
+  One epoch under action a with emotion matrix E_a[h, h'] = P(h' | h, a) (MODEL.md 3.4):
+
+      predict   b_pred(h') = sum_h b(h) E_a[h, h']          (b_pred = b @ E_a)
+      correct   b'(h')    ∝ L[O, h'] * b_pred(h').
+
+  Both steps are one product with the precomputed 9x9 matrix M[a, O] = E_a * L[O] (columns
+  scaled), so `update` is a vector-matrix product and a normalisation.
+
+Evidence other than one velocity level: `observation` may be a likelihood vector l (9,) (from
+`observation.ObservationModel.likelihood`, l(h) = P(evidence | h)); bayes mode corrects with l
+instead of L[O]. In table mode a vector yields the posterior under the prior that Table 5
+implies: T[O, h] = L0[O, h] * c(h) / 3 with c(h) = sum_O T[O, h] and L0 the epsilon-free
+likelihood, so the table mode of a vector l is b'(h) ∝ l(h) c(h); for l = L0[O] that is row O
+exactly.
+
+Underflow. With epsilon > 0 the normaliser is at least epsilon/3 and never vanishes. With
+epsilon = 0 an observation that the predicted belief calls impossible (for example O = 3 when
+all the mass sits on calm states) gives a zero posterior; the filter then restarts from the
+evidence alone, b' = l / sum(l) (the belief `initial` would give under a uniform prior), rather
+than return NaN. The same fallback applies whenever the normaliser is below the smallest normal
+float, where the quotient would lose precision.
+
+All functions are pure: they return new arrays and never modify their inputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .model import ACTIONS, action_index
+from .observation import VELOCITY_LEVELS
+
+N_HIDDEN = 9
+N_OBSERVATIONS = 3
+BELIEF_MODES = ('table', 'bayes')
+BELIEF_TOLERANCE = 1e-6  # |sum(b) - 1| allowed in an input belief
+_TINY = np.finfo(float).tiny
+
+
+def validate_belief(belief, name: str = 'belief') -> np.ndarray:
+    """`belief` as a float array (9,) if it is a probability vector; ValueError naming it.
+
+    Cheap (it runs every epoch): a NaN or inf makes the sum non-finite, which fails the check.
+    """
+    try:
+        b = np.asarray(belief, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be 9 probabilities over h = 3*em + ea, '
+                         f'got {belief!r}') from None
+    if b.shape != (N_HIDDEN,):
+        raise ValueError(f'{name} must have shape (9,) (h = 3*em + ea), got {b.shape}')
+    values = b.tolist()   # nine Python floats: faster to reduce than numpy calls
+    total = sum(values)
+    low = min(values)
+    if not (low >= 0.0 and abs(total - 1.0) <= BELIEF_TOLERANCE):
+        if not np.all(np.isfinite(b)):
+            raise ValueError(f'{name} holds NaN or inf: {b.tolist()}')
+        if low < 0.0:
+            raise ValueError(f'{name} holds a negative probability: {b.tolist()}')
+        raise ValueError(f'{name} sums to {total:.9g}, not 1 (tolerance {BELIEF_TOLERANCE})')
+    return b
+
+
+def _check_table(table) -> np.ndarray:
+    try:
+        t = np.array(table, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'table must be 3 rows of 9 probabilities, got {table!r}') from None
+    if t.shape != (N_OBSERVATIONS, N_HIDDEN):
+        raise ValueError(f'table must have shape (3, 9) (row O-1, column h), got {t.shape}')
+    if not np.all(np.isfinite(t)) or np.any(t < 0):
+        raise ValueError('table must hold finite non-negative probabilities')
+    rows = t.sum(axis=1)
+    if np.any(np.abs(rows - 1.0) > BELIEF_TOLERANCE):
+        o = int(np.argmax(np.abs(rows - 1.0))) + 1
+        raise ValueError(f'table row O={o} sums to {rows[o - 1]:.9g}, not 1')
+    if np.any(t.sum(axis=0) <= 0):
+        h = int(np.argmin(t.sum(axis=0)))
+        raise ValueError(f'table column h={h} is zero under every O: the bayes likelihood '
+                         'is undefined')
+    return t
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+class BeliefFilter:
+    """Belief over h for one model; defaults from `model.config` (observation section)."""
+
+    def __init__(self, model, table=None, epsilon=None, mode=None):
+        cfg = model.config
+        self.model = model
+        self.table = _read_only(_check_table(cfg.observation_table if table is None
+                                             else table))
+        epsilon = cfg.epsilon if epsilon is None else epsilon
+        if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.floating)) \
+                or not 0.0 <= float(epsilon) <= 1.0:
+            raise ValueError(f'epsilon must be a probability in [0, 1], got {epsilon!r}')
+        self.epsilon = float(epsilon)
+        mode = cfg.belief_mode if mode is None else mode
+        if mode not in BELIEF_MODES:
+            raise ValueError(f'mode must be one of {", ".join(BELIEF_MODES)}, got {mode!r}')
+        self.mode = mode
+
+        column_mass = self.table.sum(axis=0)           # c(h) = sum_O T[O, h]
+        self.table_prior = _read_only(column_mass / column_mass.sum())
+        exact = self.table / column_mass                # L0[O, h], columns sum to 1
+        self.likelihood = _read_only((1.0 - self.epsilon) * exact
+                                     + self.epsilon / N_OBSERVATIONS)
+        # initial(O) in bayes mode: uniform prior corrected by L[O].
+        self._evidence_only = _read_only(self.likelihood
+                                         / self.likelihood.sum(axis=1, keepdims=True))
+        self.emotion = _read_only(np.stack([model.action_emotion_matrix(a)
+                                            for a in range(len(ACTIONS))]))
+        # M[a, O-1] = E_a with column h' scaled by L[O, h']: b' ∝ b @ M[a, O-1].
+        self._predict_correct = _read_only(self.emotion[:, None, :, :]
+                                           * self.likelihood[None, :, None, :])
+
+    # -- inputs ------------------------------------------------------------------------
+    def _observation(self, observation):
+        """(O-1, None) for an integer level, (None, l) for a likelihood vector."""
+        if isinstance(observation, (int, np.integer)) and not isinstance(observation, bool):
+            if 1 <= observation <= N_OBSERVATIONS:
+                return int(observation) - 1, None
+            raise ValueError(f'observation must be a velocity level in {VELOCITY_LEVELS} '
+                             f'or a likelihood vector (9,), got {observation!r}')
+        try:
+            lik = np.asarray(observation, dtype=float)
+        except (TypeError, ValueError):
+            lik = None
+        if lik is None or lik.shape != (N_HIDDEN,):
+            raise ValueError(f'observation must be a velocity level in {VELOCITY_LEVELS} '
+                             f'or a likelihood vector (9,), got {observation!r}')
+        if not np.all(np.isfinite(lik)) or lik.min() < 0.0 or not lik.max() > 0.0:
+            raise ValueError('observation likelihood must be finite, non-negative and not all '
+                             f'zero, got {lik.tolist()}')
+        # Only ratios matter; scaling to max 1 keeps products of many features from underflow.
+        return None, lik / lik.max()
+
+    # -- the filter --------------------------------------------------------------------
+    def initial(self, observation=None) -> np.ndarray:
+        """b_1: uniform without an observation; else row O (table) or L[O] normalised (bayes)."""
+        if observation is None:
+            return np.full(N_HIDDEN, 1.0 / N_HIDDEN)
+        o, lik = self._observation(observation)
+        if self.mode == 'table':
+            return self.table[o].copy() if lik is None else self._table_vector(lik)
+        return self._evidence_only[o].copy() if lik is None else lik / lik.sum()
+
+    def update(self, belief, action, observation) -> np.ndarray:
+        """b' after taking `action` (name or index) and then observing `observation`."""
+        b = validate_belief(belief)
+        a = action_index(action)
+        o, lik = self._observation(observation)
+        if self.mode == 'table':
+            return self.table[o].copy() if lik is None else self._table_vector(lik)
+        if lik is None:
+            post = b @ self._predict_correct[a, o]
+        else:
+            post = (b @ self.emotion[a]) * lik
+        total = post.sum()
+        if not total >= _TINY:
+            # Evidence the prediction calls impossible (epsilon = 0): restart from it alone.
+            return self._evidence_only[o].copy() if lik is None else lik / lik.sum()
+        post /= total
+        return post
+
+    def _table_vector(self, lik: np.ndarray) -> np.ndarray:
+        post = lik * self.table_prior
+        total = post.sum()
+        if not total >= _TINY:
+            return lik / lik.sum()
+        return post / total
