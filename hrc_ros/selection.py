@@ -1,0 +1,171 @@
+"""Action selection from a belief over h and the observable state (MODEL.md section 6).
+
+The policy pi was solved for the fully observed MDP (MODEL.md 5). Online the robot knows the
+observable part x = (tp, tc, tx, ty, hp, hc, bp, bc, d) and a belief b over the hidden part
+h = 3*em + ea. Each candidate full state s_h = (em, ea, x), h = 0..8, has flat index
+
+    index(s_h) = (h * n_task + y) * 4 + d,    y = ravel_multi_index((tp, ..., bc), task_dims),
+
+so the nine candidates are one column of the policy reshaped to (9, n_task * 4).
+
+Selectors (`SELECTORS`):
+
+- ``paper`` (the paper's "Action Selection Heuristic"): a vote. Action a scores
+  V(a) = sum_{h : pi(s_h) = a} b(h); the largest V wins. Ties (within 1e-12) go to the tied
+  action holding the largest single weight max_{h : pi(s_h) = a} b(h); a remaining tie (again
+  within 1e-12) goes to the first action of the safety order dn, dp, nw, ct, rh1, rh2, mh, dm.
+  scores = V (8,).
+- ``qmdp``: a* = argmax_a sum_h b(h) Q(s_h, a), with Q(s, a) = -J(s, a) + gamma E[V(s')] of the
+  solved value V (`HRCModel.q_values`). Ties within 1e-9 * max(1, |best|) (the solver's own
+  tolerance) go to the safety order. scores = the expected Q (8,). Needs `value`.
+- ``mls`` (most likely state): the policy action of h* = argmax_h b(h); ties in h (within 1e-12)
+  go to the lowest h, i.e. the calmer, less motivated human. scores = one-hot of the action.
+
+The selectors are pure and do not apply the epoch's fail-safe (d = 0 -> dn); the caller does
+(DESIGN.md, one decision epoch, step 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .belief import validate_belief
+from .model import ACTIONS, N_DISTANCE, N_HIDDEN, SAFETY_ORDER, STATE_VARIABLES
+
+SELECTORS = ('paper', 'qmdp', 'mls')
+OBSERVABLE_VARIABLES = STATE_VARIABLES[2:]   # tp tc tx ty hp hc bp bc d
+VOTE_TOLERANCE = 1e-12
+Q_TOLERANCE = 1e-9
+N_ACTIONS = len(ACTIONS)
+
+
+@dataclass(frozen=True)
+class Selection:
+    action: int          # action index (ACTIONS order)
+    scores: np.ndarray   # (8,): vote sums (paper), expected Q (qmdp), one-hot (mls)
+    method: str
+
+    @property
+    def name(self) -> str:
+        return ACTIONS[self.action]
+
+
+def _first_in_safety_order(candidates) -> int:
+    for a in SAFETY_ORDER:
+        if candidates[a]:
+            return a
+    raise AssertionError('no candidate action')
+
+
+class ActionSelector:
+    """Select an action from (belief, observable state) with a solved policy.
+
+    `policy` is the (N,) array of action indices, or an object with `.policy` (a loaded
+    `Policy` or a `SolveResult`); then its `.value` serves qmdp when `value` is not given.
+    """
+
+    def __init__(self, model, policy, value=None, method: str = 'paper'):
+        if hasattr(policy, 'policy'):
+            if value is None:
+                value = getattr(policy, 'value', None)
+            policy = policy.policy
+        self.model = model
+        n = model.n_states
+        pi = np.ascontiguousarray(policy)
+        if pi.shape != (n,) or not np.issubdtype(pi.dtype, np.integer):
+            raise ValueError(f'policy must be an integer array of shape ({n},), got '
+                             f'{pi.dtype} {pi.shape}')
+        if pi.min() < 0 or pi.max() >= N_ACTIONS:
+            raise ValueError(f'policy holds action indices outside 0..{N_ACTIONS - 1}')
+        self.policy = pi
+        self._by_h = pi.reshape(N_HIDDEN, n // N_HIDDEN)   # row h, column (y, d)
+        if value is not None:
+            value = np.asarray(value, dtype=float)
+            if value.shape != (n,) or not np.all(np.isfinite(value)):
+                raise ValueError(f'value must be a finite float array of shape ({n},), got '
+                                 f'{value.shape}')
+        self.value = value
+        self.method = self._check_method(method)
+        self._h_offsets = np.arange(N_HIDDEN) * (n // N_HIDDEN)
+        dims = model.dims[2:]
+        strides = np.cumprod((1,) + tuple(dims[:0:-1]))[::-1]
+        self._observable = tuple(zip(OBSERVABLE_VARIABLES, (int(v) for v in dims),
+                                     (int(s) for s in strides)))
+        assert self._observable[-1][1] == N_DISTANCE
+
+    def _check_method(self, method: str) -> str:
+        if method not in SELECTORS:
+            raise ValueError(f'unknown selector method {method!r}; expected one of '
+                             f'{", ".join(SELECTORS)}')
+        if method == 'qmdp' and self.value is None:
+            raise ValueError("method 'qmdp' needs the solved value function: pass value= "
+                             '(or a Policy/SolveResult that has .value)')
+        return method
+
+    # -- inputs ------------------------------------------------------------------------
+    def column(self, observable) -> int:
+        """Column (y * 4 + d) of the candidates; index(s_h) = h * n_task * 4 + column."""
+        try:
+            values = tuple(observable)
+        except TypeError:
+            raise ValueError('observable must be the 9 integers (tp, tc, tx, ty, hp, hc, bp, '
+                             f'bc, d), got {observable!r}') from None
+        if len(values) != len(self._observable):
+            raise ValueError('observable must be the 9 integers (tp, tc, tx, ty, hp, hc, bp, '
+                             f'bc, d), got {len(values)} values')
+        column = 0
+        for v, (name, size, stride) in zip(values, self._observable):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ValueError(f'observable {name} must be an integer, got {v!r}')
+            if not 0 <= v < size:
+                raise ValueError(f'observable {name} must lie in 0..{size - 1}, got {v}')
+            column += int(v) * stride
+        return column
+
+    def candidate_indices(self, observable) -> np.ndarray:
+        """Flat indices of the nine full states (h, x), h = 0..8."""
+        return self._h_offsets + self.column(observable)
+
+    # -- selection ---------------------------------------------------------------------
+    def select(self, belief, observable, method: str | None = None) -> Selection:
+        """The action for belief b (9,) and observable x; `method` overrides the default."""
+        method = self.method if method is None else self._check_method(method)
+        b = validate_belief(belief)
+        column = self.column(observable)
+        if method == 'paper':
+            return self._paper(b, self._by_h[:, column])
+        if method == 'qmdp':
+            return self._qmdp(b, self._h_offsets + column)
+        return self._mls(b, self._by_h[:, column])
+
+    def _paper(self, b: np.ndarray, actions: np.ndarray) -> Selection:
+        scores = np.bincount(actions, weights=b, minlength=N_ACTIONS)
+        votes = scores.tolist()
+        best = max(votes)
+        tied = [v >= best - VOTE_TOLERANCE for v in votes]
+        if sum(tied) == 1:
+            return Selection(tied.index(True), scores, 'paper')
+        single = [0.0] * N_ACTIONS
+        for a, w in zip(actions.tolist(), b.tolist()):
+            if w > single[a]:
+                single[a] = w
+        top = max(single[a] for a in range(N_ACTIONS) if tied[a])
+        tied = [tied[a] and single[a] >= top - VOTE_TOLERANCE for a in range(N_ACTIONS)]
+        return Selection(_first_in_safety_order(tied), scores, 'paper')
+
+    def _qmdp(self, b: np.ndarray, indices: np.ndarray) -> Selection:
+        support = np.flatnonzero(b > 0.0)   # terms with b(h) = 0 add exactly nothing
+        q = self.model.q_values(self.value, indices[support])
+        scores = b[support] @ q
+        best = scores.max()
+        tied = scores >= best - Q_TOLERANCE * max(1.0, abs(best))
+        return Selection(_first_in_safety_order(tied), scores, 'qmdp')
+
+    def _mls(self, b: np.ndarray, actions: np.ndarray) -> Selection:
+        h = int(np.flatnonzero(b >= b.max() - VOTE_TOLERANCE)[0])
+        action = int(actions[h])
+        scores = np.zeros(N_ACTIONS)
+        scores[action] = 1.0
+        return Selection(action, scores, 'mls')
