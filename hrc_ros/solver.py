@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import _kernels
 from .model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2,
                     SAFETY_ORDER, HRCModel, step_task)
 
@@ -105,6 +106,19 @@ class FactoredBellman:
         self.cost = model.state_cost_vector.reshape(self.shape)  # k1*f1 + k2*f2
         self.g = model.action_cost
 
+        # Inputs of the fused kernels (_kernels): the same pieces, indexed per y.
+        self.gamma_emotion = (self.gamma * self.emotion).reshape(3, N_HIDDEN, N_HIDDEN)
+        self.t_commit_full = np.full(n_y, -1, dtype=np.intp)
+        self.t_commit_full[self.ct_effective] = self.t_commit
+        self.t_accept_full = np.full(n_y, -1, dtype=np.intp)
+        self.t_accept_full[self.request_y] = self.t_accept
+        self.p_accept_vector = np.repeat(p_accept, 3)
+        # mix[group, ea, d', d] = P(d' | d, ea) for the groups (other, dp, dm)
+        self.mix = np.ascontiguousarray(np.stack(
+            [model.distance_matrix(a).transpose(0, 2, 1) for a in (NW, DP, DM)])
+            .reshape(3, 3, 16))
+        self._w = None
+
     # -- building blocks ---------------------------------------------------------------
     def _continuations(self, value: np.ndarray):
         """gamma * U for (nw, dp, dm) [base], mh [motivate], requests [request]."""
@@ -141,8 +155,24 @@ class FactoredBellman:
         q -= self.g[:, None, None, None]
         return q.reshape(len(ACTIONS), -1)
 
+    def sweep(self, value: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray,
+                                                                                float]:
+        """One sweep: (T V, max |T V - V|), with the fused kernel where numba is present."""
+        if not _kernels.AVAILABLE:
+            new = self.bellman_max(value)
+            return new, float(np.max(np.abs(new - value)))
+        if self._w is None:
+            self._w = np.empty((3,) + self.shape)
+        if out is None:
+            out = np.empty(self.model.n_states)
+        residual = np.empty(self.n_y)
+        _kernels.sweep(self.gamma_emotion, self.t_default, self.t_pause, self.t_commit_full,
+                       self.t_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
+                       value.reshape(self.shape), self._w, out.reshape(self.shape), residual)
+        return out, float(residual.max())
+
     def bellman_max(self, value: np.ndarray) -> np.ndarray:
-        """(T V), shape (N,): the max of `bellman_q` without forming it."""
+        """(T V), shape (N,): the max of `bellman_q` without forming it (numpy form)."""
         base, motivate, request = self._continuations(value)
         g = self.g
         nw = base[..., 0:4]
@@ -199,16 +229,16 @@ def solve(model: HRCModel, method: str = 'value_iteration', eta: float | None = 
     op = operator or FactoredBellman(model)
     t_built = time.perf_counter()
     value = np.zeros(model.n_states)
+    spare = np.empty(model.n_states)
     n = 0
     while True:
-        new_value = op.bellman_max(value)
-        residual = float(np.max(np.abs(new_value - value)))
+        new_value, residual = op.sweep(value, out=spare)
         n += 1
         if progress is not None:
             progress(n, residual, time.perf_counter() - t0)
         if (sweeps is None and residual < eta) or (sweeps is not None and n >= sweeps):
             break
-        value = new_value
+        value, spare = new_value, value
     t_sweeps = time.perf_counter()
     # The policy is the argmax of the last sweep's Q (formed from V_{t}, whose image is the
     # returned V_{t+1}), exactly as a textbook value iteration reports it.

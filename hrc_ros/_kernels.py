@@ -1,0 +1,154 @@
+"""Fused sweep kernels of the factored Bellman operator (numba).
+
+`solver.FactoredBellman.bellman_max` computes the same thing with numpy; one kernel fuses
+it into two parallel passes over the task part y, so a sweep reads and writes each array once:
+
+1. the emotion step W[g, h, y, d] = sum_h' gammaE_g[h, h'] V[h', y, d] for the three emotion
+   groups g (base, motivate, request), i.e. the 27x9 product of the numpy form, done here so
+   that numba's and BLAS's thread pools never fight over the two cores;
+2. for every (y, h) the distance step (4x4 matrices by action group and ea) on the
+   rows W[g, h, y'] at the successors y' of y, the max over the eight actions, the cost and the
+   residual.
+
+The four distance values of a row are contiguous and handled as one 4-wide vector (the loops
+over d are unrolled by hand so LLVM vectorises them); h is the outer loop so the distance
+coefficients of its ea are loop invariants. Both passes are numba-parallel over y. The numpy form stays the reference (the
+tests compare the two to 1e-12) and the fallback where numba is missing.
+
+Arguments of `sweep` (N = 9 * n_y * 4): `gamma_e` (3, 9, 9) the gamma-scaled emotion matrices;
+task maps
+`t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
+request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
+[group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
+(9, n_y, 4); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4) scratch for the emotion step; `out`
+receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
+"""
+
+from __future__ import annotations
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is absent
+    numba = None
+
+AVAILABLE = numba is not None
+
+
+def _mix(c, x0, x1, x2, x3):
+    """The distance step of one row: out_d = sum_k c[4k + d] x_k (c = P(d' = k | d))."""
+    return (c[0] * x0 + c[4] * x1 + c[8] * x2 + c[12] * x3,
+            c[1] * x0 + c[5] * x1 + c[9] * x2 + c[13] * x3,
+            c[2] * x0 + c[6] * x1 + c[10] * x2 + c[14] * x3,
+            c[3] * x0 + c[7] * x1 + c[11] * x2 + c[15] * x3)
+
+
+def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost, value,
+           w, out, residual):
+    n_y = value.shape[1]
+    # 1. emotion step for the three groups (one parallel region)
+    for y in numba.prange(n_y):
+        for grp in range(3):
+            for h in range(9):
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+                a3 = 0.0
+                for k in range(9):
+                    e = gamma_e[grp, h, k]
+                    a0 += e * value[k, y, 0]
+                    a1 += e * value[k, y, 1]
+                    a2 += e * value[k, y, 2]
+                    a3 += e * value[k, y, 3]
+                w[grp, h, y, 0] = a0
+                w[grp, h, y, 1] = a1
+                w[grp, h, y, 2] = a2
+                w[grp, h, y, 3] = a3
+    # 2. distance step at the successors, max over actions, cost, residual
+    g_rh = g[1]
+    g_dp = g[4]
+    g_dm = g[5]
+    g_mh = g[6]
+    residual[:] = 0.0
+    for h in range(9):
+        ea = h % 3
+        pa = p_accept_h[h]
+        cn = mix[0, ea]  # nw, dn, ct, mh, requests
+        cp = mix[1, ea]  # dp
+        cm = mix[2, ea]  # dm
+        wb = w[0, h]
+        wm = w[1, h]
+        wr = w[2, h]
+        cost_h = cost[h]
+        value_h = value[h]
+        out_h = out[h]
+        for y in numba.prange(n_y):
+            y0 = t_default[y]
+            yq = t_pause[y]
+            yc = t_commit[y]
+            ya = t_accept[y]
+            x0 = wb[y0, 0]
+            x1 = wb[y0, 1]
+            x2 = wb[y0, 2]
+            x3 = wb[y0, 3]
+            b0, b1, b2, b3 = _mix_inline(cn, x0, x1, x2, x3)  # nw
+            q0, q1, q2, q3 = _mix_inline(cp, x0, x1, x2, x3)  # dp
+            b0 = max(b0, q0 - g_dp)
+            b1 = max(b1, q1 - g_dp)
+            b2 = max(b2, q2 - g_dp)
+            b3 = max(b3, q3 - g_dp)
+            q0, q1, q2, q3 = _mix_inline(cm, x0, x1, x2, x3)  # dm
+            b0 = max(b0, q0 - g_dm)
+            b1 = max(b1, q1 - g_dm)
+            b2 = max(b2, q2 - g_dm)
+            b3 = max(b3, q3 - g_dm)
+            q0, q1, q2, q3 = _mix_inline(cn, wm[y0, 0], wm[y0, 1], wm[y0, 2], wm[y0, 3])  # mh
+            b0 = max(b0, q0 - g_mh)
+            b1 = max(b1, q1 - g_mh)
+            b2 = max(b2, q2 - g_mh)
+            b3 = max(b3, q3 - g_mh)
+            q0, q1, q2, q3 = _mix_inline(cn, wb[yq, 0], wb[yq, 1], wb[yq, 2], wb[yq, 3])  # dn
+            b0 = max(b0, q0)
+            b1 = max(b1, q1)
+            b2 = max(b2, q2)
+            b3 = max(b3, q3)
+            if yc >= 0:  # ct, where effective
+                q0, q1, q2, q3 = _mix_inline(cn, wb[yc, 0], wb[yc, 1], wb[yc, 2], wb[yc, 3])
+                b0 = max(b0, q0)
+                b1 = max(b1, q1)
+                b2 = max(b2, q2)
+                b3 = max(b3, q3)
+            # requests: the refused branch (all a request can do where it is not eligible)
+            r0, r1, r2, r3 = _mix_inline(cn, wr[y0, 0], wr[y0, 1], wr[y0, 2], wr[y0, 3])
+            r0 -= g_rh
+            r1 -= g_rh
+            r2 -= g_rh
+            r3 -= g_rh
+            b0 = max(b0, r0)
+            b1 = max(b1, r1)
+            b2 = max(b2, r2)
+            b3 = max(b3, r3)
+            if ya >= 0:  # the eligible request: accepted with p_accept[em]
+                q0, q1, q2, q3 = _mix_inline(cn, wr[ya, 0], wr[ya, 1], wr[ya, 2], wr[ya, 3])
+                b0 = max(b0, r0 + pa * (q0 - g_rh - r0))
+                b1 = max(b1, r1 + pa * (q1 - g_rh - r1))
+                b2 = max(b2, r2 + pa * (q2 - g_rh - r2))
+                b3 = max(b3, r3 + pa * (q3 - g_rh - r3))
+            b0 -= cost_h[y, 0]
+            b1 -= cost_h[y, 1]
+            b2 -= cost_h[y, 2]
+            b3 -= cost_h[y, 3]
+            worst = max(abs(b0 - value_h[y, 0]), abs(b1 - value_h[y, 1]),
+                        abs(b2 - value_h[y, 2]), abs(b3 - value_h[y, 3]))
+            if worst > residual[y]:
+                residual[y] = worst
+            out_h[y, 0] = b0
+            out_h[y, 1] = b1
+            out_h[y, 2] = b2
+            out_h[y, 3] = b3
+
+
+if AVAILABLE:
+    _mix_inline = numba.njit(inline='always')(_mix)
+    sweep = numba.njit(parallel=True, cache=True, nogil=True)(_sweep)
+else:  # pragma: no cover
+    sweep = None
