@@ -26,13 +26,13 @@ setup(
         ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib', 'numba'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',
     description='POMDP decision making for human-robot collaboration (ROS 2 Jazzy nodes)',
     license='Apache-2.0',
-    tests_require=['pytest'],
+    extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [f'{n} = hrc_ros.nodes.{n}:main' for n in NODES]
         + [f'{name} = {target}' for name, target in TOOLS.items()],
