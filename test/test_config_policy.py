@@ -1,0 +1,141 @@
+"""Configuration validation, policy files and the hrc-solve command."""
+
+import json
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+import yaml
+
+from hrc_ros.config import ConfigError, load_config
+from hrc_ros.model import HRCModel
+from hrc_ros.policy import PolicyError, load_policy, save_policy
+from hrc_ros.solver import solve
+
+DEFAULT = 'config/default.yaml'
+
+
+def write_config(tmp_path, mutate):
+    data = yaml.safe_load(open(DEFAULT))
+    mutate(data)
+    path = tmp_path / 'config.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_shipped_configs_load_and_differ_only_in_alpha10():
+    default, paper = load_config(DEFAULT), load_config('config/paper.yaml')
+    assert default.cost['alpha10'] == 10 and paper.cost['alpha10'] == 1
+    assert {k: v for k, v in paper.cost.items() if k != 'alpha10'} == \
+        {k: v for k, v in default.cost.items() if k != 'alpha10'}
+    assert all(v == 1 for k, v in paper.cost.items())
+    assert default.policy_hash != paper.policy_hash
+    # observation settings do not change the policy hash
+    assert load_config(DEFAULT, {'observation': {'epsilon': 0.05}}).policy_hash == \
+        default.policy_hash
+
+
+@pytest.mark.parametrize('mutate, field', [
+    (lambda d: d['model']['p_delta'].__setitem__(1, [0.1, 0.7, 0.3]), r'model\.p_delta\[1\]'),
+    (lambda d: d['model']['emotion']['motivate'].__setitem__('em', [0.1, 0.4, 0.6]),
+     r'model\.emotion\.motivate\.em'),
+    (lambda d: d['model']['p_accept'].__setitem__(0, 1.3), r'model\.p_accept\[0\]'),
+    (lambda d: d['cost'].__setitem__('alpha3', -1.0), r'cost\.alpha3'),
+    (lambda d: d['solver'].__setitem__('gamma', 1.0), r'solver\.gamma'),
+    (lambda d: d['solver'].__setitem__('gamma', 0.0), r'solver\.gamma'),
+    (lambda d: d['model'].__setitem__('rho', 0), r'model\.rho'),
+    (lambda d: d['model'].__setitem__('sigma', 0), r'model\.sigma'),
+    (lambda d: d['model'].__setitem__('sigma', 1.5), r'model\.sigma'),
+    (lambda d: d['cost'].__setitem__('alpha14', 1.0), r'cost\.alpha14'),
+    (lambda d: d.__setitem__('extras', {}), r'extras'),
+    (lambda d: d['model']['emotion'].__setitem__('shout', {}), r'model\.emotion\.shout'),
+    (lambda d: d['cost'].pop('beta4'), r'cost\.beta4'),
+    (lambda d: d['observation'].__setitem__('mode', 'magic'), r'observation\.mode'),
+    (lambda d: d['solver'].__setitem__('eta', 'small'), r'solver\.eta'),
+])
+def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
+    with pytest.raises(ConfigError, match=field):
+        load_config(write_config(tmp_path, mutate))
+
+
+def test_unreadable_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match='cannot read'):
+        load_config(tmp_path / 'missing.yaml')
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('model: [unclosed\n')
+    with pytest.raises(ConfigError, match='not valid YAML'):
+        load_config(bad)
+
+
+def test_shipped_policies_load_and_match_their_configs():
+    for name in ('default', 'paper'):
+        config = load_config(f'config/{name}.yaml')
+        policy = load_policy(f'policies/{name}.npz', config)
+        assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
+        assert policy.meta['config_sha256'] == config.policy_hash
+        assert policy.meta['converged'] and policy.meta['residual'] < 1e-6
+    with pytest.raises(PolicyError, match='solved for configuration'):
+        load_policy('policies/paper.npz', load_config(DEFAULT))
+
+
+def test_shipped_default_policy_is_a_fresh_solve():
+    config = load_config(DEFAULT)
+    fresh = solve(HRCModel(config))
+    shipped = load_policy('policies/default.npz', config)
+    np.testing.assert_array_equal(shipped.policy, fresh.policy)
+    np.testing.assert_allclose(shipped.value, fresh.value, atol=1e-9)
+
+
+@pytest.fixture(scope='module')
+def small(tmp_path_factory):
+    config = load_config(DEFAULT, overrides={'model': {'rho': 1, 'sigma': 1}})
+    path = tmp_path_factory.mktemp('pol') / 'small.npz'
+    save_policy(path, solve(HRCModel(config), sweeps=5), config)
+    return config, path
+
+
+def test_corrupt_and_foreign_policy_files_are_refused(tmp_path, small):
+    config, good = small
+    assert load_policy(good, config).policy.size == HRCModel(config).n_states
+    with pytest.raises(PolicyError, match='does not exist'):
+        load_policy(tmp_path / 'nope.npz', config)
+    junk = tmp_path / 'junk.npz'
+    junk.write_bytes(b'not a zip at all' * 10)
+    with pytest.raises(PolicyError, match='corrupt'):
+        load_policy(junk, config)
+    truncated = tmp_path / 'truncated.npz'
+    truncated.write_bytes(good.read_bytes()[:2000])
+    with pytest.raises(PolicyError, match='hrc-solve'):
+        load_policy(truncated, config)
+    partial = tmp_path / 'partial.npz'
+    np.savez(partial, policy=np.zeros(3, np.int8))
+    with pytest.raises(PolicyError, match='missing meta, value'):
+        load_policy(partial, config)
+    wrong_dtype = tmp_path / 'dtype.npz'
+    with np.load(good) as a:
+        np.savez(wrong_dtype, policy=a['policy'].astype(np.int64), value=a['value'],
+                 meta=a['meta'])
+    with pytest.raises(PolicyError, match='int8'):
+        load_policy(wrong_dtype, config)
+    with pytest.raises(PolicyError, match=str(good.name)):
+        load_policy(good, load_config(DEFAULT))  # solved for rho = sigma = 1
+    assert zipfile.is_zipfile(good)
+
+
+def test_hrc_solve_cli(tmp_path):
+    config = write_config(tmp_path, lambda d: d['model'].update(rho=1, sigma=1))
+    out = tmp_path / 'p.npz'
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.solve_cli', '--config', str(config),
+                           '-o', str(out), '--every', '50'], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert 'sweep   50  residual' in proc.stdout and 'converged after 280 sweeps' in proc.stdout
+    meta = json.loads(str(np.load(out)['meta']))
+    assert meta['sweeps'] == 280 and meta['config']['model']['rho'] == 1
+    bad = write_config(tmp_path, lambda d: d['solver'].update(gamma=2))
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.solve_cli', '--config', str(bad),
+                           '-o', str(out)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and 'solver.gamma' in proc.stderr
+    assert 'Traceback' not in proc.stderr

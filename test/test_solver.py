@@ -1,0 +1,115 @@
+"""The factored Bellman operator and the solvers against independent formulations."""
+
+import numpy as np
+import pytest
+from scipy import sparse
+
+from hrc_ros import _kernels
+from hrc_ros.config import load_config
+from hrc_ros.model import ACTIONS, DN, NW, HRCModel
+from hrc_ros.solver import FactoredBellman, greedy_policy, solve
+
+CONFIG = 'config/default.yaml'
+REDUCED = {'model': {'rho': 1, 'sigma': 1}}
+
+
+@pytest.fixture(scope='module')
+def reduced():
+    return HRCModel(load_config(CONFIG, overrides=REDUCED))
+
+
+@pytest.fixture(scope='module')
+def full():
+    return HRCModel(load_config(CONFIG))
+
+
+def explicit_q(model, value, matrices):
+    states = np.stack(np.unravel_index(np.arange(model.n_states), model.dims), axis=-1)
+    return np.stack([-model.cost(states, a) + model.gamma * (matrices[a] @ value)
+                     for a in range(len(ACTIONS))])
+
+
+def test_factored_q_equals_explicit_sparse_on_reduced_model(reduced):
+    matrices = reduced.sparse_matrices()
+    for m in matrices:
+        assert isinstance(m, sparse.csr_matrix)
+        np.testing.assert_allclose(np.asarray(m.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    rng = np.random.default_rng(7)
+    op = FactoredBellman(reduced)
+    for value in (rng.normal(size=reduced.n_states) * 20, np.zeros(reduced.n_states)):
+        np.testing.assert_allclose(op.bellman_q(value), explicit_q(reduced, value, matrices),
+                                   atol=1e-10)
+
+
+def test_factored_q_equals_rule_by_rule_q_on_sampled_full_states(full):
+    rng = np.random.default_rng(11)
+    value = rng.normal(size=full.n_states) * 20
+    q = FactoredBellman(full).bellman_q(value)
+    sample = rng.choice(full.n_states, size=3000, replace=False)
+    np.testing.assert_allclose(q[:, sample].T, full.q_values(value, sample), atol=1e-10)
+
+
+@pytest.mark.parametrize('overrides', [REDUCED, {}])
+def test_fast_sweeps_equal_the_max_of_q(overrides):
+    model = HRCModel(load_config(CONFIG, overrides=overrides))
+    op = FactoredBellman(model)
+    value = np.random.default_rng(3).normal(size=model.n_states) * 20
+    q_max = op.bellman_q(value).max(axis=0)
+    np.testing.assert_allclose(op.bellman_max(value), q_max, atol=1e-10)
+    new, residual = op.sweep(value)
+    np.testing.assert_allclose(new, q_max, atol=1e-10)
+    assert residual == pytest.approx(np.max(np.abs(q_max - value)), abs=1e-10)
+
+
+def test_kernel_is_in_use():
+    assert _kernels.AVAILABLE, 'numba missing: the solver falls back to the slow numpy form'
+
+
+def test_value_and_policy_iteration_agree(reduced):
+    vi = solve(reduced)
+    pi = solve(reduced, method='policy_iteration')
+    assert vi.converged and vi.residual < reduced.config.eta
+    # |V_VI - V*| <= gamma * eta / (1 - gamma)
+    assert np.max(np.abs(vi.value - pi.value)) < 2 * 0.95 * 1e-6 / 0.05
+    q = FactoredBellman(reduced).bellman_q(pi.value)
+    differ = np.flatnonzero(vi.policy != pi.policy)
+    gaps = np.abs(q[vi.policy[differ], differ] - q[pi.policy[differ], differ])
+    assert np.all(gaps < 1e-6), 'policies differ beyond ties'
+
+
+def test_value_iteration_is_a_fixed_point_and_counts_sweeps(reduced):
+    res = solve(reduced)
+    assert res.sweeps == 280  # MODEL.md 5: about 280 sweeps with the defaults
+    op = FactoredBellman(reduced)
+    assert np.max(np.abs(op.bellman_max(res.value) - res.value)) < reduced.config.eta
+    fixed = solve(reduced, sweeps=20)  # the paper's k = 20
+    assert fixed.sweeps == 20 and not fixed.converged
+
+
+def test_safety_tie_order():
+    q = np.zeros((8, 3))
+    q[:, 1] = -5.0
+    q[NW, 1] = -1.0           # strict best: nw
+    q[:, 2] = -2.0
+    q[DN, 2] = -2.0 - 1e-12   # within the tie tolerance: dn still wins the tie
+    assert list(greedy_policy(q)) == [DN, NW, DN]
+
+
+def test_shipped_policy_behaviour_matches_the_paper(full):
+    """MODEL.md 7, policy-level facts of the shipped default policy."""
+    from hrc_ros.policy import load_policy
+    policy = load_policy('policies/default.npz', full.config).policy
+
+    def act(state):
+        return ACTIONS[policy[full.index(state)]]
+
+    assert act((0, 0, 1, 1, 3, 0, 0, 0, 0, 0, 2)) == 'mh'   # joint task, unmotivated
+    assert act((1, 0, 1, 1, 3, 0, 0, 0, 0, 0, 1)) == 'rh2'  # motivated: ask for joint work
+    assert act((0, 0, 2, 2, 1, 0, 0, 0, 0, 0, 3)) == 'mh'   # human-only task, unmotivated
+    assert act((1, 1, 2, 2, 1, 0, 0, 0, 0, 0, 3)) == 'rh1'  # then ask the human
+    assert act((0, 0, 2, 2, 2, 0, 0, 0, 0, 0, 3)) == 'ct'   # either task: the robot commits
+    assert act((1, 1, 2, 2, 2, 2, 0, 0, 2, 2, 3)) == 'nw'   # and works
+    assert act((1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1)) == 'dp'   # idle and close: move away
+    assert act((1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 3)) == 'dn'   # idle and far: stop
+    for em in range(3):  # a human-only task is never committed by the robot
+        assert act((em, 1, 2, 2, 1, 0, 0, 0, 0, 0, 3)) != 'ct'
