@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# The test suite: bash scripts/test.sh [pytest args...]
+#   bash scripts/test.sh -k belief -x          # the whole of test/, filtered
+#   bash scripts/test.sh test/test_packaging.py  # only the paths given
+# Bootstraps .venv/ on first use (scripts/bootstrap.sh), then runs python -m pytest -q test.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+source scripts/bootstrap.sh
+
+# One DDS domain per run (1..100, from this shell's process id) so that two runs on one host
+# do not see each other's nodes; an explicit ROS_DOMAIN_ID wins.
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 1 ))}"
+echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE" >&2
+
+# Test paths given (test/x.py, test/x.py::name): run those; otherwise the whole test/ folder.
+targets=(test)
+for arg in "$@"; do
+  if [[ "$arg" != -* && -e "${arg%%::*}" ]]; then
+    targets=()
+    break
+  fi
+done
+exec python -m pytest -q "${targets[@]}" "$@"
