@@ -1,0 +1,520 @@
+"""The package installs the way its users install it, checked with the real tools.
+
+- ROS workspace: `colcon build` of a copy of the package (so nothing is written into the
+  checkout) gives the ament layout, and every console script declared in setup.py is found the
+  way `ros2 run hrc_ros EXE` finds it: the first prefix on AMENT_PREFIX_PATH holding the marker
+  `share/ament_index/resource_index/packages/hrc_ros`, then a walk of `<prefix>/lib/hrc_ros` for
+  an executable file named exactly EXE (ros2cli `ros2run.api.get_executable_path` on
+  `ament_index_python.get_package_prefix`). Tools and nodes then run from the install with the
+  environment its `local_setup.sh` sets; the nodes join the ROS graph and stop cleanly on SIGINT.
+- pip: `pip install` into a fresh environment puts the same scripts in `<venv>/bin` and the
+  data in `<venv>/share/hrc_ros`, where `hrc_ros.policy.share_dir()` finds them.
+- The launch file and the ROS parameter files, against docs/DESIGN.md's parameter table; the
+  params files are parsed by rcl itself (through rclpy), as `--params-file` does.
+- `.ci/run` fails when pytest collects no tests.
+
+Nodes run in a DDS domain of their own (215..230: the range above the Linux ephemeral ports) on
+localhost only, so parallel test runs do not see each other.
+"""
+
+from __future__ import annotations
+
+import ast
+import configparser
+import os
+import random
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = 'hrc_ros'
+# What setup.py and package.xml need; copied into a scratch workspace for the builds.
+PACKAGE_FILES = ('setup.py', 'setup.cfg', 'package.xml', 'README.md', 'resource', PACKAGE,
+                 'config', 'launch', 'policies')
+MARKER = Path('share', 'ament_index', 'resource_index', 'packages', PACKAGE)
+NODE_NAMES = {  # executable -> node name (DESIGN.md, config/hrc_params.yaml)
+    'belief_estimator_node': 'belief_estimator',
+    'decision_node': 'decision',
+    'task_manager_node': 'task_manager',
+    'cell_sim_node': 'cell_sim',
+}
+DOMAIN_ID = random.Random().randint(215, 230)
+BUILD_TIMEOUT = 120
+GRAPH_TIMEOUT = 30.0
+SHUTDOWN_TIMEOUT = 10.0
+# Variables an outer workspace or install may have set; the checks start without them.
+INHERITED = ('PYTHONPATH', 'AMENT_PREFIX_PATH', 'COLCON_PREFIX_PATH', 'CMAKE_PREFIX_PATH',
+             'HRC_ROS_SHARE')
+
+
+def declared_scripts() -> tuple[list[str], list[str]]:
+    """setup.py's NODES and TOOLS names (read with ast, setup.py is not run)."""
+    found = {}
+    for statement in ast.parse((REPO / 'setup.py').read_text()).body:
+        if isinstance(statement, ast.Assign) and len(statement.targets) == 1:
+            target = statement.targets[0]
+            if isinstance(target, ast.Name) and target.id in ('NODES', 'TOOLS'):
+                found[target.id] = ast.literal_eval(statement.value)
+    return list(found['NODES']), list(found['TOOLS'])
+
+
+NODES, TOOLS = declared_scripts()
+
+
+def clean_env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in INHERITED}
+    env.update(ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONUNBUFFERED='1', **extra)
+    return env
+
+
+def copy_package(destination: Path) -> Path:
+    destination.mkdir(parents=True)
+    for name in PACKAGE_FILES:
+        source = REPO / name
+        if source.is_dir():
+            shutil.copytree(source, destination / name,
+                            ignore=shutil.ignore_patterns('__pycache__', '*.pyc'))
+        elif source.is_file():
+            shutil.copy2(source, destination / name)
+    return destination
+
+
+def run(cmd, *, timeout, **kwargs) -> subprocess.CompletedProcess:
+    # Not from the checkout: `python -c` would import its hrc_ros/ (and launch/) from the cwd.
+    kwargs.setdefault('cwd', os.path.sep)
+    return subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True, timeout=timeout, **kwargs)
+
+
+def colcon_build(workspace: Path, *options: str) -> Path:
+    """Build the package in `workspace` (src/hrc_ros) with colcon; returns the install base."""
+    copy_package(workspace / 'src' / PACKAGE)
+    result = run([sys.executable, '-m', 'colcon', '--log-base', str(workspace / 'log'), 'build',
+                  '--base-paths', str(workspace / 'src'),
+                  '--build-base', str(workspace / 'build'),
+                  '--install-base', str(workspace / 'install'), *options],
+                 cwd=workspace, timeout=BUILD_TIMEOUT,
+                 env=clean_env(COLCON_HOME=str(workspace / 'colcon_home')))
+    assert result.returncode == 0, f'colcon build {" ".join(options)} failed:\n{result.stdout}'
+    return workspace / 'install'
+
+
+def sourced_env(install_base: Path) -> dict[str, str]:
+    """The environment after `. install/local_setup.sh`, as a user sources it."""
+    result = run(['sh', '-c', '. "$1/local_setup.sh" && env -0', 'sh', str(install_base)],
+                 env=clean_env(), timeout=30)
+    assert result.returncode == 0, result.stdout
+    return dict(item.split('=', 1) for item in result.stdout.split('\0') if '=' in item)
+
+
+def ros2_run_path(package: str, executable: str, ament_prefix_path: str) -> str | None:
+    """`ros2 run`'s lookup: ament_index_python.get_package_prefix + ros2run's walk of lib/PKG."""
+    for prefix in ament_prefix_path.split(os.pathsep):
+        if prefix and (Path(prefix) / 'share' / 'ament_index' / 'resource_index' / 'packages'
+                       / package).is_file():
+            break
+    else:
+        raise LookupError(f'package {package} not found on AMENT_PREFIX_PATH')
+    matches = []
+    for dirpath, dirnames, filenames in os.walk(os.path.join(prefix, 'lib', package)):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith('.'))
+        for filename in sorted(filenames):
+            path = os.path.join(dirpath, filename)
+            if filename == executable and os.access(path, os.X_OK):
+                matches.append(path)
+    assert len(matches) <= 1, f'ros2 run would refuse: several executables {matches}'
+    return matches[0] if matches else None
+
+
+def interpreter(script: str) -> str:
+    with open(script) as handle:
+        shebang = handle.readline()
+    assert shebang.startswith('#!'), f'{script} has no shebang'
+    return shebang[2:].split()[0]
+
+
+@pytest.fixture(scope='module')
+def colcon_install(tmp_path_factory) -> Path:
+    """A colcon build (the default, copying install) of the package; the install base."""
+    return colcon_build(tmp_path_factory.mktemp('colcon_ws'))
+
+
+@pytest.fixture(scope='module')
+def ros_env(colcon_install) -> dict[str, str]:
+    return sourced_env(colcon_install)
+
+
+@pytest.fixture(scope='module')
+def prefix(colcon_install) -> Path:
+    return colcon_install / PACKAGE   # colcon's default isolated layout: one prefix a package
+
+
+# --- (b) the ament layout of the colcon install ---------------------------------------------
+
+@pytest.mark.parametrize('relative', [
+    str(MARKER),
+    'share/hrc_ros/package.xml',
+    'share/hrc_ros/config/default.yaml',
+    'share/hrc_ros/config/paper.yaml',
+    'share/hrc_ros/config/hrc_params.yaml',
+    'share/hrc_ros/config/case_study_params.yaml',
+    'share/hrc_ros/launch/hrc.launch.py',
+])
+def test_colcon_install_layout(prefix, relative):
+    assert (prefix / relative).is_file(), f'{relative} missing from the colcon install'
+
+
+def test_colcon_install_ships_the_policies(prefix):
+    shipped = sorted(p.name for p in (REPO / 'policies').glob('*.npz'))
+    if 'default.npz' not in shipped:
+        pytest.skip('policies/default.npz is not in the repository yet (hrc-solve writes it)')
+    installed = sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies').glob('*.npz'))
+    assert installed == shipped
+
+
+def test_colcon_install_declares_the_setup_py_scripts(prefix):
+    """The built distribution's console scripts are exactly setup.py's NODES and TOOLS."""
+    entry_points = list(prefix.glob('lib/python3*/site-packages/hrc_ros-*.egg-info/'
+                                    'entry_points.txt'))
+    assert len(entry_points) == 1, entry_points
+    parser = configparser.ConfigParser()
+    parser.read(entry_points[0])
+    assert set(parser['console_scripts']) == set(NODES) | set(TOOLS)
+
+
+# --- (c) ros2 run finds every console script ------------------------------------------------
+
+@pytest.mark.parametrize('executable', NODES + TOOLS)
+def test_ros2_run_finds(executable, prefix, ros_env):
+    path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
+    assert path == str(prefix / 'lib' / PACKAGE / executable), (
+        f'ros2 run {PACKAGE} {executable}: No executable found')
+    assert os.access(path, os.X_OK)
+
+
+def test_ament_index_agrees(prefix, ros_env, monkeypatch):
+    packages = pytest.importorskip('ament_index_python.packages')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', ros_env['AMENT_PREFIX_PATH'])
+    assert Path(packages.get_package_prefix(PACKAGE)) == prefix
+    assert Path(packages.get_package_share_directory(PACKAGE)) == prefix / 'share' / PACKAGE
+
+
+# --- (d) the installed executables run ------------------------------------------------------
+
+def test_installed_tool_runs(prefix, ros_env):
+    path = ros2_run_path(PACKAGE, 'hrc-solve', ros_env['AMENT_PREFIX_PATH'])
+    result = run([path, '--help'], env=ros_env, timeout=60)
+    assert result.returncode == 0, result.stdout
+    assert 'usage: hrc-solve' in result.stdout
+
+
+def test_install_is_self_contained(prefix, ros_env):
+    """The install's code and data are used, not the checkout's or the dev venv's."""
+    python = interpreter(str(prefix / 'lib' / PACKAGE / 'hrc-solve'))
+    result = run([python, '-c', 'import hrc_ros, hrc_ros.policy as p; '
+                  'print(hrc_ros.__file__); print(p.share_dir())'], env=ros_env, timeout=60)
+    assert result.returncode == 0, result.stdout
+    module, share = result.stdout.split()[-2:]
+    assert Path(module).is_relative_to(prefix), f'hrc_ros imported from {module}'
+    assert Path(share) == prefix / 'share' / PACKAGE
+
+
+class GraphProbe:
+    """An rclpy node in a Context of its own that watches the ROS graph."""
+
+    def __init__(self, rclpy):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node('packaging_probe', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def wait_for(self, name: str, namespace: str, process, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and process.poll() is None:
+            if (name, namespace) in self.node.get_node_names_and_namespaces():
+                return True
+            self.executor.spin_once(timeout_sec=0.1)
+        return False
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture(scope='module')
+def graph_probe(monkeypatch_module):
+    rclpy = pytest.importorskip('rclpy')
+    monkeypatch_module.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    probe = GraphProbe(rclpy)
+    yield probe
+    probe.close()
+
+
+@pytest.fixture(scope='module')
+def monkeypatch_module():
+    with pytest.MonkeyPatch.context() as patch:
+        yield patch
+
+
+@pytest.mark.parametrize('executable', NODES)
+def test_installed_node_joins_graph_and_stops_on_sigint(executable, prefix, ros_env,
+                                                        graph_probe, tmp_path):
+    if not (REPO / PACKAGE / 'nodes' / f'{executable}.py').is_file():
+        pytest.skip(f'hrc_ros/nodes/{executable}.py is not written yet')
+    if executable == 'decision_node' and not (REPO / 'policies' / 'default.npz').is_file():
+        pytest.skip('decision_node needs the shipped policies/default.npz, not in the repo yet')
+    name = NODE_NAMES[executable]
+    path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
+    params = prefix / 'share' / PACKAGE / 'config' / 'hrc_params.yaml'
+    log = tmp_path / f'{executable}.log'
+    with open(log, 'w') as output:
+        process = subprocess.Popen([path, '--ros-args', '--params-file', str(params)],
+                                   env=ros_env, stdin=subprocess.DEVNULL, stdout=output,
+                                   stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        joined = graph_probe.wait_for(name, '/', process, GRAPH_TIMEOUT)
+        assert joined, (f'{executable} did not show up as /{name} within {GRAPH_TIMEOUT} s '
+                        f'(exit code {process.poll()}):\n{log.read_text()}')
+        os.killpg(process.pid, signal.SIGINT)   # what Ctrl-C in a terminal does
+        try:
+            code = process.wait(timeout=SHUTDOWN_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f'{executable} ignored SIGINT for {SHUTDOWN_TIMEOUT} s:\n'
+                        f'{log.read_text()}')
+        assert code == 0, f'{executable} exited with {code} on SIGINT:\n{log.read_text()}'
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+# --- colcon build --symlink-install ---------------------------------------------------------
+
+def test_symlink_install_runs_from_the_workspace(tmp_path):
+    """`colcon build --symlink-install` (setuptools develop) also gives a working `ros2 run`:
+    the scripts in lib/hrc_ros, the code imported through the build directory's symlinks, and
+    the data linked into share/hrc_ros."""
+    install = colcon_build(tmp_path, '--symlink-install')
+    env = sourced_env(install)
+    prefix = install / PACKAGE
+    assert (prefix / 'share' / PACKAGE / 'config' / 'default.yaml').is_symlink()
+    path = ros2_run_path(PACKAGE, 'hrc-solve', env['AMENT_PREFIX_PATH'])
+    assert path == str(prefix / 'lib' / PACKAGE / 'hrc-solve')
+    result = run([path, '--help'], env=env, timeout=60)
+    assert result.returncode == 0 and 'usage: hrc-solve' in result.stdout, result.stdout
+    result = run([interpreter(path), '-c', 'import hrc_ros; print(hrc_ros.__file__)'],
+                 env=env, timeout=60)
+    module = Path(result.stdout.split()[-1]).resolve()
+    assert module.is_relative_to(tmp_path / 'src' / PACKAGE), f'hrc_ros imported from {module}'
+
+
+# --- (e) pip install ------------------------------------------------------------------------
+
+def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
+    """A non-editable pip install into a fresh virtual environment: the console scripts in
+    bin/ (pip writes them; setup.cfg's lib/hrc_ros is for colcon only), the data in
+    share/hrc_ros, and share_dir() finding it there.
+
+    `pip --python VENV` rather than `--prefix`: with --prefix the scripts' shebang is the
+    interpreter running pip, not the one that owns the prefix."""
+    source = copy_package(tmp_path / 'src')
+    venv = tmp_path / 'venv'
+    run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], timeout=60, check=True)
+    # Its dependencies (numpy, ..., and setuptools to build) come from this environment,
+    # behind the fresh site-packages, so hrc_ros itself comes from the fresh install.
+    site = next((venv / 'lib').glob('python3*/site-packages'))
+    dependencies = [p for p in sys.path if p.endswith('site-packages')]
+    (site / 'zz_dependencies.pth').write_text('\n'.join(dependencies) + '\n')
+    result = run([sys.executable, '-m', 'pip', '--python', str(venv / 'bin' / 'python'),
+                  'install', '--quiet', '--no-deps', '--no-index', '--no-build-isolation',
+                  str(source)], env=clean_env(), timeout=BUILD_TIMEOUT)
+    assert result.returncode == 0, result.stdout
+    for executable in NODES + TOOLS:
+        assert os.access(venv / 'bin' / executable, os.X_OK), f'bin/{executable} missing'
+    assert not (venv / 'lib' / PACKAGE).exists()
+    share = venv / 'share' / PACKAGE
+    for relative in ('package.xml', 'config/default.yaml', 'config/paper.yaml',
+                     'config/hrc_params.yaml', 'launch/hrc.launch.py'):
+        assert (share / relative).is_file(), f'share/hrc_ros/{relative} missing'
+    assert (venv / MARKER).is_file()
+
+    result = run([str(venv / 'bin' / 'hrc-solve'), '--help'], env=clean_env(), timeout=60)
+    assert result.returncode == 0 and 'usage: hrc-solve' in result.stdout, result.stdout
+    result = run([str(venv / 'bin' / 'python'), '-c',
+                  'import hrc_ros, hrc_ros.policy as p; print(hrc_ros.__file__); '
+                  'print(p.share_dir()); print(p.default_config_path())'],
+                 env=clean_env(), timeout=60)
+    assert result.returncode == 0, result.stdout
+    module, share_dir, config = result.stdout.split()[-3:]
+    assert Path(module).is_relative_to(venv), f'hrc_ros imported from {module}'
+    assert Path(share_dir) == share
+    assert Path(config).is_file()
+
+
+# --- the launch file ------------------------------------------------------------------------
+
+LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
+LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'namespace', 'use_sim'}
+
+
+def test_launch_file_declares_the_cell():
+    source = LAUNCH_FILE.read_text()
+    tree = ast.parse(compile(source, str(LAUNCH_FILE), 'exec', ast.PyCF_ONLY_AST))
+    functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+    assert 'generate_launch_description' in functions
+    strings = {n.value for n in ast.walk(tree)
+               if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+    assert set(NODES) <= strings, f'executables not started: {set(NODES) - strings}'
+    assert set(NODE_NAMES.values()) <= strings
+    declared = {call.args[0].value for call in ast.walk(tree)
+                if isinstance(call, ast.Call) and getattr(call.func, 'id', '') ==
+                'DeclareLaunchArgument'}
+    assert declared == LAUNCH_ARGUMENTS
+
+
+def test_launch_file_loads():
+    launch = pytest.importorskip('launch')
+    if getattr(launch, '__file__', None) is None:   # only the checkout's launch/ folder
+        pytest.skip('ROS 2 `launch` is not installed (it is not on PyPI)')
+    pytest.importorskip('launch_ros', reason='ROS 2 `launch_ros` is not installed')
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('hrc_launch', LAUNCH_FILE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    description = module.generate_launch_description()
+    names = {argument.name for argument in description.get_launch_arguments()}
+    assert names == LAUNCH_ARGUMENTS
+
+
+# --- the ROS parameter files against DESIGN.md's table --------------------------------------
+
+RCL_TYPES = {'string': 'STRING', 'double': 'DOUBLE', 'int': 'INTEGER', 'bool': 'BOOL'}
+
+
+def design_parameters() -> dict[str, dict[str, tuple[str, object]]]:
+    """docs/DESIGN.md "Node parameters": node -> {parameter: (type, default)}."""
+    text = (REPO / 'docs' / 'DESIGN.md').read_text()
+    table = text.split('## Node parameters', 1)[1].split('\n## ', 1)[0]
+    nodes = {name: {} for name in NODE_NAMES.values()}
+    common = {}
+    for line in table.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip('|').split('|')]
+        if len(cells) < 3 or not cells[1].startswith('`'):
+            continue
+        node, names, spec = cells[0], re.findall(r'`(\w+)`', cells[1]), cells[2]
+        for name in names:
+            if spec.startswith('as '):   # "as belief_estimator"
+                nodes[node][name] = nodes[spec.split()[1]][name]
+                continue
+            kind, _, default = spec.partition(', ')
+            default = default.split(' = ')[0].replace('`', '')
+            (common if node == 'all' else nodes[node])[name] = (kind, yaml.safe_load(default))
+    for parameters in nodes.values():
+        parameters.update(common)
+    return nodes
+
+
+def effective_parameters(*params_files: Path, namespace: str = '/cell1') -> dict:
+    """What rcl gives each node from `--params-file`s: node -> {name: (type, value)}."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.signals import SignalHandlerOptions
+    args = ['--ros-args']
+    for path in params_files:
+        args += ['--params-file', str(path)]
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context, domain_id=DOMAIN_ID,
+               signal_handler_options=SignalHandlerOptions.NO)
+    result = {}
+    try:
+        for name in NODE_NAMES.values():
+            node = rclpy.create_node(name, namespace=namespace, context=context,
+                                     automatically_declare_parameters_from_overrides=True)
+            result[name] = {key: (parameter.type_.name, parameter.value)
+                            for key, parameter in node.get_parameters_by_prefix('').items()
+                            if key not in ('use_sim_time', 'start_type_description_service')}
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    return result
+
+
+def check_type(kind: str, rcl_type: str, value) -> None:
+    base, _, size = kind.partition('[')
+    if not size:
+        assert rcl_type == RCL_TYPES[base]
+        return
+    assert rcl_type == RCL_TYPES[base] + '_ARRAY'
+    if size != ']':
+        assert len(value) == int(size[:-1])
+
+
+@pytest.mark.parametrize('name', ['hrc_params.yaml', 'case_study_params.yaml'])
+def test_params_file_parses(name):
+    document = yaml.safe_load((REPO / 'config' / name).read_text())
+    design = design_parameters()
+    known = set().union(*design.values())
+    for section, content in document.items():
+        assert section == '/**' or section.removeprefix('/**/') in design, section
+        assert set(content) == {'ros__parameters'}, section
+        unknown = set(content['ros__parameters']) - known
+        assert not unknown, f'{name} [{section}]: not in DESIGN.md: {unknown}'
+
+
+def test_hrc_params_give_every_node_the_design_defaults():
+    design = design_parameters()
+    path = REPO / 'config' / 'hrc_params.yaml'
+    shared = set(yaml.safe_load(path.read_text())['/**']['ros__parameters'])
+    effective = effective_parameters(path)
+    for node, parameters in design.items():
+        got = effective[node]
+        for name, (kind, default) in parameters.items():
+            if default == []:   # rcl cannot type an empty list: left to the node's default
+                assert name not in got, f'{node}.{name}'
+                continue
+            assert name in got, f'config/hrc_params.yaml gives {node} no {name}'
+            rcl_type, value = got[name]
+            check_type(kind, rcl_type, value)
+            assert value == default, f'{node}.{name}: {value!r}, DESIGN.md says {default!r}'
+        # `/**` parameters reach every node; a node that does not declare one ignores it.
+        assert set(got) <= set(parameters) | shared, f'{node}: {set(got) - set(parameters)}'
+
+
+def test_case_study_params_add_the_schedule():
+    design = design_parameters()
+    effective = effective_parameters(REPO / 'config' / 'hrc_params.yaml',
+                                     REPO / 'config' / 'case_study_params.yaml')
+    task_manager = effective['task_manager']
+    for name, expected in (('initial_task', [1, 1, 3]), ('schedule', ['9:2,2,1', '16:2,2,2'])):
+        rcl_type, value = task_manager[name]
+        check_type(design['task_manager'][name][0], rcl_type, value)
+        assert list(value) == expected
+    assert effective['cell_sim']['initial_emotions'][1] == [0, 0]
+    assert effective['cell_sim']['initial_distance'][1] == 1
+
+
+# --- .ci/run ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('pytest_code, ci_code', [(0, 0), (1, 1), (2, 2), (5, 1)])
+def test_ci_run_fails_when_no_test_ran(tmp_path, pytest_code, ci_code):
+    """.ci/run passes pytest's exit code through, but 5 (no tests collected) is a failure."""
+    (tmp_path / '.ci').mkdir()
+    (tmp_path / 'scripts').mkdir()
+    shutil.copy2(REPO / '.ci' / 'run', tmp_path / '.ci' / 'run')
+    (tmp_path / 'scripts' / 'test.sh').write_text(f'exit {pytest_code}\n')
+    result = run(['bash', str(tmp_path / '.ci' / 'run')], timeout=30, cwd='/')
+    assert result.returncode == ci_code, result.stdout
