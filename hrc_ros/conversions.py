@@ -1,0 +1,368 @@
+"""Every ROS message <-> numpy/Python conversion of hrc_ros, with the validation of inputs.
+
+The nodes read a message, convert it here, call the ROS-free core and convert the result back
+(the py_trees_ros `conversions.py` split). A `*_from_msg` function either returns a value the
+core accepts or raises `MessageError` (a `ValueError`) whose message says what is wrong, so a
+node can drop the message with a warning and a diagnostic and carry on. A `*_to_msg` function
+builds the message of a value the core produced.
+
+Wire formats (INTERFACES.md, plus the decisions below):
+
+- `human/joint_states` (sensor_msgs/JointState): names non-empty and unique; `velocity`
+  (rad/s) and `position` (rad), when present, one per name and finite. If `velocity` is empty
+  it is derived from two successive messages with the same names:
+  ``v = (q_k - q_{k-1}) / (t_k - t_{k-1})`` with t the header stamps (`joint_velocities`).
+- `human/skeleton` (geometry_msgs/PoseArray): keypoint positions in metres in the robot base
+  frame `ROBOT_BASE_FRAME`; at least one keypoint; finite. Orientations are ignored.
+- `hrc/task_state` (std_msgs/UInt8MultiArray): ``[tp, tc, tx, ty, hp, hc, bp, bc]`` with one
+  layout dimension per variable, labelled by its name (size 1, stride 1): a labelled record,
+  not a tensor. An empty layout is accepted (a hand-typed message); a layout with other labels
+  is refused. `hrc/sim/true_state` is the same with the 11 state variables ``em .. d``.
+- `hrc/task_request` (std_msgs/UInt8MultiArray): ``[tp, tc, tx]``; the layout is not read.
+- `hrc/belief` (std_msgs/Float64MultiArray): 9 probabilities over h = 3*em + ea (row-major
+  em, ea), layout dims ``motivation`` (size 3, stride 9) and ``aggression`` (size 3, stride 3).
+  Non-negative, finite, summing to 1 within `BELIEF_TOLERANCE`.
+- `hrc/action` (std_msgs/String): one of ``nw rh1 rh2 ct dp dm mh dn``, exactly.
+- `hrc/observation`, `hrc/distance_level` (std_msgs/UInt8), `hrc/epoch` (std_msgs/UInt32),
+  `hrc/human_response` (std_msgs/Bool).
+- `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseArray
+from sensor_msgs.msg import JointState
+from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+                          UInt8MultiArray, UInt32)
+
+from .belief import BELIEF_TOLERANCE, N_HIDDEN
+from .model import ACTION_INDEX, ACTIONS, STATE_VARIABLES, TASK_VARIABLES, action_index
+
+ROBOT_BASE_FRAME = 'base_link'
+# The six arm joints of the paper's observation set, REP-155 style names.
+HUMAN_JOINTS = ('l_shoulder', 'r_shoulder', 'l_elbow', 'r_elbow', 'l_wrist', 'r_wrist')
+BELIEF_DIMS = (('motivation', 3, 9), ('aggression', 3, 3))
+OBSERVATION_LEVELS = (1, 2, 3)
+DISTANCE_LEVELS = (0, 1, 2, 3)
+# Domain of each task variable besides the priorities / counters (whose top is rho / sigma).
+_NATURE_COMMITMENT_TOP = 3
+
+LEVEL_NAMES = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
+               DiagnosticStatus.ERROR: 'ERROR', DiagnosticStatus.STALE: 'STALE'}
+
+
+class MessageError(ValueError):
+    """A received message cannot be used; the text says why."""
+
+
+# -- time -------------------------------------------------------------------------------------
+def stamp_to_seconds(stamp: Time) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def seconds_to_stamp(seconds: float) -> Time:
+    sec = math.floor(seconds)
+    return Time(sec=int(sec), nanosec=min(int(round((seconds - sec) * 1e9)), 999_999_999))
+
+
+# -- human/joint_states -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class JointSample:
+    """One validated JointState: names, positions / velocities (None when absent), stamp (s)."""
+
+    names: tuple
+    position: np.ndarray | None
+    velocity: np.ndarray | None
+    stamp: float
+
+
+def _finite_vector(values, what: str, n: int) -> np.ndarray | None:
+    if len(values) == 0:
+        return None
+    if len(values) != n:
+        raise MessageError(f'JointState has {n} names but {len(values)} {what} values')
+    array = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(array)):
+        raise MessageError(f'JointState {what} holds NaN or inf: {array.tolist()}')
+    return array
+
+
+def joint_sample_from_msg(msg: JointState) -> JointSample:
+    """Validate a JointState: names, lengths, finiteness; velocity or position present."""
+    names = tuple(msg.name)
+    if not names:
+        raise MessageError('JointState is empty (no joint names)')
+    if len(set(names)) != len(names):
+        raise MessageError(f'JointState names are not unique: {list(names)}')
+    velocity = _finite_vector(msg.velocity, 'velocity', len(names))
+    position = _finite_vector(msg.position, 'position', len(names))
+    if velocity is None and position is None:
+        raise MessageError('JointState has neither velocities nor positions')
+    return JointSample(names, position, velocity, stamp_to_seconds(msg.header.stamp))
+
+
+def joint_velocities(sample: JointSample, previous: JointSample | None = None
+                     ) -> np.ndarray | None:
+    """Joint velocities (rad/s) of a sample; derived from `previous` when it has none.
+
+    Returns None when the velocity cannot be derived yet (no previous sample with positions of
+    the same joints); raises `MessageError` when the stamps do not increase.
+    """
+    if sample.velocity is not None:
+        return sample.velocity
+    if previous is None or previous.position is None or previous.names != sample.names:
+        return None
+    dt = sample.stamp - previous.stamp
+    if not dt > 0.0:
+        raise MessageError(f'JointState without velocities and a header stamp ({sample.stamp:.9f}'
+                           f' s) not after the previous one ({previous.stamp:.9f} s): cannot '
+                           'derive velocities from positions')
+    return (sample.position - previous.position) / dt
+
+
+def joint_state_to_msg(names: Sequence[str], velocity, position=None,
+                       stamp: Time | None = None) -> JointState:
+    msg = JointState()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.name = list(names)
+    msg.velocity = [float(v) for v in velocity]
+    if position is not None:
+        msg.position = [float(q) for q in position]
+    return msg
+
+
+# -- human/skeleton ---------------------------------------------------------------------------
+def keypoints_from_msg(msg: PoseArray, frame_id: str = ROBOT_BASE_FRAME) -> np.ndarray:
+    """Keypoint positions (n, 3) in metres; the header frame must be the robot base frame."""
+    if msg.header.frame_id != frame_id:
+        raise MessageError(f'PoseArray is in frame {msg.header.frame_id!r}, expected '
+                           f'{frame_id!r} (keypoints must be in the robot base frame)')
+    if not msg.poses:
+        raise MessageError('PoseArray holds no keypoints')
+    points = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses],
+                      dtype=float)
+    if not np.all(np.isfinite(points)):
+        raise MessageError('PoseArray keypoints hold NaN or inf')
+    return points
+
+
+def keypoints_to_msg(points, stamp: Time | None = None,
+                     frame_id: str = ROBOT_BASE_FRAME) -> PoseArray:
+    msg = PoseArray()
+    msg.header.frame_id = frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
+    for x, y, z in np.asarray(points, dtype=float).reshape(-1, 3).tolist():
+        pose = Pose()
+        pose.position.x, pose.position.y, pose.position.z = x, y, z
+        pose.orientation.w = 1.0
+        msg.poses.append(pose)
+    return msg
+
+
+# -- levels and epochs ------------------------------------------------------------------------
+def _level_from_msg(msg, allowed: Sequence[int], what: str) -> int:
+    value = int(msg.data)
+    if value not in allowed:
+        raise MessageError(f'{what} {value} is not one of {tuple(allowed)}')
+    return value
+
+
+def observation_from_msg(msg: UInt8) -> int:
+    return _level_from_msg(msg, OBSERVATION_LEVELS, 'observation level')
+
+
+def observation_to_msg(level: int) -> UInt8:
+    return UInt8(data=int(level))
+
+
+def distance_level_from_msg(msg: UInt8) -> int:
+    return _level_from_msg(msg, DISTANCE_LEVELS, 'distance level')
+
+
+def distance_level_to_msg(d: int) -> UInt8:
+    return UInt8(data=int(d))
+
+
+def epoch_from_msg(msg: UInt32) -> int:
+    k = int(msg.data)
+    if k < 1:
+        raise MessageError(f'epoch {k}: epochs are numbered from 1')
+    return k
+
+
+def epoch_to_msg(k: int) -> UInt32:
+    return UInt32(data=int(k))
+
+
+def human_response_from_msg(msg: Bool) -> bool:
+    return bool(msg.data)
+
+
+def human_response_to_msg(accepted: bool) -> Bool:
+    return Bool(data=bool(accepted))
+
+
+# -- task state, requests, the simulator's true state -----------------------------------------
+def _labelled_record(values: Sequence[int], labels: Sequence[str]) -> UInt8MultiArray:
+    msg = UInt8MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=name, size=1, stride=1) for name in labels]
+    msg.data = [int(v) for v in values]
+    return msg
+
+
+def _record_from_msg(msg: UInt8MultiArray, labels: Sequence[str], what: str,
+                     tops: Sequence[int] | None) -> dict:
+    values = list(msg.data)
+    if len(values) != len(labels):
+        raise MessageError(f'{what} must hold {len(labels)} values ({" ".join(labels)}), '
+                           f'got {len(values)}')
+    got = [dim.label for dim in msg.layout.dim]
+    if got and got != list(labels):
+        raise MessageError(f'{what} layout labels {got} are not {list(labels)}')
+    if tops is not None:
+        for name, value, top in zip(labels, values, tops):
+            if value > top:
+                raise MessageError(f'{what}: {name} = {value} is out of its domain 0..{top}')
+    return {name: int(v) for name, v in zip(labels, values)}
+
+
+def task_domain(rho: int, sigma: int) -> tuple:
+    """Largest value of each task variable (tp tc tx ty hp hc bp bc) for a model's rho, sigma."""
+    top = _NATURE_COMMITMENT_TOP
+    return (rho, sigma, top, top, rho, sigma, rho, sigma)
+
+
+def task_state_to_msg(state: Mapping[str, int]) -> UInt8MultiArray:
+    return _labelled_record([state[name] for name in TASK_VARIABLES], TASK_VARIABLES)
+
+
+def task_state_from_msg(msg: UInt8MultiArray, rho: int | None = None,
+                        sigma: int | None = None) -> dict:
+    """The eight task variables; with rho and sigma, each is checked against its domain."""
+    tops = None if rho is None or sigma is None else task_domain(rho, sigma)
+    return _record_from_msg(msg, TASK_VARIABLES, 'task state', tops)
+
+
+def true_state_to_msg(state: Mapping[str, int]) -> UInt8MultiArray:
+    return _labelled_record([state[name] for name in STATE_VARIABLES], STATE_VARIABLES)
+
+
+def true_state_from_msg(msg: UInt8MultiArray) -> dict:
+    return _record_from_msg(msg, STATE_VARIABLES, 'true state', None)
+
+
+def task_request_from_msg(msg: UInt8MultiArray, rho: int | None = None,
+                          sigma: int | None = None) -> tuple:
+    """A task request (tp, tc, tx): priority 1..rho, duration 1..sigma, nature 0..3."""
+    values = [int(v) for v in msg.data]
+    if len(values) != 3:
+        raise MessageError(f'task request must be [priority, duration, nature], got {values}')
+    tp, tc, tx = values
+    limits = (('tp (priority)', tp, rho), ('tc (duration)', tc, sigma),
+              ('tx (nature)', tx, _NATURE_COMMITMENT_TOP))
+    for name, value, top in limits:
+        low = 0 if name.startswith('tx') else 1
+        if value < low or (top is not None and value > top):
+            span = f'{low}..{top}' if top is not None else f'>= {low}'
+            raise MessageError(f'task request {values}: {name} must be in {span}, got {value}')
+    return tp, tc, tx
+
+
+def task_request_to_msg(tp: int, tc: int, tx: int) -> UInt8MultiArray:
+    return _labelled_record((tp, tc, tx), ('tp', 'tc', 'tx'))
+
+
+# -- belief -----------------------------------------------------------------------------------
+def belief_to_msg(belief) -> Float64MultiArray:
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride)
+                      for label, size, stride in BELIEF_DIMS]
+    msg.data = [float(p) for p in np.asarray(belief, dtype=float).reshape(-1)]
+    return msg
+
+
+def belief_from_msg(msg: Float64MultiArray) -> np.ndarray:
+    """The belief (9,) over h = 3*em + ea; refused unless it is a probability vector."""
+    values = np.asarray(msg.data, dtype=float)
+    if values.shape != (N_HIDDEN,):
+        raise MessageError(f'belief must hold 9 probabilities (h = 3*em + ea), got '
+                           f'{values.size}')
+    dims = [(d.label, d.size) for d in msg.layout.dim]
+    if dims and dims != [(label, size) for label, size, _ in BELIEF_DIMS]:
+        raise MessageError(f'belief layout {dims} is not motivation (3) x aggression (3)')
+    if msg.layout.data_offset != 0:
+        raise MessageError(f'belief layout data_offset must be 0, got {msg.layout.data_offset}')
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f'belief holds NaN or inf: {values.tolist()}')
+    if np.any(values < 0.0):
+        raise MessageError(f'belief holds a negative probability: {values.tolist()}')
+    total = float(values.sum())
+    if abs(total - 1.0) > BELIEF_TOLERANCE:
+        raise MessageError(f'belief sums to {total:.9g}, not 1')
+    return values
+
+
+# -- action -----------------------------------------------------------------------------------
+def action_from_msg(msg: String) -> int:
+    if msg.data not in ACTION_INDEX:
+        raise MessageError(f'unknown action {msg.data!r}; expected one of {" ".join(ACTIONS)}')
+    return ACTION_INDEX[msg.data]
+
+
+def action_to_msg(action) -> String:
+    return String(data=ACTIONS[action_index(action)])
+
+
+# -- diagnostics ------------------------------------------------------------------------------
+def _format_value(value) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        return 'true' if value else 'false'
+    if isinstance(value, (float, np.floating)):
+        return f'{float(value):.6g}'
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_format_value(v) for v in value) + ']'
+    if value is None:
+        return 'none'
+    return str(value)
+
+
+def key_values(values: Mapping[str, object] | Iterable[tuple]) -> list[KeyValue]:
+    items = values.items() if isinstance(values, Mapping) else values
+    return [KeyValue(key=str(k), value=_format_value(v)) for k, v in items]
+
+
+def diagnostic_status(name: str, level: bytes, message: str,
+                      values: Mapping[str, object] | None = None,
+                      hardware_id: str = '') -> DiagnosticStatus:
+    if level not in LEVEL_NAMES:
+        raise ValueError(f'diagnostic level must be one of DiagnosticStatus OK/WARN/ERROR/STALE, '
+                         f'got {level!r}')
+    return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                            values=key_values(values or {}))
+
+
+def diagnostic_array(statuses: Iterable[DiagnosticStatus], stamp: Time | None = None
+                     ) -> DiagnosticArray:
+    msg = DiagnosticArray()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.status = list(statuses)
+    return msg
+
+
+def diagnostic_values(status: DiagnosticStatus) -> dict:
+    """The key-values of a status as a dict (for tests and tools)."""
+    return {kv.key: kv.value for kv in status.values}
