@@ -1,0 +1,223 @@
+"""belief_estimator: human motion -> velocity level O, distance level d and the belief b.
+
+Per epoch k (docs/DESIGN.md, ROS epoch protocol), on `hrc/epoch` k:
+
+    O_k = window_level(levels of the joint-state samples received since epoch k-1)
+    b_k = initial(O_k)                         at the first epoch
+    b_k = update(b_{k-1}, a_{k-1}, O_k)        afterwards (a_{k-1}: the last `hrc/action`)
+    d_k = distance_level(latest skeleton of the window)
+
+and publishes `hrc/distance_level` d_k, `hrc/observation` O_k and `hrc/belief` b_k. Each joint
+state sample gets its level at once (`velocity_level` of its velocities), so the node keeps
+three counters per window, not the samples, and its memory does not grow with the rate.
+
+Degraded inputs, never fatal: a malformed message is dropped (warning + diagnostic). A window
+with no joint states publishes no observation and no belief (the decision node then falls back
+to dn); the belief is carried forward by the prediction step alone (an uninformative
+observation), so the next epoch's update stays consistent with the actions taken. A window with
+no skeleton publishes no distance level (the decision node's copy ages and goes stale). A
+missing a_{k-1} is taken as dn, the robot controller's safe default.
+
+Topics: subscribes `human/joint_states`, `human/skeleton` (sensor data QoS), `hrc/action`,
+`hrc/epoch`; publishes `hrc/belief`, `hrc/distance_level` (latched), `hrc/observation`,
+`/diagnostics` (per-second status: rates, lag = receive time - header stamp of the joint
+states, drops).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String, UInt8, UInt32
+
+from .. import conversions as conv
+from .. import qos
+from ..belief import BELIEF_MODES, BeliefFilter
+from ..model import DN, HRCModel
+from ..observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
+                           velocity_level, window_level)
+from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
+                     StartupError, check_array, check_core, load_node_config, run)
+
+LEVELS = np.array([1, 2, 3])
+NO_EVIDENCE = np.ones(9)   # the likelihood of an epoch without observation: predict only
+
+T = Parameter.Type
+CONFIG = ParamSpec('config', T.STRING, '', "model configuration YAML ('' = the shipped "
+                   'default.yaml)', read_only=True)
+VELOCITY_THRESHOLDS = ParamSpec(
+    'velocity_thresholds', T.DOUBLE_ARRAY, list(DEFAULT_VELOCITY_THRESHOLDS),
+    'rad/s, mean |joint velocity| of a sample: O=1 below the first, O=2 below the second, '
+    'else O=3', constraints='2 values, positive, strictly increasing')
+SAFETY_RADII = ParamSpec(
+    'safety_radii', T.DOUBLE_ARRAY, list(DEFAULT_SAFETY_RADII),
+    'metres: collision / inner / middle circle radii around the robot reference point',
+    constraints='3 values, positive, strictly increasing')
+ROBOT_REFERENCE_POINT = ParamSpec(
+    'robot_reference_point', T.DOUBLE_ARRAY, [0.0, 0.0, 0.0],
+    'metres, robot base frame: centre of the safety circles', constraints='3 finite values')
+PARAMETERS = (
+    CONFIG,
+    ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
+              "configuration's observation.mode)", constraints="'', 'bayes' or 'table'"),
+    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+)
+
+
+def check_motion_parameters(values) -> str | None:
+    """Thresholds, radii and reference point (shared with cell_sim, which must match)."""
+    return (check_core(values, 'velocity_thresholds', lambda t: velocity_level([0.0], t))
+            or check_core(values, 'safety_radii',
+                          lambda r: distance_level(np.zeros((1, 3)), (0.0, 0.0, 0.0), r))
+            or check_array(values, 'robot_reference_point', 3))
+
+
+def check_parameters(values) -> str | None:
+    mode = values.get('belief_mode', '')
+    if mode not in ('',) + BELIEF_MODES:
+        return f"belief_mode must be '', {' or '.join(BELIEF_MODES)}, got {mode!r}"
+    return check_motion_parameters(values)
+
+
+class BeliefEstimatorNode(Node):
+    NODE_NAME = 'belief_estimator'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
+        self.config = load_node_config(self.params.value('config'))
+        self.model = HRCModel(self.config)
+        self._apply_parameters(self.params.values())
+
+        self.epoch = 0
+        self.belief: np.ndarray | None = None
+        self.observation: int | None = None
+        self.distance_level: int | None = None
+        self._level_counts = np.zeros(3, dtype=np.int64)   # samples of O = 1, 2, 3 in the window
+        self._window_distance: int | None = None
+        self._action: int | None = None                    # a_{k-1}: last action of the window
+        self._previous_sample: conv.JointSample | None = None
+        self._lag = LagStats()
+
+        self.belief_pub = self.create_publisher(Float64MultiArray, 'hrc/belief', qos.LATCHED)
+        self.distance_pub = self.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
+        self.observation_pub = self.create_publisher(UInt8, 'hrc/observation', qos.RELIABLE)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(JointState, 'human/joint_states', qos.SENSOR_DATA,
+                              conv.joint_sample_from_msg, self._on_joint_sample)
+        self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
+                              conv.keypoints_from_msg, self._on_keypoints)
+        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
+                              self._on_action)
+        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
+                              self._on_epoch)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+
+    def _apply_parameters(self, values) -> None:
+        mode = values['belief_mode'] or None
+        try:
+            self.filter = BeliefFilter(self.model, mode=mode)
+        except ValueError as exc:
+            raise StartupError(f'belief filter: {exc}') from None
+        self.velocity_thresholds = tuple(values['velocity_thresholds'])
+        self.safety_radii = tuple(values['safety_radii'])
+        self.robot_reference_point = tuple(values['robot_reference_point'])
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_joint_sample(self, sample: conv.JointSample) -> None:
+        previous = self._previous_sample
+        if sample.position is not None:
+            self._previous_sample = sample
+        velocities = conv.joint_velocities(sample, previous)
+        if velocities is None:
+            return
+        level = velocity_level(velocities, self.velocity_thresholds)
+        self._level_counts[level - 1] += 1
+        if sample.stamp > 0.0:
+            self._lag.add(self.get_clock().now().nanoseconds * 1e-9 - sample.stamp)
+
+    def _on_keypoints(self, keypoints: np.ndarray) -> None:
+        self._window_distance = distance_level(keypoints, self.robot_reference_point,
+                                               self.safety_radii)
+
+    def _on_action(self, action: int) -> None:
+        self._action = action
+
+    def _on_epoch(self, k: int) -> None:
+        if k <= self.epoch:
+            raise conv.MessageError(f'epoch {k} does not follow the previous epoch {self.epoch}')
+        self.epoch = k
+        action = DN if self._action is None else self._action
+        statuses = []
+        if self._window_distance is not None:
+            self.distance_level = self._window_distance
+            self.distance_pub.publish(conv.distance_level_to_msg(self.distance_level))
+        else:
+            statuses.append(self.inputs.status(
+                'epoch', WARN, f'epoch {k}: no skeleton since the last epoch; distance level '
+                'not published', {'epoch': k}))
+        if self._level_counts.sum() > 0:
+            self.observation = window_level(np.repeat(LEVELS, self._level_counts))
+            self.belief = (self.filter.initial(self.observation) if self.belief is None
+                           else self.filter.update(self.belief, action, self.observation))
+            self.observation_pub.publish(conv.observation_to_msg(self.observation))
+            self.belief_pub.publish(conv.belief_to_msg(self.belief))
+        else:
+            self.observation = None
+            if self.belief is not None:
+                self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
+            statuses.append(self.inputs.status(
+                'epoch', WARN, f'epoch {k}: no joint states since the last epoch; belief not '
+                'published (predicted only)', {'epoch': k}))
+        if statuses:
+            self.get_logger().warning(statuses[0].message, throttle_duration_sec=5.0)
+            self.inputs.publish(*statuses)
+        self._level_counts[:] = 0
+        self._window_distance = None
+        self._action = None
+
+    # -- health ----------------------------------------------------------------------------
+    def _publish_status(self) -> None:
+        lag = self._lag.take()
+        values = {'epoch': self.epoch, 'observation': self.observation,
+                  'distance_level': self.distance_level,
+                  'belief': None if self.belief is None else np.round(self.belief, 4),
+                  'belief_mode': self.filter.mode,
+                  'joint_states_in_period': lag['count'],
+                  'joint_state_lag_ms_mean': lag['mean_ms'],
+                  'joint_state_lag_ms_max': lag['max_ms'],
+                  **self.inputs.counts()}
+        dropped = sum(self.inputs.dropped.values())
+        level = WARN if dropped else OK
+        message = f'{dropped} messages dropped so far' if dropped else 'ok'
+        self.inputs.publish(self.inputs.status('estimator', level, message, values))
+
+
+class LagStats:
+    """Receive time - header stamp of the joint states, accumulated per status period."""
+
+    def __init__(self):
+        self.count, self.total, self.max = 0, 0.0, float('-inf')
+
+    def add(self, lag: float) -> None:
+        self.count += 1
+        self.total += lag
+        self.max = max(self.max, lag)
+
+    def take(self) -> dict:
+        out = {'count': self.count,
+               'mean_ms': 1e3 * self.total / self.count if self.count else None,
+               'max_ms': 1e3 * self.max if self.count else None}
+        self.__init__()
+        return out
+
+
+def main(args=None):
+    return run(BeliefEstimatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,172 @@
+"""cell_sim: a simulated human and cell that closes the loop with no hardware.
+
+A `SimulatedHuman` (seeded) holds the hidden emotions (em, ea) and the distance level d, and
+the observation O it currently shows. The node
+
+- streams `human/joint_states` (the six arm joints of `conversions.HUMAN_JOINTS`, velocities
+  filled and positions integrated from them) and `human/skeleton` (7 keypoints in `base_link`)
+  at `sensor_rate` Hz, from start-up on: every sample is drawn inside the velocity band of the
+  current O and the distance band of the current d (`synthesize_joint_velocities`,
+  `synthesize_skeleton`), so the belief estimator recovers O and d whatever the window holds;
+- reacts to each `hrc/action` a_k at once (DESIGN.md): ``human.react(a_k, task state)`` with
+  the latest `hrc/task_state` (x_k, published before a_k); for a request (rh1, rh2) it
+  publishes `hrc/human_response` (false for a request the task state makes ineligible); the new
+  (em, ea, d, O) take effect on the next sample, which is sent at once.
+
+Debug topic (an extension of INTERFACES.md, for tests and plots): `hrc/sim/true_state`
+(std_msgs/UInt8MultiArray, latched), the 11 state variables ``em ea tp tc tx ty hp hc bp bc d``
+with layout labels: the hidden (em, ea) and d after each reaction (and at start-up) with the
+latest task state.
+
+The human's random stream is `seed` itself, so the same seed gives the same hidden trajectory
+as the simulator for the same actions; the sensor samples draw from a separate stream.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool, String, UInt8MultiArray
+
+from .. import conversions as conv
+from .. import qos
+from ..cell import SimulatedHuman
+from ..model import RH1, RH2, TASK_VARIABLES, HRCModel
+from ..observation import synthesize_joint_velocities, synthesize_skeleton
+from .belief_estimator_node import (ROBOT_REFERENCE_POINT, SAFETY_RADII, VELOCITY_THRESHOLDS,
+                                    check_motion_parameters)
+from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
+                     StartupError, check_array, load_node_config, run)
+
+SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
+IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
+
+T = Parameter.Type
+PARAMETERS = (
+    ParamSpec('config', T.STRING, '', "model configuration YAML ('' = the shipped "
+              'default.yaml)', read_only=True),
+    ParamSpec('seed', T.INTEGER, 0, 'seed of the simulated human', read_only=True,
+              range=(0, 2**31 - 1)),
+    ParamSpec('initial_emotions', T.INTEGER_ARRAY, [0, 0], '(em, ea) at epoch 1, each 0..2',
+              read_only=True, constraints='2 integers in 0..2'),
+    ParamSpec('initial_distance', T.INTEGER, 1, 'distance level d at epoch 1', read_only=True,
+              range=(0, 3)),
+    ParamSpec('sensor_rate', T.DOUBLE, 50.0, 'Hz of joint states and skeletons',
+              range=(0.1, 1000.0)),
+    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+)
+
+
+def check_parameters(values) -> str | None:
+    return (check_array(values, 'initial_emotions', 2, low=0, high=2)
+            or check_motion_parameters(values))
+
+
+class CellSimNode(Node):
+    NODE_NAME = 'cell_sim'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
+        values = self.params.values()
+        self.config = load_node_config(values['config'])
+        self.model = HRCModel(self.config)
+        em, ea = (int(v) for v in values['initial_emotions'])
+        try:
+            self.human = SimulatedHuman(self.model, seed=values['seed'], em=em, ea=ea,
+                                        d=values['initial_distance'])
+        except ValueError as exc:
+            raise StartupError(f'simulated human: {exc}') from None
+        self.sensor_rng = np.random.default_rng([values['seed'], SENSOR_STREAM])
+        self.task_state: dict | None = None
+        self.reactions = 0
+        self._position = np.zeros(len(conv.HUMAN_JOINTS))
+        self._last_sample_ns: int | None = None
+        self._apply_motion(values)
+
+        self.joint_pub = self.create_publisher(JointState, 'human/joint_states',
+                                               qos.SENSOR_DATA)
+        self.skeleton_pub = self.create_publisher(PoseArray, 'human/skeleton', qos.SENSOR_DATA)
+        self.response_pub = self.create_publisher(Bool, 'hrc/human_response', qos.RELIABLE)
+        self.true_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/sim/true_state',
+                                                    qos.LATCHED)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
+                              self._on_action)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
+                              self._task_state_from_msg, self._on_task_state)
+        self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self._publish_true_state()
+
+    def _apply_motion(self, values) -> None:
+        self.velocity_thresholds = tuple(values['velocity_thresholds'])
+        self.safety_radii = tuple(values['safety_radii'])
+        self.robot_reference_point = tuple(values['robot_reference_point'])
+
+    def _apply_parameters(self, values) -> None:
+        self._apply_motion(values)
+        self.sensor_timer.timer_period_ns = int(1e9 / values['sensor_rate'])
+
+    def _task_state_from_msg(self, msg):
+        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_task_state(self, task_state: dict) -> None:
+        self.task_state = task_state
+
+    def _on_action(self, action: int) -> None:
+        task_state = self.task_state
+        if task_state is None:
+            task_state = IDLE_TASK
+            self.get_logger().warning('action received before any task state; reacting as '
+                                      'in an idle cell', throttle_duration_sec=5.0)
+        reaction = self.human.react(action, task_state)
+        self.reactions += 1
+        if action in (RH1, RH2):
+            self.response_pub.publish(conv.human_response_to_msg(reaction.accepted is True))
+        self._publish_true_state()
+        self._stream()
+
+    # -- outputs ---------------------------------------------------------------------------
+    def _stream(self) -> None:
+        now = self.get_clock().now()
+        dt = 0.0 if self._last_sample_ns is None else (now.nanoseconds
+                                                       - self._last_sample_ns) * 1e-9
+        self._last_sample_ns = now.nanoseconds
+        velocity = synthesize_joint_velocities(self.human.observation, len(conv.HUMAN_JOINTS),
+                                               self.velocity_thresholds, self.sensor_rng)
+        self._position += velocity * dt
+        keypoints = synthesize_skeleton(self.human.d, self.safety_radii,
+                                        self.robot_reference_point, self.sensor_rng)
+        stamp = now.to_msg()
+        self.joint_pub.publish(conv.joint_state_to_msg(conv.HUMAN_JOINTS, velocity,
+                                                       self._position, stamp))
+        self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp))
+
+    def true_state(self) -> dict:
+        task = self.task_state or IDLE_TASK
+        return {'em': self.human.em, 'ea': self.human.ea, **task, 'd': self.human.d}
+
+    def _publish_true_state(self) -> None:
+        self.true_state_pub.publish(conv.true_state_to_msg(self.true_state()))
+
+    def _publish_status(self) -> None:
+        dropped = sum(self.inputs.dropped.values())
+        values = {'reactions': self.reactions, 'em': self.human.em, 'ea': self.human.ea,
+                  'd': self.human.d, 'observation': self.human.observation,
+                  **self.inputs.counts()}
+        message = f'{dropped} messages dropped so far' if dropped else 'ok'
+        self.inputs.publish(self.inputs.status('simulation', WARN if dropped else OK, message,
+                                               values))
+
+
+def main(args=None):
+    return run(CellSimNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,276 @@
+"""What the four nodes share: parameter declaration and validation, input guarding, dropped
+message accounting on /diagnostics, and the `main()` wrapper.
+
+Parameters. A node lists its parameters as `ParamSpec`s; `NodeParameters` declares them with a
+`ParameterDescriptor` (description, type, range, read-only) and registers one
+`add_on_set_parameters_callback` that runs the node's `check(values) -> reason | None` on the
+merged proposed values. The callback is registered before the declarations, so values from a
+`--params-file` are validated by the same code at start-up (a bad value stops the node with
+the reason). Changes accepted at run time reach the node through
+`add_post_set_parameters_callback`. An array parameter whose default is empty is declared by
+type (rclpy infers a byte array from ``[]``), so it reads as "not set" until given; `value()`
+returns the spec's default then.
+
+Inputs. `Inputs.subscribe` wraps a subscription: the callback converts the message (a
+`conversions` function) and hands the value to the node; a `MessageError`, raised by the
+conversion or by the handler, drops the message with a throttled warning (one throttle per
+input, through a child logger) and a WARN status on /diagnostics (at most one per input per
+`WARNING_THROTTLE_SEC`; the count of dropped messages is in every status). Any other exception
+is a bug: it is logged with its traceback and reported as ERROR, and the node keeps spinning,
+so that no input can stop a node.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from .. import qos
+from ..config import ConfigError, load_config
+from ..conversions import MessageError, diagnostic_array, diagnostic_status
+from ..policy import default_config_path
+
+WARNING_THROTTLE_SEC = 5.0   # one warning (and one drop diagnostic) per input per this period
+STATUS_PERIOD_SEC = 1.0      # periodic health status of the nodes
+DIAGNOSTICS_TOPIC = '/diagnostics'
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+class StartupError(RuntimeError):
+    """The node cannot start (bad configuration, policy or parameters); the text says why."""
+
+
+# -- parameters -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    type: Parameter.Type
+    default: Any
+    description: str
+    read_only: bool = False
+    range: tuple | None = None     # (low, high), inclusive, for scalar numbers
+    constraints: str = ''          # additional_constraints text (array shapes, orders)
+
+    def descriptor(self) -> ParameterDescriptor:
+        desc = ParameterDescriptor(name=self.name, type=self.type.value,
+                                   description=self.description, read_only=self.read_only,
+                                   additional_constraints=self.constraints)
+        if self.range is not None and self.type == Parameter.Type.DOUBLE:
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(self.range[0]), to_value=float(self.range[1]), step=0.0)]
+        elif self.range is not None and self.type == Parameter.Type.INTEGER:
+            desc.integer_range = [IntegerRange(
+                from_value=int(self.range[0]), to_value=int(self.range[1]), step=1)]
+        return desc
+
+
+Check = Callable[[Mapping[str, Any]], 'str | None']
+
+
+class NodeParameters:
+    """Declare `specs` on `node`; validate every change with `check`; apply with `apply`."""
+
+    def __init__(self, node: Node, specs: Sequence[ParamSpec], check: Check,
+                 apply: Callable[[Mapping[str, Any]], None] | None = None):
+        self.node = node
+        self.specs = {spec.name: spec for spec in specs}
+        self._check = check
+        self._apply = apply
+        node.add_on_set_parameters_callback(self._on_set)
+        for spec in specs:
+            empty_array = isinstance(spec.default, (list, tuple)) and not spec.default
+            default = spec.type if empty_array else spec.default
+            node.declare_parameter(spec.name, default, spec.descriptor())
+        node.add_post_set_parameters_callback(self._post_set)
+
+    def value(self, name: str) -> Any:
+        try:
+            value = self.node.get_parameter(name).value
+        except ParameterUninitializedException:
+            return self.specs[name].default
+        return list(value) if isinstance(value, (list, tuple)) or hasattr(value, 'tolist') \
+            else value
+
+    def values(self) -> dict:
+        return {name: self.value(name) for name in self.specs
+                if self.node.has_parameter(name)}
+
+    def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
+        proposed = {p.name: (list(p.value) if isinstance(p.value, (list, tuple))
+                             or hasattr(p.value, 'tolist') else p.value)
+                    for p in parameters
+                    if p.name in self.specs and p.type_ != Parameter.Type.NOT_SET}
+        if not proposed:
+            return SetParametersResult(successful=True)
+        merged = self.values()
+        merged.update(proposed)
+        try:
+            reason = self._check(merged)
+        except (TypeError, ValueError) as exc:
+            reason = str(exc)
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _post_set(self, parameters: list[Parameter]) -> None:
+        if self._apply is not None and any(p.name in self.specs for p in parameters):
+            self._apply(self.values())
+
+
+def config_path(value: str) -> str:
+    return value if value else str(default_config_path())
+
+
+def load_node_config(value: str):
+    """The model configuration named by a node's `config` parameter ('' = shipped default)."""
+    path = config_path(value)
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        raise StartupError(f'bad model configuration: {exc}') from None
+
+
+def check_array(values: Mapping[str, Any], name: str, length: int | None = None,
+                low=None, high=None) -> str | None:
+    """A reason if array parameter `name` (when present) has the wrong length or range."""
+    if name not in values:
+        return None
+    array = list(values[name])
+    if length is not None and len(array) != length:
+        return f'{name} must hold {length} values, got {len(array)}'
+    for v in array:
+        if v != v or v in (float('inf'), float('-inf')):
+            return f'{name} must be finite, got {array}'
+        if (low is not None and v < low) or (high is not None and v > high):
+            return f'{name} values must lie in [{low}, {high}], got {array}'
+    return None
+
+
+def check_core(values: Mapping[str, Any], name: str, probe: Callable[[Any], Any]) -> str | None:
+    """Validate parameter `name` by calling the core with it (its checks live there)."""
+    if name not in values:
+        return None
+    try:
+        probe(values[name])
+    except ValueError as exc:
+        return f'{name}: {exc}'
+    return None
+
+
+# -- inputs and diagnostics -------------------------------------------------------------------
+class Inputs:
+    """Guarded subscriptions of a node, its /diagnostics publisher and its dropped-message counts.
+    """
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, qos.RELIABLE)
+        self.received: Counter = Counter()
+        self.dropped: Counter = Counter()
+        self.last_drop_reason: dict[str, str] = {}
+        self._loggers: dict[str, Any] = {}
+        self._last_drop_report: dict[str, float] = {}
+        self._unreported: Counter = Counter()
+
+    # -- subscriptions -----------------------------------------------------------------------
+    def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
+                  handle: Callable[[Any], None], name: str | None = None):
+        """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported."""
+        name = name or topic.rsplit('/', 1)[-1]
+
+        def callback(msg):
+            self.received[name] += 1
+            try:
+                handle(convert(msg))
+            except MessageError as exc:
+                self.drop(name, topic, str(exc))
+            except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
+                self.internal_error(name, topic, traceback.format_exc())
+
+        return self.node.create_subscription(msg_type, topic, callback, profile)
+
+    def _logger(self, name: str):
+        if name not in self._loggers:
+            self._loggers[name] = self.node.get_logger().get_child(name)
+        return self._loggers[name]
+
+    def drop(self, name: str, topic: str, reason: str) -> None:
+        """Count a dropped message, warn (throttled) and report it on /diagnostics."""
+        self.dropped[name] += 1
+        self._unreported[name] += 1
+        self.last_drop_reason[name] = reason
+        self._logger(name).warning(f'dropped a message on {topic}: {reason}',
+                                   throttle_duration_sec=WARNING_THROTTLE_SEC)
+        now = time.monotonic()
+        if now - self._last_drop_report.get(name, -float('inf')) >= WARNING_THROTTLE_SEC:
+            self._last_drop_report[name] = now
+            self.publish(self.status(
+                f'{name} input', WARN, f'dropped a message on {topic}: {reason}',
+                {'topic': topic, 'reason': reason, 'dropped': self.dropped[name],
+                 'dropped_since_last_report': self._unreported[name]}))
+            self._unreported[name] = 0
+
+    def internal_error(self, name: str, topic: str, trace: str) -> None:
+        self.dropped[name] += 1
+        self._logger(name).error(f'internal error while handling {topic}:\n{trace}',
+                                 throttle_duration_sec=WARNING_THROTTLE_SEC)
+        self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
+                                 {'topic': topic, 'error': trace.strip().splitlines()[-1]}))
+
+    # -- diagnostics -------------------------------------------------------------------------
+    def status(self, what: str, level: bytes, message: str,
+               values: Mapping[str, object] | None = None) -> DiagnosticStatus:
+        return diagnostic_status(f'{self.node.get_name()}: {what}', level, message, values)
+
+    def publish(self, *statuses: DiagnosticStatus) -> None:
+        self.publisher.publish(diagnostic_array(statuses, self.node.get_clock().now().to_msg()))
+
+    def counts(self) -> dict:
+        """received_<input> and dropped_<input> for every input seen so far."""
+        out = {}
+        for name in sorted(set(self.received) | set(self.dropped)):
+            out[f'received_{name}'] = self.received[name]
+            out[f'dropped_{name}'] = self.dropped[name]
+        return out
+
+
+# -- main -------------------------------------------------------------------------------------
+STARTUP_ERRORS = (StartupError, ParameterException)
+
+
+def run(node_class, args=None) -> int:
+    """The `main()` of a node (ros2/demos talker pattern); returns the process exit code.
+
+    A node that cannot start (`StartupError`, a rejected parameter) logs why and returns 1,
+    with no traceback.
+    """
+    rclpy.init(args=args)
+    try:
+        node = node_class()
+    except STARTUP_ERRORS as exc:
+        rclpy.logging.get_logger(node_class.NODE_NAME).error(f'cannot start: {exc}')
+        rclpy.try_shutdown()
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rclpy.try_shutdown()
+        return 0
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

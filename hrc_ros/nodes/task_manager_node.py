@@ -1,0 +1,142 @@
+"""task_manager: the cell's task and activity bookkeeping (MODEL.md 3.2) on the ROS graph.
+
+It holds a `TaskBook` and drives it by the epoch protocol of docs/DESIGN.md. On `hrc/epoch` k:
+
+1. finalise a_{k-1}: ``book.apply(a_{k-1}, accepted)``, where a_{k-1} is the last `hrc/action`
+   received since epoch k-1 (dn, with a warning, if none arrived) and `accepted` is whether the
+   last `hrc/human_response` received since epoch k-1 was true (the step ignores it unless
+   a_{k-1} was an eligible request);
+2. ``book.begin_epoch(k)``: scheduled tasks due at k are released, an idle cell takes the head
+   of the queue;
+3. publish `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched) and a status.
+
+The response window opens at the epoch rather than at the action, so that a response that
+overtakes the action on the way here still counts.
+
+Tasks enter through the `initial_task` (tp, tc, tx) present at epoch 1, the `schedule`
+(``"epoch:tp,tc,tx"`` releases) and `hrc/task_request` ``[tp, tc, tx]`` (validated against the
+model's rho and sigma, then queued; a bad request is dropped with a warning and a diagnostic).
+"""
+
+from __future__ import annotations
+
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
+
+from .. import conversions as conv
+from .. import qos
+from ..model import ACTIONS, DN, HRCModel
+from ..tasks import TaskBook, parse_schedule
+from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
+                     StartupError, check_array, load_node_config, run)
+
+T = Parameter.Type
+PARAMETERS = (
+    ParamSpec('config', T.STRING, '', "model configuration YAML ('' = the shipped "
+              'default.yaml)', read_only=True),
+    ParamSpec('initial_task', T.INTEGER_ARRAY, [], '(tp, tc, tx) of the task present at epoch '
+              '1; [] = an idle cell', read_only=True,
+              constraints='[] or 3 integers: tp in 1..rho, tc in 1..sigma, tx in 0..3'),
+    ParamSpec('schedule', T.STRING_ARRAY, [], 'scripted task releases "epoch:tp,tc,tx"',
+              read_only=True, constraints='each entry "epoch:tp,tc,tx", epoch >= 1'),
+)
+
+
+def check_parameters(values) -> str | None:
+    task = values.get('initial_task', [])
+    if task:
+        reason = check_array(values, 'initial_task', 3, low=0)
+        if reason:
+            return reason
+    try:
+        parse_schedule(list(values.get('schedule', [])))
+    except ValueError as exc:
+        return f'schedule: {exc}'
+    return None
+
+
+class TaskManagerNode(Node):
+    NODE_NAME = 'task_manager'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters)
+        values = self.params.values()
+        self.config = load_node_config(values['config'])
+        self.model = HRCModel(self.config)
+        initial = tuple(int(v) for v in values['initial_task']) or None
+        try:
+            self.book = TaskBook(self.model, initial_task=initial,
+                                 schedule=list(values['schedule']))
+        except ValueError as exc:
+            raise StartupError(f'task parameters: {exc}') from None
+        self._action: int | None = None     # a_{k-1}
+        self._accepted = False              # the last human response since epoch k-1
+        self.last_finalised: tuple | None = None
+
+        self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
+                                                    qos.LATCHED)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
+                              self._on_epoch)
+        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
+                              self._on_action)
+        self.inputs.subscribe(Bool, 'hrc/human_response', qos.RELIABLE,
+                              conv.human_response_from_msg, self._on_human_response)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
+                              self._task_request_from_msg, self._on_task_request)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+
+    def _task_request_from_msg(self, msg):
+        return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_action(self, action: int) -> None:
+        self._action = action
+
+    def _on_human_response(self, accepted: bool) -> None:
+        self._accepted = accepted
+
+    def _on_task_request(self, task: tuple) -> None:
+        try:
+            self.book.request(*task)
+        except ValueError as exc:
+            raise conv.MessageError(str(exc)) from None
+        self.get_logger().info(f'task {task} queued; pending {self.book.pending}')
+
+    def _on_epoch(self, k: int) -> None:
+        if k <= self.book.epoch:
+            raise conv.MessageError(f'epoch {k} does not follow the previous epoch '
+                                    f'{self.book.epoch}')
+        if self.book.epoch >= 1:
+            action = self._action
+            if action is None:
+                action = DN
+                self.get_logger().warning(f'no action received for epoch {self.book.epoch}; '
+                                          'taking dn', throttle_duration_sec=5.0)
+            self.book.apply(action, self._accepted)
+            self.last_finalised = (self.book.epoch, ACTIONS[action], self._accepted)
+        self.book.begin_epoch(k)
+        self._action, self._accepted = None, False
+        self.task_state_pub.publish(conv.task_state_to_msg(self.book.state))
+        self._publish_status()
+
+    # -- health ----------------------------------------------------------------------------
+    def _publish_status(self) -> None:
+        dropped = sum(self.inputs.dropped.values())
+        values = {'epoch': self.book.epoch, 'task_state': list(self.book.state.values()),
+                  'pending': self.book.pending,
+                  'last_finalised': self.last_finalised,
+                  'completed_tasks': len(self.book.completed), **self.inputs.counts()}
+        message = f'{dropped} messages dropped so far' if dropped else 'ok'
+        self.inputs.publish(self.inputs.status('tasks', WARN if dropped else OK, message,
+                                               values))
+
+
+def main(args=None):
+    return run(TaskManagerNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
