@@ -1,0 +1,511 @@
+"""hrc-evaluate: compare the action selectors over many seeded episodes.
+
+The paper shows one 20-epoch run. To say whether its vote heuristic is any good, this runs many
+episodes with random task streams and random initial humans, once per selector, on common
+random numbers: episode e of every selector sees the same scenario (initial (em, ea, d), task
+releases) and the same uniform stream of its simulated human (`cell.SimulatedHuman` with seed
+``(seed, e)``), so differences between selectors come from their decisions, not from luck.
+
+Selectors: ``paper`` (the weighted vote), ``qmdp``, ``mls`` and ``mdp``, the policy action of
+the *true* state: a full-information bound that no belief-based selector should beat on
+average. Every selector is subject to the fail-safe (d = 0 -> dn) unless `--no-fail-safe`.
+
+Metrics per episode (then mean and a 95% normal confidence interval over episodes):
+
+- discounted cost  sum_k gamma^(k-1) J(s_k, a_k), J of MODEL.md 4 on the true state;
+- epochs to complete a task, release to completion, both counted (mean over the episode's
+  completed tasks; episodes that complete none are left out);
+- epochs in collision (d_k = 0), requests refused (eligible rh1/rh2 answered no), tasks
+  completed.
+
+For speed the episodes run side by side: `BatchSimulator` is the epoch protocol of
+`simulator.simulate` written over arrays of episodes (task steps as lookup tables, the human's
+draws by inverse CDF from the same uniforms, belief and selection as array arithmetic with the
+same tie rules as `selection.ActionSelector`). The test suite checks that it reproduces
+`simulate` episode by episode. qmdp uses the full Q table of one Bellman step on the solved
+value (`FactoredBellman.bellman_q`), computed once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .belief import BeliefFilter
+from .cell import UNIFORMS_PER_EPOCH, emotion_chains, sample_index
+from .config import ConfigError, load_config
+from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
+                    SAFETY_ORDER, TASK_VARIABLES, HRCModel, next_distance, step_task)
+from .policy import PolicyError, default_config_path, default_policy_path, load_policy
+from .selection import Q_TOLERANCE, VOTE_TOLERANCE
+from .simulator import SIMULATION_SELECTORS, Scenario
+
+METRICS = (
+    ('discounted_cost', 'discounted cost'),
+    ('epochs_to_complete', 'epochs to complete a task'),
+    ('collision_epochs', 'epochs in collision'),
+    ('refused_requests', 'requests refused'),
+    ('tasks_completed', 'tasks completed'),
+)
+Z95 = 1.959963984540054
+_TINY = np.finfo(float).tiny
+
+
+def human_seed(seed: int, episode: int) -> list:
+    """Seed of episode `episode`'s simulated human (the same for every selector)."""
+    return [seed, episode]
+
+
+def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
+                     task_rate: float = 0.2) -> list:
+    """Seeded episodes: random (em, ea) in 0..2, d in 1..3, an idle cell, a task at epoch 1
+    and then a new random task (tp 1..rho, tc 1..sigma, tx 0..3) with probability
+    `task_rate` per epoch; released tasks queue until the cell is idle."""
+    for name, v, lo in (('episodes', episodes, 1), ('epochs', epochs, 1), ('seed', seed, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+            raise ValueError(f'{name} must be an integer >= {lo}, got {v!r}')
+    if not 0.0 <= task_rate <= 1.0:
+        raise ValueError(f'task_rate must be a probability in [0, 1], got {task_rate!r}')
+    scenarios = []
+    for e in range(episodes):
+        rng = np.random.default_rng([seed, e, 1])
+        em, ea = (int(v) for v in rng.integers(0, 3, size=2))
+        d = int(rng.integers(1, 4))
+        release = rng.random(epochs) < task_rate
+        release[0] = True
+        tp = rng.integers(1, model.rho + 1, size=epochs)
+        tc = rng.integers(1, model.sigma + 1, size=epochs)
+        tx = rng.integers(0, 4, size=epochs)
+        schedule = tuple((k + 1, (int(tp[k]), int(tc[k]), int(tx[k])))
+                         for k in np.flatnonzero(release))
+        scenarios.append(Scenario((em, ea, 0, 0, 0, 0, 0, 0, 0, 0, d), schedule, epochs,
+                                  name=f'episode {e}'))
+    return scenarios
+
+
+@dataclass
+class BatchResult:
+    """Per-episode metrics of one selector (arrays of length E) and, if kept, the actions."""
+
+    selector: str
+    discounted_cost: np.ndarray
+    epochs_to_complete: np.ndarray    # NaN where the episode completed no task
+    collision_epochs: np.ndarray
+    refused_requests: np.ndarray
+    requests: np.ndarray
+    tasks_completed: np.ndarray
+    tasks_released: np.ndarray
+    actions: np.ndarray | None = None   # (E, K) action indices
+
+
+class BatchSimulator:
+    """`simulator.simulate` over an array of episodes (see the module docstring)."""
+
+    def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
+                 fail_safe: bool = True):
+        if hasattr(policy, 'policy'):
+            if value is None:
+                value = getattr(policy, 'value', None)
+            policy = policy.policy
+        self.model = model
+        self.policy = np.asarray(policy)
+        if self.policy.shape != (model.n_states,):
+            raise ValueError(f'the policy has {self.policy.size} states, the model '
+                             f'{model.n_states}')
+        self.value = value
+        self.fail_safe = fail_safe
+        self.filter = BeliefFilter(model, mode=mode)
+        self.mode = self.filter.mode
+        n_y = model.n_task
+        self.columns = n_y * N_DISTANCE
+        self.by_h = self.policy.reshape(N_HIDDEN, self.columns)
+        self.state_cost = model.state_cost_vector
+        self.action_cost = model.action_cost
+        grid = model.task_grid
+        self.grid = grid
+        # y' = task_step[a, accepted, y]; eligible[a, y]: an eligible request.
+        self.task_step = np.stack([
+            np.stack([model.task_index(step_task(grid, a, acc)) for acc in (False, True)])
+            for a in range(len(ACTIONS))]).astype(np.intp)
+        open_task = (grid['tp'] > 0) & (grid['ty'] == 0)
+        self.eligible = np.zeros((len(ACTIONS), n_y), dtype=bool)
+        self.eligible[RH1] = open_task & ((grid['tx'] == 1) | (grid['tx'] == 2))
+        self.eligible[RH2] = open_task & (grid['tx'] == 3)
+        cfg = model.config
+        self.p_accept = cfg.p_accept
+        self.delta_cdf = np.cumsum(cfg.p_delta, axis=1)
+        self.next_d = np.array([[[next_distance(d, a, delta) for delta in DELTAS]
+                                 for d in range(N_DISTANCE)] for a in range(len(ACTIONS))])
+        chains = emotion_chains(model)
+        self.em_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][0], axis=1)
+                                for a in range(len(ACTIONS))])
+        self.ea_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][1], axis=1)
+                                for a in range(len(ACTIONS))])
+        self.observation_cdf = np.cumsum(self.filter.likelihood, axis=0).T
+        self.initial_belief = np.stack([self.filter.initial(o) for o in (1, 2, 3)])
+        self.evidence_only = self.filter.likelihood / self.filter.likelihood.sum(
+            axis=1, keepdims=True)
+        # M[a, O-1] = E_a with column h' scaled by L[O, h'] (as the filter's update).
+        self.predict_correct = (self.filter.emotion[:, None, :, :]
+                                * self.filter.likelihood[None, :, None, :])
+        self.safety = np.array(SAFETY_ORDER)
+        self._q = None
+
+    @property
+    def q_table(self) -> np.ndarray:
+        """Q(s, a) for every state, (N, 8): one Bellman step on the solved value."""
+        if self._q is None:
+            if self.value is None:
+                raise ValueError("selector 'qmdp' needs the solved value function")
+            from .solver import FactoredBellman
+            self._q = np.ascontiguousarray(
+                FactoredBellman(self.model).bellman_q(np.asarray(self.value, float)).T)
+        return self._q
+
+    # -- selection, vectorised with ActionSelector's tie rules ---------------------------
+    def _first_safe(self, tied: np.ndarray) -> np.ndarray:
+        return self.safety[np.argmax(tied[:, self.safety], axis=1)]
+
+    def _paper(self, belief, column):
+        actions = self.by_h[:, column].T                              # (E, 9)
+        weights = belief[:, :, None] * (actions[:, :, None] == np.arange(len(ACTIONS)))
+        scores = weights.sum(axis=1)
+        single = weights.max(axis=1)
+        tied = scores >= scores.max(axis=1, keepdims=True) - VOTE_TOLERANCE
+        top = np.where(tied, single, -np.inf).max(axis=1, keepdims=True)
+        several = tied.sum(axis=1) > 1
+        tied[several] &= single[several] >= top[several] - VOTE_TOLERANCE
+        return self._first_safe(tied)
+
+    def _mls(self, belief, column):
+        h = np.argmax(belief >= belief.max(axis=1, keepdims=True) - VOTE_TOLERANCE, axis=1)
+        return self.by_h[h, column]
+
+    def _qmdp(self, belief, column):
+        candidates = np.arange(N_HIDDEN)[None, :] * self.columns + column[:, None]
+        scores = np.einsum('eh,eha->ea', belief, self.q_table[candidates])
+        best = scores.max(axis=1, keepdims=True)
+        tied = scores >= best - Q_TOLERANCE * np.maximum(1.0, np.abs(best))
+        return self._first_safe(tied)
+
+    # -- the episodes --------------------------------------------------------------------
+    def run(self, scenarios, seeds, selector: str = 'paper', keep_actions: bool = False
+            ) -> BatchResult:
+        """Run the scenarios side by side; `seeds[e]` seeds episode e's human."""
+        if selector not in SIMULATION_SELECTORS:
+            raise ValueError(f'unknown selector {selector!r}; expected one of '
+                             f'{", ".join(SIMULATION_SELECTORS)}')
+        if len(scenarios) != len(seeds) or not scenarios:
+            raise ValueError('give one seed per scenario, and at least one scenario')
+        epochs = scenarios[0].epochs
+        if any(s.epochs != epochs for s in scenarios):
+            raise ValueError('the scenarios of one batch must have the same number of epochs')
+        if selector == 'qmdp':
+            self.q_table                                   # fail early without a value
+        model, n = self.model, len(scenarios)
+        rows = np.arange(n)
+        initial = np.array([s.initial_state for s in scenarios], dtype=np.int64)
+        model.index(initial)                               # range check
+        em, ea, d = initial[:, 0].copy(), initial[:, 1].copy(), initial[:, 10].copy()
+        y = model.task_index({v: initial[:, 2 + i] for i, v in enumerate(TASK_VARIABLES)})
+        y = np.asarray(y, dtype=np.intp)
+
+        # Tasks per episode: an initial task (if any, started at epoch 1), then the schedule.
+        lists = []
+        for s, first in zip(scenarios, initial):
+            own = [(1, int(first[2]), int(first[3]), int(first[4]))] if first[2] > 0 else []
+            own += [(int(k), int(tp), int(tc), int(tx)) for k, (tp, tc, tx) in
+                    sorted(s.schedule, key=lambda entry: entry[0])]
+            lists.append(own)
+        width = max(1, max(len(t) for t in lists))
+        task = np.zeros((n, width, 4), dtype=np.int64)
+        task[:, :, 0] = epochs + 1                         # padding: never released
+        for e, own in enumerate(lists):
+            if own:
+                task[e, :len(own)] = own
+        for name, col, lo, hi in (('tp', 1, 1, model.rho), ('tc', 2, 1, model.sigma),
+                                  ('tx', 3, 0, 3)):
+            real = task[:, :, 0] <= epochs
+            bad = real & ((task[:, :, col] < lo) | (task[:, :, col] > hi))
+            if bad.any():
+                raise ValueError(f'bad task in a schedule: {name} must lie in {lo}..{hi}')
+        n_tasks = np.array([len(t) for t in lists])
+        released = np.array([sum(1 for t in own if t[0] <= epochs) for own in lists])
+        current = np.where(initial[:, 2] > 0, 0, -1)
+        next_task = (initial[:, 2] > 0).astype(np.int64)
+        complete = np.zeros((n, width), dtype=np.int64)
+
+        uniforms = np.stack([np.random.default_rng(seed).random(1 + UNIFORMS_PER_EPOCH * epochs)
+                             for seed in seeds])
+        observation = sample_index(self.observation_cdf[3 * em + ea], uniforms[:, 0]) + 1
+        belief = self.initial_belief[observation - 1]
+
+        cost = np.zeros(n)
+        collisions = np.zeros(n, dtype=np.int64)
+        requests = np.zeros(n, dtype=np.int64)
+        refused = np.zeros(n, dtype=np.int64)
+        actions_kept = np.zeros((n, epochs), dtype=np.int8) if keep_actions else None
+        grid_tp = self.grid['tp']
+        for k in range(1, epochs + 1):
+            # 1. begin_epoch(k): an idle cell takes the next released task.
+            slot = np.minimum(next_task, width - 1)
+            take = ((grid_tp[y] == 0) & (next_task < n_tasks)
+                    & (task[rows, slot, 0] <= k))
+            if take.any():
+                t = task[rows[take], slot[take]]
+                parts = [t[:, 1], t[:, 2], t[:, 3], np.zeros(len(t), dtype=np.int64)]
+                parts += [self.grid[v][y[take]] for v in ('hp', 'hc', 'bp', 'bc')]
+                y[take] = np.ravel_multi_index(tuple(parts), model.task_dims)
+                current[take] = slot[take]
+                next_task[take] += 1
+            # 2-3. decide from (belief, observable); fail-safe at d = 0.
+            column = y * N_DISTANCE + d
+            h = 3 * em + ea
+            if selector == 'mdp':
+                action = self.policy[h * self.columns + column].astype(np.intp)
+            elif selector == 'paper':
+                action = self._paper(belief, column)
+            elif selector == 'mls':
+                action = self._mls(belief, column).astype(np.intp)
+            else:
+                action = self._qmdp(belief, column)
+            if self.fail_safe:
+                action = np.where(d == 0, DN, action)
+            if keep_actions:
+                actions_kept[:, k - 1] = action
+            cost += model.gamma ** (k - 1) * (self.state_cost[h * self.columns + column]
+                                              + self.action_cost[action])
+            collisions += d == 0
+            # 4. the human reacts: acceptance, Delta, em', ea', O' (cell.SimulatedHuman order).
+            u = uniforms[:, 1 + UNIFORMS_PER_EPOCH * (k - 1):1 + UNIFORMS_PER_EPOCH * k]
+            eligible = self.eligible[action, y]
+            accepted = eligible & (u[:, 0] < self.p_accept[em])
+            requests += eligible
+            refused += eligible & ~accepted
+            delta = sample_index(self.delta_cdf[ea], u[:, 1])
+            d = self.next_d[action, d, delta]
+            em = sample_index(self.em_cdf[action, em], u[:, 2])
+            ea = sample_index(self.ea_cdf[action, ea], u[:, 3])
+            observation = sample_index(self.observation_cdf[3 * em + ea], u[:, 4]) + 1
+            # 5. the task book applies (a, accepted); the belief is updated.
+            y_next = self.task_step[action, accepted.astype(np.intp), y]
+            done = (grid_tp[y] > 0) & (grid_tp[y_next] == 0)
+            complete[rows[done], current[done]] = k
+            current[done] = -1
+            y = y_next
+            belief = self._update(belief, action, observation)
+
+        completed = complete > 0
+        latency = np.where(completed, complete - task[:, :, 0] + 1, 0)
+        n_done = completed.sum(axis=1)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            mean_latency = np.where(n_done > 0, latency.sum(axis=1) / n_done, np.nan)
+        return BatchResult(selector, cost, mean_latency, collisions, refused, requests,
+                           n_done, released, actions_kept)
+
+    def _update(self, belief, action, observation):
+        if self.mode == 'table':
+            return self.filter.table[observation - 1].copy()
+        post = np.einsum('eh,ehk->ek', belief, self.predict_correct[action, observation - 1])
+        total = post.sum(axis=1, keepdims=True)
+        lost = total[:, 0] < _TINY
+        if lost.any():
+            post[lost] = self.evidence_only[observation[lost] - 1]
+            total[lost] = 1.0
+        return post / total
+
+
+# -- statistics and outputs ------------------------------------------------------------------
+def summarize(result: BatchResult) -> dict:
+    """metric -> {n, mean, half_width, low, high} (95% normal interval over episodes)."""
+    out = {}
+    for metric, _ in METRICS:
+        x = np.asarray(getattr(result, metric), dtype=float)
+        x = x[np.isfinite(x)]
+        mean = float(x.mean()) if x.size else float('nan')
+        half = float(Z95 * x.std(ddof=1) / np.sqrt(x.size)) if x.size > 1 else float('nan')
+        out[metric] = {'n': int(x.size), 'mean': mean, 'half_width': half,
+                       'low': mean - half, 'high': mean + half}
+    return out
+
+
+def paired_difference(result: BatchResult, reference: BatchResult) -> dict:
+    """Mean and 95% interval of the per-episode cost difference (common random numbers)."""
+    diff = result.discounted_cost - reference.discounted_cost
+    mean = float(diff.mean())
+    half = float(Z95 * diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size > 1 else float('nan')
+    return {'mean': mean, 'half_width': half, 'low': mean - half, 'high': mean + half}
+
+
+TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'refused requests',
+                'tasks completed', 'cost - mdp cost')
+
+
+def format_table(summaries: dict, differences: dict) -> str:
+    """Mean ± 95% half-width per selector and metric; the last column is paired (CRN)."""
+    width = 19
+    head = f'{"selector":<9}' + ''.join(f'{n:>{width}}' for n in TABLE_LABELS)
+    lines = [head, '-' * len(head)]
+    for selector, summary in summaries.items():
+        cells = []
+        for metric, _ in METRICS:
+            s = summary[metric]
+            cells.append(f'{s["mean"]:.3f} ± {s["half_width"]:.3f}')
+        diff = differences.get(selector)
+        cells.append('' if diff is None else f'{diff["mean"]:+.3f} ± {diff["half_width"]:.3f}')
+        lines.append(f'{selector:<9}' + ''.join(f'{c:>{width}}' for c in cells))
+    return '\n'.join(lines)
+
+
+def plot_summaries(summaries: dict, path, differences: dict | None = None) -> Path:
+    """Bars with 95% error bars per metric; with `differences`, a panel of cost - mdp cost."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    selectors = list(summaries)
+    colors = [{'paper': 'tab:blue', 'qmdp': 'tab:orange', 'mls': 'tab:green',
+               'mdp': '0.45'}.get(s, 'tab:purple') for s in selectors]
+    panels = [(label, [summaries[s][metric] for s in selectors]) for metric, label in METRICS]
+    if differences:
+        panels.append(('cost - mdp cost (paired)', [differences[s] for s in selectors]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.1 * len(panels), 3.8))
+    for ax, (label, stats) in zip(axes, panels):
+        ax.bar(selectors, [m['mean'] for m in stats], yerr=[m['half_width'] for m in stats],
+               capsize=4, color=colors)
+        ax.set_title(label, fontsize=10)
+        ax.tick_params(axis='x', labelrotation=30)
+        ax.grid(axis='y', alpha=0.3)
+    fig.suptitle('Selectors over the same episodes (mean, 95% confidence interval)')
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
+             task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
+             mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
+             progress=None) -> dict:
+    """selector -> BatchResult over the same seeded episodes (common random numbers)."""
+    for s in selectors:
+        if s not in SIMULATION_SELECTORS:
+            raise ValueError(f'unknown selector {s!r}; expected some of '
+                             f'{", ".join(SIMULATION_SELECTORS)}')
+    scenarios = random_scenarios(model, episodes, epochs, seed, task_rate)
+    seeds = [human_seed(seed, e) for e in range(episodes)]
+    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe)
+    results = {}
+    for selector in selectors:
+        t0 = time.perf_counter()
+        parts = []
+        for start in range(0, episodes, chunk):
+            stop = min(start + chunk, episodes)
+            parts.append(sim.run(scenarios[start:stop], seeds[start:stop], selector))
+            if progress:
+                progress(f'{selector}: {stop}/{episodes} episodes '
+                         f'({time.perf_counter() - t0:.1f} s)')
+        results[selector] = BatchResult(selector, *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ('discounted_cost', 'epochs_to_complete', 'collision_epochs',
+                      'refused_requests', 'requests', 'tasks_completed', 'tasks_released')))
+    return results
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        prog='hrc-evaluate',
+        description='Compare the action selectors (and the full-information MDP bound) over '
+                    'many seeded episodes with random task streams.')
+    parser.add_argument('--config', default=None,
+                        help='configuration YAML (default: the shipped default.yaml)')
+    parser.add_argument('--policy', default=None,
+                        help='policy file solved for that configuration (default: shipped)')
+    parser.add_argument('--episodes', type=int, default=1000)
+    parser.add_argument('--epochs', type=int, default=50, help='epochs per episode')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--task-rate', type=float, default=0.2,
+                        help='probability of a new task per epoch (one always at epoch 1)')
+    parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
+                        help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
+    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
+                        help="belief mode (default: the configuration's)")
+    parser.add_argument('--no-fail-safe', action='store_true',
+                        help='let the selectors act at d = 0 (for studying the fail-safe)')
+    parser.add_argument('--out', default='out/evaluate', help='output folder')
+    args = parser.parse_args(argv)
+    selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
+    for s in selectors:
+        if s not in SIMULATION_SELECTORS:
+            parser.error(f'unknown selector {s!r} in --selectors; choose from '
+                         f'{", ".join(SIMULATION_SELECTORS)}')
+    for name in ('episodes', 'epochs'):
+        if getattr(args, name) < 1:
+            parser.error(f'--{name} must be >= 1')
+    if args.seed < 0:
+        parser.error('--seed must be >= 0')
+    if not 0.0 <= args.task_rate <= 1.0:
+        parser.error('--task-rate must lie in [0, 1]')
+    try:
+        config = load_config(args.config or default_config_path())
+        policy = load_policy(args.policy or default_policy_path(), config)
+    except (ConfigError, PolicyError) as exc:
+        print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
+        return 2
+    model = HRCModel(config)
+    t0 = time.perf_counter()
+    results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
+                       selectors, args.mode, not args.no_fail_safe,
+                       progress=lambda m: print(m, flush=True))
+    elapsed = time.perf_counter() - t0
+    summaries = {s: summarize(r) for s, r in results.items()}
+    differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
+                   if 'mdp' in results else {})
+    mode = args.mode or config.belief_mode
+    print(f'{args.episodes} episodes x {args.epochs} epochs, seed {args.seed}, task rate '
+          f'{args.task_rate}, belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, '
+          f'gamma {config.gamma}; {elapsed:.1f} s')
+    print(format_table(summaries, differences))
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / 'summary.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
+        for s, summary in summaries.items():
+            for metric, _ in METRICS:
+                m = summary[metric]
+                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
+                                 f'{m["high"]:.6g}'])
+    with (out / 'episodes.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        fields = [m for m, _ in METRICS] + ['requests', 'tasks_released']
+        writer.writerow(['selector', 'episode'] + fields)
+        for s, r in results.items():
+            for e in range(args.episodes):
+                writer.writerow([s, e] + [f'{getattr(r, f)[e]:.6g}' for f in fields])
+    settings = {'config': config.source, 'config_sha256': config.policy_hash,
+                'policy': policy.path, 'episodes': args.episodes, 'epochs': args.epochs,
+                'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
+                'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
+                'seconds': round(elapsed, 3)}
+    (out / 'summary.json').write_text(json.dumps(
+        {'settings': settings, 'selectors': summaries,
+         'cost_minus_mdp_cost': differences}, indent=2) + '\n')
+    written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
+               plot_summaries(summaries, out / 'summary.png', differences)]
+    for path in written:
+        print(f'wrote {path}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
