@@ -1,0 +1,172 @@
+"""hrc-evaluate: the batched episodes reproduce `simulate`; the table, bound and outputs."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from hrc_ros.config import load_config
+from hrc_ros.evaluate import (METRICS, BatchSimulator, evaluate, human_seed, main,
+                              paired_difference, random_scenarios, summarize)
+from hrc_ros.model import ACTIONS, HRCModel
+from hrc_ros.policy import PolicyError, default_config_path, default_policy_path, load_policy
+from hrc_ros.simulator import simulate
+from hrc_ros.solver import solve
+
+SELECTORS = ('paper', 'qmdp', 'mls', 'mdp')
+
+
+@pytest.fixture(scope='module')
+def model():
+    return HRCModel(load_config(default_config_path()))
+
+
+@pytest.fixture(scope='module')
+def policy(model):
+    try:
+        return load_policy(default_policy_path(), model.config)
+    except PolicyError:
+        return solve(model)
+
+
+def test_random_scenarios_are_seeded_and_valid(model):
+    a = random_scenarios(model, 30, 40, seed=5, task_rate=0.3)
+    assert a == random_scenarios(model, 30, 40, seed=5, task_rate=0.3)
+    assert a != random_scenarios(model, 30, 40, seed=6, task_rate=0.3)
+    for s in a:
+        em, ea, *task, d = s.initial_state
+        assert em in range(3) and ea in range(3) and d in (1, 2, 3) and not any(task)
+        assert s.schedule[0][0] == 1 and s.epochs == 40
+        for k, (tp, tc, tx) in s.schedule:
+            assert 1 <= k <= 40 and 1 <= tp <= model.rho and 1 <= tc <= model.sigma
+            assert 0 <= tx <= 3
+    releases = sum(len(s.schedule) - 1 for s in a) / (30 * 39)
+    assert 0.2 < releases < 0.4
+
+
+@pytest.mark.parametrize('mode', ['bayes', 'table'])
+@pytest.mark.parametrize('selector', SELECTORS)
+def test_batch_reproduces_simulate_episode_by_episode(model, policy, mode, selector):
+    scenarios = random_scenarios(model, 12, 30, seed=3, task_rate=0.35)
+    seeds = [human_seed(3, e) for e in range(12)]
+    batch = BatchSimulator(model, policy, mode=mode).run(scenarios, seeds, selector,
+                                                         keep_actions=True)
+    for e, scenario in enumerate(scenarios):
+        t = simulate(model, policy, scenario, selector=selector, mode=mode, seed=seeds[e])
+        assert [ACTIONS[a] for a in batch.actions[e]] == t.actions
+        assert batch.discounted_cost[e] == pytest.approx(t.discounted_cost, rel=1e-12)
+        assert batch.collision_epochs[e] == np.sum(t.column('d') == 0)
+        answers = list(t.column('accepted'))
+        assert batch.refused_requests[e] == sum(a is False for a in answers)
+        assert batch.requests[e] == sum(a is not None for a in answers)
+        done = [r.epochs_to_complete for r in t.tasks if r.complete_epoch is not None]
+        assert batch.tasks_completed[e] == len(done)
+        assert batch.tasks_released[e] == len(t.tasks)
+        if done:
+            assert batch.epochs_to_complete[e] == pytest.approx(np.mean(done))
+        else:
+            assert np.isnan(batch.epochs_to_complete[e])
+
+
+def test_batch_handles_an_initial_task_and_the_fail_safe_switch(model, policy):
+    from hrc_ros.simulator import case_study
+    scenario = case_study()
+    for fail_safe in (True, False):
+        batch = BatchSimulator(model, policy, fail_safe=fail_safe).run(
+            [scenario] * 3, [0, 4, 8], 'paper', keep_actions=True)
+        for e, seed in enumerate((0, 4, 8)):
+            t = simulate(model, policy, scenario, seed=seed, fail_safe=fail_safe)
+            assert [ACTIONS[a] for a in batch.actions[e]] == t.actions
+
+
+def test_q_table_is_the_models_q(model, policy):
+    sim = BatchSimulator(model, policy)
+    states = np.random.default_rng(0).integers(0, model.n_states, 40)
+    assert np.allclose(sim.q_table[states], model.q_values(policy.value, states), atol=1e-9)
+
+
+@pytest.fixture(scope='module')
+def small_run(model, policy):
+    return evaluate(model, policy, episodes=300, epochs=40, seed=1)
+
+
+def test_summary_structure_and_the_mdp_bound(small_run):
+    assert list(small_run) == list(SELECTORS)
+    summaries = {s: summarize(r) for s, r in small_run.items()}
+    for s, summary in summaries.items():
+        assert list(summary) == [m for m, _ in METRICS]
+        for metric, stats in summary.items():
+            assert stats['low'] <= stats['mean'] <= stats['high']
+            assert stats['n'] == 300 or metric == 'epochs_to_complete'
+    bound = summaries['mdp']['discounted_cost']['mean']
+    for s in ('paper', 'qmdp', 'mls'):
+        cost = summaries[s]['discounted_cost']
+        assert bound <= cost['mean'] + cost['half_width'], s
+        diff = paired_difference(small_run[s], small_run['mdp'])
+        assert diff['high'] > 0, s      # the paired interval does not lie below the bound
+
+
+def test_results_are_reproducible_for_a_seed(model, policy, small_run):
+    again = evaluate(model, policy, episodes=300, epochs=40, seed=1, selectors=('paper',))
+    other = evaluate(model, policy, episodes=300, epochs=40, seed=2, selectors=('paper',))
+    assert np.array_equal(again['paper'].discounted_cost, small_run['paper'].discounted_cost)
+    assert not np.array_equal(other['paper'].discounted_cost,
+                              small_run['paper'].discounted_cost)
+    chunked = evaluate(model, policy, episodes=300, epochs=40, seed=1, selectors=('paper',),
+                       chunk=7)
+    assert np.allclose(chunked['paper'].discounted_cost, small_run['paper'].discounted_cost)
+
+
+def test_cli_table_and_files(tmp_path, capsys):
+    if not default_policy_path().is_file():
+        pytest.skip('no shipped policy')
+    assert main(['--episodes', '40', '--epochs', '20', '--out', str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert '40 episodes x 20 epochs' in out and 'paper: 40/40 episodes' in out
+    table = [line.split()[0] for line in out.splitlines()
+             if line.split() and line.split()[0] in SELECTORS and '±' in line]
+    assert table == list(SELECTORS)
+    with (tmp_path / 'summary.csv').open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(SELECTORS) * len(METRICS)
+    assert {r['selector'] for r in rows} == set(SELECTORS)
+    summary = json.loads((tmp_path / 'summary.json').read_text())
+    assert summary['settings']['episodes'] == 40
+    assert set(summary['selectors']) == set(SELECTORS)
+    assert summary['cost_minus_mdp_cost']['mdp']['mean'] == 0.0
+    with (tmp_path / 'episodes.csv').open() as f:
+        assert sum(1 for _ in f) == 1 + 40 * len(SELECTORS)
+    assert (tmp_path / 'summary.png').read_bytes()[:4] == b'\x89PNG'
+
+
+def test_cli_refuses_bad_inputs(tmp_path, capsys):
+    for argv in (['--selectors', 'paper,best'], ['--episodes', '0'], ['--seed', '-1'],
+                 ['--task-rate', '1.5']):
+        with pytest.raises(SystemExit):
+            main(argv + ['--out', str(tmp_path)])
+    paper_policy = default_policy_path().with_name('paper.npz')
+    if paper_policy.is_file():
+        assert main(['--policy', str(paper_policy), '--out', str(tmp_path)]) == 2
+        assert 'was solved for configuration' in capsys.readouterr().err
+
+
+def test_bad_api_inputs_raise(model, policy):
+    scenarios = random_scenarios(model, 2, 5)
+    sim = BatchSimulator(model, policy)
+    with pytest.raises(ValueError, match='unknown selector'):
+        sim.run(scenarios, [0, 1], 'greedy')
+    with pytest.raises(ValueError, match='one seed per scenario'):
+        sim.run(scenarios, [0], 'paper')
+    with pytest.raises(ValueError, match='same number of epochs'):
+        sim.run([scenarios[0], random_scenarios(model, 1, 6)[0]], [0, 1], 'paper')
+    with pytest.raises(ValueError, match='needs the solved value'):
+        BatchSimulator(model, policy.policy).run(scenarios, [0, 1], 'qmdp')
+    with pytest.raises(ValueError, match='policy has 5 states'):
+        BatchSimulator(model, np.zeros(5, dtype=np.int8))
+    with pytest.raises(ValueError, match='episodes must be an integer >= 1'):
+        random_scenarios(model, 0, 5)
+    with pytest.raises(ValueError, match='task_rate'):
+        random_scenarios(model, 1, 5, task_rate=2.0)
+    with pytest.raises(ValueError, match='unknown selector'):
+        evaluate(model, policy, episodes=2, epochs=2, selectors=('paper', 'best'))
