@@ -82,7 +82,7 @@ class Trajectory:
     mode: str
     seed: object
     gamma: float
-    tasks: list = field(default_factory=list)   # TaskRecord per task
+    tasks: list[TaskRecord] = field(default_factory=list)
 
     def column(self, name: str) -> np.ndarray:
         if name not in COLUMNS:
