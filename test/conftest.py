@@ -1,0 +1,67 @@
+"""Test-session isolation of the ROS graph, and the policy files the node tests share.
+
+Before anything can call `rclpy.init`, this module (imported by pytest ahead of every test
+module) gives the session its own DDS domain: a random ROS_DOMAIN_ID in 30..99 and
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that subprocesses (the
+multi-process suite, the refused decision node) inherit them. Two sessions on one machine, or a
+session next to a running cell, then never see each other's topics. HRC_TEST_ROS_DOMAIN_ID pins
+the domain (to watch a test with other tools, say).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import pytest
+
+ROS_DOMAIN_RANGE = (30, 99)
+
+_pinned = os.environ.get('HRC_TEST_ROS_DOMAIN_ID')
+ROS_DOMAIN_ID = int(_pinned) if _pinned else random.SystemRandom().randint(*ROS_DOMAIN_RANGE)
+os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.pop('ROS_STATIC_PEERS', None)
+os.environ.pop('ROS_LOCALHOST_ONLY', None)   # deprecated; conflicts with the range above
+
+
+@pytest.fixture(scope='session')
+def ros_domain_id() -> int:
+    """The session's DDS domain (already in os.environ)."""
+    assert os.environ['ROS_DOMAIN_ID'] == str(ROS_DOMAIN_ID)
+    return ROS_DOMAIN_ID
+
+
+@pytest.fixture(scope='session')
+def default_config():
+    from hrc_ros.config import load_config
+    from hrc_ros.policy import default_config_path
+    return load_config(default_config_path())
+
+
+@pytest.fixture(scope='session')
+def policy_path(default_config, tmp_path_factory) -> str:
+    """A policy for the default configuration: the shipped one, else solved once (~5 s)."""
+    from hrc_ros.policy import PolicyError, default_policy_path, load_policy
+    shipped = default_policy_path()
+    try:
+        load_policy(shipped, default_config)
+        return str(shipped)
+    except PolicyError:
+        pass
+    return str(_solve(default_config, tmp_path_factory.mktemp('policy') / 'default.npz'))
+
+
+@pytest.fixture(scope='session')
+def other_config_policy_path(default_config, tmp_path_factory) -> str:
+    """A policy solved for another configuration: the reduced rho = sigma = 1 model."""
+    other = default_config.with_overrides({'model': {'rho': 1, 'sigma': 1}})
+    return str(_solve(other, tmp_path_factory.mktemp('policy') / 'rho1_sigma1.npz'))
+
+
+def _solve(config, path: Path) -> Path:
+    from hrc_ros.model import HRCModel
+    from hrc_ros.policy import save_policy
+    from hrc_ros.solver import solve
+    return save_policy(path, solve(HRCModel(config)), config)

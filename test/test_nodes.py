@@ -1,0 +1,815 @@
+"""The four nodes in-process with the real rclpy: one Context per test, a bounded spin loop.
+
+Each test starts the node under test and a probe node in a fresh `rclpy.Context` (its own DDS
+participant, in the session's private domain, see conftest.py) and spins one executor with
+`spin_until(executor, predicate, timeout)`: no fixed sleeps. Before a message whose effect
+depends on earlier ones (an epoch after joint states), the test spins until the node has
+counted the earlier ones, because an executor does not order callbacks across topics.
+
+Covered: the epoch protocol of each node against the ROS-free core; every fail-safe of the
+decision node (missing, stale, malformed and late inputs, d = 0 -> dn with a /diagnostics
+report); every malformed input of every node (dropped, a diagnostic, the node keeps working);
+parameter validation at run time and at start-up; and, as a subprocess, the decision node's
+refusal of a policy solved for another configuration.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+                          UInt8MultiArray, UInt32)
+
+from hrc_ros import conversions as conv
+from hrc_ros import qos
+from hrc_ros.belief import BeliefFilter
+from hrc_ros.model import ACTIONS, DN, MH, RH2, TASK_VARIABLES, HRCModel
+from hrc_ros.nodes.belief_estimator_node import BeliefEstimatorNode
+from hrc_ros.nodes.cell_sim_node import CellSimNode
+from hrc_ros.nodes.decision_node import DecisionNode
+from hrc_ros.nodes.task_manager_node import TaskManagerNode
+from hrc_ros.observation import (distance_level, synthesize_joint_velocities,
+                                 synthesize_skeleton, velocity_level)
+from hrc_ros.policy import load_policy
+from hrc_ros.selection import ActionSelector
+from hrc_ros.tasks import TaskBook
+
+TIMEOUT = 5.0
+EPOCH_PERIOD = 0.2
+INPUT_TIMEOUT = 0.12
+
+
+def spin_until(executor, predicate, timeout: float = TIMEOUT) -> bool:
+    """Spin `executor` until `predicate()` holds or `timeout` seconds pass; its last value."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return bool(predicate())
+        executor.spin_once(timeout_sec=0.01)
+    return True
+
+
+class Graph:
+    """A Context with an executor, the nodes under test and a probe node."""
+
+    def __init__(self):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.probe = rclpy.create_node('probe', context=self.context)
+        self.executor.add_node(self.probe)
+        self.nodes = []
+        self.statuses: list[DiagnosticStatus] = []
+        self.collect(DiagnosticArray, '/diagnostics', qos.RELIABLE,
+                     lambda msg: self.statuses.extend(msg.status))
+
+    def start(self, node_class, **parameters):
+        overrides = [Parameter(name, value=value) for name, value in parameters.items()]
+        node = node_class(context=self.context, parameter_overrides=overrides)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def publisher(self, msg_type, topic, profile):
+        publisher = self.probe.create_publisher(msg_type, topic, profile)
+        assert self.spin_until(lambda: publisher.get_subscription_count() > 0), topic
+        return publisher
+
+    def collect(self, msg_type, topic, profile, callback=None) -> list:
+        messages = []
+
+        def receive(msg):
+            messages.append(msg)
+            if callback is not None:
+                callback(msg)
+
+        self.probe.create_subscription(msg_type, topic, receive, profile)
+        return messages
+
+    def spin_until(self, predicate, timeout: float = TIMEOUT) -> bool:
+        return spin_until(self.executor, predicate, timeout)
+
+    def diagnostics(self, name: str, level=None) -> list[DiagnosticStatus]:
+        return [s for s in self.statuses if s.name == name
+                and (level is None or s.level == level)]
+
+    def close(self):
+        self.executor.shutdown()
+        for node in self.nodes:
+            node.destroy_node()
+        self.probe.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def graph():
+    g = Graph()
+    try:
+        yield g
+    finally:
+        g.close()
+
+
+@pytest.fixture(scope='module')
+def model(default_config):
+    return HRCModel(default_config)
+
+
+WARN, ERROR, OK = DiagnosticStatus.WARN, DiagnosticStatus.ERROR, DiagnosticStatus.OK
+
+
+def assert_dropped(graph, node, input_name, reason_part):
+    """The node dropped a message on `input_name` and reported it on /diagnostics."""
+    name = f'{node.get_name()}: {input_name} input'
+    assert graph.spin_until(lambda: graph.diagnostics(name, WARN)), \
+        f'no drop diagnostic {name!r}; statuses: {[s.name for s in graph.statuses]}'
+    status = graph.diagnostics(name, WARN)[0]
+    assert reason_part in status.message, status.message
+    assert node.inputs.dropped[input_name] >= 1
+
+
+# =============================================================================================
+# belief_estimator
+# =============================================================================================
+class Estimator:
+    """Drive a belief estimator: joint states, skeletons, actions and epochs."""
+
+    def __init__(self, graph, **parameters):
+        self.graph = graph
+        self.node = graph.start(BeliefEstimatorNode, **parameters)
+        self.joints = graph.publisher(JointState, 'human/joint_states', qos.SENSOR_DATA)
+        self.skeleton = graph.publisher(PoseArray, 'human/skeleton', qos.SENSOR_DATA)
+        self.action = graph.publisher(String, 'hrc/action', qos.RELIABLE)
+        self.epoch_pub = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+        self.beliefs = graph.collect(Float64MultiArray, 'hrc/belief', qos.LATCHED)
+        self.observations = graph.collect(UInt8, 'hrc/observation', qos.RELIABLE)
+        self.distances = graph.collect(UInt8, 'hrc/distance_level', qos.LATCHED)
+        self.rng = np.random.default_rng(7)
+        self.stamp = 100.0
+
+    def wait_received(self, name, count):
+        assert self.graph.spin_until(lambda: self.node.inputs.received[name] >= count), name
+
+    def send(self, name, publisher, msg):
+        before = self.node.inputs.received[name]
+        publisher.publish(msg)
+        self.wait_received(name, before + 1)
+
+    def motion(self, level, samples=5):
+        for _ in range(samples):
+            self.stamp += 0.02
+            velocity = synthesize_joint_velocities(level, 6, rng=self.rng)
+            self.send('joint_states', self.joints, conv.joint_state_to_msg(
+                conv.HUMAN_JOINTS, velocity, stamp=conv.seconds_to_stamp(self.stamp)))
+
+    def body(self, d):
+        self.send('skeleton', self.skeleton, conv.keypoints_to_msg(
+            synthesize_skeleton(d, rng=self.rng)))
+
+    def act(self, action):
+        self.send('action', self.action, String(data=action))
+
+    def epoch(self, k, expect_belief=True):
+        """Publish epoch k; wait for the belief, observation and distance level it brings."""
+        outputs = [self.distances] + ([self.beliefs, self.observations] if expect_belief
+                                      else [])
+        counts = [len(messages) for messages in outputs]
+        self.send('epoch', self.epoch_pub, conv.epoch_to_msg(k))
+        assert self.graph.spin_until(lambda: all(
+            len(messages) > count for messages, count in zip(outputs, counts)))
+        return conv.belief_from_msg(self.beliefs[-1]) if expect_belief else None
+
+
+def test_estimator_epochs_follow_the_belief_filter(graph, model):
+    est = Estimator(graph)
+    belief_filter = BeliefFilter(model)
+    est.motion(2, samples=6)
+    est.body(2)
+    b1 = est.epoch(1)
+    np.testing.assert_allclose(b1, belief_filter.initial(2))
+    assert graph.spin_until(lambda: est.observations and est.distances)
+    assert est.observations[-1].data == 2 and est.distances[-1].data == 2
+    est.motion(3, samples=3)
+    est.motion(1, samples=2)       # a minority of another level does not change O
+    est.body(3)
+    est.act('mh')
+    b2 = est.epoch(2)
+    np.testing.assert_allclose(b2, belief_filter.update(b1, MH, 3))
+    assert graph.spin_until(lambda: len(est.observations) == 2 and len(est.distances) == 2)
+    assert est.observations[-1].data == 3 and est.distances[-1].data == 3
+
+
+def test_estimator_without_action_predicts_with_dn(graph, model):
+    est = Estimator(graph)
+    belief_filter = BeliefFilter(model)
+    est.motion(1)
+    est.body(1)
+    b1 = est.epoch(1)
+    est.motion(2)
+    est.body(1)
+    np.testing.assert_allclose(est.epoch(2), belief_filter.update(b1, DN, 2))
+
+
+def test_estimator_table_mode_and_run_time_parameters(graph, model):
+    est = Estimator(graph, belief_mode='table')
+    est.motion(3)
+    est.body(1)
+    np.testing.assert_allclose(est.epoch(1), model.config.observation_table[2])
+    # Faster thresholds at run time: the same level-3 motion now reads as level 1.
+    result = est.node.set_parameters([Parameter('velocity_thresholds', value=[5.0, 10.0])])
+    assert result[0].successful, result[0].reason
+    est.motion(3)
+    est.body(1)
+    np.testing.assert_allclose(est.epoch(2), model.config.observation_table[0])
+
+
+def test_estimator_derives_velocities_from_positions(graph, model):
+    est = Estimator(graph)
+    for i in range(5):              # 1.0 rad/s on every joint: level 3 with [0.3, 0.8]
+        msg = JointState(name=list(conv.HUMAN_JOINTS), position=[0.1 * i] * 6)
+        msg.header.stamp = conv.seconds_to_stamp(10.0 + 0.1 * i)
+        est.send('joint_states', est.joints, msg)
+    est.body(1)
+    est.epoch(1)
+    assert graph.spin_until(lambda: est.observations)
+    assert est.observations[-1].data == 3
+
+
+def test_estimator_window_without_motion_publishes_no_belief(graph):
+    est = Estimator(graph)
+    est.body(1)
+    est.epoch(1, expect_belief=False)
+    assert graph.spin_until(lambda: graph.diagnostics('belief_estimator: epoch', WARN))
+    assert 'no joint states' in graph.diagnostics('belief_estimator: epoch')[0].message
+    assert est.beliefs == [] and len(est.distances) == 1
+    est.motion(2)                   # the next window with motion starts the belief
+    est.body(1)
+    assert est.epoch(2) is not None
+
+
+def _joint_state(names=conv.HUMAN_JOINTS, velocity=(0.1,) * 6, position=(), stamp=1.0):
+    msg = JointState(name=list(names), velocity=[float(v) for v in velocity],
+                     position=[float(q) for q in position])
+    msg.header.stamp = conv.seconds_to_stamp(stamp)
+    return msg
+
+
+BAD_JOINT_STATES = {
+    'empty': (JointState(), 'empty'),
+    'length mismatch': (_joint_state(velocity=(0.1, 0.2)), '6 names but 2 velocity'),
+    'nan velocity': (_joint_state(velocity=(math.nan,) * 6), 'NaN or inf'),
+    'inf velocity': (_joint_state(velocity=(0.1,) * 5 + (math.inf,)), 'NaN or inf'),
+    'no velocity nor position': (_joint_state(velocity=()), 'neither'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(BAD_JOINT_STATES))
+def test_estimator_drops_malformed_joint_states(graph, case):
+    est = Estimator(graph)
+    msg, reason = BAD_JOINT_STATES[case]
+    est.send('joint_states', est.joints, msg)
+    assert_dropped(graph, est.node, 'joint_states', reason)
+    est.motion(2)                   # and keeps working
+    est.body(1)
+    assert est.epoch(1) is not None
+    assert est.observations[-1].data == 2
+
+
+def test_estimator_drops_positions_whose_stamps_do_not_increase(graph):
+    est = Estimator(graph)
+    est.send('joint_states', est.joints, _joint_state(velocity=(), position=(0.0,) * 6))
+    est.send('joint_states', est.joints, _joint_state(velocity=(), position=(1.0,) * 6))
+    assert_dropped(graph, est.node, 'joint_states', 'not after the previous')
+
+
+BAD_SKELETONS = {
+    'wrong frame': (conv.keypoints_to_msg(np.ones((3, 3)), frame_id='camera_link'), 'frame'),
+    'empty': (conv.keypoints_to_msg(np.zeros((0, 3))), 'no keypoints'),
+    'nan': (conv.keypoints_to_msg([[math.nan, 0.0, 0.0]]), 'NaN or inf'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(BAD_SKELETONS))
+def test_estimator_drops_malformed_skeletons(graph, case):
+    est = Estimator(graph)
+    msg, reason = BAD_SKELETONS[case]
+    est.send('skeleton', est.skeleton, msg)
+    assert_dropped(graph, est.node, 'skeleton', reason)
+    est.motion(1)
+    est.body(2)
+    assert est.epoch(1) is not None
+    assert est.distances[-1].data == 2
+
+
+def test_estimator_drops_unknown_actions_and_old_epochs(graph):
+    est = Estimator(graph)
+    est.send('action', est.action, String(data='jump'))
+    assert_dropped(graph, est.node, 'action', 'unknown action')
+    est.motion(1)
+    est.body(1)
+    est.epoch(3)
+    est.send('epoch', est.epoch_pub, conv.epoch_to_msg(2))
+    assert_dropped(graph, est.node, 'epoch', 'does not follow')
+    est.send('epoch', est.epoch_pub, UInt32(data=0))
+    assert est.node.inputs.dropped['epoch'] == 2
+
+
+@pytest.mark.parametrize('name, value, reason', [
+    ('velocity_thresholds', [0.8, 0.3], 'increasing'),
+    ('velocity_thresholds', [0.3], '2 numbers'),
+    ('velocity_thresholds', [-0.1, 0.3], 'positive'),
+    ('safety_radii', [0.2, 0.6], '3 numbers'),
+    ('safety_radii', [0.6, 0.2, 1.2], 'increasing'),
+    ('robot_reference_point', [0.0, 0.0], '3 values'),
+    ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
+    ('belief_mode', 'kalman', 'belief_mode'),
+    ('config', '/tmp/other.yaml', 'read-only'),
+])
+def test_estimator_rejects_bad_parameters(graph, name, value, reason):
+    node = graph.start(BeliefEstimatorNode)
+    before = node.get_parameter(name).value
+    result = node.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful
+    assert reason in result.reason, result.reason
+    assert node.get_parameter(name).value == before
+
+
+def test_estimator_refuses_bad_parameters_at_start_up(graph):
+    with pytest.raises(InvalidParameterValueException, match='increasing'):
+        graph.start(BeliefEstimatorNode, safety_radii=[1.0, 0.5, 2.0])
+
+
+# =============================================================================================
+# decision
+# =============================================================================================
+TASK_1 = dict(zip(TASK_VARIABLES, (1, 1, 3, 0, 0, 0, 0, 0)))
+LOW_MOTIVATION = np.array([0.8, 0.1, 0, 0.1, 0, 0, 0, 0, 0])
+
+
+class Decision:
+    """A decision node whose inputs are answered by `respond(k)` on each hrc/epoch k."""
+
+    def __init__(self, graph, policy_path, respond=None, **parameters):
+        self.graph = graph
+        parameters = {'policy': policy_path, 'epoch_period': EPOCH_PERIOD,
+                      'input_timeout': INPUT_TIMEOUT, 'stale_timeout': 2.0, **parameters}
+        self.belief = graph.probe.create_publisher(Float64MultiArray, 'hrc/belief',
+                                                   qos.LATCHED)
+        self.task = graph.probe.create_publisher(UInt8MultiArray, 'hrc/task_state',
+                                                 qos.LATCHED)
+        self.distance = graph.probe.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
+        self.respond = respond or (lambda k: self.inputs())
+        self.epochs = graph.collect(UInt32, 'hrc/epoch', qos.RELIABLE,
+                                    lambda msg: self.respond(msg.data))
+        self.actions = graph.collect(String, 'hrc/action', qos.RELIABLE)
+        self.node = graph.start(DecisionNode, **parameters)
+
+    def inputs(self, task=TASK_1, d=1, belief=LOW_MOTIVATION):
+        if task is not None:
+            self.task.publish(task if isinstance(task, UInt8MultiArray)
+                              else conv.task_state_to_msg(task))
+        if d is not None:
+            self.distance.publish(d if isinstance(d, UInt8) else conv.distance_level_to_msg(d))
+        if belief is not None:
+            self.belief.publish(belief if isinstance(belief, Float64MultiArray)
+                                else conv.belief_to_msg(belief))
+
+    def run(self, epochs):
+        assert self.graph.spin_until(lambda: len(self.actions) >= epochs), \
+            f'{len(self.actions)} actions after {TIMEOUT} s'
+        return [m.data for m in self.actions]
+
+    def status(self, epoch):
+        for status in self.graph.statuses:
+            if status.name == 'decision: decision' and \
+                    conv.diagnostic_values(status).get('epoch') == str(epoch):
+                return status
+        raise AssertionError(f'no decision status for epoch {epoch}')
+
+
+def expected_action(model, policy_path, belief=LOW_MOTIVATION, task=TASK_1, d=1):
+    selector = ActionSelector(model, load_policy(policy_path, model.config))
+    observable = tuple(task[n] for n in TASK_VARIABLES) + (d,)
+    return ACTIONS[selector.select(belief, observable).action]
+
+
+def test_decision_selects_with_the_policy_and_reports(graph, model, policy_path):
+    expected = expected_action(model, policy_path)
+    assert expected != 'dn'        # so that the test tells a decision from the fail-safe
+    dec = Decision(graph, policy_path)
+    assert dec.run(2)[:2] == [expected, expected]
+    assert [m.data for m in dec.epochs[:2]] == [1, 2]
+    status = dec.status(1)
+    values = conv.diagnostic_values(status)
+    assert status.level == OK and values['faults'] == 'none'
+    assert values['policy_file'] == policy_path
+    assert values['policy_config_sha256'] == model.config.policy_hash
+    assert values['config_sha256'] == model.config.policy_hash
+    assert values['input_timed_out'] == 'false'
+    assert f'{expected}=' in values['action_scores']
+    for key in ('belief_age_s', 'task_state_age_s', 'distance_level_age_s', 'compute_ms',
+                'belief', 'observable'):
+        assert key in values
+    assert float(values['compute_ms']) < 50.0
+
+
+def test_decision_other_selectors(graph, model, policy_path):
+    dec = Decision(graph, policy_path, selector='mls')
+    selector = ActionSelector(model, load_policy(policy_path, model.config), method='mls')
+    observable = tuple(TASK_1[n] for n in TASK_VARIABLES) + (1,)
+    assert dec.run(1)[0] == ACTIONS[selector.select(LOW_MOTIVATION, observable).action]
+
+
+def _bad_belief(data, labels=None):
+    msg = Float64MultiArray(data=[float(v) for v in data])
+    if labels:
+        msg.layout.dim = [MultiArrayDimension(label=label, size=3, stride=3) for label in labels]
+    return msg
+
+
+def _bad_task(data):
+    return UInt8MultiArray(data=list(data))
+
+
+MALFORMED_INPUTS = {
+    # case: (inputs of the first epoch, dropped input, reason part)
+    'belief of 8': ({'belief': _bad_belief([1 / 8] * 8)}, 'belief', 'must hold 9'),
+    'belief with nan': ({'belief': _bad_belief([math.nan] + [1 / 8] * 8)}, 'belief', 'NaN'),
+    'belief with inf': ({'belief': _bad_belief([math.inf] + [0.0] * 8)}, 'belief', 'NaN'),
+    'belief summing to 2': ({'belief': _bad_belief([2 / 9] * 9)}, 'belief', 'sums to 2'),
+    'negative belief': ({'belief': _bad_belief([-0.2, 0.4] + [0.8 / 7] * 7)}, 'belief',
+                        'negative'),
+    'belief layout': ({'belief': _bad_belief([1 / 9] * 9, ['em', 'ea'])}, 'belief', 'layout'),
+    'task state of 7': ({'task': _bad_task([1, 1, 3, 0, 0, 0, 0])}, 'task_state',
+                        'must hold 8'),
+    'task priority out of domain': ({'task': _bad_task([5, 1, 3, 0, 0, 0, 0, 0])},
+                                    'task_state', 'tp = 5'),
+    'task nature out of domain': ({'task': _bad_task([1, 1, 7, 0, 0, 0, 0, 0])},
+                                  'task_state', 'tx = 7'),
+    'distance level 4': ({'d': UInt8(data=4)}, 'distance_level', 'distance level 4'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(MALFORMED_INPUTS))
+def test_decision_fails_safe_on_malformed_input(graph, model, policy_path, case):
+    bad, input_name, reason = MALFORMED_INPUTS[case]
+    expected = expected_action(model, policy_path)
+
+    def respond(k):
+        dec.inputs(**(bad if k == 1 else {}))
+
+    dec = Decision(graph, policy_path, respond=respond)
+    actions = dec.run(2)
+    assert actions[:2] == ['dn', expected]        # fail-safe, then it carries on
+    assert_dropped(graph, dec.node, input_name, reason)
+    status = dec.status(1)
+    values = conv.diagnostic_values(status)
+    assert status.level == ERROR
+    assert 'malformed' in values['faults'] and reason in values['faults']
+    assert values['input_timed_out'] == 'false'   # decided at once, not at the timeout
+    assert dec.status(2).level == OK
+
+
+def test_decision_fails_safe_on_a_missing_input(graph, policy_path):
+    dec = Decision(graph, policy_path, respond=lambda k: dec.inputs(belief=None))
+    assert dec.run(2)[:2] == ['dn', 'dn']
+    values = conv.diagnostic_values(dec.status(1))
+    assert 'hrc/belief missing' in values['faults']
+    assert values['input_timed_out'] == 'true'
+    assert float(values['input_wait_ms']) >= INPUT_TIMEOUT * 1e3 * 0.9
+    assert dec.status(1).level == ERROR
+    assert values['belief_age_s'] == 'none'
+
+
+def test_decision_fails_safe_when_the_epoch_inputs_are_late(graph, model, policy_path):
+    expected = expected_action(model, policy_path)
+    # Epoch 1 answered in full; from epoch 2 on the belief estimator stays silent.
+    dec = Decision(graph, policy_path,
+                   respond=lambda k: dec.inputs(belief=LOW_MOTIVATION if k == 1 else None))
+    assert dec.run(2)[:2] == [expected, 'dn']
+    faults = conv.diagnostic_values(dec.status(2))['faults']
+    assert 'hrc/belief not received for epoch 2 within input_timeout' in faults
+
+
+def test_decision_fails_safe_on_a_stale_distance(graph, model, policy_path):
+    expected = expected_action(model, policy_path)
+    stale_timeout = 3 * EPOCH_PERIOD
+    dec = Decision(graph, policy_path, stale_timeout=stale_timeout,
+                   respond=lambda k: dec.inputs(d=1 if k == 1 else None))
+    actions = dec.run(6)
+    assert actions[0] == expected
+    assert actions[5] == 'dn'
+    stale = [k for k in range(1, 7)
+             if 'hrc/distance_level stale' in conv.diagnostic_values(dec.status(k))['faults']]
+    assert stale and all(actions[k - 1] == 'dn' for k in stale)
+    assert all(actions[k - 1] == expected for k in range(1, 7) if k not in stale)
+
+
+def test_decision_stops_at_collision_distance(graph, model, policy_path):
+    dec = Decision(graph, policy_path, respond=lambda k: dec.inputs(d=0))
+    assert dec.run(1)[0] == 'dn'
+    status = dec.status(1)
+    values = conv.diagnostic_values(status)
+    assert status.level == WARN
+    assert 'd = 0' in values['faults']
+    assert values['selected'] in ACTIONS    # the policy was consulted, then overridden
+
+
+def test_decision_follows_the_epoch_topic(graph, model, policy_path):
+    expected = expected_action(model, policy_path)
+    dec = Decision(graph, policy_path, epoch_source='topic')
+    epoch = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    dec.inputs()
+    epoch.publish(UInt32(data=1))
+    assert dec.run(1) == [expected]
+    assert graph.probe.count_publishers('hrc/epoch') == 1   # the probe's, not the node's
+    epoch.publish(UInt32(data=1))                            # not after epoch 1: dropped
+    assert_dropped(graph, dec.node, 'epoch', 'does not follow')
+
+
+@pytest.mark.parametrize('name, value, reason', [
+    ('selector', 'greedy', 'selector must be one of'),
+    ('input_timeout', 0.5, 'shorter than epoch_period'),
+    ('epoch_period', 0.1, 'shorter than epoch_period'),
+    ('epoch_period', -1.0, 'range'),
+    ('stale_timeout', 0.0, 'range'),
+    ('policy', '/tmp/other.npz', 'read-only'),
+    ('config', '/tmp/other.yaml', 'read-only'),
+    ('epoch_source', 'topic', 'read-only'),
+])
+def test_decision_rejects_bad_parameters(graph, policy_path, name, value, reason):
+    node = Decision(graph, policy_path).node
+    before = node.get_parameter(name).value
+    result = node.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful
+    assert reason in result.reason, result.reason
+    assert node.get_parameter(name).value == before
+
+
+def test_decision_applies_parameters_at_run_time(graph, policy_path):
+    node = Decision(graph, policy_path).node
+    results = node.set_parameters([Parameter('selector', value='qmdp'),
+                                   Parameter('epoch_period', value=0.3)])
+    assert all(r.successful for r in results)
+    assert node.selector.method == 'qmdp'
+    assert node.epoch_timer.timer_period_ns == 300_000_000
+
+
+def test_decision_refuses_bad_parameters_at_start_up(graph, policy_path):
+    with pytest.raises(InvalidParameterValueException, match='shorter than epoch_period'):
+        graph.start(DecisionNode, policy=policy_path, epoch_period=0.2, input_timeout=0.5)
+    with pytest.raises(InvalidParameterValueException, match='selector'):
+        graph.start(DecisionNode, policy=policy_path, selector='vote')
+
+
+def console_script(name: str) -> str:
+    """A console script of this environment (beside the interpreter), else from PATH."""
+    beside = Path(sys.executable).parent / name
+    return str(beside) if beside.is_file() else (shutil.which(name) or name)
+
+
+def _run_decision_node(*ros_args):
+    result = subprocess.run([console_script('decision_node'), '--ros-args', *ros_args],
+                            capture_output=True,
+                            text=True, timeout=60, env=dict(os.environ),
+                            start_new_session=True)
+    return result.returncode, result.stdout + result.stderr
+
+
+def test_decision_node_refuses_a_policy_of_another_configuration(other_config_policy_path,
+                                                                  default_config):
+    code, output = _run_decision_node('-p', f'policy:={other_config_policy_path}')
+    assert code == 1, output
+    assert other_config_policy_path in output                    # names the file
+    assert default_config.source in output                       # and the expected config
+    assert default_config.policy_hash[:12] in output
+    assert 'Traceback' not in output
+
+
+def test_decision_node_refuses_a_missing_policy(tmp_path):
+    missing = str(tmp_path / 'nowhere.npz')
+    code, output = _run_decision_node('-p', f'policy:={missing}')
+    assert code == 1, output
+    assert missing in output and 'does not exist' in output
+    assert 'Traceback' not in output
+
+
+# =============================================================================================
+# task_manager
+# =============================================================================================
+class Tasks:
+    def __init__(self, graph, **parameters):
+        self.graph = graph
+        self.node = graph.start(TaskManagerNode, **parameters)
+        self.epoch_pub = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+        self.action = graph.publisher(String, 'hrc/action', qos.RELIABLE)
+        self.response = graph.publisher(Bool, 'hrc/human_response', qos.RELIABLE)
+        self.request = graph.publisher(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE)
+        self.states = graph.collect(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
+
+    def send(self, name, publisher, msg):
+        before = self.node.inputs.received[name]
+        publisher.publish(msg)
+        assert self.graph.spin_until(lambda: self.node.inputs.received[name] > before), name
+
+    def epoch(self, k, action=None, accepted=None):
+        if action is not None:
+            self.send('action', self.action, String(data=action))
+        if accepted is not None:
+            self.send('human_response', self.response, Bool(data=accepted))
+        count = len(self.states)
+        self.send('epoch', self.epoch_pub, conv.epoch_to_msg(k))
+        assert self.graph.spin_until(lambda: len(self.states) > count)
+        return conv.task_state_from_msg(self.states[-1])
+
+
+def test_task_manager_follows_the_task_book(graph, model):
+    tasks = Tasks(graph, initial_task=[1, 1, 3], schedule=['3:2,2,1'])
+    book = TaskBook(model, initial_task=(1, 1, 3), schedule=['3:2,2,1'])
+    script = [(None, None), ('rh2', False), ('rh2', True), ('nw', None), ('mh', None),
+              ('rh1', True), ('nw', None)]
+    for k, (action, accepted) in enumerate(script, start=1):
+        if k > 1:
+            book.apply(action, bool(accepted))
+        book.begin_epoch(k)
+        assert tasks.epoch(k, action, accepted) == book.state, f'epoch {k}'
+    assert tasks.states[0].layout.dim[0].label == 'tp'
+    assert len(book.completed) == 1
+
+
+def test_task_manager_takes_a_missing_action_as_dn(graph, model):
+    tasks = Tasks(graph, initial_task=[2, 2, 2])
+    tasks.epoch(1)
+    assert tasks.epoch(2, 'ct')['ty'] == 2
+    state = tasks.epoch(3)           # no action: dn, the robot's counter is paused
+    assert state['bc'] == 2 and state['tc'] == 2
+
+
+def test_task_manager_queues_requests_and_drops_bad_ones(graph):
+    tasks = Tasks(graph)
+    assert tasks.epoch(1)['tp'] == 0
+    tasks.send('task_request', tasks.request, conv.task_request_to_msg(2, 1, 0))
+    assert tasks.epoch(2, 'dn') == dict(zip(TASK_VARIABLES, (2, 1, 0, 0, 0, 0, 0, 0)))
+    tasks.send('task_request', tasks.request, UInt8MultiArray(data=[1, 1]))
+    assert_dropped(graph, tasks.node, 'task_request', 'priority, duration, nature')
+    tasks.send('task_request', tasks.request, UInt8MultiArray(data=[3, 1, 1]))
+    tasks.send('task_request', tasks.request, UInt8MultiArray(data=[1, 0, 1]))
+    assert tasks.node.inputs.dropped['task_request'] == 3
+    assert tasks.node.book.pending == []
+
+
+def test_task_manager_drops_bad_actions_and_epochs(graph):
+    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    tasks.epoch(1)
+    tasks.send('action', tasks.action, String(data='commit'))
+    assert_dropped(graph, tasks.node, 'action', 'unknown action')
+    tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(1))
+    assert tasks.node.inputs.dropped['epoch'] == 1
+    assert tasks.epoch(2, 'ct')['ty'] == 2          # still working
+
+
+@pytest.mark.parametrize('parameters, reason', [
+    ({'initial_task': [1, 1]}, '3 values'),
+    ({'initial_task': [1, 1, -3]}, 'initial_task'),
+    ({'schedule': ['9:2,2']}, 'bad schedule entry'),
+    ({'schedule': ['0:1,1,1']}, 'numbered from 1'),
+])
+def test_task_manager_refuses_bad_parameters_at_start_up(graph, parameters, reason):
+    with pytest.raises(InvalidParameterValueException, match=reason):
+        graph.start(TaskManagerNode, **parameters)
+
+
+def test_task_manager_refuses_out_of_domain_initial_task(graph):
+    from hrc_ros.nodes.common import StartupError
+    with pytest.raises(StartupError, match='tp'):
+        graph.start(TaskManagerNode, initial_task=[9, 1, 1])
+
+
+def test_task_manager_parameters_are_read_only(graph):
+    node = Tasks(graph, initial_task=[1, 1, 3]).node
+    result = node.set_parameters([Parameter('schedule', value=['2:1,1,1'])])[0]
+    assert not result.successful and 'read-only' in result.reason
+
+
+# =============================================================================================
+# cell_sim
+# =============================================================================================
+class Cell:
+    def __init__(self, graph, **parameters):
+        self.graph = graph
+        self.joints = graph.collect(JointState, 'human/joint_states', qos.SENSOR_DATA)
+        self.skeletons = graph.collect(PoseArray, 'human/skeleton', qos.SENSOR_DATA)
+        self.responses = graph.collect(Bool, 'hrc/human_response', qos.RELIABLE)
+        self.true_states = graph.collect(UInt8MultiArray, 'hrc/sim/true_state', qos.LATCHED)
+        self.node = graph.start(CellSimNode, **{'sensor_rate': 100.0, **parameters})
+        self.action = graph.publisher(String, 'hrc/action', qos.RELIABLE)
+        self.task = graph.publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
+
+    def send(self, name, publisher, msg):
+        before = self.node.inputs.received[name]
+        publisher.publish(msg)
+        assert self.graph.spin_until(lambda: self.node.inputs.received[name] > before), name
+
+
+def test_cell_streams_the_initial_observation_and_distance(graph):
+    cell = Cell(graph, seed=3, initial_emotions=[2, 1], initial_distance=2)
+    assert graph.spin_until(lambda: len(cell.joints) >= 10 and len(cell.skeletons) >= 10)
+    human = cell.node.human
+    for msg in cell.joints:
+        assert tuple(msg.name) == conv.HUMAN_JOINTS and len(msg.velocity) == 6
+        assert len(msg.position) == 6
+        assert velocity_level(msg.velocity) == human.observation
+    for msg in cell.skeletons:
+        assert msg.header.frame_id == 'base_link'
+        assert distance_level(conv.keypoints_from_msg(msg)) == 2
+    assert graph.spin_until(lambda: cell.true_states)
+    state = conv.true_state_from_msg(cell.true_states[-1])
+    assert (state['em'], state['ea'], state['d']) == (2, 1, 2)
+
+
+def test_cell_reacts_to_actions_like_the_simulated_human(graph, model):
+    from hrc_ros.cell import SimulatedHuman
+    cell = Cell(graph, seed=11)
+    twin = SimulatedHuman(model, seed=11, em=0, ea=0, d=1)
+    task = dict(TASK_1)
+    cell.send('task_state', cell.task, conv.task_state_to_msg(task))
+    for action in ('mh', 'mh', 'rh2', 'nw'):
+        reaction = twin.react(action, task)
+        if action == 'rh2':
+            accepted = reaction.accepted
+        count = len(cell.true_states)
+        cell.send('action', cell.action, String(data=action))
+        assert graph.spin_until(lambda: len(cell.true_states) > count)
+        state = conv.true_state_from_msg(cell.true_states[-1])
+        assert (state['em'], state['ea'], state['d']) == (reaction.em, reaction.ea, reaction.d)
+        assert cell.node.human.observation == reaction.observation
+    assert graph.spin_until(lambda: len(cell.responses) == 1)   # one request, one response
+    assert cell.responses[0].data is accepted
+    # After the last reaction every new sample is in the band of the new observation.
+    count = len(cell.joints)
+    assert graph.spin_until(lambda: len(cell.joints) >= count + 5)
+    assert all(velocity_level(m.velocity) == twin.observation for m in cell.joints[count + 1:])
+
+
+def test_cell_answers_an_ineligible_request_with_false(graph):
+    cell = Cell(graph)
+    cell.send('task_state', cell.task, conv.task_state_to_msg(
+        dict(zip(TASK_VARIABLES, (0,) * 8))))
+    cell.send('action', cell.action, String(data='rh1'))
+    assert graph.spin_until(lambda: cell.responses)
+    assert cell.responses[0].data is False
+
+
+def test_cell_drops_malformed_inputs(graph):
+    cell = Cell(graph)
+    cell.send('action', cell.action, String(data='wave'))
+    assert_dropped(graph, cell.node, 'action', 'unknown action')
+    cell.send('task_state', cell.task, UInt8MultiArray(data=[1, 2, 3]))
+    assert_dropped(graph, cell.node, 'task_state', 'must hold 8')
+    assert cell.node.reactions == 0
+    cell.send('action', cell.action, String(data='dn'))
+    assert cell.node.reactions == 1
+
+
+@pytest.mark.parametrize('name, value, reason', [
+    ('sensor_rate', 0.0, 'range'),
+    ('sensor_rate', 5000.0, 'range'),
+    ('velocity_thresholds', [0.5, 0.5], 'increasing'),
+    ('safety_radii', [0.2, 0.6, 1.2, 2.0], '3 numbers'),
+    ('seed', 4, 'read-only'),
+])
+def test_cell_rejects_bad_parameters(graph, name, value, reason):
+    node = graph.start(CellSimNode)
+    result = node.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful and reason in result.reason, result.reason
+
+
+def test_cell_applies_the_sensor_rate_at_run_time(graph):
+    node = graph.start(CellSimNode)
+    assert node.set_parameters([Parameter('sensor_rate', value=20.0)])[0].successful
+    assert node.sensor_timer.timer_period_ns == 50_000_000
+
+
+@pytest.mark.parametrize('parameters, reason', [
+    ({'initial_emotions': [3, 0]}, 'initial_emotions'),
+    ({'initial_emotions': [0]}, '2 values'),
+    ({'initial_distance': 4}, 'range'),
+])
+def test_cell_refuses_bad_parameters_at_start_up(graph, parameters, reason):
+    with pytest.raises(InvalidParameterValueException, match=reason):
+        graph.start(CellSimNode, **parameters)
