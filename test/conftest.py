@@ -6,12 +6,20 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that subproces
 multi-process suite, the refused decision node) inherit them. Two sessions on one machine, or a
 session next to a running cell, then never see each other's topics. HRC_TEST_ROS_DOMAIN_ID pins
 the domain (to watch a test with other tools, say).
+
+Discovery speed. A Fast DDS participant that joins the graph discovers the ones already there
+only when they next announce themselves, every 3 s by default (measured here: up to ~2 s before
+a new process sees an old publisher, with localhost discovery). The multi-process test needs
+every node connected before the first epoch, so the session exports a default participant
+profile (FASTRTPS_DEFAULT_PROFILES_FILE, unless one is set already) that announces every
+0.1 s. Only discovery timing changes; the nodes' QoS and behaviour do not.
 """
 
 from __future__ import annotations
 
 import os
 import random
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -24,6 +32,26 @@ os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.pop('ROS_STATIC_PEERS', None)
 os.environ.pop('ROS_LOCALHOST_ONLY', None)   # deprecated; conflicts with the range above
+
+FAST_DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <participant profile_name="hrc_ros_tests" is_default_profile="true">
+    <rtps>
+      <builtin>
+        <discovery_config>
+          <leaseAnnouncement><sec>0</sec><nanosec>100000000</nanosec></leaseAnnouncement>
+        </discovery_config>
+      </builtin>
+    </rtps>
+  </participant>
+</profiles>
+"""
+if not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+        or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
+    _profile = Path(tempfile.mkdtemp(prefix='hrc_ros_dds_')) / 'fastdds_profile.xml'
+    _profile.write_text(FAST_DDS_PROFILE)
+    os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(_profile)   # Fast DDS 2.x
+    os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = str(_profile)    # Fast DDS 3.x
 
 
 @pytest.fixture(scope='session')

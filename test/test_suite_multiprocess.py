@@ -57,7 +57,7 @@ decision:
     selector: paper
     epoch_period: {period}
     input_timeout: 0.2
-    stale_timeout: 20.0
+    stale_timeout: 3.0
     epoch_source: timer
 task_manager:
   ros__parameters:
@@ -90,20 +90,24 @@ class Suite:
         self.processes[node] = subprocess.Popen(
             [console_script(f'{node}_node'), '--ros-args', '--params-file',
              str(self.params_file)],
-            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ),
+            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, 'PYTHONFAULTHANDLER': '1'},
             start_new_session=True)
         log.close()
 
     def logs(self) -> str:
         return '\n'.join(f'--- {node} (exit {p.poll()}) ---\n'
-                         + (self.log_dir / f'{node}.log').read_text()[-3000:]
+                         + (self.log_dir / f'{node}.log').read_text()[-6000:]
                          for node, p in self.processes.items())
 
     def dead(self) -> list[str]:
         return [node for node, p in self.processes.items() if p.poll() is not None]
 
     def stop(self) -> dict[str, int]:
-        """SIGINT to every process group, then SIGKILL after STOP_TIMEOUT; the exit codes."""
+        """SIGINT to every process group; the exit codes.
+
+        A process still running after STOP_TIMEOUT gets SIGABRT, which makes Python's
+        faulthandler (PYTHONFAULTHANDLER=1) write every thread's stack to its log, then SIGKILL.
+        """
         for process in self.processes.values():
             if process.poll() is None:
                 try:
@@ -116,8 +120,13 @@ class Suite:
             try:
                 codes[node] = process.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                codes[node] = process.wait()
+                os.killpg(process.pid, signal.SIGABRT)
+                try:
+                    process.wait(timeout=2.0)
+                except subprocess.TimeoutExpired:
+                    os.killpg(process.pid, signal.SIGKILL)
+                    process.wait()
+                codes[node] = 'hung'
         return codes
 
 
@@ -134,7 +143,6 @@ class Listener:
         self.task_states: list[dict] = []
         self.true_states: list[dict] = []
         self.decisions: dict[int, dict] = {}
-        self.decision_heard = False
         self.node.create_subscription(String, 'hrc/action',
                                       lambda m: self.actions.append(m.data), qos.RELIABLE)
         self.node.create_subscription(
@@ -149,7 +157,6 @@ class Listener:
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
             if status.name == 'decision: decision':
-                self.decision_heard = True
                 values = conv.diagnostic_values(status)
                 if values.get('epoch', '0') != '0':
                     self.decisions[int(values['epoch'])] = {'level': status.level, **values}
@@ -201,15 +208,15 @@ def observed_rows(listener):
 def test_four_processes_run_the_case_study(processes, default_config, policy_path):
     suite, listener = processes
     deadline = time.monotonic() + DEADLINE
-    # The decision node owns the clock; it holds epoch 1 until it has discovered the other
-    # nodes' endpoints (or stale_timeout, set long here, has passed). Start it first and wait
-    # until its status reaches this process, so that the test hears every epoch from 1 on.
-    suite.start('decision')
-    heard = listener.spin_until(lambda: listener.decision_heard or suite.dead(),
-                                deadline - time.monotonic())
-    assert heard and not suite.dead(), suite.logs()
+    # The decision node owns the clock: start it once the others are on the graph. A node
+    # already running discovers a new one at once; the new decision node discovers them in
+    # turn and holds epoch 1 until it has (see conftest.py on discovery speed).
     for node in NODES:
         suite.start(node)
+    up = listener.spin_until(lambda: listener.nodes_up(NODES) or suite.dead(),
+                             deadline - time.monotonic())
+    assert up and not suite.dead(), suite.logs()
+    suite.start('decision')
     done = listener.spin_until(
         lambda: (len(listener.actions) >= EPOCHS and len(listener.task_states) >= EPOCHS
                  and len(listener.true_states) > EPOCHS
