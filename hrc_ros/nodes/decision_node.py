@@ -8,7 +8,8 @@ Each epoch k: publish `hrc/epoch` k (`epoch_source: timer`; with `topic` it foll
 
 and publish it on `hrc/action`, with one /diagnostics status per epoch: the action, the
 selector's scores, the belief, the observable state, input ages, the policy identity (file and
-configuration SHA-256), the time from the epoch to the decision and the compute time.
+configuration SHA-256), the time from the epoch to the decision, the decision's compute time
+(fault checks and selection, `compute_ms`) and the time to publish the action (`publish_ms`).
 
 Fail-safe: a_k = dn, and the status is ERROR with the faults, when an input
 
@@ -278,15 +279,17 @@ class DecisionNode(Node):
             faults, ages = [f'decision failed: {type(exc).__name__}: {exc}'], {}
             selection = None
         action = DN if faults else selection.action
+        decided = time.perf_counter()
         self.action_pub.publish(conv.action_to_msg(action))
+        published = time.perf_counter()
         self._fresh_since = self._next_seq()
-        compute_ms = (time.perf_counter() - start) * 1e3
         self.last_action = action
         self._report(action, faults, collision, ages, selection, observable, timed_out,
-                     now_ns, compute_ms)
+                     now_ns, {'compute_ms': (decided - start) * 1e3,
+                              'publish_ms': (published - decided) * 1e3})
 
     def _report(self, action, faults, collision, ages, selection, observable, timed_out,
-                now_ns, compute_ms) -> None:
+                now_ns, timings) -> None:
         belief = self.slots['belief'].value
         values = {
             'epoch': self.epoch, 'action': ACTIONS[action],
@@ -295,7 +298,7 @@ class DecisionNode(Node):
             **ages,
             'input_wait_ms': (now_ns - self._epoch_started_ns) * 1e-6,
             'input_timed_out': timed_out,
-            'compute_ms': compute_ms,
+            **timings,
             'policy_file': self.policy.path,
             'policy_config_sha256': self.policy.config_sha256,
             'config': self.config.source,
