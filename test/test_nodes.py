@@ -542,6 +542,19 @@ def test_decision_follows_the_epoch_topic(graph, model, policy_path):
     assert_dropped(graph, dec.node, 'epoch', 'does not follow')
 
 
+def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
+    actions = graph.collect(String, 'hrc/action', qos.RELIABLE)
+    epochs = graph.collect(UInt32, 'hrc/epoch', qos.RELIABLE)
+    graph.start(DecisionNode, policy=policy_path, epoch_period=0.1, input_timeout=0.05,
+                stale_timeout=0.5)       # no belief estimator, no task manager
+    assert graph.spin_until(lambda: actions)
+    waiting = graph.diagnostics('decision: decision', WARN)
+    assert waiting and 'waiting for the graph' in waiting[0].message
+    assert float(conv.diagnostic_values(waiting[-1])['waited_s']) < 0.5
+    assert [m.data for m in epochs[:1]] == [1] and actions[0].data == 'dn'
+    assert 'hrc/task_state missing' in graph.diagnostics('decision: decision', ERROR)[0].message
+
+
 @pytest.mark.parametrize('name, value, reason', [
     ('selector', 'greedy', 'selector must be one of'),
     ('input_timeout', 0.5, 'shorter than epoch_period'),

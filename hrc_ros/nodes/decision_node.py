@@ -200,22 +200,22 @@ class DecisionNode(Node):
     def _on_tick(self) -> None:
         if not self._clock_running:
             waited = (self.get_clock().now().nanoseconds - self._started_ns) * 1e-9
-            if self._graph_ready_tick or waited >= self.stale_timeout:
-                self._clock_running = True     # start at the next tick
-                if not self._graph_ready_tick:
-                    self.get_logger().warning('starting the epoch clock without having '
-                                              'discovered every input publisher')
-            elif self._graph_ready():
-                self._graph_ready_tick = True
-            else:
-                self.inputs.publish(self.inputs.status(
-                    'decision', WARN, 'waiting for the graph: no hrc/epoch subscriber or no '
-                    'input publisher discovered yet; no action published',
-                    {'waited_s': waited, 'epoch_subscribers':
-                     self.epoch_pub.get_subscription_count(),
-                     **{f'{name}_publishers': sub.get_publisher_count() for name, sub in
-                        zip(self.slots, self.input_subscriptions)}}))
-            return
+            if not (self._graph_ready_tick or waited >= self.stale_timeout):
+                if self._graph_ready():
+                    self._graph_ready_tick = True     # epoch 1 at the next tick
+                else:
+                    self.inputs.publish(self.inputs.status(
+                        'decision', WARN, 'waiting for the graph: no hrc/epoch subscriber or '
+                        'no input publisher discovered yet; no action published',
+                        {'waited_s': waited,
+                         'epoch_subscribers': self.epoch_pub.get_subscription_count(),
+                         **{f'{name}_publishers': sub.get_publisher_count() for name, sub
+                            in zip(self.slots, self.input_subscriptions)}}))
+                return
+            if not self._graph_ready_tick:
+                self.get_logger().warning(f'starting the epoch clock after {waited:.1f} s '
+                                          'without having discovered every input publisher')
+            self._clock_running = True
         self._start_epoch(self.epoch + 1)
         self.epoch_pub.publish(conv.epoch_to_msg(self.epoch))
 
