@@ -154,7 +154,9 @@ def check_array(values: Mapping[str, Any], name: str, length: int | None = None,
         if v != v or v in (float('inf'), float('-inf')):
             return f'{name} must be finite, got {array}'
         if (low is not None and v < low) or (high is not None and v > high):
-            return f'{name} values must lie in [{low}, {high}], got {array}'
+            span = (f'in [{low}, {high}]' if low is not None and high is not None
+                    else f'>= {low}' if low is not None else f'<= {high}')
+            return f'{name} values must be {span}, got {array}'
     return None
 
 
