@@ -25,8 +25,9 @@ message), or at `input_timeout`.
 
 Start-up. The policy file must exist and match the configuration; otherwise the node logs
 which file and which configuration it expected and exits with status 1. In timer mode the clock
-starts one `epoch_period` after the graph is ready (a subscriber of `hrc/epoch` and a
-publisher of each input are discovered) or after `stale_timeout`, whichever comes first, so
+starts one `epoch_period` after the graph is ready (`min_epoch_subscribers` subscribers of
+`hrc/epoch` and a publisher of each input are discovered) or after `stale_timeout`,
+whichever comes first, so
 that the first epochs are not lost to discovery; until then it publishes no action.
 """
 
@@ -65,6 +66,10 @@ PARAMETERS = (
               range=(0.001, 86400.0)),
     ParamSpec('epoch_source', T.STRING, 'timer', "'timer': publish hrc/epoch; 'topic': follow "
               'hrc/epoch (replay)', read_only=True, constraints=' or '.join(EPOCH_SOURCES)),
+    ParamSpec('min_epoch_subscribers', T.INTEGER, 1, 'timer mode: subscribers of hrc/epoch '
+              'to discover before epoch 1 (e.g. 3 with a recorder besides the task manager and '
+              'the belief estimator); the clock starts anyway after stale_timeout',
+              read_only=True, range=(1, 1000)),
 )
 
 
@@ -111,6 +116,7 @@ class DecisionNode(Node):
         self.selector = ActionSelector(self.model, self.policy, method=values['selector'])
         self.epoch_source = values['epoch_source']
         self.stale_timeout = values['stale_timeout']
+        self.min_epoch_subscribers = values['min_epoch_subscribers']
 
         self.epoch = 0
         self.pending = False           # waiting for the inputs of self.epoch
@@ -194,7 +200,7 @@ class DecisionNode(Node):
 
     # -- the epoch clock -------------------------------------------------------------------
     def _graph_ready(self) -> bool:
-        return (self.epoch_pub.get_subscription_count() > 0
+        return (self.epoch_pub.get_subscription_count() >= self.min_epoch_subscribers
                 and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions))
 
     def _on_tick(self) -> None:

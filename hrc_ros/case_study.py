@@ -1,0 +1,360 @@
+"""hrc-case-study: the paper's case study end to end through the four ROS 2 nodes.
+
+    hrc-case-study --out out/case_study [--epochs 20] [--epoch-period 0.5] [--seed 0]
+
+What it does, as a user would by hand:
+
+1. writes the run's parameter file (`run_params.yaml`, loaded after the shipped
+   `hrc_params.yaml` and `case_study_params.yaml`) into the output folder;
+2. starts `cell_sim_node`, `task_manager_node`, `belief_estimator_node` and then
+   `decision_node` as four separate processes (their console scripts), each logging to
+   `logs/<node>.log`, and waits until the graph shows them;
+3. records every hrc topic into a rosbag2-compatible MCAP bag (`bag/`) while it watches the
+   run over DDS, until the decision node has acted in the last epoch;
+4. stops the nodes (SIGINT to each process group) and prints the trajectory as the paper's
+   Table 6: per epoch the true state (hidden emotions from the simulated cell's debug topic
+   `hrc/sim/true_state`, task and activity from `hrc/task_state`, distance), the observation,
+   the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
+
+The trajectory is assembled from each publisher's own message sequence (`assemble`), because
+messages of different publishers may reach an observer out of causal order.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .config import ConfigError, load_config
+from .model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
+from .policy import PolicyError, default_config_path, default_policy_path, load_policy, share_dir
+from .tasks import TaskBook
+from .simulator import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study, \
+    plot_trajectory
+
+NODES = ('cell_sim_node', 'task_manager_node', 'belief_estimator_node', 'decision_node')
+NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
+              'belief_estimator_node': 'belief_estimator', 'decision_node': 'decision'}
+TOPICS = {
+    'human/joint_states': 'sensor_msgs/msg/JointState',
+    'human/skeleton': 'geometry_msgs/msg/PoseArray',
+    'hrc/observation': 'std_msgs/msg/UInt8',
+    'hrc/distance_level': 'std_msgs/msg/UInt8',
+    'hrc/belief': 'std_msgs/msg/Float64MultiArray',
+    'hrc/task_request': 'std_msgs/msg/UInt8MultiArray',
+    'hrc/human_response': 'std_msgs/msg/Bool',
+    'hrc/task_state': 'std_msgs/msg/UInt8MultiArray',
+    'hrc/action': 'std_msgs/msg/String',
+    'hrc/epoch': 'std_msgs/msg/UInt32',
+    'hrc/sim/true_state': 'std_msgs/msg/UInt8MultiArray',
+    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+}
+WATCHED = ('hrc/epoch', 'hrc/task_state', 'hrc/observation', 'hrc/distance_level',
+           'hrc/belief', 'hrc/action', 'hrc/human_response', 'hrc/sim/true_state')
+
+
+class CaseStudyError(RuntimeError):
+    pass
+
+
+def node_command(executable: str) -> list[str]:
+    """The node's console script (PATH, next to this interpreter, or <prefix>/lib/hrc_ros)."""
+    candidates = [shutil.which(executable), Path(sys.executable).parent / executable,
+                  Path(sys.prefix) / 'lib' / 'hrc_ros' / executable]
+    for candidate in candidates:
+        if candidate and os.access(candidate, os.X_OK) and Path(candidate).is_file():
+            return [str(candidate)]
+    return [sys.executable, '-m', f'hrc_ros.nodes.{executable}']
+
+
+def write_run_params(path: Path, args) -> Path:
+    params = {
+        '/**': {'ros__parameters': {'config': args.config or ''}},
+        '/**/decision': {'ros__parameters': {
+            'epoch_period': args.epoch_period, 'input_timeout': 0.6 * args.epoch_period,
+            # the task manager, the belief estimator and this observer
+            'min_epoch_subscribers': 3,
+            'selector': args.selector,
+            'policy': args.policy or ''}},
+        '/**/cell_sim': {'ros__parameters': {'seed': args.seed}},
+        '/**/belief_estimator': {'ros__parameters': {'belief_mode': args.belief_mode}},
+    }
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    return path
+
+
+class Run:
+    """The four node processes of one run."""
+
+    def __init__(self, params: list[Path], logs: Path, env: dict):
+        self.params = params
+        self.logs = logs
+        self.env = env
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def start(self, executable: str) -> None:
+        cmd = node_command(executable) + ['--ros-args']
+        for p in self.params:
+            cmd += ['--params-file', str(p)]
+        log = open(self.logs / f'{executable}.log', 'w')
+        self.processes[executable] = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
+            start_new_session=True)
+
+    def check_alive(self) -> None:
+        for name, proc in self.processes.items():
+            if proc.poll() is not None:
+                tail = (self.logs / f'{name}.log').read_text().strip().splitlines()[-5:]
+                raise CaseStudyError(f'{name} exited with code {proc.returncode}:\n  '
+                                     + '\n  '.join(tail))
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        for proc in self.processes.values():
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        codes = {}
+        deadline = time.monotonic() + timeout
+        for name, proc in self.processes.items():
+            try:
+                codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                codes[name] = proc.wait()
+        return codes
+
+
+def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Trajectory:
+    """Per-epoch rows from the watched messages (see the module docstring).
+
+    Messages of different publishers can reach the observer slightly out of their causal
+    order, so rows are not keyed by arrival after an epoch signal but by each publisher's own
+    sequence: the task manager and the belief estimator answer every epoch signal with exactly
+    one task state, observation and belief (the n-th belongs to epoch n); the cell publishes its
+    initial true state and then one per action it reacts to (the n-th, from 0, is the state of
+    epoch n + 1); an action belongs to the decision node's last epoch signal before it.
+    """
+    by_topic: dict[str, list] = {}
+    actions: dict[int, str] = {}
+    responses: list = []
+    epoch = None
+    for topic, value in events:
+        if topic == 'hrc/epoch':
+            epoch = value
+        elif topic == 'hrc/action':
+            if epoch is not None and epoch not in actions:
+                actions[epoch] = value
+        elif topic == 'hrc/human_response':
+            responses.append((epoch, value))
+        else:
+            by_topic.setdefault(topic, []).append(value)
+    missing = [k for k in range(1, args.epochs + 1) if k not in actions]
+    if missing:
+        raise CaseStudyError(f'no action was seen for epochs {missing}')
+    rows = []
+    for k in range(1, args.epochs + 1):
+        try:
+            true = by_topic['hrc/sim/true_state'][k - 1]
+            task = by_topic['hrc/task_state'][k - 1]
+            belief = by_topic['hrc/belief'][k - 1]
+            observation = by_topic['hrc/observation'][k - 1]
+        except (KeyError, IndexError):
+            raise CaseStudyError(f'epoch {k}: the cell, task manager or belief estimator '
+                                 'did not report it') from None
+        state = (true[0], true[1]) + tuple(int(v) for v in task) + (true[10],)
+        action = actions[k]
+        answer = [v for e, v in responses if e == k]
+        rows.append({
+            'epoch': k, **dict(zip(STATE_VARIABLES, state)), 'O': observation,
+            **dict(zip(BELIEF_COLUMNS, belief)), 'action': action,
+            'accepted': answer[-1] if answer and action in ('rh1', 'rh2') else None,
+            'fail_safe': action == 'dn' and state[10] == 0,
+            **{c: float('nan') for c in SCORE_COLUMNS},
+            'cost': float(model.cost(np.array([state]), ACTIONS.index(action))[0])})
+    # The task records (release, commit, completion) of the same bookkeeping the task manager
+    # ran, driven by the observed actions and answers.
+    book = TaskBook(model, initial_task=scenario.initial_state[2:5], schedule=scenario.schedule)
+    for row in rows:
+        book.begin_epoch(row['epoch'])
+        book.apply(ACTIONS.index(row['action']), bool(row['accepted']))
+    return Trajectory(rows=rows, scenario=scenario, selector=args.selector,
+                      mode=args.belief_mode or model.config.belief_mode, seed=args.seed,
+                      gamma=model.gamma, tasks=book.records)
+
+
+def watch(args, out: Path, bag_dir: Path, run: Run) -> list:
+    """Record and watch the run until the last epoch's action (or the timeout)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from . import conversions
+    from .bag import BagWriter, Recorder, message_class
+    from .qos import LATCHED, RELIABLE
+
+    rclpy.init()
+    node = rclpy.create_node('case_study_observer')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    events: list = []
+    decode = {
+        'hrc/epoch': conversions.epoch_from_msg,
+        'hrc/task_state': lambda m: tuple(conversions.task_state_from_msg(m)[n]
+                                          for n in TASK_VARIABLES),
+        'hrc/observation': conversions.observation_from_msg,
+        'hrc/distance_level': conversions.distance_level_from_msg,
+        'hrc/belief': conversions.belief_from_msg,
+        'hrc/action': lambda m: ACTIONS[conversions.action_from_msg(m)],
+        'hrc/human_response': conversions.human_response_from_msg,
+        'hrc/sim/true_state': lambda m: tuple(conversions.true_state_from_msg(m)[n]
+                                              for n in STATE_VARIABLES),
+    }
+
+    def on_message(topic, msg):
+        try:
+            events.append((topic, decode[topic](msg)))
+        except conversions.MessageError as exc:
+            node.get_logger().warning(f'{topic}: {exc}', throttle_duration_sec=2.0)
+
+    qos = {'hrc/task_state': LATCHED, 'hrc/distance_level': LATCHED, 'hrc/belief': LATCHED,
+           'hrc/sim/true_state': LATCHED}
+    for topic in WATCHED:
+        node.create_subscription(
+            message_class(TOPICS[topic]), topic,
+            lambda m, t=topic: on_message(t, m), qos.get(topic, RELIABLE))
+    try:
+        with BagWriter(bag_dir) as writer:
+            recorder = Recorder(node, TOPICS, writer)
+
+            def spin_until(predicate, timeout, what):
+                deadline = time.monotonic() + timeout
+                while not predicate():
+                    if time.monotonic() > deadline:
+                        raise CaseStudyError(f'timed out after {timeout:.0f} s waiting for '
+                                             f'{what}; node logs are in {out / "logs"}')
+                    run.check_alive()
+                    executor.spin_once(timeout_sec=0.05)
+
+            def in_graph(names):
+                present = {n for n, _ in node.get_node_names_and_namespaces()}
+                return all(NODE_NAMES[n] in present for n in names)
+
+            for executable in NODES[:3]:
+                run.start(executable)
+            spin_until(lambda: in_graph(NODES[:3]), 30, 'the cell, task manager and belief '
+                       'estimator nodes to appear')
+            run.start('decision_node')
+            spin_until(lambda: in_graph(NODES), 30, 'the decision node to appear')
+            print(f'hrc-case-study: four nodes up; recording to {bag_dir}', flush=True)
+            last = [0]
+
+            def done():
+                for topic, value in events[last[0]:]:
+                    if topic == 'hrc/epoch':
+                        print(f'  epoch {value}', end='', flush=True)
+                    elif topic == 'hrc/action':
+                        print(f' -> {value}', flush=True)
+                last[0] = len(events)
+                epochs = [v for t, v in events if t == 'hrc/epoch']
+                return bool(epochs) and epochs[-1] >= args.epochs and \
+                    events[-1][0] != 'hrc/epoch' and any(
+                        t == 'hrc/action' for t, _ in events[events.index(
+                            ('hrc/epoch', epochs[-1])):])
+
+            spin_until(done, args.timeout, f'{args.epochs} epochs')
+            # let the last action's echoes (response, sim state) land in the bag
+            end = time.monotonic() + min(0.5, args.epoch_period / 2)
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.05)
+            recorder.close()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return events
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='hrc-case-study', description=__doc__.split('\n')[0])
+    parser.add_argument('--out', default='out/case_study', help='output folder')
+    parser.add_argument('--epochs', type=int, default=20)
+    parser.add_argument('--epoch-period', type=float, default=0.5,
+                        help='seconds per decision epoch (default 0.5)')
+    parser.add_argument('--seed', type=int, default=0, help="the simulated human's seed")
+    parser.add_argument('--selector', default='paper', choices=('paper', 'qmdp', 'mls'))
+    parser.add_argument('--belief-mode', default='', choices=('', 'bayes', 'table'),
+                        help="'' = the configuration's mode")
+    parser.add_argument('--config', default='', help='model configuration (default: shipped)')
+    parser.add_argument('--policy', default='', help='policy file (default: shipped)')
+    parser.add_argument('--timeout', type=float, default=90.0, help='seconds for the run')
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    try:
+        config = load_config(args.config or default_config_path())
+        model = HRCModel(config)
+        load_policy(args.policy or default_policy_path(), config)  # refuse early, clearly
+    except (ConfigError, PolicyError) as exc:
+        print(f'hrc-case-study: {exc}', file=sys.stderr)
+        return 2
+    if out.exists():
+        for stale in ('bag', 'logs'):
+            shutil.rmtree(out / stale, ignore_errors=True)
+    (out / 'logs').mkdir(parents=True, exist_ok=True)
+    shipped = share_dir() / 'config'
+    params = [shipped / 'hrc_params.yaml', shipped / 'case_study_params.yaml',
+              write_run_params(out / 'run_params.yaml', args)]
+    # Single-host run: keep DDS on this host, and let participants announce themselves every
+    # 0.1 s (config/fastdds_fast_discovery.xml) so the nodes find each other at once.
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(shipped / 'fastdds_fast_discovery.xml')
+    env = dict(os.environ)
+    env['PYTHONUNBUFFERED'] = '1'
+    run = Run(params, out / 'logs', env)
+    started = time.monotonic()
+    try:
+        events = watch(args, out, out / 'bag', run)
+    except CaseStudyError as exc:
+        print(f'\nhrc-case-study: {exc}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print('\nhrc-case-study: interrupted', file=sys.stderr)
+        return 130
+    finally:
+        codes = run.stop()
+    scenario = case_study()
+    scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
+                        'case study (ROS 2 nodes over DDS)')
+    try:
+        trajectory = assemble(events, model, scenario, args)
+    except CaseStudyError as exc:
+        print(f'hrc-case-study: {exc}', file=sys.stderr)
+        return 1
+    print()
+    print(trajectory.table())
+    csv_path = trajectory.to_csv(out / 'trajectory.csv')
+    plots = plot_trajectory(trajectory, out)
+    from .bag import bag_info, format_size
+    info = bag_info(out / 'bag')
+    print(f'\nnodes stopped: ' + ', '.join(f'{n} exit {c}' for n, c in codes.items()))
+    print(f'wrote {csv_path}')
+    for p in plots:
+        print(f'wrote {p}')
+    bag_file = next((out / 'bag').glob('*.mcap'))
+    print(f'wrote {bag_file} ({info.message_count} messages, '
+          f'{format_size(bag_file.stat().st_size)}); play it with: hrc-bag play {out / "bag"}')
+    print(f'node logs in {out / "logs"}; {time.monotonic() - started:.1f} s')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
