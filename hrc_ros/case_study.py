@@ -16,8 +16,7 @@ What it does, as a user would by hand:
    `hrc/sim/true_state`, task and activity from `hrc/task_state`, distance), the observation,
    the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
 
-The trajectory is assembled from each publisher's own message sequence (`assemble`), because
-messages of different publishers may reach an observer out of causal order.
+The trajectory is assembled by receive time around the epoch signals (`assemble`).
 """
 
 from __future__ import annotations
@@ -88,6 +87,8 @@ def write_run_params(path: Path, args) -> Path:
         '/**/cell_sim': {'ros__parameters': {'seed': args.seed}},
         '/**/belief_estimator': {'ros__parameters': {'belief_mode': args.belief_mode}},
     }
+    if args.faults:   # rcl cannot type an empty list: leave the node's default then
+        params['/**/cell_sim']['ros__parameters']['faults'] = list(args.faults)
     path.write_text(yaml.safe_dump(params, sort_keys=False))
     return path
 
@@ -136,49 +137,52 @@ class Run:
 
 
 def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Trajectory:
-    """Per-epoch rows from the watched messages (see the module docstring).
+    """Per-epoch rows from the watched messages `(topic, value, receive_time)`.
 
     Messages of different publishers can reach the observer slightly out of their causal
-    order, so rows are not keyed by arrival after an epoch signal but by each publisher's own
-    sequence: the task manager and the belief estimator answer every epoch signal with exactly
-    one task state, observation and belief (the n-th belongs to epoch n); the cell publishes its
-    initial true state and then one per action it reacts to (the n-th, from 0, is the state of
-    epoch n + 1); an action belongs to the decision node's last epoch signal before it.
+    order (epoch k's task state just before the signal of epoch k), so a message belongs to the
+    last epoch whose signal arrived before it, less a margin of a quarter period: the nodes
+    answer a signal within milliseconds, and the next signal is a whole period later. The
+    cell publishes its true state when it reacts to a_k: that is the state of epoch k + 1 (its
+    initial one, before the first signal, is epoch 1's). A window without joint states has no
+    observation or belief (the row shows O = 0 and no belief).
     """
-    by_topic: dict[str, list] = {}
-    actions: dict[int, str] = {}
-    responses: list = []
-    epoch = None
-    for topic, value in events:
-        if topic == 'hrc/epoch':
-            epoch = value
-        elif topic == 'hrc/action':
-            if epoch is not None and epoch not in actions:
-                actions[epoch] = value
-        elif topic == 'hrc/human_response':
-            responses.append((epoch, value))
-        else:
-            by_topic.setdefault(topic, []).append(value)
-    missing = [k for k in range(1, args.epochs + 1) if k not in actions]
+    margin = 0.25 * args.epoch_period
+    signals = [(value, t) for topic, value, t in events if topic == 'hrc/epoch']
+
+    def epoch_of(t: float) -> int:
+        k = 0
+        for value, t_signal in signals:
+            if t_signal - margin <= t:
+                k = value
+        return k
+
+    first: dict[tuple, object] = {}
+    true_states: dict[int, tuple] = {}
+    for topic, value, t in events:
+        k = epoch_of(t)
+        if topic == 'hrc/sim/true_state':
+            true_states[k + 1] = value        # the last one seen in epoch k
+        elif topic != 'hrc/epoch':
+            first.setdefault((topic, k), value)
+    missing = [k for k in range(1, args.epochs + 1) if ('hrc/action', k) not in first]
     if missing:
         raise CaseStudyError(f'no action was seen for epochs {missing}')
     rows = []
     for k in range(1, args.epochs + 1):
-        try:
-            true = by_topic['hrc/sim/true_state'][k - 1]
-            task = by_topic['hrc/task_state'][k - 1]
-            belief = by_topic['hrc/belief'][k - 1]
-            observation = by_topic['hrc/observation'][k - 1]
-        except (KeyError, IndexError):
-            raise CaseStudyError(f'epoch {k}: the cell, task manager or belief estimator '
-                                 'did not report it') from None
-        state = (true[0], true[1]) + tuple(int(v) for v in task) + (true[10],)
-        action = actions[k]
-        answer = [v for e, v in responses if e == k]
+        true = max((e for e in true_states if e <= k), default=None)
+        if true is None or ('hrc/task_state', k) not in first:
+            raise CaseStudyError(f'epoch {k}: the cell or the task manager did not report it')
+        task = first[('hrc/task_state', k)]
+        state = true_states[true][:2] + tuple(int(v) for v in task) + (true_states[true][10],)
+        belief = first.get(('hrc/belief', k), np.full(9, np.nan))
+        action = first[('hrc/action', k)]
+        answer = first.get(('hrc/human_response', k))
         rows.append({
-            'epoch': k, **dict(zip(STATE_VARIABLES, state)), 'O': observation,
+            'epoch': k, **dict(zip(STATE_VARIABLES, state)),
+            'O': first.get(('hrc/observation', k), 0),
             **dict(zip(BELIEF_COLUMNS, belief)), 'action': action,
-            'accepted': answer[-1] if answer and action in ('rh1', 'rh2') else None,
+            'accepted': answer if action in ('rh1', 'rh2') else None,
             'fail_safe': action == 'dn' and state[10] == 0,
             **{c: float('nan') for c in SCORE_COLUMNS},
             'cost': float(model.cost(np.array([state]), ACTIONS.index(action))[0])})
@@ -222,7 +226,7 @@ def watch(args, out: Path, bag_dir: Path, run: Run) -> list:
 
     def on_message(topic, msg):
         try:
-            events.append((topic, decode[topic](msg)))
+            events.append((topic, decode[topic](msg), time.monotonic()))
         except conversions.MessageError as exc:
             node.get_logger().warning(f'{topic}: {exc}', throttle_duration_sec=2.0)
 
@@ -259,17 +263,15 @@ def watch(args, out: Path, bag_dir: Path, run: Run) -> list:
             last = [0]
 
             def done():
-                for topic, value in events[last[0]:]:
+                for topic, value, _ in events[last[0]:]:
                     if topic == 'hrc/epoch':
                         print(f'  epoch {value}', end='', flush=True)
                     elif topic == 'hrc/action':
                         print(f' -> {value}', flush=True)
                 last[0] = len(events)
-                epochs = [v for t, v in events if t == 'hrc/epoch']
-                return bool(epochs) and epochs[-1] >= args.epochs and \
-                    events[-1][0] != 'hrc/epoch' and any(
-                        t == 'hrc/action' for t, _ in events[events.index(
-                            ('hrc/epoch', epochs[-1])):])
+                signals = [i for i, (t, v, _) in enumerate(events) if t == 'hrc/epoch']
+                return bool(signals) and events[signals[-1]][1] >= args.epochs and any(
+                    t == 'hrc/action' for t, _, _ in events[signals[-1]:])
 
             spin_until(done, args.timeout, f'{args.epochs} epochs')
             # let the last action's echoes (response, sim state) land in the bag
@@ -295,9 +297,27 @@ def main(argv: list[str] | None = None) -> int:
                         help="'' = the configuration's mode")
     parser.add_argument('--config', default='', help='model configuration (default: shipped)')
     parser.add_argument('--policy', default='', help='policy file (default: shipped)')
+    parser.add_argument('--faults', nargs='*', default=[], metavar='KIND:EPOCHS',
+                        help='faults the simulated cell injects: dropout, nan_velocity, '
+                        'decline, collision, e.g. dropout:5 collision:14-15')
+    parser.add_argument('--bag', default='', help='bag folder (default: <out>/bag); it also '
+                        'receives the params files of the run, in params/')
     parser.add_argument('--timeout', type=float, default=90.0, help='seconds for the run')
     args = parser.parse_args(argv)
     out = Path(args.out)
+    bag_dir = Path(args.bag) if args.bag else out / 'bag'
+    try:
+        from .nodes.cell_sim_node import parse_faults
+        parse_faults(args.faults)
+    except ValueError as exc:
+        print(f'hrc-case-study: {exc}', file=sys.stderr)
+        return 2
+    if bag_dir.exists() and any(bag_dir.iterdir()):
+        if args.bag:
+            print(f'hrc-case-study: bag folder {bag_dir} is not empty; choose a new one',
+                  file=sys.stderr)
+            return 2
+        shutil.rmtree(bag_dir)
     try:
         config = load_config(args.config or default_config_path())
         model = HRCModel(config)
@@ -305,9 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, PolicyError) as exc:
         print(f'hrc-case-study: {exc}', file=sys.stderr)
         return 2
-    if out.exists():
-        for stale in ('bag', 'logs'):
-            shutil.rmtree(out / stale, ignore_errors=True)
+    shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'
     params = [shipped / 'hrc_params.yaml', shipped / 'case_study_params.yaml',
@@ -322,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     run = Run(params, out / 'logs', env)
     started = time.monotonic()
     try:
-        events = watch(args, out, out / 'bag', run)
+        events = watch(args, out, bag_dir, run)
     except CaseStudyError as exc:
         print(f'\nhrc-case-study: {exc}', file=sys.stderr)
         return 1
@@ -344,14 +362,17 @@ def main(argv: list[str] | None = None) -> int:
     csv_path = trajectory.to_csv(out / 'trajectory.csv')
     plots = plot_trajectory(trajectory, out)
     from .bag import bag_info, format_size
-    info = bag_info(out / 'bag')
+    info = bag_info(bag_dir)
+    (bag_dir / 'params').mkdir()
+    for i, path in enumerate(params, 1):   # numbered in the order the nodes load them
+        shutil.copy(path, bag_dir / 'params' / f'{i}_{path.name}')
     print(f'\nnodes stopped: ' + ', '.join(f'{n} exit {c}' for n, c in codes.items()))
     print(f'wrote {csv_path}')
     for p in plots:
         print(f'wrote {p}')
-    bag_file = next((out / 'bag').glob('*.mcap'))
+    bag_file = next(bag_dir.glob('*.mcap'))
     print(f'wrote {bag_file} ({info.message_count} messages, '
-          f'{format_size(bag_file.stat().st_size)}); play it with: hrc-bag play {out / "bag"}')
+          f'{format_size(bag_file.stat().st_size)}); play it with: hrc-bag play {bag_dir}')
     print(f'node logs in {out / "logs"}; {time.monotonic() - started:.1f} s')
     return 0
 

@@ -12,7 +12,9 @@ state sample gets its level at once (`velocity_level` of its velocities), so the
 three counters per window, not the samples, and its memory does not grow with the rate.
 
 Degraded inputs, never fatal: a malformed message is dropped (warning + diagnostic). A window
-with no joint states publishes no observation and no belief (the decision node then falls back
+with fewer than `min_window_samples` valid joint states (a sensor dropout; the threshold also
+keeps the one or two samples streamed just before the cell reacted to the last action from
+deciding an observation alone) publishes no observation and no belief (the decision node then falls back
 to dn); the belief is carried forward by the prediction step alone (an uninformative
 observation), so the next epoch's update stays consistent with the actions taken. A window with
 no skeleton publishes no distance level (the decision node's copy ages and goes stale). A
@@ -63,6 +65,9 @@ PARAMETERS = (
     CONFIG,
     ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
               "configuration's observation.mode)", constraints="'', 'bayes' or 'table'"),
+    ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
+              'for an observation; fewer count as a sensor dropout (no observation)',
+              range=(1, 100000)),
     VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
 )
 
@@ -122,6 +127,7 @@ class BeliefEstimatorNode(Node):
             self.filter = BeliefFilter(self.model, mode=mode)
         except ValueError as exc:
             raise StartupError(f'belief filter: {exc}') from None
+        self.min_window_samples = values['min_window_samples']
         self.velocity_thresholds = tuple(values['velocity_thresholds'])
         self.safety_radii = tuple(values['safety_radii'])
         self.robot_reference_point = tuple(values['robot_reference_point'])
@@ -159,7 +165,7 @@ class BeliefEstimatorNode(Node):
             statuses.append(self.inputs.status(
                 'epoch', WARN, f'epoch {k}: no skeleton since the last epoch; distance level '
                 'not published', {'epoch': k}))
-        if self._level_counts.sum() > 0:
+        if self._level_counts.sum() >= self.min_window_samples:
             self.observation = window_level(np.repeat(LEVELS, self._level_counts))
             self.belief = (self.filter.initial(self.observation) if self.belief is None
                            else self.filter.update(self.belief, action, self.observation))
@@ -170,8 +176,10 @@ class BeliefEstimatorNode(Node):
             if self.belief is not None:
                 self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
             statuses.append(self.inputs.status(
-                'epoch', WARN, f'epoch {k}: no joint states since the last epoch; belief not '
-                'published (predicted only)', {'epoch': k}))
+                'epoch', WARN, f'epoch {k}: no joint states to observe ('
+                f'{int(self._level_counts.sum())} valid samples since the last epoch, fewer than '
+                f'{self.min_window_samples}); belief not published (predicted only)',
+                {'epoch': k}))
         if statuses:
             self.get_logger().warning(statuses[0].message, throttle_duration_sec=5.0)
             self.inputs.publish(*statuses)

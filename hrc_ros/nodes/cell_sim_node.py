@@ -20,6 +20,14 @@ latest task state.
 
 The human's random stream is `seed` itself, so the same seed gives the same hidden trajectory
 as the simulator for the same actions; the sensor samples draw from a separate stream.
+
+Fault injection (for demos, tests and the fault bags): `faults` lists ``KIND:EPOCHS`` entries,
+EPOCHS one epoch ``7`` or a range ``7-9``; the cell is in epoch k after k - 1 reactions.
+- ``dropout``: no joint states and no skeletons during those epochs (sensor dropout);
+- ``nan_velocity``: joint states whose velocities are NaN during those epochs;
+- ``decline``: the human declines every request made in those epochs;
+- ``collision``: the human steps into the collision circle as those epochs begin (d = 0).
+Overrides never change the random draws, so the rest of a run stays comparable with a clean one.
 """
 
 from __future__ import annotations
@@ -57,10 +65,38 @@ PARAMETERS = (
     ParamSpec('sensor_rate', T.DOUBLE, 50.0, 'Hz of joint states and skeletons',
               range=(0.1, 1000.0)),
     VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+    ParamSpec('faults', T.STRING_ARRAY, [], 'injected faults "KIND:EPOCHS" with KIND one of '
+              'dropout, nan_velocity, decline, collision and EPOCHS "7" or "7-9"',
+              read_only=True),
 )
+FAULT_KINDS = ('dropout', 'nan_velocity', 'decline', 'collision')
+
+
+def parse_faults(entries) -> dict[str, set]:
+    """``["dropout:5", "collision:7-8"]`` -> {kind: set of epochs}; ValueError if malformed."""
+    faults = {kind: set() for kind in FAULT_KINDS}
+    for entry in entries:
+        kind, sep, span = str(entry).partition(':')
+        first, dash, last = span.partition('-')
+        if kind not in faults or not sep:
+            raise ValueError(f'fault {entry!r}: expected KIND:EPOCHS with KIND one of '
+                             f'{", ".join(FAULT_KINDS)}')
+        try:
+            low, high = int(first), int(last if dash else first)
+        except ValueError:
+            raise ValueError(f'fault {entry!r}: EPOCHS must be "k" or "k-m"') from None
+        if not 1 <= low <= high:
+            raise ValueError(f'fault {entry!r}: epochs must satisfy 1 <= k <= m')
+        faults[kind].update(range(low, high + 1))
+    return faults
 
 
 def check_parameters(values) -> str | None:
+    if 'faults' in values:
+        try:
+            parse_faults(values['faults'])
+        except ValueError as exc:
+            return str(exc)
     return (check_array(values, 'initial_emotions', 2, low=0, high=2)
             or check_motion_parameters(values))
 
@@ -81,6 +117,7 @@ class CellSimNode(Node):
         except ValueError as exc:
             raise StartupError(f'simulated human: {exc}') from None
         self.sensor_rng = np.random.default_rng([values['seed'], SENSOR_STREAM])
+        self.faults = parse_faults(values['faults'])
         self.task_state: dict | None = None
         self.reactions = 0
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
@@ -100,7 +137,21 @@ class CellSimNode(Node):
                               self._task_state_from_msg, self._on_task_state)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self._enter_epoch()
         self._publish_true_state()
+
+    @property
+    def epoch(self) -> int:
+        """The epoch the cell is in: k after k - 1 reactions."""
+        return self.reactions + 1
+
+    def _fault(self, kind: str) -> bool:
+        return self.epoch in self.faults[kind]
+
+    def _enter_epoch(self) -> None:
+        if self._fault('collision'):
+            self.human.d = 0
+            self.get_logger().warning(f'fault injected: collision (d = 0) in epoch {self.epoch}')
 
     def _apply_motion(self, values) -> None:
         self.velocity_thresholds = tuple(values['velocity_thresholds'])
@@ -125,14 +176,21 @@ class CellSimNode(Node):
             self.get_logger().warning('action received before any task state; reacting as '
                                       'in an idle cell', throttle_duration_sec=5.0)
         reaction = self.human.react(action, task_state)
-        self.reactions += 1
+        accepted = reaction.accepted is True and not self._fault('decline')
         if action in (RH1, RH2):
-            self.response_pub.publish(conv.human_response_to_msg(reaction.accepted is True))
+            if reaction.accepted and not accepted:
+                self.get_logger().warning(f'fault injected: request declined in epoch '
+                                          f'{self.epoch}')
+            self.response_pub.publish(conv.human_response_to_msg(accepted))
+        self.reactions += 1
+        self._enter_epoch()
         self._publish_true_state()
         self._stream()
 
     # -- outputs ---------------------------------------------------------------------------
     def _stream(self) -> None:
+        if self._fault('dropout'):
+            return
         now = self.get_clock().now()
         dt = 0.0 if self._last_sample_ns is None else (now.nanoseconds
                                                        - self._last_sample_ns) * 1e-9
@@ -143,6 +201,8 @@ class CellSimNode(Node):
         keypoints = synthesize_skeleton(self.human.d, self.safety_radii,
                                         self.robot_reference_point, self.sensor_rng)
         stamp = now.to_msg()
+        if self._fault('nan_velocity'):
+            velocity = np.full_like(velocity, np.nan)
         self.joint_pub.publish(conv.joint_state_to_msg(conv.HUMAN_JOINTS, velocity,
                                                        self._position, stamp))
         self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp))
