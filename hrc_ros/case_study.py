@@ -183,7 +183,8 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
             'O': first.get(('hrc/observation', k), 0),
             **dict(zip(BELIEF_COLUMNS, belief)), 'action': action,
             'accepted': answer if action in ('rh1', 'rh2') else None,
-            'fail_safe': action == 'dn' and state[10] == 0,
+            # dn because the human is in the collision circle or the epoch had no belief
+            'fail_safe': action == 'dn' and (state[10] == 0 or ('hrc/belief', k) not in first),
             **{c: float('nan') for c in SCORE_COLUMNS},
             'cost': float(model.cost(np.array([state]), ACTIONS.index(action))[0])})
     # The task records (release, commit, completion) of the same bookkeeping the task manager

@@ -1,0 +1,186 @@
+"""Replay the recorded bags of bags/ into freshly started nodes; check the format independently.
+
+Each bag folder holds the MCAP file of a live run of the suite (`hrc-case-study`), its
+`metadata.yaml` and, in `params/`, the parameter files the run's nodes were started with. The
+replay starts `belief_estimator_node`, `task_manager_node` and `decision_node` as processes
+with those parameters (the decision node with `epoch_source: topic`, so it follows the
+recorded `hrc/epoch` instead of its own clock), plays the bag's inputs with `hrc-bag play`
+(joint states, skeletons, human responses, task requests and the epoch signals) and compares
+the actions the fresh nodes publish with the recorded ones, epoch by epoch (DESIGN.md explains
+why decisions are deterministic given the inputs).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hrc_ros.bag import BagError, bag_info, deserialize, read_bag
+
+REPO = Path(__file__).resolve().parents[1]
+BAGS = sorted(p for p in (REPO / 'bags').iterdir() if p.is_dir() and any(p.glob('*.mcap')))
+INPUTS = ['/human/joint_states', '/human/skeleton', '/hrc/human_response', '/hrc/task_request',
+          '/hrc/epoch']
+REPLAYED_NODES = ('belief_estimator_node', 'task_manager_node', 'decision_node')
+
+
+def command(name: str) -> list[str]:
+    found = shutil.which(name) or str(Path(sys.executable).parent / name)
+    return [found] if os.access(found, os.X_OK) else [sys.executable, '-m',
+                                                       f'hrc_ros.nodes.{name}']
+
+
+def recorded_actions(bag: Path) -> dict[int, str]:
+    """Epoch -> the first action the decision node published after that epoch's signal."""
+    actions, epoch = {}, None
+    for message in read_bag(bag, topics=['/hrc/epoch', '/hrc/action']):
+        value = deserialize(message).data
+        if message.topic == '/hrc/epoch':
+            epoch = int(value)
+        elif epoch is not None:
+            actions.setdefault(epoch, value)
+    return actions
+
+
+def test_bags_exist_and_are_small():
+    names = {bag.name for bag in BAGS}
+    assert 'case_study' in names and any(n.startswith('fault') for n in names), names
+    for bag in BAGS:
+        size = sum(f.stat().st_size for f in bag.glob('*.mcap'))
+        assert size < 5 * 1024 * 1024, f'{bag.name}: {size} bytes'
+        assert sorted((bag / 'params').glob('*.yaml')), f'{bag.name} has no params/'
+
+
+@pytest.mark.parametrize('bag', BAGS, ids=[b.name for b in BAGS])
+def test_every_message_decodes_without_rclpy(bag, tmp_path):
+    """mcap_ros2 decodes each message from the schema text alone, in a process with no ROS."""
+    script = tmp_path / 'decode.py'
+    script.write_text(
+        'import sys, json, collections\n'
+        'for blocked in ("rclpy", "std_msgs", "sensor_msgs", "geometry_msgs",\n'
+        '                "diagnostic_msgs", "builtin_interfaces"):\n'
+        '    sys.modules[blocked] = None\n'
+        'from mcap_ros2.reader import read_ros2_messages\n'
+        'counts = collections.Counter()\n'
+        'for m in read_ros2_messages(sys.argv[1]):\n'
+        '    assert m.ros_msg is not None\n'
+        '    counts[m.channel.topic] += 1\n'
+        'print(json.dumps(counts))\n')
+    mcap_file = next(bag.glob('*.mcap'))
+    proc = subprocess.run([sys.executable, str(script), str(mcap_file)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    counts = yaml.safe_load(proc.stdout)
+    info = bag_info(bag)
+    assert counts == {t.topic: t.message_count for t in info.topics}
+    assert sum(counts.values()) == info.message_count > 0
+
+
+def test_a_damaged_bag_is_refused_clearly(tmp_path):
+    source = next(BAGS[0].glob('*.mcap')).read_bytes()
+    truncated = tmp_path / 'truncated.mcap'
+    truncated.write_bytes(source[: len(source) // 2])
+    with pytest.raises(BagError):
+        bag_info(truncated)
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.bag', 'play', str(truncated)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith('hrc-bag: ') and 'Traceback' not in proc.stderr
+
+
+@pytest.mark.parametrize('bag', BAGS, ids=[b.name for b in BAGS])
+def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import String, UInt32
+
+    from hrc_ros.qos import RELIABLE
+
+    expected = recorded_actions(bag)
+    assert len(expected) >= 10, f'{bag.name} holds only {len(expected)} decisions'
+    replay = tmp_path / 'replay.yaml'
+    replay.write_text(yaml.safe_dump({'/**/decision': {'ros__parameters': {
+        'epoch_source': 'topic'}}}))
+    params = sorted((bag / 'params').glob('*.yaml')) + [replay]
+    processes = []
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('replay_observer', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    events = []
+    node.create_subscription(UInt32, 'hrc/epoch', lambda m: events.append(('epoch', m.data)),
+                             RELIABLE)
+    node.create_subscription(String, 'hrc/action', lambda m: events.append(('action', m.data)),
+                             RELIABLE)
+
+    def spin_until(predicate, timeout, what):
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            assert time.monotonic() < deadline, f'timed out waiting for {what}'
+            for name, proc in processes:
+                assert proc.poll() is None, f'{name} exited with {proc.returncode}: ' + \
+                    (tmp_path / f'{name}.log').read_text()[-2000:]
+            executor.spin_once(timeout_sec=0.05)
+
+    try:
+        for name in REPLAYED_NODES:
+            cmd = command(name) + ['--ros-args']
+            for p in params:
+                cmd += ['--params-file', str(p)]
+            log = open(tmp_path / f'{name}.log', 'w')
+            processes.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                                     start_new_session=True)))
+        wanted = {'belief_estimator', 'task_manager', 'decision'}
+        spin_until(lambda: wanted <= {n for n, _ in node.get_node_names_and_namespaces()},
+                   30, 'the replayed nodes to start')
+        spin_until(lambda: node.count_subscribers('hrc/epoch') >= 4, 30,
+                   'the nodes to subscribe hrc/epoch')
+        recorded = {t.topic for t in bag_info(bag).topics}
+        player = subprocess.Popen(
+            [sys.executable, '-m', 'hrc_ros.bag', 'play', str(bag), '--topics',
+             *[t for t in INPUTS if t in recorded],
+             '--wait-for-subscribers', '10'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, start_new_session=True)
+        last = max(expected)
+
+        def decided_last():
+            epochs = [v for k, v in events if k == 'epoch']
+            return bool(epochs) and epochs[-1] >= last and events[-1][0] == 'action'
+
+        duration = bag_info(bag).duration_ns / 1e9
+        spin_until(lambda: player.poll() is not None or decided_last(), duration + 30,
+                   'the replay')
+        spin_until(decided_last, 10, f'the action of epoch {last} (seen: {events[-12:]}; '
+                   f'decision log: {(tmp_path / "decision_node.log").read_text()[-1500:]})')
+        assert player.wait(30) == 0, player.stdout.read()
+    finally:
+        if 'player' in locals() and player.poll() is None:
+            os.killpg(player.pid, signal.SIGINT)
+        for name, proc in processes:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGINT)
+        for name, proc in processes:
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    replayed, epoch = {}, None
+    for kind, value in events:
+        if kind == 'epoch':
+            epoch = int(value)
+        elif epoch is not None:
+            replayed.setdefault(epoch, value)
+    mismatches = {k: (expected[k], replayed.get(k)) for k in expected
+                  if replayed.get(k) != expected[k]}
+    assert not mismatches, f'epoch: (recorded, replayed) {mismatches}'
