@@ -1,0 +1,68 @@
+"""The main job, `hrc-case-study`, as README command 1 runs it (four node processes over DDS).
+
+Its trajectory must equal the ROS-free closed loop (`hrc_ros.simulator.simulate`) for the same
+seed: the nodes run the same core with the same random streams, so any difference is a bug in
+the ROS layer (windowing, epoch alignment, conversions).
+"""
+
+import csv
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hrc_ros.bag import bag_info
+from hrc_ros.config import load_config
+from hrc_ros.model import STATE_VARIABLES, HRCModel
+from hrc_ros.policy import default_config_path, default_policy_path, load_policy
+from hrc_ros.simulator import case_study, simulate
+
+SEED = 3
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory, ros_domain_id):
+    out = tmp_path_factory.mktemp('case_study')
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.case_study', '--out', str(out),
+                           '--seed', str(SEED), '--epoch-period', '0.4'],
+                          capture_output=True, text=True, timeout=180)
+    return out, proc
+
+
+def test_the_main_job_runs_and_says_where_it_wrote(run):
+    out, proc = run
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert 'four nodes up' in proc.stdout
+    for name in ('trajectory.csv', 'task_status.png', 'activity.png', 'distance.png',
+                 'actions.png', 'belief.png'):
+        assert (out / name).stat().st_size > 0
+        assert f'wrote {out / name}' in proc.stdout
+    assert 'tasks completed 3/3' in proc.stdout
+    assert 'cell_sim_node exit 0, task_manager_node exit 0, belief_estimator_node exit 0, ' \
+           'decision_node exit 0' in proc.stdout
+    info = bag_info(out / 'bag')
+    counts = {t.topic: t.message_count for t in info.topics}
+    assert counts['/hrc/action'] == counts['/hrc/epoch'] == 20
+    assert counts['/human/joint_states'] > 100
+    assert sorted(p.name for p in (out / 'bag' / 'params').glob('*.yaml')) == \
+        ['1_hrc_params.yaml', '2_case_study_params.yaml', '3_run_params.yaml']
+
+
+def test_the_ros_trajectory_equals_the_ros_free_simulation(run):
+    out, proc = run
+    assert proc.returncode == 0
+    config = load_config(default_config_path())
+    expected = simulate(HRCModel(config), load_policy(default_policy_path(), config),
+                        case_study(), seed=SEED)
+    with open(out / 'trajectory.csv') as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(expected.rows) == 20
+    for got, want in zip(rows, expected.rows):
+        k = want['epoch']
+        assert int(got['epoch']) == k
+        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
+        assert int(got['O']) == want['O'], k
+        assert got['action'] == want['action'], k
+        np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
+                                   [want[f'b{h}'] for h in range(9)], atol=1e-5)
