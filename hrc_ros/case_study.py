@@ -367,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     (bag_dir / 'params').mkdir()
     for i, path in enumerate(params, 1):   # numbered in the order the nodes load them
         shutil.copy(path, bag_dir / 'params' / f'{i}_{path.name}')
-    print(f'\nnodes stopped: ' + ', '.join(f'{n} exit {c}' for n, c in codes.items()))
+    print('\nnodes stopped: ' + ', '.join(f'{n} exit {c}' for n, c in codes.items()))
     print(f'wrote {csv_path}')
     for p in plots:
         print(f'wrote {p}')

@@ -93,3 +93,17 @@ def _solve(config, path: Path) -> Path:
     from hrc_ros.policy import save_policy
     from hrc_ros.solver import solve
     return save_policy(path, solve(HRCModel(config)), config)
+
+
+@pytest.fixture(scope='session')
+def model(default_config):
+    """The full-size default model."""
+    from hrc_ros.model import HRCModel
+    return HRCModel(default_config)
+
+
+@pytest.fixture(scope='session')
+def policy(default_config, policy_path):
+    """The default policy (shipped, or solved once), loaded."""
+    from hrc_ros.policy import load_policy
+    return load_policy(policy_path, default_config)

@@ -6,28 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from hrc_ros.config import load_config
 from hrc_ros.evaluate import (METRICS, BatchSimulator, evaluate, human_seed, main,
                               paired_difference, random_scenarios, summarize)
-from hrc_ros.model import ACTIONS, HRCModel
-from hrc_ros.policy import PolicyError, default_config_path, default_policy_path, load_policy
+from hrc_ros.model import ACTIONS
+from hrc_ros.policy import default_policy_path
 from hrc_ros.simulator import simulate
-from hrc_ros.solver import solve
 
 SELECTORS = ('paper', 'qmdp', 'mls', 'mdp')
-
-
-@pytest.fixture(scope='module')
-def model():
-    return HRCModel(load_config(default_config_path()))
-
-
-@pytest.fixture(scope='module')
-def policy(model):
-    try:
-        return load_policy(default_policy_path(), model.config)
-    except PolicyError:
-        return solve(model)
 
 
 def test_random_scenarios_are_seeded_and_valid(model):

@@ -38,7 +38,7 @@ from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, 
 from hrc_ros import conversions as conv
 from hrc_ros import qos
 from hrc_ros.belief import BeliefFilter
-from hrc_ros.model import ACTIONS, DN, MH, RH2, TASK_VARIABLES, HRCModel
+from hrc_ros.model import ACTIONS, DN, MH, TASK_VARIABLES, HRCModel
 from hrc_ros.nodes.belief_estimator_node import BeliefEstimatorNode
 from hrc_ros.nodes.cell_sim_node import CellSimNode
 from hrc_ros.nodes.decision_node import DecisionNode

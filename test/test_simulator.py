@@ -13,26 +13,10 @@ import numpy as np
 import pytest
 
 from hrc_ros.belief import BeliefFilter
-from hrc_ros.config import load_config
-from hrc_ros.model import ACTIONS, DN, HRCModel, request_eligible
-from hrc_ros.policy import PolicyError, default_config_path, default_policy_path, load_policy
+from hrc_ros.model import ACTIONS, DN, request_eligible
+from hrc_ros.policy import default_policy_path
 from hrc_ros.simulator import (COLUMNS, STATE_VARIABLES, Scenario, case_study, main,
                                plot_trajectory, simulate)
-from hrc_ros.solver import solve
-
-
-@pytest.fixture(scope='module')
-def model():
-    return HRCModel(load_config(default_config_path()))
-
-
-@pytest.fixture(scope='module')
-def policy(model):
-    """The shipped default policy, or a freshly solved one if none matches the config."""
-    try:
-        return load_policy(default_policy_path(), model.config)
-    except PolicyError:
-        return solve(model)
 
 
 def pi(model, policy, state):
