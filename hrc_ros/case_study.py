@@ -24,8 +24,6 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,6 +34,7 @@ import yaml
 from .config import ConfigError, load_config
 from .model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from .policy import PolicyError, default_config_path, default_policy_path, load_policy, share_dir
+from .processes import NodeProcesses, NodeProcessError
 from .tasks import TaskBook
 from .simulator import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study, \
     plot_trajectory
@@ -65,16 +64,6 @@ class CaseStudyError(RuntimeError):
     pass
 
 
-def node_command(executable: str) -> list[str]:
-    """The node's console script (PATH, next to this interpreter, or <prefix>/lib/hrc_ros)."""
-    candidates = [shutil.which(executable), Path(sys.executable).parent / executable,
-                  Path(sys.prefix) / 'lib' / 'hrc_ros' / executable]
-    for candidate in candidates:
-        if candidate and os.access(candidate, os.X_OK) and Path(candidate).is_file():
-            return [str(candidate)]
-    return [sys.executable, '-m', f'hrc_ros.nodes.{executable}']
-
-
 def write_run_params(path: Path, args) -> Path:
     params = {
         '/**': {'ros__parameters': {'config': args.config or ''}},
@@ -91,49 +80,6 @@ def write_run_params(path: Path, args) -> Path:
         params['/**/cell_sim']['ros__parameters']['faults'] = list(args.faults)
     path.write_text(yaml.safe_dump(params, sort_keys=False))
     return path
-
-
-class Run:
-    """The four node processes of one run."""
-
-    def __init__(self, params: list[Path], logs: Path, env: dict):
-        self.params = params
-        self.logs = logs
-        self.env = env
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, executable: str) -> None:
-        cmd = node_command(executable) + ['--ros-args']
-        for p in self.params:
-            cmd += ['--params-file', str(p)]
-        log = open(self.logs / f'{executable}.log', 'w')
-        self.processes[executable] = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
-            start_new_session=True)
-
-    def check_alive(self) -> None:
-        for name, proc in self.processes.items():
-            if proc.poll() is not None:
-                tail = (self.logs / f'{name}.log').read_text().strip().splitlines()[-5:]
-                raise CaseStudyError(f'{name} exited with code {proc.returncode}:\n  '
-                                     + '\n  '.join(tail))
-
-    def stop(self, timeout: float = 10.0) -> dict[str, int]:
-        for proc in self.processes.values():
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        codes = {}
-        deadline = time.monotonic() + timeout
-        for name, proc in self.processes.items():
-            try:
-                codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                codes[name] = proc.wait()
-        return codes
 
 
 def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Trajectory:
@@ -198,7 +144,7 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
                       gamma=model.gamma, tasks=book.records)
 
 
-def watch(args, out: Path, bag_dir: Path, run: Run) -> list:
+def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     """Record and watch the run until the last epoch's action (or the timeout)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -336,13 +282,11 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(shipped / 'fastdds_fast_discovery.xml')
-    env = dict(os.environ)
-    env['PYTHONUNBUFFERED'] = '1'
-    run = Run(params, out / 'logs', env)
+    run = NodeProcesses(out / 'logs', params)
     started = time.monotonic()
     try:
         events = watch(args, out, bag_dir, run)
-    except CaseStudyError as exc:
+    except (CaseStudyError, NodeProcessError) as exc:
         print(f'\nhrc-case-study: {exc}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -13,7 +13,6 @@ why decisions are deterministic given the inputs).
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -24,18 +23,13 @@ import pytest
 import yaml
 
 from hrc_ros.bag import BagError, bag_info, deserialize, read_bag
+from hrc_ros.processes import NodeProcesses
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = sorted(p for p in (REPO / 'bags').iterdir() if p.is_dir() and any(p.glob('*.mcap')))
 INPUTS = ['/human/joint_states', '/human/skeleton', '/hrc/human_response', '/hrc/task_request',
           '/hrc/epoch']
 REPLAYED_NODES = ('belief_estimator_node', 'task_manager_node', 'decision_node')
-
-
-def command(name: str) -> list[str]:
-    found = shutil.which(name) or str(Path(sys.executable).parent / name)
-    return [found] if os.access(found, os.X_OK) else [sys.executable, '-m',
-                                                       f'hrc_ros.nodes.{name}']
 
 
 def recorded_actions(bag: Path) -> dict[int, str]:
@@ -109,8 +103,7 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
     replay = tmp_path / 'replay.yaml'
     replay.write_text(yaml.safe_dump({'/**/decision': {'ros__parameters': {
         'epoch_source': 'topic'}}}))
-    params = sorted((bag / 'params').glob('*.yaml')) + [replay]
-    processes = []
+    nodes = NodeProcesses(tmp_path, sorted((bag / 'params').glob('*.yaml')) + [replay])
     context = rclpy.context.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('replay_observer', context=context)
@@ -126,19 +119,12 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
         deadline = time.monotonic() + timeout
         while not predicate():
             assert time.monotonic() < deadline, f'timed out waiting for {what}'
-            for name, proc in processes:
-                assert proc.poll() is None, f'{name} exited with {proc.returncode}: ' + \
-                    (tmp_path / f'{name}.log').read_text()[-2000:]
+            assert not nodes.dead(), nodes.logs()
             executor.spin_once(timeout_sec=0.05)
 
     try:
         for name in REPLAYED_NODES:
-            cmd = command(name) + ['--ros-args']
-            for p in params:
-                cmd += ['--params-file', str(p)]
-            log = open(tmp_path / f'{name}.log', 'w')
-            processes.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                                     start_new_session=True)))
+            nodes.start(name)
         wanted = {'belief_estimator', 'task_manager', 'decision'}
         spin_until(lambda: wanted <= {n for n, _ in node.get_node_names_and_namespaces()},
                    30, 'the replayed nodes to start')
@@ -160,19 +146,12 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
         spin_until(lambda: player.poll() is not None or decided_last(), duration + 30,
                    'the replay')
         spin_until(decided_last, 10, f'the action of epoch {last} (seen: {events[-12:]}; '
-                   f'decision log: {(tmp_path / "decision_node.log").read_text()[-1500:]})')
+                   f'decision log: {nodes.log("decision_node", 1500)})')
         assert player.wait(30) == 0, player.stdout.read()
     finally:
         if 'player' in locals() and player.poll() is None:
-            os.killpg(player.pid, signal.SIGINT)
-        for name, proc in processes:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGINT)
-        for name, proc in processes:
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+            os.killpg(player.pid, signal.SIGKILL)
+        nodes.stop()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     replayed, epoch = {}, None

@@ -16,13 +16,7 @@ Ctrl-C does), then SIGKILL if they linger, whatever the test's outcome.
 
 from __future__ import annotations
 
-import os
-import shutil
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 import rclpy
@@ -34,6 +28,7 @@ from hrc_ros import conversions as conv
 from hrc_ros import qos
 from hrc_ros.model import HRCModel
 from hrc_ros.policy import load_policy
+from hrc_ros.processes import NodeProcesses
 from hrc_ros.simulator import case_study, simulate
 
 EPOCHS = 20
@@ -70,64 +65,6 @@ cell_sim:
     initial_distance: 1
     sensor_rate: 50.0
 """
-
-
-def console_script(name: str) -> str:
-    beside = Path(sys.executable).parent / name
-    return str(beside) if beside.is_file() else (shutil.which(name) or name)
-
-
-class Suite:
-    """The node processes and their logs."""
-
-    def __init__(self, log_dir: Path, params_file: Path):
-        self.log_dir = log_dir
-        self.params_file = params_file
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, node: str) -> None:
-        log = open(self.log_dir / f'{node}.log', 'w')
-        self.processes[node] = subprocess.Popen(
-            [console_script(f'{node}_node'), '--ros-args', '--params-file',
-             str(self.params_file)],
-            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, 'PYTHONFAULTHANDLER': '1'},
-            start_new_session=True)
-        log.close()
-
-    def logs(self) -> str:
-        return '\n'.join(f'--- {node} (exit {p.poll()}) ---\n'
-                         + (self.log_dir / f'{node}.log').read_text()[-6000:]
-                         for node, p in self.processes.items())
-
-    def dead(self) -> list[str]:
-        return [node for node, p in self.processes.items() if p.poll() is not None]
-
-    def stop(self) -> dict[str, int]:
-        """SIGINT to every process group; the exit codes.
-
-        A process still running after STOP_TIMEOUT gets SIGABRT, which makes Python's
-        faulthandler (PYTHONFAULTHANDLER=1) write every thread's stack to its log, then SIGKILL.
-        """
-        for process in self.processes.values():
-            if process.poll() is None:
-                try:
-                    os.killpg(process.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        codes = {}
-        deadline = time.monotonic() + STOP_TIMEOUT
-        for node, process in self.processes.items():
-            try:
-                codes[node] = process.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGABRT)
-                try:
-                    process.wait(timeout=2.0)
-                except subprocess.TimeoutExpired:
-                    os.killpg(process.pid, signal.SIGKILL)
-                    process.wait()
-                codes[node] = 'hung'
-        return codes
 
 
 class Listener:
@@ -183,12 +120,12 @@ def processes(tmp_path, policy_path, ros_domain_id):
     """The (not yet started) node processes and the listener; always stopped at the end."""
     params = tmp_path / 'case_study.yaml'
     params.write_text(PARAMS.format(policy=policy_path, period=EPOCH_PERIOD, seed=SEED))
-    suite = Suite(tmp_path, params)
+    suite = NodeProcesses(tmp_path, [params])
     listener = Listener()
     try:
         yield suite, listener
     finally:
-        suite.stop()
+        suite.stop(STOP_TIMEOUT)
         listener.close()
 
 
@@ -212,11 +149,11 @@ def test_four_processes_run_the_case_study(processes, default_config, policy_pat
     # already running discovers a new one at once; the new decision node discovers them in
     # turn and holds epoch 1 until it has (see conftest.py on discovery speed).
     for node in NODES:
-        suite.start(node)
+        suite.start(f'{node}_node')
     up = listener.spin_until(lambda: listener.nodes_up(NODES) or suite.dead(),
                              deadline - time.monotonic())
     assert up and not suite.dead(), suite.logs()
-    suite.start('decision')
+    suite.start('decision_node')
     done = listener.spin_until(
         lambda: (len(listener.actions) >= EPOCHS and len(listener.task_states) >= EPOCHS
                  and len(listener.true_states) > EPOCHS
@@ -275,5 +212,5 @@ def test_four_processes_run_the_case_study(processes, default_config, policy_pat
     assert actions == expected, f'{table}\nsimulator: {expected}'
 
     # Ctrl-C (SIGINT to each process group) stops every node cleanly.
-    codes = suite.stop()
+    codes = suite.stop(STOP_TIMEOUT)
     assert codes == {node: 0 for node in codes}, f'{codes}\n{suite.logs()}'
