@@ -75,7 +75,8 @@ class FactoredBellman:
         tp, tx, ty = grid['tp'], grid['tx'], grid['ty']
         open_task = (tp > 0) & (ty == 0)
         self.ct_effective = np.flatnonzero(open_task & ((tx == 0) | (tx == 2)))
-        self.t_commit = task_map(CT, False)[self.ct_effective]
+        t_ct = task_map(CT, False)                  # equals t_default where ct is ineffective
+        self.t_commit = t_ct[self.ct_effective]
         # Where a request is eligible: rh1 for tx in {1, 2}, rh2 for tx = 3 (disjoint).
         self.request_y = np.flatnonzero(open_task & (tx != 0))
         self.request_is_rh2 = tx[self.request_y] == 3
@@ -85,10 +86,10 @@ class FactoredBellman:
                                  rh1_accept[self.request_y])
         # For the request subset: whether ct is effective there too (tx = 2).
         self.request_ct = np.isin(self.request_y, self.ct_effective)
-        self.t_commit_on_request = task_map(CT, False)[self.request_y]
+        self.t_commit_on_request = t_ct[self.request_y]
 
-        p_accept = model.config.p_accept
-        self.p_accept_h = np.repeat(p_accept, 3)[:, None, None]  # by h = 3*em + ea
+        self.p_accept_vector = np.repeat(model.config.p_accept, 3)   # by h = 3*em + ea
+        self.p_accept_h = self.p_accept_vector[:, None, None]
 
         # Emotion step, stacked: rows 0-8 base, 9-17 motivate, 18-26 request.
         e = model.emotion_matrices
@@ -112,7 +113,6 @@ class FactoredBellman:
         self.t_commit_full[self.ct_effective] = self.t_commit
         self.t_accept_full = np.full(n_y, -1, dtype=np.intp)
         self.t_accept_full[self.request_y] = self.t_accept
-        self.p_accept_vector = np.repeat(p_accept, 3)
         # mix[group, ea, d', d] = P(d' | d, ea) for the groups (other, dp, dm)
         self.mix = np.ascontiguousarray(np.stack(
             [model.distance_matrix(a).transpose(0, 2, 1) for a in (NW, DP, DM)])
