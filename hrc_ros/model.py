@@ -227,9 +227,12 @@ class HRCModel:
 
     def state_cost(self, states: np.ndarray) -> np.ndarray:
         """k1*f1 + k2*f2 of an (n, 11) array of states (the action-free part of J)."""
-        c = self.config.cost
         s = np.asarray(states, dtype=float)
-        em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d = (s[..., k] for k in range(11))
+        return self._state_cost_terms(*(s[..., k] for k in range(11)))
+
+    def _state_cost_terms(self, em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d):
+        """MODEL.md 4's f1 and f2 on (broadcastable) arrays of the 11 variables."""
+        c = self.config.cost
         f1 = (c['alpha1'] * (ty == 3) * d * hc * bc
               + (c['alpha2'] + c['alpha3'] * (bp == 0) + c['alpha4'] * (hp == 0))
               * (ty == 0) * (tp != 0)
@@ -246,16 +249,15 @@ class HRCModel:
 
     @cached_property
     def state_cost_vector(self) -> np.ndarray:
-        """k1*f1 + k2*f2 for every flat state, shape (N,), computed by parts."""
+        """k1*f1 + k2*f2 for every flat state, shape (N,), from broadcast parts (no (N, 11))."""
         grid = self.task_grid
         h = np.arange(N_HIDDEN)
         em = (h // 3)[:, None, None].astype(float)
         ea = (h % 3)[:, None, None].astype(float)
-        tp, tc, tx, ty, hp, hc, bp, bc = (grid[n][None, :, None].astype(float)
-                                          for n in TASK_VARIABLES)
+        task = (grid[n][None, :, None].astype(float) for n in TASK_VARIABLES)
         d = np.arange(N_DISTANCE, dtype=float)[None, None, :]
-        stacked = np.broadcast_arrays(em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d)
-        return self.state_cost(np.stack(stacked, axis=-1)).reshape(-1)
+        cost = self._state_cost_terms(em, ea, *task, d)
+        return np.broadcast_to(cost, (N_HIDDEN, self.n_task, N_DISTANCE)).reshape(-1)
 
     def cost(self, states: np.ndarray, action: int) -> np.ndarray:
         """J(s, a) for an (n, 11) array of states."""
