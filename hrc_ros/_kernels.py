@@ -20,7 +20,7 @@ task maps
 `t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
 [group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
-(9, n_y, 4); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4) scratch for the emotion step; `out`
+(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4) scratch for the emotion step; `out`
 receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
 """
 
@@ -42,8 +42,8 @@ def _mix(c, x0, x1, x2, x3):
             c[3] * x0 + c[7] * x1 + c[11] * x2 + c[15] * x3)
 
 
-def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost, value,
-           w, out, residual):
+def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
+           fail_safe_aware, value, w, out, residual):
     n_y = value.shape[1]
     # 1. emotion step for the three groups (one parallel region)
     for y in numba.prange(n_y):
@@ -107,6 +107,7 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             b2 = max(b2, q2 - g_mh)
             b3 = max(b3, q3 - g_mh)
             q0, q1, q2, q3 = _mix_inline(cn, wb[yq, 0], wb[yq, 1], wb[yq, 2], wb[yq, 3])  # dn
+            dn0 = q0
             b0 = max(b0, q0)
             b1 = max(b1, q1)
             b2 = max(b2, q2)
@@ -133,6 +134,8 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
                 b1 = max(b1, r1 + pa * (q1 - g_rh - r1))
                 b2 = max(b2, r2 + pa * (q2 - g_rh - r2))
                 b3 = max(b3, r3 + pa * (q3 - g_rh - r3))
+            if fail_safe_aware:  # at d = 0 only dn is available
+                b0 = dn0
             b0 -= cost_h[y, 0]
             b1 -= cost_h[y, 1]
             b2 -= cost_h[y, 2]

@@ -11,7 +11,9 @@ Sections:
 - `model`: rho, sigma, p_accept (per em), p_delta (per ea, Delta = -1, 0, +1), emotion chains
   (down, stay, up) per action group and emotion variable;
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
-- `solver`: gamma, eta, sweeps (null = run to eta; an integer = the paper's fixed sweep count);
+- `solver`: gamma, eta, sweeps (null = run to eta; an integer = the paper's fixed sweep count),
+  fail_safe_aware (false = MODEL.md: every action at every state; true = only dn at d = 0, the
+  action the decision node's fail-safe enforces there, so the policy plans around it);
 - `observation`: the Table 5 rows, the bayes-mode epsilon and the belief mode (MODEL.md 6).
 
 The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
@@ -42,7 +44,8 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
               'p_delta': 'rows[3x3]', 'emotion': 'chains'},
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
-    'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'int>=1|null'},
+    'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'int>=1|null',
+               'fail_safe_aware': 'bool'},
     'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode'},
 }
 
@@ -98,6 +101,11 @@ class Config:
     def sweeps(self) -> int | None:
         s = self.data['solver']['sweeps']
         return None if s is None else int(s)
+
+    @property
+    def fail_safe_aware(self) -> bool:
+        """Plan with only dn available at d = 0, as the decision node's fail-safe enforces."""
+        return bool(self.data['solver']['fail_safe_aware'])
 
     @property
     def observation_table(self) -> np.ndarray:
@@ -241,6 +249,10 @@ def _check(name: str, kind: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f'{name} must be an integer >= 1, got {value!r}')
         return int(value)
+    if kind == 'bool':
+        if not isinstance(value, bool):
+            raise ConfigError(f'{name} must be true or false, got {value!r}')
+        return value
     if kind == 'weight':
         v = _number(name, value)
         if v < 0:

@@ -22,7 +22,8 @@ products, and gathers along y. Further savings, all exact:
 - dn differs from nw only by the paused robot counter, a gather of one array.
 
 `bellman_q` gives the full Q (8 x N) for policy extraction and tests; `bellman_max` is the fast
-sweep. The policy is the greedy argmax of the final sweep's Q with the safety tie order
+sweep. With `solver.fail_safe_aware` only dn is available at d = 0 (the other actions' Q there
+is -inf), so the policy plans with the decision node's fail-safe instead of against it. The policy is the greedy argmax of the final sweep's Q with the safety tie order
 (MODEL.md 5): actions within ``1e-9 * max(1, |V|)`` of the best go to the first of
 ``dn, dp, nw, ct, rh1, rh2, mh, dm``.
 """
@@ -106,6 +107,7 @@ class FactoredBellman:
         self.dist_other = dist(NW)
         self.cost = model.state_cost_vector.reshape(self.shape)  # k1*f1 + k2*f2
         self.g = model.action_cost
+        self.fail_safe_aware = model.config.fail_safe_aware
 
         # Inputs of the fused kernels (_kernels): the same pieces, indexed per y.
         self.gamma_emotion = (self.gamma * self.emotion).reshape(3, N_HIDDEN, N_HIDDEN)
@@ -153,6 +155,8 @@ class FactoredBellman:
         q[RH2][:, ry[rh2]] = mixed[:, rh2]
         q -= self.cost
         q -= self.g[:, None, None, None]
+        if self.fail_safe_aware:  # at d = 0 only dn is available
+            q[np.arange(len(ACTIONS)) != DN, :, :, 0] = -np.inf
         return q.reshape(len(ACTIONS), -1)
 
     def sweep(self, value: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray,
@@ -168,7 +172,8 @@ class FactoredBellman:
         residual = np.empty(self.n_y)
         _kernels.sweep(self.gamma_emotion, self.t_default, self.t_pause, self.t_commit_full,
                        self.t_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
-                       value.reshape(self.shape), self._w, out.reshape(self.shape), residual)
+                       self.fail_safe_aware, value.reshape(self.shape), self._w,
+                       out.reshape(self.shape), residual)
         return out, float(residual.max())
 
     def bellman_max(self, value: np.ndarray) -> np.ndarray:
@@ -197,6 +202,8 @@ class FactoredBellman:
         acc = refused[:, self.t_accept]
         np.maximum(exact, ref + self.p_accept_h * (acc - ref), out=exact)
         best[:, ry] = exact
+        if self.fail_safe_aware:  # at d = 0 only dn is available
+            best[..., 0] = np.take(nw[..., 0], self.t_pause, axis=1)
         best -= self.cost
         return best.reshape(-1)
 

@@ -54,6 +54,7 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['cost'].pop('beta4'), r'cost\.beta4'),
     (lambda d: d['observation'].__setitem__('mode', 'magic'), r'observation\.mode'),
     (lambda d: d['solver'].__setitem__('eta', 'small'), r'solver\.eta'),
+    (lambda d: d['solver'].__setitem__('fail_safe_aware', 'yes'), r'solver\.fail_safe_aware'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):
@@ -70,7 +71,7 @@ def test_unreadable_and_malformed_files(tmp_path):
 
 
 def test_shipped_policies_load_and_match_their_configs():
-    for name in ('default', 'paper'):
+    for name in ('default', 'paper', 'fail_safe_aware'):
         config = load_config(f'config/{name}.yaml')
         policy = load_policy(f'policies/{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8

@@ -49,8 +49,10 @@ def test_factored_q_equals_rule_by_rule_q_on_sampled_full_states(full):
     np.testing.assert_allclose(q[:, sample].T, full.q_values(value, sample), atol=1e-10)
 
 
-@pytest.mark.parametrize('overrides', [REDUCED, {}])
-def test_fast_sweeps_equal_the_max_of_q(overrides):
+@pytest.mark.parametrize('aware', [False, True], ids=['model', 'fail_safe_aware'])
+@pytest.mark.parametrize('overrides', [REDUCED, {}], ids=['reduced', 'full'])
+def test_fast_sweeps_equal_the_max_of_q(overrides, aware):
+    overrides = {**overrides, 'solver': {'fail_safe_aware': aware}}
     model = HRCModel(load_config(CONFIG, overrides=overrides))
     op = FactoredBellman(model)
     value = np.random.default_rng(3).normal(size=model.n_states) * 20
@@ -113,3 +115,25 @@ def test_shipped_policy_behaviour_matches_the_paper(full):
     assert act((1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 3)) == 'dn'   # idle and far: stop
     for em in range(3):  # a human-only task is never committed by the robot
         assert act((em, 1, 2, 2, 1, 0, 0, 0, 0, 0, 3)) != 'ct'
+
+
+def test_fail_safe_aware_plans_dn_at_collision(reduced):
+    aware = HRCModel(load_config(CONFIG, overrides={**REDUCED,
+                                                    'solver': {'fail_safe_aware': True}}))
+    collision = aware.state(np.arange(aware.n_states))[:, 10] == 0
+    vi = solve(aware)
+    assert np.all(vi.policy[collision] == DN)
+    plain = solve(reduced)
+    assert not np.all(plain.policy[collision] == DN)   # MODEL.md's policy counts on dm there
+    # restricting the actions can only cost: V_aware <= V_plain everywhere
+    assert np.all(vi.value <= plain.value + 1e-9)
+    pi = solve(aware, method='policy_iteration')
+    assert np.max(np.abs(vi.value - pi.value)) < 2 * 0.95 * 1e-6 / 0.05
+    assert np.all(pi.policy[collision] == DN)
+    # outside collision the operator is the model's: Q of the allowed actions is unchanged
+    value = np.random.default_rng(5).normal(size=aware.n_states)
+    q_aware = FactoredBellman(aware).bellman_q(value)
+    q_plain = FactoredBellman(reduced).bellman_q(value)
+    np.testing.assert_array_equal(q_aware[:, ~collision], q_plain[:, ~collision])
+    np.testing.assert_array_equal(q_aware[DN, collision], q_plain[DN, collision])
+    assert np.all(np.isneginf(np.delete(q_aware[:, collision], DN, axis=0)))
