@@ -41,8 +41,8 @@ from ..belief import BELIEF_MODES, BeliefFilter
 from ..model import DN, HRCModel
 from ..observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                            velocity_level, window_level)
-from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
-                     StartupError, check_array, check_core, load_node_config, run)
+from .common import (STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec, StartupError,
+                     check_array, check_core, load_node_config, run)
 
 LEVELS = np.array([1, 2, 3])
 NO_EVIDENCE = np.ones(9)   # the likelihood of an epoch without observation: predict only
@@ -196,12 +196,8 @@ class BeliefEstimatorNode(Node):
                   'belief_mode': self.filter.mode,
                   'joint_states_in_period': lag['count'],
                   'joint_state_lag_ms_mean': lag['mean_ms'],
-                  'joint_state_lag_ms_max': lag['max_ms'],
-                  **self.inputs.counts()}
-        dropped = sum(self.inputs.dropped.values())
-        level = WARN if dropped else OK
-        message = f'{dropped} messages dropped so far' if dropped else 'ok'
-        self.inputs.publish(self.inputs.status('estimator', level, message, values))
+                  'joint_state_lag_ms_max': lag['max_ms']}
+        self.inputs.publish_health('estimator', values)
 
 
 class LagStats:

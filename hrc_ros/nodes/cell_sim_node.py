@@ -46,8 +46,8 @@ from ..model import RH1, RH2, TASK_VARIABLES, HRCModel
 from ..observation import synthesize_joint_velocities, synthesize_skeleton
 from .belief_estimator_node import (ROBOT_REFERENCE_POINT, SAFETY_RADII, VELOCITY_THRESHOLDS,
                                     check_motion_parameters)
-from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
-                     StartupError, check_array, load_node_config, run)
+from .common import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
+                     check_array, load_node_config, run)
 
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
 IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
@@ -215,13 +215,9 @@ class CellSimNode(Node):
         self.true_state_pub.publish(conv.true_state_to_msg(self.true_state()))
 
     def _publish_status(self) -> None:
-        dropped = sum(self.inputs.dropped.values())
         values = {'reactions': self.reactions, 'em': self.human.em, 'ea': self.human.ea,
-                  'd': self.human.d, 'observation': self.human.observation,
-                  **self.inputs.counts()}
-        message = f'{dropped} messages dropped so far' if dropped else 'ok'
-        self.inputs.publish(self.inputs.status('simulation', WARN if dropped else OK, message,
-                                               values))
+                  'd': self.human.d, 'observation': self.human.observation}
+        self.inputs.publish_health('simulation', values)
 
 
 def main(args=None):

@@ -239,6 +239,14 @@ class Inputs:
     def publish(self, *statuses: DiagnosticStatus) -> None:
         self.publisher.publish(diagnostic_array(statuses, self.node.get_clock().now().to_msg()))
 
+    def publish_health(self, what: str, values: Mapping[str, object]) -> None:
+        """The node's periodic status: `values` plus the input counts; WARN once any message
+        was dropped."""
+        dropped = sum(self.dropped.values())
+        message = f'{dropped} messages dropped so far' if dropped else 'ok'
+        self.publish(self.status(what, WARN if dropped else OK, message,
+                                 {**values, **self.counts()}))
+
     def counts(self) -> dict:
         """received_<input> and dropped_<input> for every input seen so far."""
         out = {}

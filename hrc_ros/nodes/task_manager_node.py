@@ -28,8 +28,8 @@ from .. import conversions as conv
 from .. import qos
 from ..model import ACTIONS, DN, HRCModel
 from ..tasks import TaskBook, parse_schedule
-from .common import (OK, STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
-                     StartupError, check_array, load_node_config, run)
+from .common import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
+                     check_array, load_node_config, run)
 
 T = Parameter.Type
 PARAMETERS = (
@@ -124,14 +124,11 @@ class TaskManagerNode(Node):
 
     # -- health ----------------------------------------------------------------------------
     def _publish_status(self) -> None:
-        dropped = sum(self.inputs.dropped.values())
         values = {'epoch': self.book.epoch, 'task_state': list(self.book.state.values()),
                   'pending': self.book.pending,
                   'last_finalised': self.last_finalised,
-                  'completed_tasks': len(self.book.completed), **self.inputs.counts()}
-        message = f'{dropped} messages dropped so far' if dropped else 'ok'
-        self.inputs.publish(self.inputs.status('tasks', WARN if dropped else OK, message,
-                                               values))
+                  'completed_tasks': len(self.book.completed)}
+        self.inputs.publish_health('tasks', values)
 
 
 def main(args=None):
