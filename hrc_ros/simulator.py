@@ -208,6 +208,13 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
 
 
 # -- plots -----------------------------------------------------------------------------------
+def _save_figure(plt, fig, path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _step_panels(plt, trajectory, names, labels, title, path):
     epochs = trajectory.column('epoch')
     fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(9, 1.7 * len(names) + 0.8))
@@ -223,10 +230,7 @@ def _step_panels(plt, trajectory, names, labels, title, path):
     axes[-1].set_xlabel('epoch')
     axes[-1].set_xticks(epochs)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save_figure(plt, fig, path)
 
 
 def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
@@ -258,10 +262,7 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.set_xlabel('epoch')
     ax.grid(alpha=0.3)
     ax.set_title(f'Distance level d {subtitle}')
-    fig.tight_layout()
-    fig.savefig(out / 'distance.png', dpi=110)
-    plt.close(fig)
-    paths.append(out / 'distance.png')
+    paths.append(_save_figure(plt, fig, out / 'distance.png'))
 
     fig, ax = plt.subplots(figsize=(9, 3.8))
     index = np.array([ACTIONS.index(a) for a in trajectory.actions])
@@ -275,7 +276,7 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.plot(epochs[yes], index[yes], 's', color='tab:green', ms=8, label='request accepted')
     ax.plot(epochs[no], index[no], 's', mfc='none', color='tab:orange', ms=8,
             label='request refused')
-    ax.plot(epochs[fail], index[fail], 'X', color='tab:red', ms=9, label='fail-safe (d = 0)')
+    ax.plot(epochs[fail], index[fail], 'X', color='tab:red', ms=9, label='fail-safe dn')
     ax.set_yticks(range(len(ACTIONS)), ACTIONS)
     ax.set_ylim(-0.5, len(ACTIONS) - 0.5)
     ax.set_xticks(epochs)
@@ -283,10 +284,7 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.grid(alpha=0.3)
     ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.set_title(f'Sequence of the actions {subtitle}')
-    fig.tight_layout()
-    fig.savefig(out / 'actions.png', dpi=110)
-    plt.close(fig)
-    paths.append(out / 'actions.png')
+    paths.append(_save_figure(plt, fig, out / 'actions.png'))
 
     fig, ax = plt.subplots(figsize=(9, 4))
     image = ax.imshow(trajectory.beliefs.T, aspect='auto', origin='lower', cmap='viridis',
@@ -300,10 +298,7 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.legend(loc='upper left', bbox_to_anchor=(1.15, 1.0), fontsize=8)
     fig.colorbar(image, ax=ax, label='belief b(h)')
     ax.set_title(f'Belief over the hidden emotions, {trajectory.mode} filter {subtitle}')
-    fig.tight_layout()
-    fig.savefig(out / 'belief.png', dpi=110)
-    plt.close(fig)
-    paths.append(out / 'belief.png')
+    paths.append(_save_figure(plt, fig, out / 'belief.png'))
     return paths
 
 
