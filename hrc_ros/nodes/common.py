@@ -264,7 +264,7 @@ def run(node_class, args=None) -> int:
     """The `main()` of a node (ros2/demos talker pattern); returns the process exit code.
 
     A node that cannot start (`StartupError`, a rejected parameter) logs why and returns 1,
-    with no traceback.
+    with no traceback. Ctrl-C (SIGINT) stops it cleanly with 0.
     """
     rclpy.init(args=args)
     try:
@@ -280,6 +280,13 @@ def run(node_class, args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # Ctrl-C shuts the context down from rclpy's signal handler; if that lands while the
+        # executor is taking a message, rclpy raises a RuntimeError from take_message instead
+        # of ExternalShutdownException. That is still the shutdown; while the context is up,
+        # an error is real and propagates.
+        if node.context.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
