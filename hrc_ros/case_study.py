@@ -68,7 +68,9 @@ def write_run_params(path: Path, args) -> Path:
     params = {
         '/**': {'ros__parameters': {'config': args.config or ''}},
         '/**/decision': {'ros__parameters': {
-            'epoch_period': args.epoch_period, 'input_timeout': 0.6 * args.epoch_period,
+            # most of the epoch for its inputs (they normally take milliseconds): a scheduling
+            # stall on a loaded machine must not turn into a fail-safe dn
+            'epoch_period': args.epoch_period, 'input_timeout': 0.8 * args.epoch_period,
             # the task manager, the belief estimator and this observer
             'min_epoch_subscribers': 3,
             'selector': args.selector,

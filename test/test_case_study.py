@@ -25,7 +25,7 @@ SEED = 3
 def run(tmp_path_factory, ros_domain_id):
     out = tmp_path_factory.mktemp('case_study')
     proc = subprocess.run([sys.executable, '-m', 'hrc_ros.case_study', '--out', str(out),
-                           '--seed', str(SEED), '--epoch-period', '0.4'],
+                           '--seed', str(SEED), '--epoch-period', '0.5'],
                           capture_output=True, text=True, timeout=180)
     return out, proc
 

@@ -32,9 +32,9 @@ from hrc_ros.processes import NodeProcesses
 from hrc_ros.simulator import case_study, simulate
 
 EPOCHS = 20
-EPOCH_PERIOD = 0.25
+EPOCH_PERIOD = 0.5       # with 0.4 s for an epoch's inputs: room for a scheduling stall
 SEED = 8
-DEADLINE = 90.0          # seconds for start-up plus 20 epochs (5 s of them)
+DEADLINE = 90.0          # seconds for start-up plus 20 epochs (10 s of them)
 STOP_TIMEOUT = 10.0
 NODES = ('task_manager', 'belief_estimator', 'cell_sim')
 OBSERVED = ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc', 'd')
@@ -51,7 +51,7 @@ decision:
     policy: '{policy}'
     selector: paper
     epoch_period: {period}
-    input_timeout: 0.2
+    input_timeout: 0.4
     stale_timeout: 3.0
     epoch_source: timer
 task_manager:
@@ -134,6 +134,8 @@ def observed_rows(listener):
     rows = []
     for k in range(1, EPOCHS + 1):
         decision = listener.decisions[k]
+        assert decision['observable'] != 'none', (
+            f'epoch {k}: the decision node had no complete input set: {decision["faults"]}')
         observable = [int(v) for v in decision['observable'].strip('[]').split(',')]
         rows.append({**listener.task_states[k - 1], 'd': observable[-1],
                      'action': listener.actions[k - 1], 'fail_safe': decision['faults'],
