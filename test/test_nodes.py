@@ -673,6 +673,40 @@ def test_task_manager_takes_a_missing_action_as_dn(graph, model):
     assert state['bc'] == 2 and state['tc'] == 2
 
 
+def test_task_manager_holds_an_epoch_that_overtakes_the_action_and_the_answer(graph, model):
+    """Epoch k+1, a_k and the answer come from three writers; rclpy runs ready callbacks in
+    subscription order (the epoch first). An accepted request must still count as accepted."""
+    tasks = Tasks(graph, initial_task=[1, 1, 3], input_timeout=30.0)
+    tasks.epoch(1)
+    count = len(tasks.states)
+    tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(2))
+    tasks.send('action', tasks.action, String(data='rh2'))    # eligible: waits for the answer
+    graph.executor.spin_once(timeout_sec=0.05)
+    assert len(tasks.states) == count
+    tasks.send('human_response', tasks.response, Bool(data=True))
+    assert graph.spin_until(lambda: len(tasks.states) > count)
+    book = TaskBook(model, initial_task=(1, 1, 3))
+    book.begin_epoch(1)
+    book.apply('rh2', True)
+    book.begin_epoch(2)
+    assert conv.task_state_from_msg(tasks.states[-1]) == book.state
+    assert book.state['ty'] != 0                             # accepted: committed
+    assert not graph.diagnostics('task_manager: tasks', WARN)
+
+
+def test_task_manager_takes_an_unanswered_request_as_refused_after_input_timeout(graph):
+    tasks = Tasks(graph, initial_task=[1, 1, 3], input_timeout=0.2)
+    tasks.epoch(1)
+    start = time.monotonic()
+    state = tasks.epoch(2, 'rh2')
+    assert time.monotonic() - start >= 0.2                     # it waited for the answer
+    assert state['ty'] == 0 and state['tp'] == 1               # refused: nothing changed
+    assert graph.spin_until(lambda: any('as refused' in s.message for s in
+                                        graph.diagnostics('task_manager: tasks', WARN)))
+    assert tasks.node.late_inputs == 1
+    assert tasks.epoch(3, 'nw')['tp'] == 1                      # a non-request: no wait
+
+
 def test_task_manager_queues_requests_and_drops_bad_ones(graph):
     tasks = Tasks(graph)
     assert tasks.epoch(1)['tp'] == 0
@@ -760,14 +794,17 @@ def test_cell_reacts_to_actions_like_the_simulated_human(graph, model):
     cell = Cell(graph, seed=11)
     twin = SimulatedHuman(model, seed=11, em=0, ea=0, d=1)
     task = dict(TASK_1)
-    cell.send('task_state', cell.task, conv.task_state_to_msg(task))
     for action in ('mh', 'mh', 'rh2', 'nw'):
+        # As the task manager does: x_k each epoch, then a_k.
+        cell.send('task_state', cell.task, conv.task_state_to_msg(task))
         reaction = twin.react(action, task)
         if action == 'rh2':
             accepted = reaction.accepted
-        count = len(cell.true_states)
+        count = cell.node.reactions
         cell.send('action', cell.action, String(data=action))
-        assert graph.spin_until(lambda: len(cell.true_states) > count)
+        assert cell.node.reactions == count + 1      # x_k was in: no wait
+        assert graph.spin_until(lambda: conv.true_state_from_msg(cell.true_states[-1])
+                                == cell.node.true_state())
         state = conv.true_state_from_msg(cell.true_states[-1])
         assert (state['em'], state['ea'], state['d']) == (reaction.em, reaction.ea, reaction.d)
         assert cell.node.human.observation == reaction.observation
@@ -796,7 +833,32 @@ def test_cell_drops_malformed_inputs(graph):
     assert_dropped(graph, cell.node, 'task_state', 'must hold 8')
     assert cell.node.reactions == 0
     cell.send('action', cell.action, String(data='dn'))
+    # No good task state was received: the action waits task_state_timeout, then the cell
+    # reacts as in an idle cell.
+    assert cell.node.reactions == 0
+    assert graph.spin_until(lambda: cell.node.reactions == 1, timeout=5.0)
+
+
+def test_cell_holds_an_action_that_overtakes_its_task_state(graph, model):
+    """a_k and x_k come from two writers; a_k may be processed first. The cell must answer
+    the request with x_k (eligible), not with x_{k-1} (idle: ineligible, so false)."""
+    from hrc_ros.cell import SimulatedHuman
+    idle = dict(zip(TASK_VARIABLES, (0,) * 8))
+    task = {**idle, 'tp': 2, 'tc': 2, 'tx': 1}
+    twin = SimulatedHuman(model, seed=2, em=0, ea=0, d=1)
+    twin.react('dn', idle)
+    assert twin.react('rh1', task).accepted is True       # this seed's human accepts
+    cell = Cell(graph, seed=2, task_state_timeout=30.0)
+    cell.send('task_state', cell.task, conv.task_state_to_msg(idle))
+    cell.send('action', cell.action, String(data='dn'))       # epoch 1, x_1 idle
     assert cell.node.reactions == 1
+    cell.send('action', cell.action, String(data='rh1'))      # a_2 before x_2
+    assert cell.node.reactions == 1
+    cell.send('task_state', cell.task, conv.task_state_to_msg(task))
+    assert cell.node.reactions == 2
+    assert graph.spin_until(lambda: cell.responses)
+    assert [m.data for m in cell.responses] == [True]
+
 
 
 @pytest.mark.parametrize('name, value, reason', [

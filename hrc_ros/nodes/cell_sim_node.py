@@ -8,10 +8,18 @@ the observation O it currently shows. The node
   at `sensor_rate` Hz, from start-up on: every sample is drawn inside the velocity band of the
   current O and the distance band of the current d (`synthesize_joint_velocities`,
   `synthesize_skeleton`), so the belief estimator recovers O and d whatever the window holds;
-- reacts to each `hrc/action` a_k at once (DESIGN.md): ``human.react(a_k, task state)`` with
-  the latest `hrc/task_state` (x_k, published before a_k); for a request (rh1, rh2) it
-  publishes `hrc/human_response` (false for a request the task state makes ineligible); the new
-  (em, ea, d, O) take effect on the next sample, which is sent at once.
+- reacts to each `hrc/action` a_k (DESIGN.md): ``human.react(a_k, x_k)`` with the epoch's
+  `hrc/task_state` x_k; for a request (rh1, rh2) it publishes `hrc/human_response` (false for a
+  request the task state makes ineligible); the new (em, ea, d, O) take effect on the next
+  sample, which is sent at once.
+
+Pairing a_k with x_k. The task manager publishes x_k before the decision node publishes a_k,
+but they are two writers: DDS does not order them, and rclpy's executor runs the callbacks of
+messages that are ready together in subscription order, not in arrival order. So the node
+reacts to an action only with a task state received since its last reaction (x_k). An action
+that arrives first is held until x_k arrives, at most `task_state_timeout`; then it reacts with
+the latest task state and warns. (Reacting at once with the previous epoch's task state made a
+loaded machine answer an eligible request as an ineligible one.)
 
 Debug topic (an extension of INTERFACES.md, for tests and plots): `hrc/sim/true_state`
 (std_msgs/UInt8MultiArray, latched), the 11 state variables ``em ea tp tc tx ty hp hc bp bc d``
@@ -42,7 +50,7 @@ from std_msgs.msg import Bool, String, UInt8MultiArray
 from .. import conversions as conv
 from .. import qos
 from ..cell import SimulatedHuman
-from ..model import RH1, RH2, TASK_VARIABLES, HRCModel
+from ..model import ACTIONS, RH1, RH2, TASK_VARIABLES, HRCModel
 from ..observation import synthesize_joint_velocities, synthesize_skeleton
 from .belief_estimator_node import (ROBOT_REFERENCE_POINT, SAFETY_RADII, VELOCITY_THRESHOLDS,
                                     check_motion_parameters)
@@ -65,6 +73,9 @@ PARAMETERS = (
     ParamSpec('sensor_rate', T.DOUBLE, 50.0, 'Hz of joint states and skeletons',
               range=(0.1, 1000.0)),
     VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+    ParamSpec('task_state_timeout', T.DOUBLE, 0.25, 'seconds an action waits for its '
+              "epoch's hrc/task_state before the cell reacts with the latest one",
+              range=(0.0, 60.0)),
     ParamSpec('faults', T.STRING_ARRAY, [], 'injected faults "KIND:EPOCHS" with KIND one of '
               'dropout, nan_velocity, decline, collision and EPOCHS "7" or "7-9"',
               read_only=True),
@@ -119,6 +130,8 @@ class CellSimNode(Node):
         self.sensor_rng = np.random.default_rng([values['seed'], SENSOR_STREAM])
         self.faults = parse_faults(values['faults'])
         self.task_state: dict | None = None
+        self._task_state_fresh = False     # received since the last reaction: x_k
+        self._held_action: int | None = None
         self.reactions = 0
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
         self._last_sample_ns: int | None = None
@@ -136,6 +149,8 @@ class CellSimNode(Node):
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
                               self._task_state_from_msg, self._on_task_state)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
+        self.hold_timer = self.create_timer(values['task_state_timeout'], self._on_hold_timeout,
+                                            autostart=False)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self._enter_epoch()
         self._publish_true_state()
@@ -161,6 +176,7 @@ class CellSimNode(Node):
     def _apply_parameters(self, values) -> None:
         self._apply_motion(values)
         self.sensor_timer.timer_period_ns = int(1e9 / values['sensor_rate'])
+        self.hold_timer.timer_period_ns = int(1e9 * values['task_state_timeout'])
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
@@ -168,13 +184,40 @@ class CellSimNode(Node):
     # -- inputs ----------------------------------------------------------------------------
     def _on_task_state(self, task_state: dict) -> None:
         self.task_state = task_state
+        self._task_state_fresh = True
+        if self._held_action is not None:
+            self._react(self._held_action)
 
     def _on_action(self, action: int) -> None:
+        if self._held_action is not None:
+            # Two actions without a task state between them: the first one's epoch is over.
+            self.get_logger().warning(f'no task state for epoch {self.epoch}; reacting to '
+                                      f'{ACTIONS[self._held_action]} with the latest one',
+                                      throttle_duration_sec=5.0)
+            self._react(self._held_action)
+        if self._task_state_fresh:
+            self._react(action)
+        else:
+            self._held_action = action
+            self.hold_timer.reset()
+
+    def _on_hold_timeout(self) -> None:
+        self.hold_timer.cancel()
+        if self._held_action is not None:
+            self.get_logger().warning(
+                f'no task state for epoch {self.epoch} within task_state_timeout; reacting to '
+                f'{ACTIONS[self._held_action]} with the latest one', throttle_duration_sec=5.0)
+            self._react(self._held_action)
+
+    def _react(self, action: int) -> None:
+        self.hold_timer.cancel()
+        self._held_action = None
+        self._task_state_fresh = False
         task_state = self.task_state
         if task_state is None:
             task_state = IDLE_TASK
-            self.get_logger().warning('action received before any task state; reacting as '
-                                      'in an idle cell', throttle_duration_sec=5.0)
+            self.get_logger().warning('no task state received yet; reacting as in an idle '
+                                      'cell', throttle_duration_sec=5.0)
         reaction = self.human.react(action, task_state)
         accepted = reaction.accepted is True and not self._fault('decline')
         if action in (RH1, RH2):
@@ -215,7 +258,10 @@ class CellSimNode(Node):
         self.true_state_pub.publish(conv.true_state_to_msg(self.true_state()))
 
     def _publish_status(self) -> None:
-        values = {'reactions': self.reactions, 'em': self.human.em, 'ea': self.human.ea,
+        values = {'reactions': self.reactions,
+                  'held_action': (None if self._held_action is None
+                                  else ACTIONS[self._held_action]),
+                  'em': self.human.em, 'ea': self.human.ea,
                   'd': self.human.d, 'observation': self.human.observation}
         self.inputs.publish_health('simulation', values)
 

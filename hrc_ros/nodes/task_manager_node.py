@@ -3,15 +3,24 @@
 It holds a `TaskBook` and drives it by the epoch protocol of docs/DESIGN.md. On `hrc/epoch` k:
 
 1. finalise a_{k-1}: ``book.apply(a_{k-1}, accepted)``, where a_{k-1} is the last `hrc/action`
-   received since epoch k-1 (dn, with a warning, if none arrived) and `accepted` is whether the
-   last `hrc/human_response` received since epoch k-1 was true (the step ignores it unless
-   a_{k-1} was an eligible request);
+   received since epoch k-1 and `accepted` is whether the last `hrc/human_response` received
+   since epoch k-1 was true (the step ignores it unless a_{k-1} was an eligible request);
 2. ``book.begin_epoch(k)``: scheduled tasks due at k are released, an idle cell takes the head
    of the queue;
 3. publish `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched) and a status.
 
 The response window opens at the epoch rather than at the action, so that a response that
 overtakes the action on the way here still counts.
+
+Step 1 waits for what it needs. `hrc/epoch` k, a_{k-1} and the answer to it come from three
+writers: DDS does not order them, and rclpy's executor runs the callbacks of messages that are
+ready together in subscription order (the epoch first), not in arrival order. So when epoch k
+arrives before a_{k-1}, or before the human's answer to an eligible request a_{k-1}, the
+finalisation is held until it arrives, at most `input_timeout`; then a missing a_{k-1} counts as
+dn and a missing answer as a refusal, with a warning and a diagnostic. Keep `input_timeout`
+below the decision node's, which waits for this node's task state. (Finalising at once made a
+loaded machine record an accepted request as refused.) A response that arrives after its
+epoch was finalised falls into the next window.
 
 Tasks enter through the `initial_task` (tp, tc, tx) present at epoch 1, the `schedule`
 (``"epoch:tp,tc,tx"`` releases) and `hrc/task_request` ``[tp, tc, tx]`` (validated against the
@@ -26,9 +35,9 @@ from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
 from .. import conversions as conv
 from .. import qos
-from ..model import ACTIONS, DN, HRCModel
+from ..model import ACTIONS, DN, HRCModel, request_eligible
 from ..tasks import TaskBook, parse_schedule
-from .common import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
+from .common import (STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec, StartupError,
                      check_array, load_node_config, run)
 
 T = Parameter.Type
@@ -40,6 +49,9 @@ PARAMETERS = (
               constraints='[] or 3 integers: tp in 1..rho, tc in 1..sigma, tx in 0..3'),
     ParamSpec('schedule', T.STRING_ARRAY, [], 'scripted task releases "epoch:tp,tc,tx"',
               read_only=True, constraints='each entry "epoch:tp,tc,tx", epoch >= 1'),
+    ParamSpec('input_timeout', T.DOUBLE, 0.25, 'seconds after hrc/epoch k to wait for a_{k-1} '
+              'and, for an eligible request, the human response; then dn / refused. Keep it '
+              "below the decision node's input_timeout", range=(0.0, 3600.0)),
 )
 
 
@@ -61,7 +73,8 @@ class TaskManagerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_parameters)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters,
+                                     self._apply_parameters)
         values = self.params.values()
         self.config = load_node_config(values['config'])
         self.model = HRCModel(self.config)
@@ -72,8 +85,10 @@ class TaskManagerNode(Node):
         except ValueError as exc:
             raise StartupError(f'task parameters: {exc}') from None
         self._action: int | None = None     # a_{k-1}
-        self._accepted = False              # the last human response since epoch k-1
+        self._response: bool | None = None  # the last human response since epoch k-1
+        self._next_epoch: int | None = None  # epoch k, received, waiting for step 1
         self.last_finalised: tuple | None = None
+        self.late_inputs = 0                # finalisations that timed out
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
@@ -87,6 +102,11 @@ class TaskManagerNode(Node):
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
                               self._task_request_from_msg, self._on_task_request)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self.hold_timer = self.create_timer(values['input_timeout'], self._on_hold_timeout,
+                                            autostart=False)
+
+    def _apply_parameters(self, values) -> None:
+        self.hold_timer.timer_period_ns = int(values['input_timeout'] * 1e9)
 
     def _task_request_from_msg(self, msg):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
@@ -94,9 +114,11 @@ class TaskManagerNode(Node):
     # -- inputs ----------------------------------------------------------------------------
     def _on_action(self, action: int) -> None:
         self._action = action
+        self._try_finalise()
 
     def _on_human_response(self, accepted: bool) -> None:
-        self._accepted = accepted
+        self._response = accepted
+        self._try_finalise()
 
     def _on_task_request(self, task: tuple) -> None:
         try:
@@ -106,19 +128,58 @@ class TaskManagerNode(Node):
         self.get_logger().info(f'task {task} queued; pending {self.book.pending}')
 
     def _on_epoch(self, k: int) -> None:
-        if k <= self.book.epoch:
-            raise conv.MessageError(f'epoch {k} does not follow the previous epoch '
-                                    f'{self.book.epoch}')
-        if self.book.epoch >= 1:
-            action = self._action
-            if action is None:
-                action = DN
-                self.get_logger().warning(f'no action received for epoch {self.book.epoch}; '
-                                          'taking dn', throttle_duration_sec=5.0)
-            self.book.apply(action, self._accepted)
-            self.last_finalised = (self.book.epoch, ACTIONS[action], self._accepted)
+        last = self.book.epoch if self._next_epoch is None else self._next_epoch
+        if k <= last:
+            raise conv.MessageError(f'epoch {k} does not follow the previous epoch {last}')
+        if self._next_epoch is not None:        # epoch k came before k-1 was finalised
+            self._try_finalise(timed_out=True)
+        self._next_epoch = k
+        if self.book.epoch < 1:
+            self._begin(k)
+        else:
+            self._try_finalise()
+
+    def _awaited(self) -> str | None:
+        """What step 1 still waits for, or None."""
+        if self._action is None:
+            return f'hrc/action of epoch {self.book.epoch}'
+        task = self.book.state
+        if self._response is None and request_eligible(self._action, task['tp'], task['tx'],
+                                                       task['ty']):
+            return (f'hrc/human_response to {ACTIONS[self._action]} of epoch '
+                    f'{self.book.epoch}')
+        return None
+
+    def _try_finalise(self, timed_out: bool = False) -> None:
+        if self._next_epoch is None:
+            return
+        awaited = self._awaited()
+        if awaited is not None and not timed_out:
+            if self.hold_timer.is_canceled():
+                self.hold_timer.reset()
+            return
+        if awaited is not None:
+            self.late_inputs += 1
+            message = (f'no {awaited} within input_timeout; taking '
+                       + ('dn' if self._action is None else 'the request as refused'))
+            self.get_logger().warning(message, throttle_duration_sec=5.0)
+            self.inputs.publish(self.inputs.status('tasks', WARN, message,
+                                                   {'epoch': self.book.epoch}))
+        action = DN if self._action is None else self._action
+        accepted = bool(self._response)
+        self.book.apply(action, accepted)
+        self.last_finalised = (self.book.epoch, ACTIONS[action], accepted)
+        self._begin(self._next_epoch)
+
+    def _on_hold_timeout(self) -> None:
+        self.hold_timer.cancel()
+        self._try_finalise(timed_out=True)
+
+    def _begin(self, k: int) -> None:
+        self.hold_timer.cancel()
         self.book.begin_epoch(k)
-        self._action, self._accepted = None, False
+        self._next_epoch = None
+        self._action, self._response = None, None
         self.task_state_pub.publish(conv.task_state_to_msg(self.book.state))
         self._publish_status()
 
@@ -127,6 +188,8 @@ class TaskManagerNode(Node):
         values = {'epoch': self.book.epoch, 'task_state': list(self.book.state.values()),
                   'pending': self.book.pending,
                   'last_finalised': self.last_finalised,
+                  'waiting_for': None if self._next_epoch is None else self._awaited(),
+                  'late_inputs': self.late_inputs,
                   'completed_tasks': len(self.book.completed)}
         self.inputs.publish_health('tasks', values)
 
