@@ -16,12 +16,13 @@ What it does, as a user would by hand:
    `hrc/sim/true_state`, task and activity from `hrc/task_state`, distance), the observation,
    the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
 
-The trajectory is assembled by receive time around the epoch signals (`assemble`).
+The trajectory is assembled by publication time around the epoch signals (`assemble`).
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import os
 import shutil
 import sys
@@ -58,6 +59,7 @@ TOPICS = {
 }
 WATCHED = ('hrc/epoch', 'hrc/task_state', 'hrc/observation', 'hrc/distance_level',
            'hrc/belief', 'hrc/action', 'hrc/human_response', 'hrc/sim/true_state')
+LATCHED_TOPICS = ('hrc/task_state', 'hrc/distance_level', 'hrc/belief', 'hrc/sim/true_state')
 
 
 class CaseStudyError(RuntimeError):
@@ -85,29 +87,28 @@ def write_run_params(path: Path, args) -> Path:
 
 
 def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Trajectory:
-    """Per-epoch rows from the watched messages `(topic, value, receive_time)`.
+    """Per-epoch rows from the watched messages `(topic, value, publication_time)`.
 
-    Messages of different publishers can reach the observer slightly out of their causal
-    order (epoch k's task state just before the signal of epoch k), so a message belongs to the
-    last epoch whose signal arrived before it, less a margin of a quarter period: the nodes
-    answer a signal within milliseconds, and the next signal is a whole period later. The
-    cell publishes its true state when it reacts to a_k: that is the state of epoch k + 1 (its
-    initial one, before the first signal, is epoch 1's). A window without joint states has no
-    observation or belief (the row shows O = 0 and no belief).
+    A message belongs to the last epoch whose signal was published before it. Publication
+    times are the writers' source timestamps (one system clock on one host), so this follows
+    the causal order (epoch k's signal, then its task state, belief and action, then the cell's
+    reaction, then epoch k + 1's signal) whatever order and delay the messages reach this
+    observer with: receive times are not used, because an observer that wakes up late takes a
+    batch of messages at once. The cell publishes its true state when it reacts to a_k: that
+    is the state of epoch k + 1 (its initial one, before the first signal, is epoch 1's). A
+    window without joint states has no observation or belief (the row shows O = 0 and no
+    belief).
     """
-    margin = 0.25 * args.epoch_period
-    signals = [(value, t) for topic, value, t in events if topic == 'hrc/epoch']
+    signals = sorted((t, value) for topic, value, t in events if topic == 'hrc/epoch')
+    times = [t for t, _ in signals]
 
-    def epoch_of(t: float) -> int:
-        k = 0
-        for value, t_signal in signals:
-            if t_signal - margin <= t:
-                k = value
-        return k
+    def epoch_of(t: int) -> int:
+        i = bisect.bisect_right(times, t)
+        return signals[i - 1][1] if i else 0
 
     first: dict[tuple, object] = {}
     true_states: dict[int, tuple] = {}
-    for topic, value, t in events:
+    for topic, value, t in sorted(events, key=lambda e: e[2]):
         k = epoch_of(t)
         if topic == 'hrc/sim/true_state':
             true_states[k + 1] = value        # the last one seen in epoch k
@@ -153,7 +154,7 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
 
     from . import conversions
     from .bag import BagWriter, Recorder, message_class
-    from .qos import LATCHED, RELIABLE
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     rclpy.init()
     node = rclpy.create_node('case_study_observer')
@@ -173,18 +174,28 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
                                               for n in STATE_VARIABLES),
     }
 
-    def on_message(topic, msg):
-        try:
-            events.append((topic, decode[topic](msg), time.monotonic()))
-        except conversions.MessageError as exc:
-            node.get_logger().warning(f'{topic}: {exc}', throttle_duration_sec=2.0)
+    clock = node.get_clock()
 
-    qos = {'hrc/task_state': LATCHED, 'hrc/distance_level': LATCHED, 'hrc/belief': LATCHED,
-           'hrc/sim/true_state': LATCHED}
+    def watcher(topic):
+        def on_message(msg, info):
+            published = info.get('source_timestamp') if isinstance(info, dict) else None
+            try:
+                events.append((topic, decode[topic](msg),
+                               published or clock.now().nanoseconds))
+            except conversions.MessageError as exc:
+                node.get_logger().warning(f'{topic}: {exc}', throttle_duration_sec=2.0)
+        return on_message
+
+    # Deep reader queues: an observer that wakes up late must still see every message (the
+    # latched topics' publishers keep only the last one for late joiners; this reader does
+    # not join late).
+    latched = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     for topic in WATCHED:
         node.create_subscription(
-            message_class(TOPICS[topic]), topic,
-            lambda m, t=topic: on_message(t, m), qos.get(topic, RELIABLE))
+            message_class(TOPICS[topic]), topic, watcher(topic),
+            latched if topic in LATCHED_TOPICS else reliable)
     try:
         with BagWriter(bag_dir) as writer:
             recorder = Recorder(node, TOPICS, writer)
@@ -218,9 +229,10 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
                     elif topic == 'hrc/action':
                         print(f' -> {value}', flush=True)
                 last[0] = len(events)
-                signals = [i for i, (t, v, _) in enumerate(events) if t == 'hrc/epoch']
-                return bool(signals) and events[signals[-1]][1] >= args.epochs and any(
-                    t == 'hrc/action' for t, _, _ in events[signals[-1]:])
+                final = [t for topic, v, t in events if topic == 'hrc/epoch'
+                         and v >= args.epochs]
+                return bool(final) and any(topic == 'hrc/action' and t > final[0]
+                                           for topic, _, t in events)
 
             spin_until(done, args.timeout, f'{args.epochs} epochs')
             # let the last action's echoes (response, sim state) land in the bag

@@ -214,6 +214,35 @@ def test_estimator_epochs_follow_the_belief_filter(graph, model):
     assert est.observations[-1].data == 3 and est.distances[-1].data == 3
 
 
+def test_estimator_counts_a_sample_published_after_the_signal_in_the_next_window(graph):
+    """Epoch k's signal, then the cell's first samples after its reaction, all taken in one
+    executor pass: rclpy runs them in subscription order (samples first). Window k must still
+    end at the signal (by publication time), and the samples open window k+1."""
+    est = Estimator(graph)
+    est.body(2)
+    est.motion(1, samples=4)
+    est.epoch(1)
+    assert (est.observations[-1].data, est.distances[-1].data) == (1, 2)
+    est.motion(1, samples=4)
+    est.body(2)
+    outputs = (len(est.observations), len(est.distances))
+    received = dict(est.node.inputs.received)
+    # Published in this order, but not taken until all of them are waiting.
+    est.epoch_pub.publish(conv.epoch_to_msg(2))
+    for _ in range(4):
+        est.joints.publish(conv.joint_state_to_msg(
+            conv.HUMAN_JOINTS, synthesize_joint_velocities(3, 6, rng=est.rng)))
+    est.skeleton.publish(conv.keypoints_to_msg(synthesize_skeleton(3, rng=est.rng)))
+    assert graph.spin_until(lambda: len(est.observations) > outputs[0]
+                            and len(est.distances) > outputs[1])
+    assert est.node.inputs.received['joint_states'] - received['joint_states'] >= 1
+    assert (est.observations[-1].data, est.distances[-1].data) == (1, 2)
+    est.wait_received('joint_states', received['joint_states'] + 4)
+    est.wait_received('skeleton', received['skeleton'] + 1)
+    est.epoch(3)
+    assert (est.observations[-1].data, est.distances[-1].data) == (3, 3)
+
+
 def test_estimator_without_action_predicts_with_dn(graph, model):
     est = Estimator(graph)
     belief_filter = BeliefFilter(model)

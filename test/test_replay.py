@@ -32,16 +32,39 @@ INPUTS = ['/human/joint_states', '/human/skeleton', '/hrc/human_response', '/hrc
 REPLAYED_NODES = ('belief_estimator_node', 'task_manager_node', 'decision_node')
 
 
-def recorded_actions(bag: Path) -> dict[int, str]:
-    """Epoch -> the first action the decision node published after that epoch's signal."""
+def actions_by_epoch(events) -> dict[int, str]:
+    """Epoch -> the first action published after that epoch's signal, from
+    ``(publication time, 'epoch' | 'action', value)`` events.
+
+    Publication (source) timestamps, not the order messages reached a subscriber: the signal
+    and the action come from two writers, and a subscriber that wakes up late takes them in
+    subscription order, not in the order they were sent."""
     actions, epoch = {}, None
-    for message in read_bag(bag, topics=['/hrc/epoch', '/hrc/action']):
-        value = deserialize(message).data
-        if message.topic == '/hrc/epoch':
+    for _, kind, value in sorted(events):
+        if kind == 'epoch':
             epoch = int(value)
         elif epoch is not None:
             actions.setdefault(epoch, value)
     return actions
+
+
+def recorded_actions(bag: Path) -> dict[int, str]:
+    return actions_by_epoch(
+        (m.publish_time_ns, m.topic.rsplit('/', 1)[-1], deserialize(m).data)
+        for m in read_bag(bag, topics=['/hrc/epoch', '/hrc/action']))
+
+
+def decision_reports(bag: Path) -> dict[int, dict]:
+    """Epoch -> the decision node's per-epoch /diagnostics values, as recorded."""
+    from hrc_ros.conversions import diagnostic_values
+    reports = {}
+    for m in read_bag(bag, topics=['/diagnostics']):
+        for status in deserialize(m).status:
+            if status.name.endswith('decision: decision'):
+                values = diagnostic_values(status)
+                if values.get('epoch', '0') != '0':
+                    reports[int(values['epoch'])] = values
+    return reports
 
 
 def test_bags_exist_and_are_small():
@@ -96,7 +119,10 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import String, UInt32
 
-    from hrc_ros.qos import RELIABLE
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from hrc_ros.conversions import diagnostic_values
 
     expected = recorded_actions(bag)
     assert len(expected) >= 10, f'{bag.name} holds only {len(expected)} decisions'
@@ -109,11 +135,24 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
     node = rclpy.create_node('replay_observer', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    events = []
-    node.create_subscription(UInt32, 'hrc/epoch', lambda m: events.append(('epoch', m.data)),
-                             RELIABLE)
-    node.create_subscription(String, 'hrc/action', lambda m: events.append(('action', m.data)),
-                             RELIABLE)
+    events, reports = [], {}
+
+    def listen(kind):
+        def on_message(msg, info):
+            events.append((info['source_timestamp'], kind, msg.data))
+        return on_message
+
+    def on_diagnostics(msg):
+        for status in msg.status:
+            if status.name == 'decision: decision':
+                values = diagnostic_values(status)
+                if values.get('epoch', '0') != '0':
+                    reports[int(values['epoch'])] = values
+
+    deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(UInt32, 'hrc/epoch', listen('epoch'), deep)
+    node.create_subscription(String, 'hrc/action', listen('action'), deep)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, deep)
 
     def spin_until(predicate, timeout, what):
         deadline = time.monotonic() + timeout
@@ -139,8 +178,7 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
         last = max(expected)
 
         def decided_last():
-            epochs = [v for k, v in events if k == 'epoch']
-            return bool(epochs) and epochs[-1] >= last and events[-1][0] == 'action'
+            return last in actions_by_epoch(events) and last in reports
 
         duration = bag_info(bag).duration_ns / 1e9
         spin_until(lambda: player.poll() is not None or decided_last(), duration + 30,
@@ -154,12 +192,15 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
         nodes.stop()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
-    replayed, epoch = {}, None
-    for kind, value in events:
-        if kind == 'epoch':
-            epoch = int(value)
-        elif epoch is not None:
-            replayed.setdefault(epoch, value)
+    replayed = actions_by_epoch(events)
+    # The decision node's own per-epoch reports name the epoch explicitly: they must agree.
+    assert {k: v['action'] for k, v in reports.items() if k in expected} == replayed
     mismatches = {k: (expected[k], replayed.get(k)) for k in expected
                   if replayed.get(k) != expected[k]}
-    assert not mismatches, f'epoch: (recorded, replayed) {mismatches}'
+    if mismatches:
+        recorded_reports = decision_reports(bag)
+        keys = ('action', 'faults', 'observable', 'belief', 'input_wait_ms')
+        detail = '\n'.join(
+            f'epoch {k}: recorded {[recorded_reports.get(k, {}).get(n) for n in keys]}\n'
+            f'{"":9}replayed {[reports.get(k, {}).get(n) for n in keys]}' for k in mismatches)
+        pytest.fail(f'epoch: (recorded, replayed) {mismatches}; ({", ".join(keys)}):\n{detail}')

@@ -22,6 +22,7 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String, UInt8MultiArray
 
 from hrc_ros import conversions as conv
@@ -85,9 +86,13 @@ class Listener:
         self.node.create_subscription(
             UInt8MultiArray, 'hrc/task_state',
             lambda m: self.task_states.append(conv.task_state_from_msg(m)), qos.RELIABLE)
+        # Latched like the publisher, but a deep queue: a listener that wakes up late must not
+        # lose a state to the next one (their count is the epoch).
         self.node.create_subscription(
             UInt8MultiArray, 'hrc/sim/true_state',
-            lambda m: self.true_states.append(conv.true_state_from_msg(m)), qos.LATCHED)
+            lambda m: self.true_states.append(conv.true_state_from_msg(m)),
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
                                       qos.RELIABLE)
 

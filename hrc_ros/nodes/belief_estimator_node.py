@@ -2,10 +2,16 @@
 
 Per epoch k (docs/DESIGN.md, ROS epoch protocol), on `hrc/epoch` k:
 
-    O_k = window_level(levels of the joint-state samples received since epoch k-1)
+    O_k = window_level(levels of the joint-state samples of window k)
     b_k = initial(O_k)                         at the first epoch
     b_k = update(b_{k-1}, a_{k-1}, O_k)        afterwards (a_{k-1}: the last `hrc/action`)
-    d_k = distance_level(latest skeleton of the window)
+    d_k = distance_level(latest skeleton of window k)
+
+Window k holds the samples received since epoch k-1's signal that were published before
+epoch k's signal (publication = the writer's source timestamp). A sample published after the
+signal belongs to window k+1 even if it is taken first: rclpy runs callbacks that are ready
+together in subscription order, so a node that wakes up late would otherwise count the cell's
+first sample after its reaction (or, in a replay, the next played sample) in the closing window.
 
 and publishes `hrc/distance_level` d_k, `hrc/observation` O_k and `hrc/belief` b_k. Each joint
 state sample gets its level at once (`velocity_level` of its velocities), so the node keeps
@@ -28,6 +34,8 @@ states, drops).
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
@@ -45,6 +53,7 @@ from .common import (STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
                      check_array, check_core, load_node_config, run)
 
 LEVELS = np.array([1, 2, 3])
+RECENT = 64   # samples per stream remembered with their publication time, to split a window
 NO_EVIDENCE = np.ones(9)   # the likelihood of an epoch without observation: predict only
 
 T = Parameter.Type
@@ -102,7 +111,8 @@ class BeliefEstimatorNode(Node):
         self.observation: int | None = None
         self.distance_level: int | None = None
         self._level_counts = np.zeros(3, dtype=np.int64)   # samples of O = 1, 2, 3 in the window
-        self._window_distance: int | None = None
+        self._recent_levels: deque = deque(maxlen=RECENT)  # (published_ns, level), this window
+        self._recent_distances: deque = deque(maxlen=RECENT)  # (published_ns, d), this window
         self._action: int | None = None                    # a_{k-1}: last action of the window
         self._previous_sample: conv.JointSample | None = None
         self._lag = LagStats()
@@ -112,13 +122,14 @@ class BeliefEstimatorNode(Node):
         self.observation_pub = self.create_publisher(UInt8, 'hrc/observation', qos.RELIABLE)
         self.inputs = Inputs(self)
         self.inputs.subscribe(JointState, 'human/joint_states', qos.SENSOR_DATA,
-                              conv.joint_sample_from_msg, self._on_joint_sample)
+                              conv.joint_sample_from_msg, self._on_joint_sample,
+                              with_published=True)
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
-                              conv.keypoints_from_msg, self._on_keypoints)
+                              conv.keypoints_from_msg, self._on_keypoints, with_published=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               self._on_action)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch)
+                              self._on_epoch, with_published=True)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _apply_parameters(self, values) -> None:
@@ -133,7 +144,7 @@ class BeliefEstimatorNode(Node):
         self.robot_reference_point = tuple(values['robot_reference_point'])
 
     # -- inputs ----------------------------------------------------------------------------
-    def _on_joint_sample(self, sample: conv.JointSample) -> None:
+    def _on_joint_sample(self, sample: conv.JointSample, published_ns: int) -> None:
         previous = self._previous_sample
         if sample.position is not None:
             self._previous_sample = sample
@@ -142,31 +153,49 @@ class BeliefEstimatorNode(Node):
             return
         level = velocity_level(velocities, self.velocity_thresholds)
         self._level_counts[level - 1] += 1
+        self._recent_levels.append((published_ns, level))
         if sample.stamp > 0.0:
             self._lag.add(self.get_clock().now().nanoseconds * 1e-9 - sample.stamp)
 
-    def _on_keypoints(self, keypoints: np.ndarray) -> None:
-        self._window_distance = distance_level(keypoints, self.robot_reference_point,
-                                               self.safety_radii)
+    def _on_keypoints(self, keypoints: np.ndarray, published_ns: int) -> None:
+        self._recent_distances.append((published_ns, distance_level(
+            keypoints, self.robot_reference_point, self.safety_radii)))
+
+    def _close_window(self, signal_ns: int) -> int | None:
+        """Split off the samples published after epoch k's signal (they open window k+1);
+        return d_k (None without a skeleton in window k)."""
+        later = [(t, level) for t, level in self._recent_levels if t >= signal_ns]
+        self._level_counts[:] = 0
+        for _, level in later:
+            self._level_counts[level - 1] += 1
+        self._recent_levels = deque(later, maxlen=RECENT)
+        window = [(t, d) for t, d in self._recent_distances if t < signal_ns]
+        self._recent_distances = deque(((t, d) for t, d in self._recent_distances
+                                        if t >= signal_ns), maxlen=RECENT)
+        return max(window)[1] if window else None
 
     def _on_action(self, action: int) -> None:
         self._action = action
 
-    def _on_epoch(self, k: int) -> None:
+    def _on_epoch(self, k: int, signal_ns: int) -> None:
         if k <= self.epoch:
             raise conv.MessageError(f'epoch {k} does not follow the previous epoch {self.epoch}')
         self.epoch = k
         action = DN if self._action is None else self._action
         statuses = []
-        if self._window_distance is not None:
-            self.distance_level = self._window_distance
+        # The window's counts, less the samples published after the signal.
+        counts = self._level_counts.copy()
+        window_distance = self._close_window(signal_ns)
+        counts -= self._level_counts
+        if window_distance is not None:
+            self.distance_level = window_distance
             self.distance_pub.publish(conv.distance_level_to_msg(self.distance_level))
         else:
             statuses.append(self.inputs.status(
                 'epoch', WARN, f'epoch {k}: no skeleton since the last epoch; distance level '
                 'not published', {'epoch': k}))
-        if self._level_counts.sum() >= self.min_window_samples:
-            self.observation = window_level(np.repeat(LEVELS, self._level_counts))
+        if counts.sum() >= self.min_window_samples:
+            self.observation = window_level(np.repeat(LEVELS, counts))
             self.belief = (self.filter.initial(self.observation) if self.belief is None
                            else self.filter.update(self.belief, action, self.observation))
             self.observation_pub.publish(conv.observation_to_msg(self.observation))
@@ -177,14 +206,12 @@ class BeliefEstimatorNode(Node):
                 self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
             statuses.append(self.inputs.status(
                 'epoch', WARN, f'epoch {k}: no joint states to observe ('
-                f'{int(self._level_counts.sum())} valid samples since the last epoch, fewer than '
+                f'{int(counts.sum())} valid samples in its window, fewer than '
                 f'{self.min_window_samples}); belief not published (predicted only)',
                 {'epoch': k}))
         if statuses:
             self.get_logger().warning(statuses[0].message, throttle_duration_sec=5.0)
             self.inputs.publish(*statuses)
-        self._level_counts[:] = 0
-        self._window_distance = None
         self._action = None
 
     # -- health ----------------------------------------------------------------------------

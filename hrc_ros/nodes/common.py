@@ -188,18 +188,32 @@ class Inputs:
 
     # -- subscriptions -----------------------------------------------------------------------
     def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
-                  handle: Callable[[Any], None], name: str | None = None):
-        """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported."""
-        name = name or topic.rsplit('/', 1)[-1]
+                  handle: Callable[..., None], name: str | None = None,
+                  with_published: bool = False):
+        """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported.
 
-        def callback(msg):
+        With `with_published`, `handle(value, published_ns)` also gets the message's
+        publication time: the writer's source timestamp (system clock, ns), or the receive
+        time where the middleware gives none."""
+        name = name or topic.rsplit('/', 1)[-1]
+        clock = self.node.get_clock()
+
+        def guarded(msg, *extra):
             self.received[name] += 1
             try:
-                handle(convert(msg))
+                handle(convert(msg), *extra)
             except MessageError as exc:
                 self.drop(name, topic, str(exc))
             except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
                 self.internal_error(name, topic, traceback.format_exc())
+
+        if not with_published:
+            def callback(msg):
+                guarded(msg)
+        else:
+            def callback(msg, info):
+                published = info.get('source_timestamp') if isinstance(info, dict) else None
+                guarded(msg, int(published or clock.now().nanoseconds))
 
         return self.node.create_subscription(msg_type, topic, callback, profile)
 
