@@ -1,0 +1,106 @@
+"""Does the node suite keep its decisions exact when the machine is overloaded?
+
+    python bench/load_robustness.py                        # 5 runs, 3 busy processes, ~2 min
+    python bench/load_robustness.py --runs 10 --busy 4 --seed 3 --epoch-period 0.5
+
+Each run starts `--busy` processes that spin a CPU core each (on a 2-core machine, 3 of them
+leave the four node processes and the observer about a third of the CPU), runs the main job
+(`hrc-case-study`, four node processes over DDS) and compares its trajectory, epoch by epoch
+(state, observation, action), with the ROS-free simulator for the same seed. A mismatch means
+that timing, not the inputs' content, decided something: that is a bug in the ROS layer, which
+the epoch protocol of docs/DESIGN.md is meant to rule out. The node logs' warnings are printed
+with each run, so a legitimate fail-safe `dn` (an input that missed `input_timeout`) shows as
+such rather than as a wrong decision.
+
+Before the ordering fixes of docs/DESIGN.md ("Message order") this failed 2 of 3 runs at
+`--busy 3` (the cell answered an eligible request with the previous epoch's task state).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from hrc_ros.config import load_config
+from hrc_ros.model import STATE_VARIABLES, HRCModel
+from hrc_ros.policy import default_config_path, default_policy_path, load_policy
+from hrc_ros.simulator import case_study, simulate
+
+
+def spin(stop) -> None:
+    while not stop.is_set():
+        pass
+
+
+def mismatches(out: Path, expected) -> list[int]:
+    with open(out / 'trajectory.csv') as f:
+        rows = list(csv.DictReader(f))
+    if len(rows) != len(expected.rows):
+        return [-1]
+    return [want['epoch'] for got, want in zip(rows, expected.rows)
+            if [int(got[n]) for n in STATE_VARIABLES] != [want[n] for n in STATE_VARIABLES]
+            or int(got['O']) != want['O'] or got['action'] != want['action']]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--runs', type=int, default=5)
+    parser.add_argument('--busy', type=int, default=3, help='CPU-spinning processes')
+    parser.add_argument('--seed', type=int, default=3)
+    parser.add_argument('--epoch-period', type=float, default=0.5)
+    args = parser.parse_args(argv)
+    os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(100, 199)))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    config = load_config(default_config_path())
+    expected = simulate(HRCModel(config), load_policy(default_policy_path(), config),
+                        case_study(), seed=args.seed)
+    print(f'{args.runs} runs of hrc-case-study --seed {args.seed} --epoch-period '
+          f'{args.epoch_period} with {args.busy} busy processes on {os.cpu_count()} cores',
+          flush=True)
+    exact = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for run in range(1, args.runs + 1):
+            stop = multiprocessing.Event()
+            busy = [multiprocessing.Process(target=spin, args=(stop,), daemon=True)
+                    for _ in range(args.busy)]
+            for p in busy:
+                p.start()
+            out = Path(tmp) / f'run{run}'
+            start = time.monotonic()
+            try:
+                proc = subprocess.run(
+                    [sys.executable, '-m', 'hrc_ros.case_study', '--out', str(out), '--seed',
+                     str(args.seed), '--epoch-period', str(args.epoch_period)],
+                    capture_output=True, text=True, timeout=300)
+            finally:
+                stop.set()
+                for p in busy:
+                    p.join()
+            took = time.monotonic() - start
+            if proc.returncode != 0:
+                print(f'run {run}: hrc-case-study failed ({proc.returncode}):\n'
+                      f'{proc.stdout[-1500:]}{proc.stderr[-1500:]}')
+                continue
+            bad = mismatches(out, expected)
+            exact += not bad
+            warnings = sorted({line.split(']: ', 1)[-1][:110] for log in (out / 'logs').glob(
+                '*.log') for line in log.read_text().splitlines() if '[WARN]' in line})
+            print(f'run {run}: {"exact" if not bad else f"MISMATCH from epoch {bad[0]}"} '
+                  f'({took:.0f} s)' + ''.join(f'\n    warning: {w}' for w in warnings),
+                  flush=True)
+    print(f'exact trajectories: {exact}/{args.runs}')
+    print(f'reproduce: python bench/load_robustness.py --runs {args.runs} --busy {args.busy} '
+          f'--seed {args.seed} --epoch-period {args.epoch_period}')
+    return 0 if exact == args.runs else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
