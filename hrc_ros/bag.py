@@ -870,14 +870,23 @@ class PlayResult:
     interrupted: bool        # the context shut down (Ctrl-C) before the last message
 
 
+PLAY_ORDERS = ('log', 'publish')
+
+
 def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
          topics: Iterable[str] | None = None, start_delay: float = 0.0,
          wait_for_subscribers: float = 0.0, ack_timeout: float = 2.0,
-         on_publish: Callable[[BagMessage], None] | None = None) -> PlayResult:
+         on_publish: Callable[[BagMessage], None] | None = None,
+         order: str = 'log') -> PlayResult:
     """Publish a bag's messages (serialized, as recorded) with the recorded timing / ``rate``.
 
-    Message i goes out at t0 + (log_time_i - log_time_0) / rate on the monotonic clock (no
-    accumulated sleep drift), t0 = start + ``start_delay``. Each topic's publisher uses
+    Message i goes out at t0 + (time_i - time_0) / rate on the monotonic clock (no
+    accumulated sleep drift), t0 = start + ``start_delay``, where time is the log (receive)
+    time with ``order='log'``, as `ros2 bag play` does, or the publish time (the writers'
+    source timestamps) with ``order='publish'``: the order the messages were sent in, which on
+    one host is their causal order, while the recorder may have taken two messages of
+    different writers in the other order. 'publish' sorts the bag in memory. Each topic's
+    publisher uses
     `qos_from_offers` of the recorded profiles. ``wait_for_subscribers``: wait up to that many
     seconds for every publisher to match a subscription first. At the end, reliable
     publishers wait up to ``ack_timeout`` s for their messages to be acknowledged. Without a
@@ -886,6 +895,8 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
     """
     if not rate > 0:
         raise BagError(f'rate must be positive, not {rate}')
+    if order not in PLAY_ORDERS:
+        raise BagError(f'order must be one of {", ".join(PLAY_ORDERS)}, not {order!r}')
     info = bag_info(path)
     wanted = {t.topic for t in info.topics} if topics is None else set(topics)
     unknown = wanted - {t.topic for t in info.topics}
@@ -914,11 +925,18 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                and any(p.get_subscription_count() < 1 for p in publishers.values())):
             time.sleep(0.02)
         count, first_ns, start, last_wall = 0, None, 0.0, 0.0
-        for bag_message in read_bag(info.path, topics=wanted):
+        messages = read_bag(info.path, topics=wanted)
+        if order == 'publish':
+            messages = sorted(messages, key=lambda m: m.publish_time_ns)
+
+        def timestamp(m: BagMessage) -> int:
+            return m.publish_time_ns if order == 'publish' else m.log_time_ns
+
+        for bag_message in messages:
             if first_ns is None:
-                first_ns = bag_message.log_time_ns
+                first_ns = timestamp(bag_message)
                 start = time.monotonic() + max(0.0, start_delay)
-            due = start + (bag_message.log_time_ns - first_ns) / 1e9 / rate
+            due = start + (timestamp(bag_message) - first_ns) / 1e9 / rate
             while context.ok() and (remaining := due - time.monotonic()) > 0:
                 time.sleep(min(remaining, 0.05))
             if not context.ok():
@@ -1037,7 +1055,7 @@ def _play_command(args: argparse.Namespace) -> int:
     try:
         result = play(info.path, node=node, rate=args.rate, topics=args.topics,
                       start_delay=args.start_delay,
-                      wait_for_subscribers=args.wait_for_subscribers)
+                      wait_for_subscribers=args.wait_for_subscribers, order=args.order)
     except (KeyboardInterrupt, ExternalShutdownException):
         print('hrc-bag: playback interrupted', flush=True)
         return 130
@@ -1076,6 +1094,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='seconds to wait before the first message')
     player.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
                         help='wait up to S s for every topic to have a subscriber')
+    player.add_argument('--order', choices=PLAY_ORDERS, default='log',
+                        help="timing and order by 'log' (receive) time, as ros2 bag play, or "
+                        "by 'publish' time, the order the writers sent them in (default log)")
     info = commands.add_parser('info', help='print a bag summary')
     info.add_argument('bag', metavar='FILE_OR_DIR')
     info.add_argument('--quick', action='store_true',

@@ -581,3 +581,26 @@ def test_record_then_play_across_processes(node, tmp_path, ros_env):
     played_s = received[-1][0] - received[0][0]
     expected_s = recorded_s / 2
     assert 0.5 * expected_s <= played_s <= 1.5 * expected_s + 0.25, (played_s, expected_s)
+
+
+def test_play_by_publish_time_restores_the_send_order(node, tmp_path):
+    """The recorder took /b before /a (log order) although /a was sent first (publish order):
+    `order='publish'` plays /a first, with the publish-time spacing; 'log' keeps ros2 bag
+    play's receive order."""
+    with BagWriter(tmp_path / 'order.mcap') as writer:
+        for topic in ('/a', '/b'):
+            writer.add_topic(topic, 'std_msgs/msg/String')
+        ms = 1_000_000
+        writer.write('/b', String(data='b'), 100 * ms, publish_time_ns=100 * ms)
+        writer.write('/a', String(data='a'), 101 * ms, publish_time_ns=99 * ms)
+        writer.write('/b', String(data='c'), 400 * ms, publish_time_ns=399 * ms)
+    for order, expected in (('log', ['b', 'a', 'c']), ('publish', ['a', 'b', 'c'])):
+        played = []
+        result = bag.play(tmp_path / 'order.mcap', node=node, order=order,
+                          on_publish=lambda m: played.append((time.monotonic(),
+                                                              bag.deserialize(m).data)))
+        assert [data for _, data in played] == expected, order
+        assert result.message_count == 3
+        assert played[-1][0] - played[0][0] >= 0.29, order        # recorded spacing kept
+    with pytest.raises(BagError, match='order must be one of log, publish'):
+        bag.play(tmp_path / 'order.mcap', node=node, order='sent')

@@ -4,8 +4,10 @@ Each bag folder holds the MCAP file of a live run of the suite (`hrc-case-study`
 `metadata.yaml` and, in `params/`, the parameter files the run's nodes were started with. The
 replay starts `belief_estimator_node`, `task_manager_node` and `decision_node` as processes
 with those parameters (the decision node with `epoch_source: topic`, so it follows the
-recorded `hrc/epoch` instead of its own clock), plays the bag's inputs with `hrc-bag play`
-(joint states, skeletons, human responses, task requests and the epoch signals) and compares
+recorded `hrc/epoch` instead of its own clock), plays the bag's inputs with `hrc-bag play
+--order publish` (joint states, skeletons, human responses, task requests and the epoch
+signals, in the order their writers sent them, which is the order the live nodes' windows
+were cut by; the recorder may have taken two of them the other way round) and compares
 the actions the fresh nodes publish with the recorded ones, epoch by epoch (DESIGN.md explains
 why decisions are deterministic given the inputs).
 """
@@ -173,7 +175,7 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
         player = subprocess.Popen(
             [sys.executable, '-m', 'hrc_ros.bag', 'play', str(bag), '--topics',
              *[t for t in INPUTS if t in recorded],
-             '--wait-for-subscribers', '10'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+             '--wait-for-subscribers', '10', '--order', 'publish'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             text=True, start_new_session=True)
         last = max(expected)
 
