@@ -146,6 +146,44 @@ def assert_dropped(graph, node, input_name, reason_part):
 # =============================================================================================
 # belief_estimator
 # =============================================================================================
+def test_a_deadline_gives_way_to_a_message_waiting_with_it(graph):
+    """A node that wakes up late finds its timeout and the awaited message ready together;
+    rclpy runs timers first. `Deadline` must let the waiting message be handled first."""
+    from hrc_ros.nodes.common import Deadline
+    order = []
+    node = rclpy.create_node('deadline_probe', context=graph.context)
+    graph.executor.add_node(node)
+    graph.nodes.append(node)
+    node.create_subscription(String, 'deadline_probe', lambda m: order.append('message'),
+                             qos.RELIABLE)
+    deadline = Deadline(node, 0.05, lambda: order.append('deadline'))
+    publisher = graph.publisher(String, 'deadline_probe', qos.RELIABLE)
+    for _ in range(2):                               # reusable: start() re-arms it
+        order.clear()
+        deadline.start()
+        assert deadline.armed
+        publisher.publish(String(data='x'))
+        # Do not spin until the timer is due and the message has had ample time to land in
+        # the reader's queue: both are then ready in the same wait.
+        end = time.monotonic() + 5.0
+        while not deadline.timer.is_ready() and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        assert graph.spin_until(lambda: len(order) == 2)
+        assert order == ['message', 'deadline']
+        assert not deadline.armed
+    # cancel() makes a started deadline silent, even one whose timer already fired.
+    order.clear()
+    deadline.start()
+    end = time.monotonic() + 5.0
+    while not deadline.timer.is_ready() and time.monotonic() < end:
+        time.sleep(0.01)
+    graph.executor.spin_once(timeout_sec=0.1)        # the timer fires, the guard is triggered
+    deadline.cancel()
+    graph.spin_until(lambda: False, timeout=0.3)
+    assert order == []
+
+
 class Estimator:
     """Drive a belief estimator: joint states, skeletons, actions and epochs."""
 

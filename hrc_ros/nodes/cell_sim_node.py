@@ -54,7 +54,7 @@ from ..model import ACTIONS, RH1, RH2, TASK_VARIABLES, HRCModel
 from ..observation import synthesize_joint_velocities, synthesize_skeleton
 from .belief_estimator_node import (ROBOT_REFERENCE_POINT, SAFETY_RADII, VELOCITY_THRESHOLDS,
                                     check_motion_parameters)
-from .common import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
+from .common import (STATUS_PERIOD_SEC, Deadline, Inputs, NodeParameters, ParamSpec, StartupError,
                      check_array, load_node_config, run)
 
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
@@ -149,8 +149,7 @@ class CellSimNode(Node):
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
                               self._task_state_from_msg, self._on_task_state)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
-        self.hold_timer = self.create_timer(values['task_state_timeout'], self._on_hold_timeout,
-                                            autostart=False)
+        self.hold = Deadline(self, values['task_state_timeout'], self._on_hold_timeout)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self._enter_epoch()
         self._publish_true_state()
@@ -176,7 +175,7 @@ class CellSimNode(Node):
     def _apply_parameters(self, values) -> None:
         self._apply_motion(values)
         self.sensor_timer.timer_period_ns = int(1e9 / values['sensor_rate'])
-        self.hold_timer.timer_period_ns = int(1e9 * values['task_state_timeout'])
+        self.hold.set_period(values['task_state_timeout'])
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
@@ -199,10 +198,9 @@ class CellSimNode(Node):
             self._react(action)
         else:
             self._held_action = action
-            self.hold_timer.reset()
+            self.hold.start()
 
     def _on_hold_timeout(self) -> None:
-        self.hold_timer.cancel()
         if self._held_action is not None:
             self.get_logger().warning(
                 f'no task state for epoch {self.epoch} within task_state_timeout; reacting to '
@@ -210,7 +208,7 @@ class CellSimNode(Node):
             self._react(self._held_action)
 
     def _react(self, action: int) -> None:
-        self.hold_timer.cancel()
+        self.hold.cancel()
         self._held_action = None
         self._task_state_fresh = False
         task_state = self.task_state

@@ -172,6 +172,50 @@ def check_core(values: Mapping[str, Any], name: str, probe: Callable[[Any], Any]
 
 
 # -- inputs and diagnostics -------------------------------------------------------------------
+class Deadline:
+    """A one-shot timeout that gives way to the messages already waiting.
+
+    rclpy's executor runs a ready timer before the subscriptions that are ready in the same
+    wait, so a node that wakes up late would time out on a message that arrived in time and is
+    waiting to be taken. `Deadline` fires `callback()` through a guard condition instead,
+    which the executor runs after the subscriptions ready with it; `callback` must therefore
+    check that what it waited for is still missing. `start()` arms it (again), `cancel()`
+    disarms it."""
+
+    def __init__(self, node: Node, seconds: float, callback: Callable[[], None]):
+        self._callback = callback
+        self._generation = 0        # start() and cancel() make a fired deadline obsolete
+        self._fired: int | None = None
+        self._guard = node.create_guard_condition(self._expired)
+        self.timer = node.create_timer(seconds, self._fire, autostart=False)
+
+    def set_period(self, seconds: float) -> None:
+        self.timer.timer_period_ns = int(seconds * 1e9)
+
+    def start(self) -> None:
+        self._generation += 1
+        self.timer.reset()
+
+    def cancel(self) -> None:
+        self._generation += 1
+        self.timer.cancel()
+
+    @property
+    def armed(self) -> bool:
+        """Started and neither cancelled nor expired (an expiry waiting to run counts)."""
+        return not self.timer.is_canceled() or self._fired == self._generation
+
+    def _fire(self) -> None:
+        self.timer.cancel()
+        self._fired = self._generation
+        self._guard.trigger()
+
+    def _expired(self) -> None:
+        if self._fired == self._generation:
+            self._fired = None
+            self._callback()
+
+
 class Inputs:
     """Guarded subscriptions of a node, its /diagnostics publisher and its dropped-message counts.
     """

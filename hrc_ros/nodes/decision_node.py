@@ -21,7 +21,8 @@ Fail-safe: a_k = dn, and the status is ERROR with the faults, when an input
 
 and a_k = dn with a WARN status when d = 0 (the human is inside the collision circle). The
 epoch's decision is taken as soon as each input has answered (with a good or a malformed
-message), or at `input_timeout`.
+message), or at `input_timeout` (a `Deadline`: inputs already waiting when it expires are taken
+first).
 
 Start-up. The policy file must exist and match the configuration; otherwise the node logs
 which file and which configuration it expected and exits with status 1. In timer mode the clock
@@ -46,7 +47,7 @@ from .. import qos
 from ..model import ACTIONS, DN, TASK_VARIABLES, HRCModel
 from ..policy import PolicyError, default_policy_path, load_policy
 from ..selection import SELECTORS, ActionSelector
-from .common import (ERROR, OK, WARN, Inputs, NodeParameters, ParamSpec, StartupError,
+from .common import (ERROR, OK, WARN, Deadline, Inputs, NodeParameters, ParamSpec, StartupError,
                      config_path, load_node_config, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
@@ -149,8 +150,7 @@ class DecisionNode(Node):
             self.epoch_timer = None
             self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                                   self._on_epoch)
-        self.timeout_timer = self.create_timer(values['input_timeout'], self._on_input_timeout,
-                                               autostart=False)
+        self.input_deadline = Deadline(self, values['input_timeout'], self._on_input_timeout)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
             f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
@@ -161,7 +161,7 @@ class DecisionNode(Node):
         self.stale_timeout = values['stale_timeout']
         if self.epoch_timer is not None:
             self.epoch_timer.timer_period_ns = int(values['epoch_period'] * 1e9)
-        self.timeout_timer.timer_period_ns = int(values['input_timeout'] * 1e9)
+        self.input_deadline.set_period(values['input_timeout'])
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
@@ -240,10 +240,9 @@ class DecisionNode(Node):
         if self.epoch_source == 'timer':
             # Only what arrives after this epoch is published belongs to it.
             self._fresh_since = self._next_seq()
-        self.timeout_timer.reset()
+        self.input_deadline.start()
 
     def _on_input_timeout(self) -> None:
-        self.timeout_timer.cancel()
         if self.pending:
             self._decide(timed_out=True)
 
@@ -266,7 +265,7 @@ class DecisionNode(Node):
         return faults, ages
 
     def _decide(self, timed_out: bool) -> None:
-        self.timeout_timer.cancel()
+        self.input_deadline.cancel()
         self.pending = False
         start = time.perf_counter()
         now_ns = self.get_clock().now().nanoseconds

@@ -37,7 +37,7 @@ from .. import conversions as conv
 from .. import qos
 from ..model import ACTIONS, DN, HRCModel, request_eligible
 from ..tasks import TaskBook, parse_schedule
-from .common import (STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec, StartupError,
+from .common import (STATUS_PERIOD_SEC, WARN, Deadline, Inputs, NodeParameters, ParamSpec, StartupError,
                      check_array, load_node_config, run)
 
 T = Parameter.Type
@@ -102,11 +102,10 @@ class TaskManagerNode(Node):
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
                               self._task_request_from_msg, self._on_task_request)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
-        self.hold_timer = self.create_timer(values['input_timeout'], self._on_hold_timeout,
-                                            autostart=False)
+        self.hold = Deadline(self, values['input_timeout'], self._on_hold_timeout)
 
     def _apply_parameters(self, values) -> None:
-        self.hold_timer.timer_period_ns = int(values['input_timeout'] * 1e9)
+        self.hold.set_period(values['input_timeout'])
 
     def _task_request_from_msg(self, msg):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
@@ -155,8 +154,8 @@ class TaskManagerNode(Node):
             return
         awaited = self._awaited()
         if awaited is not None and not timed_out:
-            if self.hold_timer.is_canceled():
-                self.hold_timer.reset()
+            if not self.hold.armed:
+                self.hold.start()
             return
         if awaited is not None:
             self.late_inputs += 1
@@ -172,11 +171,10 @@ class TaskManagerNode(Node):
         self._begin(self._next_epoch)
 
     def _on_hold_timeout(self) -> None:
-        self.hold_timer.cancel()
         self._try_finalise(timed_out=True)
 
     def _begin(self, k: int) -> None:
-        self.hold_timer.cancel()
+        self.hold.cancel()
         self.book.begin_epoch(k)
         self._next_epoch = None
         self._action, self._response = None, None
