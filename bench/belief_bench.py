@@ -1,7 +1,6 @@
 """Online cost of one decision epoch: one belief update plus one action selection.
 
-    python bench/belief_bench.py                       # in a user's venv
-    /work/venv-dev/bin/python bench/belief_bench.py    # in the dev venv
+    .venv/bin/python bench/belief_bench.py    # the venv scripts/bootstrap.sh creates
     python bench/belief_bench.py --repeat 50000 --policy policies/default.npz
 
 On the full-size default model (N = 419,904), it times `BeliefFilter.update` (bayes mode) and
@@ -99,8 +98,7 @@ def main(argv=None) -> int:
     met = median < TARGET_US
     print(f'target: update + select under {TARGET_US:.0f} us (median): '
           f'{"met" if met else "NOT met"} ({median:.2f} us; p99 {p99:.2f} us)')
-    print('reproduce: python bench/belief_bench.py   '
-          '(dev venv: /work/venv-dev/bin/python bench/belief_bench.py)')
+    print(f'reproduce: {sys.executable} bench/belief_bench.py --repeat {args.repeat}')
     return 0 if met else 1
 
 

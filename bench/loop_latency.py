@@ -1,7 +1,7 @@
 """Latency of the decision loop on the real ROS graph, against the middleware's own floor.
 
-    /work/venv-dev/bin/python bench/loop_latency.py                  # ~75 s
-    /work/venv-dev/bin/python bench/loop_latency.py --seconds 20 --lag-seconds 30 --epoch 0.05
+    .venv/bin/python bench/loop_latency.py                  # ~75 s
+    .venv/bin/python bench/loop_latency.py --seconds 20 --lag-seconds 30 --epoch 0.05
 
 Phase 1, the decision loop (separate processes: `belief_estimator_node`, `decision_node`, an
 echo node, and this bench, which plays the skeleton tracker and the task manager):
