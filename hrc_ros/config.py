@@ -172,6 +172,8 @@ def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) ->
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f'cannot read configuration file {path}: {exc.strerror}') from None
+    except UnicodeDecodeError:
+        raise ConfigError(f'{path} is not a text (UTF-8) YAML file') from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

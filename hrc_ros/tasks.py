@@ -90,11 +90,14 @@ class TaskBook:
     `initial_task`: None (idle cell), ``(tp, tc, tx)`` (an uncommitted task present at
     epoch 1), or a mapping of all eight task variables (any state of the model, for example a
     scenario's initial state). `schedule`: ``(release_epoch, (tp, tc, tx))`` pairs or
-    ``"epoch:tp,tc,tx"`` strings.
+    ``"epoch:tp,tc,tx"`` strings. `max_queue`: requests beyond this many waiting tasks are
+    refused (None: no limit).
     """
 
-    def __init__(self, model: HRCModel, initial_task=None, schedule=()):
+    def __init__(self, model: HRCModel, initial_task=None, schedule=(),
+                 max_queue: int | None = None):
         self.model = model
+        self.max_queue = max_queue
         self.rho, self.sigma = model.rho, model.sigma
         self.epoch = 0
         self.queue: deque[TaskRecord] = deque()
@@ -163,6 +166,9 @@ class TaskBook:
     def request(self, tp, tc, tx) -> TaskRecord:
         """Queue a task (tp, tc, tx); its release epoch is the next `begin_epoch`'s."""
         tp, tc, tx = self._checked_task((tp, tc, tx))
+        if self.max_queue is not None and len(self.queue) >= self.max_queue:
+            raise ValueError(f'task ({tp}, {tc}, {tx}) refused: the queue is full '
+                             f'({len(self.queue)} tasks waiting, max_queue {self.max_queue})')
         record = TaskRecord(len(self.records), tp, tc, tx, release_epoch=self.epoch + 1)
         self.records.append(record)
         self.queue.append(record)
@@ -189,6 +195,14 @@ class TaskBook:
             self.current = record
             self._state.update(tp=record.tp, tc=record.tc, tx=record.tx, ty=0)
         return self.state
+
+    def renumber(self, k: int) -> None:
+        """Let the epoch count restart so that epoch k comes next (the epoch source restarted);
+        the task state, the queue and the records stay, and scheduled releases not yet made
+        follow the new numbers."""
+        if not _is_int(k) or k < 1:
+            raise ValueError(f'epochs are integers numbered from 1, got {k!r}')
+        self.epoch = int(k) - 1
 
     def apply(self, action, accepted=None) -> dict:
         """Apply the epoch's action and the human's answer (None: no eligible request)."""

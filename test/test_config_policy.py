@@ -68,6 +68,10 @@ def test_unreadable_and_malformed_files(tmp_path):
     bad.write_text('model: [unclosed\n')
     with pytest.raises(ConfigError, match='not valid YAML'):
         load_config(bad)
+    binary = tmp_path / 'policy_by_mistake.yaml'
+    binary.write_bytes(b'PK\x03\x04\xff\xfe\x00')
+    with pytest.raises(ConfigError, match='not a text'):
+        load_config(binary)
 
 
 def test_shipped_policies_load_and_match_their_configs():

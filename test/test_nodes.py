@@ -371,6 +371,28 @@ BAD_SKELETONS = {
 }
 
 
+def test_estimator_takes_skeletons_in_its_robot_frame(graph):
+    """A robot whose base frame is not base_link (here a namespaced cell's) sets robot_frame;
+    then skeletons in that frame count and base_link ones are dropped."""
+    est = Estimator(graph, robot_frame='cell1/base_link')
+    est.send('skeleton', est.skeleton, conv.keypoints_to_msg(np.ones((3, 3))))
+    assert_dropped(graph, est.node, 'skeleton', "expected 'cell1/base_link'")
+    est.motion(1)
+    est.send('skeleton', est.skeleton, conv.keypoints_to_msg(
+        synthesize_skeleton(2, rng=est.rng), frame_id='cell1/base_link'))
+    assert est.epoch(1) is not None and est.distances[-1].data == 2
+
+
+def test_namespaced_nodes_report_under_their_namespace(graph):
+    """/diagnostics is global: two cells' reports must not share a status name."""
+    node = BeliefEstimatorNode(context=graph.context, namespace='cell2')
+    graph.nodes.append(node)
+    graph.executor.add_node(node)
+    assert graph.spin_until(lambda: graph.diagnostics('cell2/belief_estimator: estimator'))
+    status = graph.diagnostics('cell2/belief_estimator: estimator')[0]
+    assert status.hardware_id == '/cell2/belief_estimator'
+
+
 @pytest.mark.parametrize('case', sorted(BAD_SKELETONS))
 def test_estimator_drops_malformed_skeletons(graph, case):
     est = Estimator(graph)
@@ -383,17 +405,39 @@ def test_estimator_drops_malformed_skeletons(graph, case):
     assert est.distances[-1].data == 2
 
 
-def test_estimator_drops_unknown_actions_and_old_epochs(graph):
+def test_estimator_drops_unknown_actions_and_repeated_epochs(graph):
     est = Estimator(graph)
     est.send('action', est.action, String(data='jump'))
     assert_dropped(graph, est.node, 'action', 'unknown action')
     est.motion(1)
     est.body(1)
     est.epoch(3)
-    est.send('epoch', est.epoch_pub, conv.epoch_to_msg(2))
-    assert_dropped(graph, est.node, 'epoch', 'does not follow')
+    est.send('epoch', est.epoch_pub, conv.epoch_to_msg(3))
+    assert_dropped(graph, est.node, 'epoch', 'repeats the previous epoch')
     est.send('epoch', est.epoch_pub, UInt32(data=0))
     assert est.node.inputs.dropped['epoch'] == 2
+
+
+def test_estimator_follows_a_restarted_epoch_count(graph, model):
+    """A restarted decision node counts from 1 again: refusing the lower numbers would leave
+    the suite without belief (dn) until the count passed the old one."""
+    est = Estimator(graph)
+    belief_filter = BeliefFilter(model)
+    est.motion(2)
+    est.body(2)
+    b1 = est.epoch(41)
+    est.act('mh')
+    est.motion(3)
+    est.body(3)
+    b2 = est.epoch(1)
+    np.testing.assert_allclose(b2, belief_filter.update(b1, MH, 3))
+    assert est.distances[-1].data == 3 and est.node.epoch == 1
+    assert graph.spin_until(lambda: any('restarted at 1 after 41' in s.message for s in
+                                        graph.diagnostics('belief_estimator: epoch', WARN)))
+    assert est.node.inputs.dropped['epoch'] == 0
+    est.motion(1)
+    est.body(1)
+    assert est.epoch(2) is not None
 
 
 @pytest.mark.parametrize('name, value, reason', [
@@ -605,8 +649,16 @@ def test_decision_follows_the_epoch_topic(graph, model, policy_path):
     epoch.publish(UInt32(data=1))
     assert dec.run(1) == [expected]
     assert graph.probe.count_publishers('hrc/epoch') == 1   # the probe's, not the node's
-    epoch.publish(UInt32(data=1))                            # not after epoch 1: dropped
-    assert_dropped(graph, dec.node, 'epoch', 'does not follow')
+    epoch.publish(UInt32(data=1))                            # a repeat: dropped
+    assert_dropped(graph, dec.node, 'epoch', 'repeats the previous epoch')
+    dec.inputs()
+    epoch.publish(UInt32(data=2))
+    assert dec.run(2) == [expected] * 2
+    dec.inputs()
+    epoch.publish(UInt32(data=1))                            # the replay started again
+    assert dec.run(3) == [expected] * 3 and dec.node.epoch == 1
+    assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message
+                                        for s in graph.diagnostics('decision: epoch', WARN)))
 
 
 def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
@@ -774,6 +826,55 @@ def test_task_manager_takes_an_unanswered_request_as_refused_after_input_timeout
     assert tasks.epoch(3, 'nw')['tp'] == 1                      # a non-request: no wait
 
 
+def test_task_manager_ignores_a_late_answer_to_a_refused_request(graph, model):
+    """A yes that comes after its request was refused (input_timeout) must not be taken as
+    consent to the next request; an answer sent after that request still counts."""
+    tasks = Tasks(graph, initial_task=[1, 1, 3], input_timeout=0.2)
+    tasks.epoch(1)
+    assert tasks.epoch(2, 'rh2')['ty'] == 0                    # unanswered: refused
+    tasks.send('human_response', tasks.response, Bool(data=True))   # the late yes
+    state = tasks.epoch(3, 'rh2')                              # asked again, no answer
+    assert state['ty'] == 0, 'the late answer was taken as consent to the next request'
+    assert tasks.node.late_answers == 1
+    assert graph.spin_until(lambda: any('late human response' in s.message for s in
+                                        graph.diagnostics('task_manager: tasks', WARN)))
+    book = TaskBook(model, initial_task=(1, 1, 3))
+    book.begin_epoch(1)
+    book.apply('rh2', True)
+    book.begin_epoch(2)
+    assert tasks.epoch(4, 'rh2', accepted=True) == book.state  # answered after the request
+    assert book.state['ty'] == 3
+
+
+def test_task_manager_follows_a_restarted_epoch_count(graph, model):
+    """The decision node restarted (epoch 1 again): the old count's last action is applied,
+    the task carries on, and the new epochs are followed instead of dropped."""
+    tasks = Tasks(graph, initial_task=[2, 2, 2])
+    book = TaskBook(model, initial_task=(2, 2, 2))
+    book.begin_epoch(1)
+    tasks.epoch(1)
+    for k, action in ((2, 'ct'), (1, 'nw')):
+        book.apply(action, False)
+        book.renumber(k) if k == 1 else None
+        book.begin_epoch(k)
+        assert tasks.epoch(k, action) == book.state, f'epoch {k} ({action})'
+    assert tasks.node.book.epoch == 1 and tasks.node.inputs.dropped['epoch'] == 0
+    assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message for s in
+                                        graph.diagnostics('task_manager: epoch', WARN)))
+    book.apply('nw', False)
+    book.begin_epoch(2)
+    assert tasks.epoch(2, 'nw') == book.state
+    assert book.state['tp'] == 0                   # the task finished across the restart
+
+
+def test_task_manager_refuses_requests_beyond_max_queue(graph):
+    tasks = Tasks(graph, initial_task=[1, 1, 3], max_queue=2)
+    for task in ((1, 1, 0), (2, 1, 0), (2, 2, 1)):
+        tasks.send('task_request', tasks.request, conv.task_request_to_msg(*task))
+    assert_dropped(graph, tasks.node, 'task_request', 'queue is full')
+    assert tasks.node.book.pending == [(1, 1, 0), (2, 1, 0)]
+
+
 def test_task_manager_queues_requests_and_drops_bad_ones(graph):
     tasks = Tasks(graph)
     assert tasks.epoch(1)['tp'] == 0
@@ -793,7 +894,7 @@ def test_task_manager_drops_bad_actions_and_epochs(graph):
     tasks.send('action', tasks.action, String(data='commit'))
     assert_dropped(graph, tasks.node, 'action', 'unknown action')
     tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(1))
-    assert tasks.node.inputs.dropped['epoch'] == 1
+    assert_dropped(graph, tasks.node, 'epoch', 'repeats the previous epoch')
     assert tasks.epoch(2, 'ct')['ty'] == 2          # still working
 
 
@@ -890,6 +991,15 @@ def test_cell_answers_an_ineligible_request_with_false(graph):
     cell.send('action', cell.action, String(data='rh1'))
     assert graph.spin_until(lambda: cell.responses)
     assert cell.responses[0].data is False
+
+
+def test_fault_epochs_are_kept_as_ranges():
+    """A long fault span costs two integers, not a set of every epoch in it."""
+    from hrc_ros.nodes.cell_sim_node import parse_faults
+    faults = parse_faults(['dropout:5', 'collision:7-1000000000'])
+    assert faults['dropout'] == [(5, 5)] and faults['collision'] == [(7, 1_000_000_000)]
+    with pytest.raises(ValueError, match='1 <= k <= m'):
+        parse_faults(['decline:9-3'])
 
 
 def test_cell_drops_malformed_inputs(graph):

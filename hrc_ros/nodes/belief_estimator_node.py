@@ -70,6 +70,10 @@ SAFETY_RADII = ParamSpec(
 ROBOT_REFERENCE_POINT = ParamSpec(
     'robot_reference_point', T.DOUBLE_ARRAY, [0.0, 0.0, 0.0],
     'metres, robot base frame: centre of the safety circles', constraints='3 finite values')
+ROBOT_FRAME = ParamSpec(
+    'robot_frame', T.STRING, conv.ROBOT_BASE_FRAME, 'frame_id of human/skeleton: the robot '
+    'base frame the keypoints and robot_reference_point are in (e.g. cell1/base_link)',
+    read_only=True, constraints='non-empty')
 PARAMETERS = (
     CONFIG,
     ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
@@ -77,7 +81,7 @@ PARAMETERS = (
     ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
               'for an observation; fewer count as a sensor dropout (no observation)',
               range=(1, 100000)),
-    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME,
 )
 
 
@@ -86,7 +90,9 @@ def check_motion_parameters(values) -> str | None:
     return (check_core(values, 'velocity_thresholds', lambda t: velocity_level([0.0], t))
             or check_core(values, 'safety_radii',
                           lambda r: distance_level(np.zeros((1, 3)), (0.0, 0.0, 0.0), r))
-            or check_array(values, 'robot_reference_point', 3))
+            or check_array(values, 'robot_reference_point', 3)
+            or ('robot_frame must not be empty' if values.get('robot_frame', 'x') == ''
+                else None))
 
 
 def check_parameters(values) -> str | None:
@@ -124,8 +130,10 @@ class BeliefEstimatorNode(Node):
         self.inputs.subscribe(JointState, 'human/joint_states', qos.SENSOR_DATA,
                               conv.joint_sample_from_msg, self._on_joint_sample,
                               with_published=True)
+        frame = self.params.value('robot_frame')
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
-                              conv.keypoints_from_msg, self._on_keypoints, with_published=True)
+                              lambda msg: conv.keypoints_from_msg(msg, frame),
+                              self._on_keypoints, with_published=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               self._on_action)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
@@ -178,8 +186,7 @@ class BeliefEstimatorNode(Node):
         self._action = action
 
     def _on_epoch(self, k: int, signal_ns: int) -> None:
-        if k <= self.epoch:
-            raise conv.MessageError(f'epoch {k} does not follow the previous epoch {self.epoch}')
+        self.inputs.epoch_order(k, self.epoch)    # a restarted count is followed
         self.epoch = k
         action = DN if self._action is None else self._action
         statuses = []

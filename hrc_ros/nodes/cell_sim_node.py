@@ -4,7 +4,7 @@ A `SimulatedHuman` (seeded) holds the hidden emotions (em, ea) and the distance 
 the observation O it currently shows. The node
 
 - streams `human/joint_states` (the six arm joints of `conversions.HUMAN_JOINTS`, velocities
-  filled and positions integrated from them) and `human/skeleton` (7 keypoints in `base_link`)
+  filled and positions integrated from them) and `human/skeleton` (7 keypoints in `robot_frame`)
   at `sensor_rate` Hz, from start-up on: every sample is drawn inside the velocity band of the
   current O and the distance band of the current d (`synthesize_joint_velocities`,
   `synthesize_skeleton`), so the belief estimator recovers O and d whatever the window holds;
@@ -52,7 +52,8 @@ from .. import qos
 from ..cell import SimulatedHuman
 from ..model import ACTIONS, RH1, RH2, TASK_VARIABLES, HRCModel
 from ..observation import synthesize_joint_velocities, synthesize_skeleton
-from .belief_estimator_node import (ROBOT_REFERENCE_POINT, SAFETY_RADII, VELOCITY_THRESHOLDS,
+from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_RADII,
+                                    VELOCITY_THRESHOLDS,
                                     check_motion_parameters)
 from .common import (STATUS_PERIOD_SEC, Deadline, Inputs, NodeParameters, ParamSpec, StartupError,
                      check_array, load_node_config, run)
@@ -72,7 +73,7 @@ PARAMETERS = (
               range=(0, 3)),
     ParamSpec('sensor_rate', T.DOUBLE, 50.0, 'Hz of joint states and skeletons',
               range=(0.1, 1000.0)),
-    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT,
+    VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME,
     ParamSpec('task_state_timeout', T.DOUBLE, 0.25, 'seconds an action waits for its '
               "epoch's hrc/task_state before the cell reacts with the latest one",
               range=(0.0, 60.0)),
@@ -83,9 +84,10 @@ PARAMETERS = (
 FAULT_KINDS = ('dropout', 'nan_velocity', 'decline', 'collision')
 
 
-def parse_faults(entries) -> dict[str, set]:
-    """``["dropout:5", "collision:7-8"]`` -> {kind: set of epochs}; ValueError if malformed."""
-    faults = {kind: set() for kind in FAULT_KINDS}
+def parse_faults(entries) -> dict[str, list]:
+    """``["dropout:5", "collision:7-8"]`` -> {kind: [(first, last) epoch ranges]};
+    ValueError if malformed."""
+    faults = {kind: [] for kind in FAULT_KINDS}
     for entry in entries:
         kind, sep, span = str(entry).partition(':')
         first, dash, last = span.partition('-')
@@ -98,7 +100,7 @@ def parse_faults(entries) -> dict[str, set]:
             raise ValueError(f'fault {entry!r}: EPOCHS must be "k" or "k-m"') from None
         if not 1 <= low <= high:
             raise ValueError(f'fault {entry!r}: epochs must satisfy 1 <= k <= m')
-        faults[kind].update(range(low, high + 1))
+        faults[kind].append((low, high))
     return faults
 
 
@@ -160,7 +162,7 @@ class CellSimNode(Node):
         return self.reactions + 1
 
     def _fault(self, kind: str) -> bool:
-        return self.epoch in self.faults[kind]
+        return any(low <= self.epoch <= high for low, high in self.faults[kind])
 
     def _enter_epoch(self) -> None:
         if self._fault('collision'):
@@ -171,6 +173,7 @@ class CellSimNode(Node):
         self.velocity_thresholds = tuple(values['velocity_thresholds'])
         self.safety_radii = tuple(values['safety_radii'])
         self.robot_reference_point = tuple(values['robot_reference_point'])
+        self.robot_frame = values['robot_frame']
 
     def _apply_parameters(self, values) -> None:
         self._apply_motion(values)
@@ -246,7 +249,7 @@ class CellSimNode(Node):
             velocity = np.full_like(velocity, np.nan)
         self.joint_pub.publish(conv.joint_state_to_msg(conv.HUMAN_JOINTS, velocity,
                                                        self._position, stamp))
-        self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp))
+        self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp, self.robot_frame))
 
     def true_state(self) -> dict:
         task = self.task_state or IDLE_TASK

@@ -228,6 +228,7 @@ class Inputs:
         self.last_drop_reason: dict[str, str] = {}
         self._loggers: dict[str, Any] = {}
         self._last_drop_report: dict[str, float] = {}
+        self._last_error_report: dict[str, float] = {}
         self._unreported: Counter = Counter()
 
     # -- subscriptions -----------------------------------------------------------------------
@@ -283,16 +284,44 @@ class Inputs:
             self._unreported[name] = 0
 
     def internal_error(self, name: str, topic: str, trace: str) -> None:
+        """A bug met while handling an input: logged with its traceback and reported as ERROR
+        (both throttled per input, like drops, so a bug hit at 1 kHz cannot flood)."""
         self.dropped[name] += 1
+        self._unreported[name] += 1
         self._logger(name).error(f'internal error while handling {topic}:\n{trace}',
                                  throttle_duration_sec=WARNING_THROTTLE_SEC)
-        self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
-                                 {'topic': topic, 'error': trace.strip().splitlines()[-1]}))
+        now = time.monotonic()
+        if now - self._last_error_report.get(name, -float('inf')) >= WARNING_THROTTLE_SEC:
+            self._last_error_report[name] = now
+            self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
+                                     {'topic': topic, 'error': trace.strip().splitlines()[-1],
+                                      'dropped': self.dropped[name]}))
+
+    def epoch_order(self, k: int, last: int) -> bool:
+        """Check hrc/epoch k against the last epoch seen: False when it follows (k > last);
+        True when the count restarted (k < last: the decision node or a replay started
+        again), which is reported (WARN) and must be followed, not refused, or every later
+        epoch would be dropped until the count passes `last`; a repeated epoch raises
+        `MessageError` (dropped)."""
+        if k > last:
+            return False
+        if k == last:
+            raise MessageError(f'epoch {k} repeats the previous epoch')
+        message = (f'hrc/epoch restarted at {k} after {last} (the epoch source restarted); '
+                   'following it')
+        self.node.get_logger().warning(message)
+        self.publish(self.status('epoch', WARN, message, {'epoch': k, 'previous_epoch': last}))
+        return True
 
     # -- diagnostics -------------------------------------------------------------------------
     def status(self, what: str, level: bytes, message: str,
                values: Mapping[str, object] | None = None) -> DiagnosticStatus:
-        return diagnostic_status(f'{self.node.get_name()}: {what}', level, message, values)
+        """A status named like diagnostic_updater's, `<node>: <what>`; a namespaced node
+        (a second cell) is named `<namespace>/<node>: <what>` so that two cells' reports stay
+        apart on the global /diagnostics, and hardware_id is the fully qualified node name."""
+        full = self.node.get_fully_qualified_name()
+        return diagnostic_status(f'{full.lstrip("/")}: {what}', level, message, values,
+                                 hardware_id=full)
 
     def publish(self, *statuses: DiagnosticStatus) -> None:
         self.publisher.publish(diagnostic_array(statuses, self.node.get_clock().now().to_msg()))

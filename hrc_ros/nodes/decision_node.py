@@ -226,8 +226,7 @@ class DecisionNode(Node):
         self.epoch_pub.publish(conv.epoch_to_msg(self.epoch))
 
     def _on_epoch(self, k: int) -> None:
-        if k <= self.epoch:
-            raise conv.MessageError(f'epoch {k} does not follow the previous epoch {self.epoch}')
+        self.inputs.epoch_order(k, self.epoch)    # a restarted replay is followed
         self._start_epoch(k)
         self._maybe_decide()
 

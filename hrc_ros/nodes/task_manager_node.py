@@ -20,7 +20,16 @@ finalisation is held until it arrives, at most `input_timeout`; then a missing a
 dn and a missing answer as a refusal, with a warning and a diagnostic. Keep `input_timeout`
 below the decision node's, which waits for this node's task state. (Finalising at once made a
 loaded machine record an accepted request as refused.) A response that arrives after its
-epoch was finalised falls into the next window.
+epoch was finalised falls into the next window, where it answers the next request ("the
+robot's last request") unless it is the late answer to a request refused for want of one: a
+response published before the action it would answer is ignored then (with a warning and a
+diagnostic), so a late yes to one request is never taken as consent to the next. (Publication
+times are the writers' source timestamps: the hosts' clocks must agree, as for tf.)
+
+A restarted epoch count (hrc/epoch k below the last one: the decision node restarted, or a
+replay began again) is followed, not refused: the last action of the old count is applied, the
+task state and queue are kept, and epoch k begins. Requests beyond `max_queue` waiting tasks
+are refused with a warning and a diagnostic.
 
 Tasks enter through the `initial_task` (tp, tc, tx) present at epoch 1, the `schedule`
 (``"epoch:tp,tc,tx"`` releases) and `hrc/task_request` ``[tp, tc, tx]`` (validated against the
@@ -49,6 +58,9 @@ PARAMETERS = (
               constraints='[] or 3 integers: tp in 1..rho, tc in 1..sigma, tx in 0..3'),
     ParamSpec('schedule', T.STRING_ARRAY, [], 'scripted task releases "epoch:tp,tc,tx"',
               read_only=True, constraints='each entry "epoch:tp,tc,tx", epoch >= 1'),
+    ParamSpec('max_queue', T.INTEGER, 100, 'tasks that may wait in the queue; a request '
+              'beyond them is refused (dropped with a diagnostic)', read_only=True,
+              range=(1, 1000000)),
     ParamSpec('input_timeout', T.DOUBLE, 0.25, 'seconds after hrc/epoch k to wait for a_{k-1} '
               'and, for an eligible request, the human response; then dn / refused. Keep it '
               "below the decision node's input_timeout", range=(0.0, 3600.0)),
@@ -81,14 +93,19 @@ class TaskManagerNode(Node):
         initial = tuple(int(v) for v in values['initial_task']) or None
         try:
             self.book = TaskBook(self.model, initial_task=initial,
-                                 schedule=list(values['schedule']))
+                                 schedule=list(values['schedule']),
+                                 max_queue=values['max_queue'])
         except ValueError as exc:
             raise StartupError(f'task parameters: {exc}') from None
         self._action: int | None = None     # a_{k-1}
-        self._response: bool | None = None  # the last human response since epoch k-1
+        self._action_ns: int | None = None  # its publication time
+        self._response: tuple[bool, int] | None = None  # last response since epoch k-1, (value,
+        #                                                 publication time)
+        self._unanswered = False            # a request was refused for want of an answer
         self._next_epoch: int | None = None  # epoch k, received, waiting for step 1
         self.last_finalised: tuple | None = None
         self.late_inputs = 0                # finalisations that timed out
+        self.late_answers = 0               # responses ignored as answers to a refused request
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
@@ -96,9 +113,10 @@ class TaskManagerNode(Node):
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
-                              self._on_action)
+                              self._on_action, with_published=True)
         self.inputs.subscribe(Bool, 'hrc/human_response', qos.RELIABLE,
-                              conv.human_response_from_msg, self._on_human_response)
+                              conv.human_response_from_msg, self._on_human_response,
+                              with_published=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
                               self._task_request_from_msg, self._on_task_request)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
@@ -111,32 +129,60 @@ class TaskManagerNode(Node):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
 
     # -- inputs ----------------------------------------------------------------------------
-    def _on_action(self, action: int) -> None:
-        self._action = action
+    def _on_action(self, action: int, published_ns: int) -> None:
+        self._action, self._action_ns = action, published_ns
+        self._screen_response()
         self._try_finalise()
 
-    def _on_human_response(self, accepted: bool) -> None:
-        self._response = accepted
+    def _on_human_response(self, accepted: bool, published_ns: int) -> None:
+        self._response = (accepted, published_ns)
+        self._screen_response()
         self._try_finalise()
+
+    def _screen_response(self) -> None:
+        """After a request was refused for want of an answer, ignore a response published
+        before the action it would answer: it is the late answer to the refused request."""
+        if not (self._unanswered and self._response is not None
+                and self._action_ns is not None):
+            return
+        self._unanswered = False
+        if self._response[1] >= self._action_ns:
+            return                              # an answer to this action
+        self.late_answers += 1
+        message = (f'ignored a late human response ({self._response[0]}): it was sent before '
+                   f'{ACTIONS[self._action]} of epoch {self.book.epoch}, so it answers the '
+                   'request refused earlier for want of an answer')
+        self._response = None
+        self.get_logger().warning(message, throttle_duration_sec=5.0)
+        self.inputs.publish(self.inputs.status('tasks', WARN, message,
+                                               {'epoch': self.book.epoch}))
 
     def _on_task_request(self, task: tuple) -> None:
         try:
             self.book.request(*task)
         except ValueError as exc:
             raise conv.MessageError(str(exc)) from None
-        self.get_logger().info(f'task {task} queued; pending {self.book.pending}')
+        self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
 
     def _on_epoch(self, k: int) -> None:
         last = self.book.epoch if self._next_epoch is None else self._next_epoch
-        if k <= last:
-            raise conv.MessageError(f'epoch {k} does not follow the previous epoch {last}')
+        restarted = self.inputs.epoch_order(k, last)
         if self._next_epoch is not None:        # epoch k came before k-1 was finalised
             self._try_finalise(timed_out=True)
+        if restarted:
+            if self._action is not None:        # the old count's last action
+                self.book.apply(self._action, self._accepted())
+            self.book.renumber(k)
+            self._begin(k)
+            return
         self._next_epoch = k
         if self.book.epoch < 1:
             self._begin(k)
         else:
             self._try_finalise()
+
+    def _accepted(self) -> bool:
+        return self._response is not None and self._response[0]
 
     def _awaited(self) -> str | None:
         """What step 1 still waits for, or None."""
@@ -159,13 +205,15 @@ class TaskManagerNode(Node):
             return
         if awaited is not None:
             self.late_inputs += 1
+            if self._action is not None:      # an eligible request went unanswered
+                self._unanswered = True
             message = (f'no {awaited} within input_timeout; taking '
                        + ('dn' if self._action is None else 'the request as refused'))
             self.get_logger().warning(message, throttle_duration_sec=5.0)
             self.inputs.publish(self.inputs.status('tasks', WARN, message,
                                                    {'epoch': self.book.epoch}))
         action = DN if self._action is None else self._action
-        accepted = bool(self._response)
+        accepted = self._accepted()
         self.book.apply(action, accepted)
         self.last_finalised = (self.book.epoch, ACTIONS[action], accepted)
         self._begin(self._next_epoch)
@@ -177,17 +225,20 @@ class TaskManagerNode(Node):
         self.hold.cancel()
         self.book.begin_epoch(k)
         self._next_epoch = None
-        self._action, self._response = None, None
+        self._action, self._action_ns, self._response = None, None, None
         self.task_state_pub.publish(conv.task_state_to_msg(self.book.state))
         self._publish_status()
 
     # -- health ----------------------------------------------------------------------------
     def _publish_status(self) -> None:
+        head = self.book.queue[0] if self.book.queue else None
         values = {'epoch': self.book.epoch, 'task_state': list(self.book.state.values()),
-                  'pending': self.book.pending,
+                  'queued_tasks': len(self.book.queue),
+                  'next_queued': None if head is None else (head.tp, head.tc, head.tx),
                   'last_finalised': self.last_finalised,
                   'waiting_for': None if self._next_epoch is None else self._awaited(),
                   'late_inputs': self.late_inputs,
+                  'late_answers_ignored': self.late_answers,
                   'completed_tasks': len(self.book.completed)}
         self.inputs.publish_health('tasks', values)
 
