@@ -88,15 +88,20 @@ class ActionSelector:
                                  f'{value.shape}')
         self.value = value
         self._q = None   # Q (8, N) for qmdp, formed once from value (27 MB at full size)
-        self.method = self._check_method(method)
-        if self.method == 'qmdp':
-            self._q_table()
+        self.set_method(method)
         self._h_offsets = np.arange(N_HIDDEN) * (n // N_HIDDEN)
         dims = model.dims[2:]
         strides = np.cumprod((1,) + tuple(dims[:0:-1]))[::-1]
         self._observable = tuple(zip(OBSERVABLE_VARIABLES, (int(v) for v in dims),
                                      (int(s) for s in strides)))
         assert self._observable[-1][1] == N_DISTANCE
+
+    def set_method(self, method: str) -> None:
+        """Change the default method (validated); qmdp's Q table is formed now, not in the
+        next `select`."""
+        self.method = self._check_method(method)
+        if self.method == 'qmdp':
+            self._q_table()
 
     def _check_method(self, method: str) -> str:
         if method not in SELECTORS:

@@ -699,7 +699,28 @@ def test_decision_applies_parameters_at_run_time(graph, policy_path):
                                    Parameter('epoch_period', value=0.3)])
     assert all(r.successful for r in results)
     assert node.selector.method == 'qmdp'
+    assert node.selector._q is not None          # formed now, not in the next decision
     assert node.epoch_timer.timer_period_ns == 300_000_000
+
+
+def test_decision_clock_is_steady_unless_sim_time(graph, policy_path):
+    """Epochs run on the monotonic clock (a system clock step cannot stall them); under
+    use_sim_time they follow /clock instead, so a replay with a clock drives them."""
+    from rclpy.clock import ClockType
+    from rosgraph_msgs.msg import Clock as ClockMsg
+    steady = Decision(graph, policy_path, epoch_source='topic').node   # publishes no epochs
+    assert steady.clock.clock_type == ClockType.STEADY_TIME
+    sim = Decision(graph, policy_path, use_sim_time=True, epoch_period=1.0,
+                   stale_timeout=0.5)
+    assert sim.node.clock.clock_type == ClockType.ROS_TIME
+    clock = graph.publisher(ClockMsg, '/clock', qos.RELIABLE)
+    before = len(sim.epochs)
+    graph.executor.spin_once(timeout_sec=0.3)       # no /clock yet: sim time stands still
+    assert len(sim.epochs) == before
+    for second in range(1, 6):
+        clock.publish(ClockMsg(clock=conv.seconds_to_stamp(float(second))))
+        graph.spin_until(lambda: sim.node.get_clock().now().nanoseconds >= second * 10**9)
+    assert graph.spin_until(lambda: len(sim.epochs) >= before + 2)
 
 
 def test_decision_refuses_bad_parameters_at_start_up(graph, policy_path):

@@ -15,7 +15,8 @@ first sample after its reaction (or, in a replay, the next played sample) in the
 
 and publishes `hrc/distance_level` d_k, `hrc/observation` O_k and `hrc/belief` b_k. Each joint
 state sample gets its level at once (`velocity_level` of its velocities), so the node keeps
-three counters per window, not the samples, and its memory does not grow with the rate.
+three counters per window and the last `RECENT` (publication time, level) pairs, not the
+samples, so its memory is bounded whatever the rate.
 
 Degraded inputs, never fatal: a malformed message is dropped (warning + diagnostic). A window
 with fewer than `min_window_samples` valid joint states (a sensor dropout; the threshold also
@@ -53,7 +54,8 @@ from .common import (STATUS_PERIOD_SEC, WARN, Inputs, NodeParameters, ParamSpec,
                      check_array, check_core, load_node_config, run)
 
 LEVELS = np.array([1, 2, 3])
-RECENT = 64   # samples per stream remembered with their publication time, to split a window
+RECENT = 2048   # samples per stream remembered with their publication time, to split a
+#                window: 2 s of joint states at 1 kHz, a minute of skeletons at 30 Hz
 NO_EVIDENCE = np.ones(9)   # the likelihood of an epoch without observation: predict only
 
 T = Parameter.Type

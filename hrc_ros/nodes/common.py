@@ -32,6 +32,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -172,6 +173,16 @@ def check_core(values: Mapping[str, Any], name: str, probe: Callable[[Any], Any]
 
 
 # -- inputs and diagnostics -------------------------------------------------------------------
+def control_clock(node: Node) -> Clock:
+    """The clock of a node's epochs, deadlines and input ages: the ROS clock under
+    `use_sim_time` (a replay with /clock), else the monotonic (steady) clock, so that a step of
+    the system clock (NTP, a manual date) neither stalls the epoch clock nor makes old inputs
+    look fresh. Read once, at start-up."""
+    if node.get_parameter('use_sim_time').value:
+        return node.get_clock()
+    return Clock(clock_type=ClockType.STEADY_TIME)
+
+
 class Deadline:
     """A one-shot timeout that gives way to the messages already waiting.
 
@@ -187,7 +198,8 @@ class Deadline:
         self._generation = 0        # start() and cancel() make a fired deadline obsolete
         self._fired: int | None = None
         self._guard = node.create_guard_condition(self._expired)
-        self.timer = node.create_timer(seconds, self._fire, autostart=False)
+        self.timer = node.create_timer(seconds, self._fire, clock=control_clock(node),
+                                       autostart=False)
 
     def set_period(self, seconds: float) -> None:
         self.timer.timer_period_ns = int(seconds * 1e9)
@@ -238,10 +250,9 @@ class Inputs:
         """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported.
 
         With `with_published`, `handle(value, published_ns)` also gets the message's
-        publication time: the writer's source timestamp (system clock, ns), or the receive
-        time where the middleware gives none."""
+        publication time: the writer's source timestamp (system clock, ns), or the system time
+        of its receipt where the middleware gives none."""
         name = name or topic.rsplit('/', 1)[-1]
-        clock = self.node.get_clock()
 
         def guarded(msg, *extra):
             self.received[name] += 1
@@ -258,7 +269,7 @@ class Inputs:
         else:
             def callback(msg, info):
                 published = info.get('source_timestamp') if isinstance(info, dict) else None
-                guarded(msg, int(published or clock.now().nanoseconds))
+                guarded(msg, int(published or time.time_ns()))
 
         return self.node.create_subscription(msg_type, topic, callback, profile)
 

@@ -24,6 +24,9 @@ epoch's decision is taken as soon as each input has answered (with a good or a m
 message), or at `input_timeout` (a `Deadline`: inputs already waiting when it expires are taken
 first).
 
+Clock. Epochs, waits and input ages use `common.control_clock`: the monotonic clock, or the
+ROS clock under `use_sim_time` (read at start-up).
+
 Start-up. The policy file must exist and match the configuration; otherwise the node logs
 which file and which configuration it expected and exits with status 1. In timer mode the clock
 starts one `epoch_period` after the graph is ready (`min_epoch_subscribers` subscribers of
@@ -48,7 +51,7 @@ from ..model import ACTIONS, DN, TASK_VARIABLES, HRCModel
 from ..policy import PolicyError, default_policy_path, load_policy
 from ..selection import SELECTORS, ActionSelector
 from .common import (ERROR, OK, WARN, Deadline, Inputs, NodeParameters, ParamSpec, StartupError,
-                     config_path, load_node_config, run)
+                     config_path, control_clock, load_node_config, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
 T = Parameter.Type
@@ -125,7 +128,8 @@ class DecisionNode(Node):
         self._seq = 0
         self._fresh_since = 0          # inputs with seq > this belong to the pending epoch
         self._epoch_started_ns = 0
-        self._started_ns = self.get_clock().now().nanoseconds
+        self.clock = control_clock(self)   # epochs, waits and input ages
+        self._started_ns = self.clock.now().nanoseconds
         self._clock_running = self.epoch_source == 'topic'
         self._graph_ready_tick = False
         self.slots = {'belief': InputSlot('hrc/belief'),
@@ -144,7 +148,8 @@ class DecisionNode(Node):
         ]
         if self.epoch_source == 'timer':
             self.epoch_pub = self.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-            self.epoch_timer = self.create_timer(values['epoch_period'], self._on_tick)
+            self.epoch_timer = self.create_timer(values['epoch_period'], self._on_tick,
+                                                  clock=self.clock)
         else:
             self.epoch_pub = None
             self.epoch_timer = None
@@ -157,7 +162,7 @@ class DecisionNode(Node):
             f'{self.epoch_source}')
 
     def _apply_parameters(self, values) -> None:
-        self.selector.method = values['selector']
+        self.selector.set_method(values['selector'])   # qmdp's Q table is built here
         self.stale_timeout = values['stale_timeout']
         if self.epoch_timer is not None:
             self.epoch_timer.timer_period_ns = int(values['epoch_period'] * 1e9)
@@ -187,7 +192,7 @@ class DecisionNode(Node):
         def store(value):
             slot = self.slots[name]
             slot.value, slot.seq = value, self._next_seq()
-            slot.received_ns = self.get_clock().now().nanoseconds
+            slot.received_ns = self.clock.now().nanoseconds
             self._maybe_decide()
         return store
 
@@ -205,7 +210,7 @@ class DecisionNode(Node):
 
     def _on_tick(self) -> None:
         if not self._clock_running:
-            waited = (self.get_clock().now().nanoseconds - self._started_ns) * 1e-9
+            waited = (self.clock.now().nanoseconds - self._started_ns) * 1e-9
             if not (self._graph_ready_tick or waited >= self.stale_timeout):
                 if self._graph_ready():
                     self._graph_ready_tick = True     # epoch 1 at the next tick
@@ -235,7 +240,7 @@ class DecisionNode(Node):
             self._decide(timed_out=True)
         self.epoch = k
         self.pending = True
-        self._epoch_started_ns = self.get_clock().now().nanoseconds
+        self._epoch_started_ns = self.clock.now().nanoseconds
         if self.epoch_source == 'timer':
             # Only what arrives after this epoch is published belongs to it.
             self._fresh_since = self._next_seq()
@@ -267,7 +272,7 @@ class DecisionNode(Node):
         self.input_deadline.cancel()
         self.pending = False
         start = time.perf_counter()
-        now_ns = self.get_clock().now().nanoseconds
+        now_ns = self.clock.now().nanoseconds
         selection, observable, collision = None, None, False
         try:
             faults, ages = self._faults(now_ns)
