@@ -853,10 +853,15 @@ def test_task_manager_ignores_a_late_answer_to_a_refused_request(graph, model):
     tasks = Tasks(graph, initial_task=[1, 1, 3], input_timeout=0.2)
     tasks.epoch(1)
     assert tasks.epoch(2, 'rh2')['ty'] == 0                    # unanswered: refused
-    tasks.send('human_response', tasks.response, Bool(data=True))   # the late yes
-    state = tasks.epoch(3, 'rh2')                              # asked again, no answer
+    for _ in range(2):                                         # the late yes, pressed twice
+        tasks.send('human_response', tasks.response, Bool(data=True))
+    tasks.send('action', tasks.action, String(data='rh2'))     # asked again
+    # A third late yes, sent before the action but taken after it (two writers): screened
+    # too, not only the first one.
+    tasks.node._on_human_response(True, tasks.node._action_ns - 1_000_000)
+    state = tasks.epoch(3)                                     # no answer to the new rh2
     assert state['ty'] == 0, 'the late answer was taken as consent to the next request'
-    assert tasks.node.late_answers == 1
+    assert tasks.node.late_answers == 2      # the first two held as one (the latest), the third
     assert graph.spin_until(lambda: any('late human response' in s.message for s in
                                         graph.diagnostics('task_manager: tasks', WARN)))
     book = TaskBook(model, initial_task=(1, 1, 3))
@@ -886,6 +891,45 @@ def test_task_manager_follows_a_restarted_epoch_count(graph, model):
     book.begin_epoch(2)
     assert tasks.epoch(2, 'nw') == book.state
     assert book.state['tp'] == 0                   # the task finished across the restart
+
+
+def test_task_manager_restart_finalises_the_old_count_like_any_epoch(graph, model):
+    """A restart while a request waits for its answer holds for it, refuses it at the
+    timeout and screens the late answer."""
+    tasks = Tasks(graph, initial_task=[1, 1, 3], input_timeout=0.2)
+    tasks.epoch(1)
+    tasks.epoch(2, 'nw')
+    tasks.send('action', tasks.action, String(data='rh2'))     # the old node's last action
+    assert tasks.epoch(1)['ty'] == 0                           # restart: held, then refused
+    assert tasks.node.late_inputs == 1 and tasks.node.book.epoch == 1
+    tasks.send('human_response', tasks.response, Bool(data=True))   # the late yes
+    assert tasks.epoch(2, 'rh2')['ty'] == 0                    # not consent to the new rh2
+    assert tasks.node.late_answers == 1
+
+
+def test_task_manager_restart_takes_a_missing_last_action_as_dn(graph, model):
+    human = Tasks(graph, initial_task=[1, 2, 1], input_timeout=0.2)
+    book = TaskBook(model, initial_task=(1, 2, 1))
+    book.begin_epoch(1)
+    human.epoch(1)
+    book.apply('rh1', True)
+    book.begin_epoch(2)
+    assert human.epoch(2, 'rh1', accepted=True) == book.state  # the human works
+    book.apply('dn', False)                                    # the old node died before a_2
+    book.renumber(1)
+    book.begin_epoch(1)
+    assert human.epoch(1) == book.state
+    assert book.state['hc'] == 1                               # dn still counts the human
+
+
+def test_task_manager_drops_a_second_epoch_source(graph):
+    """Only a restart at 1 may go back: an interleaved second count is dropped."""
+    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    for k in (1, 2, 3):
+        tasks.epoch(k)
+    tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(2))
+    assert_dropped(graph, tasks.node, 'epoch', 'does not follow the previous epoch 3')
+    assert tasks.node.book.epoch == 3
 
 
 def test_task_manager_refuses_requests_beyond_max_queue(graph):

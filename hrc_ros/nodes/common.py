@@ -177,7 +177,7 @@ def control_clock(node: Node) -> Clock:
     """The clock of a node's epochs, deadlines and input ages: the ROS clock under
     `use_sim_time` (a replay with /clock), else the monotonic (steady) clock, so that a step of
     the system clock (NTP, a manual date) neither stalls the epoch clock nor makes old inputs
-    look fresh. Read once, at start-up."""
+    look fresh. `use_sim_time` is read once: set it at start-up."""
     if node.get_parameter('use_sim_time').value:
         return node.get_clock()
     return Clock(clock_type=ClockType.STEADY_TIME)
@@ -309,15 +309,18 @@ class Inputs:
                                       'dropped': self.dropped[name]}))
 
     def epoch_order(self, k: int, last: int) -> bool:
-        """Check hrc/epoch k against the last epoch seen: False when it follows (k > last);
-        True when the count restarted (k < last: the decision node or a replay started
-        again), which is reported (WARN) and must be followed, not refused, or every later
-        epoch would be dropped until the count passes `last`; a repeated epoch raises
-        `MessageError` (dropped)."""
+        """Check hrc/epoch k against the last epoch seen. False when it follows (k > last).
+        True when the count restarted: k = 1 after a higher epoch (the decision node restarted,
+        a replay began again); this is reported (WARN) and must be followed, not refused, or
+        every later epoch would be dropped until the count passed `last`. Any other k <= last
+        raises `MessageError` (dropped): a repeat, or a second epoch source interleaving its
+        count, which must not renumber the cell at every tick."""
         if k > last:
             return False
-        if k == last:
-            raise MessageError(f'epoch {k} repeats the previous epoch')
+        if k != 1 or last == 1:
+            raise MessageError(f'epoch {k} repeats the previous epoch' if k == last else
+                               f'epoch {k} does not follow the previous epoch {last} '
+                               '(only a restart at 1 may go back)')
         message = (f'hrc/epoch restarted at {k} after {last} (the epoch source restarted); '
                    'following it')
         self.node.get_logger().warning(message)

@@ -21,15 +21,18 @@ dn and a missing answer as a refusal, with a warning and a diagnostic. Keep `inp
 below the decision node's, which waits for this node's task state. (Finalising at once made a
 loaded machine record an accepted request as refused.) A response that arrives after its
 epoch was finalised falls into the next window, where it answers the next request ("the
-robot's last request") unless it is the late answer to a request refused for want of one: a
-response published before the action it would answer is ignored then (with a warning and a
-diagnostic), so a late yes to one request is never taken as consent to the next. (Publication
-times are the writers' source timestamps: the hosts' clocks must agree, as for tf.)
+robot's last request"), except in the window right after a request was refused for want of
+an answer: there every response published before that window's action is ignored (with a
+warning and a diagnostic), since it answers the refused request. So an answer sent before the
+next request is never taken as consent to it; one sent after it is its answer. Of several
+responses in a window the latest published counts. (Publication times are the writers' source
+timestamps: the hosts' clocks must agree, as for tf.)
 
-A restarted epoch count (hrc/epoch k below the last one: the decision node restarted, or a
-replay began again) is followed, not refused: the last action of the old count is applied, the
-task state and queue are kept, and epoch k begins. Requests beyond `max_queue` waiting tasks
-are refused with a warning and a diagnostic.
+A restarted epoch count (hrc/epoch 1 after a higher one: the decision node restarted, or a
+replay began again) is followed, not refused: the old count's last action is finalised like
+any other (held for it and its answer, else dn), the task state and queue are kept, and the
+numbering starts again. Requests on `hrc/task_request` beyond `max_queue` waiting tasks are
+refused with a warning and a diagnostic (scheduled releases are not limited).
 
 Tasks enter through the `initial_task` (tp, tc, tx) present at epoch 1, the `schedule`
 (``"epoch:tp,tc,tx"`` releases) and `hrc/task_request` ``[tp, tc, tx]`` (validated against the
@@ -101,8 +104,10 @@ class TaskManagerNode(Node):
         self._action_ns: int | None = None  # its publication time
         self._response: tuple[bool, int] | None = None  # last response since epoch k-1, (value,
         #                                                 publication time)
-        self._unanswered = False            # a request was refused for want of an answer
+        self._screening = False             # the last request was refused for want of an
+        #                                     answer: screen out answers sent before a_k
         self._next_epoch: int | None = None  # epoch k, received, waiting for step 1
+        self._renumber = False              # epoch k restarts the count
         self.last_finalised: tuple | None = None
         self.late_inputs = 0                # finalisations that timed out
         self.late_answers = 0               # responses ignored as answers to a refused request
@@ -135,19 +140,18 @@ class TaskManagerNode(Node):
         self._try_finalise()
 
     def _on_human_response(self, accepted: bool, published_ns: int) -> None:
-        self._response = (accepted, published_ns)
+        if self._response is None or published_ns >= self._response[1]:
+            self._response = (accepted, published_ns)     # the latest word of the human
         self._screen_response()
         self._try_finalise()
 
     def _screen_response(self) -> None:
-        """After a request was refused for want of an answer, ignore a response published
-        before the action it would answer: it is the late answer to the refused request."""
-        if not (self._unanswered and self._response is not None
-                and self._action_ns is not None):
+        """In the window after a request was refused for want of an answer, ignore a response
+        published before this window's action: it is the late answer to the refused request.
+        Every such response is screened (a double press, two answering writers)."""
+        if not (self._screening and self._response is not None
+                and self._action_ns is not None and self._response[1] < self._action_ns):
             return
-        self._unanswered = False
-        if self._response[1] >= self._action_ns:
-            return                              # an answer to this action
         self.late_answers += 1
         message = (f'ignored a late human response ({self._response[0]}): it was sent before '
                    f'{ACTIONS[self._action]} of epoch {self.book.epoch}, so it answers the '
@@ -169,14 +173,9 @@ class TaskManagerNode(Node):
         restarted = self.inputs.epoch_order(k, last)
         if self._next_epoch is not None:        # epoch k came before k-1 was finalised
             self._try_finalise(timed_out=True)
-        if restarted:
-            if self._action is not None:        # the old count's last action
-                self.book.apply(self._action, self._accepted())
-            self.book.renumber(k)
-            self._begin(k)
-            return
         self._next_epoch = k
-        if self.book.epoch < 1:
+        self._renumber = restarted              # the old count's last action is finalised
+        if self.book.epoch < 1:                 # as any other (held for it, else dn)
             self._begin(k)
         else:
             self._try_finalise()
@@ -203,10 +202,9 @@ class TaskManagerNode(Node):
             if not self.hold.armed:
                 self.hold.start()
             return
+        unanswered = awaited is not None and self._action is not None
         if awaited is not None:
             self.late_inputs += 1
-            if self._action is not None:      # an eligible request went unanswered
-                self._unanswered = True
             message = (f'no {awaited} within input_timeout; taking '
                        + ('dn' if self._action is None else 'the request as refused'))
             self.get_logger().warning(message, throttle_duration_sec=5.0)
@@ -216,7 +214,10 @@ class TaskManagerNode(Node):
         accepted = self._accepted()
         self.book.apply(action, accepted)
         self.last_finalised = (self.book.epoch, ACTIONS[action], accepted)
+        if self._renumber:
+            self.book.renumber(self._next_epoch)
         self._begin(self._next_epoch)
+        self._screening = unanswered            # for the window that begins now
 
     def _on_hold_timeout(self) -> None:
         self._try_finalise(timed_out=True)
@@ -224,7 +225,7 @@ class TaskManagerNode(Node):
     def _begin(self, k: int) -> None:
         self.hold.cancel()
         self.book.begin_epoch(k)
-        self._next_epoch = None
+        self._next_epoch, self._renumber, self._screening = None, False, False
         self._action, self._action_ns, self._response = None, None, None
         self.task_state_pub.publish(conv.task_state_to_msg(self.book.state))
         self._publish_status()
