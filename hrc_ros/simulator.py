@@ -286,7 +286,7 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.set_title(f'Sequence of the actions {subtitle}')
     paths.append(_save_figure(plt, fig, out / 'actions.png'))
 
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig, ax = plt.subplots(figsize=(10, 4.5))
     image = ax.imshow(trajectory.beliefs.T, aspect='auto', origin='lower', cmap='viridis',
                       vmin=0.0, vmax=1.0, extent=(epochs[0] - 0.5, epochs[-1] + 0.5, -0.5, 8.5))
     true_h = 3 * trajectory.column('em') + trajectory.column('ea')
@@ -297,7 +297,8 @@ def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
     ax.set_ylabel('hidden state (em, ea)')
     ax.legend(loc='upper left', bbox_to_anchor=(1.15, 1.0), fontsize=8)
     fig.colorbar(image, ax=ax, label='belief b(h)')
-    ax.set_title(f'Belief over the hidden emotions, {trajectory.mode} filter {subtitle}')
+    ax.set_title(f'Belief over the hidden emotions ({trajectory.mode} filter)\n{subtitle}',
+                 fontsize=11)
     paths.append(_save_figure(plt, fig, out / 'belief.png'))
     return paths
 
