@@ -282,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config or default_config_path())
         model = HRCModel(config)
-        load_policy(args.policy or default_policy_path(), config)  # refuse early, clearly
+        load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
     except (ConfigError, PolicyError) as exc:
         print(f'hrc-case-study: {exc}', file=sys.stderr)
         return 2

@@ -456,7 +456,7 @@ def main(argv=None) -> int:
         parser.error('--task-rate must lie in [0, 1]')
     try:
         config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(), config)
+        policy = load_policy(args.policy or default_policy_path(config), config)
     except (ConfigError, PolicyError) as exc:
         print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
         return 2

@@ -66,8 +66,21 @@ def default_config_path() -> Path:
     return share_dir() / 'config' / 'default.yaml'
 
 
-def default_policy_path() -> Path:
-    return share_dir() / 'policies' / 'default.npz'
+def default_policy_path(config: Config | None = None) -> Path:
+    """The shipped policy to use when none is named: with `config`, the shipped policy solved
+    for it (so `config:=.../paper.yaml` alone finds `policies/paper.npz`); otherwise, or when
+    none matches, `policies/default.npz` (whose check then says what to solve)."""
+    default = share_dir() / 'policies' / 'default.npz'
+    if config is None:
+        return default
+    for path in [default] + sorted(default.parent.glob('*.npz')):
+        try:
+            with np.load(path, allow_pickle=False) as archive:   # reads `meta` only
+                if json.loads(str(archive['meta'])).get('config_sha256') == config.policy_hash:
+                    return path
+        except Exception:  # noqa: BLE001 - a damaged shipped file is reported when loaded
+            continue
+    return default
 
 
 def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:

@@ -313,7 +313,7 @@ def main(argv=None) -> int:
                         help='configuration YAML (default: the shipped default.yaml)')
     parser.add_argument('--policy', default=None,
                         help='policy file solved for that configuration (default: the shipped '
-                             'default.npz)')
+                             'policy solved for it, e.g. paper.npz for paper.yaml)')
     parser.add_argument('--selector', default='paper', choices=SIMULATION_SELECTORS,
                         help='action selection (mdp = the true state, an upper bound)')
     parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
@@ -327,7 +327,7 @@ def main(argv=None) -> int:
         parser.error(f'--epochs must be >= 1, got {args.epochs}')
     try:
         config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(), config)
+        policy = load_policy(args.policy or default_policy_path(config), config)
     except (ConfigError, PolicyError) as exc:
         print(f'hrc-simulate: error: {exc}', file=sys.stderr)
         return 2

@@ -76,7 +76,7 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'policy', default_value='',
             description="decision policy file from hrc-solve ('' = the params files', "
-                        'else the shipped policies/default.npz)'),
+                        'else the shipped policy solved for config)'),
         DeclareLaunchArgument(
             'selector', default_value='', choices=['', 'paper', 'qmdp', 'mls'],
             description="action selection from the belief ('' = the params files', "

@@ -85,6 +85,20 @@ def test_shipped_policies_load_and_match_their_configs():
         load_policy('policies/paper.npz', load_config(DEFAULT))
 
 
+def test_the_shipped_policy_is_found_for_its_configuration():
+    """No policy named: the shipped one solved for the configuration, else default.npz (whose
+    check then says what to solve)."""
+    from hrc_ros.policy import default_policy_path
+    for name in ('default', 'paper', 'fail_safe_aware'):
+        path = default_policy_path(load_config(f'config/{name}.yaml'))
+        assert path.name == f'{name}.npz'
+        load_policy(path, load_config(f'config/{name}.yaml'))
+    other = load_config(DEFAULT, overrides={'solver': {'gamma': 0.9}})
+    assert default_policy_path(other).name == 'default.npz'
+    with pytest.raises(PolicyError, match='solved for configuration'):
+        load_policy(default_policy_path(other), other)
+
+
 def test_shipped_default_policy_is_a_fresh_solve():
     config = load_config(DEFAULT)
     fresh = solve(HRCModel(config))

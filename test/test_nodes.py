@@ -723,6 +723,13 @@ def test_decision_clock_is_steady_unless_sim_time(graph, policy_path):
     assert graph.spin_until(lambda: len(sim.epochs) >= before + 2)
 
 
+def test_decision_finds_the_shipped_policy_of_its_configuration(graph):
+    """config:=paper.yaml alone is enough: the node takes the shipped paper.npz."""
+    repo = Path(__file__).resolve().parent.parent
+    node = graph.start(DecisionNode, config=str(repo / 'config' / 'paper.yaml'))
+    assert Path(node.policy.path).name == 'paper.npz'
+
+
 def test_decision_refuses_bad_parameters_at_start_up(graph, policy_path):
     with pytest.raises(InvalidParameterValueException, match='shorter than epoch_period'):
         graph.start(DecisionNode, policy=policy_path, epoch_period=0.2, input_timeout=0.5)

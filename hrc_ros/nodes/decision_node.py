@@ -59,7 +59,8 @@ PARAMETERS = (
     ParamSpec('config', T.STRING, '', "model configuration YAML ('' = the shipped "
               'default.yaml)', read_only=True),
     ParamSpec('policy', T.STRING, '', "policy file solved for the configuration ('' = the "
-              'shipped default.npz)', read_only=True),
+              'shipped policy solved for config, e.g. policies/paper.npz for paper.yaml; else '
+              'default.npz)', read_only=True),
     ParamSpec('selector', T.STRING, 'paper', 'action selection from the belief: '
               + ', '.join(SELECTORS), constraints=' or '.join(SELECTORS)),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
@@ -110,7 +111,7 @@ class DecisionNode(Node):
         values = self.params.values()
         self.config = load_node_config(values['config'])
         self.model = HRCModel(self.config)
-        policy_path = values['policy'] or str(default_policy_path())
+        policy_path = values['policy'] or str(default_policy_path(self.config))
         try:
             self.policy = load_policy(policy_path, self.config)
         except PolicyError as exc:
