@@ -73,7 +73,7 @@ def default_policy_path(config: Config | None = None) -> Path:
     default = share_dir() / 'policies' / 'default.npz'
     if config is None:
         return default
-    for path in [default] + sorted(default.parent.glob('*.npz')):
+    for path in sorted(default.parent.glob('*.npz'), key=lambda p: (p != default, p)):
         try:
             with np.load(path, allow_pickle=False) as archive:   # reads `meta` only
                 if json.loads(str(archive['meta'])).get('config_sha256') == config.policy_hash:

@@ -285,14 +285,21 @@ class Inputs:
         self.last_drop_reason[name] = reason
         self._logger(name).warning(f'dropped a message on {topic}: {reason}',
                                    throttle_duration_sec=WARNING_THROTTLE_SEC)
-        now = time.monotonic()
-        if now - self._last_drop_report.get(name, -float('inf')) >= WARNING_THROTTLE_SEC:
-            self._last_drop_report[name] = now
+        if self._report_due(self._last_drop_report, name):
             self.publish(self.status(
                 f'{name} input', WARN, f'dropped a message on {topic}: {reason}',
                 {'topic': topic, 'reason': reason, 'dropped': self.dropped[name],
                  'dropped_since_last_report': self._unreported[name]}))
             self._unreported[name] = 0
+
+    @staticmethod
+    def _report_due(last_report: dict[str, float], name: str) -> bool:
+        """True (and the time noted) at most once per input per WARNING_THROTTLE_SEC."""
+        now = time.monotonic()
+        if now - last_report.get(name, -float('inf')) < WARNING_THROTTLE_SEC:
+            return False
+        last_report[name] = now
+        return True
 
     def internal_error(self, name: str, topic: str, trace: str) -> None:
         """A bug met while handling an input: logged with its traceback and reported as ERROR
@@ -301,9 +308,7 @@ class Inputs:
         self._unreported[name] += 1
         self._logger(name).error(f'internal error while handling {topic}:\n{trace}',
                                  throttle_duration_sec=WARNING_THROTTLE_SEC)
-        now = time.monotonic()
-        if now - self._last_error_report.get(name, -float('inf')) >= WARNING_THROTTLE_SEC:
-            self._last_error_report[name] = now
+        if self._report_due(self._last_error_report, name):
             self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
                                      {'topic': topic, 'error': trace.strip().splitlines()[-1],
                                       'dropped': self.dropped[name]}))
