@@ -8,11 +8,11 @@ PACKAGE = 'hrc_ros'
 
 NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node']
 TOOLS = {
-    'hrc-solve': 'hrc_ros.solve_cli:main',
-    'hrc-simulate': 'hrc_ros.simulator:main',
-    'hrc-evaluate': 'hrc_ros.evaluate:main',
-    'hrc-bag': 'hrc_ros.bag:main',
-    'hrc-case-study': 'hrc_ros.case_study:main',
+    'hrc-solve': 'hrc_ros.tools.solve:main',
+    'hrc-simulate': 'hrc_ros.tools.simulate:main',
+    'hrc-evaluate': 'hrc_ros.tools.evaluate:main',
+    'hrc-bag': 'hrc_ros.ros.bag:main',
+    'hrc-case-study': 'hrc_ros.ros.case_study:main',
 }
 
 setup(
@@ -34,7 +34,7 @@ setup(
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={
-        'console_scripts': [f'{n} = hrc_ros.nodes.{n}:main' for n in NODES]
+        'console_scripts': [f'{n} = hrc_ros.ros.nodes.{n}:main' for n in NODES]
         + [f'{name} = {target}' for name, target in TOOLS.items()],
     },
 )

@@ -29,10 +29,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from hrc_ros.config import load_config
-from hrc_ros.model import STATE_VARIABLES, HRCModel
-from hrc_ros.policy import default_config_path, default_policy_path, load_policy
-from hrc_ros.simulator import case_study, simulate
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import STATE_VARIABLES, HRCModel
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.policy import default_policy_path, load_policy
+from hrc_ros.core.simulation import case_study, simulate
 
 
 def spin(stop) -> None:
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
             start = time.monotonic()
             try:
                 proc = subprocess.run(
-                    [sys.executable, '-m', 'hrc_ros.case_study', '--out', str(out), '--seed',
+                    [sys.executable, '-m', 'hrc_ros.ros.case_study', '--out', str(out), '--seed',
                      str(args.seed), '--epoch-period', str(args.epoch_period)],
                     capture_output=True, text=True, timeout=300)
             finally:

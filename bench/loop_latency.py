@@ -55,10 +55,10 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  #
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32  # noqa: E402
 
-from hrc_ros import conversions as conv  # noqa: E402
-from hrc_ros import qos  # noqa: E402
-from hrc_ros.observation import synthesize_joint_velocities, synthesize_skeleton  # noqa: E402
-from hrc_ros.policy import default_policy_path  # noqa: E402
+from hrc_ros.core.observation import synthesize_joint_velocities, synthesize_skeleton  # noqa: E402
+from hrc_ros.core.policy import default_policy_path  # noqa: E402
+from hrc_ros.ros import conversions as conv  # noqa: E402
+from hrc_ros.ros import qos  # noqa: E402
 
 TASK_STATE = dict(zip(('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc'), (1, 1, 3, 0, 0, 0, 0, 0)))
 WARMUP_EPOCHS = 20

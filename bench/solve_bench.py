@@ -5,7 +5,7 @@
 
 Every measurement runs in its own subprocess so that its peak RSS (ru_maxrss) is its own.
 
-- hrc_ros: model construction + value iteration to eta (default 1e-6) with `hrc_ros.solver`.
+- hrc_ros: model construction + value iteration to eta (default 1e-6) with `hrc_ros.core.solver`.
   The numba kernels are compiled (or loaded from numba's on-disk cache) before the clock
   starts; that one-off time is reported separately as `jit`.
 - mdptoolbox-hiive `ValueIteration` on the 8 explicit N x N CSR matrices built from the same
@@ -41,7 +41,7 @@ TIE_TOLERANCE = 1e-6
 
 
 def _config(rho: int, sigma: int, eta: float):
-    from hrc_ros.config import load_config
+    from hrc_ros.core.config import load_config
     return load_config(REPO / 'config' / 'default.yaml',
                        overrides={'model': {'rho': rho, 'sigma': sigma},
                                   'solver': {'eta': eta}})
@@ -53,8 +53,8 @@ def _peak_mb() -> float:
 
 def child_hrc(rho: int, sigma: int, eta: float, policy_out: str | None) -> dict:
     t = time.perf_counter()
-    from hrc_ros.model import HRCModel
-    from hrc_ros.solver import solve
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.solver import solve
     solve(HRCModel(_config(1, 1, 1e-3)), sweeps=2)  # compile or load the numba kernels
     jit = time.perf_counter() - t
     cfg = _config(rho, sigma, eta)
@@ -73,7 +73,7 @@ def child_hrc(rho: int, sigma: int, eta: float, policy_out: str | None) -> dict:
 def child_mdptoolbox(rho: int, sigma: int, eta: float, policy_out: str) -> dict:
     from hiive.mdptoolbox.mdp import ValueIteration
 
-    from hrc_ros.model import ACTIONS, HRCModel
+    from hrc_ros.core.model import ACTIONS, HRCModel
 
     class UnboundedValueIteration(ValueIteration):
         def _boundIter(self, epsilon):  # noqa: N802 - the library's name
@@ -115,8 +115,8 @@ def run_child(kind: str, rho: int, sigma: int, eta: float, policy_out: str | Non
 
 def compare_policies(ours_path: str, theirs_path: str, rho: int, sigma: int,
                      eta: float) -> dict:
-    from hrc_ros.model import HRCModel
-    from hrc_ros.solver import FactoredBellman
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.solver import FactoredBellman
     ours = np.load(ours_path)
     theirs = np.load(theirs_path)
     differ = np.flatnonzero(ours['policy'] != theirs['policy'])

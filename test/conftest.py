@@ -1,11 +1,11 @@
 """Test-session isolation of the ROS graph, and the policy files the node tests share.
 
 Before anything can call `rclpy.init`, this module (imported by pytest ahead of every test
-module) gives the session its own DDS domain: a random ROS_DOMAIN_ID in 30..99 and
-ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that subprocesses (the
-multi-process suite, the refused decision node) inherit them. Two sessions on one machine, or a
-session next to a running cell, then never see each other's topics. HRC_TEST_ROS_DOMAIN_ID pins
-the domain (to watch a test with other tools, say).
+module) gives the session its DDS domain: the ROS_DOMAIN_ID of the environment when one is set
+(scripts/test.sh sets one per run; set your own to watch a test with other tools), else a
+random one in 30..99, and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that
+subprocesses (the multi-process suite, the refused decision node) inherit them. Two sessions on
+one machine, or a session next to a running cell, then never see each other's topics.
 
 Discovery speed. A Fast DDS participant that joins the graph discovers the ones already there
 only when they next announce themselves, every 3 s by default (measured here: up to ~2 s before
@@ -26,8 +26,8 @@ import pytest
 
 ROS_DOMAIN_RANGE = (30, 99)
 
-_pinned = os.environ.get('HRC_TEST_ROS_DOMAIN_ID')
-ROS_DOMAIN_ID = int(_pinned) if _pinned else random.SystemRandom().randint(*ROS_DOMAIN_RANGE)
+_given = os.environ.get('ROS_DOMAIN_ID', '').strip()
+ROS_DOMAIN_ID = int(_given) if _given else random.SystemRandom().randint(*ROS_DOMAIN_RANGE)
 os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.pop('ROS_STATIC_PEERS', None)
@@ -63,15 +63,15 @@ def ros_domain_id() -> int:
 
 @pytest.fixture(scope='session')
 def default_config():
-    from hrc_ros.config import load_config
-    from hrc_ros.policy import default_config_path
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.paths import default_config_path
     return load_config(default_config_path())
 
 
 @pytest.fixture(scope='session')
 def policy_path(default_config, tmp_path_factory) -> str:
     """A policy for the default configuration: the shipped one, else solved once (~5 s)."""
-    from hrc_ros.policy import PolicyError, default_policy_path, load_policy
+    from hrc_ros.core.policy import PolicyError, default_policy_path, load_policy
     shipped = default_policy_path()
     try:
         load_policy(shipped, default_config)
@@ -89,21 +89,21 @@ def other_config_policy_path(default_config, tmp_path_factory) -> str:
 
 
 def _solve(config, path: Path) -> Path:
-    from hrc_ros.model import HRCModel
-    from hrc_ros.policy import save_policy
-    from hrc_ros.solver import solve
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.policy import save_policy
+    from hrc_ros.core.solver import solve
     return save_policy(path, solve(HRCModel(config)), config)
 
 
 @pytest.fixture(scope='session')
 def model(default_config):
     """The full-size default model."""
-    from hrc_ros.model import HRCModel
+    from hrc_ros.core.model import HRCModel
     return HRCModel(default_config)
 
 
 @pytest.fixture(scope='session')
 def policy(default_config, policy_path):
     """The default policy (shipped, or solved once), loaded."""
-    from hrc_ros.policy import load_policy
+    from hrc_ros.core.policy import load_policy
     return load_policy(policy_path, default_config)

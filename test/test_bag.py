@@ -1,4 +1,4 @@
-"""hrc_ros.bag: rosbag2-compatible MCAP bags, checked against independent readers and live DDS.
+"""hrc_ros.ros.bag: rosbag2-compatible MCAP bags, checked against independent readers and live DDS.
 
 Independent references: the installed .msg files and rosidl_adapter's .msg parser (schema
 text), mcap_ros2 decoding from the schema text alone in a process where rclpy and the message
@@ -21,26 +21,39 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
-from mcap.reader import make_reader
-from mcap.writer import CompressionType, Writer
-
 import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import (QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy,
-                       qos_profile_sensor_data)
-from rosidl_adapter.parser import parse_message_string
-
+import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, Quaternion
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import (
+    QoSDurabilityPolicy,
+    QoSHistoryPolicy,
+    QoSProfile,
+    QoSReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rosidl_adapter.parser import parse_message_string
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (Bool, Float64MultiArray, Header, MultiArrayDimension,
-                          MultiArrayLayout, String, UInt8, UInt8MultiArray, UInt32)
+from std_msgs.msg import (
+    Bool,
+    Float64MultiArray,
+    Header,
+    MultiArrayDimension,
+    MultiArrayLayout,
+    String,
+    UInt8,
+    UInt8MultiArray,
+    UInt32,
+)
 
-from hrc_ros import bag
-from hrc_ros.bag import BagError, BagWriter
+from hrc_ros.core import bagfile
+from hrc_ros.ros import bag
+from hrc_ros.ros.bag import BagError, BagWriter
 
 SEPARATOR = '=' * 80
 SHARE = Path(sys.prefix) / 'share'
@@ -97,7 +110,7 @@ def spin_until(node, condition, timeout: float, what: str) -> None:
 
 def hrc_bag_command() -> list[str]:
     script = Path(sys.executable).parent / 'hrc-bag'
-    return [str(script)] if script.is_file() else [sys.executable, '-m', 'hrc_ros.bag']
+    return [str(script)] if script.is_file() else [sys.executable, '-m', 'hrc_ros.ros.bag']
 
 
 # --------------------------------------------------------------------------------------------
@@ -185,7 +198,7 @@ def project_bag(tmp_path) -> Path:
     """A bag directory holding every project message type, two messages per topic."""
     directory = tmp_path / 'project'
     with BagWriter(directory) as writer:
-        for i, (topic, type_name, _message) in enumerate(project_messages()):
+        for topic, type_name, _message in project_messages():
             qos = qos_profile_sensor_data if topic.startswith('/human/') else None
             writer.add_topic(topic, type_name, qos)
         for rep in range(2):
@@ -254,7 +267,7 @@ def independent_schema(type_name: str) -> str:
 
 @pytest.mark.parametrize('type_name', sorted({t for _, t, _ in project_messages()}))
 def test_schema_text_is_the_msg_files_depth_first(type_name):
-    schema = bag.message_definition(type_name)
+    schema = bagfile.message_definition(type_name)
     assert schema == independent_schema(type_name)
     sections = schema.split(f'\n{SEPARATOR}\n')
     package, _, short = type_name.split('/')
@@ -271,7 +284,7 @@ def test_schema_text_is_the_msg_files_depth_first(type_name):
 
 
 def test_schema_of_pose_array_lists_its_types_depth_first():
-    schema = bag.message_definition('geometry_msgs/msg/PoseArray')
+    schema = bagfile.message_definition('geometry_msgs/msg/PoseArray')
     assert re.findall(r'^MSG: (\S+)$', schema, flags=re.M) == [
         'geometry_msgs/msg/Pose', 'geometry_msgs/msg/Point', 'geometry_msgs/msg/Quaternion',
         'std_msgs/msg/Header', 'builtin_interfaces/msg/Time']
@@ -283,7 +296,7 @@ def test_field_dependencies_parse_every_field_form():
         'geometry_msgs/msg/Point[] points  # trailing comment', 'Pose[3] fixed',
         'Pose[<=4] bounded', 'string<=10 short_name', 'string<=5[<=2] names',
         'uint8 LEVEL=2', 'int32[] values', 'float64 x 0.5', '', 'Quaternion orientation'])
-    assert bag.field_dependencies(text, 'geometry_msgs') == [
+    assert bagfile.field_dependencies(text, 'geometry_msgs') == [
         'std_msgs/msg/Header', 'builtin_interfaces/msg/Time', 'geometry_msgs/msg/Point',
         'geometry_msgs/msg/Pose', 'geometry_msgs/msg/Quaternion']
 
@@ -388,8 +401,8 @@ def test_bag_info_summarises(project_bag):
 
 
 def test_qos_reconstruction_follows_rosbag2():
-    sensor = bag.qos_from_offers(bag.parse_qos_profiles(bag.qos_profiles_yaml(
-        [qos_profile_sensor_data])))
+    sensor = bag.qos_from_offers(bagfile.parse_qos_profiles(bagfile.qos_profiles_yaml(
+        [bag.qos_to_dict(qos_profile_sensor_data)])))
     assert sensor.reliability == QoSReliabilityPolicy.BEST_EFFORT and sensor.depth == 5
     latched = QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
     assert bag.qos_from_offers([bag.qos_to_dict(latched)]).durability == \
@@ -399,7 +412,7 @@ def test_qos_reconstruction_follows_rosbag2():
     assert (mixed.reliability, mixed.durability, mixed.depth) == (
         QoSReliabilityPolicy.RELIABLE, QoSDurabilityPolicy.VOLATILE, 10)
     assert bag.qos_from_offers([]).reliability == QoSReliabilityPolicy.RELIABLE
-    legacy = bag.parse_qos_profiles('- history: 3\n  depth: 0\n  reliability: 2\n'
+    legacy = bagfile.parse_qos_profiles('- history: 3\n  depth: 0\n  reliability: 2\n'
                                     '  durability: 1\n')   # metadata version <= 8: ints
     assert (legacy[0]['history'], legacy[0]['reliability'], legacy[0]['durability']) == (
         'unknown', 'best_effort', 'transient_local')
@@ -489,7 +502,7 @@ def test_cli_refuses_damaged_files_with_one_line(project_bag, tmp_path, ros_env)
 
 
 def test_recorder_receives_best_effort_publishers(node, tmp_path):
-    from hrc_ros.bag import Recorder
+    from hrc_ros.ros.bag import Recorder
     publisher = node.create_publisher(JointState, 'hrc_bag_test/joint_states',
                                       qos_profile_sensor_data)
     with BagWriter(tmp_path / 'sensor.mcap') as writer:
@@ -498,7 +511,7 @@ def test_recorder_receives_best_effort_publishers(node, tmp_path):
                    'the recorder to subscribe')
         for i in range(5):
             publisher.publish(JointState(name=['l_elbow'], velocity=[0.1 * i]))
-            spin_until(node, lambda: recorder.message_count == i + 1, 5, f'message {i}')
+            spin_until(node, lambda n=i + 1: recorder.message_count == n, 5, f'message {i}')
         recorder.close()
     messages = list(bag.read_bag(tmp_path / 'sensor.mcap'))
     assert [bag.deserialize(m).velocity[0] for m in messages] == [0.1 * i for i in range(5)]
@@ -537,7 +550,8 @@ def test_record_then_play_across_processes(node, tmp_path, ros_env):
         assert recorder.poll() is None, recorder.stderr.read()
         start = time.monotonic()
         for i in range(count):
-            spin_until(node, lambda: time.monotonic() >= start + i * period, 5, 'publish time')
+            due = start + i * period
+            spin_until(node, lambda due=due: time.monotonic() >= due, 5, 'publish time')
             publisher.publish(String(data=f'message {i:02d}'))
         spin_until(node, lambda: recorder_output.seen(f'recorded {count} messages'), 15,
                    f'the recorder to report {count} messages')
@@ -597,8 +611,8 @@ def test_play_by_publish_time_restores_the_send_order(node, tmp_path):
     for order, expected in (('log', ['b', 'a', 'c']), ('publish', ['a', 'b', 'c'])):
         played = []
         result = bag.play(tmp_path / 'order.mcap', node=node, order=order,
-                          on_publish=lambda m: played.append((time.monotonic(),
-                                                              bag.deserialize(m).data)))
+                          on_publish=lambda m, played=played: played.append(
+                              (time.monotonic(), bag.deserialize(m).data)))
         assert [data for _, data in played] == expected, order
         assert result.message_count == 3
         assert played[-1][0] - played[0][0] >= 0.29, order        # recorded spacing kept

@@ -1,7 +1,7 @@
 """The main job, `hrc-case-study`, as README command 1 runs it (four node processes over DDS).
 
-Its trajectory must equal the ROS-free closed loop (`hrc_ros.simulator.simulate`) for the same
-seed: the nodes run the same core with the same random streams, so any difference is a bug in
+Its trajectory must equal the ROS-free closed loop (`hrc_ros.core.simulation.simulate`) for the
+same seed: the nodes run the same core with the same random streams, so any difference is a bug in
 the ROS layer (windowing, epoch alignment, conversions).
 """
 
@@ -12,11 +12,12 @@ import sys
 import numpy as np
 import pytest
 
-from hrc_ros.bag import bag_info
-from hrc_ros.config import load_config
-from hrc_ros.model import STATE_VARIABLES, HRCModel
-from hrc_ros.policy import default_config_path, default_policy_path, load_policy
-from hrc_ros.simulator import case_study, simulate
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import STATE_VARIABLES, HRCModel
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.policy import default_policy_path, load_policy
+from hrc_ros.core.simulation import case_study, simulate
+from hrc_ros.ros.bag import bag_info
 
 SEED = 3
 
@@ -24,7 +25,7 @@ SEED = 3
 @pytest.fixture(scope='module')
 def run(tmp_path_factory, ros_domain_id):
     out = tmp_path_factory.mktemp('case_study')
-    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.case_study', '--out', str(out),
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.ros.case_study', '--out', str(out),
                            '--seed', str(SEED), '--epoch-period', '0.5'],
                           capture_output=True, text=True, timeout=180)
     return out, proc

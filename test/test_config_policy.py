@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import yaml
 
-from hrc_ros.config import ConfigError, load_config
-from hrc_ros.model import HRCModel
-from hrc_ros.policy import PolicyError, load_policy, save_policy
-from hrc_ros.solver import solve
+from hrc_ros.core.config import ConfigError, load_config
+from hrc_ros.core.model import HRCModel
+from hrc_ros.core.paths import default_config_path, shipped_config_path
+from hrc_ros.core.policy import PolicyError, load_policy, save_policy
+from hrc_ros.core.solver import solve
 
-DEFAULT = 'config/default.yaml'
+DEFAULT = default_config_path()
 
 
 def write_config(tmp_path, mutate):
@@ -26,7 +27,7 @@ def write_config(tmp_path, mutate):
 
 
 def test_shipped_configs_load_and_differ_only_in_alpha10():
-    default, paper = load_config(DEFAULT), load_config('config/paper.yaml')
+    default, paper = load_config(DEFAULT), load_config(shipped_config_path('paper'))
     assert default.cost['alpha10'] == 10 and paper.cost['alpha10'] == 1
     assert {k: v for k, v in paper.cost.items() if k != 'alpha10'} == \
         {k: v for k, v in default.cost.items() if k != 'alpha10'}
@@ -76,7 +77,7 @@ def test_unreadable_and_malformed_files(tmp_path):
 
 def test_shipped_policies_load_and_match_their_configs():
     for name in ('default', 'paper', 'fail_safe_aware'):
-        config = load_config(f'config/{name}.yaml')
+        config = load_config(shipped_config_path(name))
         policy = load_policy(f'policies/{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
         assert policy.meta['config_sha256'] == config.policy_hash
@@ -88,11 +89,11 @@ def test_shipped_policies_load_and_match_their_configs():
 def test_the_shipped_policy_is_found_for_its_configuration():
     """No policy named: the shipped one solved for the configuration, else default.npz (whose
     check then says what to solve)."""
-    from hrc_ros.policy import default_policy_path
+    from hrc_ros.core.policy import default_policy_path
     for name in ('default', 'paper', 'fail_safe_aware'):
-        path = default_policy_path(load_config(f'config/{name}.yaml'))
+        path = default_policy_path(load_config(shipped_config_path(name)))
         assert path.name == f'{name}.npz'
-        load_policy(path, load_config(f'config/{name}.yaml'))
+        load_policy(path, load_config(shipped_config_path(name)))
     other = load_config(DEFAULT, overrides={'solver': {'gamma': 0.9}})
     assert default_policy_path(other).name == 'default.npz'
     with pytest.raises(PolicyError, match='solved for configuration'):
@@ -146,7 +147,7 @@ def test_corrupt_and_foreign_policy_files_are_refused(tmp_path, small):
 def test_hrc_solve_cli(tmp_path):
     config = write_config(tmp_path, lambda d: d['model'].update(rho=1, sigma=1))
     out = tmp_path / 'p.npz'
-    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.solve_cli', '--config', str(config),
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.tools.solve', '--config', str(config),
                            '-o', str(out), '--every', '50'], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -154,7 +155,7 @@ def test_hrc_solve_cli(tmp_path):
     meta = json.loads(str(np.load(out)['meta']))
     assert meta['sweeps'] == 280 and meta['config']['model']['rho'] == 1
     bad = write_config(tmp_path, lambda d: d['solver'].update(gamma=2))
-    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.solve_cli', '--config', str(bad),
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.tools.solve', '--config', str(bad),
                            '-o', str(out)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and 'solver.gamma' in proc.stderr
     assert 'Traceback' not in proc.stderr

@@ -11,10 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from hrc_ros.config import load_config
-from hrc_ros.model import ACTIONS, HRCModel
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTIONS, HRCModel
+from hrc_ros.core.paths import default_config_path, shipped_config_path
 
-CONFIG = 'config/default.yaml'
+CONFIG = default_config_path()
 S0 = (0, 0, 1, 1, 3, 0, 0, 0, 0, 0, 1)  # the paper's initial state
 
 # MODEL.md 3.3 / 3.4 defaults
@@ -180,7 +181,7 @@ def test_costs_of_named_states(model):
     np.testing.assert_allclose(model.cost(states, ACTIONS.index('dm')), want + 1, rtol=1e-12)
     np.testing.assert_allclose(model.cost(states, ACTIONS.index('rh2')), want + 1, rtol=1e-12)
     np.testing.assert_allclose(model.cost(states, ACTIONS.index('dn')), want, rtol=1e-12)
-    paper = HRCModel(load_config('config/paper.yaml'))
+    paper = HRCModel(load_config(shipped_config_path('paper')))
     assert paper.state_cost(states[1:2])[0] == pytest.approx(f_collision - 9)
     # the by-parts vector agrees with the direct formula
     idx = [model.index(tuple(s)) for s in states]

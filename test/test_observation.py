@@ -3,10 +3,14 @@
 import numpy as np
 import pytest
 
-from hrc_ros.observation import (ObservationFeature, ObservationModel, closest_distance,
-                                 distance_level, synthesize_joint_velocities,
-                                 synthesize_skeleton, velocity_level, velocity_model,
-                                 window_level)
+from hrc_ros.core.observation import (
+    closest_distance,
+    distance_level,
+    synthesize_joint_velocities,
+    synthesize_skeleton,
+    velocity_level,
+    window_level,
+)
 
 T = (0.3, 0.8)
 R = (0.2, 0.6, 1.2)
@@ -147,49 +151,3 @@ def test_synthesis_rejects_bad_input(call, field):
 def _column_stochastic(rng, levels):
     m = rng.uniform(0.05, 1.0, size=(levels, 9))
     return m / m.sum(axis=0)
-
-
-def test_multi_feature_likelihood_is_the_product():
-    rng = np.random.default_rng(3)
-    tables = [_column_stochastic(rng, k) for k in (3, 2, 4)]
-    model = ObservationModel([
-        ObservationFeature('qdot_0', (0.3, 0.8), tables[0]),
-        ObservationFeature('q_lh', (0.5,), tables[1]),
-        ObservationFeature('qdot_rh', (0.1, 0.2, 0.4), tables[2]),
-    ])
-    for levels in [(1, 1, 1), (3, 2, 4), (2, 1, 3)]:
-        expected = [tables[0][levels[0] - 1, h] * tables[1][levels[1] - 1, h]
-                    * tables[2][levels[2] - 1, h] for h in range(9)]
-        np.testing.assert_allclose(model.likelihood(levels), expected, rtol=1e-15)
-    assert model.levels({'qdot_0': [0.1, -0.2], 'q_lh': 0.7, 'qdot_rh': 0.15}) == (1, 2, 2)
-    assert model.levels([0.8, 0.5, 0.4]) == (3, 2, 4)
-    assert model.levels([0.29, 0.49, 0.0]) == (1, 1, 1)
-
-
-def test_observation_model_rejects_bad_input():
-    lik = np.full((3, 9), 1 / 3)
-    with pytest.raises(ValueError, match='likelihood'):
-        ObservationFeature('v', (0.3, 0.8), np.full((3, 9), 0.5))
-    with pytest.raises(ValueError, match='likelihood'):
-        ObservationFeature('v', (0.3,), lik)
-    with pytest.raises(ValueError, match='thresholds'):
-        ObservationFeature('v', (0.8, 0.3), lik)
-    feature = ObservationFeature('v', (0.3, 0.8), lik)
-    with pytest.raises(ValueError, match='unique'):
-        ObservationModel([feature, feature])
-    model = ObservationModel([feature])
-    with pytest.raises(ValueError, match='level of v'):
-        model.likelihood((4,))
-    with pytest.raises(ValueError, match='levels'):
-        model.likelihood((1, 1))
-    with pytest.raises(ValueError, match='missing'):
-        model.levels({'w': 0.1})
-
-
-def test_velocity_model_matches_velocity_level():
-    lik = _column_stochastic(np.random.default_rng(0), 3)
-    model = velocity_model(lik, T)
-    for level in (1, 2, 3):
-        v = synthesize_joint_velocities(level, 14, T, np.random.default_rng(level))
-        assert model.levels([v]) == (velocity_level(v, T),) == (level,)
-        np.testing.assert_array_equal(model.likelihood((level,)), lik[level - 1])

@@ -8,7 +8,7 @@
   `ament_index_python.get_package_prefix`). Tools and nodes then run from the install with the
   environment its `local_setup.sh` sets; the nodes join the ROS graph and stop cleanly on SIGINT.
 - pip: `pip install` into a fresh environment puts the same scripts in `<venv>/bin` and the
-  data in `<venv>/share/hrc_ros`, where `hrc_ros.policy.share_dir()` finds them.
+  data in `<venv>/share/hrc_ros`, where `hrc_ros.core.policy.share_dir()` finds them.
 - The launch file and the ROS parameter files, against docs/DESIGN.md's parameter table; the
   params files are parsed by rcl itself (through rclpy), as `--params-file` does.
 - `.ci/run` fails when pytest collects no tests.
@@ -175,8 +175,7 @@ def test_colcon_install_layout(prefix, relative):
 
 def test_colcon_install_ships_the_policies(prefix):
     shipped = sorted(p.name for p in (REPO / 'policies').glob('*.npz'))
-    if 'default.npz' not in shipped:
-        pytest.skip('policies/default.npz is not in the repository yet (hrc-solve writes it)')
+    assert 'default.npz' in shipped
     installed = sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies').glob('*.npz'))
     assert installed == shipped
 
@@ -220,7 +219,7 @@ def test_installed_tool_runs(prefix, ros_env):
 def test_install_is_self_contained(prefix, ros_env):
     """The install's code and data are used, not the checkout's or the dev venv's."""
     python = interpreter(str(prefix / 'lib' / PACKAGE / 'hrc-solve'))
-    result = run([python, '-c', 'import hrc_ros, hrc_ros.policy as p; '
+    result = run([python, '-c', 'import hrc_ros, hrc_ros.core.policy as p; '
                   'print(hrc_ros.__file__); print(p.share_dir())'], env=ros_env, timeout=60)
     assert result.returncode == 0, result.stdout
     module, share = result.stdout.split()[-2:]
@@ -274,10 +273,6 @@ def monkeypatch_module():
 @pytest.mark.parametrize('executable', NODES)
 def test_installed_node_joins_graph_and_stops_on_sigint(executable, prefix, ros_env,
                                                         graph_probe, tmp_path):
-    if not (REPO / PACKAGE / 'nodes' / f'{executable}.py').is_file():
-        pytest.skip(f'hrc_ros/nodes/{executable}.py is not written yet')
-    if executable == 'decision_node' and not (REPO / 'policies' / 'default.npz').is_file():
-        pytest.skip('decision_node needs the shipped policies/default.npz, not in the repo yet')
     name = NODE_NAMES[executable]
     path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
     params = prefix / 'share' / PACKAGE / 'config' / 'hrc_params.yaml'
@@ -356,7 +351,7 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
     result = run([str(venv / 'bin' / 'hrc-solve'), '--help'], env=clean_env(), timeout=60)
     assert result.returncode == 0 and 'usage: hrc-solve' in result.stdout, result.stdout
     result = run([str(venv / 'bin' / 'python'), '-c',
-                  'import hrc_ros, hrc_ros.policy as p; print(hrc_ros.__file__); '
+                  'import hrc_ros, hrc_ros.core.paths as p; print(hrc_ros.__file__); '
                   'print(p.share_dir()); print(p.default_config_path())'],
                  env=clean_env(), timeout=60)
     assert result.returncode == 0, result.stdout
@@ -372,33 +367,72 @@ LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
 LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'namespace', 'use_sim'}
 
 
-def test_launch_file_declares_the_cell():
-    source = LAUNCH_FILE.read_text()
-    tree = ast.parse(compile(source, str(LAUNCH_FILE), 'exec', ast.PyCF_ONLY_AST))
-    functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
-    assert 'generate_launch_description' in functions
-    strings = {n.value for n in ast.walk(tree)
-               if isinstance(n, ast.Constant) and isinstance(n.value, str)}
-    assert set(NODES) <= strings, f'executables not started: {set(NODES) - strings}'
-    assert set(NODE_NAMES.values()) <= strings
-    declared = {call.args[0].value for call in ast.walk(tree)
-                if isinstance(call, ast.Call) and getattr(call.func, 'id', '') ==
-                'DeclareLaunchArgument'}
-    assert declared == LAUNCH_ARGUMENTS
+def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
+    from hrc_ros.ros.launch_plan import ARGUMENTS, cell_nodes
+    assert {a.name for a in ARGUMENTS} == LAUNCH_ARGUMENTS
+    share = tmp_path / 'share'
+    base = str(share / 'config' / 'hrc_params.yaml')
+    plan = cell_nodes(share)
+    assert {(n.executable, n.name) for n in plan} == set(NODE_NAMES.items())
+    assert (plan[-1].executable, plan[-1].name) == ('cell_sim_node', 'cell_sim')
+    assert len(plan) == 4 and all(n.namespace == '' for n in plan)
+    assert all(n.parameters == [base, {}] for n in plan)   # nothing set: the params file rules
+    plan = cell_nodes(share, params_file='extra.yaml', namespace='cell1', config='c.yaml',
+                      policy='p.npz', selector='qmdp', use_sim='false')
+    by_name = {n.name: n for n in plan}
+    assert set(by_name) == set(NODE_NAMES.values()) - {'cell_sim'}
+    assert all(n.namespace == 'cell1' for n in plan)
+    assert by_name['decision'].parameters == [base, 'extra.yaml', {
+        'config': 'c.yaml', 'policy': 'p.npz', 'selector': 'qmdp'}]
+    assert by_name['task_manager'].parameters == [base, 'extra.yaml', {'config': 'c.yaml'}]
+    # the shipped params file named again is not loaded twice
+    assert cell_nodes(share, params_file=base)[0].parameters == [base, {}]
+    with pytest.raises(ValueError, match='selector'):
+        cell_nodes(share, selector='greedy')
+    with pytest.raises(ValueError, match='use_sim'):
+        cell_nodes(share, use_sim='maybe')
 
 
-def test_launch_file_loads():
-    launch = pytest.importorskip('launch')
-    if getattr(launch, '__file__', None) is None:   # only the checkout's launch/ folder
-        pytest.skip('ROS 2 `launch` is not installed (it is not on PyPI)')
-    pytest.importorskip('launch_ros', reason='ROS 2 `launch_ros` is not installed')
+def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
+    """Run launch/hrc.launch.py with recording stand-ins for ROS `launch` and `launch_ros`
+    (not installable here): it declares every plan argument and starts the plan's nodes."""
+    import types
+
+    from hrc_ros.ros.launch_plan import ARGUMENTS, cell_nodes
+
+    class Recorded:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    class LaunchConfiguration(Recorded):
+        def perform(self, context):
+            return context[self.args[0]]
+
+    modules = {
+        'launch': {'LaunchDescription': Recorded},
+        'launch.actions': {'DeclareLaunchArgument': Recorded, 'OpaqueFunction': Recorded},
+        'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
+        'launch_ros': {}, 'launch_ros.actions': {'Node': Recorded},
+        'ament_index_python': {},
+        'ament_index_python.packages': {'get_package_share_directory': lambda p: str(tmp_path)},
+    }
+    for name, members in modules.items():
+        monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**members))
     import importlib.util
     spec = importlib.util.spec_from_file_location('hrc_launch', LAUNCH_FILE)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     description = module.generate_launch_description()
-    names = {argument.name for argument in description.get_launch_arguments()}
-    assert names == LAUNCH_ARGUMENTS
+    *declared, opaque = description.args[0]
+    assert [(d.args[0], d.kwargs['default_value'], tuple(d.kwargs.get('choices', ())))
+            for d in declared] == [(a.name, a.default, a.choices) for a in ARGUMENTS]
+    values = {a.name: a.default for a in ARGUMENTS}
+    values.update(namespace='cell2', selector='mls', use_sim='false')
+    nodes = opaque.kwargs['function'](values)
+    plan = cell_nodes(tmp_path, **values)
+    assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
+             n.kwargs['namespace'], n.kwargs['parameters']) for n in nodes] == \
+        [(PACKAGE, p.executable, p.name, p.namespace, p.parameters) for p in plan]
 
 
 # --- the ROS parameter files against DESIGN.md's table --------------------------------------

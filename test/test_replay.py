@@ -24,8 +24,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from hrc_ros.bag import BagError, bag_info, deserialize, read_bag
-from hrc_ros.processes import NodeProcesses
+from hrc_ros.ros.bag import BagError, bag_info, deserialize, read_bag
+from hrc_ros.ros.processes import NodeProcesses
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = sorted(p for p in (REPO / 'bags').iterdir() if p.is_dir() and any(p.glob('*.mcap')))
@@ -58,7 +58,7 @@ def recorded_actions(bag: Path) -> dict[int, str]:
 
 def decision_reports(bag: Path) -> dict[int, dict]:
     """Epoch -> the decision node's per-epoch /diagnostics values, as recorded."""
-    from hrc_ros.conversions import diagnostic_values
+    from hrc_ros.ros.conversions import diagnostic_values
     reports = {}
     for m in read_bag(bag, topics=['/diagnostics']):
         for status in deserialize(m).status:
@@ -109,7 +109,7 @@ def test_a_damaged_bag_is_refused_clearly(tmp_path):
     truncated.write_bytes(source[: len(source) // 2])
     with pytest.raises(BagError):
         bag_info(truncated)
-    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.bag', 'play', str(truncated)],
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.ros.bag', 'play', str(truncated)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.startswith('hrc-bag: ') and 'Traceback' not in proc.stderr
@@ -118,13 +118,12 @@ def test_a_damaged_bag_is_refused_clearly(tmp_path):
 @pytest.mark.parametrize('bag', BAGS, ids=[b.name for b in BAGS])
 def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String, UInt32
 
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    from hrc_ros.conversions import diagnostic_values
+    from hrc_ros.ros.conversions import diagnostic_values
 
     expected = recorded_actions(bag)
     assert len(expected) >= 10, f'{bag.name} holds only {len(expected)} decisions'
@@ -173,9 +172,10 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
                    'the nodes to subscribe hrc/epoch')
         recorded = {t.topic for t in bag_info(bag).topics}
         player = subprocess.Popen(
-            [sys.executable, '-m', 'hrc_ros.bag', 'play', str(bag), '--topics',
+            [sys.executable, '-m', 'hrc_ros.ros.bag', 'play', str(bag), '--topics',
              *[t for t in INPUTS if t in recorded],
-             '--wait-for-subscribers', '10', '--order', 'publish'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+             '--wait-for-subscribers', '10', '--order', 'publish'],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             text=True, start_new_session=True)
         last = max(expected)
 

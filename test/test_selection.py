@@ -3,17 +3,18 @@
 import numpy as np
 import pytest
 
-from hrc_ros.config import load_config
-from hrc_ros.model import ACTION_INDEX, DN, HRCModel, SAFETY_ORDER
-from hrc_ros.selection import SELECTORS, ActionSelector
-from hrc_ros.solver import FactoredBellman, solve
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTION_INDEX, DN, SAFETY_ORDER, HRCModel
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.selection import SELECTORS, ActionSelector
+from hrc_ros.core.solver import FactoredBellman, solve
 
 X = (1, 1, 3, 0, 0, 0, 0, 0, 1)   # the paper's initial observable state (reduced model)
 
 
 @pytest.fixture(scope='module')
 def model():
-    return HRCModel(load_config('config/default.yaml',
+    return HRCModel(load_config(default_config_path(),
                                 overrides={'model': {'rho': 1, 'sigma': 1}}))
 
 
@@ -115,7 +116,7 @@ def test_point_mass_beliefs_give_the_policy_action(model, solved):
 
 
 def test_qmdp_scores_equal_the_solver_q(model, solved):
-    q_all = FactoredBellman(model).bellman_q(solved.value)     # an independent formulation
+    q_all = FactoredBellman(model).q(solved.value)     # an independent formulation
     selector = ActionSelector(model, solved.policy, solved.value, method='qmdp')
     rng = np.random.default_rng(3)
     for i in rng.integers(0, model.n_states, size=50):
@@ -222,5 +223,11 @@ def test_bad_construction_is_rejected(model, solved):
         ActionSelector(model, solved.policy, np.full(model.n_states, np.nan))
 
 
-def test_safety_order_is_the_models():
-    assert SAFETY_ORDER[0] == DN
+def test_a_full_tie_goes_through_the_whole_safety_order(model):
+    """Equal votes and equal single weights: the earliest of the model's safety order wins,
+    pair by pair along the order (dn, dp, nw, ct, rh1, rh2, mh, dm)."""
+    names = {a: name for name, a in ACTION_INDEX.items()}
+    for first, later in zip(SAFETY_ORDER, SAFETY_ORDER[1:]):
+        for order in ((first, later), (later, first)):
+            s = paper(model, {0: names[order[0]], 1: names[order[1]]}, belief(0.5, 0.5))
+            assert s.action == first, (names[first], names[later])

@@ -12,11 +12,12 @@ import csv
 import numpy as np
 import pytest
 
-from hrc_ros.belief import BeliefFilter
-from hrc_ros.model import ACTIONS, DN, request_eligible
-from hrc_ros.policy import default_policy_path
-from hrc_ros.simulator import (COLUMNS, STATE_VARIABLES, Scenario, case_study, main,
-                               plot_trajectory, simulate)
+from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.model import ACTIONS, DN, request_eligible
+from hrc_ros.core.plots import plot_trajectory
+from hrc_ros.core.policy import default_policy_path
+from hrc_ros.core.simulation import COLUMNS, STATE_VARIABLES, Scenario, case_study, simulate
+from hrc_ros.tools.simulate import main
 
 
 def pi(model, policy, state):

@@ -2,14 +2,21 @@
 
 import numpy as np
 import pytest
+from reference import rule_q
 from scipy import sparse
 
-from hrc_ros import _kernels
-from hrc_ros.config import load_config
-from hrc_ros.model import ACTIONS, DN, NW, HRCModel
-from hrc_ros.solver import FactoredBellman, greedy_policy, solve
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTIONS, DN, NW, HRCModel
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.solver import (
+    FactoredBellman,
+    greedy_policy,
+    policy_iteration,
+    solve,
+    value_iteration,
+)
 
-CONFIG = 'config/default.yaml'
+CONFIG = default_config_path()
 REDUCED = {'model': {'rho': 1, 'sigma': 1}}
 
 
@@ -37,16 +44,16 @@ def test_factored_q_equals_explicit_sparse_on_reduced_model(reduced):
     rng = np.random.default_rng(7)
     op = FactoredBellman(reduced)
     for value in (rng.normal(size=reduced.n_states) * 20, np.zeros(reduced.n_states)):
-        np.testing.assert_allclose(op.bellman_q(value), explicit_q(reduced, value, matrices),
+        np.testing.assert_allclose(op.q(value), explicit_q(reduced, value, matrices),
                                    atol=1e-10)
 
 
 def test_factored_q_equals_rule_by_rule_q_on_sampled_full_states(full):
     rng = np.random.default_rng(11)
     value = rng.normal(size=full.n_states) * 20
-    q = FactoredBellman(full).bellman_q(value)
+    q = FactoredBellman(full).q(value)
     sample = rng.choice(full.n_states, size=3000, replace=False)
-    np.testing.assert_allclose(q[:, sample].T, full.q_values(value, sample), atol=1e-10)
+    np.testing.assert_allclose(q[:, sample].T, rule_q(full, value, sample), atol=1e-10)
 
 
 @pytest.mark.parametrize('aware', [False, True], ids=['model', 'fail_safe_aware'])
@@ -56,36 +63,48 @@ def test_fast_sweeps_equal_the_max_of_q(overrides, aware):
     model = HRCModel(load_config(CONFIG, overrides=overrides))
     op = FactoredBellman(model)
     value = np.random.default_rng(3).normal(size=model.n_states) * 20
-    q_max = op.bellman_q(value).max(axis=0)
-    np.testing.assert_allclose(op.bellman_max(value), q_max, atol=1e-10)
-    new, residual = op.sweep(value)
+    q_max = op.q(value).max(axis=0)
+    new, residual = op.apply(value)
     np.testing.assert_allclose(new, q_max, atol=1e-10)
     assert residual == pytest.approx(np.max(np.abs(q_max - value)), abs=1e-10)
-
-
-def test_kernel_is_in_use():
-    assert _kernels.AVAILABLE, 'numba missing: the solver falls back to the slow numpy form'
 
 
 def test_value_and_policy_iteration_agree(reduced):
     vi = solve(reduced)
     pi = solve(reduced, method='policy_iteration')
+    assert (vi.method, pi.method) == ('value_iteration', 'policy_iteration')
     assert vi.converged and vi.residual < reduced.config.eta
+    # the fields mean the same for both: PI's value is exact, its Bellman residual tiny
+    assert pi.converged and pi.residual < 1e-8 and 1 <= pi.iterations < vi.iterations
+    op = FactoredBellman(reduced)
+    for result in (vi, pi):
+        assert result.residual == pytest.approx(op.residual(result.value), abs=1e-12)
     # |V_VI - V*| <= gamma * eta / (1 - gamma)
     assert np.max(np.abs(vi.value - pi.value)) < 2 * 0.95 * 1e-6 / 0.05
-    q = FactoredBellman(reduced).bellman_q(pi.value)
+    q = FactoredBellman(reduced).q(pi.value)
     differ = np.flatnonzero(vi.policy != pi.policy)
     gaps = np.abs(q[vi.policy[differ], differ] - q[pi.policy[differ], differ])
     assert np.all(gaps < 1e-6), 'policies differ beyond ties'
 
 
 def test_value_iteration_is_a_fixed_point_and_counts_sweeps(reduced):
-    res = solve(reduced)
-    assert res.sweeps == 280  # MODEL.md 5: about 280 sweeps with the defaults
+    res = value_iteration(reduced)
+    assert res.iterations == 280  # MODEL.md 5: about 280 sweeps with the defaults
     op = FactoredBellman(reduced)
-    assert np.max(np.abs(op.bellman_max(res.value) - res.value)) < reduced.config.eta
+    assert np.max(np.abs(op.q(res.value).max(axis=0) - res.value)) < reduced.config.eta
     fixed = solve(reduced, sweeps=20)  # the paper's k = 20
-    assert fixed.sweeps == 20 and not fixed.converged
+    assert fixed.iterations == 20 and not fixed.converged
+
+
+def test_solve_dispatches_and_refuses_bad_arguments(reduced):
+    with pytest.raises(ValueError, match='unknown method'):
+        solve(reduced, method='simplex')
+    with pytest.raises(ValueError, match='sweeps'):
+        value_iteration(reduced, sweeps=0)
+    with pytest.raises(ValueError, match='max_iterations'):
+        policy_iteration(reduced, max_iterations=0)
+    capped = policy_iteration(reduced, max_iterations=1)
+    assert capped.iterations == 1 and not capped.converged
 
 
 def test_safety_tie_order():
@@ -99,8 +118,8 @@ def test_safety_tie_order():
 
 def test_shipped_policy_behaviour_matches_the_paper(full):
     """MODEL.md 7, policy-level facts of the shipped default policy."""
-    from hrc_ros.policy import load_policy
-    policy = load_policy('policies/default.npz', full.config).policy
+    from hrc_ros.core.policy import default_policy_path, load_policy
+    policy = load_policy(default_policy_path(full.config), full.config).policy
 
     def act(state):
         return ACTIONS[policy[full.index(state)]]
@@ -132,8 +151,8 @@ def test_fail_safe_aware_plans_dn_at_collision(reduced):
     assert np.all(pi.policy[collision] == DN)
     # outside collision the operator is the model's: Q of the allowed actions is unchanged
     value = np.random.default_rng(5).normal(size=aware.n_states)
-    q_aware = FactoredBellman(aware).bellman_q(value)
-    q_plain = FactoredBellman(reduced).bellman_q(value)
+    q_aware = FactoredBellman(aware).q(value)
+    q_plain = FactoredBellman(reduced).q(value)
     np.testing.assert_array_equal(q_aware[:, ~collision], q_plain[:, ~collision])
     np.testing.assert_array_equal(q_aware[DN, collision], q_plain[DN, collision])
     assert np.all(np.isneginf(np.delete(q_aware[:, collision], DN, axis=0)))

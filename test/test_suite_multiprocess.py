@@ -25,12 +25,12 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String, UInt8MultiArray
 
-from hrc_ros import conversions as conv
-from hrc_ros import qos
-from hrc_ros.model import HRCModel
-from hrc_ros.policy import load_policy
-from hrc_ros.processes import NodeProcesses
-from hrc_ros.simulator import case_study, simulate
+from hrc_ros.core.model import HRCModel
+from hrc_ros.core.policy import load_policy
+from hrc_ros.core.simulation import case_study, simulate
+from hrc_ros.ros import conversions as conv
+from hrc_ros.ros import qos
+from hrc_ros.ros.processes import NodeProcesses
 
 EPOCHS = 20
 EPOCH_PERIOD = 0.5       # with 0.4 s for an epoch's inputs: room for a scheduling stall

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from hrc_ros.config import load_config
-from hrc_ros.model import ACTIONS, TASK_VARIABLES, HRCModel, request_eligible
-from hrc_ros.policy import default_config_path
-from hrc_ros.tasks import TaskBook, parse_schedule, parse_schedule_entry
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTIONS, TASK_VARIABLES, HRCModel, request_eligible
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.tasks import TaskBook, parse_schedule, parse_schedule_entry
 
 
 @pytest.fixture(scope='module')

@@ -11,10 +11,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .config import ConfigError, load_config
-from .model import ACTIONS, HRCModel
-from .policy import default_config_path, save_policy
-from .solver import solve
+from ..core.config import ConfigError, load_config
+from ..core.model import ACTIONS, HRCModel
+from ..core.paths import default_config_path
+from ..core.policy import save_policy
+from ..core.solver import solve
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,10 +34,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f'hrc-solve: {exc}', file=sys.stderr)
         return 2
     model = HRCModel(config)
+    sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '
           f'gamma={config.gamma}, eta={config.eta:g}, '
-          f'sweeps={"to eta" if (args.sweeps or config.sweeps) is None else args.sweeps or config.sweeps}',
-          flush=True)
+          f'sweeps={"to eta" if sweeps is None else sweeps}', flush=True)
 
     def progress(sweep: int, residual: float, elapsed: float) -> None:
         if not args.quiet and (sweep % max(1, args.every) == 0 or sweep == 1):
@@ -46,8 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     result = solve(model, sweeps=args.sweeps, progress=progress)
     path = save_policy(args.output, result, config)
     counts = ' '.join(f'{a}={int((result.policy == i).sum())}' for i, a in enumerate(ACTIONS))
-    print(f'hrc-solve: {"converged" if result.converged else "stopped"} after {result.sweeps} '
-          f'sweeps, residual {result.residual:.3e}, {result.timings["total"]:.2f} s')
+    print(f'hrc-solve: {"converged" if result.converged else "stopped"} after '
+          f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '
+          f'{result.timings["total"]:.2f} s')
     print(f'hrc-solve: actions {counts}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
     return 0

@@ -16,8 +16,9 @@ Selectors (`SELECTORS`):
   within 1e-12) goes to the first action of the safety order dn, dp, nw, ct, rh1, rh2, mh, dm.
   scores = V (8,).
 - ``qmdp``: a* = argmax_a sum_h b(h) Q(s_h, a), with Q(s, a) = -J(s, a) + gamma E[V(s')] of the
-  solved value V (one factored Bellman step, `FactoredBellman.bellman_q`, formed once). Ties within 1e-9 * max(1, |best|) (the solver's own
-  tolerance) go to the safety order. scores = the expected Q (8,). Needs `value`.
+  solved value V (one factored Bellman step, `FactoredBellman.q`, formed once). Ties within
+  1e-9 * max(1, |best|) (the solver's own tolerance) go to the safety order. scores = the
+  expected Q (8,). Needs `value`.
 - ``mls`` (most likely state): the policy action of h* = argmax_h b(h); ties in h (within 1e-12)
   go to the lowest h, i.e. the calmer, less motivated human. scores = one-hot of the action.
 
@@ -32,10 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .belief import validate_belief
-from .model import ACTIONS, N_DISTANCE, N_HIDDEN, SAFETY_ORDER, STATE_VARIABLES
+from .model import ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, SAFETY_ORDER
+from .policy import policy_arrays
 
 SELECTORS = ('paper', 'qmdp', 'mls')
-OBSERVABLE_VARIABLES = STATE_VARIABLES[2:]   # tp tc tx ty hp hc bp bc d
 VOTE_TOLERANCE = 1e-12
 Q_TOLERANCE = 1e-9
 N_ACTIONS = len(ACTIONS)
@@ -67,10 +68,7 @@ class ActionSelector:
     """
 
     def __init__(self, model, policy, value=None, method: str = 'paper'):
-        if hasattr(policy, 'policy'):
-            if value is None:
-                value = getattr(policy, 'value', None)
-            policy = policy.policy
+        policy, value = policy_arrays(policy, value)
         self.model = model
         n = model.n_states
         pi = np.ascontiguousarray(policy)
@@ -82,7 +80,6 @@ class ActionSelector:
         self.policy = pi
         self._by_h = pi.reshape(N_HIDDEN, n // N_HIDDEN)   # row h, column (y, d)
         if value is not None:
-            value = np.asarray(value, dtype=float)
             if value.shape != (n,) or not np.all(np.isfinite(value)):
                 raise ValueError(f'value must be a finite float array of shape ({n},), got '
                                  f'{value.shape}')
@@ -167,7 +164,7 @@ class ActionSelector:
         """Q(s, a) for every state, from one factored Bellman step on `value` (~50 ms)."""
         if self._q is None:
             from .solver import FactoredBellman
-            self._q = FactoredBellman(self.model).bellman_q(self.value)
+            self._q = FactoredBellman(self.model).q(self.value)
         return self._q
 
     def _qmdp(self, b: np.ndarray, indices: np.ndarray) -> Selection:

@@ -33,7 +33,6 @@ import numpy as np
 
 from .model import TASK_VARIABLES, HRCModel, action_index, step_task
 
-TASK_NATURES = ('robot only', 'human only', 'either', 'both together')
 _ENTRY = re.compile(r'^\s*(\d+)\s*:\s*(\d+)\s*,\s*(\d+)\s*,\s*(\d+)\s*$')
 
 

@@ -29,8 +29,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, chain_matrix,
-                    next_distance, request_eligible)
+from .model import (
+    ACTION_EMOTION_GROUP,
+    DELTAS,
+    HRCModel,
+    action_index,
+    next_distance,
+    request_eligible,
+)
 
 UNIFORMS_PER_EPOCH = 5
 
@@ -51,14 +57,6 @@ def sample_index(cumulative: np.ndarray, u):
     """Inverse-CDF draw: the first index whose cumulative probability exceeds u."""
     index = np.sum(np.asarray(cumulative)[..., :-1] <= np.asarray(u)[..., None], axis=-1)
     return index
-
-
-def emotion_chains(model: HRCModel) -> dict:
-    """Group -> (em chain 3x3, ea chain 3x3), the factors of `model.emotion_matrices`."""
-    cfg = model.config
-    return {group: (chain_matrix(*cfg.emotion_chain(group, 'em')),
-                    chain_matrix(*cfg.emotion_chain(group, 'ea')))
-            for group in ('base', 'motivate', 'request')}
 
 
 def _check_level(name: str, value, high: int) -> int:
@@ -94,7 +92,7 @@ class SimulatedHuman:
         self._accept = cfg.p_accept
         self._delta_cdf = np.cumsum(cfg.p_delta, axis=1)
         self._chain_cdf = {g: tuple(np.cumsum(m, axis=1) for m in chains)
-                           for g, chains in emotion_chains(model).items()}
+                           for g, chains in model.emotion_chains.items()}
         self._observation_cdf = np.cumsum(likelihood, axis=0).T   # row h: CDF over O
         self.observation = self._draw_observation(self.rng.random())
 

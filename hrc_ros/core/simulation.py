@@ -19,15 +19,13 @@ selector can achieve (the fail-safe applies to it too).
 A row of the trajectory holds epoch k, the true state s_k (11 variables, the paper's Table 6
 order), O_k, b_k (9 values over h = 3*em + ea), a_k, the human's answer, whether the fail-safe
 fired, the selector's scores (8) and the cost J(s_k, a_k). `hrc-simulate` prints the rows as
-the paper's Table 6, writes them as CSV and plots them in the spirit of the paper's Figs 9-12
-(task status, human and robot activity, distance, action sequence) plus the belief over time.
+the paper's Table 6 (`Trajectory.table`), writes them as CSV and plots them in the spirit of the
+paper's Figs 9-12 (`plots.plot_trajectory`).
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,9 +33,8 @@ import numpy as np
 
 from .belief import BeliefFilter
 from .cell import SimulatedHuman
-from .config import ConfigError, load_config
 from .model import ACTIONS, DN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
-from .policy import PolicyError, default_config_path, default_policy_path, load_policy
+from .policy import policy_arrays
 from .selection import SELECTORS, ActionSelector
 from .tasks import TaskBook, TaskRecord
 
@@ -144,15 +141,6 @@ class Trajectory:
         return '\n'.join(lines)
 
 
-def _policy_arrays(policy, value):
-    """(policy array, value or None) from a Policy, a SolveResult or plain arrays."""
-    if hasattr(policy, 'policy'):
-        if value is None:
-            value = getattr(policy, 'value', None)
-        policy = policy.policy
-    return np.asarray(policy), value
-
-
 def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper',
              mode: str | None = None, seed=0, value=None, fail_safe: bool = True
              ) -> Trajectory:
@@ -165,7 +153,7 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
     if selector not in SIMULATION_SELECTORS:
         raise ValueError(f'unknown selector {selector!r}; expected one of '
                          f'{", ".join(SIMULATION_SELECTORS)}')
-    pi, value = _policy_arrays(policy, value)
+    pi, value = policy_arrays(policy, value)
     if pi.shape != (model.n_states,):
         raise ValueError(f'the policy has {pi.size} states, the model {model.n_states}')
     model.index(scenario.initial_state)            # range check, names the variable
@@ -205,146 +193,3 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
         observation = reaction.observation
     return Trajectory(rows, scenario, selector, belief_filter.mode, seed, model.gamma,
                       tasks=list(book.records))
-
-
-# -- plots -----------------------------------------------------------------------------------
-def _save_figure(plt, fig, path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def _step_panels(plt, trajectory, names, labels, title, path):
-    epochs = trajectory.column('epoch')
-    fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(9, 1.7 * len(names) + 0.8))
-    for ax, name in zip(axes, names):
-        values = trajectory.column(name)
-        ax.step(epochs, values, where='post', color='tab:blue', lw=2)
-        ax.plot(epochs, values, 'o', color='tab:blue', ms=3)
-        top = max(3, int(values.max()))
-        ax.set_ylim(-0.3, top + 0.3)
-        ax.set_yticks(range(top + 1))
-        ax.set_ylabel(labels.get(name, name), rotation=0, ha='right', va='center')
-        ax.grid(alpha=0.3)
-    axes[-1].set_xlabel('epoch')
-    axes[-1].set_xticks(epochs)
-    fig.suptitle(title)
-    return _save_figure(plt, fig, path)
-
-
-def plot_trajectory(trajectory: Trajectory, out_dir) -> list:
-    """PNG plots of a trajectory (paper Figs 9-12 and the belief); returns the paths."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    subtitle = f'({trajectory.scenario.name}, selector {trajectory.selector})'
-    labels = {'tp': 'tp\npriority', 'tc': 'tc\nremaining', 'tx': 'tx\nnature',
-              'ty': 'ty\ncommitment', 'hp': 'hp\nhuman prio.', 'hc': 'hc\nhuman rem.',
-              'bp': 'bp\nrobot prio.', 'bc': 'bc\nrobot rem.'}
-    paths = [
-        _step_panels(plt, trajectory, ('tp', 'tc', 'tx', 'ty'), labels,
-                     f'Status of the active task {subtitle}', out / 'task_status.png'),
-        _step_panels(plt, trajectory, ('hp', 'hc', 'bp', 'bc'), labels,
-                     f'Human and robot activity {subtitle}', out / 'activity.png'),
-    ]
-    epochs = trajectory.column('epoch')
-
-    fig, ax = plt.subplots(figsize=(9, 3.2))
-    ax.step(epochs, trajectory.column('d'), where='post', lw=2, color='tab:red')
-    ax.plot(epochs, trajectory.column('d'), 'o', color='tab:red', ms=4)
-    ax.set_yticks(range(4), ['0 collision', '1 inner', '2 middle', '3 outer'])
-    ax.set_ylim(-0.3, 3.3)
-    ax.set_xticks(epochs)
-    ax.set_xlabel('epoch')
-    ax.grid(alpha=0.3)
-    ax.set_title(f'Distance level d {subtitle}')
-    paths.append(_save_figure(plt, fig, out / 'distance.png'))
-
-    fig, ax = plt.subplots(figsize=(9, 3.8))
-    index = np.array([ACTIONS.index(a) for a in trajectory.actions])
-    ax.step(epochs, index, where='mid', color='0.7', lw=1)
-    accepted = np.array([row['accepted'] for row in trajectory.rows], dtype=object)
-    fail = trajectory.column('fail_safe').astype(bool)
-    plain = np.array([a is None for a in accepted]) & ~fail
-    ax.plot(epochs[plain], index[plain], 'o', color='tab:blue', ms=7, label='action')
-    yes = np.array([a is True for a in accepted])
-    no = np.array([a is False for a in accepted])
-    ax.plot(epochs[yes], index[yes], 's', color='tab:green', ms=8, label='request accepted')
-    ax.plot(epochs[no], index[no], 's', mfc='none', color='tab:orange', ms=8,
-            label='request refused')
-    ax.plot(epochs[fail], index[fail], 'X', color='tab:red', ms=9, label='fail-safe dn')
-    ax.set_yticks(range(len(ACTIONS)), ACTIONS)
-    ax.set_ylim(-0.5, len(ACTIONS) - 0.5)
-    ax.set_xticks(epochs)
-    ax.set_xlabel('epoch')
-    ax.grid(alpha=0.3)
-    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    ax.set_title(f'Sequence of the actions {subtitle}')
-    paths.append(_save_figure(plt, fig, out / 'actions.png'))
-
-    fig, ax = plt.subplots(figsize=(10, 4.5))
-    image = ax.imshow(trajectory.beliefs.T, aspect='auto', origin='lower', cmap='viridis',
-                      vmin=0.0, vmax=1.0, extent=(epochs[0] - 0.5, epochs[-1] + 0.5, -0.5, 8.5))
-    true_h = 3 * trajectory.column('em') + trajectory.column('ea')
-    ax.plot(epochs, true_h, 'o', mfc='none', mec='red', ms=9, mew=1.5, label='true (em, ea)')
-    ax.set_yticks(range(9), [f'h={h} ({h // 3},{h % 3})' for h in range(9)])
-    ax.set_xticks(epochs)
-    ax.set_xlabel('epoch')
-    ax.set_ylabel('hidden state (em, ea)')
-    ax.legend(loc='upper left', bbox_to_anchor=(1.15, 1.0), fontsize=8)
-    fig.colorbar(image, ax=ax, label='belief b(h)')
-    ax.set_title(f'Belief over the hidden emotions ({trajectory.mode} filter)\n{subtitle}',
-                 fontsize=11)
-    paths.append(_save_figure(plt, fig, out / 'belief.png'))
-    return paths
-
-
-# -- command line ----------------------------------------------------------------------------
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        prog='hrc-simulate',
-        description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
-                    'Table 6, write a CSV and PNG plots.')
-    parser.add_argument('--config', default=None,
-                        help='configuration YAML (default: the shipped default.yaml)')
-    parser.add_argument('--policy', default=None,
-                        help='policy file solved for that configuration (default: the shipped '
-                             'policy solved for it, e.g. paper.npz for paper.yaml)')
-    parser.add_argument('--selector', default='paper', choices=SIMULATION_SELECTORS,
-                        help='action selection (mdp = the true state, an upper bound)')
-    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
-                        help='belief mode (default: the configuration\'s)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the simulated human')
-    parser.add_argument('--epochs', type=int, default=None,
-                        help='number of epochs (default: the case study\'s 20)')
-    parser.add_argument('--out', default='out/simulate', help='output folder')
-    args = parser.parse_args(argv)
-    if args.epochs is not None and args.epochs < 1:
-        parser.error(f'--epochs must be >= 1, got {args.epochs}')
-    try:
-        config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(config), config)
-    except (ConfigError, PolicyError) as exc:
-        print(f'hrc-simulate: error: {exc}', file=sys.stderr)
-        return 2
-    model = HRCModel(config)
-    scenario = case_study()
-    if args.epochs is not None:
-        scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
-                            scenario.name)
-    trajectory = simulate(model, policy, scenario, selector=args.selector, mode=args.mode,
-                          seed=args.seed)
-    print(trajectory.table())
-    out = Path(args.out)
-    written = [trajectory.to_csv(out / 'trajectory.csv')] + plot_trajectory(trajectory, out)
-    for path in written:
-        print(f'wrote {path}')
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -39,18 +39,33 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose, PoseArray
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
-                          UInt8MultiArray, UInt32)
+from std_msgs.msg import (
+    Bool,
+    Float64MultiArray,
+    MultiArrayDimension,
+    String,
+    UInt8,
+    UInt8MultiArray,
+    UInt32,
+)
 
-from .belief import BELIEF_TOLERANCE, N_HIDDEN
-from .model import ACTION_INDEX, ACTIONS, STATE_VARIABLES, TASK_VARIABLES, action_index
+from ..core.belief import BELIEF_TOLERANCE
+from ..core.model import (
+    ACTION_INDEX,
+    ACTIONS,
+    DISTANCE_LEVELS,
+    N_HIDDEN,
+    OBSERVATION_LEVELS,
+    STATE_VARIABLES,
+    TASK_VARIABLES,
+    action_index,
+)
+from ..core.protocol import InputError
 
 ROBOT_BASE_FRAME = 'base_link'
 # The six arm joints of the paper's observation set, REP-155 style names.
 HUMAN_JOINTS = ('l_shoulder', 'r_shoulder', 'l_elbow', 'r_elbow', 'l_wrist', 'r_wrist')
 BELIEF_DIMS = (('motivation', 3, 9), ('aggression', 3, 3))
-OBSERVATION_LEVELS = (1, 2, 3)
-DISTANCE_LEVELS = (0, 1, 2, 3)
 # Domain of each task variable besides the priorities / counters (whose top is rho / sigma).
 _NATURE_COMMITMENT_TOP = 3
 
@@ -58,8 +73,9 @@ LEVEL_NAMES = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
                DiagnosticStatus.ERROR: 'ERROR', DiagnosticStatus.STALE: 'STALE'}
 
 
-class MessageError(ValueError):
-    """A received message cannot be used; the text says why."""
+class MessageError(InputError):
+    """A received message cannot be used; the text says why (the core's `InputError`, raised
+    by a conversion)."""
 
 
 # -- time -------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Value iteration on the factored HRC model (MODEL.md section 5), with no N x N matrix.
+"""Solving the HRC MDP (MODEL.md section 5) with the factored Bellman operator: no N x N matrix.
 
 The Bellman operator is
 
@@ -13,19 +13,27 @@ deterministic task step y -> y' = T_a(y, accepted). These commute in the right o
     U_a[h, y', d]   = sum_d' D_a[ea(h)][d, d'] * sum_h' E_g[h, h'] V[h', y', d'].
 
 So a sweep is one 27x9 matrix product (the three emotion groups), a few batched 4x4 distance
-products, and gathers along y. Further savings, all exact:
+products, and gathers along y. ct differs from nw only where it is effective
+(`model.commit_effective`), requests only where eligible (`model.request_eligible`), dn only by
+the paused robot counter.
 
-- nw, dp, dm, mh and the refused branch of rh1/rh2 share the default task step T0, and a max
-  commutes with a gather by the same index, so their best value is taken *before* gathering;
-- ct differs from nw only where it is effective, and requests matter only where eligible;
-  those subsets (about 1/12 and 1/8 of y) are handled separately;
-- dn differs from nw only by the paused robot counter, a gather of one array.
+`FactoredBellman` is the operator, in two forms of one definition:
 
-`bellman_q` gives the full Q (8 x N) for policy extraction and tests; `bellman_max` is the fast
-sweep. With `solver.fail_safe_aware` only dn is available at d = 0 (the other actions' Q there
-is -inf), so the policy plans with the decision node's fail-safe instead of against it. The policy is the greedy argmax of the final sweep's Q with the safety tie order
-(MODEL.md 5): actions within ``1e-9 * max(1, |V|)`` of the best go to the first of
-``dn, dp, nw, ct, rh1, rh2, mh, dm``.
+- `q(V)`: the full Q (8, N), numpy: the reference form, used for the greedy policy, QMDP and
+  the tests (which hold it equal to `HRCModel.transition`, the rule-by-rule model);
+- `apply(V)`: (T V, max|T V - V|), the fused numba kernel of `_kernels`: the fast path of a
+  value-iteration sweep (the tests hold it equal to ``q(V).max(axis=0)``).
+
+With `solver.fail_safe_aware` only dn is available at d = 0 (the other actions' Q there is
+-inf), so the policy plans with the decision node's fail-safe instead of against it.
+
+Solvers, in the shape of QuantEcon's ``ddp.py``: `value_iteration` (MODEL.md 5: from V_0 = 0
+until ``max|V_{t+1} - V_t| < eta``, or a fixed number of sweeps) and `policy_iteration`
+(Howard's: exact evaluation by a sparse linear solve, greedy improvement, until the policy is
+stable; an independent check, slower here than the fused sweeps). `solve(model, method=...)`
+dispatches to them. Each returns a `SolveResult` whose fields mean the same for every method.
+The policy is greedy with the safety tie order (MODEL.md 5): actions within
+``1e-9 * max(1, |V|)`` of the best go to the first of ``dn, dp, nw, ct, rh1, rh2, mh, dm``.
 """
 
 from __future__ import annotations
@@ -37,24 +45,49 @@ from typing import Callable
 import numpy as np
 
 from . import _kernels
-from .model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2,
-                    SAFETY_ORDER, HRCModel, step_task)
+from .model import (
+    ACTIONS,
+    CT,
+    DM,
+    DN,
+    DP,
+    MH,
+    N_DISTANCE,
+    N_HIDDEN,
+    NW,
+    RH1,
+    RH2,
+    SAFETY_ORDER,
+    HRCModel,
+    commit_effective,
+    request_eligible,
+    step_task,
+)
 
-SOLVER_VERSION = '1.0'
+SOLVER_VERSION = '2.0'
 TIE_TOLERANCE = 1e-9
+METHODS = ('value_iteration', 'policy_iteration')
 
 
 @dataclass
 class SolveResult:
-    """What `solve` returns (the shape of QuantEcon's DPSolveResult)."""
+    """What every solver returns (the shape of QuantEcon's DPSolveResult).
+
+    The fields mean the same for every method: `iterations` counts the method's own steps
+    (value iteration: Bellman sweeps; policy iteration: evaluate-and-improve rounds),
+    `converged` says whether its stopping rule was met (rather than an iteration limit), and
+    `residual` is the Bellman residual ``max_s |(T V)(s) - V(s)|`` of the returned value,
+    computed the same way after any method (so ``residual * gamma / (1 - gamma)`` bounds the
+    distance of V to the optimum).
+    """
 
     value: np.ndarray           # V, shape (N,)
     policy: np.ndarray          # action index per state, int8, shape (N,)
-    sweeps: int                 # Bellman sweeps run
-    residual: float             # max |V_t - V_{t-1}| of the last sweep
-    converged: bool             # residual < eta (always False-free for a fixed sweep count)
     method: str
-    timings: dict = field(default_factory=dict)  # seconds: build, sweeps, policy, total
+    iterations: int
+    converged: bool
+    residual: float
+    timings: dict = field(default_factory=dict)  # seconds: build, iterate, policy, total
 
 
 class FactoredBellman:
@@ -74,20 +107,18 @@ class FactoredBellman:
         self.t_default = task_map(NW, False)        # nw dp dm mh, refused requests, idle ct
         self.t_pause = task_map(DN, False)          # dn: the robot's counter is paused
         tp, tx, ty = grid['tp'], grid['tx'], grid['ty']
-        open_task = (tp > 0) & (ty == 0)
-        self.ct_effective = np.flatnonzero(open_task & ((tx == 0) | (tx == 2)))
+        self.ct_effective = np.flatnonzero(commit_effective(tp, tx, ty))
         t_ct = task_map(CT, False)                  # equals t_default where ct is ineffective
         self.t_commit = t_ct[self.ct_effective]
-        # Where a request is eligible: rh1 for tx in {1, 2}, rh2 for tx = 3 (disjoint).
-        self.request_y = np.flatnonzero(open_task & (tx != 0))
-        self.request_is_rh2 = tx[self.request_y] == 3
+        # Where a request is eligible: rh1 or rh2, never both (the subsets are disjoint).
+        rh1_eligible = request_eligible(RH1, tp, tx, ty)
+        rh2_eligible = request_eligible(RH2, tp, tx, ty)
+        self.request_y = np.flatnonzero(rh1_eligible | rh2_eligible)
+        self.request_is_rh2 = rh2_eligible[self.request_y]
         rh1_accept = task_map(RH1, True)
         rh2_accept = task_map(RH2, True)
         self.t_accept = np.where(self.request_is_rh2, rh2_accept[self.request_y],
                                  rh1_accept[self.request_y])
-        # For the request subset: whether ct is effective there too (tx = 2).
-        self.request_ct = np.isin(self.request_y, self.ct_effective)
-        self.t_commit_on_request = t_ct[self.request_y]
 
         self.p_accept_vector = np.repeat(model.config.p_accept, 3)   # by h = 3*em + ea
         self.p_accept_h = self.p_accept_vector[:, None, None]
@@ -120,6 +151,7 @@ class FactoredBellman:
             [model.distance_matrix(a).transpose(0, 2, 1) for a in (NW, DP, DM)])
             .reshape(3, 3, 16))
         self._w = None
+        self._residual = np.empty(n_y)
 
     # -- building blocks ---------------------------------------------------------------
     def _continuations(self, value: np.ndarray):
@@ -132,8 +164,8 @@ class FactoredBellman:
         request = np.matmul(w[2], self.dist_other)
         return base, motivate, request
 
-    def bellman_q(self, value: np.ndarray) -> np.ndarray:
-        """Full Q(s, a), shape (8, N): the reference form of one Bellman step."""
+    def q(self, value: np.ndarray) -> np.ndarray:
+        """Full Q(s, a) = -J(s, a) + gamma E[V(s') | s, a], shape (8, N): the reference form."""
         base, motivate, request = self._continuations(value)
         nw = base[..., 0:4]
         q = np.empty((len(ACTIONS),) + self.shape)
@@ -159,53 +191,22 @@ class FactoredBellman:
             q[np.arange(len(ACTIONS)) != DN, :, :, 0] = -np.inf
         return q.reshape(len(ACTIONS), -1)
 
-    def sweep(self, value: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray,
-                                                                                float]:
-        """One sweep: (T V, max |T V - V|), with the fused kernel where numba is present."""
-        if not _kernels.AVAILABLE:
-            new = self.bellman_max(value)
-            return new, float(np.max(np.abs(new - value)))
+    def apply(self, value: np.ndarray, out: np.ndarray | None = None
+              ) -> tuple[np.ndarray, float]:
+        """(T V, max |T V - V|): one sweep by the fused kernel (`_kernels.sweep`)."""
         if self._w is None:
             self._w = np.empty((3,) + self.shape)
         if out is None:
             out = np.empty(self.model.n_states)
-        residual = np.empty(self.n_y)
         _kernels.sweep(self.gamma_emotion, self.t_default, self.t_pause, self.t_commit_full,
                        self.t_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
-                       self.fail_safe_aware, value.reshape(self.shape), self._w,
-                       out.reshape(self.shape), residual)
-        return out, float(residual.max())
+                       self.fail_safe_aware, np.ascontiguousarray(value).reshape(self.shape),
+                       self._w, out.reshape(self.shape), self._residual)
+        return out, float(self._residual.max())
 
-    def bellman_max(self, value: np.ndarray) -> np.ndarray:
-        """(T V), shape (N,): the max of `bellman_q` without forming it (numpy form)."""
-        base, motivate, request = self._continuations(value)
-        g = self.g
-        nw = base[..., 0:4]
-        # Best of the actions that use the default task step, before the gather.
-        pre = np.maximum(nw, base[..., 4:8] - g[DP])
-        np.maximum(pre, base[..., 8:12] - g[DM], out=pre)
-        np.maximum(pre, motivate - g[MH], out=pre)
-        refused = request - g[RH1]
-        with_refused = np.maximum(pre, refused)
-        best = np.take(with_refused, self.t_default, axis=1)
-        np.maximum(best, np.take(nw, self.t_pause, axis=1), out=best)
-        ce = self.ct_effective
-        best[:, ce] = np.maximum(best[:, ce], nw[:, self.t_commit])
-        # Where a request is eligible, "certainly refused" is not an option: redo those y.
-        ry = self.request_y
-        t0 = self.t_default[ry]
-        exact = np.maximum(pre[:, t0], np.take(nw, self.t_pause[ry], axis=1))
-        rc = self.request_ct
-        exact[:, rc] = np.maximum(exact[:, rc], nw[:, self.t_commit_on_request[rc]])
-        ref = refused[:, t0]
-        np.maximum(exact, ref, out=exact)  # the ineligible one of rh1/rh2
-        acc = refused[:, self.t_accept]
-        np.maximum(exact, ref + self.p_accept_h * (acc - ref), out=exact)
-        best[:, ry] = exact
-        if self.fail_safe_aware:  # at d = 0 only dn is available
-            best[..., 0] = np.take(nw[..., 0], self.t_pause, axis=1)
-        best -= self.cost
-        return best.reshape(-1)
+    def residual(self, value: np.ndarray) -> float:
+        """The Bellman residual max |T V - V| of a value function."""
+        return self.apply(value)[1]
 
 
 def greedy_policy(q: np.ndarray) -> np.ndarray:
@@ -252,27 +253,23 @@ def evaluate_policy(model: HRCModel, policy: np.ndarray, tol: float = 1e-12) -> 
     return value
 
 
-def solve(model: HRCModel, method: str = 'value_iteration', eta: float | None = None,
-          sweeps: int | None = None, progress: Callable[[int, float, float], None] | None
-          = None, operator: FactoredBellman | None = None) -> SolveResult:
-    """Solve the model; defaults for eta and sweeps come from the configuration.
+def value_iteration(model: HRCModel, eta: float | None = None, sweeps: int | None = None,
+                    progress: Callable[[int, float, float], None] | None = None,
+                    operator: FactoredBellman | None = None) -> SolveResult:
+    """Value iteration from V_0 = 0 (MODEL.md 5).
 
-    `method` is `value_iteration` (MODEL.md 5, the default) or `policy_iteration` (Howard's:
-    exact evaluation by a sparse linear solve, greedy improvement with the safety tie order,
-    until the policy is stable). Policy iteration is kept as an independent check: on this
-    model it is slower than the fused value iteration, so the shipped policies use VI.
-    `progress(sweep, residual, elapsed_seconds)` is called after every sweep (or improvement).
+    Stops when ``max|V_{t+1} - V_t| < eta`` or, with `sweeps`, after exactly that many sweeps
+    (the paper's fixed count); both default to the configuration's. The policy is the greedy
+    argmax of the last sweep's Q, as a textbook value iteration reports it.
+    `progress(sweep, max|V_{t+1} - V_t|, elapsed_seconds)` is called after every sweep.
     """
-    if method == 'policy_iteration':
-        return _policy_iteration(model, progress, operator)
-    if method != 'value_iteration':
-        raise ValueError(f'unknown method {method!r}; available: value_iteration, '
-                         'policy_iteration')
     cfg = model.config
     eta = cfg.eta if eta is None else float(eta)
     sweeps = cfg.sweeps if sweeps is None else sweeps
-    if sweeps is not None and sweeps < 1:
-        raise ValueError(f'sweeps must be >= 1, got {sweeps}')
+    if sweeps is not None and (isinstance(sweeps, bool) or int(sweeps) != sweeps or sweeps < 1):
+        raise ValueError(f'sweeps must be an integer >= 1, got {sweeps!r}')
+    if not eta > 0:
+        raise ValueError(f'eta must be > 0, got {eta!r}')
     t0 = time.perf_counter()
     op = operator or FactoredBellman(model)
     t_built = time.perf_counter()
@@ -280,51 +277,65 @@ def solve(model: HRCModel, method: str = 'value_iteration', eta: float | None = 
     spare = np.empty(model.n_states)
     n = 0
     while True:
-        new_value, residual = op.sweep(value, out=spare)
+        new_value, change = op.apply(value, out=spare)
         n += 1
         if progress is not None:
-            progress(n, residual, time.perf_counter() - t0)
-        if (sweeps is None and residual < eta) or (sweeps is not None and n >= sweeps):
+            progress(n, change, time.perf_counter() - t0)
+        if (sweeps is None and change < eta) or (sweeps is not None and n >= sweeps):
             break
         value, spare = new_value, value
-    t_sweeps = time.perf_counter()
-    # The policy is the argmax of the last sweep's Q (formed from V_{t}, whose image is the
-    # returned V_{t+1}), exactly as a textbook value iteration reports it.
-    q = op.bellman_q(value)
-    policy = greedy_policy(q)
+    t_iterated = time.perf_counter()
+    policy = greedy_policy(op.q(value))
+    residual = op.residual(new_value)
     t_end = time.perf_counter()
     return SolveResult(
-        value=new_value, policy=policy, sweeps=n, residual=residual,
-        converged=residual < eta, method=method,
-        timings={'build': t_built - t0, 'sweeps': t_sweeps - t_built,
-                 'policy': t_end - t_sweeps, 'total': t_end - t0})
+        value=new_value, policy=policy, method='value_iteration', iterations=n,
+        converged=change < eta, residual=residual,
+        timings={'build': t_built - t0, 'iterate': t_iterated - t_built,
+                 'policy': t_end - t_iterated, 'total': t_end - t0})
 
 
-def _policy_iteration(model: HRCModel, progress, operator) -> SolveResult:
+def policy_iteration(model: HRCModel, max_iterations: int = 100,
+                     progress: Callable[[int, float, float], None] | None = None,
+                     operator: FactoredBellman | None = None) -> SolveResult:
+    """Howard's policy iteration: evaluate the policy exactly (`evaluate_policy`), improve it
+    greedily (keeping the current action where it is still within the tie tolerance of the
+    best, so ties cannot make it cycle), until it is stable or `max_iterations` rounds ran.
+    `progress(round, max|T V - V|, elapsed_seconds)` is called after every round."""
+    if isinstance(max_iterations, bool) or int(max_iterations) != max_iterations \
+            or max_iterations < 1:
+        raise ValueError(f'max_iterations must be an integer >= 1, got {max_iterations!r}')
     t0 = time.perf_counter()
     op = operator or FactoredBellman(model)
     t_built = time.perf_counter()
-    policy = greedy_policy(op.bellman_q(np.zeros(model.n_states)))
-    rounds = 0
-    while True:
+    policy = greedy_policy(op.q(np.zeros(model.n_states)))
+    rounds, stable = 0, False
+    while rounds < max_iterations:
         value = evaluate_policy(model, policy)
-        q = op.bellman_q(value)
+        q = op.q(value)
         rounds += 1
-        improved = greedy_policy(q)
-        # Keep the current action where it is still (within the tie tolerance) the best, so
-        # ties cannot make the iteration cycle.
         best = q.max(axis=0)
+        residual = float(np.max(np.abs(best - value)))
+        if progress is not None:
+            progress(rounds, residual, time.perf_counter() - t0)
+        improved = greedy_policy(q)
         current = q[policy.astype(np.intp), np.arange(model.n_states)]
         keep = current >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
         improved[keep] = policy[keep]
-        residual = float(np.max(best - current))
-        if progress is not None:
-            progress(rounds, residual, time.perf_counter() - t0)
         if np.array_equal(improved, policy):
+            stable = True
             break
         policy = improved
     t_end = time.perf_counter()
-    return SolveResult(value=value, policy=policy, sweeps=rounds, residual=residual,
-                       converged=True, method='policy_iteration',
-                       timings={'build': t_built - t0, 'sweeps': t_end - t_built,
+    return SolveResult(value=value, policy=policy, method='policy_iteration',
+                       iterations=rounds, converged=stable, residual=residual,
+                       timings={'build': t_built - t0, 'iterate': t_end - t_built,
                                 'policy': 0.0, 'total': t_end - t0})
+
+
+def solve(model: HRCModel, method: str = 'value_iteration', **options) -> SolveResult:
+    """Solve the model with `method` (one of `METHODS`); `options` go to that solver."""
+    solvers = {'value_iteration': value_iteration, 'policy_iteration': policy_iteration}
+    if method not in solvers:
+        raise ValueError(f'unknown method {method!r}; available: {", ".join(METHODS)}')
+    return solvers[method](model, **options)

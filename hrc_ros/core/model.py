@@ -40,7 +40,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .config import Config
+from .config import EMOTION_GROUPS, Config
 
 ACTIONS = ('nw', 'rh1', 'rh2', 'ct', 'dp', 'dm', 'mh', 'dn')
 ACTION_INDEX = {name: i for i, name in enumerate(ACTIONS)}
@@ -53,8 +53,12 @@ ACTION_EMOTION_GROUP = {NW: 'base', CT: 'base', DP: 'base', DM: 'base', DN: 'bas
 
 STATE_VARIABLES = ('em', 'ea', 'tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc', 'd')
 TASK_VARIABLES = ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc')
-N_HIDDEN = 9
+OBSERVABLE_VARIABLES = STATE_VARIABLES[2:]   # tp tc tx ty hp hc bp bc d
+N_HIDDEN = 9                      # h = 3*em + ea
 N_DISTANCE = 4
+DISTANCE_LEVELS = tuple(range(N_DISTANCE))   # d: 0 collision, 1 inner, 2 middle, 3 outer
+OBSERVATION_LEVELS = (1, 2, 3)    # O: the human velocity level (MODEL.md 6)
+N_OBSERVATIONS = len(OBSERVATION_LEVELS)
 DELTAS = (-1, 0, 1)
 
 
@@ -89,13 +93,21 @@ def next_distance(d, action: int, delta):
 
 
 def request_eligible(action: int, tp, tx, ty):
-    """Whether `action` is an eligible request (MODEL.md 3.1); False for non-requests."""
+    """Whether `action` is an eligible request (MODEL.md 3.1); False for non-requests.
+
+    The one home of the rule: the task book, the solver, the simulated cell and the batch
+    evaluator all call it (on scalars or on arrays of task variables)."""
     open_task = (tp > 0) & (ty == 0)
     if action == RH1:
         return open_task & ((tx == 1) | (tx == 2))
     if action == RH2:
         return open_task & (tx == 3)
     return np.zeros(np.shape(tp), dtype=bool) if np.ndim(tp) else False
+
+
+def commit_effective(tp, tx, ty):
+    """Whether ct commits the robot (MODEL.md 3.2): an open task the robot may take alone."""
+    return (tp > 0) & (ty == 0) & ((tx == 0) | (tx == 2))
 
 
 def step_task(task: dict, action: int, accepted) -> dict:
@@ -109,7 +121,7 @@ def step_task(task: dict, action: int, accepted) -> dict:
     accepted = np.asarray(accepted, dtype=bool)
     human_takes = request_eligible(action, tp, tx, ty) & accepted & (action == RH1)
     joint = request_eligible(action, tp, tx, ty) & accepted & (action == RH2)
-    robot_commits = ((action == CT) & (tp > 0) & (ty == 0) & ((tx == 0) | (tx == 2)))
+    robot_commits = (action == CT) & commit_effective(tp, tx, ty)
     human_new = human_takes | joint
     robot_new = joint | robot_commits
 
@@ -179,7 +191,7 @@ class HRCModel:
 
     @cached_property
     def task_grid(self) -> dict:
-        """Task/activity variables of every y = 0..n_task-1 (int8 arrays)."""
+        """Task/activity variables of every y = 0..n_task-1 (int64 arrays)."""
         grid = np.unravel_index(np.arange(self.n_task), self.task_dims)
         return {name: g.astype(np.int64) for name, g in zip(TASK_VARIABLES, grid)}
 
@@ -188,14 +200,16 @@ class HRCModel:
 
     # -- dynamics pieces -----------------------------------------------------------------
     @cached_property
+    def emotion_chains(self) -> dict:
+        """Group -> (em chain, ea chain), the 3x3 bounded chains of MODEL.md 3.4."""
+        return {group: tuple(chain_matrix(*self.config.emotion_chain(group, variable))
+                             for variable in ('em', 'ea'))
+                for group in EMOTION_GROUPS}
+
+    @cached_property
     def emotion_matrices(self) -> dict:
         """Group -> 9x9 matrix P(h' | h) = kron(em chain, ea chain)."""
-        out = {}
-        for group in ('base', 'motivate', 'request'):
-            em = chain_matrix(*self.config.emotion_chain(group, 'em'))
-            ea = chain_matrix(*self.config.emotion_chain(group, 'ea'))
-            out[group] = np.kron(em, ea)
-        return out
+        return {group: np.kron(em, ea) for group, (em, ea) in self.emotion_chains.items()}
 
     def action_emotion_matrix(self, action: int) -> np.ndarray:
         return self.emotion_matrices[ACTION_EMOTION_GROUP[action]]
@@ -269,7 +283,8 @@ class HRCModel:
 
         Every combination of acceptance, Delta and (em', ea') is one entry (duplicates of a
         target are kept; sum them, as scipy.sparse does). This is the rule-by-rule form of
-        the model, used for explicit sparse matrices and for Q of a few states online.
+        the model: the independent formulation that the tests and the benchmark hold the
+        factored solver against, and the rows of a fixed policy's matrix (policy iteration).
         """
         action = action_index(action)
         sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
@@ -295,18 +310,6 @@ class HRCModel:
                     tgt.append(flat)
                     prob.append(p[keep])
         return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
-
-    def q_values(self, value: np.ndarray, sources) -> np.ndarray:
-        """Q(s, a) = -J(s, a) + gamma * E[V(s')] for a few states; shape (len(sources), 8)."""
-        sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
-        states = self.state(sources)
-        q = np.empty((len(sources), len(ACTIONS)))
-        for a in range(len(ACTIONS)):
-            t = self.transition(sources, a)
-            expected = np.bincount(t.source, weights=t.probability * value[t.target],
-                                   minlength=len(sources))
-            q[:, a] = -self.cost(states, a) + self.gamma * expected
-        return q
 
     def sparse_matrices(self, chunk: int = 1 << 16):
         """The 8 explicit N x N transition matrices (scipy.sparse CSR), rows = s."""

@@ -1,7 +1,8 @@
 """Fused sweep kernels of the factored Bellman operator (numba).
 
-`solver.FactoredBellman.bellman_max` computes the same thing with numpy; one kernel fuses
-it into two parallel passes over the task part y, so a sweep reads and writes each array once:
+The fast path of `solver.FactoredBellman`: one sweep ``T V`` (the max over actions of
+`FactoredBellman.q`, which the tests hold it equal to), fused into two parallel passes over the
+task part y, so a sweep reads and writes each array once:
 
 1. the emotion step W[g, h, y, d] = sum_h' gammaE_g[h, h'] V[h', y, d] for the three emotion
    groups g (base, motivate, request), i.e. the 27x9 product of the numpy form, done here so
@@ -12,26 +13,22 @@ it into two parallel passes over the task part y, so a sweep reads and writes ea
 
 The four distance values of a row are contiguous and handled as one 4-wide vector (the loops
 over d are unrolled by hand so LLVM vectorises them); h is the outer loop so the distance
-coefficients of its ea are loop invariants. Both passes are numba-parallel over y. The numpy form stays the reference (the
-tests compare the two to 1e-12) and the fallback where numba is missing.
+coefficients of its ea are loop invariants. Both passes are numba-parallel over y. numba is a
+dependency of the package; there is no slower fallback.
 
 Arguments of `sweep` (N = 9 * n_y * 4): `gamma_e` (3, 9, 9) the gamma-scaled emotion matrices;
 task maps
 `t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
 [group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
-(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4) scratch for the emotion step; `out`
-receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
+(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4)
+scratch for the emotion step; `out` receives T V; `residual` (n_y,) receives max over h, d
+of |T V - V| per y.
 """
 
 from __future__ import annotations
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is absent
-    numba = None
-
-AVAILABLE = numba is not None
+import numba
 
 
 def _mix(c, x0, x1, x2, x3):
@@ -150,8 +147,5 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             out_h[y, 3] = b3
 
 
-if AVAILABLE:
-    _mix_inline = numba.njit(inline='always')(_mix)
-    sweep = numba.njit(parallel=True, cache=True, nogil=True)(_sweep)
-else:  # pragma: no cover
-    sweep = None
+_mix_inline = numba.njit(inline='always')(_mix)
+sweep = numba.njit(parallel=True, cache=True, nogil=True)(_sweep)

@@ -1,4 +1,4 @@
-"""Policy files (`policies/*.npz`, MODEL.md section 5) and where shipped data lives.
+"""Policy files (`policies/*.npz`, MODEL.md section 5).
 
 A policy file holds ``policy`` (int8, (N,)), ``value`` (float64, (N,)) and ``meta`` (a JSON
 string: the full configuration, gamma, eta, sweeps, final residual, solver version, creation
@@ -12,7 +12,6 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-import sys
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,9 +20,8 @@ import numpy as np
 
 from .config import Config
 from .model import ACTIONS, HRCModel
+from .paths import share_dir
 from .solver import SOLVER_VERSION, SolveResult
-
-PACKAGE = 'hrc_ros'
 
 
 class PolicyError(RuntimeError):
@@ -40,30 +38,6 @@ class Policy:
     @property
     def config_sha256(self) -> str:
         return self.meta['config_sha256']
-
-
-def share_dir() -> Path:
-    """The package's data folder (holding config/ and policies/).
-
-    In order: $HRC_ROS_SHARE; the ament index (a colcon/ROS install); <sys.prefix>/share/hrc_ros
-    (a pip install); the source checkout this module lives in.
-    """
-    env = os.environ.get('HRC_ROS_SHARE')
-    if env:
-        return Path(env)
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        return Path(get_package_share_directory(PACKAGE))
-    except Exception:  # noqa: BLE001 - not a ROS install, or the package is not indexed
-        pass
-    here = Path(__file__).resolve().parent.parent
-    if (here / 'config' / 'default.yaml').is_file():
-        return here
-    return Path(sys.prefix) / 'share' / PACKAGE
-
-
-def default_config_path() -> Path:
-    return share_dir() / 'config' / 'default.yaml'
 
 
 def default_policy_path(config: Config | None = None) -> Path:
@@ -83,6 +57,16 @@ def default_policy_path(config: Config | None = None) -> Path:
     return default
 
 
+def policy_arrays(policy, value=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(action array, value array or None) of a `Policy`, a `SolveResult` or a plain (N,)
+    action array; an explicit `value` wins over the object's own."""
+    if hasattr(policy, 'policy'):
+        if value is None:
+            value = getattr(policy, 'value', None)
+        policy = policy.policy
+    return np.asarray(policy), (None if value is None else np.asarray(value, dtype=float))
+
+
 def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
     path = Path(path)
     meta = {
@@ -91,10 +75,11 @@ def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
         'config_sha256': config.policy_hash,
         'gamma': config.gamma,
         'eta': config.eta,
-        'sweeps': result.sweeps,
+        'method': result.method,
+        'iterations': result.iterations,
+        'sweeps': result.iterations if result.method == 'value_iteration' else None,
         'residual': result.residual,
         'converged': result.converged,
-        'method': result.method,
         'solver_version': SOLVER_VERSION,
         'created': _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds'),
         'n_states': int(result.policy.size),

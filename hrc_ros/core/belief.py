@@ -19,8 +19,8 @@ Table 5 gives, for each velocity level O, a distribution T[O, h] over h. Two mod
   Both steps are one product with the precomputed 9x9 matrix M[a, O] = E_a * L[O] (columns
   scaled), so `update` is a vector-matrix product and a normalisation.
 
-Evidence other than one velocity level: `observation` may be a likelihood vector l (9,) (from
-`observation.ObservationModel.likelihood`, l(h) = P(evidence | h)); bayes mode corrects with l
+Evidence other than one velocity level: `observation` may be a likelihood vector l (9,),
+l(h) = P(evidence | h) (all ones: no evidence, the prediction alone); bayes mode corrects with l
 instead of L[O]. In table mode a vector yields the posterior under the prior that Table 5
 implies: T[O, h] = L0[O, h] * c(h) / 3 with c(h) = sum_O T[O, h] and L0 the epsilon-free
 likelihood, so the table mode of a vector l is b'(h) ∝ l(h) c(h); for l = L0[O] that is row O
@@ -33,6 +33,8 @@ evidence alone, b' = l / sum(l) (the belief `initial` would give under a uniform
 than return NaN. The same fallback applies whenever the normaliser is below the smallest normal
 float, where the quotient would lose precision.
 
+`update_many` is the same update for a batch of beliefs (the batch evaluator's episodes).
+
 All functions are pure: they return new arrays and never modify their inputs.
 """
 
@@ -40,12 +42,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import ACTIONS, action_index
-from .observation import VELOCITY_LEVELS
+from .config import BELIEF_MODES
+from .model import ACTIONS, N_HIDDEN, N_OBSERVATIONS, OBSERVATION_LEVELS, action_index
 
-N_HIDDEN = 9
-N_OBSERVATIONS = 3
-BELIEF_MODES = ('table', 'bayes')
 BELIEF_TOLERANCE = 1e-6  # |sum(b) - 1| allowed in an input belief
 _TINY = np.finfo(float).tiny
 
@@ -137,14 +136,14 @@ class BeliefFilter:
         if isinstance(observation, (int, np.integer)) and not isinstance(observation, bool):
             if 1 <= observation <= N_OBSERVATIONS:
                 return int(observation) - 1, None
-            raise ValueError(f'observation must be a velocity level in {VELOCITY_LEVELS} '
+            raise ValueError(f'observation must be a velocity level in {OBSERVATION_LEVELS} '
                              f'or a likelihood vector (9,), got {observation!r}')
         try:
             lik = np.asarray(observation, dtype=float)
         except (TypeError, ValueError):
             lik = None
         if lik is None or lik.shape != (N_HIDDEN,):
-            raise ValueError(f'observation must be a velocity level in {VELOCITY_LEVELS} '
+            raise ValueError(f'observation must be a velocity level in {OBSERVATION_LEVELS} '
                              f'or a likelihood vector (9,), got {observation!r}')
         if not np.all(np.isfinite(lik)) or lik.min() < 0.0 or not lik.max() > 0.0:
             raise ValueError('observation likelihood must be finite, non-negative and not all '
@@ -179,6 +178,27 @@ class BeliefFilter:
             return self._evidence_only[o].copy() if lik is None else lik / lik.sum()
         post /= total
         return post
+
+    def update_many(self, beliefs, actions, observations) -> np.ndarray:
+        """`update` of a batch: beliefs (E, 9), action indices (E,), observations O (E,) in
+        1..3; the same arithmetic, and the same restart from the evidence where the
+        normaliser vanishes. Inputs are trusted (no per-row validation: a hot path)."""
+        o = np.asarray(observations, dtype=np.intp) - 1
+        if self.mode == 'table':
+            return self.table[o].copy()
+        post = np.einsum('eh,ehk->ek', np.asarray(beliefs, dtype=float),
+                         self._predict_correct[np.asarray(actions, dtype=np.intp), o])
+        total = post.sum(axis=1, keepdims=True)
+        lost = total[:, 0] < _TINY
+        if lost.any():
+            post[lost] = self._evidence_only[o[lost]]
+            total[lost] = 1.0
+        return post / total
+
+    def initial_many(self, observations) -> np.ndarray:
+        """`initial` of a batch of observations O (E,) in 1..3."""
+        o = np.asarray(observations, dtype=np.intp) - 1
+        return (self.table if self.mode == 'table' else self._evidence_only)[o].copy()
 
     def _table_vector(self, lik: np.ndarray) -> np.ndarray:
         post = lik * self.table_prior

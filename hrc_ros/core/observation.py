@@ -23,27 +23,16 @@ The distance level d of the tri-circle safety approach comes from the skeleton k
 `synthesize_joint_velocities` and `synthesize_skeleton` invert these maps for the simulated
 cell: they draw motion whose level is, by construction, the requested one (strictly inside the
 band, so no rounding at an edge can flip it).
-
-Several features (`ObservationModel`): feature i has thresholds and a likelihood table
-L_i[level, h] = P(level | h), h = 3*em + ea. Features are taken as conditionally independent
-given h (naive Bayes), so the evidence of one observation vector is
-
-    P(o_1, ..., o_n | h) = prod_i L_i[o_i, h],
-
-a (9,) vector that `BeliefFilter.update` accepts in place of an integer O. The case study is the
-single velocity feature whose table is the belief filter's likelihood (`velocity_model`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
-N_HIDDEN = 9
-VELOCITY_LEVELS = (1, 2, 3)
-DISTANCE_LEVELS = (0, 1, 2, 3)
+from .model import DISTANCE_LEVELS, OBSERVATION_LEVELS
+
 # Node defaults of DESIGN.md (rad/s and metres).
 DEFAULT_VELOCITY_THRESHOLDS = (0.3, 0.8)
 DEFAULT_SAFETY_RADII = (0.2, 0.6, 1.2)
@@ -148,7 +137,7 @@ def synthesize_joint_velocities(level: int, n_joints: int,
     inside the band; the magnitudes spread around m (uniform weights in [0.5, 1.5], rescaled so
     that their mean is exactly m) and the signs are random.
     """
-    level = _level_arg('level', level, VELOCITY_LEVELS)
+    level = _level_arg('level', level, OBSERVATION_LEVELS)
     if isinstance(n_joints, bool) or not isinstance(n_joints, (int, np.integer)) \
             or n_joints < 1:
         raise ValueError(f'n_joints must be an integer >= 1, got {n_joints!r}')
@@ -193,101 +182,3 @@ def synthesize_skeleton(d: int, radii=DEFAULT_SAFETY_RADII, robot_point=(0.0, 0.
     points = np.vstack([closest, closest + offsets])
     rng.shuffle(points, axis=0)
     return points + p
-
-
-@dataclass(frozen=True)
-class ObservationFeature:
-    """One discretised observation variable.
-
-    `thresholds` (increasing, length L-1) split a scalar value into levels 1..L: value below
-    thresholds[0] -> 1, ..., at or above thresholds[-1] -> L. An array value (the velocities
-    of a joint's axes, say) is reduced to its mean absolute value first, as `velocity_level`
-    does. `likelihood` (L, 9) is P(level | h); each column sums to 1.
-    """
-
-    name: str
-    thresholds: tuple
-    likelihood: np.ndarray
-
-    def __post_init__(self):
-        t = _finite_array(f'{self.name}.thresholds', self.thresholds).reshape(-1)
-        if t.size == 0 or np.any(np.diff(t) <= 0):
-            raise ValueError(f'{self.name}.thresholds must be a non-empty strictly increasing '
-                             f'list, got {t.tolist()}')
-        lik = _finite_array(f'{self.name}.likelihood', self.likelihood)
-        if lik.shape != (t.size + 1, N_HIDDEN):
-            raise ValueError(f'{self.name}.likelihood must have shape ({t.size + 1}, 9) '
-                             f'(levels x h), got {lik.shape}')
-        if np.any(lik < 0):
-            raise ValueError(f'{self.name}.likelihood has negative probabilities')
-        mass = lik.sum(axis=0)
-        if np.any(np.abs(mass - 1.0) > 1e-6):
-            h = int(np.argmax(np.abs(mass - 1.0)))
-            raise ValueError(f'{self.name}.likelihood column h={h} sums to {mass[h]:.9g}; '
-                             'each column P(. | h) must sum to 1')
-        lik = lik.copy()
-        lik.flags.writeable = False
-        object.__setattr__(self, 'thresholds', tuple(float(v) for v in t))
-        object.__setattr__(self, 'likelihood', lik)
-
-    @property
-    def n_levels(self) -> int:
-        return len(self.thresholds) + 1
-
-    def level(self, value) -> int:
-        """Level 1..L of a value (a number, or an array reduced by its mean |.|)."""
-        arr = _finite_array(self.name, value)
-        if arr.size == 0:
-            raise ValueError(f'{self.name}: empty value')
-        v = float(arr) if arr.ndim == 0 else float(np.mean(np.abs(arr)))
-        return 1 + int(np.searchsorted(self.thresholds, v, side='right'))
-
-
-class ObservationModel:
-    """Independent features: levels of a reading, and their joint likelihood over h."""
-
-    def __init__(self, features: Sequence[ObservationFeature]):
-        features = tuple(features)
-        if not features:
-            raise ValueError('an ObservationModel needs at least one feature')
-        names = [f.name for f in features]
-        if len(set(names)) != len(names):
-            raise ValueError(f'feature names must be unique, got {names}')
-        self.features = features
-        self.names = tuple(names)
-
-    def levels(self, values: Mapping[str, object] | Sequence) -> tuple:
-        """Levels (1-based) of one reading: a mapping name -> value, or values in order."""
-        if isinstance(values, Mapping):
-            missing = [n for n in self.names if n not in values]
-            unknown = [n for n in values if n not in self.names]
-            if missing or unknown:
-                raise ValueError(f'values: missing features {missing}, unknown {unknown}')
-            ordered = [values[n] for n in self.names]
-        else:
-            ordered = list(values)
-            if len(ordered) != len(self.features):
-                raise ValueError(f'values must hold {len(self.features)} values '
-                                 f'({", ".join(self.names)}), got {len(ordered)}')
-        return tuple(f.level(v) for f, v in zip(self.features, ordered))
-
-    def likelihood(self, levels: Sequence[int]) -> np.ndarray:
-        """P(levels | h), shape (9,): the product of the features' P(level_i | h)."""
-        levels = tuple(levels)
-        if len(levels) != len(self.features):
-            raise ValueError(f'levels must hold {len(self.features)} levels, got {levels}')
-        out = np.ones(N_HIDDEN)
-        for f, level in zip(self.features, levels):
-            level = _level_arg(f'level of {f.name}', level, range(1, f.n_levels + 1))
-            out *= f.likelihood[level - 1]
-        return out
-
-
-def velocity_model(likelihood, thresholds=DEFAULT_VELOCITY_THRESHOLDS) -> ObservationModel:
-    """The case study's model: the velocity level alone, likelihood (3, 9) P(O | h).
-
-    Pass `BeliefFilter.likelihood` so that the evidence vector of level O is exactly the
-    filter's row O.
-    """
-    t = _increasing_positive('thresholds', thresholds, 2)
-    return ObservationModel([ObservationFeature('velocity', tuple(t), likelihood)])

@@ -29,7 +29,7 @@ def node_command(executable: str) -> list[str]:
     for candidate in candidates:
         if candidate and Path(candidate).is_file() and os.access(candidate, os.X_OK):
             return [str(candidate)]
-    return [sys.executable, '-m', f'hrc_ros.nodes.{executable}']
+    return [sys.executable, '-m', f'hrc_ros.ros.nodes.{executable}']
 
 
 class NodeProcesses:

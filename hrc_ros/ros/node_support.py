@@ -1,5 +1,5 @@
-"""What the four nodes share: parameter declaration and validation, input guarding, dropped
-message accounting on /diagnostics, and the `main()` wrapper.
+"""What the nodes share: parameter declaration and validation, input guarding, dropped message
+accounting and protocol reports on /diagnostics, deadlines, and the `main()` wrapper.
 
 Parameters. A node lists its parameters as `ParamSpec`s; `NodeParameters` declares them with a
 `ParameterDescriptor` (description, type, range, read-only) and registers one
@@ -13,11 +13,17 @@ returns the spec's default then.
 
 Inputs. `Inputs.subscribe` wraps a subscription: the callback converts the message (a
 `conversions` function) and hands the value to the node; a `MessageError`, raised by the
-conversion or by the handler, drops the message with a throttled warning (one throttle per
-input, through a child logger) and a WARN status on /diagnostics (at most one per input per
-`WARNING_THROTTLE_SEC`; the count of dropped messages is in every status). Any other exception
+conversion or by the handler (any `core.protocol.InputError`), drops the message with a
+throttled warning (one throttle per input, through a child logger) and a WARN status on
+/diagnostics (at most one per input per `WARNING_THROTTLE_SEC`; the count of dropped messages
+is in every status). Any other exception
 is a bug: it is logged with its traceback and reported as ERROR, and the node keeps spinning,
-so that no input can stop a node.
+so that no input can stop a node. `Inputs.report` publishes (and logs, throttled) a
+`core.protocol.Report` of the node's protocol machine.
+
+Deadlines. `Deadline` is a one-shot timeout that gives way to messages already waiting;
+`DeadlineTimer` keeps one armed at a protocol machine's `deadline` (an absolute control-clock
+time), so the machines decide what a timeout means and the nodes only keep time.
 """
 
 from __future__ import annotations
@@ -30,23 +36,30 @@ from typing import Any, Callable, Mapping, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .. import qos
-from ..config import ConfigError, load_config
-from ..conversions import MessageError, diagnostic_array, diagnostic_status
-from ..policy import default_config_path
+from ..core import protocol
+from ..core.config import ConfigError, load_config
+from ..core.paths import default_config_path
+from ..core.protocol import InputError, Report
+from . import qos
+from .conversions import diagnostic_array, diagnostic_status
 
 WARNING_THROTTLE_SEC = 5.0   # one warning (and one drop diagnostic) per input per this period
 STATUS_PERIOD_SEC = 1.0      # periodic health status of the nodes
 DIAGNOSTICS_TOPIC = '/diagnostics'
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+LEVELS = {protocol.OK: OK, protocol.WARN: WARN, protocol.ERROR: ERROR}
 
 
 class StartupError(RuntimeError):
@@ -78,6 +91,9 @@ class ParamSpec:
 
 
 Check = Callable[[Mapping[str, Any]], 'str | None']
+
+CONFIG = ParamSpec('config', Parameter.Type.STRING, '', "model configuration YAML ('' = the "
+                   'shipped default.yaml)', read_only=True)
 
 
 class NodeParameters:
@@ -202,7 +218,10 @@ class Deadline:
                                        autostart=False)
 
     def set_period(self, seconds: float) -> None:
-        self.timer.timer_period_ns = int(seconds * 1e9)
+        self.set_period_ns(int(seconds * 1e9))
+
+    def set_period_ns(self, nanoseconds: int) -> None:
+        self.timer.timer_period_ns = int(nanoseconds)
 
     def start(self) -> None:
         self._generation += 1
@@ -228,6 +247,36 @@ class Deadline:
             self._callback()
 
 
+class DeadlineTimer:
+    """Keeps a `Deadline` armed at a protocol machine's `deadline` (absolute control-clock ns,
+    or None). Call `sync(machine.deadline)` after feeding the machine; `callback(now_ns)` runs
+    when the time comes and must call the machine's `expire(now)` (which re-checks the time),
+    then `sync` again."""
+
+    MIN_PERIOD_NS = 1000
+
+    def __init__(self, node: Node, callback: Callable[[int], None]):
+        self.clock = control_clock(node)
+        self._callback = callback
+        self._armed_for: int | None = None
+        self._deadline = Deadline(node, 1.0, self._fire)
+
+    def sync(self, deadline_ns: int | None) -> None:
+        if deadline_ns == self._armed_for:
+            return
+        self._armed_for = deadline_ns
+        if deadline_ns is None:
+            self._deadline.cancel()
+            return
+        remaining = deadline_ns - self.clock.now().nanoseconds
+        self._deadline.set_period_ns(max(remaining, self.MIN_PERIOD_NS))
+        self._deadline.start()
+
+    def _fire(self) -> None:
+        self._armed_for = None
+        self._callback(self.clock.now().nanoseconds)
+
+
 class Inputs:
     """Guarded subscriptions of a node, its /diagnostics publisher and its dropped-message counts.
     """
@@ -241,6 +290,7 @@ class Inputs:
         self._loggers: dict[str, Any] = {}
         self._last_drop_report: dict[str, float] = {}
         self._last_error_report: dict[str, float] = {}
+        self._last_log: dict[tuple, float] = {}
         self._unreported: Counter = Counter()
 
     # -- subscriptions -----------------------------------------------------------------------
@@ -258,7 +308,7 @@ class Inputs:
             self.received[name] += 1
             try:
                 handle(convert(msg), *extra)
-            except MessageError as exc:
+            except InputError as exc:
                 self.drop(name, topic, str(exc))
             except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
                 self.internal_error(name, topic, traceback.format_exc())
@@ -293,7 +343,7 @@ class Inputs:
             self._unreported[name] = 0
 
     @staticmethod
-    def _report_due(last_report: dict[str, float], name: str) -> bool:
+    def _report_due(last_report: dict, name) -> bool:
         """True (and the time noted) at most once per input per WARNING_THROTTLE_SEC."""
         now = time.monotonic()
         if now - last_report.get(name, -float('inf')) < WARNING_THROTTLE_SEC:
@@ -313,24 +363,16 @@ class Inputs:
                                      {'topic': topic, 'error': trace.strip().splitlines()[-1],
                                       'dropped': self.dropped[name]}))
 
-    def epoch_order(self, k: int, last: int) -> bool:
-        """Check hrc/epoch k against the last epoch seen. False when it follows (k > last).
-        True when the count restarted: k = 1 after a higher epoch (the decision node restarted,
-        a replay began again); this is reported (WARN) and must be followed, not refused, or
-        every later epoch would be dropped until the count passed `last`. Any other k <= last
-        raises `MessageError` (dropped): a repeat, or a second epoch source interleaving its
-        count, which must not renumber the cell at every tick."""
-        if k > last:
-            return False
-        if k != 1 or last == 1:
-            raise MessageError(f'epoch {k} repeats the previous epoch' if k == last else
-                               f'epoch {k} does not follow the previous epoch {last} '
-                               '(only a restart at 1 may go back)')
-        message = (f'hrc/epoch restarted at {k} after {last} (the epoch source restarted); '
-                   'following it')
-        self.node.get_logger().warning(message)
-        self.publish(self.status('epoch', WARN, message, {'epoch': k, 'previous_epoch': last}))
-        return True
+    def report(self, report: Report) -> None:
+        """Publish a protocol machine's report; log it too if it asks, at most once per
+        (part, kind) per WARNING_THROTTLE_SEC."""
+        if report.log and self._report_due(self._last_log, (report.what, report.kind)):
+            if report.level == protocol.ERROR:
+                self._logger(report.what).error(report.message)
+            else:
+                self._logger(report.what).warning(report.message)
+        self.publish(self.status(report.what, LEVELS[report.level], report.message,
+                                 report.values))
 
     # -- diagnostics -------------------------------------------------------------------------
     def status(self, what: str, level: bytes, message: str,

@@ -32,13 +32,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .config import ConfigError, load_config
-from .model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
-from .policy import PolicyError, default_config_path, default_policy_path, load_policy, share_dir
-from .processes import NodeProcesses, NodeProcessError
-from .tasks import TaskBook
-from .simulator import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study, \
-    plot_trajectory
+from ..core.config import ConfigError, load_config
+from ..core.faults import parse_faults
+from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
+from ..core.paths import default_config_path, share_dir
+from ..core.plots import plot_trajectory
+from ..core.policy import PolicyError, default_policy_path, load_policy
+from ..core.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
+from ..core.tasks import TaskBook
+from .processes import NodeProcessError, NodeProcesses
 
 NODES = ('cell_sim_node', 'task_manager_node', 'belief_estimator_node', 'decision_node')
 NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
@@ -151,10 +153,10 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     """Record and watch the run until the last epoch's action (or the timeout)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from . import conversions
     from .bag import BagWriter, Recorder, message_class
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     rclpy.init()
     node = rclpy.create_node('case_study_observer')
@@ -268,7 +270,6 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     bag_dir = Path(args.bag) if args.bag else out / 'bag'
     try:
-        from .nodes.cell_sim_node import parse_faults
         parse_faults(args.faults)
     except ValueError as exc:
         print(f'hrc-case-study: {exc}', file=sys.stderr)

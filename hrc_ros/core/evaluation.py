@@ -1,4 +1,4 @@
-"""hrc-evaluate: compare the action selectors over many seeded episodes.
+"""Compare the action selectors over many seeded episodes (`hrc-evaluate`).
 
 The paper shows one 20-epoch run. To say whether its vote heuristic is any good, this runs many
 episodes with random task streams and random initial humans, once per selector, on common
@@ -21,31 +21,37 @@ Metrics per episode (then mean and a 95% normal confidence interval over episode
 For speed the episodes run side by side: `BatchSimulator` is the epoch protocol of
 `simulator.simulate` written over arrays of episodes (task steps as lookup tables, the human's
 draws by inverse CDF from the same uniforms, belief and selection as array arithmetic with the
-same tie rules as `selection.ActionSelector`). The test suite checks that it reproduces
-`simulate` episode by episode. qmdp uses the full Q table of one Bellman step on the solved
-value (`FactoredBellman.bellman_q`), computed once.
+same tie rules as `selection.ActionSelector`, the belief by `BeliefFilter.update_many`). The
+test suite checks that it reproduces `simulate` episode by episode. qmdp uses the full Q table
+of one Bellman step on the solved value (`FactoredBellman.q`), computed once.
 """
 
 from __future__ import annotations
 
-import argparse
-import csv
-import json
-import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from .belief import BeliefFilter
-from .cell import UNIFORMS_PER_EPOCH, emotion_chains, sample_index
-from .config import ConfigError, load_config
-from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
-                    SAFETY_ORDER, TASK_VARIABLES, HRCModel, next_distance, step_task)
-from .policy import PolicyError, default_config_path, default_policy_path, load_policy
+from .cell import UNIFORMS_PER_EPOCH, sample_index
+from .model import (
+    ACTION_EMOTION_GROUP,
+    ACTIONS,
+    DELTAS,
+    DN,
+    N_DISTANCE,
+    N_HIDDEN,
+    SAFETY_ORDER,
+    TASK_VARIABLES,
+    HRCModel,
+    next_distance,
+    request_eligible,
+    step_task,
+)
+from .policy import policy_arrays
 from .selection import Q_TOLERANCE, VOTE_TOLERANCE
-from .simulator import SIMULATION_SELECTORS, Scenario
+from .simulation import SIMULATION_SELECTORS, Scenario
 
 METRICS = (
     ('discounted_cost', 'discounted cost'),
@@ -55,7 +61,6 @@ METRICS = (
     ('tasks_completed', 'tasks completed'),
 )
 Z95 = 1.959963984540054
-_TINY = np.finfo(float).tiny
 
 
 def human_seed(seed: int, episode: int) -> list:
@@ -110,12 +115,8 @@ class BatchSimulator:
 
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
                  fail_safe: bool = True):
-        if hasattr(policy, 'policy'):
-            if value is None:
-                value = getattr(policy, 'value', None)
-            policy = policy.policy
+        self.policy, value = policy_arrays(policy, value)
         self.model = model
-        self.policy = np.asarray(policy)
         if self.policy.shape != (model.n_states,):
             raise ValueError(f'the policy has {self.policy.size} states, the model '
                              f'{model.n_states}')
@@ -134,27 +135,19 @@ class BatchSimulator:
         self.task_step = np.stack([
             np.stack([model.task_index(step_task(grid, a, acc)) for acc in (False, True)])
             for a in range(len(ACTIONS))]).astype(np.intp)
-        open_task = (grid['tp'] > 0) & (grid['ty'] == 0)
-        self.eligible = np.zeros((len(ACTIONS), n_y), dtype=bool)
-        self.eligible[RH1] = open_task & ((grid['tx'] == 1) | (grid['tx'] == 2))
-        self.eligible[RH2] = open_task & (grid['tx'] == 3)
+        self.eligible = np.stack([request_eligible(a, grid['tp'], grid['tx'], grid['ty'])
+                                  for a in range(len(ACTIONS))])
         cfg = model.config
         self.p_accept = cfg.p_accept
         self.delta_cdf = np.cumsum(cfg.p_delta, axis=1)
         self.next_d = np.array([[[next_distance(d, a, delta) for delta in DELTAS]
                                  for d in range(N_DISTANCE)] for a in range(len(ACTIONS))])
-        chains = emotion_chains(model)
+        chains = model.emotion_chains
         self.em_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][0], axis=1)
                                 for a in range(len(ACTIONS))])
         self.ea_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][1], axis=1)
                                 for a in range(len(ACTIONS))])
         self.observation_cdf = np.cumsum(self.filter.likelihood, axis=0).T
-        self.initial_belief = np.stack([self.filter.initial(o) for o in (1, 2, 3)])
-        self.evidence_only = self.filter.likelihood / self.filter.likelihood.sum(
-            axis=1, keepdims=True)
-        # M[a, O-1] = E_a with column h' scaled by L[O, h'] (as the filter's update).
-        self.predict_correct = (self.filter.emotion[:, None, :, :]
-                                * self.filter.likelihood[None, :, None, :])
         self.safety = np.array(SAFETY_ORDER)
         self._q = None
 
@@ -165,8 +158,7 @@ class BatchSimulator:
             if self.value is None:
                 raise ValueError("selector 'qmdp' needs the solved value function")
             from .solver import FactoredBellman
-            self._q = np.ascontiguousarray(
-                FactoredBellman(self.model).bellman_q(np.asarray(self.value, float)).T)
+            self._q = np.ascontiguousarray(FactoredBellman(self.model).q(self.value).T)
         return self._q
 
     # -- selection, vectorised with ActionSelector's tie rules ---------------------------
@@ -207,8 +199,8 @@ class BatchSimulator:
         epochs = scenarios[0].epochs
         if any(s.epochs != epochs for s in scenarios):
             raise ValueError('the scenarios of one batch must have the same number of epochs')
-        if selector == 'qmdp':
-            self.q_table                                   # fail early without a value
+        if selector == 'qmdp' and self.value is None:     # fail early, before any work
+            raise ValueError("selector 'qmdp' needs the solved value function")
         model, n = self.model, len(scenarios)
         rows = np.arange(n)
         initial = np.array([s.initial_state for s in scenarios], dtype=np.int64)
@@ -245,7 +237,7 @@ class BatchSimulator:
         uniforms = np.stack([np.random.default_rng(seed).random(1 + UNIFORMS_PER_EPOCH * epochs)
                              for seed in seeds])
         observation = sample_index(self.observation_cdf[3 * em + ea], uniforms[:, 0]) + 1
-        belief = self.initial_belief[observation - 1]
+        belief = self.filter.initial_many(observation)
 
         cost = np.zeros(n)
         collisions = np.zeros(n, dtype=np.int64)
@@ -300,7 +292,7 @@ class BatchSimulator:
             complete[rows[done], current[done]] = k
             current[done] = -1
             y = y_next
-            belief = self._update(belief, action, observation)
+            belief = self.filter.update_many(belief, action, observation)
 
         completed = complete > 0
         latency = np.where(completed, complete - task[:, :, 0] + 1, 0)
@@ -309,17 +301,6 @@ class BatchSimulator:
             mean_latency = np.where(n_done > 0, latency.sum(axis=1) / n_done, np.nan)
         return BatchResult(selector, cost, mean_latency, collisions, refused, requests,
                            n_done, released, actions_kept)
-
-    def _update(self, belief, action, observation):
-        if self.mode == 'table':
-            return self.filter.table[observation - 1].copy()
-        post = np.einsum('eh,ehk->ek', belief, self.predict_correct[action, observation - 1])
-        total = post.sum(axis=1, keepdims=True)
-        lost = total[:, 0] < _TINY
-        if lost.any():
-            post[lost] = self.evidence_only[observation[lost] - 1]
-            total[lost] = 1.0
-        return post / total
 
 
 # -- statistics and outputs ------------------------------------------------------------------
@@ -364,33 +345,6 @@ def format_table(summaries: dict, differences: dict) -> str:
     return '\n'.join(lines)
 
 
-def plot_summaries(summaries: dict, path, differences: dict | None = None) -> Path:
-    """Bars with 95% error bars per metric; with `differences`, a panel of cost - mdp cost."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    selectors = list(summaries)
-    colors = [{'paper': 'tab:blue', 'qmdp': 'tab:orange', 'mls': 'tab:green',
-               'mdp': '0.45'}.get(s, 'tab:purple') for s in selectors]
-    panels = [(label, [summaries[s][metric] for s in selectors]) for metric, label in METRICS]
-    if differences:
-        panels.append(('cost - mdp cost (paired)', [differences[s] for s in selectors]))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.1 * len(panels), 3.8))
-    for ax, (label, stats) in zip(axes, panels):
-        ax.bar(selectors, [m['mean'] for m in stats], yerr=[m['half_width'] for m in stats],
-               capsize=4, color=colors)
-        ax.set_title(label, fontsize=10)
-        ax.tick_params(axis='x', labelrotation=30)
-        ax.grid(axis='y', alpha=0.3)
-    fig.suptitle('Selectors over the same episodes (mean, 95% confidence interval)')
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
@@ -418,94 +372,3 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
             for f in ('discounted_cost', 'epochs_to_complete', 'collision_epochs',
                       'refused_requests', 'requests', 'tasks_completed', 'tasks_released')))
     return results
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        prog='hrc-evaluate',
-        description='Compare the action selectors (and the full-information MDP bound) over '
-                    'many seeded episodes with random task streams.')
-    parser.add_argument('--config', default=None,
-                        help='configuration YAML (default: the shipped default.yaml)')
-    parser.add_argument('--policy', default=None,
-                        help='policy file solved for that configuration (default: shipped)')
-    parser.add_argument('--episodes', type=int, default=1000)
-    parser.add_argument('--epochs', type=int, default=50, help='epochs per episode')
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--task-rate', type=float, default=0.2,
-                        help='probability of a new task per epoch (one always at epoch 1)')
-    parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
-                        help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
-    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
-                        help="belief mode (default: the configuration's)")
-    parser.add_argument('--no-fail-safe', action='store_true',
-                        help='let the selectors act at d = 0 (for studying the fail-safe)')
-    parser.add_argument('--out', default='out/evaluate', help='output folder')
-    args = parser.parse_args(argv)
-    selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
-    for s in selectors:
-        if s not in SIMULATION_SELECTORS:
-            parser.error(f'unknown selector {s!r} in --selectors; choose from '
-                         f'{", ".join(SIMULATION_SELECTORS)}')
-    for name in ('episodes', 'epochs'):
-        if getattr(args, name) < 1:
-            parser.error(f'--{name} must be >= 1')
-    if args.seed < 0:
-        parser.error('--seed must be >= 0')
-    if not 0.0 <= args.task_rate <= 1.0:
-        parser.error('--task-rate must lie in [0, 1]')
-    try:
-        config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(config), config)
-    except (ConfigError, PolicyError) as exc:
-        print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
-        return 2
-    model = HRCModel(config)
-    t0 = time.perf_counter()
-    results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
-                       selectors, args.mode, not args.no_fail_safe,
-                       progress=lambda m: print(m, flush=True))
-    elapsed = time.perf_counter() - t0
-    summaries = {s: summarize(r) for s, r in results.items()}
-    differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
-                   if 'mdp' in results else {})
-    mode = args.mode or config.belief_mode
-    print(f'{args.episodes} episodes x {args.epochs} epochs, seed {args.seed}, task rate '
-          f'{args.task_rate}, belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, '
-          f'gamma {config.gamma}; {elapsed:.1f} s')
-    print(format_table(summaries, differences))
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with (out / 'summary.csv').open('w', newline='') as f:
-        writer = csv.writer(f)
-        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
-        for s, summary in summaries.items():
-            for metric, _ in METRICS:
-                m = summary[metric]
-                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
-                                 f'{m["high"]:.6g}'])
-    with (out / 'episodes.csv').open('w', newline='') as f:
-        writer = csv.writer(f)
-        fields = [m for m, _ in METRICS] + ['requests', 'tasks_released']
-        writer.writerow(['selector', 'episode'] + fields)
-        for s, r in results.items():
-            for e in range(args.episodes):
-                writer.writerow([s, e] + [f'{getattr(r, f)[e]:.6g}' for f in fields])
-    settings = {'config': config.source, 'config_sha256': config.policy_hash,
-                'policy': policy.path, 'episodes': args.episodes, 'epochs': args.epochs,
-                'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
-                'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
-                'seconds': round(elapsed, 3)}
-    (out / 'summary.json').write_text(json.dumps(
-        {'settings': settings, 'selectors': summaries,
-         'cost_minus_mdp_cost': differences}, indent=2) + '\n')
-    written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
-               plot_summaries(summaries, out / 'summary.png', differences)]
-    for path in written:
-        print(f'wrote {path}')
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -1,0 +1,53 @@
+"""Where the package's data lives: `config/` and `policies/` under the share folder.
+
+`share_dir()` looks, in order, at
+
+1. ``$HRC_ROS_SHARE`` (a folder holding ``config/`` and ``policies/``);
+2. the ament index: the first prefix of ``$AMENT_PREFIX_PATH`` that holds the marker
+   ``share/ament_index/resource_index/packages/hrc_ros`` (a colcon build or a ROS install),
+   read here as plain files, as `ament_index_python` does, so the core imports nothing of ROS;
+3. the source checkout this module lives in (a clone, or ``pip install -e .``);
+4. ``<sys.prefix>/share/hrc_ros`` (a ``pip install .``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+PACKAGE = 'hrc_ros'
+
+
+def ament_share_dir(package: str = PACKAGE) -> Path | None:
+    """``<prefix>/share/<package>`` of the first AMENT_PREFIX_PATH prefix that indexes it."""
+    marker = Path('share') / 'ament_index' / 'resource_index' / 'packages' / package
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        if prefix and (Path(prefix) / marker).is_file():
+            return Path(prefix) / 'share' / package
+    return None
+
+
+def share_dir() -> Path:
+    """The package's data folder (holding config/ and policies/); see the module docstring."""
+    env = os.environ.get('HRC_ROS_SHARE')
+    if env:
+        return Path(env)
+    indexed = ament_share_dir()
+    if indexed is not None:
+        return indexed
+    checkout = Path(__file__).resolve().parents[2]
+    if (checkout / 'config' / 'default.yaml').is_file():
+        return checkout
+    return Path(sys.prefix) / 'share' / PACKAGE
+
+
+def default_config_path() -> Path:
+    """The shipped default configuration, `config/default.yaml`."""
+    return share_dir() / 'config' / 'default.yaml'
+
+
+def shipped_config_path(name: str) -> Path:
+    """A shipped configuration by name: ``shipped_config_path('paper')`` is
+    `config/paper.yaml` of the share folder."""
+    return share_dir() / 'config' / f'{name}.yaml'

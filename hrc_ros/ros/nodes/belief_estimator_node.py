@@ -1,0 +1,208 @@
+"""belief_estimator: human motion -> velocity level O, distance level d and the belief b.
+
+Contract (docs/DESIGN.md): subscribes `human/joint_states` and `human/skeleton` (sensor data
+QoS), `hrc/action` and `hrc/epoch`; on epoch k publishes `hrc/distance_level` d_k (latched),
+`hrc/observation` O_k and `hrc/belief` b_k (latched) of the window that epoch k closes, and a
+per-second status (rates, lag = receive time - header stamp of the joint states, drops). Each
+joint state gets its velocity level at once (`core.observation.velocity_level`; velocities
+derived from positions and stamps where the message has none) and each skeleton its distance
+level (closest keypoint, `robot_frame`); the windows, O_k and the belief update are
+`core.protocol.EstimatorEpochs`. A malformed message is dropped with a diagnostic; a window
+without enough joint states or without a skeleton publishes nothing for that input, so the
+decision node fails safe.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String, UInt8, UInt32
+
+from ...core.belief import BeliefFilter
+from ...core.config import BELIEF_MODES
+from ...core.model import HRCModel
+from ...core.observation import (
+    DEFAULT_SAFETY_RADII,
+    DEFAULT_VELOCITY_THRESHOLDS,
+    distance_level,
+    velocity_level,
+)
+from ...core.protocol import EstimatorEpochs
+from .. import conversions as conv
+from .. import qos
+from ..node_support import (
+    CONFIG,
+    STATUS_PERIOD_SEC,
+    Inputs,
+    NodeParameters,
+    ParamSpec,
+    StartupError,
+    check_array,
+    check_core,
+    load_node_config,
+    run,
+)
+
+T = Parameter.Type
+VELOCITY_THRESHOLDS = ParamSpec(
+    'velocity_thresholds', T.DOUBLE_ARRAY, list(DEFAULT_VELOCITY_THRESHOLDS),
+    'rad/s, mean |joint velocity| of a sample: O=1 below the first, O=2 below the second, '
+    'else O=3', constraints='2 values, positive, strictly increasing')
+SAFETY_RADII = ParamSpec(
+    'safety_radii', T.DOUBLE_ARRAY, list(DEFAULT_SAFETY_RADII),
+    'metres: collision / inner / middle circle radii around the robot reference point',
+    constraints='3 values, positive, strictly increasing')
+ROBOT_REFERENCE_POINT = ParamSpec(
+    'robot_reference_point', T.DOUBLE_ARRAY, [0.0, 0.0, 0.0],
+    'metres, robot base frame: centre of the safety circles', constraints='3 finite values')
+ROBOT_FRAME = ParamSpec(
+    'robot_frame', T.STRING, conv.ROBOT_BASE_FRAME, 'frame_id of human/skeleton: the robot '
+    'base frame the keypoints and robot_reference_point are in (e.g. cell1/base_link)',
+    read_only=True, constraints='non-empty')
+MOTION_PARAMETERS = (VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME)
+PARAMETERS = (
+    CONFIG,
+    ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
+              "configuration's observation.mode)", constraints="'', 'bayes' or 'table'"),
+    ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
+              'for an observation; fewer count as a sensor dropout (no observation)',
+              range=(1, 100000)),
+) + MOTION_PARAMETERS
+
+
+def check_motion_parameters(values) -> str | None:
+    """Thresholds, radii and reference point (shared with cell_sim, which must match)."""
+    return (check_core(values, 'velocity_thresholds', lambda t: velocity_level([0.0], t))
+            or check_core(values, 'safety_radii',
+                          lambda r: distance_level(np.zeros((1, 3)), (0.0, 0.0, 0.0), r))
+            or check_array(values, 'robot_reference_point', 3)
+            or ('robot_frame must not be empty' if values.get('robot_frame', 'x') == ''
+                else None))
+
+
+def check_parameters(values) -> str | None:
+    mode = values.get('belief_mode', '')
+    if mode not in ('',) + BELIEF_MODES:
+        return f"belief_mode must be '', {' or '.join(BELIEF_MODES)}, got {mode!r}"
+    return check_motion_parameters(values)
+
+
+class BeliefEstimatorNode(Node):
+    NODE_NAME = 'belief_estimator'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
+        self.config = load_node_config(self.params.value('config'))
+        self.model = HRCModel(self.config)
+        self.windows: EstimatorEpochs | None = None
+        self._apply_parameters(self.params.values())
+        self._previous_sample: conv.JointSample | None = None
+        self._lag = LagStats()
+
+        self.belief_pub = self.create_publisher(Float64MultiArray, 'hrc/belief', qos.LATCHED)
+        self.distance_pub = self.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
+        self.observation_pub = self.create_publisher(UInt8, 'hrc/observation', qos.RELIABLE)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(JointState, 'human/joint_states', qos.SENSOR_DATA,
+                              conv.joint_sample_from_msg, self._on_joint_sample,
+                              with_published=True)
+        frame = self.params.value('robot_frame')
+        self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
+                              lambda msg: conv.keypoints_from_msg(msg, frame),
+                              self._on_keypoints, with_published=True)
+        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
+                              lambda action: self.windows.action(action))
+        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
+                              self._on_epoch, with_published=True)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+
+    def _apply_parameters(self, values) -> None:
+        try:
+            belief_filter = BeliefFilter(self.model, mode=values['belief_mode'] or None)
+        except ValueError as exc:
+            raise StartupError(f'belief filter: {exc}') from None
+        if self.windows is None:
+            self.windows = EstimatorEpochs(belief_filter, values['min_window_samples'])
+        self.windows.filter = belief_filter
+        self.windows.min_window_samples = values['min_window_samples']
+        self.velocity_thresholds = tuple(values['velocity_thresholds'])
+        self.safety_radii = tuple(values['safety_radii'])
+        self.robot_reference_point = tuple(values['robot_reference_point'])
+
+    @property
+    def belief(self):
+        return self.windows.belief
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_joint_sample(self, sample: conv.JointSample, published_ns: int) -> None:
+        previous = self._previous_sample
+        if sample.position is not None:
+            self._previous_sample = sample
+        velocities = conv.joint_velocities(sample, previous)
+        if velocities is None:
+            return
+        self.windows.sample(velocity_level(velocities, self.velocity_thresholds), published_ns)
+        if sample.stamp > 0.0:
+            self._lag.add(self.get_clock().now().nanoseconds * 1e-9 - sample.stamp)
+
+    def _on_keypoints(self, keypoints: np.ndarray, published_ns: int) -> None:
+        self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
+                                             self.safety_radii), published_ns)
+
+    def _on_epoch(self, k: int, signal_ns: int) -> None:
+        step = self.windows.epoch_signal(k, signal_ns)
+        if step.distance_level is not None:
+            self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
+        if step.observation is not None:
+            self.observation_pub.publish(conv.observation_to_msg(step.observation))
+            self.belief_pub.publish(conv.belief_to_msg(step.belief))
+        for report in step.reports:
+            self.inputs.report(report)
+
+    # -- health ----------------------------------------------------------------------------
+    def _publish_status(self) -> None:
+        lag = self._lag.take()
+        w = self.windows
+        values = {'epoch': w.epoch, 'observation': w.observation,
+                  'distance_level': w.distance_level,
+                  'belief': None if w.belief is None else np.round(w.belief, 4),
+                  'belief_mode': w.filter.mode,
+                  'joint_states_in_period': lag['count'],
+                  'joint_state_lag_ms_mean': lag['mean_ms'],
+                  'joint_state_lag_ms_max': lag['max_ms']}
+        self.inputs.publish_health('estimator', values)
+
+
+class LagStats:
+    """Receive time - header stamp of the joint states, accumulated per status period."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.count, self.total, self.max = 0, 0.0, float('-inf')
+
+    def add(self, lag: float) -> None:
+        self.count += 1
+        self.total += lag
+        self.max = max(self.max, lag)
+
+    def take(self) -> dict:
+        """The period's count, mean and max (ms), and a fresh period."""
+        out = {'count': self.count,
+               'mean_ms': 1e3 * self.total / self.count if self.count else None,
+               'max_ms': 1e3 * self.max if self.count else None}
+        self.reset()
+        return out
+
+
+def main(args=None):
+    return run(BeliefEstimatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,136 @@
+"""task_manager: the cell's task and activity bookkeeping (MODEL.md 3.2) on the ROS graph.
+
+Contract (docs/DESIGN.md, "ROS epoch protocol"): on `hrc/epoch` k it finalises a_{k-1}
+(`hrc/action`, and the `hrc/human_response` to an eligible request), begins epoch k and
+publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). Tasks come from the
+`initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``. The rules
+(holds, timeouts, late answers, restarts) are `core.protocol.TaskEpochs`; this node owns the
+topics, the parameters and the timer.
+"""
+
+from __future__ import annotations
+
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
+
+from ...core.model import HRCModel
+from ...core.protocol import TaskEpochs
+from ...core.tasks import TaskBook, parse_schedule
+from .. import conversions as conv
+from .. import qos
+from ..node_support import (
+    CONFIG,
+    STATUS_PERIOD_SEC,
+    DeadlineTimer,
+    Inputs,
+    NodeParameters,
+    ParamSpec,
+    StartupError,
+    check_array,
+    control_clock,
+    load_node_config,
+    run,
+)
+
+T = Parameter.Type
+PARAMETERS = (
+    CONFIG,
+    ParamSpec('initial_task', T.INTEGER_ARRAY, [], '(tp, tc, tx) of the task present at epoch '
+              '1; [] = an idle cell', read_only=True,
+              constraints='[] or 3 integers: tp in 1..rho, tc in 1..sigma, tx in 0..3'),
+    ParamSpec('schedule', T.STRING_ARRAY, [], 'scripted task releases "epoch:tp,tc,tx"',
+              read_only=True, constraints='each entry "epoch:tp,tc,tx", epoch >= 1'),
+    ParamSpec('max_queue', T.INTEGER, 100, 'tasks that may wait in the queue; a request '
+              'beyond them is refused (dropped with a diagnostic)', read_only=True,
+              range=(1, 1000000)),
+    ParamSpec('input_timeout', T.DOUBLE, 0.25, 'seconds after hrc/epoch k to wait for a_{k-1} '
+              'and, for an eligible request, the human response; then dn / refused. Keep it '
+              "below the decision node's input_timeout", range=(0.0, 3600.0)),
+)
+
+
+def check_parameters(values) -> str | None:
+    task = values.get('initial_task', [])
+    if task:
+        reason = check_array(values, 'initial_task', 3, low=0)
+        if reason:
+            return reason
+    try:
+        parse_schedule(list(values.get('schedule', [])))
+    except ValueError as exc:
+        return f'schedule: {exc}'
+    return None
+
+
+class TaskManagerNode(Node):
+    NODE_NAME = 'task_manager'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters,
+                                     self._apply_parameters)
+        values = self.params.values()
+        self.config = load_node_config(values['config'])
+        self.model = HRCModel(self.config)
+        initial = tuple(int(v) for v in values['initial_task']) or None
+        try:
+            book = TaskBook(self.model, initial_task=initial, schedule=list(values['schedule']),
+                            max_queue=values['max_queue'])
+        except ValueError as exc:
+            raise StartupError(f'task parameters: {exc}') from None
+        self.clock = control_clock(self)
+        self.tasks = TaskEpochs(book, int(values['input_timeout'] * 1e9))
+
+        self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
+                                                    qos.LATCHED)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
+                              lambda k: self._step(self.tasks.epoch(k, self._now())))
+        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
+                              lambda a, t: self._step(self.tasks.action(a, t, self._now())),
+                              with_published=True)
+        self.inputs.subscribe(Bool, 'hrc/human_response', qos.RELIABLE,
+                              conv.human_response_from_msg,
+                              lambda yes, t: self._step(self.tasks.answer(yes, t, self._now())),
+                              with_published=True)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
+                              self._task_request_from_msg, self._on_task_request)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self.hold = DeadlineTimer(self, lambda now: self._step(self.tasks.expire(now)))
+
+    @property
+    def book(self) -> TaskBook:
+        return self.tasks.book
+
+    def _now(self) -> int:
+        return self.clock.now().nanoseconds
+
+    def _apply_parameters(self, values) -> None:
+        self.tasks.input_timeout_ns = int(values['input_timeout'] * 1e9)
+
+    def _task_request_from_msg(self, msg):
+        return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
+
+    def _on_task_request(self, task: tuple) -> None:
+        self.tasks.request(*task)
+        self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
+
+    def _step(self, step) -> None:
+        for report in step.reports:
+            self.inputs.report(report)
+        if step.task_state is not None:
+            self.task_state_pub.publish(conv.task_state_to_msg(step.task_state))
+            self._publish_status()
+        self.hold.sync(self.tasks.deadline)
+
+    def _publish_status(self) -> None:
+        self.inputs.publish_health('tasks', self.tasks.status())
+
+
+def main(args=None):
+    return run(TaskManagerNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

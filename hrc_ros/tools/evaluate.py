@@ -1,0 +1,115 @@
+"""hrc-evaluate: the action selectors compared over many seeded episodes (core.evaluation).
+
+    hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
+
+Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
+`episodes.csv` and `summary.png` into `--out`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+from ..core.config import ConfigError, load_config
+from ..core.evaluation import METRICS, evaluate, format_table, paired_difference, summarize
+from ..core.model import HRCModel
+from ..core.paths import default_config_path
+from ..core.plots import plot_summaries
+from ..core.policy import PolicyError, default_policy_path, load_policy
+from ..core.simulation import SIMULATION_SELECTORS
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        prog='hrc-evaluate',
+        description='Compare the action selectors (and the full-information MDP bound) over '
+                    'many seeded episodes with random task streams.')
+    parser.add_argument('--config', default=None,
+                        help='configuration YAML (default: the shipped default.yaml)')
+    parser.add_argument('--policy', default=None,
+                        help='policy file solved for that configuration (default: shipped)')
+    parser.add_argument('--episodes', type=int, default=1000)
+    parser.add_argument('--epochs', type=int, default=50, help='epochs per episode')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--task-rate', type=float, default=0.2,
+                        help='probability of a new task per epoch (one always at epoch 1)')
+    parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
+                        help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
+    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
+                        help="belief mode (default: the configuration's)")
+    parser.add_argument('--no-fail-safe', action='store_true',
+                        help='let the selectors act at d = 0 (for studying the fail-safe)')
+    parser.add_argument('--out', default='out/evaluate', help='output folder')
+    args = parser.parse_args(argv)
+    selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
+    for s in selectors:
+        if s not in SIMULATION_SELECTORS:
+            parser.error(f'unknown selector {s!r} in --selectors; choose from '
+                         f'{", ".join(SIMULATION_SELECTORS)}')
+    for name in ('episodes', 'epochs'):
+        if getattr(args, name) < 1:
+            parser.error(f'--{name} must be >= 1')
+    if args.seed < 0:
+        parser.error('--seed must be >= 0')
+    if not 0.0 <= args.task_rate <= 1.0:
+        parser.error('--task-rate must lie in [0, 1]')
+    try:
+        config = load_config(args.config or default_config_path())
+        policy = load_policy(args.policy or default_policy_path(config), config)
+    except (ConfigError, PolicyError) as exc:
+        print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
+        return 2
+    model = HRCModel(config)
+    t0 = time.perf_counter()
+    results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
+                       selectors, args.mode, not args.no_fail_safe,
+                       progress=lambda m: print(m, flush=True))
+    elapsed = time.perf_counter() - t0
+    summaries = {s: summarize(r) for s, r in results.items()}
+    differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
+                   if 'mdp' in results else {})
+    mode = args.mode or config.belief_mode
+    print(f'{args.episodes} episodes x {args.epochs} epochs, seed {args.seed}, task rate '
+          f'{args.task_rate}, belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, '
+          f'gamma {config.gamma}; {elapsed:.1f} s')
+    print(format_table(summaries, differences))
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / 'summary.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
+        for s, summary in summaries.items():
+            for metric, _ in METRICS:
+                m = summary[metric]
+                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
+                                 f'{m["high"]:.6g}'])
+    with (out / 'episodes.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        fields = [m for m, _ in METRICS] + ['requests', 'tasks_released']
+        writer.writerow(['selector', 'episode'] + fields)
+        for s, r in results.items():
+            for e in range(args.episodes):
+                writer.writerow([s, e] + [f'{getattr(r, f)[e]:.6g}' for f in fields])
+    settings = {'config': config.source, 'config_sha256': config.policy_hash,
+                'policy': policy.path, 'episodes': args.episodes, 'epochs': args.epochs,
+                'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
+                'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
+                'seconds': round(elapsed, 3)}
+    (out / 'summary.json').write_text(json.dumps(
+        {'settings': settings, 'selectors': summaries,
+         'cost_minus_mdp_cost': differences}, indent=2) + '\n')
+    written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
+               plot_summaries(summaries, out / 'summary.png', differences)]
+    for path in written:
+        print(f'wrote {path}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

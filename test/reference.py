@@ -1,0 +1,19 @@
+"""Independent reference forms the tests hold the package against (not a test module)."""
+
+import numpy as np
+
+from hrc_ros.core.model import ACTIONS
+
+
+def rule_q(model, value, sources):
+    """Q(s, a) = -J(s, a) + gamma * E[V(s')] of a few states, from `HRCModel.transition` (the
+    model enumerated rule by rule), shape (len(sources), 8)."""
+    sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
+    states = model.state(sources)
+    q = np.empty((len(sources), len(ACTIONS)))
+    for a in range(len(ACTIONS)):
+        t = model.transition(sources, a)
+        expected = np.bincount(t.source, weights=t.probability * value[t.target],
+                               minlength=len(sources))
+        q[:, a] = -model.cost(states, a) + model.gamma * expected
+    return q

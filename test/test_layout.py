@@ -1,0 +1,86 @@
+"""The house as it reads: the core and the command-line tools never import ROS, and the tree
+passes the linter (ruff, configured in ruff.toml)."""
+
+import os
+import pkgutil
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ROS_MODULES = ('rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
+               'geometry_msgs', 'diagnostic_msgs', 'visualization_msgs', 'ament_index_python',
+               'launch', 'launch_ros', 'rosidl_runtime_py', 'rosidl_parser')
+ROS_FREE_PACKAGES = ('hrc_ros.core', 'hrc_ros.tools')
+
+IMPORT_WITHOUT_ROS = '''
+import importlib, importlib.abc, sys
+BLOCKED = set(sys.argv[1].split(','))
+
+class NoRos(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in BLOCKED:
+            raise ImportError(f'{name} is ROS: the core must not import it')
+        return None
+
+sys.meta_path.insert(0, NoRos())
+for name in sys.argv[2:]:
+    importlib.import_module(name)
+loaded = sorted(m for m in sys.modules if m.split('.')[0] in BLOCKED)
+assert not loaded, loaded
+print(len(sys.argv) - 2, 'modules imported without ROS')
+'''
+
+
+def ros_free_modules() -> list[str]:
+    import hrc_ros
+    names = []
+    for package in ROS_FREE_PACKAGES:
+        path = Path(hrc_ros.__file__).parent / package.split('.')[1]
+        names.append(package)
+        names += [f'{package}.{m.name}' for m in pkgutil.iter_modules([str(path)])]
+    return names
+
+
+def test_every_core_and_tool_module_imports_with_ros_unimportable():
+    modules = ros_free_modules()
+    assert {'hrc_ros.core.protocol', 'hrc_ros.core.bagfile', 'hrc_ros.core.model',
+            'hrc_ros.tools.solve'} <= set(modules)
+    result = subprocess.run([sys.executable, '-c', IMPORT_WITHOUT_ROS, ','.join(ROS_MODULES),
+                             *modules], capture_output=True, text=True, timeout=120,
+                            cwd='/')
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f'{len(modules)} modules imported without ROS' in result.stdout
+
+
+def test_the_guard_does_catch_a_ros_import():
+    """The check above can fail: a ring module is refused under the same guard."""
+    result = subprocess.run([sys.executable, '-c', IMPORT_WITHOUT_ROS, ','.join(ROS_MODULES),
+                             'hrc_ros.ros.conversions'], capture_output=True, text=True,
+                            timeout=120, cwd='/')
+    assert result.returncode != 0 and 'is ROS: the core must not import it' in result.stderr
+
+
+def test_lint():
+    ruff = shutil.which('ruff') or str(Path(sys.executable).parent / 'ruff')
+    if not Path(ruff).is_file():
+        pytest.fail('ruff is not installed: pip install -r requirements-dev.txt')
+    result = subprocess.run([ruff, 'check', '--no-cache', '.'], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stdout[-5000:] + result.stderr[-2000:]
+
+
+def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
+    """scripts/test.sh and the README promise that an explicit ROS_DOMAIN_ID is used."""
+    probe = 'import os, conftest; print(os.environ["ROS_DOMAIN_ID"], conftest.ROS_DOMAIN_ID)'
+    env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
+    given = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
+                           capture_output=True, env={**env, 'ROS_DOMAIN_ID': '5'}, timeout=60)
+    assert given.stdout.split() == ['5', '5'], given.stderr
+    chosen = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
+                            capture_output=True, env=env, timeout=60)
+    domain, same = chosen.stdout.split()
+    assert domain == same and 30 <= int(domain) <= 99, chosen.stderr

@@ -1,0 +1,450 @@
+"""The epoch protocol (docs/DESIGN.md) as pure state machines: every message order, late
+answer, timeout and restart, deterministically and without DDS (core.protocol)."""
+
+import numpy as np
+import pytest
+
+from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
+from hrc_ros.core.protocol import (
+    ERROR,
+    NO_EVIDENCE,
+    OK,
+    WARN,
+    ActionPairing,
+    ClockStart,
+    DecisionGate,
+    EpochFollower,
+    EstimatorEpochs,
+    InputError,
+    TaskEpochs,
+)
+from hrc_ros.core.selection import Selection
+from hrc_ros.core.tasks import TaskBook
+
+MS = 1_000_000
+TIMEOUT = 250 * MS
+
+
+@pytest.fixture(scope='module')
+def model(default_config):
+    return HRCModel(default_config)
+
+
+def state(step):
+    return None if step.task_state is None else tuple(step.task_state[n] for n in TASK_VARIABLES)
+
+
+def book_after(model, initial, *epochs):
+    """The task book's state after epochs of (action, accepted), begun at 1."""
+    book = TaskBook(model, initial_task=initial)
+    book.begin_epoch(1)
+    for k, (action, accepted) in enumerate(epochs, start=2):
+        book.apply(action, accepted)
+        book.begin_epoch(k)
+    return tuple(book.state[n] for n in TASK_VARIABLES)
+
+
+# -- EpochFollower ----------------------------------------------------------------------------
+def test_epoch_follower_takes_the_next_and_a_restart_and_refuses_the_rest():
+    epochs = EpochFollower()
+    assert epochs.check(1) is None
+    epochs.take(1)
+    with pytest.raises(InputError, match='repeats'):
+        epochs.check(1)
+    epochs.take(5)
+    assert epochs.check(9) is None                       # a gap is followed (lost epochs)
+    with pytest.raises(InputError, match='does not follow'):
+        epochs.check(3)                                  # a second source's count
+    with pytest.raises(InputError, match='repeats'):
+        epochs.check(5)
+    restart = epochs.check(1)
+    assert restart.level == WARN and 'restarted at 1 after 5' in restart.message
+
+
+# -- TaskEpochs -------------------------------------------------------------------------------
+def tasks_for(model, initial=(1, 1, 3), schedule=(), max_queue=None):
+    return TaskEpochs(TaskBook(model, initial_task=initial, schedule=schedule,
+                               max_queue=max_queue), TIMEOUT)
+
+
+def test_task_epochs_follow_the_task_book(model):
+    tasks = tasks_for(model)
+    assert state(tasks.epoch(1, 0)) == book_after(model, (1, 1, 3))
+    assert state(tasks.action(MH, 10 * MS, 11 * MS)) is None      # waits for epoch 2
+    assert state(tasks.epoch(2, 1000 * MS)) == book_after(model, (1, 1, 3), (MH, False))
+    tasks.action(RH2, 1010 * MS, 1011 * MS)
+    tasks.answer(True, 1020 * MS, 1021 * MS)
+    assert state(tasks.epoch(3, 2000 * MS)) == book_after(model, (1, 1, 3), (MH, False),
+                                                          (RH2, True))
+    assert tasks.last_finalised == (2, 'rh2', True) and tasks.deadline is None
+
+
+def test_an_epoch_that_overtakes_the_action_and_the_answer_is_held(model):
+    """The order that failed CI: epoch k taken before a_{k-1} and its answer."""
+    tasks = tasks_for(model)
+    tasks.epoch(1, 0)
+    step = tasks.epoch(2, 1000 * MS)
+    assert step.task_state is None and tasks.deadline == 1000 * MS + TIMEOUT
+    assert tasks.awaited() == 'hrc/action of epoch 1'
+    assert tasks.action(RH2, 990 * MS, 1001 * MS).task_state is None   # now the answer
+    assert 'human_response to rh2' in tasks.awaited()
+    assert tasks.deadline == 1000 * MS + TIMEOUT                        # not restarted
+    step = tasks.answer(True, 995 * MS, 1002 * MS)
+    assert state(step) == book_after(model, (1, 1, 3), (RH2, True))
+    assert step.task_state['ty'] == 3 and not step.reports and tasks.late_inputs == 0
+
+
+def test_an_answer_that_overtakes_its_action_counts(model):
+    tasks = tasks_for(model)
+    tasks.epoch(1, 0)
+    tasks.answer(True, 995 * MS, 996 * MS)
+    tasks.action(RH2, 990 * MS, 997 * MS)
+    assert state(tasks.epoch(2, 1000 * MS)) == book_after(model, (1, 1, 3), (RH2, True))
+
+
+def test_a_missing_action_is_dn_at_the_deadline_and_not_before(model):
+    tasks = tasks_for(model, initial=(1, 2, 0), schedule=())
+    tasks.epoch(1, 0)
+    tasks.action(CT, 10 * MS, 10 * MS)
+    tasks.epoch(2, 1000 * MS)                            # ct: the robot works (bc = 2)
+    tasks.epoch(3, 2000 * MS)                            # a_2 missing: held
+    assert tasks.expire(2000 * MS + TIMEOUT - 1).task_state is None
+    step = tasks.expire(2000 * MS + TIMEOUT)
+    assert state(step) == book_after(model, (1, 2, 0), (CT, False), (DN, False))
+    assert step.task_state['bc'] == 2, 'dn pauses the robot: its counter must not run'
+    assert step.reports[0].level == WARN and 'no hrc/action of epoch 2' in step.reports[0].message
+    assert tasks.late_inputs == 1 and tasks.last_finalised == (2, 'dn', False)
+
+
+def test_an_epoch_while_the_previous_is_held_finalises_it_first(model):
+    tasks = tasks_for(model, initial=(1, 2, 0))
+    tasks.epoch(1, 0)
+    tasks.epoch(2, 1000 * MS)                            # a_1 missing: held
+    step = tasks.epoch(3, 1100 * MS)                     # before the deadline
+    assert tasks.last_finalised == (1, 'dn', False) and tasks.book.epoch == 2
+    assert step.task_state is not None and tasks.next_epoch == 3   # a_2 awaited now
+    assert tasks.deadline == 1100 * MS + TIMEOUT
+
+
+def test_an_unanswered_request_is_refused_and_its_late_yes_screened(model):
+    """A yes sent before the next request answers the refused one: never consent to the next."""
+    tasks = tasks_for(model)
+    tasks.epoch(1, 0)
+    tasks.action(RH2, 10 * MS, 11 * MS)
+    tasks.epoch(2, 1000 * MS)
+    step = tasks.expire(1000 * MS + TIMEOUT)             # no answer: refused
+    assert step.task_state['ty'] == 0 and 'the request as refused' in step.reports[0].message
+    # the late yes, pressed twice, then the same request again; a third late yes sent before
+    # that action but taken after it (two writers) is screened too
+    tasks.answer(True, 1300 * MS, 1301 * MS)
+    tasks.answer(True, 1310 * MS, 1311 * MS)
+    tasks.action(RH2, 1400 * MS, 1401 * MS)
+    screened = tasks.answer(True, 1390 * MS, 1402 * MS)
+    assert tasks.late_answers == 2 and 'late human response' in screened.reports[0].message
+    step = tasks.epoch(3, 2000 * MS)                      # no answer to the new rh2: held
+    assert step.task_state is None
+    step = tasks.expire(2000 * MS + TIMEOUT)
+    assert step.task_state['ty'] == 0, 'a late answer was taken as consent'
+    # an answer sent after the request is its answer
+    tasks.action(RH2, 2400 * MS, 2401 * MS)
+    tasks.answer(True, 2410 * MS, 2411 * MS)
+    assert tasks.epoch(4, 3000 * MS).task_state['ty'] == 3
+
+
+def test_of_several_answers_the_latest_published_counts(model):
+    tasks = tasks_for(model)
+    tasks.epoch(1, 0)
+    tasks.action(RH2, 10 * MS, 11 * MS)
+    tasks.answer(False, 30 * MS, 31 * MS)                 # the human changed their mind...
+    tasks.answer(True, 20 * MS, 32 * MS)                  # ...this one was sent earlier
+    assert tasks.epoch(2, 1000 * MS).task_state['ty'] == 0
+
+
+def test_a_restart_finalises_the_old_count_then_renumbers(model):
+    tasks = tasks_for(model, initial=(1, 2, 0), schedule=('3:2,2,1',))
+    tasks.epoch(1, 0)
+    tasks.action(CT, 10 * MS, 10 * MS)
+    tasks.epoch(2, 1000 * MS)
+    step = tasks.epoch(1, 2000 * MS)                      # the decision node restarted
+    assert step.reports[0].level == WARN and 'restarted at 1 after 2' in step.reports[0].message
+    assert step.task_state is None                        # a_2 is still awaited, held
+    step = tasks.action(NW, 1990 * MS, 2001 * MS)
+    assert state(step) == book_after(model, (1, 2, 0), (CT, False), (NW, False))
+    assert tasks.book.epoch == 1 and tasks.book.queue == type(tasks.book.queue)()
+    tasks.action(NW, 2100 * MS, 2101 * MS)
+    tasks.epoch(2, 3000 * MS)
+    tasks.action(NW, 3100 * MS, 3101 * MS)
+    assert tasks.epoch(3, 4000 * MS).task_state['tp'] == 2   # the schedule follows the new count
+
+
+def test_a_repeat_or_a_second_source_is_refused_without_effect(model):
+    tasks = tasks_for(model)
+    tasks.epoch(1, 0)
+    tasks.action(MH, 10 * MS, 11 * MS)
+    tasks.epoch(2, 1000 * MS)
+    before = (tasks.book.state, tasks.book.epoch, tasks.last_finalised)
+    with pytest.raises(InputError, match='repeats'):
+        tasks.epoch(2, 1100 * MS)
+    assert (tasks.book.state, tasks.book.epoch, tasks.last_finalised) == before
+    tasks.action(MH, 1110 * MS, 1111 * MS)
+    tasks.epoch(3, 2000 * MS)
+    with pytest.raises(InputError, match='does not follow'):
+        tasks.epoch(2, 2100 * MS)                         # a second source's count
+    assert tasks.book.epoch == 3 and tasks.next_epoch is None
+
+
+def test_a_request_beyond_max_queue_is_refused(model):
+    tasks = tasks_for(model, initial=None, max_queue=1)
+    tasks.request(1, 1, 0)
+    with pytest.raises(InputError, match='queue is full'):
+        tasks.request(2, 1, 0)
+    with pytest.raises(InputError, match='tx'):
+        tasks.request(1, 1, 7)
+    assert tasks.book.pending == [(1, 1, 0)]
+
+
+# -- DecisionGate -----------------------------------------------------------------------------
+TASK = {'tp': 1, 'tc': 1, 'tx': 3, 'ty': 0, 'hp': 0, 'hc': 0, 'bp': 0, 'bc': 0}
+BELIEF = np.full(9, 1 / 9)
+
+
+def fixed_selector(action=MH, calls=None):
+    def select(belief, observable):
+        if calls is not None:
+            calls.append((tuple(belief), observable))
+        return Selection(action, np.eye(8)[action], 'paper')
+    return select
+
+
+def gate_for(select=None, fresh_at_epoch=True):
+    return DecisionGate(select or fixed_selector(), stale_timeout_ns=3000 * MS,
+                        input_timeout_ns=500 * MS, fresh_at_epoch=fresh_at_epoch)
+
+
+def feed(gate, now, d=1, belief=BELIEF, task=TASK):
+    out = gate.received('distance_level', d, now)
+    out += gate.received('task_state', task, now)
+    return out + gate.received('belief', belief, now)
+
+
+def test_the_gate_decides_when_every_input_answered_for_the_epoch():
+    calls = []
+    gate = gate_for(fixed_selector(MH, calls))
+    assert gate.begin(1, 0) == [] and gate.deadline == 500 * MS
+    decisions = feed(gate, 20 * MS, d=2)
+    assert len(decisions) == 1
+    decision = decisions[0]
+    assert (decision.epoch, decision.action, decision.faults, decision.level) == (1, MH, (), OK)
+    assert calls == [(tuple(BELIEF), (1, 1, 3, 0, 0, 0, 0, 0, 2))]
+    assert decision.input_wait_ms == pytest.approx(20.0) and not decision.timed_out
+    assert gate.deadline is None and gate.expire(500 * MS) == []   # decided: no timeout
+
+
+def test_inputs_of_the_previous_epoch_do_not_count_for_this_one():
+    gate = gate_for()
+    gate.begin(1, 0)
+    feed(gate, 10 * MS)
+    gate.begin(2, 1000 * MS)
+    assert gate.received('distance_level', 1, 1010 * MS) == []     # d may be an older one
+    assert gate.expire(1000 * MS + 499 * MS) == []
+    decision, = gate.expire(1500 * MS)
+    assert decision.action == DN and decision.timed_out and decision.level == ERROR
+    assert any('hrc/belief not received for epoch 2' in f for f in decision.faults)
+    assert any('hrc/task_state not received for epoch 2' in f for f in decision.faults)
+
+
+def test_a_malformed_input_answers_at_once_and_fails_safe():
+    gate = gate_for()
+    gate.begin(1, 0)
+    gate.received('distance_level', 1, 1 * MS)
+    gate.received('task_state', TASK, 2 * MS)
+    decision, = gate.malformed('belief', 'belief sums to 2', 3 * MS)
+    assert decision.action == DN and not decision.timed_out
+    assert decision.faults == ('hrc/belief malformed: belief sums to 2',)
+    # a good message afterwards clears it for the next epoch
+    gate.begin(2, 1000 * MS)
+    assert feed(gate, 1010 * MS)[0].action == MH
+
+
+def test_missing_and_stale_inputs_fail_safe():
+    gate = gate_for()
+    gate.begin(1, 0)
+    decision, = gate.expire(500 * MS)
+    assert sorted(decision.faults) == sorted(f'{t} missing (never received)'
+                                             for t in DecisionGate.INPUTS.values())
+    gate.received('distance_level', 1, 600 * MS)            # then never again
+    for k, start in ((2, 1000 * MS), (3, 4000 * MS)):
+        gate.begin(k, start)
+        gate.received('task_state', TASK, start + 1)
+        gate.received('belief', BELIEF, start + 2)
+        decision, = gate.expire(start + 500 * MS)            # d did not answer: the timeout
+    assert decision.faults == ('hrc/distance_level stale (3.900 s old > stale_timeout 3 s)',)
+
+
+def test_a_collision_is_dn_with_a_warning():
+    gate = gate_for()
+    gate.begin(1, 0)
+    decision, = feed(gate, 1 * MS, d=0)
+    assert decision.action == DN and decision.collision and decision.level == WARN
+    assert decision.selection.action == MH       # what the policy wanted, for the report
+    assert 'collision circle' in decision.message
+
+
+def test_a_failing_selector_stops_the_robot():
+    def broken(belief, observable):
+        raise KeyError('policy lookup')
+    gate = gate_for(broken)
+    gate.begin(1, 0)
+    decision, = feed(gate, 1 * MS)
+    assert decision.action == DN and decision.faults[0].startswith('decision failed: KeyError')
+
+
+def test_a_new_epoch_decides_the_pending_one_first():
+    gate = gate_for()
+    gate.begin(1, 0)
+    gate.received('distance_level', 1, 1 * MS)
+    decisions = gate.begin(2, 400 * MS)                      # before the input timeout
+    assert [(d.epoch, d.action, d.timed_out) for d in decisions] == [(1, DN, True)]
+    assert gate.epoch == 2 and gate.pending
+
+
+def test_topic_mode_counts_inputs_that_precede_the_epoch_signal():
+    """A replay may play an epoch's inputs before its epoch signal."""
+    gate = gate_for(fresh_at_epoch=False)
+    assert feed(gate, 10 * MS) == []                         # no epoch yet
+    decision, = gate.begin(1, 20 * MS)
+    assert decision.action == MH and decision.epoch == 1
+    decision, = gate.begin(2, 1000 * MS) + gate.expire(1500 * MS)
+    assert decision.action == DN                             # nothing new since the decision
+
+
+def test_the_clock_waits_for_the_graph_then_starts():
+    clock = ClockStart(started_ns=0, stale_timeout_ns=3000 * MS)
+    tick = clock.tick(100 * MS, lambda: False, lambda: {'epoch_subscribers': 0})
+    assert not tick.start_epoch and tick.report.level == WARN
+    assert tick.report.values == {'waited_s': 0.1, 'epoch_subscribers': 0}
+    assert clock.tick(200 * MS, lambda: True) == type(tick)(False)   # ready: epoch 1 next
+    assert clock.tick(300 * MS, lambda: False).start_epoch             # no more graph checks
+    assert clock.running and clock.tick(400 * MS, None).start_epoch
+
+
+def test_the_clock_starts_anyway_after_stale_timeout():
+    clock = ClockStart(started_ns=0, stale_timeout_ns=1000 * MS)
+    assert not clock.tick(999 * MS, lambda: False).start_epoch
+    tick = clock.tick(1000 * MS, lambda: False)
+    assert tick.start_epoch and 'without having discovered' in tick.report.message
+
+
+# -- EstimatorEpochs --------------------------------------------------------------------------
+def estimator(model, min_samples=3):
+    return EstimatorEpochs(BeliefFilter(model), min_samples)
+
+
+def window(est, level, d, start_ns, n=5):
+    for i in range(n):
+        est.sample(level, start_ns + i * MS)
+        est.skeleton(d, start_ns + i * MS)
+
+
+def test_estimator_epochs_follow_the_belief_filter(model):
+    f = BeliefFilter(model)
+    est = estimator(model)
+    window(est, 1, 2, 0)
+    step = est.epoch_signal(1, 100 * MS)
+    assert (step.observation, step.distance_level, step.reports) == (1, 2, [])
+    np.testing.assert_allclose(step.belief, f.initial(1))
+    est.action(MH)
+    window(est, 3, 1, 200 * MS)
+    step = est.epoch_signal(2, 1000 * MS)
+    np.testing.assert_allclose(step.belief, f.update(f.initial(1), MH, 3))
+    assert step.distance_level == 1
+
+
+def test_a_sample_published_after_the_signal_counts_in_the_next_window(model):
+    """The order that failed CI: the cell's first sample after its reaction, taken first."""
+    est = estimator(model)
+    window(est, 1, 3, 0)
+    est.sample(3, 150 * MS)                                    # after the signal...
+    est.skeleton(0, 150 * MS)
+    step = est.epoch_signal(1, 100 * MS)                       # ...taken before it
+    assert (step.observation, step.distance_level) == (1, 3)
+    window(est, 3, 0, 200 * MS, n=2)                           # 2 + the early one = 3
+    step = est.epoch_signal(2, 1000 * MS)
+    assert (step.observation, step.distance_level) == (3, 0)
+
+
+def test_a_dropout_publishes_nothing_and_predicts_only(model):
+    f = BeliefFilter(model)
+    est = estimator(model)
+    window(est, 2, 2, 0)
+    first = est.epoch_signal(1, 100 * MS).belief
+    est.action(MH)
+    est.sample(2, 200 * MS)                                    # 1 sample < 3
+    step = est.epoch_signal(2, 1000 * MS)
+    assert step.observation is None and step.belief is None and step.distance_level is None
+    kinds = sorted(r.kind for r in step.reports)
+    assert kinds == ['no_observation', 'no_skeleton']
+    np.testing.assert_allclose(est.belief, f.update(first, MH, NO_EVIDENCE))
+    window(est, 2, 2, 1100 * MS)                               # no action: dn
+    step = est.epoch_signal(3, 2000 * MS)
+    np.testing.assert_allclose(step.belief, f.update(f.update(first, MH, NO_EVIDENCE), DN, 2))
+
+
+def test_the_estimator_follows_a_restart_and_refuses_a_repeat(model):
+    est = estimator(model)
+    window(est, 1, 1, 0)
+    est.epoch_signal(4, 100 * MS)
+    with pytest.raises(InputError):
+        est.epoch_signal(4, 200 * MS)
+    window(est, 2, 2, 300 * MS)
+    step = est.epoch_signal(1, 400 * MS)
+    assert step.reports[0].kind == 'restart' and step.observation == 2 and est.epoch == 1
+
+
+def test_the_estimator_memory_is_bounded(model):
+    est = EstimatorEpochs(BeliefFilter(model), 3, recent=64)
+    for i in range(10_000):
+        est.sample(1 + i % 3, i)
+        est.skeleton(i % 4, i)
+    assert len(est._levels) == 64 and len(est._distances) == 64
+    step = est.epoch_signal(1, 20_000)
+    # the vote counts every sample of the window (3334 of level 1), not only the kept pairs
+    assert step.observation == 1 and step.distance_level == 9_999 % 4
+
+
+# -- ActionPairing ----------------------------------------------------------------------------
+X1, X2 = {'tp': 1}, {'tp': 2}
+
+
+def test_the_cell_reacts_with_the_task_state_of_the_epoch():
+    pairing = ActionPairing(TIMEOUT)
+    assert pairing.task_state_received(X1, 0) == []
+    reaction, = pairing.action_received(RH2, 10 * MS)
+    assert (reaction.action, reaction.task_state, reaction.late) == (RH2, X1, '')
+
+
+def test_an_action_before_its_task_state_is_held():
+    """The order that failed CI: a_k taken before x_k."""
+    pairing = ActionPairing(TIMEOUT)
+    pairing.task_state_received(X1, 0)
+    pairing.action_received(NW, 10 * MS)
+    assert pairing.action_received(RH1, 1000 * MS) == [] and pairing.held == RH1
+    assert pairing.expire(1000 * MS + TIMEOUT - 1) == []
+    reaction, = pairing.task_state_received(X2, 1001 * MS)
+    assert (reaction.action, reaction.task_state, reaction.late) == (RH1, X2, '')
+    assert pairing.deadline is None
+
+
+def test_a_held_action_reacts_with_the_latest_state_at_the_timeout_or_the_next_action():
+    pairing = ActionPairing(TIMEOUT)
+    assert pairing.action_received(DP, 0) == []
+    reaction, = pairing.expire(TIMEOUT)
+    assert reaction.task_state is None and 'task_state_timeout' in reaction.late
+    pairing.task_state_received(X1, 300 * MS)
+    pairing.action_received(NW, 310 * MS)
+    pairing.action_received(DP, 1000 * MS)                   # x_2 never came
+    first, = pairing.action_received(RH2, 2000 * MS)
+    assert (first.action, first.task_state) == (DP, X1) and 'before the next action' in first.late
+    assert pairing.held == RH2
+
