@@ -65,8 +65,8 @@ def child_hrc(rho: int, sigma: int, eta: float, policy_out: str | None) -> dict:
     if policy_out:
         np.savez(policy_out, policy=result.policy, value=result.value)
     return {'solver': 'hrc_ros', 'rho': rho, 'sigma': sigma, 'states': model.n_states,
-            'seconds': total, 'sweeps': result.sweeps, 'residual': result.residual,
-            'per_sweep_ms': 1e3 * result.timings['sweeps'] / result.sweeps,
+            'seconds': total, 'sweeps': result.iterations, 'residual': result.residual,
+            'per_sweep_ms': 1e3 * result.timings['iterate'] / result.iterations,
             'peak_mb': _peak_mb(), 'jit_s': jit}
 
 
@@ -120,7 +120,7 @@ def compare_policies(ours_path: str, theirs_path: str, rho: int, sigma: int,
     ours = np.load(ours_path)
     theirs = np.load(theirs_path)
     differ = np.flatnonzero(ours['policy'] != theirs['policy'])
-    q = FactoredBellman(HRCModel(_config(rho, sigma, eta))).bellman_q(ours['value'])
+    q = FactoredBellman(HRCModel(_config(rho, sigma, eta))).q(ours['value'])
     qa = q[ours['policy'][differ], differ]
     qb = q[theirs['policy'][differ], differ]
     ties = np.abs(qa - qb) <= TIE_TOLERANCE * np.maximum(1.0, np.abs(qa))

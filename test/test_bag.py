@@ -30,26 +30,12 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import (
-    QoSDurabilityPolicy,
-    QoSHistoryPolicy,
-    QoSProfile,
-    QoSReliabilityPolicy,
-    qos_profile_sensor_data,
-)
+from rclpy.qos import (QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy,
+                       qos_profile_sensor_data)
 from rosidl_adapter.parser import parse_message_string
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (
-    Bool,
-    Float64MultiArray,
-    Header,
-    MultiArrayDimension,
-    MultiArrayLayout,
-    String,
-    UInt8,
-    UInt8MultiArray,
-    UInt32,
-)
+from std_msgs.msg import (Bool, Float64MultiArray, Header, MultiArrayDimension, MultiArrayLayout,
+                          String, UInt8, UInt8MultiArray, UInt32)
 
 from hrc_ros.core import bagfile
 from hrc_ros.ros import bag

@@ -8,15 +8,8 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import Pose, PoseArray
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (
-    Bool,
-    Float64MultiArray,
-    MultiArrayDimension,
-    String,
-    UInt8,
-    UInt8MultiArray,
-    UInt32,
-)
+from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+                          UInt8MultiArray, UInt32)
 
 from hrc_ros.core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES
 from hrc_ros.ros import conversions as conv

@@ -7,15 +7,8 @@ import numpy as np
 import pytest
 from reference import rule_q
 
-from hrc_ros.core.evaluation import (
-    METRICS,
-    BatchSimulator,
-    evaluate,
-    human_seed,
-    paired_difference,
-    random_scenarios,
-    summarize,
-)
+from hrc_ros.core.evaluation import (METRICS, BatchSimulator, evaluate, human_seed,
+                                     paired_difference, random_scenarios, summarize)
 from hrc_ros.core.model import ACTIONS
 from hrc_ros.core.policy import default_policy_path
 from hrc_ros.core.simulation import simulate

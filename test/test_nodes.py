@@ -33,24 +33,13 @@ from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (
-    Bool,
-    Float64MultiArray,
-    MultiArrayDimension,
-    String,
-    UInt8,
-    UInt8MultiArray,
-    UInt32,
-)
+from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+                          UInt8MultiArray, UInt32)
 
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import ACTIONS, DN, MH, TASK_VARIABLES, HRCModel
-from hrc_ros.core.observation import (
-    distance_level,
-    synthesize_joint_velocities,
-    synthesize_skeleton,
-    velocity_level,
-)
+from hrc_ros.core.observation import (distance_level, synthesize_joint_velocities,
+                                      synthesize_skeleton, velocity_level)
 from hrc_ros.core.policy import load_policy
 from hrc_ros.core.selection import ActionSelector
 from hrc_ros.core.tasks import TaskBook

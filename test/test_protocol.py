@@ -6,19 +6,9 @@ import pytest
 
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
-from hrc_ros.core.protocol import (
-    ERROR,
-    NO_EVIDENCE,
-    OK,
-    WARN,
-    ActionPairing,
-    ClockStart,
-    DecisionGate,
-    EpochFollower,
-    EstimatorEpochs,
-    InputError,
-    TaskEpochs,
-)
+from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
+                                   DecisionGate, EpochFollower, EstimatorEpochs, InputError,
+                                   TaskEpochs)
 from hrc_ros.core.selection import Selection
 from hrc_ros.core.tasks import TaskBook
 

@@ -8,13 +8,8 @@ from scipy import sparse
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, DN, NW, HRCModel
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.solver import (
-    FactoredBellman,
-    greedy_policy,
-    policy_iteration,
-    solve,
-    value_iteration,
-)
+from hrc_ros.core.solver import (FactoredBellman, greedy_policy, policy_iteration, solve,
+                                 value_iteration)
 
 CONFIG = default_config_path()
 REDUCED = {'model': {'rho': 1, 'sigma': 1}}

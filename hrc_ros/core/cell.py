@@ -29,14 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import (
-    ACTION_EMOTION_GROUP,
-    DELTAS,
-    HRCModel,
-    action_index,
-    next_distance,
-    request_eligible,
-)
+from .model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, next_distance,
+                    request_eligible)
 
 UNIFORMS_PER_EPOCH = 5
 

@@ -35,20 +35,8 @@ import numpy as np
 
 from .belief import BeliefFilter
 from .cell import UNIFORMS_PER_EPOCH, sample_index
-from .model import (
-    ACTION_EMOTION_GROUP,
-    ACTIONS,
-    DELTAS,
-    DN,
-    N_DISTANCE,
-    N_HIDDEN,
-    SAFETY_ORDER,
-    TASK_VARIABLES,
-    HRCModel,
-    next_distance,
-    request_eligible,
-    step_task,
-)
+from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, SAFETY_ORDER,
+                    TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
 from .policy import policy_arrays
 from .selection import Q_TOLERANCE, VOTE_TOLERANCE
 from .simulation import SIMULATION_SELECTORS, Scenario

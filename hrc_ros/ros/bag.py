@@ -19,18 +19,8 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
-from ..core.bagfile import (
-    BagError,
-    BagMessage,
-    bag_info,
-    duration_fields,
-    duration_ns,
-    format_size,
-    full_type_name,
-    policy_name,
-    read_bag,
-    split_type_name,
-)
+from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
+                            format_size, full_type_name, policy_name, read_bag, split_type_name)
 
 INFINITE_NS = bagfile.INFINITE_NS
 

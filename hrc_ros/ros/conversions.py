@@ -39,27 +39,12 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose, PoseArray
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (
-    Bool,
-    Float64MultiArray,
-    MultiArrayDimension,
-    String,
-    UInt8,
-    UInt8MultiArray,
-    UInt32,
-)
+from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+                          UInt8MultiArray, UInt32)
 
 from ..core.belief import BELIEF_TOLERANCE
-from ..core.model import (
-    ACTION_INDEX,
-    ACTIONS,
-    DISTANCE_LEVELS,
-    N_HIDDEN,
-    OBSERVATION_LEVELS,
-    STATE_VARIABLES,
-    TASK_VARIABLES,
-    action_index,
-)
+from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSERVATION_LEVELS,
+                          STATE_VARIABLES, TASK_VARIABLES, action_index)
 from ..core.protocol import InputError
 
 ROBOT_BASE_FRAME = 'base_link'

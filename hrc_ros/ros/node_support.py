@@ -36,12 +36,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
@@ -144,6 +140,17 @@ class NodeParameters:
     def _post_set(self, parameters: list[Parameter]) -> None:
         if self._apply is not None and any(p.name in self.specs for p in parameters):
             self._apply(self.values())
+
+
+def node_setup(node: Node, specs: Sequence[ParamSpec], check: Check,
+               apply: Callable[[Mapping[str, Any]], None] | None = None):
+    """Declare a node's parameters and load the model configuration its `config` names:
+    (NodeParameters, their values, the Config, its HRCModel). StartupError on a bad config."""
+    from ..core.model import HRCModel
+    params = NodeParameters(node, specs, check, apply)
+    values = params.values()
+    config = load_node_config(values['config'])
+    return params, values, config, HRCModel(config)
 
 
 def config_path(value: str) -> str:

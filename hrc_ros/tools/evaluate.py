@@ -15,13 +15,10 @@ import sys
 import time
 from pathlib import Path
 
-from ..core.config import ConfigError, load_config
 from ..core.evaluation import METRICS, evaluate, format_table, paired_difference, summarize
-from ..core.model import HRCModel
-from ..core.paths import default_config_path
 from ..core.plots import plot_summaries
-from ..core.policy import PolicyError, default_policy_path, load_policy
 from ..core.simulation import SIMULATION_SELECTORS
+from .common import ToolError, add_model_arguments, load_model
 
 
 def main(argv=None) -> int:
@@ -29,10 +26,7 @@ def main(argv=None) -> int:
         prog='hrc-evaluate',
         description='Compare the action selectors (and the full-information MDP bound) over '
                     'many seeded episodes with random task streams.')
-    parser.add_argument('--config', default=None,
-                        help='configuration YAML (default: the shipped default.yaml)')
-    parser.add_argument('--policy', default=None,
-                        help='policy file solved for that configuration (default: shipped)')
+    add_model_arguments(parser)
     parser.add_argument('--episodes', type=int, default=1000)
     parser.add_argument('--epochs', type=int, default=50, help='epochs per episode')
     parser.add_argument('--seed', type=int, default=0)
@@ -59,12 +53,10 @@ def main(argv=None) -> int:
     if not 0.0 <= args.task_rate <= 1.0:
         parser.error('--task-rate must lie in [0, 1]')
     try:
-        config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(config), config)
-    except (ConfigError, PolicyError) as exc:
+        config, model, policy = load_model(args)
+    except ToolError as exc:
         print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
         return 2
-    model = HRCModel(config)
     t0 = time.perf_counter()
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe,

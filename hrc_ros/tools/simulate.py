@@ -11,12 +11,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..core.config import ConfigError, load_config
-from ..core.model import HRCModel
-from ..core.paths import default_config_path
 from ..core.plots import plot_trajectory
-from ..core.policy import PolicyError, default_policy_path, load_policy
 from ..core.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
+from .common import ToolError, add_model_arguments, load_model
 
 
 def main(argv=None) -> int:
@@ -24,11 +21,7 @@ def main(argv=None) -> int:
         prog='hrc-simulate',
         description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
                     'Table 6, write a CSV and PNG plots.')
-    parser.add_argument('--config', default=None,
-                        help='configuration YAML (default: the shipped default.yaml)')
-    parser.add_argument('--policy', default=None,
-                        help='policy file solved for that configuration (default: the shipped '
-                             'policy solved for it, e.g. paper.npz for paper.yaml)')
+    add_model_arguments(parser)
     parser.add_argument('--selector', default='paper', choices=SIMULATION_SELECTORS,
                         help='action selection (mdp = the true state, an upper bound)')
     parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
@@ -41,12 +34,10 @@ def main(argv=None) -> int:
     if args.epochs is not None and args.epochs < 1:
         parser.error(f'--epochs must be >= 1, got {args.epochs}')
     try:
-        config = load_config(args.config or default_config_path())
-        policy = load_policy(args.policy or default_policy_path(config), config)
-    except (ConfigError, PolicyError) as exc:
+        _, model, policy = load_model(args)
+    except ToolError as exc:
         print(f'hrc-simulate: error: {exc}', file=sys.stderr)
         return 2
-    model = HRCModel(config)
     scenario = case_study()
     if args.epochs is not None:
         scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,

@@ -23,28 +23,13 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt32
 
 from ...core.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
-from ...core.model import HRCModel
-from ...core.observation import (
-    DEFAULT_SAFETY_RADII,
-    DEFAULT_VELOCITY_THRESHOLDS,
-    distance_level,
-    velocity_level,
-)
+from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
+                                 velocity_level)
 from ...core.protocol import EstimatorEpochs
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (
-    CONFIG,
-    STATUS_PERIOD_SEC,
-    Inputs,
-    NodeParameters,
-    ParamSpec,
-    StartupError,
-    check_array,
-    check_core,
-    load_node_config,
-    run,
-)
+from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, StartupError,
+                            check_array, check_core, node_setup, run)
 
 T = Parameter.Type
 VELOCITY_THRESHOLDS = ParamSpec(
@@ -95,11 +80,10 @@ class BeliefEstimatorNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
-        self.config = load_node_config(self.params.value('config'))
-        self.model = HRCModel(self.config)
         self.windows: EstimatorEpochs | None = None
-        self._apply_parameters(self.params.values())
+        self.params, values, self.config, self.model = node_setup(
+            self, PARAMETERS, check_parameters, self._apply_parameters)
+        self._apply_parameters(values)
         self._previous_sample: conv.JointSample | None = None
         self._lag = LagStats()
 

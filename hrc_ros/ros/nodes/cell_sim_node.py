@@ -22,25 +22,13 @@ from std_msgs.msg import Bool, String, UInt8MultiArray
 
 from ...core import faults
 from ...core.cell import SimulatedHuman
-from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES, HRCModel
+from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
 from ...core.observation import synthesize_joint_velocities, synthesize_skeleton
 from ...core.protocol import ActionPairing
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (
-    CONFIG,
-    STATUS_PERIOD_SEC,
-    WARNING_THROTTLE_SEC,
-    DeadlineTimer,
-    Inputs,
-    NodeParameters,
-    ParamSpec,
-    StartupError,
-    check_array,
-    control_clock,
-    load_node_config,
-    run,
-)
+from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
+                            ParamSpec, StartupError, check_array, control_clock, node_setup, run)
 from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
 
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
@@ -81,10 +69,8 @@ class CellSimNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
-        values = self.params.values()
-        self.config = load_node_config(values['config'])
-        self.model = HRCModel(self.config)
+        self.params, values, self.config, self.model = node_setup(
+            self, PARAMETERS, check_parameters, self._apply_parameters)
         em, ea = (int(v) for v in values['initial_emotions'])
         try:
             self.human = SimulatedHuman(self.model, seed=values['seed'], em=em, ea=ea,

@@ -19,24 +19,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
-from ...core.model import HRCModel
 from ...core.policy import PolicyError, default_policy_path, load_policy
 from ...core.protocol import ClockStart, DecisionGate, EpochFollower, Report
 from ...core.selection import SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (
-    CONFIG,
-    DeadlineTimer,
-    Inputs,
-    NodeParameters,
-    ParamSpec,
-    StartupError,
-    config_path,
-    control_clock,
-    load_node_config,
-    run,
-)
+from ..node_support import (CONFIG, DeadlineTimer, Inputs, ParamSpec, StartupError, config_path,
+                            control_clock, node_setup, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
 T = Parameter.Type
@@ -79,10 +68,8 @@ class DecisionNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply_parameters)
-        values = self.params.values()
-        self.config = load_node_config(values['config'])
-        self.model = HRCModel(self.config)
+        self.params, values, self.config, self.model = node_setup(
+            self, PARAMETERS, check_parameters, self._apply_parameters)
         policy_path = values['policy'] or str(default_policy_path(self.config))
         try:
             self.policy = load_policy(policy_path, self.config)

@@ -14,24 +14,12 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
-from ...core.model import HRCModel
 from ...core.protocol import TaskEpochs
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (
-    CONFIG,
-    STATUS_PERIOD_SEC,
-    DeadlineTimer,
-    Inputs,
-    NodeParameters,
-    ParamSpec,
-    StartupError,
-    check_array,
-    control_clock,
-    load_node_config,
-    run,
-)
+from ..node_support import (CONFIG, STATUS_PERIOD_SEC, DeadlineTimer, Inputs, ParamSpec,
+                            StartupError, check_array, control_clock, node_setup, run)
 
 T = Parameter.Type
 PARAMETERS = (
@@ -68,11 +56,8 @@ class TaskManagerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_parameters,
-                                     self._apply_parameters)
-        values = self.params.values()
-        self.config = load_node_config(values['config'])
-        self.model = HRCModel(self.config)
+        self.params, values, self.config, self.model = node_setup(
+            self, PARAMETERS, check_parameters, self._apply_parameters)
         initial = tuple(int(v) for v in values['initial_task']) or None
         try:
             book = TaskBook(self.model, initial_task=initial, schedule=list(values['schedule']),
