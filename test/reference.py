@@ -16,4 +16,5 @@ def rule_q(model, value, sources):
         expected = np.bincount(t.source, weights=t.probability * value[t.target],
                                minlength=len(sources))
         q[:, a] = -model.cost(states, a) + model.gamma * expected
+    q[~model.availability[:, states[:, 10]].T] = -np.inf      # an action not available there
     return q

@@ -76,7 +76,7 @@ def test_unreadable_and_malformed_files(tmp_path):
 
 
 def test_shipped_policies_load_and_match_their_configs():
-    for name in ('default', 'paper', 'fail_safe_aware'):
+    for name in ('default', 'paper', 'fail_safe_unaware'):
         config = load_config(shipped_config_path(name))
         policy = load_policy(f'policies/{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
@@ -90,7 +90,7 @@ def test_the_shipped_policy_is_found_for_its_configuration():
     """No policy named: the shipped one solved for the configuration, else default.npz (whose
     check then says what to solve)."""
     from hrc_ros.core.policy import default_policy_path
-    for name in ('default', 'paper', 'fail_safe_aware'):
+    for name in ('default', 'paper', 'fail_safe_unaware'):
         path = default_policy_path(load_config(shipped_config_path(name)))
         assert path.name == f'{name}.npz'
         load_policy(path, load_config(shipped_config_path(name)))

@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 
 from hrc_ros.core.belief import BeliefFilter
-from hrc_ros.core.model import ACTIONS, DN, request_eligible
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTIONS, DN, HRCModel, request_eligible
 from hrc_ros.core.plots import plot_trajectory
-from hrc_ros.core.policy import default_policy_path
+from hrc_ros.core.paths import shipped_config_path
+from hrc_ros.core.policy import default_policy_path, load_policy
 from hrc_ros.core.simulation import COLUMNS, STATE_VARIABLES, Scenario, case_study, simulate
 from hrc_ros.tools.simulate import main
 
@@ -32,10 +34,14 @@ def test_policy_facts_behind_the_case_study(model, policy):
     idle = (0,) * 8
     for d in (2, 3):                      # 1. motivate a low-motivation human first ...
         for ea in (0, 1, 2):
-            assert pi(model, policy, (0, ea) + task1 + (d,)) == 'mh'
-    for em in (1, 2):                     # ... then ask for joint work
-        for ea in (0, 1, 2):
-            for d in (1, 2, 3):
+            # (issue 14) planning with the fail-safe, the default first steps back from an
+            # aggressive human at the middle circle: d = 0 would stop the robot for good
+            expected = 'dp' if (ea, d) == (2, 2) else 'mh'
+            assert pi(model, policy, (0, ea) + task1 + (d,)) == expected
+    for em in (1, 2):                     # ... then ask for joint work, never in the inner
+        for ea in (0, 1, 2):              # circle (issue 14: joint work at d = 1 risks d = 0,
+            assert pi(model, policy, (em, ea) + task1 + (1,)) == 'dp'   # where dn stops it)
+            for d in (2, 3):
                 assert pi(model, policy, (em, ea) + task1 + (d,)) == 'rh2'
     for em in range(3):                   # 2. an idle robot moves away, then stops
         for ea in range(3):
@@ -50,7 +56,8 @@ def test_policy_facts_behind_the_case_study(model, policy):
         for ea in range(3):
             assert pi(model, policy, (em, ea) + task2 + (3,)) == 'rh1'
     for ea in range(3):                   # 4. task for either: the robot commits and works
-        for d in (1, 2, 3):
+        assert pi(model, policy, (1, ea) + task3 + (1,)) == 'dp'   # after stepping back
+        for d in (2, 3):
             assert pi(model, policy, (1, ea) + task3 + (d,)) == 'ct'
         for bc in (2, 1):
             assert pi(model, policy, (1, ea, 2, bc, 2, 2, 0, 0, 2, bc, 3)) == 'nw'
@@ -177,7 +184,10 @@ def test_same_seed_same_trajectory(model, policy):
     assert a.rows != c.rows
 
 
-def test_fail_safe_can_be_switched_off_for_study(model, policy):
+def test_fail_safe_can_be_switched_off_for_study():
+    # the policy planned through collision (the default plans dn there itself)
+    config = load_config(shipped_config_path('fail_safe_unaware'))
+    model, policy = HRCModel(config), load_policy(default_policy_path(config), config)
     scenario = Scenario((1, 1, 1, 1, 3, 0, 0, 0, 0, 0, 0), epochs=1)
     on = simulate(model, policy, scenario, selector='mdp')
     off = simulate(model, policy, scenario, selector='mdp', fail_safe=False)
@@ -238,3 +248,18 @@ def test_bad_inputs_raise(model, policy):
     with pytest.raises(KeyError, match='no column'):
         simulate(model, policy, Scenario(case_study().initial_state, epochs=1)).column('x')
     assert STATE_VARIABLES[0] == 'em' and DN == ACTIONS.index('dn')
+
+
+def test_the_default_never_freezes_in_the_collision_circle(model, policy):
+    """Issue 14: the shipped default plans with the fail-safe. Planned with every action at
+    d = 0, the case study with seed 4 asked for joint work at d = 1, the human stepped into the
+    collision circle, and the forced dn held it there for the remaining 14 epochs (0 of 3
+    tasks); 4 of seeds 0-99 spent more than 3 epochs in a row at d = 0 and 7 missed a task."""
+    from hrc_ros.core.evaluation import STUCK_EPOCHS, BatchSimulator, episodes_of
+    assert model.config.fail_safe_aware
+    trajectory = simulate(model, policy, case_study(), seed=4)
+    assert sum(r.complete_epoch is not None for r in trajectory.tasks) == 3
+    scenarios, seeds = episodes_of(model, 'case-study', 100, 20, seed=0)
+    result = BatchSimulator(model, policy).run(scenarios, seeds, 'paper')
+    assert result.longest_collision_run.max() <= STUCK_EPOCHS
+    assert np.count_nonzero(result.tasks_completed == 3) >= 95

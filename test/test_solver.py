@@ -27,8 +27,10 @@ def full():
 
 def explicit_q(model, value, matrices):
     states = np.stack(np.unravel_index(np.arange(model.n_states), model.dims), axis=-1)
-    return np.stack([-model.cost(states, a) + model.gamma * (matrices[a] @ value)
-                     for a in range(len(ACTIONS))])
+    q = np.stack([-model.cost(states, a) + model.gamma * (matrices[a] @ value)
+                  for a in range(len(ACTIONS))])
+    q[~model.availability[:, states[:, 10]]] = -np.inf     # only dn at d = 0 (MODEL.md 5)
+    return q
 
 
 def test_factored_q_equals_explicit_sparse_on_reduced_model(reduced):
@@ -120,7 +122,8 @@ def test_shipped_policy_behaviour_matches_the_paper(full):
         return ACTIONS[policy[full.index(state)]]
 
     assert act((0, 0, 1, 1, 3, 0, 0, 0, 0, 0, 2)) == 'mh'   # joint task, unmotivated
-    assert act((1, 0, 1, 1, 3, 0, 0, 0, 0, 0, 1)) == 'rh2'  # motivated: ask for joint work
+    assert act((1, 0, 1, 1, 3, 0, 0, 0, 0, 0, 2)) == 'rh2'  # motivated: ask for joint work
+    assert act((1, 0, 1, 1, 3, 0, 0, 0, 0, 0, 1)) == 'dp'   # not in the inner circle (issue 14)
     assert act((0, 0, 2, 2, 1, 0, 0, 0, 0, 0, 3)) == 'mh'   # human-only task, unmotivated
     assert act((1, 1, 2, 2, 1, 0, 0, 0, 0, 0, 3)) == 'rh1'  # then ask the human
     assert act((0, 0, 2, 2, 2, 0, 0, 0, 0, 0, 3)) == 'ct'   # either task: the robot commits
@@ -131,14 +134,17 @@ def test_shipped_policy_behaviour_matches_the_paper(full):
         assert act((em, 1, 2, 2, 1, 0, 0, 0, 0, 0, 3)) != 'ct'
 
 
-def test_fail_safe_aware_plans_dn_at_collision(reduced):
-    aware = HRCModel(load_config(CONFIG, overrides={**REDUCED,
-                                                    'solver': {'fail_safe_aware': True}}))
+def test_fail_safe_aware_plans_dn_at_collision():
+    """The default plans with the fail-safe (MODEL.md 5, revised); the switch turns it off."""
+    aware = HRCModel(load_config(CONFIG, overrides=REDUCED))
+    assert aware.config.fail_safe_aware
+    reduced = HRCModel(load_config(CONFIG, overrides={**REDUCED,
+                                                      'solver': {'fail_safe_aware': False}}))
     collision = aware.state(np.arange(aware.n_states))[:, 10] == 0
     vi = solve(aware)
     assert np.all(vi.policy[collision] == DN)
     plain = solve(reduced)
-    assert not np.all(plain.policy[collision] == DN)   # MODEL.md's policy counts on dm there
+    assert not np.all(plain.policy[collision] == DN)   # planning through collision: dm there
     # restricting the actions can only cost: V_aware <= V_plain everywhere
     assert np.all(vi.value <= plain.value + 1e-9)
     pi = solve(aware, method='policy_iteration')

@@ -29,7 +29,7 @@ of one Bellman step on the solved value (`FactoredBellman.q`), computed once.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -39,15 +39,18 @@ from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HID
                     TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
 from .policy import policy_arrays
 from .selection import Q_TOLERANCE, VOTE_TOLERANCE
-from .simulation import SIMULATION_SELECTORS, Scenario
+from .simulation import SIMULATION_SELECTORS, Scenario, case_study
 
 METRICS = (
     ('discounted_cost', 'discounted cost'),
     ('epochs_to_complete', 'epochs to complete a task'),
     ('collision_epochs', 'epochs in collision'),
+    ('collision_stuck', 'share with > 3 epochs in a row at d = 0'),
     ('refused_requests', 'requests refused'),
     ('tasks_completed', 'tasks completed'),
 )
+STUCK_EPOCHS = 3    # more epochs than this in a row at d = 0: the cell is stuck in collision
+SCENARIOS = ('random', 'case-study')
 Z95 = 1.959963984540054
 
 
@@ -83,6 +86,24 @@ def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
     return scenarios
 
 
+def episodes_of(model: HRCModel, scenario: str, episodes: int, epochs: int, seed: int = 0,
+                task_rate: float = 0.2) -> tuple[list, list]:
+    """(scenarios, human seeds) of `episodes` episodes.
+
+    ``random``: `random_scenarios`, human seed ``(seed, e)``. ``case-study``: the paper's case
+    study (MODEL.md 7) every time, with `epochs` epochs and human seed ``seed + e``, so that
+    episode e is ``hrc-simulate --seed <seed + e>``.
+    """
+    if scenario == 'random':
+        return (random_scenarios(model, episodes, epochs, seed, task_rate),
+                [human_seed(seed, e) for e in range(episodes)])
+    if scenario == 'case-study':
+        base = case_study()
+        one = Scenario(base.initial_state, base.schedule, epochs, base.name)
+        return [one] * episodes, [seed + e for e in range(episodes)]
+    raise ValueError(f'unknown scenario {scenario!r}; expected one of {", ".join(SCENARIOS)}')
+
+
 @dataclass
 class BatchResult:
     """Per-episode metrics of one selector (arrays of length E) and, if kept, the actions."""
@@ -91,11 +112,17 @@ class BatchResult:
     discounted_cost: np.ndarray
     epochs_to_complete: np.ndarray    # NaN where the episode completed no task
     collision_epochs: np.ndarray
+    longest_collision_run: np.ndarray  # most consecutive epochs at d = 0
     refused_requests: np.ndarray
     requests: np.ndarray
     tasks_completed: np.ndarray
     tasks_released: np.ndarray
     actions: np.ndarray | None = None   # (E, K) action indices
+
+    @property
+    def collision_stuck(self) -> np.ndarray:
+        """1 where an episode spent more than STUCK_EPOCHS epochs in a row at d = 0."""
+        return (self.longest_collision_run > STUCK_EPOCHS).astype(float)
 
 
 class BatchSimulator:
@@ -229,6 +256,8 @@ class BatchSimulator:
 
         cost = np.zeros(n)
         collisions = np.zeros(n, dtype=np.int64)
+        run = np.zeros(n, dtype=np.int64)
+        longest_run = np.zeros(n, dtype=np.int64)
         requests = np.zeros(n, dtype=np.int64)
         refused = np.zeros(n, dtype=np.int64)
         actions_kept = np.zeros((n, epochs), dtype=np.int8) if keep_actions else None
@@ -263,6 +292,8 @@ class BatchSimulator:
             cost += model.gamma ** (k - 1) * (self.state_cost[h * self.columns + column]
                                               + self.action_cost[action])
             collisions += d == 0
+            run = np.where(d == 0, run + 1, 0)
+            np.maximum(longest_run, run, out=longest_run)
             # 4. the human reacts: acceptance, Delta, em', ea', O' (cell.SimulatedHuman order).
             u = uniforms[:, 1 + UNIFORMS_PER_EPOCH * (k - 1):1 + UNIFORMS_PER_EPOCH * k]
             eligible = self.eligible[action, y]
@@ -287,8 +318,8 @@ class BatchSimulator:
         n_done = completed.sum(axis=1)
         with np.errstate(invalid='ignore', divide='ignore'):
             mean_latency = np.where(n_done > 0, latency.sum(axis=1) / n_done, np.nan)
-        return BatchResult(selector, cost, mean_latency, collisions, refused, requests,
-                           n_done, released, actions_kept)
+        return BatchResult(selector, cost, mean_latency, collisions, longest_run, refused,
+                           requests, n_done, released, actions_kept)
 
 
 # -- statistics and outputs ------------------------------------------------------------------
@@ -313,8 +344,8 @@ def paired_difference(result: BatchResult, reference: BatchResult) -> dict:
     return {'mean': mean, 'half_width': half, 'low': mean - half, 'high': mean + half}
 
 
-TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'refused requests',
-                'tasks completed', 'cost - mdp cost')
+TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'stuck > 3 at d=0',
+                'refused requests', 'tasks completed', 'cost - mdp cost')
 
 
 def format_table(summaries: dict, differences: dict) -> str:
@@ -336,14 +367,13 @@ def format_table(summaries: dict, differences: dict) -> str:
 def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
-             progress=None) -> dict:
+             progress=None, scenario: str = 'random') -> dict:
     """selector -> BatchResult over the same seeded episodes (common random numbers)."""
     for s in selectors:
         if s not in SIMULATION_SELECTORS:
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
-    scenarios = random_scenarios(model, episodes, epochs, seed, task_rate)
-    seeds = [human_seed(seed, e) for e in range(episodes)]
+    scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate)
     sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe)
     results = {}
     for selector in selectors:
@@ -356,7 +386,6 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
                 progress(f'{selector}: {stop}/{episodes} episodes '
                          f'({time.perf_counter() - t0:.1f} s)')
         results[selector] = BatchResult(selector, *(
-            np.concatenate([getattr(p, f) for p in parts])
-            for f in ('discounted_cost', 'epochs_to_complete', 'collision_epochs',
-                      'refused_requests', 'requests', 'tasks_completed', 'tasks_released')))
+            np.concatenate([getattr(p, f.name) for p in parts])
+            for f in fields(BatchResult)[1:-1]))
     return results

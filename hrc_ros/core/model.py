@@ -228,6 +228,18 @@ class HRCModel:
         """P(accepted | s, a): p_accept[em] for an eligible request, else 0."""
         return np.where(request_eligible(action, tp, tx, ty), self.config.p_accept[em], 0.0)
 
+    # -- actions -------------------------------------------------------------------------
+    @cached_property
+    def availability(self) -> np.ndarray:
+        """(8, 4) bool: whether action a may be planned at distance level d. Every action
+        everywhere, except that with `solver.fail_safe_aware` (the default) only dn is
+        available at d = 0, the action the decision node's fail-safe enforces (MODEL.md 5)."""
+        out = np.ones((len(ACTIONS), N_DISTANCE), dtype=bool)
+        if self.config.fail_safe_aware:
+            out[np.arange(len(ACTIONS)) != DN, 0] = False
+        out.flags.writeable = False
+        return out
+
     # -- cost ----------------------------------------------------------------------------
     @cached_property
     def action_cost(self) -> np.ndarray:

@@ -171,8 +171,8 @@ class FactoredBellman:
         q[RH2][:, ry[rh2]] = mixed[:, rh2]
         q -= self.cost
         q -= self.g[:, None, None, None]
-        if self.fail_safe_aware:  # at d = 0 only dn is available
-            q[np.arange(len(ACTIONS)) != DN, :, :, 0] = -np.inf
+        unavailable = ~self.model.availability                     # (8, 4): by action and d
+        q[np.broadcast_to(unavailable[:, None, None, :], q.shape)] = -np.inf
         return q.reshape(len(ACTIONS), -1)
 
     def apply(self, value: np.ndarray, out: np.ndarray | None = None

@@ -15,7 +15,8 @@ import sys
 import time
 from pathlib import Path
 
-from ..core.evaluation import METRICS, evaluate, format_table, paired_difference, summarize
+from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_table, paired_difference,
+                               summarize)
 from ..core.plots import plot_summaries
 from ..core.simulation import SIMULATION_SELECTORS
 from .common import ToolError, add_model_arguments, load_model
@@ -27,8 +28,13 @@ def main(argv=None) -> int:
         description='Compare the action selectors (and the full-information MDP bound) over '
                     'many seeded episodes with random task streams.')
     add_model_arguments(parser)
+    parser.add_argument('--scenario', default='random', choices=SCENARIOS,
+                        help="'random' task streams and humans (default), or the paper's "
+                             "'case-study' with human seeds seed, seed+1, ... (as hrc-simulate "
+                             '--seed)')
     parser.add_argument('--episodes', type=int, default=1000)
-    parser.add_argument('--epochs', type=int, default=50, help='epochs per episode')
+    parser.add_argument('--epochs', type=int, default=None,
+                        help='epochs per episode (default: 50, the case study 20)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--task-rate', type=float, default=0.2,
                         help='probability of a new task per epoch (one always at epoch 1)')
@@ -45,6 +51,8 @@ def main(argv=None) -> int:
         if s not in SIMULATION_SELECTORS:
             parser.error(f'unknown selector {s!r} in --selectors; choose from '
                          f'{", ".join(SIMULATION_SELECTORS)}')
+    if args.epochs is None:
+        args.epochs = 20 if args.scenario == 'case-study' else 50
     for name in ('episodes', 'epochs'):
         if getattr(args, name) < 1:
             parser.error(f'--{name} must be >= 1')
@@ -60,15 +68,19 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe,
-                       progress=lambda m: print(m, flush=True))
+                       progress=lambda m: print(m, flush=True), scenario=args.scenario)
     elapsed = time.perf_counter() - t0
     summaries = {s: summarize(r) for s, r in results.items()}
     differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
                    if 'mdp' in results else {})
     mode = args.mode or config.belief_mode
-    print(f'{args.episodes} episodes x {args.epochs} epochs, seed {args.seed}, task rate '
-          f'{args.task_rate}, belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, '
-          f'gamma {config.gamma}; {elapsed:.1f} s')
+    planning = ('plans with the fail-safe (only dn at d = 0)' if config.fail_safe_aware
+                else 'plans with every action at d = 0')
+    print(f'{config.source} ({planning}), policy {policy.path}')
+    print(f'{args.episodes} episodes x {args.epochs} epochs of scenario {args.scenario}, seed '
+          f'{args.seed}' + (f', task rate {args.task_rate}' if args.scenario == 'random' else '')
+          + f', belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, gamma '
+          f'{config.gamma}; {elapsed:.1f} s')
     print(format_table(summaries, differences))
 
     out = Path(args.out)
@@ -83,13 +95,15 @@ def main(argv=None) -> int:
                                  f'{m["high"]:.6g}'])
     with (out / 'episodes.csv').open('w', newline='') as f:
         writer = csv.writer(f)
-        fields = [m for m, _ in METRICS] + ['requests', 'tasks_released']
+        fields = ([m for m, _ in METRICS]
+                  + ['longest_collision_run', 'requests', 'tasks_released'])
         writer.writerow(['selector', 'episode'] + fields)
         for s, r in results.items():
             for e in range(args.episodes):
                 writer.writerow([s, e] + [f'{getattr(r, f)[e]:.6g}' for f in fields])
     settings = {'config': config.source, 'config_sha256': config.policy_hash,
                 'policy': policy.path, 'episodes': args.episodes, 'epochs': args.epochs,
+                'fail_safe_aware': config.fail_safe_aware, 'scenario': args.scenario,
                 'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
                 'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
                 'seconds': round(elapsed, 3)}
