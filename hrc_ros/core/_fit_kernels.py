@@ -37,22 +37,16 @@ import numba
 import numpy as np
 
 
-def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, answer, move,
-            has_move, unique_move, seg_start, seg_weight, alpha, emission, loglik, first,
-            accept, delta, xi, observed, unique):
+def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, transition,
+              group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
+              alpha, emission, scale, loglik, first, accept, delta, xi, observed, unique):
+    """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
     n_h = 9
-    first[:] = 0.0
-    accept[:] = 0.0
-    delta[:] = 0.0
-    xi[:] = 0.0
-    observed[:] = 0.0
-    unique[:] = 0.0
-    scale = np.empty(emission.shape[0])
     nxt = np.empty(n_h)
     beta = np.empty(n_h)
     gamma = np.empty(n_h)
     dist = np.empty(3)
-    for s in range(seg_start.shape[0] - 1):
+    for s in range(first_segment, last_segment):
         a = seg_start[s]
         b = seg_start[s + 1]
         w = seg_weight[s]
@@ -99,8 +93,9 @@ def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, a
             if not c > 0.0:
                 possible = False
                 break
+            inverse = 1.0 / c
             for j in range(n_h):
-                alpha[t, j] /= c
+                alpha[t, j] *= inverse
             scale[t] = c
             total += math.log(c)
         if not possible:
@@ -114,8 +109,9 @@ def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, a
             if t < b - 1:
                 m = transition[group[t]]
                 xs = xi[group[t]]
+                inverse = 1.0 / scale[t + 1]
                 for j in range(n_h):
-                    nxt[j] = emission[t + 1, j] * beta[j] / scale[t + 1]
+                    nxt[j] = emission[t + 1, j] * beta[j] * inverse
                 for i in range(n_h):
                     ai = alpha[t, i] * w
                     v = 0.0
@@ -128,8 +124,9 @@ def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, a
             for h in range(n_h):
                 gamma[h] = alpha[t, h] * beta[h]
                 z += gamma[h]
+            z = w / z
             for h in range(n_h):
-                gamma[h] *= w / z
+                gamma[h] *= z
             if t == a:
                 for h in range(n_h):
                     first[h] += gamma[h]
@@ -154,4 +151,23 @@ def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, a
                             unique[ea, k] += g_ea
 
 
-e_step = numba.njit(cache=True, nogil=True)(_e_step)
+def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, answer, move,
+            has_move, unique_move, seg_start, seg_weight, alpha, emission, loglik, first,
+            accept, delta, xi, observed, unique):
+    first[:] = 0.0
+    accept[:] = 0.0
+    delta[:] = 0.0
+    xi[:] = 0.0
+    observed[:] = 0.0
+    unique[:] = 0.0
+    _segments_jit(0, seg_start.shape[0] - 1, likelihood, p_accept, p_delta, pi, transition,
+                  group, observation, answer, move, has_move, unique_move, seg_start,
+                  seg_weight, alpha, emission, np.empty(emission.shape[0]), loglik, first,
+                  accept, delta, xi, observed, unique)
+
+
+# fastmath without assuming finite values (an impossible segment's -inf must survive). One
+# thread: on two shared cores numba's parallel pass over the segments measured slower.
+_FLAGS = {'reassoc', 'contract', 'arcp', 'nsz'}
+_segments_jit = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_segments)
+e_step = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_e_step)

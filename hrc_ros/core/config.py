@@ -180,8 +180,10 @@ def _canonical(value: Any) -> Any:
 def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
     for key, value in overrides.items():
         name = f'{prefix}{key}'
-        if key not in base:
+        if key not in base and tuple(name.split('.')) not in _OPTIONAL:
             raise ConfigError(f'unknown configuration key {name!r}')
+        if key not in base:
+            base[key] = None
         if isinstance(value, Mapping) and isinstance(base[key], dict):
             _merge(base[key], value, name + '.')
         else:

@@ -395,6 +395,22 @@ TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'stuck
                 'refused requests', 'tasks completed', 'cost - mdp cost')
 
 
+def format_regret(planned: dict, true: dict) -> str:
+    """Per selector: the cost planning with the configuration, with the true one, and the
+    regret (their paired difference, 95% interval), over the same episodes of the true world."""
+    head = (f'{"selector":<9}{"cost, planned model":>22}{"cost, true model":>22}'
+            f'{"regret (paired)":>22}')
+    lines = [head, '-' * len(head)]
+    for selector, result in planned.items():
+        a = summarize(result)['discounted_cost']
+        b = summarize(true[selector])['discounted_cost']
+        r = paired_difference(result, true[selector])
+        lines.append(f'{selector:<9}{a["mean"]:>13.3f} ± {a["half_width"]:<6.3f}'
+                     f'{b["mean"]:>13.3f} ± {b["half_width"]:<6.3f}'
+                     f'{r["mean"]:>+13.3f} ± {r["half_width"]:<6.3f}')
+    return '\n'.join(lines)
+
+
 def format_table(summaries: dict, differences: dict) -> str:
     """Mean ± 95% half-width per selector and metric; the last column is paired (CRN)."""
     width = 19
@@ -414,14 +430,18 @@ def format_table(summaries: dict, differences: dict) -> str:
 def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
-             progress=None, scenario: str = 'random') -> dict:
-    """selector -> BatchResult over the same seeded episodes (common random numbers)."""
+             progress=None, scenario: str = 'random', world: HRCModel | None = None) -> dict:
+    """selector -> BatchResult over the same seeded episodes (common random numbers).
+
+    `world`: the model the human and the costs are drawn from when it is not the one the
+    robot plans with (`model`: its policy and belief filter); the episodes and the human's
+    uniforms do not depend on either, so runs with different planning models are paired."""
     for s in selectors:
         if s not in SIMULATION_SELECTORS:
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
     scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate)
-    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe)
+    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, world=world)
     results = {}
     for selector in selectors:
         t0 = time.perf_counter()

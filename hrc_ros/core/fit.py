@@ -89,7 +89,7 @@ ACTION_GROUP = np.array([GROUP_INDEX[ACTION_EMOTION_GROUP[a]] for a in range(len
 INIT_FLOOR = 0.02          # share of uniform mixed into the starting values
 INIT_CONCENTRATION = 10.0  # Dirichlet concentration of the random starts around the base
 SHORT_RUN = 10             # EM iterations of every start before the best one continues
-TOL = 1e-7                 # stop when the log likelihood rises by less than this per epoch
+TOL = 1e-8                 # stop when the log likelihood rises by less than this per epoch
 MAX_ITER = 1000
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
@@ -427,36 +427,89 @@ def m_step(stats: Expected, params: Params, hold: tuple = ()) -> Params:
 @dataclass
 class EMRun:
     params: Params
-    trace: list                 # log likelihood after each E-step
+    trace: list                 # log likelihood after each iteration (the start's first)
     converged: bool
     stats: Expected | None = None
+    e_steps: int = 0
 
     @property
     def iterations(self) -> int:
         return max(0, len(self.trace) - 1)
 
 
+def _pack(params: Params) -> np.ndarray:
+    return np.concatenate([np.ravel(getattr(params, f)) for f in _PARAM_FIELDS])
+
+
+def _unpack(vector: np.ndarray, like: Params) -> Params:
+    out, at = like.copy(), 0
+    for f in _PARAM_FIELDS:
+        shape = getattr(like, f).shape
+        size = int(np.prod(shape))
+        setattr(out, f, vector[at:at + size].reshape(shape).copy())
+        at += size
+    return out
+
+
 def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
-           max_iter: int = MAX_ITER, seg_weight=None, run: EMRun | None = None) -> EMRun:
+           max_iter: int = MAX_ITER, seg_weight=None, run: EMRun | None = None,
+           accelerate: bool = True) -> EMRun:
     """EM from `start` (or continuing `run`) until the log likelihood rises by less than
-    `tol` per epoch, or `max_iter` iterations in all. The returned parameters are those of
-    the last M-step; `stats` is the E-step at them (the trace's last entry)."""
-    n = data.epochs if seg_weight is None else float(np.dot(
-        np.asarray(seg_weight, dtype=float), np.diff(data.seg_start)))
+    `tol` per epoch in an iteration, or after `max_iter` iterations in all.
+
+    With `accelerate` an iteration is one SQUAREM cycle (Varadhan and Roland 2008, scheme
+    S3): two EM steps theta1 = M(theta0), theta2 = M(theta1), the extrapolation
+    theta0 - 2 alpha r + alpha^2 v (r = theta1 - theta0, v = theta2 - 2 theta1 + theta0,
+    alpha = -|r| / |v|, halved towards -1 while it leaves the probabilities' domain; alpha = -1
+    is theta2), kept only if its likelihood is not below theta2's (its E-step serves the next
+    cycle). So the likelihood still never decreases, and EM's slow crawl along flat directions
+    is cut several times over. Without it an iteration is one EM step. The returned parameters'
+    E-step is `stats` (the trace's last entry)."""
+    n = max(1.0, data.epochs if seg_weight is None else float(np.dot(
+        np.asarray(seg_weight, dtype=float), np.diff(data.seg_start))))
     params = start if run is None else run.params
     trace = [] if run is None else list(run.trace)
-    stats = run.stats if run is not None else e_step(params, data, seg_weight)
+    e_steps = 0 if run is None else run.e_steps
+
+    def expect(p):
+        nonlocal e_steps
+        e_steps += 1
+        return e_step(p, data, seg_weight)
+
+    stats = run.stats if run is not None else expect(params)
     if run is None:
         trace.append(stats.loglik)
     converged = False
     while len(trace) <= max_iter:
-        params = m_step(stats, params, hold)
-        stats = e_step(params, data, seg_weight)
+        p1 = m_step(stats, params, hold)
+        if not accelerate:
+            params, stats = p1, expect(p1)
+        else:
+            s1 = expect(p1)
+            p2 = m_step(s1, p1, hold)
+            s2 = expect(p2)
+            x0, x1, x2 = _pack(params), _pack(p1), _pack(p2)
+            r, v = x1 - x0, x2 - 2 * x1 + x0
+            params, stats = p2, s2
+            if np.linalg.norm(v) > 0:
+                alpha = min(-1.0, -np.linalg.norm(r) / np.linalg.norm(v))
+                x = x0 - 2 * alpha * r + alpha ** 2 * v
+                while alpha < -1.0 and not (np.all(x >= 0) and np.all(x <= 1)):
+                    alpha = min(-1.0, (alpha - 1.0) / 2 + 1e-12) if alpha < -1.01 else -1.0
+                    x = x0 - 2 * alpha * r + alpha ** 2 * v
+                if alpha < -1.0:
+                    try:
+                        p3 = _unpack(x, params)
+                        s3 = expect(p3)
+                    except FitError:      # the extrapolation made some evidence impossible
+                        s3 = None
+                    if s3 is not None and s3.loglik >= s2.loglik:
+                        params, stats = p3, s3
         trace.append(stats.loglik)
-        if abs(trace[-1] - trace[-2]) < tol * max(n, 1.0):
+        if abs(trace[-1] - trace[-2]) < tol * n:
             converged = True
             break
-    return EMRun(params, trace, converged, stats)
+    return EMRun(params, trace, converged, stats, e_steps)
 
 
 # -- starts and labels ------------------------------------------------------------------------
@@ -543,6 +596,7 @@ class FitResult:
     support: np.ndarray            # (57,) expected informative epochs
     interval: np.ndarray | None    # (2, 57) bootstrap 2.5 and 97.5 percentiles
     samples: np.ndarray | None     # (B, 57) bootstrap estimates
+    effective: np.ndarray | None   # (57,) p (1 - p) / bootstrap variance (module docstring)
     warnings: list
     epochs: int
     segments: int
@@ -564,6 +618,16 @@ class FitResult:
         return _free(self.hold)
 
 
+def effective_support(estimate: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """p (1 - p) / var: how many fully observed events would pin each parameter down as well
+    as the data do (the bootstrap variance of a binomial share is p (1 - p) / n)."""
+    variance = samples.var(axis=0, ddof=1) if len(samples) > 1 else np.full(samples.shape[1],
+                                                                             np.inf)
+    share = np.clip(estimate, 0.0, 1.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return np.where(variance > 0, share * (1 - share) / variance, np.inf)
+
+
 def support_of(stats: Expected) -> np.ndarray:
     """(57,) expected informative epochs per parameter (module docstring)."""
     out = [stats.accept.sum(axis=0), stats.unique_moves.ravel()]
@@ -575,8 +639,11 @@ def support_of(stats: Expected) -> np.ndarray:
     return np.concatenate(out)
 
 
-def _warnings(support: np.ndarray, hold: tuple, min_support: float, episodes: int,
-              bootstrap: int) -> list[str]:
+def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
+              min_support: float, episodes: int, bootstrap: int) -> list[str]:
+    """A warning per family with parameters below `min_support` informative epochs, or, with
+    a bootstrap, below `min_support` effective events (the data may hold many epochs that say
+    little about a parameter when the hidden state is hard to tell)."""
     out = []
     if bootstrap and episodes < 10:
         out.append(f'only {episodes} episode{"s" if episodes != 1 else ""}: bootstrap '
@@ -597,6 +664,13 @@ def _warnings(support: np.ndarray, hold: tuple, min_support: float, episodes: in
             listed = ', '.join(f'{n} ({s:.0f})' for n, s in zip(names[weak], support[weak]))
             out.append(f'{family}: poorly supported, fewer than {min_support:g} informative '
                        f'epochs: {listed}')
+        if effective is not None:
+            vague = rows & (support >= min_support) & (effective < min_support)
+            if vague.any():
+                listed = ', '.join(f'{n} ({e:.0f})' for n, e in zip(names[vague],
+                                                                    effective[vague]))
+                out.append(f'{family}: poorly determined, the data weigh less than '
+                           f'{min_support:g} observed events (bootstrap): {listed}')
     return out
 
 
@@ -610,12 +684,13 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     if bootstrap < 0:
         raise FitError(f'bootstrap must be >= 0, got {bootstrap}')
     say = progress or (lambda message: None)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     base_params = Params.from_config(base)
     rng = np.random.default_rng(seed)
     starts = [_smoothed(base_params, hold)]
     starts += [_random_start(base_params, hold, rng) for _ in range(n_init - 1)]
-    runs = [run_em(data, s, hold, tol, min(SHORT_RUN, max_iter)) for s in starts]
+    runs = [run_em(data, s, hold, tol, min(SHORT_RUN, max_iter), accelerate=False)
+            for s in starts]
     start_logliks = [r.trace[-1] for r in runs]
     chosen = int(np.argmax(start_logliks))
     say(f'{n_init} start{"s" if n_init > 1 else ""}, log likelihood after {SHORT_RUN} '
@@ -627,15 +702,10 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     params, relabelled = canonical_labels(best.params, base_params, hold)
     stats = e_step(params, data)
     support = support_of(stats)
-    seconds = {'fit': time.perf_counter() - t0}
+    seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
         f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
-    warnings = _warnings(support, hold, min_support, len(data.episodes), bootstrap)
-    if 'likelihood' not in hold:
-        warnings += [f'no epoch observed O={o + 1}: the configuration gives it P(O | h) = '
-                     f'{UNSEEN_FLOOR:g} for every h so that a filter can take it'
-                     for o in np.flatnonzero(stats.observed.sum(axis=1) == 0)]
-    interval = samples = None
+    interval = samples = effective = None
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
@@ -648,9 +718,16 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
             if (b + 1) % max(1, bootstrap // 10) == 0:
                 say(f'bootstrap {b + 1}/{bootstrap} ({time.perf_counter() - t1:.1f} s)')
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
+        effective = effective_support(params.vector(), samples)
         seconds['bootstrap'] = time.perf_counter() - t1
+    warnings = _warnings(support, effective, hold, min_support, len(data.episodes), bootstrap)
+    if 'likelihood' not in hold:
+        warnings += [f'no epoch observed O={o + 1}: the configuration gives it P(O | h) = '
+                     f'{UNSEEN_FLOOR:g} for every h so that a filter can take it'
+                     for o in np.flatnonzero(stats.observed.sum(axis=1) == 0)]
     return FitResult(params, base_params, hold, best.trace, start_logliks, chosen,
-                     best.converged, relabelled, support, interval, samples, warnings,
+                     best.converged, relabelled, support, interval, samples, effective,
+                     warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
                      data.issues, seconds)
 
@@ -739,7 +816,8 @@ def _fmt(v: float) -> str:
 def report_text(result: FitResult, trace_every: int = 10) -> str:
     p = result.params.vector()
     b = result.base.vector()
-    lines = [f'{"parameter":<30}{"fitted":>9}{"base":>9}{"95% interval":>20}{"support":>10}']
+    lines = [f'{"parameter":<30}{"fitted":>9}{"base":>9}{"95% interval":>20}{"support":>10}'
+             f'{"effective":>10}']
     lines.append('-' * len(lines[0]))
     families = PARAMETER_FAMILIES
     weak = {n for w in result.warnings for n in PARAMETER_NAMES if f'{n} (' in w}
@@ -752,8 +830,10 @@ def report_text(result: FitResult, trace_every: int = 10) -> str:
             interval = f'[{_fmt(result.interval[0, i])}, {_fmt(result.interval[1, i])}]'
         flag = '  !' if name in weak or (families[i] not in result.hold
                                          and result.support[i] == 0) else ''
+        effective = ('' if result.effective is None or families[i] in result.hold
+                     else f'{min(result.effective[i], 1e9):>10.0f}')
         lines.append(f'{name:<30}{_fmt(p[i]):>9}{_fmt(b[i]):>9}{interval:>20}'
-                     f'{result.support[i]:>10.0f}{flag}')
+                     f'{result.support[i]:>10.0f}{effective:>10}{flag}')
     trace = result.trace
     shown = [(i, v) for i, v in enumerate(trace) if i % trace_every == 0 or i == len(trace) - 1]
     lines += ['', 'initial hidden state (nuisance, not in the configuration): '
@@ -790,6 +870,8 @@ def report_dict(result: FitResult) -> dict:
         parameters.append({
             'name': name, 'family': PARAMETER_FAMILIES[i], 'fitted': float(p[i]),
             'base': float(b[i]), 'held': held, 'support': float(result.support[i]),
+            'effective_support': None if held or result.effective is None
+            else float(min(result.effective[i], 1e12)),
             'ci95': None if held or result.interval is None
             else [float(result.interval[0, i]), float(result.interval[1, i])]})
     return {'parameters': parameters, 'initial_hidden_state': result.params.pi.tolist(),

@@ -129,7 +129,36 @@ def load_policy(path: str | Path, config: Config | None = None) -> Policy:
     return loaded
 
 
-def check_policy(policy: Policy, config: Config) -> None:
+def peek_policy(path: str | Path, config: Config) -> dict:
+    """The cheap half of `load_policy`, for a check that must not stall a caller (a node's
+    parameter callback): the file exists, is an archive with `policy`, `value` and `meta`, and
+    its meta says it was solved for `config` with the right number of states. Reads the meta
+    only (milliseconds); `load_policy` then reads and checks the arrays. PolicyError as there."""
+    path = Path(path)
+    resolve = f'Solve it again: hrc-solve --config <your config.yaml> -o {path}'
+    if not path.is_file():
+        raise PolicyError(f'policy file {path} does not exist. {resolve}')
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = {name.removesuffix('.npy') for name in archive.namelist()}
+            missing = {'policy', 'value', 'meta'} - names
+            if missing:
+                raise PolicyError(f'{path} is not an hrc_ros policy file (missing '
+                                  f'{", ".join(sorted(missing))}). {resolve}')
+        with np.load(path, allow_pickle=False) as archive:
+            meta = json.loads(str(archive['meta']))
+    except PolicyError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+        raise PolicyError(f'{path} is corrupt or not a policy file ({exc}). {resolve}') from None
+    if not isinstance(meta, dict) or 'config_sha256' not in meta:
+        raise PolicyError(f'{path} has no configuration hash in its meta. {resolve}')
+    check_policy(Policy(np.zeros(0, dtype=np.int8), np.zeros(0), meta, str(path)), config,
+                 states=meta.get('n_states'))
+    return meta
+
+
+def check_policy(policy: Policy, config: Config, states: int | None = None) -> None:
     """Refuse a policy solved for another configuration."""
     expected = config.policy_hash
     if policy.config_sha256 != expected:
@@ -140,6 +169,7 @@ def check_policy(policy: Policy, config: Config) -> None:
             f'hrc-solve --config {config.source} -o <policy.npz>, or pass the matching '
             'configuration.')
     n = HRCModel(config).n_states
-    if policy.policy.size != n:
-        raise PolicyError(f'policy {policy.path} has {policy.policy.size} states, the '
+    size = policy.policy.size if states is None else states
+    if size != n:
+        raise PolicyError(f'policy {policy.path} has {size} states, the '
                           f'configuration has {n}. Solve it again with hrc-solve.')

@@ -4,9 +4,9 @@
   keep last 5: a late sample is worth less than the next one, and a slow subscriber must never
   make the tracker queue up.
 - `LATCHED`: state that a late joiner needs at once (`hrc/belief`, `hrc/task_state`,
-  `hrc/distance_level`, the simulator's `hrc/sim/true_state`). Reliable, transient local,
-  depth 1: the last value is kept by the publisher and handed to every new subscriber.
-  A subscriber must use it too, or it does not receive the stored sample.
+  `hrc/distance_level`, `hrc/estimator_config`, the simulator's `hrc/sim/true_state`).
+  Reliable, transient local, depth 1: the last value is kept by the publisher and handed to
+  every new subscriber. A subscriber must use it too, or it does not receive the stored sample.
 - `RELIABLE`: events (`hrc/action`, `hrc/epoch`, `hrc/observation`, `hrc/task_request`,
   `hrc/human_response`, `/diagnostics`). Reliable, volatile, keep last 10.
 """

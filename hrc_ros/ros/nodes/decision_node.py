@@ -9,31 +9,49 @@ by the `selector`, or `dn` when an input is missing, stale, malformed or late, o
 `core.protocol.DecisionGate` and `ClockStart`; this node owns the topics, the policy file,
 the parameters and the timers. It refuses to start (exit 1, one line) on a missing policy or
 one solved for another configuration.
+
+Live swap (`ros2 param set /decision policy <file>`, and `config`; docs/LEARNING.md): the
+parameter callback checks the pair (the configuration loads and describes the same cell; the
+policy file exists, is a policy and was solved for that configuration: its meta only, a few
+ms) and refuses a bad one with the reason, keeping the old. A policy solved for another
+configuration than `config` is refused; a `config` set alone while `policy` is not solved for
+it is accepted but staged (reported; the old pair keeps running) until a `policy` solved for
+it is set, so that `ros2 param set`, one parameter at a time, can change both. An accepted pair
+is loaded and fully checked in a background thread (`BackgroundLoad`) and swapped in at the
+next epoch boundary (`DecisionGate.begin(select=...)`), so no epoch waits for the file; if the
+full check still fails (damaged arrays) the parameters return to the pair in use, with an
+ERROR status. The estimator announces its configuration on `hrc/estimator_config`; every
+decision status names the policy and configuration in use and whether the estimator's belief
+sections match, and a mismatch is a WARN status.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
-from ...core.policy import PolicyError, default_policy_path, load_policy
-from ...core.protocol import ClockStart, DecisionGate, EpochFollower, Report
+from ...core.config import Config
+from ...core.model import HRCModel
+from ...core.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
+from ...core.protocol import ERROR, OK, WARN, ClockStart, DecisionGate, EpochFollower, Report
 from ...core.selection import SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (CONFIG, DeadlineTimer, Inputs, ParamSpec, StartupError, config_path,
-                            control_clock, node_setup, run)
+from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
+                            StartupError, config_path, control_clock, load_node_config,
+                            node_setup, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
 T = Parameter.Type
 PARAMETERS = (
-    CONFIG,
+    LIVE_CONFIG,
     ParamSpec('policy', T.STRING, '', "policy file solved for the configuration ('' = the "
               'shipped policy solved for config, e.g. policies/paper.npz for paper.yaml; else '
-              'default.npz)', read_only=True),
+              'default.npz); settable at run time: swapped in at the next epoch boundary'),
     ParamSpec('selector', T.STRING, 'paper', 'action selection from the belief: '
               + ', '.join(SELECTORS), constraints=' or '.join(SELECTORS)),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
@@ -63,24 +81,65 @@ def check_parameters(values) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class Running:
+    """A (configuration, policy) pair, loaded and checked: what decides, or is about to."""
+
+    config_value: str        # the parameters as set
+    policy_value: str
+    config: Config
+    model: HRCModel
+    policy: Policy
+    selector: ActionSelector
+
+
+@dataclass(frozen=True)
+class Staged:
+    """A configuration set without a policy solved for it yet."""
+
+    config_value: str
+    policy_value: str
+    reason: str
+
+
+def load_pair(config_value: str, policy_value: str, method: str) -> Running | Staged:
+    """Load and check a (configuration, policy) pair as the parameters name it; `Staged` when
+    the policy was not solved for the configuration; StartupError / PolicyError otherwise."""
+    config = load_node_config(config_value)
+    path = policy_value or str(default_policy_path(config))
+    try:
+        peek_policy(path, config)
+    except PolicyError as exc:
+        return Staged(config_value, policy_value, str(exc))
+    model = HRCModel(config)
+    policy = load_policy(path, config)
+    return Running(config_value, policy_value, config, model, policy,
+                   ActionSelector(model, policy, method=method))
+
+
 class DecisionNode(Node):
     NODE_NAME = 'decision'
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params, values, self.config, self.model = node_setup(
-            self, PARAMETERS, check_parameters, self._apply_parameters)
-        policy_path = values['policy'] or str(default_policy_path(self.config))
+        self.running: Running | None = None      # set below: swaps are checked from then on
+        self.params, values, config, model = node_setup(
+            self, PARAMETERS, self._check_parameters, self._apply_parameters)
+        policy_path = values['policy'] or str(default_policy_path(config))
         try:
-            self.policy = load_policy(policy_path, self.config)
+            policy = load_policy(policy_path, config)
         except PolicyError as exc:
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
-                f'sha256 {self.config.policy_hash})') from None
-        self.selector = ActionSelector(self.model, self.policy, method=values['selector'])
+                f'sha256 {config.policy_hash})') from None
+        self.loader = BackgroundLoad('decision')
+        self.staged: Staged | None = None
+        self.estimator_config: tuple[str, str] | None = None   # (belief sha256, source)
         self.epoch_source = values['epoch_source']
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
+        self.running = Running(values['config'], values['policy'], config, model, policy,
+                               ActionSelector(model, policy, method=values['selector']))
         self.gate = DecisionGate(self.selector.select, int(values['stale_timeout'] * 1e9),
                                  int(values['input_timeout'] * 1e9),
                                  fresh_at_epoch=self.epoch_source == 'timer')
@@ -112,6 +171,8 @@ class DecisionNode(Node):
             self.epoch_timer = None
             self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                                   self._on_epoch)
+        self.inputs.subscribe(String, 'hrc/estimator_config', qos.LATCHED,
+                              conv.config_identity_from_msg, self._on_estimator_config)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
             f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
@@ -121,10 +182,50 @@ class DecisionNode(Node):
     def epoch(self) -> int:
         return self.gate.epoch
 
+    # the pair in use
+    config = property(lambda self: self.running.config)
+    model = property(lambda self: self.running.model)
+    policy = property(lambda self: self.running.policy)
+    selector = property(lambda self: self.running.selector)
+
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
+    # -- parameters ------------------------------------------------------------------------
+    def _check_parameters(self, values) -> str | None:
+        return check_parameters(values) or self._check_swap(values)
+
+    def _check_swap(self, values) -> str | None:
+        """The quick check of a new (config, policy) pair, in the parameter callback."""
+        running = self.running
+        if running is None or 'config' not in values or 'policy' not in values:
+            return None            # start-up: __init__ loads and checks the pair itself
+        if (values['config'], values['policy']) == (running.config_value, running.policy_value):
+            return None
+        try:
+            config = load_node_config(values['config'])
+        except StartupError as exc:
+            return f'config refused: {exc}'
+        if (config.rho, config.sigma) != (running.model.rho, running.model.sigma):
+            return (f'config refused: {config.source} has rho {config.rho}, sigma '
+                    f'{config.sigma}; the running cell {running.model.rho}, '
+                    f'{running.model.sigma}: restart the nodes to change the state space')
+        path = values['policy'] or str(default_policy_path(config))
+        try:
+            peek_policy(path, config)
+        except PolicyError as exc:
+            if values['policy'] == running.policy_value:
+                return None        # config set alone: staged until a policy for it is set
+            return (f'policy refused: {exc} (the configuration set is {config.source}; to '
+                    'change both, set config first, then policy)')
+        return None
+
     def _apply_parameters(self, values) -> None:
+        running = self.running
+        if running is not None and (values['config'], values['policy']) != (
+                running.config_value, running.policy_value):
+            method = values['selector']
+            self.loader.start(lambda: load_pair(values['config'], values['policy'], method))
         self.selector.set_method(values['selector'])   # qmdp's Q table is built here
         self.gate.stale_timeout_ns = int(values['stale_timeout'] * 1e9)
         self.gate.input_timeout_ns = int(values['input_timeout'] * 1e9)
@@ -168,7 +269,7 @@ class DecisionNode(Node):
             self.inputs.report(tick.report)
         if tick.start_epoch:
             k = self.epoch + 1
-            self._act(self.gate.begin(k, self._now()))
+            self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
             self.epoch_pub.publish(conv.epoch_to_msg(k))
 
     def _on_epoch(self, k: int) -> None:
@@ -176,7 +277,45 @@ class DecisionNode(Node):
         if restart is not None:
             self.inputs.report(restart)
         self.epochs.take(k)
-        self._act(self.gate.begin(k, self._now()))
+        self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
+
+    def _swap(self, k: int):
+        """At the boundary of epoch k: a pair loaded meanwhile takes over (its `select`)."""
+        done = self.loader.take()
+        if done is None:
+            return None
+        loaded, error = done
+        old = self.running
+        if isinstance(loaded, Running):
+            if loaded.selector.method != self.params.value('selector'):
+                loaded.selector.set_method(self.params.value('selector'))
+            self.running, self.staged = loaded, None
+            self.inputs.report(Report(
+                OK, 'policy', f'epoch {k}: now deciding with policy {loaded.policy.path} '
+                f'(configuration {loaded.config.source}, sha256 '
+                f'{loaded.config.policy_hash[:12]}); before: {old.policy.path}',
+                {'epoch': k, 'policy_file': loaded.policy.path, 'config': loaded.config.source,
+                 'previous_policy_file': old.policy.path}, kind='swap'))
+            return loaded.selector.select
+        if isinstance(loaded, Staged):
+            self.staged = loaded
+            self.inputs.report(Report(
+                WARN, 'policy', f'configuration {config_path(loaded.config_value)} is set but '
+                f'not in use: {loaded.reason}; still deciding with {old.policy.path} '
+                f'({old.config.source}). Set policy to a file solved for it.',
+                {'config_staged': config_path(loaded.config_value),
+                 'policy_file': old.policy.path}, kind='staged'))
+            return None
+        self.inputs.report(Report(
+            ERROR, 'policy', f'refused the new configuration / policy: {error}; still deciding '
+            f'with {old.policy.path} ({old.config.source})',
+            {'policy_file': old.policy.path, 'error': str(error)}, kind='refused'))
+        self.set_parameters([Parameter('config', value=old.config_value),
+                             Parameter('policy', value=old.policy_value)])
+        return None
+
+    def _on_estimator_config(self, identity: tuple[str, str]) -> None:
+        self.estimator_config = identity
 
     # -- the decision ----------------------------------------------------------------------
     def _act(self, decisions) -> None:
@@ -185,15 +324,29 @@ class DecisionNode(Node):
             self.action_pub.publish(conv.action_to_msg(decision.action))
             publish_ms = (time.perf_counter() - start) * 1e3
             self.last_action = decision.action
+            estimator = self.estimator_config
+            matches = None if estimator is None else estimator[0] == self.config.belief_hash
             values = {**decision.values(), 'selector': self.selector.method,
                       'publish_ms': publish_ms,
                       'policy_file': self.policy.path,
                       'policy_config_sha256': self.policy.config_sha256,
                       'config': self.config.source,
                       'config_sha256': self.config.policy_hash,
+                      'config_staged': (None if self.staged is None
+                                        else config_path(self.staged.config_value)),
+                      'estimator_config': None if estimator is None else estimator[1],
+                      'estimator_config_matches': matches,
                       **self.inputs.counts()}
             self.inputs.report(Report(decision.level, 'decision', decision.message, values,
                                       log=bool(decision.faults), kind='fail_safe'))
+            if matches is False:
+                self.inputs.report(Report(
+                    WARN, 'configuration', f'epoch {decision.epoch}: the belief estimator runs '
+                    f'{estimator[1]} (belief sections sha256 {estimator[0][:12]}), this node '
+                    f'{self.config.source} ({self.config.belief_hash[:12]}): its belief is not '
+                    "the one the policy's model would give; set the estimator's config too",
+                    {'epoch': decision.epoch, 'estimator_config': estimator[1],
+                     'config': self.config.source}, kind='estimator_config'))
         self.deadline.sync(self.gate.deadline)
 
 
