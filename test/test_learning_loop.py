@@ -21,17 +21,14 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64MultiArray, String, UInt32
+from std_msgs.msg import Float64MultiArray, UInt32
+from test_suite_multiprocess import Listener
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, HRCModel
@@ -78,20 +75,14 @@ def tool(name: str, *args, timeout=180.0) -> str:
     return result.stdout
 
 
-class Watcher:
-    """The test's node: epoch signals and beliefs with their source timestamps, actions, the
-    decision node's statuses, and a parameter client per node."""
+class Watcher(Listener):
+    """The multi-process test's listener, plus: epoch signals and beliefs with their source
+    timestamps, every status, and a parameter client per node."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('loop_watcher', context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__()
         self.signals: list = []
         self.beliefs: list = []
-        self.actions: list = []
-        self.decisions: dict[int, dict] = {}
         self.statuses: list = []
         deep = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -107,30 +98,14 @@ class Watcher:
                                                  reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(Float64MultiArray, 'hrc/belief',
                                       stamped(self.beliefs, conv.belief_from_msg), deep)
-        self.node.create_subscription(String, 'hrc/action',
-                                      lambda m: self.actions.append(m.data),
-                                      QoSProfile(depth=100,
-                                                 reliability=ReliabilityPolicy.RELIABLE))
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
-                                      QoSProfile(depth=100,
-                                                 reliability=ReliabilityPolicy.RELIABLE))
         self.clients = {name: AsyncParameterClient(self.node, name)
                         for name in ('decision', 'belief_estimator')}
 
     def _on_diagnostics(self, msg) -> None:
+        super()._on_diagnostics(msg)
         for status in msg.status:
-            values = conv.diagnostic_values(status)
-            self.statuses.append((status.name, status.level, status.message, values))
-            if status.name == 'decision: decision' and values.get('epoch', '0') != '0':
-                self.decisions[int(values['epoch'])] = {'level': status.level, **values}
-
-    def spin_until(self, predicate, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.02)
-        return True
+            self.statuses.append((status.name, status.level, status.message,
+                                  conv.diagnostic_values(status)))
 
     def set(self, node: str, name: str, value: str):
         client = self.clients[node]
@@ -138,11 +113,6 @@ class Watcher:
         future = client.set_parameters([Parameter(name, value=value)])
         assert self.spin_until(future.done, 10.0), f'setting {node}.{name} timed out'
         return future.result().results[0]
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 def test_record_fit_solve_and_swap_the_running_suite(tmp_path, policy_path, ros_domain_id):
@@ -168,8 +138,8 @@ def test_record_fit_solve_and_swap_the_running_suite(tmp_path, policy_path, ros_
     try:
         for node in NODES:
             suite.start(f'{node}_node')
-        assert watcher.spin_until(lambda: set(NODES) <= set(watcher.node.get_node_names())
-                                  or suite.dead(), 30), suite.logs()
+        assert watcher.spin_until(lambda: watcher.nodes_up(NODES) or suite.dead(), 30), \
+            suite.logs()
         suite.start('decision_node')
         assert watcher.spin_until(lambda: len(watcher.decisions) >= BEFORE or suite.dead(),
                                   DEADLINE), suite.logs()

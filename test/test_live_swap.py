@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
-from test_nodes import TASK_1, Decision, Estimator, Graph
+from test_nodes import TASK_1, Decision, Estimator
 
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import ACTIONS, TASK_VARIABLES, HRCModel
@@ -34,15 +34,6 @@ OTHER_MODEL = {'model': {
     'observation': {'likelihood': [[0.6] * 3 + [0.3] * 3 + [0.1] * 3,
                                    [0.3] * 3 + [0.4] * 3 + [0.3] * 3,
                                    [0.1] * 3 + [0.3] * 3 + [0.6] * 3]}}
-
-
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
 
 
 @pytest.fixture(scope='module')

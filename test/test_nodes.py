@@ -117,15 +117,6 @@ class Graph:
         rclpy.try_shutdown(context=self.context)
 
 
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
-
-
 @pytest.fixture(scope='module')
 def model(default_config):
     return HRCModel(default_config)

@@ -32,7 +32,9 @@ chain; their log likelihood is a sum of multinomial terms, so every M-step is cl
 
 (pi is a nuisance parameter: the configuration has no initial distribution.) Each family can
 be held fixed at the base configuration's value. The log likelihood never decreases; the fit
-stops when it rises by less than `tol` per epoch, or after `max_iter` iterations.
+stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
+the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
+an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation.
 
 Initialisations. EM finds a local maximum. The first start is the base configuration (mixed
 with `INIT_FLOOR` of uniform, because EM can never move a probability away from exactly 0 or
@@ -48,9 +50,11 @@ with replacement (as multiplicities, so the data are not copied), each fitted by
 estimate; the 95% interval of a parameter is the 2.5 and 97.5 percentiles of its resampled
 values. Support: the posterior-expected number of epochs that inform a parameter (answered
 requests by em; moves that tell this Delta apart from both others, by ea; chain moves whose
-outcome is unique, from the level they start at; epochs with an observation, by h). A
-parameter with less than `min_support` gets a warning, as does one whose family was never
-exercised (a chain of an action never taken keeps its start value).
+outcome is unique, from the level they start at; epochs with an observation, by h). Effective
+support: p (1 - p) / bootstrap variance, the number of directly observed events that would
+pin it down as well; where h is hard to tell it is far below the support. A parameter below
+`min_support` in either gets a warning, as does a family never exercised (a chain of an action
+never taken keeps its start value).
 
 Data preparation (`prepare`): rows come from `recordings` and never include em or ea. A row
 whose answer contradicts the model (an ineligible request accepted) is reported and left out;

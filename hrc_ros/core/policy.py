@@ -93,27 +93,41 @@ def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
     return path
 
 
-def load_policy(path: str | Path, config: Config | None = None) -> Policy:
-    """Load and check a policy file; with `config`, also check it was solved for it."""
-    path = Path(path)
-    resolve = (f'Solve it again: hrc-solve --config <your config.yaml> -o {path}')
+def _resolve(path: Path) -> str:
+    return f'Solve it again: hrc-solve --config <your config.yaml> -o {path}'
+
+
+def _read(path: Path, arrays: bool = True) -> tuple:
+    """(policy, value, meta) of a policy file, the arrays None unless `arrays`; PolicyError for
+    a missing file, a file that is not such an archive, or a meta without the hash."""
     if not path.is_file():
-        raise PolicyError(f'policy file {path} does not exist. {resolve}')
+        raise PolicyError(f'policy file {path} does not exist. {_resolve(path)}')
+    policy = value = None
     try:
         with np.load(path, allow_pickle=False) as archive:
             missing = {'policy', 'value', 'meta'} - set(archive.files)
             if missing:
                 raise PolicyError(f'{path} is not an hrc_ros policy file (missing '
-                                  f'{", ".join(sorted(missing))}). {resolve}')
-            policy = archive['policy']
-            value = archive['value']
+                                  f'{", ".join(sorted(missing))}). {_resolve(path)}')
+            if arrays:
+                policy = archive['policy']
+                value = archive['value']
             meta = json.loads(str(archive['meta']))
     except PolicyError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
-        raise PolicyError(f'{path} is corrupt or not a policy file ({exc}). {resolve}') from None
+        raise PolicyError(f'{path} is corrupt or not a policy file ({exc}). '
+                          f'{_resolve(path)}') from None
     if not isinstance(meta, dict) or 'config_sha256' not in meta:
-        raise PolicyError(f'{path} has no configuration hash in its meta. {resolve}')
+        raise PolicyError(f'{path} has no configuration hash in its meta. {_resolve(path)}')
+    return policy, value, meta
+
+
+def load_policy(path: str | Path, config: Config | None = None) -> Policy:
+    """Load and check a policy file; with `config`, also check it was solved for it."""
+    path = Path(path)
+    policy, value, meta = _read(path)
+    resolve = _resolve(path)
     if policy.dtype != np.int8 or policy.ndim != 1:
         raise PolicyError(f'{path}: policy must be a 1-D int8 array, got {policy.dtype} '
                           f'{policy.shape}. {resolve}')
@@ -135,24 +149,7 @@ def peek_policy(path: str | Path, config: Config) -> dict:
     its meta says it was solved for `config` with the right number of states. Reads the meta
     only (milliseconds); `load_policy` then reads and checks the arrays. PolicyError as there."""
     path = Path(path)
-    resolve = f'Solve it again: hrc-solve --config <your config.yaml> -o {path}'
-    if not path.is_file():
-        raise PolicyError(f'policy file {path} does not exist. {resolve}')
-    try:
-        with zipfile.ZipFile(path) as archive:
-            names = {name.removesuffix('.npy') for name in archive.namelist()}
-            missing = {'policy', 'value', 'meta'} - names
-            if missing:
-                raise PolicyError(f'{path} is not an hrc_ros policy file (missing '
-                                  f'{", ".join(sorted(missing))}). {resolve}')
-        with np.load(path, allow_pickle=False) as archive:
-            meta = json.loads(str(archive['meta']))
-    except PolicyError:
-        raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
-        raise PolicyError(f'{path} is corrupt or not a policy file ({exc}). {resolve}') from None
-    if not isinstance(meta, dict) or 'config_sha256' not in meta:
-        raise PolicyError(f'{path} has no configuration hash in its meta. {resolve}')
+    _, _, meta = _read(path, arrays=False)
     check_policy(Policy(np.zeros(0, dtype=np.int8), np.zeros(0), meta, str(path)), config,
                  states=meta.get('n_states'))
     return meta
