@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
+from ..tools.common import Parser, bounded_float, bounded_int
 from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
                             format_size, full_type_name, policy_name, read_bag, split_type_name)
 
@@ -466,26 +467,29 @@ def _info_command(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-bag', description='Record, play and inspect rosbag2-compatible MCAP bags.')
     commands = parser.add_subparsers(dest='command', required=True)
     record = commands.add_parser('record', help='record topics into a bag directory')
     record.add_argument('-o', '--output', required=True,
                         help='bag directory to create (or a file name ending in .mcap)')
-    record.add_argument('--duration', type=float, default=None, help='stop after S seconds')
-    record.add_argument('--max-messages', type=int, default=None,
+    record.add_argument('--duration', type=bounded_float(0.0, 1e7), default=None,
+                        help='stop after S seconds')
+    record.add_argument('--max-messages', type=bounded_int(1, 2 ** 62), default=None,
                         help='stop after N messages')
-    record.add_argument('--wait-timeout', type=float, default=10.0,
+    record.add_argument('--wait-timeout', type=bounded_float(0.0, 86400.0), default=10.0,
                         help='seconds to wait for every topic to have a publisher (default 10)')
     record.add_argument('topics', nargs='+', metavar='TOPIC')
     player = commands.add_parser('play', help='publish a bag with its recorded timing')
     player.add_argument('bag', metavar='FILE_OR_DIR')
-    player.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    player.add_argument('--rate', type=bounded_float(1e-3, 1e3), default=1.0,
+                        help='playback speed factor')
     player.add_argument('--topics', nargs='+', default=None, metavar='T',
                         help='play only these topics')
-    player.add_argument('--start-delay', type=float, default=0.0,
+    player.add_argument('--start-delay', type=bounded_float(0.0, 86400.0), default=0.0,
                         help='seconds to wait before the first message')
-    player.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
+    player.add_argument('--wait-for-subscribers', type=bounded_float(0.0, 86400.0), default=0.0,
+                        metavar='S',
                         help='wait up to S s for every topic to have a subscriber')
     player.add_argument('--order', choices=PLAY_ORDERS, default='log',
                         help="timing and order by 'log' (receive) time, as ros2 bag play, or "
