@@ -322,6 +322,18 @@ def test_estimator_derives_velocities_from_positions(graph, model):
     assert est.observations[-1].data == 3
 
 
+def test_estimator_drops_positions_whose_derived_velocity_overflows(graph):
+    """Issue 13: two position-only samples of +-1e308, 1 ns apart, made the velocity infinite
+    and took the internal-error path with a traceback; they are a malformed message."""
+    est = Estimator(graph)
+    for i, q in enumerate((1e308, -1e308)):
+        msg = JointState(name=list(conv.HUMAN_JOINTS), position=[q] * 6)
+        msg.header.stamp = conv.seconds_to_stamp(10.0 + 1e-9 * i)
+        est.send('joint_states', est.joints, msg)
+    assert_dropped(graph, est.node, 'joint_states', 'not finite')
+    assert not graph.diagnostics('belief_estimator: joint_states input', ERROR)
+
+
 def test_estimator_window_without_motion_publishes_no_belief(graph):
     est = Estimator(graph)
     est.body(1)
@@ -961,6 +973,15 @@ def test_task_manager_queues_requests_and_drops_bad_ones(graph):
     tasks.send('task_request', tasks.request, UInt8MultiArray(data=[1, 0, 1]))
     assert tasks.node.inputs.dropped['task_request'] == 3
     assert tasks.node.book.pending == []
+
+
+def test_bad_input_is_quoted_capped_never_whole(graph):
+    """Issue 13: a 10 MB invalid action made a 10 MB log line and a ~20 MB status."""
+    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    tasks.send('action', tasks.action, String(data='x' * 10_000_000))
+    assert_dropped(graph, tasks.node, 'action', '(10000000 characters)')
+    status = graph.diagnostics('task_manager: action input', WARN)[0]
+    assert len(status.message) < 1000 and all(len(kv.value) < 1000 for kv in status.values)
 
 
 def test_task_manager_drops_bad_actions_and_epochs(graph):

@@ -49,7 +49,7 @@ from ..core.config import ConfigError, load_config
 from ..core.paths import default_config_path
 from ..core.protocol import InputError, Report
 from . import qos
-from .conversions import diagnostic_array, diagnostic_status
+from .conversions import cap, diagnostic_array, diagnostic_status
 
 WARNING_THROTTLE_SEC = 5.0   # one warning (and one drop diagnostic) per input per this period
 STATUS_PERIOD_SEC = 1.0      # periodic health status of the nodes
@@ -132,7 +132,7 @@ class NodeParameters:
         try:
             reason = self._check(merged)
         except (TypeError, ValueError) as exc:
-            reason = str(exc)
+            reason = cap(str(exc))
         if reason:
             return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
@@ -336,7 +336,9 @@ class Inputs:
         return self._loggers[name]
 
     def drop(self, name: str, topic: str, reason: str) -> None:
-        """Count a dropped message, warn (throttled) and report it on /diagnostics."""
+        """Count a dropped message, warn (throttled) and report it on /diagnostics; the reason
+        is capped (`conversions.cap`), whatever a conversion quoted."""
+        reason = cap(reason)
         self.dropped[name] += 1
         self._unreported[name] += 1
         self.last_drop_reason[name] = reason
@@ -363,11 +365,12 @@ class Inputs:
         (both throttled per input, like drops, so a bug hit at 1 kHz cannot flood)."""
         self.dropped[name] += 1
         self._unreported[name] += 1
-        self._logger(name).error(f'internal error while handling {topic}:\n{trace}',
+        self._logger(name).error(f'internal error while handling {topic}:\n{cap(trace, 8000)}',
                                  throttle_duration_sec=WARNING_THROTTLE_SEC)
         if self._report_due(self._last_error_report, name):
             self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
-                                     {'topic': topic, 'error': trace.strip().splitlines()[-1],
+                                     {'topic': topic,
+                                      'error': cap(trace.strip().splitlines()[-1]),
                                       'dropped': self.dropped[name]}))
 
     def report(self, report: Report) -> None:

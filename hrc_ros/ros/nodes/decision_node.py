@@ -143,7 +143,7 @@ class DecisionNode(Node):
             try:
                 return convert(msg)
             except conv.MessageError as exc:
-                self._act(self.gate.malformed(name, str(exc), self._now()))
+                self._act(self.gate.malformed(name, conv.cap(str(exc)), self._now()))
                 raise
         return convert_or_mark
 
