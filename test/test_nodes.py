@@ -53,6 +53,7 @@ from hrc_ros.ros.nodes.task_manager_node import TaskManagerNode
 TIMEOUT = 5.0
 EPOCH_PERIOD = 0.2
 INPUT_TIMEOUT = 0.12
+MS = 1_000_000
 
 
 def spin_until(executor, predicate, timeout: float = TIMEOUT) -> bool:
@@ -696,7 +697,8 @@ def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
     ('input_timeout', 0.5, 'shorter than epoch_period'),
     ('epoch_period', 0.1, 'shorter than epoch_period'),
     ('epoch_period', -1.0, 'range'),
-    ('stale_timeout', 0.0, 'range'),
+    ('stale_timeout', -1.0, 'range'),
+    ('stale_timeout', 0.1, 'longer than epoch_period'),
     ('policy', '/tmp/other.npz', 'read-only'),
     ('config', '/tmp/other.yaml', 'read-only'),
     ('epoch_source', 'topic', 'read-only'),
@@ -728,7 +730,7 @@ def test_decision_clock_is_steady_unless_sim_time(graph, policy_path):
     steady = Decision(graph, policy_path, epoch_source='topic').node   # publishes no epochs
     assert steady.clock.clock_type == ClockType.STEADY_TIME
     sim = Decision(graph, policy_path, use_sim_time=True, epoch_period=1.0,
-                   stale_timeout=0.5)
+                   stale_timeout=1.5)
     assert sim.node.clock.clock_type == ClockType.ROS_TIME
     clock = graph.publisher(ClockMsg, '/clock', qos.RELIABLE)
     before = len(sim.epochs)
@@ -746,6 +748,18 @@ def test_decision_finds_the_shipped_policy_of_its_configuration(graph):
     repo = Path(__file__).resolve().parent.parent
     node = graph.start(DecisionNode, config=str(repo / 'config' / 'paper.yaml'))
     assert Path(node.policy.path).name == 'paper.npz'
+
+
+def test_timeouts_follow_the_epoch_period(graph, policy_path):
+    """Issue 13: -p epoch_period:=0.2 alone refused to start (input_timeout 0.5 s was not below
+    it); the timeouts left at 0 now follow the period, also when it changes at run time."""
+    node = graph.start(DecisionNode, policy=policy_path, epoch_period=0.2)
+    assert (node.gate.input_timeout_ns, node.gate.stale_timeout_ns) == (100 * MS, 600 * MS)
+    assert node.set_parameters([Parameter('epoch_period', value=2.0)])[0].successful
+    assert (node.gate.input_timeout_ns, node.gate.stale_timeout_ns) == (1000 * MS, 6000 * MS)
+    assert node.set_parameters([Parameter('input_timeout', value=0.3)])[0].successful
+    result = node.set_parameters([Parameter('epoch_period', value=0.25)])[0]
+    assert not result.successful and 'shorter than epoch_period' in result.reason
 
 
 def test_decision_refuses_bad_parameters_at_start_up(graph, policy_path):

@@ -7,6 +7,7 @@ import pytest
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
+                                   PeriodEstimate, timeout_ns,
                                    DecisionGate, EpochFollower, EstimatorEpochs, InputError,
                                    TaskEpochs)
 from hrc_ros.core.selection import Selection
@@ -438,3 +439,17 @@ def test_a_held_action_reacts_with_the_latest_state_at_the_timeout_or_the_next_a
     assert (first.action, first.task_state) == (DP, X1) and 'before the next action' in first.late
     assert pairing.held == RH2
 
+
+
+# -- timeouts that follow the period ----------------------------------------------------------
+def test_a_follower_learns_the_epoch_period_from_source_stamps():
+    period = PeriodEstimate()
+    assert period.period_ns is None
+    assert timeout_ns(0.0, 0.25, period.period_ns, 0.25) == 250 * MS    # unknown: fallback
+    for k, jitter in enumerate((0, 0, 0, 40, 40, 40)):                   # one late epoch
+        period.observe(k * 200 * MS + jitter * MS)
+    assert period.period_ns == 200 * MS                                  # the median
+    assert timeout_ns(0.0, 0.25, period.period_ns, 0.25) == 50 * MS
+    assert timeout_ns(0.4, 0.25, period.period_ns, 0.25) == 400 * MS    # explicit wins
+    period.observe(0)                                                    # a restart
+    assert period.period_ns is None

@@ -24,6 +24,8 @@ nothing.
 - `EstimatorEpochs`: the belief estimator's epoch windows split by the signal's source
   timestamp, O_k, d_k and the belief update.
 - `ActionPairing`: the simulated cell's pairing of a_k with the task state x_k.
+- `PeriodEstimate`, `timeout_ns`: timeouts that follow the epoch period (a parameter of 0 means
+  a fraction of the period; the followers learn the period from the epochs they receive).
 
 `InputError` is the one exception for an unusable input: the ring drops the message with a
 throttled warning and a diagnostic.
@@ -68,6 +70,38 @@ class Report:
 
 def _seconds(ns: int) -> float:
     return ns * 1e-9
+
+
+# -- timeouts that follow the epoch period ------------------------------------------------------
+class PeriodEstimate:
+    """The epoch period a follower sees: the median of the last intervals between the source
+    timestamps of a periodic input (hrc/epoch, hrc/action); None before two of them."""
+
+    def __init__(self, window: int = 5):
+        self._stamps: deque = deque(maxlen=window + 1)
+
+    def observe(self, published_ns: int) -> None:
+        if self._stamps and published_ns <= self._stamps[-1]:
+            self._stamps.clear()          # a restart, or a clock step: start again
+        self._stamps.append(published_ns)
+
+    @property
+    def period_ns(self) -> int | None:
+        if len(self._stamps) < 2:
+            return None
+        stamps = list(self._stamps)
+        return int(np.median(np.diff(stamps)))
+
+
+def timeout_ns(explicit_s: float, fraction: float, period_ns: int | None,
+               fallback_s: float) -> int:
+    """A timeout parameter's value: `explicit_s` seconds if it is > 0, else `fraction` of the
+    epoch period (`fallback_s` while the period is unknown)."""
+    if explicit_s > 0:
+        return int(explicit_s * 1e9)
+    if period_ns is None:
+        return int(fallback_s * 1e9)
+    return int(fraction * period_ns)
 
 
 # -- hrc/epoch --------------------------------------------------------------------------------

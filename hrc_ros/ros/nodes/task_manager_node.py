@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
-from ...core.protocol import TaskEpochs
+from ...core.protocol import PeriodEstimate, TaskEpochs, timeout_ns
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
@@ -22,6 +22,8 @@ from ..node_support import (CONFIG, STATUS_PERIOD_SEC, DeadlineTimer, Inputs, Pa
                             StartupError, check_array, control_clock, node_setup, run)
 
 T = Parameter.Type
+HOLD_FRACTION = 0.25   # input_timeout 0: this fraction of the observed epoch period
+HOLD_FALLBACK = 0.25   # ... and these seconds until the period is known
 PARAMETERS = (
     CONFIG,
     ParamSpec('initial_task', T.INTEGER_ARRAY, [], '(tp, tc, tx) of the task present at epoch '
@@ -32,9 +34,11 @@ PARAMETERS = (
     ParamSpec('max_queue', T.INTEGER, 100, 'tasks that may wait in the queue; a request '
               'beyond them is refused (dropped with a diagnostic)', read_only=True,
               range=(1, 1000000)),
-    ParamSpec('input_timeout', T.DOUBLE, 0.25, 'seconds after hrc/epoch k to wait for a_{k-1} '
-              'and, for an eligible request, the human response; then dn / refused. Keep it '
-              "below the decision node's input_timeout", range=(0.0, 3600.0)),
+    ParamSpec('input_timeout', T.DOUBLE, 0.0, 'seconds after hrc/epoch k to wait for a_{k-1} '
+              'and, for an eligible request, the human response; then dn / refused. 0 = '
+              f'{HOLD_FRACTION:g} x the epoch period seen on hrc/epoch ({HOLD_FALLBACK:g} s '
+              "before two epochs); keep an explicit value below the decision node's "
+              'input_timeout', range=(0.0, 3600.0)),
 )
 
 
@@ -65,13 +69,15 @@ class TaskManagerNode(Node):
         except ValueError as exc:
             raise StartupError(f'task parameters: {exc}') from None
         self.clock = control_clock(self)
-        self.tasks = TaskEpochs(book, int(values['input_timeout'] * 1e9))
+        self.period = PeriodEstimate()
+        self.input_timeout = values['input_timeout']
+        self.tasks = TaskEpochs(book, self._hold_ns())
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
         self.inputs = Inputs(self)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              lambda k: self._step(self.tasks.epoch(k, self._now())))
+                              self._on_epoch, with_published=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda a, t: self._step(self.tasks.action(a, t, self._now())),
                               with_published=True)
@@ -91,8 +97,19 @@ class TaskManagerNode(Node):
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
+    def _hold_ns(self) -> int:
+        return timeout_ns(self.input_timeout, HOLD_FRACTION, self.period.period_ns,
+                          HOLD_FALLBACK)
+
     def _apply_parameters(self, values) -> None:
-        self.tasks.input_timeout_ns = int(values['input_timeout'] * 1e9)
+        self.input_timeout = values['input_timeout']
+        self.tasks.input_timeout_ns = self._hold_ns()
+
+    def _on_epoch(self, k: int, published_ns: int) -> None:
+        step = self.tasks.epoch(k, self._now())     # refuses a bad epoch before it is timed
+        self.period.observe(published_ns)
+        self.tasks.input_timeout_ns = self._hold_ns()
+        self._step(step)
 
     def _task_request_from_msg(self, msg):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
@@ -110,7 +127,8 @@ class TaskManagerNode(Node):
         self.hold.sync(self.tasks.deadline)
 
     def _publish_status(self) -> None:
-        self.inputs.publish_health('tasks', self.tasks.status())
+        timeout_s = self.tasks.input_timeout_ns * 1e-9
+        self.inputs.publish_health('tasks', {**self.tasks.status(), 'input_timeout_s': timeout_s})
 
 
 def main(args=None):
