@@ -1166,3 +1166,38 @@ def test_cell_applies_the_sensor_rate_at_run_time(graph):
 def test_cell_refuses_bad_parameters_at_start_up(graph, parameters, reason):
     with pytest.raises(InvalidParameterValueException, match=reason):
         graph.start(CellSimNode, **parameters)
+
+
+def test_every_parameter_of_every_node_has_a_value(graph, policy_path):
+    """Issue 13: `ros2 param dump /task_manager` printed `ros__parameters: {}` and `ros2 param
+    get /cell_sim faults` said "Parameter not set": parameters whose default is an empty array
+    were declared by type alone, and the get-parameters service answered nothing for a request
+    that named one. Here through the same services `ros2 param` uses."""
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import GetParameters, ListParameters
+    nodes = [graph.start(TaskManagerNode), graph.start(CellSimNode),
+             graph.start(BeliefEstimatorNode),
+             graph.start(DecisionNode, policy=policy_path, epoch_source='topic')]
+    client_node = rclpy.create_node('param_dump_probe', context=graph.context)
+    graph.executor.add_node(client_node)
+    graph.nodes.append(client_node)
+    def call(service_type, service, request):
+        client = client_node.create_client(service_type, service)
+        assert graph.spin_until(client.service_is_ready), f'{service} not ready'
+        future = client.call_async(request)
+        assert graph.spin_until(future.done), f'{service} did not answer'
+        return future.result()
+
+    for node in nodes:
+        name = node.get_fully_qualified_name()
+        names = call(ListParameters, f'{name}/list_parameters',
+                     ListParameters.Request()).result.names
+        assert 'config' in names
+        values = call(GetParameters, f'{name}/get_parameters',
+                      GetParameters.Request(names=names)).values
+        assert len(values) == len(names), f'{name}: get_parameters answered {len(values)}'
+        unset = [n for n, v in zip(names, values) if v.type == ParameterType.PARAMETER_NOT_SET]
+        assert unset == [], f'{name}: parameters without a value: {unset}'
+    faults = nodes[1].get_parameter('faults')
+    assert faults.type_ == Parameter.Type.STRING_ARRAY and list(faults.value) == []
+    assert nodes[0].get_parameter('initial_task').type_ == Parameter.Type.INTEGER_ARRAY

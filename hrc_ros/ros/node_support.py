@@ -7,9 +7,9 @@ Parameters. A node lists its parameters as `ParamSpec`s; `NodeParameters` declar
 merged proposed values. The callback is registered before the declarations, so values from a
 `--params-file` are validated by the same code at start-up (a bad value stops the node with
 the reason). Changes accepted at run time reach the node through
-`add_post_set_parameters_callback`. An array parameter whose default is empty is declared by
-type (rclpy infers a byte array from ``[]``), so it reads as "not set" until given; `value()`
-returns the spec's default then.
+`add_post_set_parameters_callback`. An array parameter whose default is empty is declared with
+that typed empty value (`NodeParameters._declare_empty_array`), so every parameter has a value
+that `ros2 param get` and `ros2 param dump` show.
 
 Inputs. `Inputs.subscribe` wraps a subscription: the callback converts the message (a
 `conversions` function) and hands the value to the node; a `MessageError`, raised by the
@@ -104,9 +104,28 @@ class NodeParameters:
         node.add_on_set_parameters_callback(self._on_set)
         for spec in specs:
             empty_array = isinstance(spec.default, (list, tuple)) and not spec.default
-            default = spec.type if empty_array else spec.default
-            node.declare_parameter(spec.name, default, spec.descriptor())
+            if empty_array and not node.has_parameter(spec.name):
+                self._declare_empty_array(spec)
+            else:
+                node.declare_parameter(spec.name, spec.default, spec.descriptor())
         node.add_post_set_parameters_callback(self._post_set)
+
+    def _declare_empty_array(self, spec: ParamSpec) -> None:
+        """Declare an array parameter whose default is empty with that typed empty value.
+
+        rclpy infers a byte array from ``[]``, and a parameter declared by type alone reads as
+        "not set": `ros2 param get` then says so and the get-parameters service answers
+        nothing for a request that names it (so `ros2 param dump` printed ``{}``). rclpy's
+        public API cannot declare a typed empty array (its value is inferred), so the typed
+        value goes through the declaration step rclpy uses itself; a value from a params
+        file (an override, typed by rcl) still wins. test_nodes checks that every parameter
+        of every node has a value."""
+        descriptor = spec.descriptor()
+        override = self.node._parameter_overrides.get(spec.name)    # typed by rcl
+        value = (override if override is not None and override.type_ == spec.type
+                 else Parameter(spec.name, spec.type, []))
+        self.node._declare_parameter_common([Parameter(spec.name, spec.type, value.value)],
+                                            {spec.name: descriptor})
 
     def value(self, name: str) -> Any:
         try:
