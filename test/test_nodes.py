@@ -118,6 +118,14 @@ class Graph:
         rclpy.try_shutdown(context=self.context)
 
 
+def new_epoch_source(graph, follower):
+    """A new writer of hrc/epoch (a restarted decision node), once the source the node follows
+    has been silent long enough to be taken for gone (`EpochFollower.silence_ns`)."""
+    gone = follower.last_published_ns + follower.silence_ns
+    assert graph.spin_until(lambda: time.time_ns() > gone)
+    return graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+
+
 @pytest.fixture
 def graph():
     g = Graph()
@@ -431,7 +439,7 @@ def test_estimator_drops_unknown_actions_and_repeated_epochs(graph):
     est.body(1)
     est.epoch(3)
     est.send('epoch', est.epoch_pub, conv.epoch_to_msg(3))
-    assert_dropped(graph, est.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, est.node, 'epoch', 'does not continue the epoch source')
     est.send('epoch', est.epoch_pub, UInt32(data=0))
     assert est.node.inputs.dropped['epoch'] == 2
 
@@ -443,10 +451,14 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     belief_filter = BeliefFilter(model)
     est.motion(2)
     est.body(2)
+    est.epoch(40)
+    est.motion(2)
+    est.body(2)
     b1 = est.epoch(41)
     est.act('mh')
     est.motion(3)
     est.body(3)
+    est.epoch_pub = new_epoch_source(graph, est.node.windows.epochs)
     b2 = est.epoch(1)
     np.testing.assert_allclose(b2, belief_filter.update(b1, MH, 3))
     assert est.distances[-1].data == 3 and est.node.windows.epoch == 1
@@ -668,11 +680,12 @@ def test_decision_follows_the_epoch_topic(graph, model, policy_path):
     assert dec.run(1) == [expected]
     assert graph.probe.count_publishers('hrc/epoch') == 1   # the probe's, not the node's
     epoch.publish(UInt32(data=1))                            # a repeat: dropped
-    assert_dropped(graph, dec.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, dec.node, 'epoch', 'does not continue the epoch source')
     dec.inputs()
     epoch.publish(UInt32(data=2))
     assert dec.run(2) == [expected] * 2
     dec.inputs()
+    epoch = new_epoch_source(graph, dec.node.epochs)
     epoch.publish(UInt32(data=1))                            # the replay started again
     assert dec.run(3) == [expected] * 3 and dec.node.epoch == 1
     assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message
@@ -729,6 +742,10 @@ def test_decision_clock_is_steady_unless_sim_time(graph, policy_path):
     from rosgraph_msgs.msg import Clock as ClockMsg
     steady = Decision(graph, policy_path, epoch_source='topic').node   # publishes no epochs
     assert steady.clock.clock_type == ClockType.STEADY_TIME
+    graph.executor.remove_node(steady)           # one decision node per graph (a second one
+    graph.nodes.remove(steady)                   # does not start its clock)
+    steady.destroy_node()
+    assert graph.spin_until(lambda: graph.probe.count_publishers('hrc/action') == 0)
     sim = Decision(graph, policy_path, use_sim_time=True, epoch_period=1.0,
                    stale_timeout=1.5)
     assert sim.node.clock.clock_type == ClockType.ROS_TIME
@@ -919,6 +936,8 @@ def test_task_manager_follows_a_restarted_epoch_count(graph, model):
         book.apply(action, False)
         book.renumber(k) if k == 1 else None
         book.begin_epoch(k)
+        if k == 1:
+            tasks.epoch_pub = new_epoch_source(graph, tasks.node.tasks.epochs)
         assert tasks.epoch(k, action) == book.state, f'epoch {k} ({action})'
     assert tasks.node.book.epoch == 1 and tasks.node.inputs.dropped['epoch'] == 0
     assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message for s in
@@ -936,6 +955,7 @@ def test_task_manager_restart_finalises_the_old_count_like_any_epoch(graph, mode
     tasks.epoch(1)
     tasks.epoch(2, 'nw')
     tasks.send('action', tasks.action, String(data='rh2'))     # the old node's last action
+    tasks.epoch_pub = new_epoch_source(graph, tasks.node.tasks.epochs)
     assert tasks.epoch(1)['ty'] == 0                           # restart: held, then refused
     assert tasks.node.tasks.late_inputs == 1 and tasks.node.book.epoch == 1
     tasks.send('human_response', tasks.response, Bool(data=True))   # the late yes
@@ -954,18 +974,24 @@ def test_task_manager_restart_takes_a_missing_last_action_as_dn(graph, model):
     book.apply('dn', False)                                    # the old node died before a_2
     book.renumber(1)
     book.begin_epoch(1)
+    human.epoch_pub = new_epoch_source(graph, human.node.tasks.epochs)
     assert human.epoch(1) == book.state
     assert book.state['hc'] == 1                               # dn still counts the human
 
 
 def test_task_manager_drops_a_second_epoch_source(graph):
-    """Only a restart at 1 may go back: an interleaved second count is dropped."""
-    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    """Issue 13: a stray hrc/epoch of 4294967295 from another writer (ros2 topic pub --once)
+    made every real epoch 'not follow' and ran begin_epoch(4294967295); an interleaved
+    second count is dropped too. The followed source goes on."""
+    tasks = Tasks(graph, initial_task=[1, 1, 0], schedule=['5:2,2,1'])
     for k in (1, 2, 3):
-        tasks.epoch(k)
-    tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(2))
-    assert_dropped(graph, tasks.node, 'epoch', 'does not follow the previous epoch 3')
-    assert tasks.node.book.epoch == 3
+        tasks.epoch(k, 'dn')
+    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))
+    assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
+    tasks.send('epoch', stray, conv.epoch_to_msg(2))
+    assert tasks.node.book.epoch == 3 and tasks.node.book.pending == []
+    assert tasks.epoch(4, 'dn')['tp'] == 1 and tasks.node.inputs.dropped['epoch'] == 2
 
 
 def test_task_manager_refuses_requests_beyond_max_queue(graph):
@@ -1004,7 +1030,7 @@ def test_task_manager_drops_bad_actions_and_epochs(graph):
     tasks.send('action', tasks.action, String(data='commit'))
     assert_dropped(graph, tasks.node, 'action', 'unknown action')
     tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(1))
-    assert_dropped(graph, tasks.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
     assert tasks.epoch(2, 'ct')['ty'] == 2          # still working
 
 
@@ -1201,3 +1227,33 @@ def test_every_parameter_of_every_node_has_a_value(graph, policy_path):
     faults = nodes[1].get_parameter('faults')
     assert faults.type_ == Parameter.Type.STRING_ARRAY and list(faults.value) == []
     assert nodes[0].get_parameter('initial_task').type_ == Parameter.Type.INTEGER_ARRAY
+
+
+def test_a_second_decision_node_does_not_start_its_clock(graph, policy_path):
+    """Issue 13: two decision nodes on one domain interleaved their epochs (7, 8, 9, 1, 10, 2,
+    ...) and put two commands per period on hrc/action, and nothing named the fault. The newer
+    one now refuses to start its clock while the other publishes; both report ERROR naming the
+    other; the followers stay on the first."""
+    tasks = graph.start(TaskManagerNode, initial_task=[1, 1, 0])
+    epochs = graph.collect(UInt32, 'hrc/epoch', qos.RELIABLE)
+    actions = graph.collect(String, 'hrc/action', qos.RELIABLE)
+    first = graph.start(DecisionNode, policy=policy_path, epoch_period=0.1, stale_timeout=0.3)
+    assert graph.spin_until(lambda: len(epochs) >= 3)
+    second = graph.start(DecisionNode, policy=policy_path, epoch_period=0.1, stale_timeout=0.3)
+
+    def errors():
+        return graph.diagnostics('decision: clock', ERROR)
+
+    assert graph.spin_until(lambda: any('does not start its clock' in s.message
+                                        for s in errors()))
+    assert graph.spin_until(lambda: any('keeps its clock' in s.message for s in errors()))
+    assert not second.clock_start.running and second.epoch == 0
+    count = len(epochs)
+    assert graph.spin_until(lambda: len(epochs) >= count + 5)
+    numbers = [m.data for m in epochs]
+    assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))   # one count
+    assert len(actions) <= len(epochs) and first.clock_start.running
+    assert tasks.inputs.dropped['epoch'] == 0
+    values = conv.diagnostic_values(next(s for s in errors()
+                                         if 'does not start' in s.message))
+    assert 'on /hrc/epoch' in values['other_sources'] and values['this_node'] == '/decision'

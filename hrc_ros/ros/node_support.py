@@ -39,6 +39,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import qos_policy_name_from_kind
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -47,7 +49,7 @@ from rclpy.parameter import Parameter
 from ..core import protocol
 from ..core.config import ConfigError, load_config
 from ..core.paths import default_config_path
-from ..core.protocol import InputError, Report
+from ..core.protocol import InputError, Report, Stamp
 from . import qos
 from .conversions import cap, diagnostic_array, diagnostic_status
 
@@ -322,12 +324,15 @@ class Inputs:
     # -- subscriptions -----------------------------------------------------------------------
     def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
                   handle: Callable[..., None], name: str | None = None,
-                  with_published: bool = False):
+                  with_published: bool = False, with_stamp: bool = False):
         """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported.
 
         With `with_published`, `handle(value, published_ns)` also gets the message's
         publication time: the writer's source timestamp (system clock, ns), or the system time
-        of its receipt where the middleware gives none."""
+        of its receipt where the middleware gives none. With `with_stamp`, `handle(value,
+        stamp)` gets a `core.protocol.Stamp` (that time and the writer's sequence number).
+        A publisher whose QoS cannot match the subscription's (`incompatible_qos` event) is
+        reported as ERROR on /diagnostics, naming the topic and the policy."""
         name = name or topic.rsplit('/', 1)[-1]
 
         def guarded(msg, *extra):
@@ -339,15 +344,34 @@ class Inputs:
             except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
                 self.internal_error(name, topic, traceback.format_exc())
 
-        if not with_published:
+        if not (with_published or with_stamp):
             def callback(msg):
                 guarded(msg)
         else:
             def callback(msg, info):
-                published = info.get('source_timestamp') if isinstance(info, dict) else None
-                guarded(msg, int(published or time.time_ns()))
+                info = info if isinstance(info, dict) else {}
+                published = int(info.get('source_timestamp') or time.time_ns())
+                guarded(msg, Stamp(published, info.get('publication_sequence_number'))
+                        if with_stamp else published)
 
-        return self.node.create_subscription(msg_type, topic, callback, profile)
+        events = SubscriptionEventCallbacks(
+            incompatible_qos=lambda event: self.incompatible_qos(name, topic, event))
+        return self.node.create_subscription(msg_type, topic, callback, profile,
+                                             event_callbacks=events)
+
+    def incompatible_qos(self, name: str, topic: str, event) -> None:
+        """A publisher offers a QoS this subscription cannot match: its messages never arrive.
+        Reported as ERROR (throttled per input), with the policy that failed."""
+        try:
+            policy = qos_policy_name_from_kind(event.last_policy_kind)
+        except (AttributeError, ValueError):
+            policy = 'unknown policy'
+
+        message = (f'a publisher of {topic} offers a QoS this subscription cannot match '
+                   f'({policy}); its messages are not received (total '
+                   f'{getattr(event, "total_count", "?")})')
+        self.report(Report(protocol.ERROR, f'{name} input', message,
+                           {'topic': topic, 'policy': policy}, kind='incompatible_qos'))
 
     def _logger(self, name: str):
         if name not in self._loggers:

@@ -20,7 +20,8 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.policy import PolicyError, default_policy_path, load_policy
-from ...core.protocol import ClockStart, DecisionGate, EpochFollower, Report, timeout_ns
+from ...core.protocol import (ClockStart, DecisionGate, EpochFollower, Report, Stamp,
+                              timeout_ns)
 from ...core.selection import SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
@@ -132,7 +133,7 @@ class DecisionNode(Node):
             self.epoch_pub = None
             self.epoch_timer = None
             self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                                  self._on_epoch)
+                                  self._on_epoch, with_stamp=True)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
             f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
@@ -190,8 +191,25 @@ class DecisionNode(Node):
         return (self.epoch_pub.get_subscription_count() >= self.min_epoch_subscribers
                 and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions))
 
+    def _other_sources(self) -> list[str]:
+        """Other publishers of hrc/epoch or hrc/action: a second decision node, say (also one
+        with this node's name: one publisher per topic of this name is this node's own)."""
+        me = (self.get_namespace(), self.get_name())
+        found = []
+        for topic in (self.epoch_pub.topic_name, self.action_pub.topic_name):
+            own = 1
+            for info in self.get_publishers_info_by_topic(topic):
+                if own and (info.node_namespace, info.node_name) == me:
+                    own = 0
+                    continue
+                name = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+                gid = '.'.join(f'{b:02x}' for b in list(info.endpoint_gid)[:12])
+                found.append(f'{name} on {topic} (gid {gid})')
+        return found
+
     def _on_tick(self) -> None:
-        tick = self.clock_start.tick(self._now(), self._graph_ready, self._graph)
+        tick = self.clock_start.tick(self._now(), self._graph_ready, self._graph,
+                                     self._other_sources, self.get_fully_qualified_name())
         if tick.report is not None:
             self.inputs.report(tick.report)
         if tick.start_epoch:
@@ -199,11 +217,11 @@ class DecisionNode(Node):
             self._act(self.gate.begin(k, self._now()))
             self.epoch_pub.publish(conv.epoch_to_msg(k))
 
-    def _on_epoch(self, k: int) -> None:
-        restart = self.epochs.check(k)     # a restarted replay is followed
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        restart = self.epochs.check(k, stamp)     # another source: InputError, dropped
         if restart is not None:
             self.inputs.report(restart)
-        self.epochs.take(k)
+        self.epochs.take(k, stamp)
         self._act(self.gate.begin(k, self._now()))
 
     # -- the decision ----------------------------------------------------------------------

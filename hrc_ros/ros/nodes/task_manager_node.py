@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
-from ...core.protocol import PeriodEstimate, TaskEpochs, timeout_ns
+from ...core.protocol import Stamp, TaskEpochs, timeout_ns
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
@@ -69,15 +69,15 @@ class TaskManagerNode(Node):
         except ValueError as exc:
             raise StartupError(f'task parameters: {exc}') from None
         self.clock = control_clock(self)
-        self.period = PeriodEstimate()
         self.input_timeout = values['input_timeout']
-        self.tasks = TaskEpochs(book, self._hold_ns())
+        self.tasks = TaskEpochs(book, timeout_ns(self.input_timeout, HOLD_FRACTION, None,
+                                                 HOLD_FALLBACK))
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
         self.inputs = Inputs(self)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch, with_published=True)
+                              self._on_epoch, with_stamp=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda a, t: self._step(self.tasks.action(a, t, self._now())),
                               with_published=True)
@@ -98,16 +98,16 @@ class TaskManagerNode(Node):
         return self.clock.now().nanoseconds
 
     def _hold_ns(self) -> int:
-        return timeout_ns(self.input_timeout, HOLD_FRACTION, self.period.period_ns,
+        """input_timeout, or a fraction of the epoch period the follower sees."""
+        return timeout_ns(self.input_timeout, HOLD_FRACTION, self.tasks.epochs.period.period_ns,
                           HOLD_FALLBACK)
 
     def _apply_parameters(self, values) -> None:
         self.input_timeout = values['input_timeout']
         self.tasks.input_timeout_ns = self._hold_ns()
 
-    def _on_epoch(self, k: int, published_ns: int) -> None:
-        step = self.tasks.epoch(k, self._now())     # refuses a bad epoch before it is timed
-        self.period.observe(published_ns)
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        step = self.tasks.epoch(k, stamp, self._now())   # InputError: another epoch source
         self.tasks.input_timeout_ns = self._hold_ns()
         self._step(step)
 
