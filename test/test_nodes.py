@@ -1257,3 +1257,40 @@ def test_a_second_decision_node_does_not_start_its_clock(graph, policy_path):
     values = conv.diagnostic_values(next(s for s in errors()
                                          if 'does not start' in s.message))
     assert 'on /hrc/epoch' in values['other_sources'] and values['this_node'] == '/decision'
+
+
+def test_a_burst_of_task_requests_is_queued_whole(graph):
+    """Issue 13: hrc/task_request kept the last 10 messages: 30 valid requests published back
+    to back gave 11 received and 0 reported dropped. Reliable delivery is now sized to the
+    queue, and a request beyond it is refused with a report."""
+    tasks = graph.start(TaskManagerNode, max_queue=40)
+    requests = graph.publisher(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE)
+    for i in range(45):                              # no spinning in between: one burst
+        requests.publish(conv.task_request_to_msg(1 + i % 2, 1, i % 4))
+    assert graph.spin_until(lambda: tasks.inputs.received['task_request'] == 45)
+    assert len(tasks.book.queue) == 40 and tasks.inputs.dropped['task_request'] == 5
+    assert graph.spin_until(lambda: graph.diagnostics('task_manager: task_request input', WARN))
+    assert 'queue is full' in graph.diagnostics('task_manager: task_request input')[0].message
+
+
+def test_state_inputs_take_ordinary_publishers_and_name_an_incompatible_one(graph,
+                                                                          policy_path):
+    """Issue 13: `ros2 topic pub --once hrc/distance_level std_msgs/msg/UInt8 '{data: 2}'` was
+    never received: the subscription asked for transient-local durability, which a default
+    (volatile) publisher does not offer. A publisher that cannot match (best effort against a
+    reliable input) is now named on /diagnostics with the policy."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    node = graph.start(DecisionNode, policy=policy_path, epoch_source='topic')
+    plain = graph.publisher(UInt8, 'hrc/distance_level', QoSProfile(depth=10))  # ros2 topic pub
+    plain.publish(UInt8(data=2))
+    assert graph.spin_until(lambda: node.inputs.received['distance_level'] == 1)
+    assert node.gate.slots['distance_level'].value == 2
+    tasks = graph.start(TaskManagerNode)
+    best_effort = tasks.create_publisher(   # any node will do: the graph matches endpoints
+        Bool, 'hrc/human_response', QoSProfile(depth=10,
+                                                reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert best_effort is not None
+    assert graph.spin_until(lambda: graph.diagnostics('task_manager: human_response input',
+                                                      ERROR))
+    status = graph.diagnostics('task_manager: human_response input', ERROR)[0]
+    assert 'RELIABILITY' in status.message and 'hrc/human_response' in status.message

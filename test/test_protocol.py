@@ -7,7 +7,8 @@ import pytest
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
-                                   SILENT_FALLBACK_S, PeriodEstimate, Stamp, timeout_ns,
+                                   SILENT_FALLBACK_S, PeriodEstimate, SequenceGaps, Stamp,
+                                   timeout_ns,
                                    DecisionGate, EpochFollower, EstimatorEpochs, InputError,
                                    TaskEpochs)
 from hrc_ros.core.selection import Selection
@@ -507,3 +508,9 @@ def test_a_follower_learns_the_epoch_period_from_source_stamps():
     assert timeout_ns(0.4, 0.25, period.period_ns, 0.25) == 400 * MS    # explicit wins
     period.observe(0)                                                    # a restart
     assert period.period_ns is None
+
+
+def test_sequence_gaps_count_what_a_writer_sent_and_never_arrived():
+    gaps = SequenceGaps()
+    assert [gaps.observe(s) for s in (1, 2, 5, 6, 10)] == [0, 0, 2, 0, 3] and gaps.lost == 5
+    assert gaps.observe(1) == 0 and gaps.observe(None) == 0     # a new writer; no numbers

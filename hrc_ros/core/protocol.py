@@ -178,6 +178,26 @@ class EpochFollower:
         self.period.observe(stamp.published_ns)
 
 
+class SequenceGaps:
+    """Messages a writer sent that never arrived: its publication sequence numbers skip.
+
+    Only meaningful while one writer publishes (without a publisher id in the message info,
+    two writers' numbers interleave): the caller checks that. A number that does not increase
+    starts again (a new writer)."""
+
+    def __init__(self):
+        self.last: int | None = None
+        self.lost = 0
+
+    def observe(self, sequence: int | None) -> int:
+        """The count of messages missing before this one (0 for the first, or a new writer)."""
+        last, self.last = self.last, sequence
+        if last is None or sequence is None or sequence <= last:
+            return 0
+        self.lost += sequence - last - 1
+        return sequence - last - 1
+
+
 # -- the task manager -------------------------------------------------------------------------
 @dataclass
 class TaskStep:

@@ -100,7 +100,7 @@ class CellSimNode(Node):
         self.inputs = Inputs(self)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               self._on_action, with_published=True)
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                               self._task_state_from_msg, self._on_task_state)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
         self.hold = DeadlineTimer(self, lambda now: self._react(self.pairing.expire(now)))

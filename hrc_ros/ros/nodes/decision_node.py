@@ -114,13 +114,13 @@ class DecisionNode(Node):
         self.action_pub = self.create_publisher(String, 'hrc/action', qos.RELIABLE)
         self.inputs = Inputs(self)
         self.input_subscriptions = [
-            self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.LATCHED,
+            self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.STATE_INPUT,
                                   self._guard('belief', conv.belief_from_msg),
                                   self._input('belief')),
-            self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
+            self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                                   self._guard('task_state', self._task_state_from_msg),
                                   self._input('task_state')),
-            self.inputs.subscribe(UInt8, 'hrc/distance_level', qos.LATCHED,
+            self.inputs.subscribe(UInt8, 'hrc/distance_level', qos.STATE_INPUT,
                                   self._guard('distance_level', conv.distance_level_from_msg),
                                   self._input('distance_level')),
         ]

@@ -10,11 +10,14 @@ topics, the parameters and the timer.
 
 from __future__ import annotations
 
+from collections import Counter
+
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
-from ...core.protocol import Stamp, TaskEpochs, timeout_ns
+from ...core.protocol import (ERROR, InputError, Report, SequenceGaps, Stamp, TaskEpochs,
+                              timeout_ns)
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
@@ -85,8 +88,11 @@ class TaskManagerNode(Node):
                               conv.human_response_from_msg,
                               lambda yes, t: self._step(self.tasks.answer(yes, t, self._now())),
                               with_published=True)
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
-                              self._task_request_from_msg, self._on_task_request)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.ORDERS,
+                              self._task_request_from_msg, self._on_task_request,
+                              with_stamp=True)
+        self.requests = Counter()            # task requests: accepted, refused, lost
+        self.request_gaps = SequenceGaps()
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self.hold = DeadlineTimer(self, lambda now: self._step(self.tasks.expire(now)))
 
@@ -114,9 +120,30 @@ class TaskManagerNode(Node):
     def _task_request_from_msg(self, msg):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
 
-    def _on_task_request(self, task: tuple) -> None:
-        self.tasks.request(*task)
+    def _on_task_request(self, task: tuple, stamp: Stamp) -> None:
+        self._check_lost_requests(stamp)
+        try:
+            self.tasks.request(*task)
+        except InputError:
+            self.requests['refused'] += 1
+            raise
+        self.requests['accepted'] += 1
         self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
+
+    def _check_lost_requests(self, stamp: Stamp) -> None:
+        """Report requests a writer sent that never arrived (a writer's own keep-last history
+        can overwrite a burst before it is sent): with one publisher on the topic, its
+        sequence numbers must not skip."""
+        last = self.request_gaps.last
+        lost = self.request_gaps.observe(stamp.sequence)
+        if lost and self.count_publishers('hrc/task_request') == 1:
+            self.requests['lost'] += lost
+            self.inputs.report(Report(
+                ERROR, 'task_request input', f'{lost} task request(s) sent on hrc/task_request '
+                "never arrived (the publisher's sequence numbers skip from "
+                f'{last} to {stamp.sequence}): publish orders with a deeper history or '
+                'KEEP_ALL', {'lost': lost, 'lost_total': self.requests['lost']},
+                kind='lost_requests'))
 
     def _step(self, step) -> None:
         for report in step.reports:
@@ -128,7 +155,10 @@ class TaskManagerNode(Node):
 
     def _publish_status(self) -> None:
         timeout_s = self.tasks.input_timeout_ns * 1e-9
-        self.inputs.publish_health('tasks', {**self.tasks.status(), 'input_timeout_s': timeout_s})
+        self.inputs.publish_health('tasks', {
+            **self.tasks.status(), 'input_timeout_s': timeout_s,
+            **{f'requests_{fate}': self.requests[fate]
+               for fate in ('accepted', 'refused', 'lost')}})
 
 
 def main(args=None):
