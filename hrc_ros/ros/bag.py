@@ -15,7 +15,7 @@ import importlib
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
@@ -262,6 +262,7 @@ class PlayResult:
     message_count: int
     duration_s: float        # wall time from the first to the last publication
     interrupted: bool        # the context shut down (Ctrl-C) before the last message
+    skipped: dict = field(default_factory=dict)   # topic -> why it was not played
 
 
 PLAY_ORDERS = ('log', 'publish')
@@ -309,17 +310,24 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
     context = node.context
     publishers = {}
     try:
+        skipped = {}
         for topic in info.topics:
-            if topic.topic in wanted:
-                publishers[topic.topic] = node.create_publisher(
-                    message_class(topic.type_name), topic.topic,
-                    qos_from_offers(topic.qos_profiles))
+            if topic.topic not in wanted:
+                continue
+            try:
+                cls = message_class(topic.type_name)
+            except BagError as exc:   # as rosbag2's player: warn, and play the other topics
+                skipped[topic.topic] = str(exc)
+                continue
+            publishers[topic.topic] = node.create_publisher(
+                cls, topic.topic, qos_from_offers(topic.qos_profiles))
+        wanted = set(publishers)
         deadline = time.monotonic() + max(0.0, wait_for_subscribers)
         while (wait_for_subscribers > 0 and context.ok() and time.monotonic() < deadline
                and any(p.get_subscription_count() < 1 for p in publishers.values())):
             time.sleep(0.02)
         count, first_ns, start, last_wall = 0, None, 0.0, 0.0
-        messages = read_bag(info.path, topics=wanted)
+        messages = read_bag(info.path, topics=wanted) if wanted else iter(())
         if order == 'publish':
             messages = sorted(messages, key=lambda m: m.publish_time_ns)
 
@@ -346,7 +354,7 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                     == QoSReliabilityPolicy.RELIABLE):
                 publishers[topic.topic].wait_for_all_acked(Duration(seconds=ack_timeout))
         return PlayResult(count, max(0.0, last_wall - start) if count else 0.0,
-                          interrupted=not context.ok())
+                          interrupted=not context.ok(), skipped=skipped)
     finally:
         if context.ok():
             for publisher in publishers.values():
@@ -444,6 +452,13 @@ def _play_command(args: argparse.Namespace) -> int:
     info = bag_info(args.bag)
     print(f'hrc-bag: playing {info.path}: {info.message_count} messages, '
           f'{info.duration_ns / 1e9:.3f} s at rate {args.rate:g}', flush=True)
+    for topic in info.topics:
+        if args.topics is None or topic.topic in args.topics:
+            try:
+                message_class(topic.type_name)
+            except BagError as exc:
+                print(f'hrc-bag: warning: not playing {topic.topic} ({topic.message_count} '
+                      f'messages): {exc}', file=sys.stderr, flush=True)
     rclpy.init()
     node = rclpy.create_node('hrc_bag_player')
     try:
