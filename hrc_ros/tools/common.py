@@ -37,30 +37,26 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {" ".join(message.split())}\n')
 
 
-def bounded_int(low: int, high: int):
-    """An argparse type: an integer in low..high, or a one-line error naming the range."""
-    def parse(text: str) -> int:
+def _bounded(kind: type, low, high, what: str, span: str):
+    def parse(text: str):
         try:
-            value = int(text)
+            value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f'{value} is outside {low}..{high}')
+            raise argparse.ArgumentTypeError(f'{text!r} is not {what}') from None
+        if not low <= value <= high:   # NaN fails too
+            raise argparse.ArgumentTypeError(f'{value} is outside {span}')
         return value
     return parse
+
+
+def bounded_int(low: int, high: int):
+    """An argparse type: an integer in low..high, or a one-line error naming the range."""
+    return _bounded(int, low, high, 'an integer', f'{low}..{high}')
 
 
 def bounded_float(low: float, high: float):
     """An argparse type: a finite number in [low, high]."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-        if not low <= value <= high:   # NaN fails too
-            raise argparse.ArgumentTypeError(f'{value} is outside [{low}, {high}]')
-        return value
-    return parse
+    return _bounded(float, low, high, 'a number', f'[{low}, {high}]')
 
 
 def output_folder(path: str | Path) -> Path:
