@@ -12,7 +12,7 @@ import yaml
 
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.model import HRCModel
-from hrc_ros.core.paths import default_config_path, shipped_config_path
+from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
 from hrc_ros.core.policy import PolicyError, default_policy_path, load_policy, save_policy
 from hrc_ros.core.solver import solve
 
@@ -79,12 +79,12 @@ def test_unreadable_and_malformed_files(tmp_path):
 def test_shipped_policies_load_and_match_their_configs():
     for name in ('default', 'paper', 'fail_safe_unaware'):
         config = load_config(shipped_config_path(name))
-        policy = load_policy(f'policies/{name}.npz', config)
+        policy = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
         assert policy.meta['config_sha256'] == config.policy_hash
         assert policy.meta['converged'] and policy.meta['residual'] < 1e-6
     with pytest.raises(PolicyError, match='solved for configuration'):
-        load_policy('policies/paper.npz', load_config(DEFAULT))
+        load_policy(share_dir() / 'policies' / 'paper.npz', load_config(DEFAULT))
 
 
 def test_the_shipped_policy_is_found_for_its_configuration():
