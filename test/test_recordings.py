@@ -252,6 +252,8 @@ def write_bag(path, topics, rows):
                 writer.write('/' + topic, message, t, t)
 
         for epoch, task, d, o, action, answer in rows:
+            if epoch == 1:
+                t += 10_000_000_000     # a restart: the epoch source was silent for 10 s
             put('hrc/epoch', UInt32(data=epoch))
             put('hrc/task_state', UInt8MultiArray(data=list(task)))
             put('hrc/distance_level', UInt8(data=d))
@@ -264,6 +266,7 @@ def write_bag(path, topics, rows):
 
 
 ROWS = [(1, (1, 1, 3, 0, 0, 0, 0, 0), 1, 1, 'mh', None),
+        (4000000000, (1, 1, 3, 0, 0, 0, 0, 0), 1, 1, 'mh', None),   # a stray epoch
         (2, (1, 1, 3, 0, 0, 0, 0, 0), 1, 2, 'rh2', True),
         (3, (1, 1, 3, 3, 1, 1, 1, 1), 1, 0, 'nw', None),
         (4, (0, 0, 0, 0, 1, 0, 1, 0), 1, 1, 'dn', None),
@@ -277,6 +280,7 @@ def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported
     recordings = read_recordings([bag], 2, 2)
     assert [len(r) for r in recordings] == [4, 1]
     first, second = recordings
+    assert any('ignored hrc/epoch 4000000000' in m and 'left out' in m for m in first.issues)
     assert first.accepted.tolist() == [-1, 1, -1, -1]
     assert first.observation.tolist() == [1, 2, 0, 1]
     assert second.accepted.tolist() == [0]

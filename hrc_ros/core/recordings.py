@@ -24,8 +24,9 @@ the only one in the bag unless named). Messages are decoded from the schemas sto
 (mcap_ros2, no ROS needed) and placed in epochs the way the nodes and `hrc-case-study` do
 (`place_in_epochs`): a message belongs to the last epoch whose `hrc/epoch` signal was published
 before it, by the writers' source timestamps. The epoch signals follow the nodes' rule
-(`protocol.EpochFollower`): a restart at 1 begins a new episode, a repeat or a count going back
-is dropped. Of each epoch's task state, distance level, observation and action the first one
+(`protocol.EpochFollower`, by count and time: a bag keeps no writer sequence numbers): a new
+count after the source fell silent (a restart) begins a new episode, a stray epoch that does
+not continue the count is left out and reported. Of each epoch's task state, distance level, observation and action the first one
 counts; the answer to a request is the latest `hrc/human_response` published after the action
 in its window (the task manager's rule, docs/DESIGN.md). A message that cannot be read is
 reported and left out (`Recording.issues`); a bag without one of the needed topics is refused.
@@ -41,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .model import ACTIONS, DISTANCE_LEVELS, OBSERVATION_LEVELS, TASK_VARIABLES, action_index
-from .protocol import EpochFollower, InputError
+from .protocol import EpochFollower, InputError, Stamp
 
 COLUMNS = ('epoch',) + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
 OPTIONAL_COLUMNS = ('episode',)
@@ -280,12 +281,13 @@ def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
     episodes: list[list] = []           # per episode: (window, k)
     windows: list = []                  # (published_ns, window)
     for t, k in sorted(signals):
+        stamp = Stamp(t)           # a bag keeps no writer sequence: the count and the time rule
         try:
-            restart = follower.check(k)
+            restart = follower.check(k, stamp)
         except InputError as exc:
             issues.append(f'{source}: {exc}; that hrc/epoch signal is left out')
             continue
-        follower.take(k)
+        follower.take(k, stamp)
         if restart is not None or not episodes:
             episodes.append([])
         episodes[-1].append((len(windows) + 1, k))

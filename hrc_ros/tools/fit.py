@@ -10,20 +10,19 @@ support, the log likelihood trace, the epochs used and the warnings.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-from pathlib import Path
 
 from ..core.config import ConfigError, load_config
 from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
                         expand_hold, fit, prepare, report_dict, report_text)
 from ..core.paths import default_config_path
 from ..core.recordings import RecordingError, read_recordings
+from .common import MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail, output_file
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-fit', description='Fit the model (acceptance, distance drift, emotion chains, '
         'observation likelihood) to recorded runs by EM; write a configuration and a report.')
     parser.add_argument('inputs', nargs='+', metavar='INPUT',
@@ -33,16 +32,18 @@ def main(argv=None) -> int:
                         'copies everything else from (default: the shipped default.yaml)')
     parser.add_argument('--hold', default='', help='comma-separated families to keep at the '
                         f'base values: {", ".join(FAMILIES)}, or emotion, emotion.<group>')
-    parser.add_argument('--starts', type=int, default=4,
+    parser.add_argument('--starts', type=bounded_int(1, 100), default=4,
                         help='EM initialisations, the base first (default 4)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the starts and bootstrap')
-    parser.add_argument('--tol', type=float, default=TOL, help='stop when the log likelihood '
-                        f'rises by less than this per epoch (default {TOL:g})')
-    parser.add_argument('--max-iter', type=int, default=MAX_ITER)
-    parser.add_argument('--bootstrap', type=int, default=BOOTSTRAP,
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help='seed of the starts and bootstrap')
+    parser.add_argument('--tol', type=bounded_float(1e-15, 1.0), default=TOL,
+                        help='stop when the log likelihood rises by less than this per epoch '
+                        f'(default {TOL:g})')
+    parser.add_argument('--max-iter', type=bounded_int(1, 100_000), default=MAX_ITER)
+    parser.add_argument('--bootstrap', type=bounded_int(0, 10_000), default=BOOTSTRAP,
                         help=f'resamples of the episodes for the 95%% intervals (default '
                         f'{BOOTSTRAP}; 0: none)')
-    parser.add_argument('--min-support', type=float, default=MIN_SUPPORT,
+    parser.add_argument('--min-support', type=bounded_float(0.0, 1e12), default=MIN_SUPPORT,
                         help='warn below this many informative epochs per parameter')
     parser.add_argument('--namespace', default=None,
                         help="the cell's namespace in the bags (default: the only one)")
@@ -52,26 +53,17 @@ def main(argv=None) -> int:
                         help='also plot fitted vs base parameters (default: OUT with .png)')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
-    for name, low in (('starts', 1), ('max_iter', 1), ('bootstrap', 0), ('seed', 0)):
-        if getattr(args, name) < low:
-            parser.error(f'--{name.replace("_", "-")} must be >= {low}')
-    if not args.tol > 0:
-        parser.error('--tol must be > 0')
-    output = Path(args.output)
-    report_path = Path(args.report) if args.report else output.with_suffix('.report.json')
-    plot_path = None if args.plot is None else Path(args.plot or output.with_suffix('.png'))
-
-    def fail(message: str) -> int:
-        print(f'hrc-fit: error: {message}', file=sys.stderr)
-        return 2
-
     try:
+        output = output_file(args.output)
+        report_path = output_file(args.report or output.with_suffix('.report.json'))
+        plot_path = (None if args.plot is None
+                     else output_file(args.plot or output.with_suffix('.png')))
         hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
         data = prepare(recordings)
-    except (ConfigError, RecordingError, FitError) as exc:
-        return fail(str(exc))
+    except (ToolError, ConfigError, RecordingError, FitError) as exc:
+        return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episodes from '
         f'{len(args.inputs)} input(s); base {base.source}; holding {", ".join(hold) or "none"}')
@@ -80,16 +72,14 @@ def main(argv=None) -> int:
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say)
     except FitError as exc:
-        return fail(str(exc))
-    output.parent.mkdir(parents=True, exist_ok=True)
+        return fail('hrc-fit', exc)
     output.write_text(config_yaml(result, base, args.inputs))
     try:
         load_config(output)         # what was written is a configuration load_config accepts
     except ConfigError as exc:
-        return fail(f'the fitted configuration does not validate: {exc}')
+        return fail('hrc-fit', f'the fitted configuration does not validate: {exc}')
     report = report_dict(result)
     report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
-    report_path.parent.mkdir(parents=True, exist_ok=True)
     report_path.write_text(json.dumps(report, indent=2) + '\n')
     print(report_text(result) if not args.quiet else
           f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '

@@ -32,7 +32,7 @@ from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
 from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                                  velocity_level)
-from ...core.protocol import ERROR, OK, EstimatorEpochs, Report
+from ...core.protocol import ERROR, OK, EstimatorEpochs, Report, Stamp
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, Inputs, ParamSpec,
@@ -114,7 +114,7 @@ class BeliefEstimatorNode(Node):
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda action: self.windows.action(action))
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch, with_published=True)
+                              self._on_epoch, with_stamp=True)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _check_parameters(self, values) -> str | None:
@@ -191,9 +191,10 @@ class BeliefEstimatorNode(Node):
                                   f'{self.config.source} (before: {old})',
                                   {'epoch': k, 'config': self.config.source}, kind='swap'))
 
-    def _on_epoch(self, k: int, signal_ns: int) -> None:
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
         self._swap(k)
-        step = self.windows.epoch_signal(k, signal_ns)
+        self._announce()        # again each epoch: state is republished (qos.STATE_INPUT)
+        step = self.windows.epoch_signal(k, stamp)
         if step.distance_level is not None:
             self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
         if step.observation is not None:
