@@ -24,9 +24,8 @@ and each size:
    column). The threshold was fixed before any run: 2000 events give a standard error of at
    most 0.011, so 0.03 is 2.7 of them. A count of epochs would not do: where the hidden state
    is hard to tell (the `volatile` world), tens of thousands of epochs touch a parameter and
-   still say little about it (the estimate converges at the 1/sqrt(n) rate, measured: its
-   largest error falls from 0.55 to 0.17 from 10k to 100k epochs, and the log likelihood
-   of the fit exceeds the truth's by 29 and 30, half a chi-square of the 65 parameters).
+   still say little about it; the estimate there converges at the usual 1/sqrt(n) rate, only
+   from further away (the table's "all" column).
 4. Regret: the policies solved (`solver.solve`) from the fitted configuration, from the
    default and from the true configuration, each with the paper selector and its own belief
    filter, run in the true world over the same EVAL_EPISODES episodes (common random numbers,

@@ -462,13 +462,16 @@ def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
     `tol` per epoch in an iteration, or after `max_iter` iterations in all.
 
     With `accelerate` an iteration is one SQUAREM cycle (Varadhan and Roland 2008, scheme
-    S3): two EM steps theta1 = M(theta0), theta2 = M(theta1), the extrapolation
-    theta0 - 2 alpha r + alpha^2 v (r = theta1 - theta0, v = theta2 - 2 theta1 + theta0,
-    alpha = -|r| / |v|, halved towards -1 while it leaves the probabilities' domain; alpha = -1
-    is theta2), kept only if its likelihood is not below theta2's (its E-step serves the next
-    cycle). So the likelihood still never decreases, and EM's slow crawl along flat directions
-    is cut several times over. Without it an iteration is one EM step. The returned parameters'
-    E-step is `stats` (the trace's last entry)."""
+    S3, with the step control of their SQUAREM package): two EM steps theta1 = M(theta0),
+    theta2 = M(theta1); the extrapolation x = theta0 - 2 alpha r + alpha^2 v (r = theta1 -
+    theta0, v = theta2 - 2 theta1 + theta0, alpha = -|r| / |v|, at most `step_max` in size,
+    halved towards -1 while x leaves the probabilities' domain; alpha = -1 is theta2); one EM
+    step from x, kept if its likelihood is not below theta0's, else theta2. `step_max` starts
+    at 1, grows 4-fold when alpha reaches it and shrinks 4-fold when an extrapolation is
+    refused. So the likelihood never decreases from cycle to cycle, and EM's crawl along flat
+    directions (its rate is the share of missing information) is cut several times over.
+    Without it an iteration is one EM step. The returned parameters' E-step is `stats` (the
+    trace's last entry)."""
     n = max(1.0, data.epochs if seg_weight is None else float(np.dot(
         np.asarray(seg_weight, dtype=float), np.diff(data.seg_start))))
     params = start if run is None else run.params
@@ -484,6 +487,7 @@ def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
     if run is None:
         trace.append(stats.loglik)
     converged = False
+    step_max = 1.0
     while len(trace) <= max_iter:
         p1 = m_step(stats, params, hold)
         if not accelerate:
@@ -494,21 +498,27 @@ def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
             s2 = expect(p2)
             x0, x1, x2 = _pack(params), _pack(p1), _pack(p2)
             r, v = x1 - x0, x2 - 2 * x1 + x0
+            start_loglik = stats.loglik
             params, stats = p2, s2
             if np.linalg.norm(v) > 0:
-                alpha = min(-1.0, -np.linalg.norm(r) / np.linalg.norm(v))
+                alpha = max(-step_max, min(-1.0, -np.linalg.norm(r) / np.linalg.norm(v)))
+                if alpha == -step_max:
+                    step_max *= 4.0
                 x = x0 - 2 * alpha * r + alpha ** 2 * v
                 while alpha < -1.0 and not (np.all(x >= 0) and np.all(x <= 1)):
                     alpha = min(-1.0, (alpha - 1.0) / 2 + 1e-12) if alpha < -1.01 else -1.0
                     x = x0 - 2 * alpha * r + alpha ** 2 * v
                 if alpha < -1.0:
                     try:
-                        p3 = _unpack(x, params)
+                        px = _unpack(x, params)
+                        p3 = m_step(expect(px), px, hold)     # the M-step of x's E-step
                         s3 = expect(p3)
                     except FitError:      # the extrapolation made some evidence impossible
                         s3 = None
-                    if s3 is not None and s3.loglik >= s2.loglik:
+                    if s3 is not None and s3.loglik >= start_loglik:
                         params, stats = p3, s3
+                    else:
+                        step_max = max(1.0, step_max / 4.0)
         trace.append(stats.loglik)
         if abs(trace[-1] - trace[-2]) < tol * n:
             converged = True

@@ -26,9 +26,10 @@ the only one in the bag unless named). Messages are decoded from the schemas sto
 before it, by the writers' source timestamps. The epoch signals follow the nodes' rule
 (`protocol.EpochFollower`, by count and time: a bag keeps no writer sequence numbers): a new
 count after the source fell silent (a restart) begins a new episode, a stray epoch that does
-not continue the count is left out and reported. Of each epoch's task state, distance level, observation and action the first one
-counts; the answer to a request is the latest `hrc/human_response` published after the action
-in its window (the task manager's rule, docs/DESIGN.md). A message that cannot be read is
+not continue the count is left out and reported. Of each epoch's task state, distance level,
+observation and action the first one counts; the answer to a request is the latest
+`hrc/human_response` published after the action in its window (the task manager's rule,
+docs/DESIGN.md). A message that cannot be read is
 reported and left out (`Recording.issues`); a bag without one of the needed topics is refused.
 """
 
