@@ -618,10 +618,20 @@ class FitResult:
     rows_read: int
     issues: list
     seconds: dict = field(default_factory=dict)
+    min_support: float = MIN_SUPPORT
 
     @property
     def iterations(self) -> int:
         return max(0, len(self.trace) - 1)
+
+    @property
+    def weak(self) -> np.ndarray:
+        """(57,) bool: a free parameter below `min_support` in support or effective support."""
+        free = ~np.isin(PARAMETER_FAMILIES, self.hold)
+        low = self.support < self.min_support
+        if self.effective is not None:
+            low |= self.effective < self.min_support
+        return free & low
 
     @property
     def loglik(self) -> float:
@@ -653,6 +663,14 @@ def support_of(stats: Expected) -> np.ndarray:
     return np.concatenate(out)
 
 
+def _listed(names, values, which, family) -> str:
+    """'name (value), ...', or 'all N (from a to b)' when the whole family is listed."""
+    if np.array_equal(which, family) and which.sum() > 3:
+        return (f'all {int(which.sum())} (from {values[which].min():.0f} to '
+                f'{values[which].max():.0f})')
+    return ', '.join(f'{n} ({v:.0f})' for n, v in zip(names[which], values[which]))
+
+
 def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
               min_support: float, episodes: int, bootstrap: int) -> list[str]:
     """A warning per family with parameters below `min_support` informative epochs, or, with
@@ -675,16 +693,14 @@ def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
             continue
         weak = rows & (support < min_support)
         if weak.any():
-            listed = ', '.join(f'{n} ({s:.0f})' for n, s in zip(names[weak], support[weak]))
             out.append(f'{family}: poorly supported, fewer than {min_support:g} informative '
-                       f'epochs: {listed}')
+                       f'epochs: {_listed(names, support, weak, rows)}')
         if effective is not None:
             vague = rows & (support >= min_support) & (effective < min_support)
             if vague.any():
-                listed = ', '.join(f'{n} ({e:.0f})' for n, e in zip(names[vague],
-                                                                    effective[vague]))
                 out.append(f'{family}: poorly determined, the data weigh less than '
-                           f'{min_support:g} observed events (bootstrap): {listed}')
+                           f'{min_support:g} observed events (bootstrap): '
+                           f'{_listed(names, effective, vague, rows)}')
     return out
 
 
@@ -743,7 +759,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      best.converged, relabelled, support, interval, samples, effective,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
-                     data.issues, seconds)
+                     data.issues, seconds, min_support)
 
 
 # -- outputs ----------------------------------------------------------------------------------
@@ -831,10 +847,10 @@ def report_text(result: FitResult, trace_every: int = 10) -> str:
     p = result.params.vector()
     b = result.base.vector()
     lines = [f'{"parameter":<30}{"fitted":>9}{"base":>9}{"95% interval":>20}{"support":>10}'
-             f'{"effective":>10}']
+             f'{"effective":>11}']
     lines.append('-' * len(lines[0]))
     families = PARAMETER_FAMILIES
-    weak = {n for w in result.warnings for n in PARAMETER_NAMES if f'{n} (' in w}
+    weak = result.weak
     for i, name in enumerate(PARAMETER_NAMES):
         if families[i] in result.hold:
             interval = 'held'
@@ -842,12 +858,12 @@ def report_text(result: FitResult, trace_every: int = 10) -> str:
             interval = '-'
         else:
             interval = f'[{_fmt(result.interval[0, i])}, {_fmt(result.interval[1, i])}]'
-        flag = '  !' if name in weak or (families[i] not in result.hold
-                                         and result.support[i] == 0) else ''
+        flag = '  !' if weak[i] else ''
         effective = ('' if result.effective is None or families[i] in result.hold
-                     else f'{min(result.effective[i], 1e9):>10.0f}')
+                     else 'no spread' if not np.isfinite(result.effective[i])
+                     else f'{result.effective[i]:.0f}')
         lines.append(f'{name:<30}{_fmt(p[i]):>9}{_fmt(b[i]):>9}{interval:>20}'
-                     f'{result.support[i]:>10.0f}{effective:>10}{flag}')
+                     f'{result.support[i]:>10.0f}{effective:>11}{flag}')
     trace = result.trace
     shown = [(i, v) for i, v in enumerate(trace) if i % trace_every == 0 or i == len(trace) - 1]
     lines += ['', 'initial hidden state (nuisance, not in the configuration): '

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     except (ToolError, ConfigError, RecordingError, FitError) as exc:
         return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
-    say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episodes from '
+    say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episode(s) from '
         f'{len(args.inputs)} input(s); base {base.source}; holding {", ".join(hold) or "none"}')
     try:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
