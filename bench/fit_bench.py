@@ -226,12 +226,12 @@ def format_row(row: dict) -> str:
 
 
 def table(rows: list, groups) -> str:
-    head = (f'{"world":<10}{"epochs":>8}' + ''.join(f'{g:>12}' for g, _ in groups)
+    head = (f'{"world":<10}{"epochs":>8}' + ''.join(f'{g:>15}' for g, _ in groups)
             + f'{"well ≤":>8}{"n well":>7}{"cover":>7}{"fit s":>7}{"CPU s":>7}{"boot s":>8}'
             + f'{"regret fitted":>18}{"regret default":>18}')
     lines = ['largest |fitted - true| per family: well-supported (all)', head, '-' * len(head)]
     for row in rows:
-        cells = ''.join(f'{row[g + "_well"]:>5.3f} ({row[g]:.3f})'.rjust(12) for g, _ in groups)
+        cells = ''.join(f'{row[g + "_well"]:>5.3f} ({row[g]:.3f})'.rjust(15) for g, _ in groups)
         lines.append(f'{row["world"]:<10}{row["epochs"]:>8}{cells}{row["max_well"]:>8.3f}'
                      f'{row["well"]:>7}{row["coverage"]:>7.0%}{row["fit_s"]:>7.2f}'
                      f'{row["fit_cpu_s"]:>7.2f}'
