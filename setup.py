@@ -24,6 +24,7 @@ setup(
         ('share/' + PACKAGE, ['package.xml', 'README.md']),
         ('share/' + PACKAGE + '/config', sorted(glob('config/*.yaml') + glob('config/*.xml'))),
         ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
+        ('share/' + PACKAGE + '/policies/pomdp', sorted(glob('policies/pomdp/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib', 'numba'],

@@ -1,6 +1,7 @@
 """hrc-simulate: the case study (MODEL.md 7) in closed loop without ROS.
 
-    hrc-simulate [--config YAML] [--policy NPZ] [--selector paper|qmdp|mls|mdp] [--seed N]
+    hrc-simulate [--config YAML] [--policy NPZ] [--selector paper|qmdp|mls|pomdp|fib|mdp]
+                 [--seed N]
 
 Prints the run as the paper's Table 6 and writes `trajectory.csv` and the plots into `--out`.
 """
@@ -11,9 +12,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..core.config import BELIEF_MODES
 from ..core.plots import plot_trajectory
 from ..core.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
-from .common import ToolError, add_model_arguments, load_model
+from .common import ToolError, add_model_arguments, add_pomdp_argument, load_model, load_pomdp
 
 
 def main(argv=None) -> int:
@@ -22,9 +24,10 @@ def main(argv=None) -> int:
         description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
                     'Table 6, write a CSV and PNG plots.')
     add_model_arguments(parser)
+    add_pomdp_argument(parser)
     parser.add_argument('--selector', default='paper', choices=SIMULATION_SELECTORS,
                         help='action selection (mdp = the true state, an upper bound)')
-    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
+    parser.add_argument('--mode', default=None, choices=BELIEF_MODES,
                         help='belief mode (default: the configuration\'s)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the simulated human')
     parser.add_argument('--epochs', type=int, default=None,
@@ -34,7 +37,8 @@ def main(argv=None) -> int:
     if args.epochs is not None and args.epochs < 1:
         parser.error(f'--epochs must be >= 1, got {args.epochs}')
     try:
-        _, model, policy = load_model(args)
+        config, model, policy = load_model(args)
+        pomdp = load_pomdp(args, config, (args.selector,))
     except ToolError as exc:
         print(f'hrc-simulate: error: {exc}', file=sys.stderr)
         return 2
@@ -43,7 +47,7 @@ def main(argv=None) -> int:
         scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
                             scenario.name)
     trajectory = simulate(model, policy, scenario, selector=args.selector, mode=args.mode,
-                          seed=args.seed)
+                          seed=args.seed, pomdp=pomdp)
     print(trajectory.table())
     out = Path(args.out)
     written = [trajectory.to_csv(out / 'trajectory.csv')] + plot_trajectory(trajectory, out)

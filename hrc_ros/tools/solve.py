@@ -1,9 +1,11 @@
 """hrc-solve: solve the HRC model of a configuration into a policy file.
 
     hrc-solve --config config/default.yaml -o policies/default.npz
+    hrc-solve --method pomdp --config config/default.yaml -o policies/pomdp/default.npz
 
 Prints the residual and elapsed time of every sweep (every `--every` sweeps), then the policy
-file it wrote.
+file it wrote. `--method pomdp` solves the POMDP over the belief (core.pomdp: point-based
+sweeps between a lower and an upper bound) and prints their progress and final gap.
 """
 
 from __future__ import annotations
@@ -17,12 +19,23 @@ from ..core.paths import default_config_path
 from ..core.policy import save_policy
 from ..core.solver import solve
 
+POMDP = 'pomdp'
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='hrc-solve', description=__doc__.split('\n')[1])
     parser.add_argument('--config', default=str(default_config_path()),
                         help='configuration YAML (default: the shipped default.yaml)')
     parser.add_argument('-o', '--output', required=True, help='policy file to write (.npz)')
+    parser.add_argument('--method', default='value_iteration', choices=('value_iteration', POMDP),
+                        help='value_iteration (the MDP, default) or pomdp '
+                             '(alpha vectors over the belief; see docs/POMDP.md)')
+    parser.add_argument('--episodes', type=int, default=2000,
+                        help='pomdp: simulated episodes per round that gather belief points')
+    parser.add_argument('--rounds', type=int, default=1,
+                        help='pomdp: rounds of gathering with the solved policy after the '
+                             'first')
+    parser.add_argument('--seed', type=int, default=0, help='pomdp: seed of the gathering')
     parser.add_argument('--sweeps', type=int, default=None,
                         help='run exactly this many sweeps (overrides solver.sweeps)')
     parser.add_argument('--every', type=int, default=1, help='print every N sweeps')
@@ -33,7 +46,13 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f'hrc-solve: {exc}', file=sys.stderr)
         return 2
+    if args.episodes < 1:
+        parser.error('--episodes must be >= 1')
+    if args.rounds < 0 or args.seed < 0:
+        parser.error('--rounds and --seed must be >= 0')
     model = HRCModel(config)
+    if args.method == POMDP:
+        return _solve_pomdp(args, config, model)
     sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '
           f'gamma={config.gamma}, eta={config.eta:g}, '
@@ -52,6 +71,30 @@ def main(argv: list[str] | None = None) -> int:
           f'{result.timings["total"]:.2f} s')
     print(f'hrc-solve: actions {counts}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
+    return 0
+
+
+def _solve_pomdp(args, config, model) -> int:
+    from ..core.pomdp import solve_pomdp
+    from ..core.pomdp_policy import save_pomdp_policy
+
+    print(f'hrc-solve: {config.source}: POMDP over the belief, {model.n_states:,} states '
+          f'({args.episodes} episodes per round, {args.rounds} rounds after the first)',
+          flush=True)
+    quiet = args.quiet
+    result = solve_pomdp(model, episodes=args.episodes, rounds=args.rounds, seed=args.seed,
+                         progress=None if quiet else (lambda m: print(f'  {m}', flush=True)))
+    path = save_pomdp_policy(args.output, result, config)
+    r = result.report
+    for t in r['targets']:
+        print(f'hrc-solve: {t["name"]}: lower {t["lower"]:.4f}, upper {t["upper"]:.4f}, gap '
+              f'{t["gap"]:.4f} ({100 * t["relative_gap"]:.3f}%)')
+    g = r['points_gap']
+    print(f'hrc-solve: {r["points"]} belief points: gap mean {g["mean"]:.4f}, p95 '
+          f'{g["p95"]:.4f}, max {g["max"]:.4f}; {r["vectors"]} vectors over '
+          f'{r["observable_states"]} observable states; {r["seconds"]["total"]:.1f} s')
+    print(f'hrc-solve: wrote {path} ({path.stat().st_size / 1e6:.2f} MB, config sha256 '
+          f'{config.policy_hash[:12]})')
     return 0
 
 

@@ -1,0 +1,175 @@
+"""POMDP policy files (`policies/pomdp/*.npz`, written by `hrc-solve --method pomdp`).
+
+A POMDP policy file holds the solved alpha vectors and the fast informed bound over the
+observable states the task book can produce (`pomdp.hrc_pomdp`):
+
+- ``columns`` int64 (X,): the observable column y * 4 + d of each solved state, increasing;
+- ``alpha`` float64 (n, 9), ``alpha_action`` int8 (n,), ``alpha_offsets`` int64 (X + 1,):
+  Gamma(x_i) = alpha[offsets[i]:offsets[i + 1]], every set non-empty;
+- ``q_fib`` float64 (X, 8, 9): the fast informed bound's Q (the `fib` selector);
+- ``meta``: JSON, the meta of every policy file (`policy.policy_meta`: the configuration, its
+  SHA-256 over the model, cost and solver sections, gamma, eta, solver version, creation time)
+  with ``kind: pomdp``, ``observation_sha256`` and the solve's report (bounds, gap, points).
+
+The POMDP also depends on the observation model (Table 5 and epsilon, which the MDP does not
+use and which the configuration hash leaves out), so a POMDP file records
+``observation_sha256`` over those two, and `load_pomdp_policy` refuses a file whose
+configuration hash *or* observation hash differs from the configuration in use, with the
+command that solves the right one. The belief mode is not part of either: the policy is solved
+for the exact posterior (`BeliefFilter` in bayes mode with the observable transition as
+evidence) and runs on whatever belief it is given.
+
+Shipped files live in `policies/pomdp/` (a folder of their own, so the MDP's lookup never
+meets them); `default_pomdp_policy_path(config)` finds the one solved for a configuration.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config, config_hash
+from .model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
+from .paths import share_dir
+from .policy import PolicyError, check_config_hash, policy_meta
+from .pomdp import AlphaPolicy, PomdpResult
+
+KIND = 'pomdp'
+ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')
+
+
+def observation_hash(config: Config) -> str:
+    """SHA-256 of what the POMDP takes from the observation section: Table 5 and epsilon."""
+    obs = config.data['observation']
+    return config_hash({'table': obs['table'], 'epsilon': obs['epsilon']})
+
+
+@dataclass
+class PomdpPolicy:
+    policy: AlphaPolicy
+    meta: dict
+    path: str
+
+    @property
+    def config_sha256(self) -> str:
+        return self.meta['config_sha256']
+
+
+def pomdp_folder() -> Path:
+    return share_dir() / 'policies' / KIND
+
+
+def default_pomdp_policy_path(config: Config) -> Path:
+    """The shipped POMDP policy solved for `config` (by both hashes); when none matches,
+    `policies/pomdp/default.npz`, whose check then says what to solve."""
+    folder = pomdp_folder()
+    want = (config.policy_hash, observation_hash(config))
+    for path in sorted(folder.glob('*.npz')):
+        try:
+            with np.load(path, allow_pickle=False) as archive:   # reads `meta` only
+                meta = json.loads(str(archive['meta']))
+            if (meta.get('config_sha256'), meta.get('observation_sha256')) == want:
+                return path
+        except Exception:  # noqa: BLE001 - a damaged shipped file is reported when loaded
+            continue
+    return folder / 'default.npz'
+
+
+def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> Path:
+    path = Path(path)
+    alphas, hrc = result.alphas, result.hrc
+    meta = policy_meta(config, kind=KIND, method='pomdp',
+                       observation_sha256=observation_hash(config),
+                       observable_states=int(len(hrc.columns)), vectors=int(len(alphas)),
+                       n_states=int(hrc.model.n_states), report=result.report)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + '.tmp.npz')
+    np.savez_compressed(tmp, columns=hrc.columns.astype(np.int64),
+                        alpha=alphas.alpha.astype(np.float64),
+                        alpha_action=alphas.action.astype(np.int8),
+                        alpha_offsets=alphas.offsets.astype(np.int64),
+                        q_fib=result.upper.q_fib.astype(np.float64),
+                        meta=np.array(json.dumps(meta)))
+    os.replace(tmp, path)
+    return path
+
+
+def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPolicy:
+    """Load and check a POMDP policy file; with `config`, also check it was solved for it."""
+    path = Path(path)
+    how = ('Solve it: hrc-solve --method pomdp --config <your config.yaml> -o '
+           f'{path}')
+    if not path.is_file():
+        raise PolicyError(f'POMDP policy file {path} does not exist. {how}')
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            missing = set(ARRAYS) - set(archive.files)
+            if missing:
+                raise PolicyError(f'{path} is not an hrc_ros POMDP policy file (missing '
+                                  f'{", ".join(sorted(missing))}). {how}')
+            arrays = {name: archive[name] for name in ARRAYS}
+        meta = json.loads(str(arrays.pop('meta')))
+    except PolicyError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError,
+            RecursionError) as exc:
+        raise PolicyError(f'{path} is corrupt or not a POMDP policy file ({exc}). '
+                          f'{how}') from None
+    if not isinstance(meta, dict) or meta.get('kind') != KIND \
+            or not isinstance(meta.get('config_sha256'), str) \
+            or not isinstance(meta.get('observation_sha256'), str):
+        raise PolicyError(f'{path} has no POMDP meta (kind, configuration and observation '
+                          f'hashes). {how}')
+    _check_arrays(path, arrays, how)
+    columns = arrays['columns']
+    n_columns = int(columns.max()) + 1
+    if config is not None:
+        check_config_hash(path, meta, config, solve=' --method pomdp')
+        if meta['observation_sha256'] != observation_hash(config):
+            raise PolicyError(
+                f'POMDP policy {path} was solved for another observation model (Table 5 or '
+                f'epsilon) than the configuration in use ({config.source}). Solve it again: '
+                f'hrc-solve --method pomdp --config {config.source} -o {path}')
+        model = HRCModel(config)
+        n_columns = model.n_task * N_DISTANCE
+        if int(columns.max()) >= n_columns:
+            raise PolicyError(f'{path}: observable columns beyond the configuration\'s '
+                              f'{n_columns}. {how}')
+        available = model.availability[:, columns % N_DISTANCE].T
+    else:
+        available = np.ones((len(columns), len(ACTIONS)), dtype=bool)
+    policy = AlphaPolicy(columns, arrays['alpha'], arrays['alpha_action'],
+                         arrays['alpha_offsets'], arrays['q_fib'], available, n_columns)
+    return PomdpPolicy(policy, meta, str(path))
+
+
+def _check_arrays(path: Path, a: dict, how: str) -> None:
+    def bad(what: str):
+        raise PolicyError(f'{path}: {what}. {how}')
+    columns, alpha, action = a['columns'], a['alpha'], a['alpha_action']
+    offsets, q_fib = a['alpha_offsets'], a['q_fib']
+    if columns.dtype != np.int64 or columns.ndim != 1 or columns.size == 0:
+        bad('columns must be a non-empty 1-D int64 array')
+    if columns.min() < 0 or np.any(np.diff(columns) <= 0):
+        bad('columns must be non-negative and increasing')
+    n_x = columns.size
+    if alpha.dtype != np.float64 or alpha.ndim != 2 or alpha.shape[1] != N_HIDDEN:
+        bad(f'alpha must be float64 of shape (n, {N_HIDDEN})')
+    if action.dtype != np.int8 or action.shape != (alpha.shape[0],):
+        bad('alpha_action must be int8, one per vector')
+    if action.size and (action.min() < 0 or action.max() >= len(ACTIONS)):
+        bad(f'alpha_action holds action indices outside 0..{len(ACTIONS) - 1}')
+    if offsets.dtype != np.int64 or offsets.shape != (n_x + 1,):
+        bad(f'alpha_offsets must be int64 of shape ({n_x + 1},)')
+    if offsets[0] != 0 or offsets[-1] != alpha.shape[0] or np.any(np.diff(offsets) < 1):
+        bad('alpha_offsets must run from 0 to the number of vectors, every state holding one '
+            'or more')
+    if q_fib.dtype != np.float64 or q_fib.shape != (n_x, len(ACTIONS), N_HIDDEN):
+        bad(f'q_fib must be float64 of shape ({n_x}, {len(ACTIONS)}, {N_HIDDEN})')
+    if not (np.all(np.isfinite(alpha)) and np.all(np.isfinite(q_fib))):
+        bad('alpha or q_fib holds NaN or inf')
