@@ -455,6 +455,7 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, 0.0], '3 values'),
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
+    ('belief_mode', 'posterior', 'does not receive'),
     ('config', '/tmp/other.yaml', 'read-only'),
 ])
 def test_estimator_rejects_bad_parameters(graph, name, value, reason):
