@@ -259,7 +259,7 @@ def test_policy_file_refuses_damage(reduced, reduced_file, tmp_path):
         arrays = {k: archive[k] for k in archive.files}
 
     def broken(**changes):
-        path = tmp_path / f'broken_{"_".join(changes)}.npz'
+        path = tmp_path / f'broken_{len(list(tmp_path.glob("broken_*")))}.npz'
         np.savez(path, **{**arrays, **changes})
         return path
     mdp_file = save_policy(tmp_path / 'mdp.npz', solve(reduced), reduced.config)
@@ -269,7 +269,9 @@ def test_policy_file_refuses_damage(reduced, reduced_file, tmp_path):
             (broken(alpha_offsets=arrays['alpha_offsets'][:-1]), 'alpha_offsets'),
             (broken(alpha=arrays['alpha'] * np.nan), 'NaN'),
             (broken(columns=arrays['columns'][::-1].copy()), 'increasing'),
-            (broken(meta=np.array(json.dumps({'kind': 'mdp'}))), 'no POMDP meta'),
+            (broken(meta=np.array(json.dumps({'kind': 'mdp'}))), 'configuration hash'),
+            (broken(meta=np.array(json.dumps({'config_sha256': 'a' * 64}))), 'no POMDP meta'),
+            (broken(alpha=np.zeros((3, 4))), 'alpha must be float64'),
             (broken(q_fib=arrays['q_fib'][:, :3]), 'q_fib')):
         with pytest.raises(PolicyError, match=message):
             load_pomdp_policy(path, reduced.config)

@@ -36,11 +36,13 @@ import numpy as np
 from .config import Config, config_hash
 from .model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
 from .paths import share_dir
-from .policy import PolicyError, check_config_hash, policy_meta
+from .policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
+                     _parse_meta, check_config_hash, policy_meta)
 from .pomdp import AlphaPolicy, PomdpResult
 
 KIND = 'pomdp'
 ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')
+MAX_VECTORS = 10_000_000    # 720 MB of vectors; a solved full-size policy holds about 12,000
 
 
 def observation_hash(config: Config) -> str:
@@ -71,12 +73,11 @@ def default_pomdp_policy_path(config: Config) -> Path:
     want = (config.policy_hash, observation_hash(config))
     for path in sorted(folder.glob('*.npz')):
         try:
-            with np.load(path, allow_pickle=False) as archive:   # reads `meta` only
-                meta = json.loads(str(archive['meta']))
-            if (meta.get('config_sha256'), meta.get('observation_sha256')) == want:
-                return path
-        except Exception:  # noqa: BLE001 - a damaged shipped file is reported when loaded
+            meta = _check_meta_only(path)                # reads and bounds `meta` only
+        except PolicyError:   # a damaged shipped file is reported when it is loaded
             continue
+        if (meta.get('config_sha256'), meta.get('observation_sha256')) == want:
+            return path
     return folder / 'default.npz'
 
 
@@ -106,28 +107,23 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
            f'{path}')
     if not path.is_file():
         raise PolicyError(f'POMDP policy file {path} does not exist. {how}')
+    n_columns = None
+    if config is not None:
+        model = HRCModel(config)
+        n_columns = model.n_task * N_DISTANCE
+    _check_headers(path, _headers(path, how), n_columns, how)   # before reading any array
     try:
         with np.load(path, allow_pickle=False) as archive:
-            missing = set(ARRAYS) - set(archive.files)
-            if missing:
-                raise PolicyError(f'{path} is not an hrc_ros POMDP policy file (missing '
-                                  f'{", ".join(sorted(missing))}). {how}')
             arrays = {name: archive[name] for name in ARRAYS}
-        meta = json.loads(str(arrays.pop('meta')))
-    except PolicyError:
-        raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError,
-            RecursionError) as exc:
-        raise PolicyError(f'{path} is corrupt or not a POMDP policy file ({exc}). '
-                          f'{how}') from None
-    if not isinstance(meta, dict) or meta.get('kind') != KIND \
-            or not isinstance(meta.get('config_sha256'), str) \
-            or not isinstance(meta.get('observation_sha256'), str):
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+        raise PolicyError(f'{path} is corrupt or not a POMDP policy file '
+                          f'({type(exc).__name__}: {str(exc)[:200]}). {how}') from None
+    meta = _parse_meta(path, str(arrays.pop('meta')), how)
+    if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
         raise PolicyError(f'{path} has no POMDP meta (kind, configuration and observation '
                           f'hashes). {how}')
     _check_arrays(path, arrays, how)
     columns = arrays['columns']
-    n_columns = int(columns.max()) + 1
     if config is not None:
         check_config_hash(path, meta, config, solve=' --method pomdp')
         if meta['observation_sha256'] != observation_hash(config):
@@ -135,17 +131,44 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
                 f'POMDP policy {path} was solved for another observation model (Table 5 or '
                 f'epsilon) than the configuration in use ({config.source}). Solve it again: '
                 f'hrc-solve --method pomdp --config {config.source} -o {path}')
-        model = HRCModel(config)
-        n_columns = model.n_task * N_DISTANCE
         if int(columns.max()) >= n_columns:
             raise PolicyError(f'{path}: observable columns beyond the configuration\'s '
                               f'{n_columns}. {how}')
         available = model.availability[:, columns % N_DISTANCE].T
     else:
+        n_columns = int(columns.max()) + 1
         available = np.ones((len(columns), len(ACTIONS)), dtype=bool)
     policy = AlphaPolicy(columns, arrays['alpha'], arrays['alpha_action'],
                          arrays['alpha_offsets'], arrays['q_fib'], available, n_columns)
     return PomdpPolicy(policy, meta, str(path))
+
+
+def _check_headers(path: Path, headers: dict, n_columns: int | None, how: str) -> None:
+    """Names, dtypes and bounded shapes of the members, from their .npy headers only."""
+    missing = set(ARRAYS) - set(headers)
+    if missing:
+        raise PolicyError(f'{path} is not an hrc_ros POMDP policy file (missing '
+                          f'{", ".join(sorted(missing))}). {how}')
+    n_x = headers['columns'][0][:1]
+    n_alpha = headers['alpha'][0][:1]
+    limit_x = MAX_STATES if n_columns is None else n_columns
+    expected = {
+        'columns': (np.int64, n_x, n_x and n_x[0] <= limit_x),
+        'alpha': (np.float64, n_alpha + (N_HIDDEN,), n_alpha and n_alpha[0] <= MAX_VECTORS),
+        'alpha_action': (np.int8, n_alpha, True),
+        'alpha_offsets': (np.int64, tuple(n + 1 for n in n_x), True),
+        'q_fib': (np.float64, n_x + (len(ACTIONS), N_HIDDEN), True),
+    }
+    for name, (dtype, shape, bounded) in expected.items():
+        got_shape, got_dtype, _ = headers[name]
+        if got_dtype != np.dtype(dtype) or got_shape != shape or not bounded:
+            raise PolicyError(f'{path}: {name} must be {np.dtype(dtype)} of shape {shape} '
+                              f'(at most {limit_x} states, {MAX_VECTORS} vectors), got '
+                              f'{got_dtype} {got_shape}. {how}')
+    shape, dtype, _ = headers['meta']
+    if shape != () or dtype.kind != 'U' or dtype.itemsize // 4 > MAX_META_CHARS:
+        raise PolicyError(f'{path}: meta must be one JSON string of at most {MAX_META_CHARS} '
+                          f'characters. {how}')
 
 
 def _check_arrays(path: Path, a: dict, how: str) -> None:

@@ -8,18 +8,18 @@ Prints the run as the paper's Table 6 and writes `trajectory.csv` and the plots 
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
 from ..core.config import BELIEF_MODES
 from ..core.plots import plot_trajectory
 from ..core.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
-from .common import ToolError, add_model_arguments, add_pomdp_argument, load_model, load_pomdp
+from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments,
+                     add_pomdp_argument, bounded_int, fail, load_model, load_pomdp,
+                     output_folder)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-simulate',
         description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
                     'Table 6, write a CSV and PNG plots.')
@@ -29,19 +29,18 @@ def main(argv=None) -> int:
                         help='action selection (mdp = the true state, an upper bound)')
     parser.add_argument('--mode', default=None, choices=BELIEF_MODES,
                         help='belief mode (default: the configuration\'s)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the simulated human')
-    parser.add_argument('--epochs', type=int, default=None,
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help='seed of the simulated human')
+    parser.add_argument('--epochs', type=bounded_int(1, MAX_EPOCHS), default=None,
                         help='number of epochs (default: the case study\'s 20)')
     parser.add_argument('--out', default='out/simulate', help='output folder')
     args = parser.parse_args(argv)
-    if args.epochs is not None and args.epochs < 1:
-        parser.error(f'--epochs must be >= 1, got {args.epochs}')
     try:
         config, model, policy = load_model(args)
         pomdp = load_pomdp(args, config, (args.selector,))
+        out = output_folder(args.out)
     except ToolError as exc:
-        print(f'hrc-simulate: error: {exc}', file=sys.stderr)
-        return 2
+        return fail('hrc-simulate', exc)
     scenario = case_study()
     if args.epochs is not None:
         scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
@@ -49,7 +48,6 @@ def main(argv=None) -> int:
     trajectory = simulate(model, policy, scenario, selector=args.selector, mode=args.mode,
                           seed=args.seed, pomdp=pomdp)
     print(trajectory.table())
-    out = Path(args.out)
     written = [trajectory.to_csv(out / 'trajectory.csv')] + plot_trajectory(trajectory, out)
     for path in written:
         print(f'wrote {path}')
