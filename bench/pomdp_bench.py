@@ -126,6 +126,7 @@ def main() -> int:
     from hrc_ros.core.config import load_config
     from hrc_ros.core.model import HRCModel
     from hrc_ros.core.policy import default_policy_path, load_policy
+    from hrc_ros.core.pomdp import report_lines
     from hrc_ros.core.pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
     command = ' '.join(shlex.quote(a) for a in ['.venv/bin/python', 'bench/pomdp_bench.py',
                                                 *sys.argv[1:]])
@@ -141,18 +142,10 @@ def main() -> int:
         print(f'solve: {info["seconds"]:.1f} s wall, peak RSS {info["peak_kb"] / 1024:.0f} MB '
               f'(targets < 600 s, < 4096 MB)')
     pomdp = load_pomdp_policy(path, config)
-    r = pomdp.meta['report']
-    print(f'policy {path}: {path.stat().st_size / 1e6:.2f} MB (target < 20 MB), '
-          f'{r["vectors"]} vectors over {r["observable_states"]} observable states, '
-          f'{r["points"]} belief points, sweeps {r["sweeps"]}, solver '
-          f'{r["seconds"]["total"]:.1f} s')
-    for t in r['targets']:
-        print(f'  {t["name"]}: lower {t["lower"]:.4f}, upper {t["upper"]:.4f}, gap '
-              f'{t["gap"]:.4f} = {100 * t["relative_gap"]:.3f}% (target < 1%)')
-    g = r['points_gap']
-    print(f'  gap over the belief points: mean {g["mean"]:.4f}, median {g["median"]:.4f}, '
-          f'p95 {g["p95"]:.4f}, max {g["max"]:.4f} (mean relative '
-          f'{100 * g["mean_relative"]:.3f}%)')
+    print(f'policy {path}: {path.stat().st_size / 1e6:.2f} MB (target < 20 MB); gaps (target '
+          '< 1% at the case study):')
+    for line in report_lines(pomdp.meta['report']):
+        print(f'  {line}')
     rng = np.random.default_rng(0)
     times = decision_times(model, mdp, pomdp, rng)
     for method, t in times.items():

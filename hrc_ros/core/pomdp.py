@@ -350,23 +350,19 @@ def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9) -> np.ndarray:
 # -- belief points ------------------------------------------------------------------------------
 def q_policy(pomdp: MixedPOMDP, q: np.ndarray):
     """(x array, b array) -> argmax_a sum_h b(h) q[x, a, h] over available a, tie order."""
-    order = pomdp.order
-
     def act(x, b):
         scores = np.einsum('eah,eh->ea', q[x], b)
-        scores = np.where(pomdp.available[x], scores, -np.inf)
-        best = scores.max(axis=1, keepdims=True)
-        tied = scores >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
-        return order[np.argmax(tied[:, order], axis=1)]
+        return first_of_best(np.where(pomdp.available[x], scores, -np.inf), pomdp.order)
     return act
 
 
-def best_action(values: np.ndarray, actions: np.ndarray, rank: np.ndarray) -> int:
-    """The action of the largest value; values within the tie tolerance of it go to the
-    action ranked first (`rank[a]`: position of a in the tie order)."""
-    best = values.max()
-    tied = actions[values >= best - TIE_TOLERANCE * max(1.0, abs(best))]
-    return int(tied[np.argmin(rank[tied])])
+def first_of_best(scores: np.ndarray, order=SAFETY_ORDER) -> np.ndarray:
+    """Per row of scores (E, A), the first action of `order` within the tie tolerance
+    (1e-9 * max(1, |best|)) of the row's best."""
+    best = scores.max(axis=1, keepdims=True)
+    tied = scores >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+    order = np.asarray(order)
+    return order[np.argmax(tied[:, order], axis=1)]
 
 
 @dataclass
@@ -752,6 +748,19 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     return PomdpResult(hrc, alphas, upper, points_x, points, report)
 
 
+def report_lines(report: dict) -> list[str]:
+    """The bounds of a solve's report as lines: the gap at each case-study target and over
+    the belief points (hrc-solve and bench/pomdp_bench.py print them)."""
+    lines = [f'{t["name"]}: lower {t["lower"]:.4f}, upper {t["upper"]:.4f}, gap {t["gap"]:.4f} '
+             f'({100 * t["relative_gap"]:.3f}%)' for t in report['targets']]
+    g = report['points_gap']
+    lines.append(f'{report["points"]} belief points: gap mean {g["mean"]:.4f}, median '
+                 f'{g["median"]:.4f}, p95 {g["p95"]:.4f}, max {g["max"]:.4f}; '
+                 f'{report["vectors"]} vectors over {report["observable_states"]} observable '
+                 f'states; sweeps {report["sweeps"]}; {report["seconds"]["total"]:.1f} s')
+    return lines
+
+
 def _with_fixed(points_x, points, fixed_x, fixed_b):
     """The points with the fixed ones always present (thinning may have dropped some)."""
     x = np.concatenate([points_x, fixed_x])
@@ -778,13 +787,14 @@ class AlphaPolicy:
         self.columns = np.asarray(columns, dtype=np.int64)
         self.alpha = np.ascontiguousarray(alpha, dtype=float)
         self.action = np.asarray(action, dtype=np.intp)
+        self._actions = self.action.tolist()
         self.offsets = np.asarray(offsets, dtype=np.int64)
         self.q_fib = np.asarray(q_fib, dtype=float)
         self.available = np.asarray(available, dtype=bool)
         self.column_index = np.full(int(n_columns), -1, dtype=np.intp)
         self.column_index[self.columns] = np.arange(len(self.columns))
-        self.rank = np.empty(len(SAFETY_ORDER), dtype=np.intp)
-        self.rank[np.array(SAFETY_ORDER)] = np.arange(len(SAFETY_ORDER))
+        rank = np.empty(len(SAFETY_ORDER), dtype=np.intp)      # position in the safety order
+        rank[np.array(SAFETY_ORDER)] = np.arange(len(SAFETY_ORDER))
         self.fib_scores = np.where(self.available[..., None], self.q_fib, -np.inf)
         # dense (X, M, H) copy for selecting many at once; padding never wins
         counts = np.diff(self.offsets)
@@ -796,7 +806,7 @@ class AlphaPolicy:
         self.dense_valid = np.zeros((len(counts), width), dtype=bool)
         self.dense_valid[owner, slot] = True
         self.dense_rank = np.full((len(counts), width), len(SAFETY_ORDER), dtype=np.intp)
-        self.dense_rank[owner, slot] = self.rank[self.action]
+        self.dense_rank[owner, slot] = rank[self.action]
 
     @classmethod
     def from_set(cls, alphas: AlphaSet, q_fib, available, hrc: HRCPomdp) -> 'AlphaPolicy':
@@ -818,20 +828,23 @@ class AlphaPolicy:
         return i
 
     def pomdp(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
-        """(action, scores (A,)) of the best vector at (x, b)."""
+        """(action, scores (A,)) of the best vector at (x, b). An action is tied when its best
+        vector is within the tolerance of the best, so the tie rule works on the scores."""
         i = self.state(column)
-        lo, hi = self.offsets[i], self.offsets[i + 1]
-        values = self.alpha[lo:hi] @ b
-        actions = self.action[lo:hi]
-        action = best_action(values, actions, self.rank)
-        scores = np.full(self.q_fib.shape[1], -np.inf)
-        np.maximum.at(scores, actions, values)
-        return action, scores
+        lo, hi = int(self.offsets[i]), int(self.offsets[i + 1])
+        scores = [-np.inf] * self.q_fib.shape[1]
+        for v, a in zip((self.alpha[lo:hi] @ b).tolist(), self._actions[lo:hi]):
+            if v > scores[a]:
+                scores[a] = v
+        best = max(scores)
+        floor = best - TIE_TOLERANCE * max(1.0, abs(best))
+        action = next(a for a in SAFETY_ORDER if scores[a] >= floor)
+        return action, np.array(scores)
 
     def fib(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
         i = self.state(column)
         scores = self.fib_scores[i] @ b
-        return self._first_of_best(scores[None, :])[0], scores
+        return int(first_of_best(scores[None, :])[0]), scores
 
     def pomdp_many(self, b: np.ndarray, columns) -> np.ndarray:
         i = self.states(columns)
@@ -844,13 +857,7 @@ class AlphaPolicy:
 
     def fib_many(self, b: np.ndarray, columns) -> np.ndarray:
         i = self.states(columns)
-        return self._first_of_best(np.einsum('eah,eh->ea', self.fib_scores[i], b))
-
-    def _first_of_best(self, scores: np.ndarray) -> np.ndarray:
-        best = scores.max(axis=1, keepdims=True)
-        tied = scores >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
-        order = np.array(SAFETY_ORDER)
-        return order[np.argmax(tied[:, order], axis=1)]
+        return first_of_best(np.einsum('eah,eh->ea', self.fib_scores[i], b))
 
     def act(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The pomdp action for solved-state indices x (the sampler's policy)."""

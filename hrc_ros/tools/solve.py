@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _solve_pomdp(args, config, model, output) -> int:
-    from ..core.pomdp import solve_pomdp
+    from ..core.pomdp import report_lines, solve_pomdp
     from ..core.pomdp_policy import save_pomdp_policy
 
     print(f'hrc-solve: {config.source}: POMDP over the belief, {model.n_states:,} states '
@@ -84,14 +84,8 @@ def _solve_pomdp(args, config, model, output) -> int:
     result = solve_pomdp(model, episodes=args.episodes, rounds=args.rounds, seed=args.seed,
                          progress=None if quiet else (lambda m: print(f'  {m}', flush=True)))
     path = save_pomdp_policy(output, result, config)
-    r = result.report
-    for t in r['targets']:
-        print(f'hrc-solve: {t["name"]}: lower {t["lower"]:.4f}, upper {t["upper"]:.4f}, gap '
-              f'{t["gap"]:.4f} ({100 * t["relative_gap"]:.3f}%)')
-    g = r['points_gap']
-    print(f'hrc-solve: {r["points"]} belief points: gap mean {g["mean"]:.4f}, p95 '
-          f'{g["p95"]:.4f}, max {g["max"]:.4f}; {r["vectors"]} vectors over '
-          f'{r["observable_states"]} observable states; {r["seconds"]["total"]:.1f} s')
+    for line in report_lines(result.report):
+        print(f'hrc-solve: {line}')
     print(f'hrc-solve: wrote {path} ({path.stat().st_size / 1e6:.2f} MB, config sha256 '
           f'{config.policy_hash[:12]})')
     return 0
