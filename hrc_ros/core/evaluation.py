@@ -6,9 +6,11 @@ random numbers: episode e of every selector sees the same scenario (initial (em,
 releases) and the same uniform stream of its simulated human (`cell.SimulatedHuman` with seed
 ``(seed, e)``), so differences between selectors come from their decisions, not from luck.
 
-Selectors: ``paper`` (the weighted vote), ``qmdp``, ``mls`` and ``mdp``, the policy action of
-the *true* state: a full-information bound that no belief-based selector should beat on
-average. Every selector is subject to the fail-safe (d = 0 -> dn) unless `--no-fail-safe`.
+Selectors: ``paper`` (the weighted vote), ``qmdp``, ``mls``, ``pomdp`` and ``fib`` (the solved
+POMDP's alpha vectors and fast informed bound, `pomdp.AlphaPolicy`'s batch forms) and ``mdp``,
+the policy action of the *true* state: a full-information bound that no belief-based selector
+should beat on average. Every selector is subject to the fail-safe (d = 0 -> dn) unless
+`--no-fail-safe`.
 
 Metrics per episode (then mean and a 95% normal confidence interval over episodes):
 
@@ -21,7 +23,8 @@ Metrics per episode (then mean and a 95% normal confidence interval over episode
 For speed the episodes run side by side: `BatchSimulator` is the epoch protocol of
 `simulator.simulate` written over arrays of episodes (task steps as lookup tables, the human's
 draws by inverse CDF from the same uniforms, belief and selection as array arithmetic with the
-same tie rules as `selection.ActionSelector`, the belief by `BeliefFilter.update_many`). The
+same tie rules as `selection.ActionSelector`, the belief by `BeliefFilter.update_many`, given the
+epoch's observable transition as evidence in ``posterior`` mode). The
 test suite checks that it reproduces `simulate` episode by episode. qmdp uses the full Q table
 of one Bellman step on the solved value (`FactoredBellman.q`), computed once.
 """
@@ -179,12 +182,11 @@ class BatchSimulator:
 
     @property
     def alphas(self):
-        """The POMDP policy's `AlphaPolicy` (pomdp and fib; the shipped one when none was
-        given, through `ActionSelector`'s lookup)."""
+        """The POMDP policy's `AlphaPolicy` (pomdp and fib; the shipped one for the
+        configuration when none was given)."""
         if self.pomdp is None:
-            from .pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
-            config = self.model.config
-            self.pomdp = load_pomdp_policy(default_pomdp_policy_path(config), config)
+            from .pomdp_policy import load_shipped_pomdp_policy
+            self.pomdp = load_shipped_pomdp_policy(self.model.config)
         return getattr(self.pomdp, 'policy', self.pomdp)
 
     # -- selection, vectorised with ActionSelector's tie rules ---------------------------

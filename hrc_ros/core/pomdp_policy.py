@@ -81,6 +81,12 @@ def default_pomdp_policy_path(config: Config) -> Path:
     return folder / 'default.npz'
 
 
+def load_shipped_pomdp_policy(config: Config) -> PomdpPolicy:
+    """The shipped POMDP policy solved for `config` (`PolicyError`, saying what to solve,
+    when there is none)."""
+    return load_pomdp_policy(default_pomdp_policy_path(config), config)
+
+
 def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> Path:
     path = Path(path)
     alphas, hrc = result.alphas, result.hrc

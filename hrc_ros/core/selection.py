@@ -171,9 +171,8 @@ class ActionSelector:
         """The POMDP policy's `AlphaPolicy` (the shipped one for the configuration, loaded
         once, when none was given); `PolicyError` when there is none."""
         if self.pomdp is None:
-            from .pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
-            config = self.model.config
-            self.pomdp = load_pomdp_policy(default_pomdp_policy_path(config), config)
+            from .pomdp_policy import load_shipped_pomdp_policy
+            self.pomdp = load_shipped_pomdp_policy(self.model.config)
         return getattr(self.pomdp, 'policy', self.pomdp)
 
     def _paper(self, b: np.ndarray, actions: np.ndarray) -> Selection:
