@@ -28,6 +28,7 @@ time), so the machines decide what a timeout means and the nodes only keep time.
 
 from __future__ import annotations
 
+import signal
 import time
 import traceback
 from collections import Counter
@@ -40,9 +41,10 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
@@ -415,13 +417,32 @@ class Inputs:
 STARTUP_ERRORS = (StartupError, ParameterException)
 
 
+STOP_POLL_SEC = 0.1   # how often a node with a last word (`on_stop`) looks for a signal
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
 def run(node_class, args=None) -> int:
     """The `main()` of a node (ros2/demos talker pattern); returns the process exit code.
 
     A node that cannot start (`StartupError`, a rejected parameter) logs why and returns 1,
     with no traceback. Ctrl-C (SIGINT) stops it cleanly with 0.
+
+    A node class with an `on_stop()` method has a last word (cell_view's DELETEALL). rclpy's
+    signal handler shuts the context down before Python sees the signal, and nothing can be
+    published after that, so such a node runs without it: SIGINT and SIGTERM raise
+    KeyboardInterrupt, the executor spins in slices of STOP_POLL_SEC so that Python notices,
+    and `on_stop()` runs while the context is still up.
     """
-    rclpy.init(args=args)
+    last_word = hasattr(node_class, 'on_stop')
+    if last_word:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGINT, _interrupt)
+        signal.signal(signal.SIGTERM, _interrupt)
+    else:
+        rclpy.init(args=args)
     try:
         node = node_class()
     except STARTUP_ERRORS as exc:
@@ -432,7 +453,13 @@ def run(node_class, args=None) -> int:
         rclpy.try_shutdown()
         return 0
     try:
-        rclpy.spin(node)
+        if last_word:
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while node.context.ok():
+                executor.spin_once(timeout_sec=STOP_POLL_SEC)
+        else:
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
@@ -443,6 +470,13 @@ def run(node_class, args=None) -> int:
         if node.context.ok():
             raise
     finally:
+        if last_word and node.context.ok():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)    # a second Ctrl-C: still the last word
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            try:
+                node.on_stop()
+            except Exception:  # noqa: BLE001 - the node stops anyway; say why its last word failed
+                node.get_logger().error(f'on_stop failed:\n{traceback.format_exc()}')
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
