@@ -106,22 +106,38 @@ def test_the_panel_says_epoch_action_fail_safe_beliefs_and_task():
                                                  (0, 1, pytest.approx(1 / 9))]
 
 
-def test_the_view_draws_after_actions_fail_safe_reports_and_new_skeletons():
+def test_the_view_pairs_each_action_with_its_epochs_inputs():
     view = CellView()
-    view.epoch(4)
-    assert view.action('dn') is True
-    assert view.decision_report(3, 'dn', 'stale task state') is False    # another epoch
-    assert view.decision_report(4, 'dn', 'none') is False               # nothing new
-    assert view.decision_report(4, 'dn', 'belief missing') is True
-    assert view.state.faults == 'belief missing'
-    assert view.decision_report(4, 'dn', 'belief missing') is False     # said already
-    view.epoch(5)
-    assert view.state.action is None and view.state.faults == ''
-    assert not view.due()
-    view.skeleton(np.zeros((1, 3)))
-    assert view.due()
+    assert view.changed                      # the first picture
     view.drawn()
-    assert not view.due()
+    view.feed('epoch', 4)
+    view.feed('belief', BELIEF)
+    view.feed('distance_level', 2)
+    view.feed('task_state', TASK)
+    assert not view.changed and view.state.epoch == 0 and view.state.belief is None
+    view.feed('action', 'dn')                # epoch 4 is complete: shown with its inputs
+    assert view.changed
+    assert (view.state.epoch, view.state.action, view.state.distance_level) == (4, 'dn', 2)
+    assert view.state.task_state == TASK and view.state.belief is BELIEF
+    view.drawn()
+    view.feed('epoch', 5)                    # epoch 5's inputs wait for its action
+    view.feed('distance_level', 0)
+    view.feed('decision', (3, 'dn', 'stale task state'))    # another epoch: ignored
+    view.feed('decision', (4, 'dn', 'none'))                # nothing to add
+    assert not view.changed and view.state.distance_level == 2
+    view.feed('decision', (4, 'dn', 'belief missing'))
+    assert view.changed and view.state.faults == 'belief missing'
+    view.drawn()
+    view.feed('decision', (4, 'dn', 'belief missing'))      # said already
+    assert not view.changed
+    view.feed('action', 'nw')
+    assert (view.state.epoch, view.state.action, view.state.faults) == (5, 'nw', '')
+    assert view.state.distance_level == 0 and view.state.belief is BELIEF   # kept
+    view.drawn()
+    view.feed('skeleton', np.zeros((1, 3)))
+    assert view.changed
+    with pytest.raises(ValueError, match='unknown view input'):
+        view.feed('joint_states', None)
 
 
 # -- the messages -----------------------------------------------------------------------------
@@ -173,7 +189,7 @@ def decision_status(epoch: int, action: str, faults: str) -> DiagnosticArray:
 
 def test_cell_view_draws_the_epoch_and_marks_a_fail_safe(graph):
     node = graph.start(CellViewNode, safety_radii=list(RADII),
-                       robot_reference_point=list(REFERENCE), refresh_rate=50.0)
+                       robot_reference_point=list(REFERENCE), refresh_rate=20.0)
     pictures = graph.collect(MarkerArray, 'hrc/markers', qos.LATCHED)
     assert graph.spin_until(lambda: pictures), 'no first picture'
     first = assert_whole_picture(pictures[-1])
@@ -186,39 +202,47 @@ def test_cell_view_draws_the_epoch_and_marks_a_fail_safe(graph):
     skeleton = graph.publisher(PoseArray, 'human/skeleton', qos.SENSOR_DATA)
     diagnostics = graph.publisher(DiagnosticArray, '/diagnostics', qos.RELIABLE)
 
+    def panel(index=0):
+        return assert_whole_picture(pictures[-1])[('panel', index)]
+
     keypoints = synthesize_skeleton(2, RADII, REFERENCE, np.random.default_rng(5))
+    skeleton.publish(conv.keypoints_to_msg(keypoints))
+    assert graph.spin_until(lambda: ('human', 0) in assert_whole_picture(pictures[-1]))
     epoch.publish(conv.epoch_to_msg(3))
     belief.publish(conv.belief_to_msg(BELIEF))
     distance.publish(conv.distance_level_to_msg(2))
     task.publish(conv.task_state_to_msg(TASK))
-    skeleton.publish(conv.keypoints_to_msg(keypoints))
-    inputs = ('epoch', 'belief', 'distance_level', 'task_state', 'skeleton')
-    assert graph.spin_until(lambda: all(node.inputs.received[n] for n in inputs))
-    # a new skeleton is drawn at the next refresh
-    assert graph.spin_until(lambda: ('human', 0) in assert_whole_picture(pictures[-1]))
-    count = len(pictures)
     action.publish(conv.action_to_msg('dn'))
-    assert graph.spin_until(lambda: len(pictures) > count
-                            and 'dn' in assert_whole_picture(pictures[-1])[('panel', 0)].text)
+    assert graph.spin_until(lambda: panel().text == 'epoch 3: dn')   # the policy's dn, so far
     drawn = assert_whole_picture(pictures[-1])
-    assert drawn[('panel', 0)].text == 'epoch 3: dn'       # the policy's dn, so far
     assert drawn[('panel', 1)].text == state_text(CellState(belief=BELIEF, distance_level=2,
                                                             task_state=TASK))
     np.testing.assert_allclose([(p.x, p.y, p.z) for p in drawn[('human', 0)].points], keypoints)
     assert (drawn[('human', 0)].color.r, drawn[('human', 0)].color.g) == \
         pytest.approx(LEVEL_COLORS[2][:2])
+    # the decision node's periodic health status has the same name and no epoch: not a report
+    diagnostics.publish(conv.diagnostic_array([conv.diagnostic_status(
+        'decision: decision', DiagnosticStatus.OK, 'ok', {'policy': 'default.npz'})]))
     # the decision node says it failed safe: the panel says so, in red
     diagnostics.publish(decision_status(3, 'dn', 'task state stale'))
-    assert graph.spin_until(lambda: 'FAIL-SAFE' in pictures[-1].markers[-2].text)
-    marked = assert_whole_picture(pictures[-1])[('panel', 0)]
-    assert marked.text == 'epoch 3: dn  FAIL-SAFE: task state stale'
-    assert (marked.color.r, marked.color.g) == pytest.approx(LEVEL_COLORS[0][:2])
-    # a report of another epoch changes nothing
-    count = len(pictures)
+    assert graph.spin_until(lambda: 'FAIL-SAFE' in panel().text)
+    assert panel().text == 'epoch 3: dn  FAIL-SAFE: task state stale'
+    assert (panel().color.r, panel().color.g) == pytest.approx(LEVEL_COLORS[0][:2])
+    # epoch 4's inputs wait for its action; a report of another epoch changes nothing
+    epoch.publish(conv.epoch_to_msg(4))
+    distance.publish(conv.distance_level_to_msg(0))
     diagnostics.publish(decision_status(2, 'dn', 'belief missing'))
-    graph.spin_until(lambda: len(pictures) > count, timeout=0.5)
-    assert all('belief missing' not in m.text for p in pictures for m in p.markers)
+    assert graph.spin_until(lambda: node.inputs.received['decision'] >= 2
+                            and node.inputs.received['distance_level'] >= 2)
+    graph.spin_until(lambda: False, timeout=0.2)
+    assert panel().text == 'epoch 3: dn  FAIL-SAFE: task state stale'
+    assert panel(1).text.startswith('d_k 2 (middle)')
+    action.publish(conv.action_to_msg('dn'))
+    assert graph.spin_until(lambda: panel().text.startswith('epoch 4: dn'))
+    assert panel().text == 'epoch 4: dn  FAIL-SAFE: d = 0 (collision)'
     assert all(p.markers[0].action == Marker.DELETEALL for p in pictures)
+    assert all('belief missing' not in m.text for p in pictures for m in p.markers)
+    assert not node.inputs.dropped                  # nothing refused, no internal error
 
 
 # -- shutdown ---------------------------------------------------------------------------------

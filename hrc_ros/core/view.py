@@ -17,8 +17,8 @@ previous picture and nothing accumulates in RViz or Foxglove. The shapes, by nam
   decision node's reasons when the robot failed safe; then the distance level d_k the decision
   used, the three most likely (em, ea) of the belief, and the task state.
 
-`CellView` is the node's state: the inputs of the current epoch, and whether the picture changed
-(`render` after an action, a fail-safe report, or a new skeleton).
+`CellView` is the node's state: its inputs, fed in publication order, make one consistent epoch
+record (epoch, action, belief, d_k, task state, fail-safe reasons) and the latest skeleton.
 """
 
 from __future__ import annotations
@@ -147,37 +147,50 @@ def scene(state: CellState, radii, reference_point) -> list[Shape]:
     return shapes
 
 
+STAGED = ('belief', 'distance_level', 'task_state')
+
+
 @dataclass
 class CellView:
-    """The view's inputs and when to draw: at once after each action (the epoch's picture is
-    complete) and when the decision node's report of that epoch adds fail-safe reasons; after a
-    new skeleton at the next refresh tick (`due`). The node calls `drawn` when it publishes."""
+    """What the view draws, fed its inputs in publication order.
+
+    The panel shows the last epoch that has an action, with that epoch's own inputs: after
+    hrc/epoch k, the belief, distance level and task state are held (`pending`) until a_k
+    arrives and then shown with it, so a picture never pairs epoch k's action with epoch k+1's
+    belief. The decision node's report of the shown epoch adds its fail-safe reasons. Skeletons
+    are shown as they come. `changed` says that the next refresh must draw."""
 
     state: CellState = field(default_factory=CellState)
-    changed: bool = False
+    pending: dict = field(default_factory=dict)
+    changed: bool = True            # the first picture, at the first refresh
 
-    def epoch(self, k: int) -> None:
-        self.state.epoch, self.state.action, self.state.faults = k, None, ''
-
-    def action(self, action: str) -> bool:
-        self.state.action = action
-        return True
-
-    def decision_report(self, epoch: int, action: str, faults: str) -> bool:
-        """The decision node's per-epoch status; True if it changes the picture."""
-        faults = '' if faults in ('', 'none') else faults
-        if epoch != self.state.epoch or action != self.state.action or faults == self.state.faults:
-            return False
-        self.state.faults = faults
-        return True
-
-    def skeleton(self, keypoints: np.ndarray) -> None:
-        self.state.keypoints = keypoints
-        self.changed = True
-
-    def due(self) -> bool:
-        """A refresh tick: whether a skeleton arrived since the picture was last drawn."""
-        return self.changed
+    def feed(self, name: str, value) -> None:
+        """One input: 'epoch', 'action' (its name), 'belief', 'distance_level', 'task_state',
+        'skeleton' (keypoints), 'decision' ((epoch, action, faults) of its per-epoch status)."""
+        if name == 'epoch':
+            self.pending = {'epoch': value}
+        elif name in STAGED:
+            self.pending[name] = value
+        elif name == 'action':
+            self.state.epoch = self.pending.get('epoch', self.state.epoch)
+            self.state.action, self.state.faults = value, ''
+            for key in STAGED:
+                if key in self.pending:
+                    setattr(self.state, key, self.pending[key])
+            self.pending = {}
+            self.changed = True
+        elif name == 'skeleton':
+            self.state.keypoints = value
+            self.changed = True
+        elif name == 'decision':
+            epoch, action, faults = value
+            faults = '' if faults in ('', 'none') else faults
+            if (epoch, action) == (self.state.epoch, self.state.action) \
+                    and faults != self.state.faults:
+                self.state.faults = faults
+                self.changed = True
+        else:
+            raise ValueError(f'unknown view input {name!r}')
 
     def drawn(self) -> None:
         self.changed = False

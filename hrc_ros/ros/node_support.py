@@ -413,6 +413,70 @@ class Inputs:
         return out
 
 
+class SampledInputs:
+    """Subscriptions a node reads when it chooses (`take`), not as messages arrive.
+
+    rclpy rebuilds its wait set each time a message wakes the executor (about a millisecond of
+    Python for a node with a dozen entities), so a node that only needs its inputs at its own
+    rate, like the view, should not wake for each of them. These subscriptions live on a helper
+    node (`<node>_inputs`, same namespace and context, no parameter services) that no executor
+    spins; messages wait in the DDS reader's history (keep last `depth`) until `take()` drains
+    them. Conversion errors are dropped and reported through the owner's `Inputs`, and any other
+exception is reported as an internal error, as `Inputs.subscribe` does."""
+
+    def __init__(self, node: Node, inputs: Inputs):
+        self.inputs = inputs
+        self.helper = rclpy.create_node(f'{node.get_name()}_inputs',
+                                        namespace=node.get_namespace(), context=node.context,
+                                        start_parameter_services=False, enable_rosout=False)
+        self._topics: list[tuple] = []
+
+    def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
+                  name: str | None = None, latest_only: bool = False):
+        """`convert(msg)` each message; with `latest_only`, only the last one of each `take`
+        (the others are taken as bytes and never deserialised)."""
+        name = name or topic.rsplit('/', 1)[-1]
+        subscription = self.helper.create_subscription(msg_type, topic, lambda *_: None,
+                                                       profile, raw=latest_only)
+        self._topics.append((name, topic, subscription, convert, latest_only))
+        return subscription
+
+    def take(self) -> list[tuple[int, str, Any]]:
+        """Everything received since the last call as (published ns, input name, value), in
+        publication order (the writers' source timestamps)."""
+        from rclpy.serialization import deserialize_message
+        events = []
+        for name, topic, subscription, convert, latest_only in self._topics:
+            taken = []
+            with subscription.handle:
+                while True:
+                    message = subscription.handle.take_message(subscription.msg_type,
+                                                               subscription.raw)
+                    if message is None:
+                        break
+                    taken.append(message)
+            self.inputs.received[name] += len(taken)
+            if latest_only:
+                taken = [(deserialize_message(taken[-1][0], subscription.msg_type),
+                          taken[-1][1])] if taken else []
+            for msg, info in taken:
+                try:
+                    value = convert(msg)
+                except InputError as exc:
+                    self.inputs.drop(name, topic, str(exc))
+                    continue
+                except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
+                    self.inputs.internal_error(name, topic, traceback.format_exc())
+                    continue
+                published = info.get('source_timestamp') if isinstance(info, dict) else None
+                events.append((int(published or time.time_ns()), name, value))
+        events.sort(key=lambda event: event[0])
+        return events
+
+    def destroy(self) -> None:
+        self.helper.destroy_node()
+
+
 # -- main -------------------------------------------------------------------------------------
 STARTUP_ERRORS = (StartupError, ParameterException)
 

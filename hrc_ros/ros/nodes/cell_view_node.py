@@ -1,19 +1,22 @@
 """cell_view: the cell as markers for RViz and Foxglove, on `hrc/markers`.
 
-Contract: subscribes `hrc/epoch`, `hrc/action`, `hrc/belief`, `hrc/distance_level`,
-`hrc/task_state`, `human/skeleton` and the decision node's per-epoch status on /diagnostics
-(for the reasons of a fail-safe dn); publishes `visualization_msgs/MarkerArray` on `hrc/markers`
-in `robot_frame`: the whole picture of `core.view.scene` (the three safety circles, the human's
+Contract: reads `hrc/epoch`, `hrc/action`, `hrc/belief`, `hrc/distance_level`,
+`hrc/task_state`, `human/skeleton` and the decision node's per-epoch status on /diagnostics (for
+the reasons of a fail-safe dn); publishes `visualization_msgs/MarkerArray` on `hrc/markers` in
+`robot_frame`: the whole picture of `core.view.scene` (the three safety circles, the human's
 keypoints coloured by their distance level, the closest keypoint and its distance, a text panel
 with the epoch, the action, the top beliefs over (em, ea) and the task state) after a DELETEALL,
-so every message replaces the last. It draws at each action, when the decision node's report of
-that epoch says it failed safe, and after a new skeleton at most `refresh_rate` times a second.
-`hrc/markers` is reliable and transient local (depth 1): a viewer that connects late gets the
-current picture at once. On SIGINT or SIGTERM it publishes a lone DELETEALL, waits (at most
-`STOP_ACK_SEC`) until the subscribers have it, and stops, leaving the viewers empty.
+so every message replaces the last. `hrc/markers` is reliable and transient local (depth 1): a
+viewer that connects late gets the current picture at once. On SIGINT or SIGTERM it publishes a
+lone DELETEALL, waits (at most `STOP_ACK_SEC`) until the subscribers have it, and stops, leaving
+the viewers empty.
 
-It only listens: nothing of the decision loop waits for it or reads what it publishes
-(bench/loop_latency.py --view measures the loop with it running).
+It only listens, and at its own pace: its inputs are `SampledInputs`, taken `refresh_rate` times
+a second in publication order (`core.view.CellView` pairs each action with its epoch's inputs),
+and a picture is drawn at a tick when something changed. So it never wakes for a message, its
+share of the CPU does not grow with the rate of the epochs or of the tracker, nothing of the
+decision loop waits for it, and bench/loop_latency.py --view-pairs measures the loop with and
+without it.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from geometry_msgs.msg import PoseArray
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 from visualization_msgs.msg import MarkerArray
 
@@ -30,16 +34,25 @@ from ...core.model import ACTIONS
 from ...core.view import CellView, scene
 from .. import conversions as conv
 from .. import qos
-from ..node_support import STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, run
+from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,
+                            run)
 from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_RADII,
                                     check_motion_parameters)
 
 T = Parameter.Type
 STOP_ACK_SEC = 1.0
+# Reader histories deep enough for the messages of several epochs between two ticks.
+SAMPLED_DEPTH = 100
+SAMPLED_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SAMPLED_DEPTH,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.VOLATILE)
+SAMPLED_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SAMPLED_DEPTH,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 PARAMETERS = (
     SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME,
-    ParamSpec('refresh_rate', T.DOUBLE, 5.0, 'Hz: the most pictures a second drawn for new '
-              'skeletons (each action is drawn at once)', range=(0.1, 100.0)),
+    ParamSpec('refresh_rate', T.DOUBLE, 5.0, 'Hz: how often the inputs are read and, if '
+              'anything changed, the picture drawn', range=(0.1, 100.0)),
     ParamSpec('decision_node', T.STRING, 'decision', 'name of the decision node whose '
               '/diagnostics status gives the reasons of a fail-safe dn', read_only=True),
 )
@@ -59,24 +72,20 @@ class CellViewNode(Node):
             + f'{self.params.value("decision_node")}: decision'
         self.markers_pub = self.create_publisher(MarkerArray, 'hrc/markers', qos.LATCHED)
         self.inputs = Inputs(self)
-        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self.view.epoch)
-        self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
-                              self._on_action)
-        self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.LATCHED, conv.belief_from_msg,
-                              self._store('belief'))
-        self.inputs.subscribe(UInt8, 'hrc/distance_level', qos.LATCHED,
-                              conv.distance_level_from_msg, self._store('distance_level'))
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
-                              conv.task_state_from_msg, self._store('task_state'))
-        self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
-                              lambda msg: conv.keypoints_from_msg(msg, self.robot_frame),
-                              self.view.skeleton)
-        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
-                                 qos.RELIABLE)
+        self.sampled = SampledInputs(self, self.inputs)
+        subscribe = self.sampled.subscribe
+        subscribe(UInt32, 'hrc/epoch', SAMPLED_EVENTS, conv.epoch_from_msg)
+        subscribe(String, 'hrc/action', SAMPLED_EVENTS,
+                  lambda msg: ACTIONS[conv.action_from_msg(msg)])
+        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED_LATCHED, conv.belief_from_msg)
+        subscribe(UInt8, 'hrc/distance_level', SAMPLED_LATCHED, conv.distance_level_from_msg)
+        subscribe(UInt8MultiArray, 'hrc/task_state', SAMPLED_LATCHED, conv.task_state_from_msg)
+        subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
+                  lambda msg: conv.keypoints_from_msg(msg, self.robot_frame), latest_only=True)
+        subscribe(DiagnosticArray, '/diagnostics', SAMPLED_EVENTS, self._decision_report,
+                  name='decision')
         self.refresh = self.create_timer(1.0 / self.params.value('refresh_rate'), self._refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
-        self.view.changed = True    # the first picture at the first refresh, once spinning
 
     def _apply(self, values) -> None:
         self.safety_radii = tuple(values['safety_radii'])
@@ -85,34 +94,25 @@ class CellViewNode(Node):
         if hasattr(self, 'refresh'):
             self.refresh.timer_period_ns = int(1e9 / values['refresh_rate'])
 
-    def _store(self, name: str):
-        def store(value):
-            setattr(self.view.state, name, value)
-        return store
-
-    # -- inputs ----------------------------------------------------------------------------
-    def _on_action(self, action: int) -> None:
-        if self.view.action(ACTIONS[action]):
-            self.draw()
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+    def _decision_report(self, msg: DiagnosticArray):
+        """(epoch, action, faults) of the decision node's per-epoch status in `msg`; None for
+        the other statuses (dropped by `CellView`'s caller below)."""
         for status in msg.status:
-            if status.name != self.decision_status:
-                continue
-            values = conv.diagnostic_values(status)
-            try:
-                epoch = int(values.get('epoch', '0'))
-            except ValueError:
-                continue
-            if self.view.decision_report(epoch, values.get('action', ''),
-                                         values.get('faults', '')):
-                self.draw()
+            if status.name == self.decision_status:
+                values = conv.diagnostic_values(status)
+                epoch = values.get('epoch', '')
+                if epoch.isdigit() and int(epoch) > 0:
+                    return int(epoch), values.get('action', ''), values.get('faults', '')
+        return None
 
+    # -- the picture -----------------------------------------------------------------------
     def _refresh(self) -> None:
-        if self.view.due():
+        for _, name, value in self.sampled.take():
+            if value is not None:
+                self.view.feed(name, value)
+        if self.view.changed:
             self.draw()
 
-    # -- output ----------------------------------------------------------------------------
     def draw(self) -> None:
         shapes = scene(self.view.state, self.safety_radii, self.robot_reference_point)
         self.markers_pub.publish(conv.markers_to_msg(shapes, self.robot_frame,
@@ -124,6 +124,10 @@ class CellViewNode(Node):
         """The last word (node_support.run): leave the viewers empty."""
         self.markers_pub.publish(conv.delete_all_markers_msg())
         self.markers_pub.wait_for_all_acked(Duration(seconds=STOP_ACK_SEC))
+
+    def destroy_node(self):
+        self.sampled.destroy()
+        return super().destroy_node()
 
     def _publish_status(self) -> None:
         state = self.view.state
