@@ -331,7 +331,8 @@ def test_profile_encodings_and_qos_metadata(project_bag):
         reader = make_reader(stream)
         assert reader.get_header().profile == 'ros2'
         summary = reader.get_summary()
-        assert list(reader.iter_metadata()) == []          # no rosbag2 metadata record
+        # issue 13: rosbag2's metadata record, as rosbag2_storage_mcap writes it (see below)
+        assert [m.name for m in reader.iter_metadata()] == ['rosbag2']
     assert summary.statistics.message_count == 2 * len(project_messages())
     assert {s.name for s in summary.schemas.values()} == {t for _, t, _ in project_messages()}
     assert {s.encoding for s in summary.schemas.values()} == {'ros2msg'}
@@ -604,3 +605,61 @@ def test_play_by_publish_time_restores_the_send_order(node, tmp_path):
         assert played[-1][0] - played[0][0] >= 0.29, order        # recorded spacing kept
     with pytest.raises(BagError, match='order must be one of log, publish'):
         bag.play(tmp_path / 'order.mcap', node=node, order='sent')
+
+
+# --------------------------------------------------------------------------------------------
+# bags of other recorders, and the rosbag2 metadata record
+
+
+def ros2_record_all_like(path: Path) -> Path:
+    """A bag as `ros2 bag record -a` writes one: with rosbag2's own /events/write_split topic,
+    of a type (rosbag2_interfaces/msg/WriteSplitEvent) not installed here, holding nothing."""
+    from rclpy.serialization import serialize_message
+    with open(path, 'wb') as stream:
+        writer = Writer(stream)
+        writer.start(profile='ros2', library='rosbag2')
+        unknown = writer.register_schema('rosbag2_interfaces/msg/WriteSplitEvent', 'ros2msg',
+                                         b'string closed_file\nstring opened_file\n'
+                                         b'string node_name\n')
+        writer.register_channel('/events/write_split', 'cdr', unknown,
+                                {'offered_qos_profiles': '', 'topic_type_hash': ''})
+        known = writer.register_schema('std_msgs/msg/String', 'ros2msg',
+                                       bagfile.message_definition('std_msgs/msg/String').encode())
+        chatter = writer.register_channel('/hrc_bag_test/chatter', 'cdr', known,
+                                          {'offered_qos_profiles': '', 'topic_type_hash': ''})
+        for i in range(3):
+            writer.add_message(chatter, log_time=(i + 1) * 10_000_000, publish_time=0,
+                               data=serialize_message(String(data=f'm{i}')), sequence=i)
+        writer.finish()
+    return path
+
+
+def test_play_skips_a_topic_whose_type_is_not_installed(tmp_path, ros_env):
+    """Issue 13: hrc-bag play of a `ros2 bag record -a` bag exited 2 ('message type
+    rosbag2_interfaces/msg/WriteSplitEvent is not installed'). Like rosbag2's player it now
+    warns, skips that topic and plays the rest; info still lists it."""
+    path = ros2_record_all_like(tmp_path / 'record_all.mcap')
+    info = subprocess.run(hrc_bag_command() + ['info', str(path)], capture_output=True,
+                          text=True, timeout=60, env=ros_env)
+    assert info.returncode == 0 and '/events/write_split' in info.stdout, info.stderr
+    played = subprocess.run(hrc_bag_command() + ['play', str(path)], capture_output=True,
+                            text=True, timeout=60, env=ros_env)
+    assert played.returncode == 0, played.stderr
+    assert 'not playing /events/write_split' in played.stderr
+    assert 'played 3 messages' in played.stdout
+
+
+def test_the_rosbag2_metadata_record_round_trips(project_bag):
+    """The MCAP carries rosbag2's metadata record (so `ros2 bag info file.mcap` knows the
+    distribution without metadata.yaml), with every field of metadata.yaml."""
+    bag_file = next(project_bag.glob('*.mcap'))
+    with open(bag_file, 'rb') as stream:     # read by the mcap library, not ours
+        records = [r for r in make_reader(stream).iter_metadata() if r.name == 'rosbag2']
+    assert len(records) == 1 and set(records[0].metadata) == {'serialized_metadata'}
+    record = yaml.safe_load(records[0].metadata['serialized_metadata'])
+    on_disk = yaml.safe_load((project_bag / 'metadata.yaml').read_text())
+    assert record == on_disk['rosbag2_bagfile_information']
+    assert record['version'] == 9 and record['ros_distro'] == 'jazzy'
+    info = bag.bag_info(bag_file)
+    assert info.ros_distro == 'jazzy' and info.metadata == record
+    assert 'ROS Distro:        jazzy' in info.format()

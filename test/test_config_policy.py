@@ -1,5 +1,6 @@
 """Configuration validation, policy files and the hrc-solve command."""
 
+import io
 import json
 import subprocess
 import sys
@@ -11,8 +12,8 @@ import yaml
 
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.model import HRCModel
-from hrc_ros.core.paths import default_config_path, shipped_config_path
-from hrc_ros.core.policy import PolicyError, load_policy, save_policy
+from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
+from hrc_ros.core.policy import PolicyError, default_policy_path, load_policy, save_policy
 from hrc_ros.core.solver import solve
 
 DEFAULT = default_config_path()
@@ -78,12 +79,12 @@ def test_unreadable_and_malformed_files(tmp_path):
 def test_shipped_policies_load_and_match_their_configs():
     for name in ('default', 'paper', 'fail_safe_unaware'):
         config = load_config(shipped_config_path(name))
-        policy = load_policy(f'policies/{name}.npz', config)
+        policy = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
         assert policy.meta['config_sha256'] == config.policy_hash
         assert policy.meta['converged'] and policy.meta['residual'] < 1e-6
     with pytest.raises(PolicyError, match='solved for configuration'):
-        load_policy('policies/paper.npz', load_config(DEFAULT))
+        load_policy(share_dir() / 'policies' / 'paper.npz', load_config(DEFAULT))
 
 
 def test_the_shipped_policy_is_found_for_its_configuration():
@@ -103,7 +104,7 @@ def test_the_shipped_policy_is_found_for_its_configuration():
 def test_shipped_default_policy_is_a_fresh_solve():
     config = load_config(DEFAULT)
     fresh = solve(HRCModel(config))
-    shipped = load_policy('policies/default.npz', config)
+    shipped = load_policy(default_policy_path(config), config)
     np.testing.assert_array_equal(shipped.policy, fresh.policy)
     np.testing.assert_allclose(shipped.value, fresh.value, atol=1e-9)
 
@@ -142,6 +143,63 @@ def test_corrupt_and_foreign_policy_files_are_refused(tmp_path, small):
     with pytest.raises(PolicyError, match=str(good.name)):
         load_policy(good, load_config(DEFAULT))  # solved for rho = sigma = 1
     assert zipfile.is_zipfile(good)
+
+
+def crafted_policy(path, good, meta=None, policy=None, raw_member=None):
+    """A policy file built from `good` with parts replaced (a crafted, untrusted file)."""
+    with np.load(good) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    if meta is not None:
+        arrays['meta'] = np.array(meta)
+    if policy is not None:
+        arrays['policy'] = policy
+    np.savez(path, **arrays)
+    if raw_member is not None:      # replace one member with raw .npy bytes
+        name, data = raw_member
+        rebuilt = path.with_suffix('.tmp')
+        with zipfile.ZipFile(path) as old, zipfile.ZipFile(rebuilt, 'w') as new:
+            for info in old.infolist():
+                new.writestr(info.filename, data if info.filename == name + '.npy'
+                             else old.read(info))
+        rebuilt.replace(path)
+    return path
+
+
+def huge_header(elements: int) -> bytes:
+    """An .npy whose header claims `elements` int8 values, with almost no data after it."""
+    header = {'descr': '|i1', 'fortran_order': False, 'shape': (elements,)}
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(out, header)
+    return out.getvalue() + b'\0' * 64
+
+
+def test_crafted_policy_files_are_refused_before_they_are_read(tmp_path, small):
+    """Issue 13: each of these gave a traceback (or a 1 TiB allocation) instead of a refusal."""
+    config, good = small
+    meta = json.loads(str(np.load(good)['meta']))
+    deep = '[' * 100_000 + ']' * 100_000
+    cases = {
+        'deep': crafted_policy(tmp_path / 'deep.npz', good, meta=deep),
+        'sha_type': crafted_policy(tmp_path / 'sha.npz', good,
+                                   meta=json.dumps({**meta, 'config_sha256': 12345})),
+        'not_object': crafted_policy(tmp_path / 'list.npz', good, meta='[1, 2, 3]'),
+        'huge': crafted_policy(tmp_path / 'huge.npz', good,
+                               raw_member=('policy', huge_header(2 ** 40))),
+        'long_meta': crafted_policy(tmp_path / 'long.npz', good, meta=' ' * (2 << 20)),
+    }
+    reasons = {'deep': 'meta', 'sha_type': 'config_sha256 must be 64 hex digits',
+               'not_object': 'JSON object', 'huge': 'holds 1099511627776 states',
+               'long_meta': 'at most'}
+    for name, path in cases.items():
+        for checked_against in (config, None):
+            with pytest.raises(PolicyError, match=reasons[name]):
+                load_policy(path, checked_against)
+    # the command line says it in one line and exits 2, as for any refused file
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.tools.simulate', '--policy',
+                           str(cases['huge']), '--out', str(tmp_path / 'sim')],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert 'holds 1099511627776 states' in proc.stderr
 
 
 def test_hrc_solve_cli(tmp_path):

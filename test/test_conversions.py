@@ -74,6 +74,28 @@ def test_message_error_is_a_value_error():
     assert issubclass(MessageError, ValueError)
 
 
+def test_derived_velocities_that_overflow_are_a_malformed_message():
+    names = ('a', 'b')
+    first = conv.JointSample(names, np.array([1e308, -1e308]), None, 1.0)
+    second = conv.JointSample(names, np.array([-1e308, 1e308]), None, 1.0 + 1e-9)
+    with pytest.raises(MessageError, match='not finite'):
+        conv.joint_velocities(second, first)
+
+
+def test_errors_quote_a_capped_part_of_the_content():
+    with pytest.raises(MessageError) as caught:
+        conv.action_from_msg(String(data='y' * 10_000_000))
+    assert len(str(caught.value)) < 500 and '(10000000 characters)' in str(caught.value)
+    with pytest.raises(MessageError) as caught:          # 9 values, each 20 k characters
+        conv.task_request_from_msg(UInt8MultiArray(data=[1] * 20_000))
+    assert len(str(caught.value)) < 500 and '(20000 values)' in str(caught.value)
+    with pytest.raises(MessageError) as caught:
+        conv.joint_sample_from_msg(JointState(name=[f'j{i}' for i in range(20_000)],
+                                              velocity=[float('nan')] * 20_000))
+    assert len(str(caught.value)) < 500 and '(20000 values)' in str(caught.value)
+    assert conv.cap('z' * 5000, 100) == 'z' * 100 + '... (5000 characters)'
+
+
 def test_joint_state_round_trip():
     stamp = conv.seconds_to_stamp(3.000000250)
     msg = conv.joint_state_to_msg(conv.HUMAN_JOINTS, np.arange(6) * 0.1, np.ones(6), stamp)

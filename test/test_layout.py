@@ -84,3 +84,21 @@ def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
                             capture_output=True, env=env, timeout=60)
     domain, same = chosen.stdout.split()
     assert domain == same and 30 <= int(domain) <= 99, chosen.stderr
+
+
+def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
+    """pytest.ini's per-test timeout: a hang is a red test with its stacks, not a stuck CI."""
+    hanging = tmp_path / 'test_hang.py'
+    hanging.write_text('import threading, time\n\n'
+                       'def test_hangs():\n'
+                       '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
+                       '                     daemon=True).start()\n'
+                       '    time.sleep(60)\n')
+    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
+                             '-o', 'timeout=3', '-p', 'no:cacheprovider',
+                             '--rootdir', str(tmp_path), str(hanging)],
+                            capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert 'Timeout' in output and 'test_hangs' in output
+    assert 'helper' in output and 'MainThread' in output, output[-3000:]

@@ -53,6 +53,7 @@ from hrc_ros.ros.nodes.task_manager_node import TaskManagerNode
 TIMEOUT = 5.0
 EPOCH_PERIOD = 0.2
 INPUT_TIMEOUT = 0.12
+MS = 1_000_000
 
 
 def spin_until(executor, predicate, timeout: float = TIMEOUT) -> bool:
@@ -115,6 +116,14 @@ class Graph:
             node.destroy_node()
         self.probe.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def new_epoch_source(graph, follower):
+    """A new writer of hrc/epoch (a restarted decision node), once the source the node follows
+    has been silent long enough to be taken for gone (`EpochFollower.silence_ns`)."""
+    gone = follower.last_published_ns + follower.silence_ns
+    assert graph.spin_until(lambda: time.time_ns() > gone)
+    return graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
 
 
 @pytest.fixture
@@ -322,6 +331,18 @@ def test_estimator_derives_velocities_from_positions(graph, model):
     assert est.observations[-1].data == 3
 
 
+def test_estimator_drops_positions_whose_derived_velocity_overflows(graph):
+    """Issue 13: two position-only samples of +-1e308, 1 ns apart, made the velocity infinite
+    and took the internal-error path with a traceback; they are a malformed message."""
+    est = Estimator(graph)
+    for i, q in enumerate((1e308, -1e308)):
+        msg = JointState(name=list(conv.HUMAN_JOINTS), position=[q] * 6)
+        msg.header.stamp = conv.seconds_to_stamp(10.0 + 1e-9 * i)
+        est.send('joint_states', est.joints, msg)
+    assert_dropped(graph, est.node, 'joint_states', 'not finite')
+    assert not graph.diagnostics('belief_estimator: joint_states input', ERROR)
+
+
 def test_estimator_window_without_motion_publishes_no_belief(graph):
     est = Estimator(graph)
     est.body(1)
@@ -418,7 +439,7 @@ def test_estimator_drops_unknown_actions_and_repeated_epochs(graph):
     est.body(1)
     est.epoch(3)
     est.send('epoch', est.epoch_pub, conv.epoch_to_msg(3))
-    assert_dropped(graph, est.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, est.node, 'epoch', 'does not continue the epoch source')
     est.send('epoch', est.epoch_pub, UInt32(data=0))
     assert est.node.inputs.dropped['epoch'] == 2
 
@@ -430,10 +451,14 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     belief_filter = BeliefFilter(model)
     est.motion(2)
     est.body(2)
+    est.epoch(40)
+    est.motion(2)
+    est.body(2)
     b1 = est.epoch(41)
     est.act('mh')
     est.motion(3)
     est.body(3)
+    est.epoch_pub = new_epoch_source(graph, est.node.windows.epochs)
     b2 = est.epoch(1)
     np.testing.assert_allclose(b2, belief_filter.update(b1, MH, 3))
     assert est.distances[-1].data == 3 and est.node.windows.epoch == 1
@@ -655,11 +680,12 @@ def test_decision_follows_the_epoch_topic(graph, model, policy_path):
     assert dec.run(1) == [expected]
     assert graph.probe.count_publishers('hrc/epoch') == 1   # the probe's, not the node's
     epoch.publish(UInt32(data=1))                            # a repeat: dropped
-    assert_dropped(graph, dec.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, dec.node, 'epoch', 'does not continue the epoch source')
     dec.inputs()
     epoch.publish(UInt32(data=2))
     assert dec.run(2) == [expected] * 2
     dec.inputs()
+    epoch = new_epoch_source(graph, dec.node.epochs)
     epoch.publish(UInt32(data=1))                            # the replay started again
     assert dec.run(3) == [expected] * 3 and dec.node.epoch == 1
     assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message
@@ -684,7 +710,8 @@ def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
     ('input_timeout', 0.5, 'shorter than epoch_period'),
     ('epoch_period', 0.1, 'shorter than epoch_period'),
     ('epoch_period', -1.0, 'range'),
-    ('stale_timeout', 0.0, 'range'),
+    ('stale_timeout', -1.0, 'range'),
+    ('stale_timeout', 0.1, 'longer than epoch_period'),
     ('policy', '/tmp/other.npz', 'read-only'),
     ('config', '/tmp/other.yaml', 'read-only'),
     ('epoch_source', 'topic', 'read-only'),
@@ -715,8 +742,12 @@ def test_decision_clock_is_steady_unless_sim_time(graph, policy_path):
     from rosgraph_msgs.msg import Clock as ClockMsg
     steady = Decision(graph, policy_path, epoch_source='topic').node   # publishes no epochs
     assert steady.clock.clock_type == ClockType.STEADY_TIME
+    graph.executor.remove_node(steady)           # one decision node per graph (a second one
+    graph.nodes.remove(steady)                   # does not start its clock)
+    steady.destroy_node()
+    assert graph.spin_until(lambda: graph.probe.count_publishers('hrc/action') == 0)
     sim = Decision(graph, policy_path, use_sim_time=True, epoch_period=1.0,
-                   stale_timeout=0.5)
+                   stale_timeout=1.5)
     assert sim.node.clock.clock_type == ClockType.ROS_TIME
     clock = graph.publisher(ClockMsg, '/clock', qos.RELIABLE)
     before = len(sim.epochs)
@@ -734,6 +765,18 @@ def test_decision_finds_the_shipped_policy_of_its_configuration(graph):
     repo = Path(__file__).resolve().parent.parent
     node = graph.start(DecisionNode, config=str(repo / 'config' / 'paper.yaml'))
     assert Path(node.policy.path).name == 'paper.npz'
+
+
+def test_timeouts_follow_the_epoch_period(graph, policy_path):
+    """Issue 13: -p epoch_period:=0.2 alone refused to start (input_timeout 0.5 s was not below
+    it); the timeouts left at 0 now follow the period, also when it changes at run time."""
+    node = graph.start(DecisionNode, policy=policy_path, epoch_period=0.2)
+    assert (node.gate.input_timeout_ns, node.gate.stale_timeout_ns) == (100 * MS, 600 * MS)
+    assert node.set_parameters([Parameter('epoch_period', value=2.0)])[0].successful
+    assert (node.gate.input_timeout_ns, node.gate.stale_timeout_ns) == (1000 * MS, 6000 * MS)
+    assert node.set_parameters([Parameter('input_timeout', value=0.3)])[0].successful
+    result = node.set_parameters([Parameter('epoch_period', value=0.25)])[0]
+    assert not result.successful and 'shorter than epoch_period' in result.reason
 
 
 def test_decision_refuses_bad_parameters_at_start_up(graph, policy_path):
@@ -893,6 +936,8 @@ def test_task_manager_follows_a_restarted_epoch_count(graph, model):
         book.apply(action, False)
         book.renumber(k) if k == 1 else None
         book.begin_epoch(k)
+        if k == 1:
+            tasks.epoch_pub = new_epoch_source(graph, tasks.node.tasks.epochs)
         assert tasks.epoch(k, action) == book.state, f'epoch {k} ({action})'
     assert tasks.node.book.epoch == 1 and tasks.node.inputs.dropped['epoch'] == 0
     assert graph.spin_until(lambda: any('restarted at 1 after 2' in s.message for s in
@@ -910,6 +955,7 @@ def test_task_manager_restart_finalises_the_old_count_like_any_epoch(graph, mode
     tasks.epoch(1)
     tasks.epoch(2, 'nw')
     tasks.send('action', tasks.action, String(data='rh2'))     # the old node's last action
+    tasks.epoch_pub = new_epoch_source(graph, tasks.node.tasks.epochs)
     assert tasks.epoch(1)['ty'] == 0                           # restart: held, then refused
     assert tasks.node.tasks.late_inputs == 1 and tasks.node.book.epoch == 1
     tasks.send('human_response', tasks.response, Bool(data=True))   # the late yes
@@ -928,18 +974,24 @@ def test_task_manager_restart_takes_a_missing_last_action_as_dn(graph, model):
     book.apply('dn', False)                                    # the old node died before a_2
     book.renumber(1)
     book.begin_epoch(1)
+    human.epoch_pub = new_epoch_source(graph, human.node.tasks.epochs)
     assert human.epoch(1) == book.state
     assert book.state['hc'] == 1                               # dn still counts the human
 
 
 def test_task_manager_drops_a_second_epoch_source(graph):
-    """Only a restart at 1 may go back: an interleaved second count is dropped."""
-    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    """Issue 13: a stray hrc/epoch of 4294967295 from another writer (ros2 topic pub --once)
+    made every real epoch 'not follow' and ran begin_epoch(4294967295); an interleaved
+    second count is dropped too. The followed source goes on."""
+    tasks = Tasks(graph, initial_task=[1, 1, 0], schedule=['5:2,2,1'])
     for k in (1, 2, 3):
-        tasks.epoch(k)
-    tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(2))
-    assert_dropped(graph, tasks.node, 'epoch', 'does not follow the previous epoch 3')
-    assert tasks.node.book.epoch == 3
+        tasks.epoch(k, 'dn')
+    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))
+    assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
+    tasks.send('epoch', stray, conv.epoch_to_msg(2))
+    assert tasks.node.book.epoch == 3 and tasks.node.book.pending == []
+    assert tasks.epoch(4, 'dn')['tp'] == 1 and tasks.node.inputs.dropped['epoch'] == 2
 
 
 def test_task_manager_refuses_requests_beyond_max_queue(graph):
@@ -963,13 +1015,22 @@ def test_task_manager_queues_requests_and_drops_bad_ones(graph):
     assert tasks.node.book.pending == []
 
 
+def test_bad_input_is_quoted_capped_never_whole(graph):
+    """Issue 13: a 10 MB invalid action made a 10 MB log line and a ~20 MB status."""
+    tasks = Tasks(graph, initial_task=[1, 1, 0])
+    tasks.send('action', tasks.action, String(data='x' * 10_000_000))
+    assert_dropped(graph, tasks.node, 'action', '(10000000 characters)')
+    status = graph.diagnostics('task_manager: action input', WARN)[0]
+    assert len(status.message) < 1000 and all(len(kv.value) < 1000 for kv in status.values)
+
+
 def test_task_manager_drops_bad_actions_and_epochs(graph):
     tasks = Tasks(graph, initial_task=[1, 1, 0])
     tasks.epoch(1)
     tasks.send('action', tasks.action, String(data='commit'))
     assert_dropped(graph, tasks.node, 'action', 'unknown action')
     tasks.send('epoch', tasks.epoch_pub, conv.epoch_to_msg(1))
-    assert_dropped(graph, tasks.node, 'epoch', 'repeats the previous epoch')
+    assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
     assert tasks.epoch(2, 'ct')['ty'] == 2          # still working
 
 
@@ -1131,3 +1192,105 @@ def test_cell_applies_the_sensor_rate_at_run_time(graph):
 def test_cell_refuses_bad_parameters_at_start_up(graph, parameters, reason):
     with pytest.raises(InvalidParameterValueException, match=reason):
         graph.start(CellSimNode, **parameters)
+
+
+def test_every_parameter_of_every_node_has_a_value(graph, policy_path):
+    """Issue 13: `ros2 param dump /task_manager` printed `ros__parameters: {}` and `ros2 param
+    get /cell_sim faults` said "Parameter not set": parameters whose default is an empty array
+    were declared by type alone, and the get-parameters service answered nothing for a request
+    that named one. Here through the same services `ros2 param` uses."""
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import GetParameters, ListParameters
+    nodes = [graph.start(TaskManagerNode), graph.start(CellSimNode),
+             graph.start(BeliefEstimatorNode),
+             graph.start(DecisionNode, policy=policy_path, epoch_source='topic')]
+    client_node = rclpy.create_node('param_dump_probe', context=graph.context)
+    graph.executor.add_node(client_node)
+    graph.nodes.append(client_node)
+    def call(service_type, service, request):
+        client = client_node.create_client(service_type, service)
+        assert graph.spin_until(client.service_is_ready), f'{service} not ready'
+        future = client.call_async(request)
+        assert graph.spin_until(future.done), f'{service} did not answer'
+        return future.result()
+
+    for node in nodes:
+        name = node.get_fully_qualified_name()
+        names = call(ListParameters, f'{name}/list_parameters',
+                     ListParameters.Request()).result.names
+        assert 'config' in names
+        values = call(GetParameters, f'{name}/get_parameters',
+                      GetParameters.Request(names=names)).values
+        assert len(values) == len(names), f'{name}: get_parameters answered {len(values)}'
+        unset = [n for n, v in zip(names, values) if v.type == ParameterType.PARAMETER_NOT_SET]
+        assert unset == [], f'{name}: parameters without a value: {unset}'
+    faults = nodes[1].get_parameter('faults')
+    assert faults.type_ == Parameter.Type.STRING_ARRAY and list(faults.value) == []
+    assert nodes[0].get_parameter('initial_task').type_ == Parameter.Type.INTEGER_ARRAY
+
+
+def test_a_second_decision_node_does_not_start_its_clock(graph, policy_path):
+    """Issue 13: two decision nodes on one domain interleaved their epochs (7, 8, 9, 1, 10, 2,
+    ...) and put two commands per period on hrc/action, and nothing named the fault. The newer
+    one now refuses to start its clock while the other publishes; both report ERROR naming the
+    other; the followers stay on the first."""
+    tasks = graph.start(TaskManagerNode, initial_task=[1, 1, 0])
+    epochs = graph.collect(UInt32, 'hrc/epoch', qos.RELIABLE)
+    actions = graph.collect(String, 'hrc/action', qos.RELIABLE)
+    first = graph.start(DecisionNode, policy=policy_path, epoch_period=0.1, stale_timeout=0.3)
+    assert graph.spin_until(lambda: len(epochs) >= 3)
+    second = graph.start(DecisionNode, policy=policy_path, epoch_period=0.1, stale_timeout=0.3)
+
+    def errors():
+        return graph.diagnostics('decision: clock', ERROR)
+
+    assert graph.spin_until(lambda: any('does not start its clock' in s.message
+                                        for s in errors()))
+    assert graph.spin_until(lambda: any('keeps its clock' in s.message for s in errors()))
+    assert not second.clock_start.running and second.epoch == 0
+    count = len(epochs)
+    assert graph.spin_until(lambda: len(epochs) >= count + 5)
+    numbers = [m.data for m in epochs]
+    assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))   # one count
+    assert len(actions) <= len(epochs) and first.clock_start.running
+    assert tasks.inputs.dropped['epoch'] == 0
+    values = conv.diagnostic_values(next(s for s in errors()
+                                         if 'does not start' in s.message))
+    assert 'on /hrc/epoch' in values['other_sources'] and values['this_node'] == '/decision'
+
+
+def test_a_burst_of_task_requests_is_queued_whole(graph):
+    """Issue 13: hrc/task_request kept the last 10 messages: 30 valid requests published back
+    to back gave 11 received and 0 reported dropped. Reliable delivery is now sized to the
+    queue, and a request beyond it is refused with a report."""
+    tasks = graph.start(TaskManagerNode, max_queue=40)
+    requests = graph.publisher(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE)
+    for i in range(45):                              # no spinning in between: one burst
+        requests.publish(conv.task_request_to_msg(1 + i % 2, 1, i % 4))
+    assert graph.spin_until(lambda: tasks.inputs.received['task_request'] == 45)
+    assert len(tasks.book.queue) == 40 and tasks.inputs.dropped['task_request'] == 5
+    assert graph.spin_until(lambda: graph.diagnostics('task_manager: task_request input', WARN))
+    assert 'queue is full' in graph.diagnostics('task_manager: task_request input')[0].message
+
+
+def test_state_inputs_take_ordinary_publishers_and_name_an_incompatible_one(graph,
+                                                                          policy_path):
+    """Issue 13: `ros2 topic pub --once hrc/distance_level std_msgs/msg/UInt8 '{data: 2}'` was
+    never received: the subscription asked for transient-local durability, which a default
+    (volatile) publisher does not offer. A publisher that cannot match (best effort against a
+    reliable input) is now named on /diagnostics with the policy."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    node = graph.start(DecisionNode, policy=policy_path, epoch_source='topic')
+    plain = graph.publisher(UInt8, 'hrc/distance_level', QoSProfile(depth=10))  # ros2 topic pub
+    plain.publish(UInt8(data=2))
+    assert graph.spin_until(lambda: node.inputs.received['distance_level'] == 1)
+    assert node.gate.slots['distance_level'].value == 2
+    tasks = graph.start(TaskManagerNode)
+    best_effort = tasks.create_publisher(   # any node will do: the graph matches endpoints
+        Bool, 'hrc/human_response', QoSProfile(depth=10,
+                                                reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert best_effort is not None
+    assert graph.spin_until(lambda: graph.diagnostics('task_manager: human_response input',
+                                                      ERROR))
+    status = graph.diagnostics('task_manager: human_response input', ERROR)[0]
+    assert 'RELIABILITY' in status.message and 'hrc/human_response' in status.message

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ast
 import configparser
+import json
 import os
 import random
 import re
@@ -501,28 +502,43 @@ def design_parameters() -> dict[str, dict[str, tuple[str, object]]]:
     return nodes
 
 
+EFFECTIVE_PARAMETERS = """
+import json, os, sys
+import rclpy
+from rclpy.signals import SignalHandlerOptions
+namespace, names, args = sys.argv[1], sys.argv[2].split(','), sys.argv[3:]
+context = rclpy.Context()
+rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+result = {}
+for name in names:
+    node = rclpy.create_node(name, namespace=namespace, context=context,
+                             automatically_declare_parameters_from_overrides=True)
+    result[name] = {key: (p.type_.name, p.value if not hasattr(p.value, 'tolist')
+                          else p.value.tolist())
+                    for key, p in node.get_parameters_by_prefix('').items()
+                    if key not in ('use_sim_time', 'start_type_description_service')}
+print(json.dumps(result), flush=True)
+os._exit(0)   # no destroy_node(): process exit frees the nodes
+"""
+
+
 def effective_parameters(*params_files: Path, namespace: str = '/cell1') -> dict:
-    """What rcl gives each node from `--params-file`s: node -> {name: (type, value)}."""
-    rclpy = pytest.importorskip('rclpy')
-    from rclpy.signals import SignalHandlerOptions
+    """What rcl gives each node from `--params-file`s: node -> {name: (type, value)}.
+
+    In a process of its own that exits without destroying its nodes: in this test session
+    `Node.destroy_node` once spun for minutes in rclpy's `destroy_when_not_in_use` (a node
+    handle still counted in use); a process keeps any such hang to this call, which its
+    timeout then reports, and skips the destruction path altogether."""
     args = ['--ros-args']
     for path in params_files:
         args += ['--params-file', str(path)]
-    context = rclpy.Context()
-    rclpy.init(args=args, context=context, domain_id=DOMAIN_ID,
-               signal_handler_options=SignalHandlerOptions.NO)
-    result = {}
-    try:
-        for name in NODE_NAMES.values():
-            node = rclpy.create_node(name, namespace=namespace, context=context,
-                                     automatically_declare_parameters_from_overrides=True)
-            result[name] = {key: (parameter.type_.name, parameter.value)
-                            for key, parameter in node.get_parameters_by_prefix('').items()
-                            if key not in ('use_sim_time', 'start_type_description_service')}
-            node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-    return result
+    result = subprocess.run(
+        [sys.executable, '-X', 'faulthandler', '-c', EFFECTIVE_PARAMETERS, namespace,
+         ','.join(NODE_NAMES.values()), *args], capture_output=True, text=True, timeout=60,
+        env={**os.environ, 'ROS_DOMAIN_ID': str(DOMAIN_ID)})
+    assert result.returncode == 0, result.stderr[-3000:]
+    return {node: {key: (kind, value) for key, (kind, value) in parameters.items()}
+            for node, parameters in json.loads(result.stdout).items()}
 
 
 def check_type(kind: str, rcl_type: str, value) -> None:

@@ -7,6 +7,8 @@ import pytest
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
+                                   SILENT_FALLBACK_S, PeriodEstimate, SequenceGaps, Stamp,
+                                   timeout_ns,
                                    DecisionGate, EpochFollower, EstimatorEpochs, InputError,
                                    TaskEpochs)
 from hrc_ros.core.selection import Selection
@@ -14,6 +16,11 @@ from hrc_ros.core.tasks import TaskBook
 
 MS = 1_000_000
 TIMEOUT = 250 * MS
+
+
+def signal(k, published_ns, sequence=None):
+    """The stamp of hrc/epoch k from one source: its writer's sequence number is k."""
+    return Stamp(published_ns, k if sequence is None else sequence)
 
 
 @pytest.fixture(scope='module')
@@ -36,20 +43,51 @@ def book_after(model, initial, *epochs):
 
 
 # -- EpochFollower ----------------------------------------------------------------------------
-def test_epoch_follower_takes_the_next_and_a_restart_and_refuses_the_rest():
+def follow(epochs, k, published_ms, sequence=None):
+    stamp = signal(k, published_ms * MS, sequence)
+    report = epochs.check(k, stamp)
+    epochs.take(k, stamp)
+    return report
+
+
+def test_the_epoch_follower_locks_onto_one_source():
+    """Issue 13: one stray hrc/epoch of 4294967295 made every follower drop every real epoch
+    as 'does not follow', and the robot sat in dn for good."""
     epochs = EpochFollower()
-    assert epochs.check(1) is None
-    epochs.take(1)
-    with pytest.raises(InputError, match='repeats'):
-        epochs.check(1)
-    epochs.take(5)
-    assert epochs.check(9) is None                       # a gap is followed (lost epochs)
-    with pytest.raises(InputError, match='does not follow'):
-        epochs.check(3)                                  # a second source's count
-    with pytest.raises(InputError, match='repeats'):
-        epochs.check(5)
-    restart = epochs.check(1)
-    assert restart.level == WARN and 'restarted at 1 after 5' in restart.message
+    for k in (1, 2, 3):
+        assert follow(epochs, k, 1000 * k) is None
+    for stray in ((4294967295, 1), (3, 3), (2, 9), (30, 1)):   # a stray, a repeat, two others
+        with pytest.raises(InputError, match='does not continue'):
+            epochs.check(stray[0], signal(stray[0], 3500 * MS, stray[1]))
+    assert epochs.ignored == 4 and epochs.last == 3
+    assert follow(epochs, 4, 4000) is None                     # the source goes on
+    assert follow(epochs, 7, 7000) is None                     # lost epochs: k and sequence
+    assert epochs.last == 7                                    # advance together
+
+
+def test_a_restarted_or_new_source_is_followed_once_the_old_one_fell_silent():
+    epochs = EpochFollower()
+    for k in (1, 2, 3, 4):
+        follow(epochs, k, 1000 * k)
+    assert epochs.silence_ns == 2500 * MS                      # 2.5 periods of 1 s
+    with pytest.raises(InputError):                            # the old source is alive
+        epochs.check(1, signal(1, 5000 * MS, 1))
+    restart = follow(epochs, 1, 6600, sequence=1)              # silent for 2.6 s
+    assert restart.level == WARN and 'restarted at 1 after 4' in restart.message
+    assert epochs.silence_ns == SILENT_FALLBACK_S * 1e9        # the period is learnt again
+    assert follow(epochs, 2, 7600, sequence=2) is None
+    assert epochs.silence_ns == 2500 * MS
+    new = follow(epochs, 57, 20_000, sequence=3)               # a replay started mid-count
+    assert 'new epoch source at epoch 57' in new.message and epochs.last == 57
+
+
+def test_without_sequence_numbers_the_count_alone_decides():
+    epochs = EpochFollower()
+    follow(epochs, 1, 0, sequence=None)
+    epochs.take(1, Stamp(0, None))
+    assert epochs.check(2, Stamp(1000 * MS, None)) is None
+    with pytest.raises(InputError):
+        epochs.check(4294967295, Stamp(1000 * MS, None))
 
 
 # -- TaskEpochs -------------------------------------------------------------------------------
@@ -60,21 +98,22 @@ def tasks_for(model, initial=(1, 1, 3), schedule=(), max_queue=None):
 
 def test_task_epochs_follow_the_task_book(model):
     tasks = tasks_for(model)
-    assert state(tasks.epoch(1, 0)) == book_after(model, (1, 1, 3))
+    assert state(tasks.epoch(1, signal(1, 0), 0)) == book_after(model, (1, 1, 3))
     assert state(tasks.action(MH, 10 * MS, 11 * MS)) is None      # waits for epoch 2
-    assert state(tasks.epoch(2, 1000 * MS)) == book_after(model, (1, 1, 3), (MH, False))
+    assert state(tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)) == \
+        book_after(model, (1, 1, 3), (MH, False))
     tasks.action(RH2, 1010 * MS, 1011 * MS)
     tasks.answer(True, 1020 * MS, 1021 * MS)
-    assert state(tasks.epoch(3, 2000 * MS)) == book_after(model, (1, 1, 3), (MH, False),
-                                                          (RH2, True))
+    assert state(tasks.epoch(3, signal(3, 2000 * MS), 2000 * MS)) == \
+        book_after(model, (1, 1, 3), (MH, False), (RH2, True))
     assert tasks.last_finalised == (2, 'rh2', True) and tasks.deadline is None
 
 
 def test_an_epoch_that_overtakes_the_action_and_the_answer_is_held(model):
     """The order that failed CI: epoch k taken before a_{k-1} and its answer."""
     tasks = tasks_for(model)
-    tasks.epoch(1, 0)
-    step = tasks.epoch(2, 1000 * MS)
+    tasks.epoch(1, signal(1, 0), 0)
+    step = tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)
     assert step.task_state is None and tasks.deadline == 1000 * MS + TIMEOUT
     assert tasks.awaited() == 'hrc/action of epoch 1'
     assert tasks.action(RH2, 990 * MS, 1001 * MS).task_state is None   # now the answer
@@ -87,18 +126,19 @@ def test_an_epoch_that_overtakes_the_action_and_the_answer_is_held(model):
 
 def test_an_answer_that_overtakes_its_action_counts(model):
     tasks = tasks_for(model)
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.answer(True, 995 * MS, 996 * MS)
     tasks.action(RH2, 990 * MS, 997 * MS)
-    assert state(tasks.epoch(2, 1000 * MS)) == book_after(model, (1, 1, 3), (RH2, True))
+    assert state(tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)) == \
+        book_after(model, (1, 1, 3), (RH2, True))
 
 
 def test_a_missing_action_is_dn_at_the_deadline_and_not_before(model):
     tasks = tasks_for(model, initial=(1, 2, 0), schedule=())
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.action(CT, 10 * MS, 10 * MS)
-    tasks.epoch(2, 1000 * MS)                            # ct: the robot works (bc = 2)
-    tasks.epoch(3, 2000 * MS)                            # a_2 missing: held
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)   # ct: the robot works (bc = 2)
+    tasks.epoch(3, signal(3, 2000 * MS), 2000 * MS)   # a_2 missing: held
     assert tasks.expire(2000 * MS + TIMEOUT - 1).task_state is None
     step = tasks.expire(2000 * MS + TIMEOUT)
     assert state(step) == book_after(model, (1, 2, 0), (CT, False), (DN, False))
@@ -109,9 +149,9 @@ def test_a_missing_action_is_dn_at_the_deadline_and_not_before(model):
 
 def test_an_epoch_while_the_previous_is_held_finalises_it_first(model):
     tasks = tasks_for(model, initial=(1, 2, 0))
-    tasks.epoch(1, 0)
-    tasks.epoch(2, 1000 * MS)                            # a_1 missing: held
-    step = tasks.epoch(3, 1100 * MS)                     # before the deadline
+    tasks.epoch(1, signal(1, 0), 0)
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)   # a_1 missing: held
+    step = tasks.epoch(3, signal(3, 1100 * MS), 1100 * MS)   # before the deadline
     assert tasks.last_finalised == (1, 'dn', False) and tasks.book.epoch == 2
     assert step.task_state is not None and tasks.next_epoch == 3   # a_2 awaited now
     assert tasks.deadline == 1100 * MS + TIMEOUT
@@ -120,9 +160,9 @@ def test_an_epoch_while_the_previous_is_held_finalises_it_first(model):
 def test_an_unanswered_request_is_refused_and_its_late_yes_screened(model):
     """A yes sent before the next request answers the refused one: never consent to the next."""
     tasks = tasks_for(model)
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.action(RH2, 10 * MS, 11 * MS)
-    tasks.epoch(2, 1000 * MS)
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)
     step = tasks.expire(1000 * MS + TIMEOUT)             # no answer: refused
     assert step.task_state['ty'] == 0 and 'the request as refused' in step.reports[0].message
     # the late yes, pressed twice, then the same request again; a third late yes sent before
@@ -132,56 +172,72 @@ def test_an_unanswered_request_is_refused_and_its_late_yes_screened(model):
     tasks.action(RH2, 1400 * MS, 1401 * MS)
     screened = tasks.answer(True, 1390 * MS, 1402 * MS)
     assert tasks.late_answers == 2 and 'late human response' in screened.reports[0].message
-    step = tasks.epoch(3, 2000 * MS)                      # no answer to the new rh2: held
+    step = tasks.epoch(3, signal(3, 2000 * MS), 2000 * MS)   # no answer to the new rh2: held
     assert step.task_state is None
     step = tasks.expire(2000 * MS + TIMEOUT)
     assert step.task_state['ty'] == 0, 'a late answer was taken as consent'
     # an answer sent after the request is its answer
     tasks.action(RH2, 2400 * MS, 2401 * MS)
     tasks.answer(True, 2410 * MS, 2411 * MS)
-    assert tasks.epoch(4, 3000 * MS).task_state['ty'] == 3
+    assert tasks.epoch(4, signal(4, 3000 * MS), 3000 * MS).task_state['ty'] == 3
 
 
 def test_of_several_answers_the_latest_published_counts(model):
     tasks = tasks_for(model)
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.action(RH2, 10 * MS, 11 * MS)
     tasks.answer(False, 30 * MS, 31 * MS)                 # the human changed their mind...
     tasks.answer(True, 20 * MS, 32 * MS)                  # ...this one was sent earlier
-    assert tasks.epoch(2, 1000 * MS).task_state['ty'] == 0
+    assert tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS).task_state['ty'] == 0
 
 
 def test_a_restart_finalises_the_old_count_then_renumbers(model):
     tasks = tasks_for(model, initial=(1, 2, 0), schedule=('3:2,2,1',))
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.action(CT, 10 * MS, 10 * MS)
-    tasks.epoch(2, 1000 * MS)
-    step = tasks.epoch(1, 2000 * MS)                      # the decision node restarted
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)
+    step = tasks.epoch(1, signal(1, 5000 * MS), 5000 * MS)   # the decision node restarted
     assert step.reports[0].level == WARN and 'restarted at 1 after 2' in step.reports[0].message
     assert step.task_state is None                        # a_2 is still awaited, held
-    step = tasks.action(NW, 1990 * MS, 2001 * MS)
+    step = tasks.action(NW, 1990 * MS, 5001 * MS)
     assert state(step) == book_after(model, (1, 2, 0), (CT, False), (NW, False))
     assert tasks.book.epoch == 1 and tasks.book.queue == type(tasks.book.queue)()
-    tasks.action(NW, 2100 * MS, 2101 * MS)
-    tasks.epoch(2, 3000 * MS)
-    tasks.action(NW, 3100 * MS, 3101 * MS)
-    assert tasks.epoch(3, 4000 * MS).task_state['tp'] == 2   # the schedule follows the new count
+    tasks.action(NW, 5100 * MS, 5101 * MS)
+    tasks.epoch(2, signal(2, 6000 * MS), 6000 * MS)
+    tasks.action(NW, 6100 * MS, 6101 * MS)
+    step = tasks.epoch(3, signal(3, 7000 * MS), 7000 * MS)
+    assert step.task_state['tp'] == 2                     # the schedule follows the new count
 
 
 def test_a_repeat_or_a_second_source_is_refused_without_effect(model):
     tasks = tasks_for(model)
-    tasks.epoch(1, 0)
+    tasks.epoch(1, signal(1, 0), 0)
     tasks.action(MH, 10 * MS, 11 * MS)
-    tasks.epoch(2, 1000 * MS)
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)
     before = (tasks.book.state, tasks.book.epoch, tasks.last_finalised)
-    with pytest.raises(InputError, match='repeats'):
-        tasks.epoch(2, 1100 * MS)
+    with pytest.raises(InputError, match='does not continue'):
+        tasks.epoch(2, signal(2, 1100 * MS), 1100 * MS)
     assert (tasks.book.state, tasks.book.epoch, tasks.last_finalised) == before
     tasks.action(MH, 1110 * MS, 1111 * MS)
-    tasks.epoch(3, 2000 * MS)
-    with pytest.raises(InputError, match='does not follow'):
-        tasks.epoch(2, 2100 * MS)                         # a second source's count
+    tasks.epoch(3, signal(3, 2000 * MS), 2000 * MS)
+    with pytest.raises(InputError, match='does not continue'):
+        tasks.epoch(2, signal(2, 2100 * MS), 2100 * MS)   # a second source's count
     assert tasks.book.epoch == 3 and tasks.next_epoch is None
+
+
+def test_a_stray_or_jumping_epoch_never_releases_the_schedule(model):
+    """Issue 13: the task manager ran begin_epoch(4294967295), releasing every task at once."""
+    tasks = tasks_for(model, initial=None, schedule=('5:1,1,0', '6:2,1,1'))
+    tasks.epoch(1, signal(1, 0), 0)
+    with pytest.raises(InputError):                        # a stray epoch: ignored
+        tasks.epoch(4294967295, signal(4294967295, 500 * MS, 1), 500 * MS)
+    assert tasks.book.pending == [] and tasks.book.epoch == 1
+    tasks.action(DN, 600 * MS, 600 * MS)
+    tasks.epoch(2, signal(2, 1000 * MS), 1000 * MS)
+    tasks.action(DN, 1100 * MS, 1100 * MS)
+    step = tasks.epoch(40, signal(40, 10_000 * MS, 1), 10_000 * MS)   # a new source, mid-count
+    assert 'new epoch source' in step.reports[0].message
+    assert tasks.book.epoch == 3 and step.task_state['tp'] == 0 and tasks.book.pending == []
 
 
 def test_a_request_beyond_max_queue_is_refused(model):
@@ -341,12 +397,12 @@ def test_estimator_epochs_follow_the_belief_filter(model):
     f = BeliefFilter(model)
     est = estimator(model)
     window(est, 1, 2, 0)
-    step = est.epoch_signal(1, 100 * MS)
+    step = est.epoch_signal(1, signal(1, 100 * MS))
     assert (step.observation, step.distance_level, step.reports) == (1, 2, [])
     np.testing.assert_allclose(step.belief, f.initial(1))
     est.action(MH)
     window(est, 3, 1, 200 * MS)
-    step = est.epoch_signal(2, 1000 * MS)
+    step = est.epoch_signal(2, signal(2, 1000 * MS))
     np.testing.assert_allclose(step.belief, f.update(f.initial(1), MH, 3))
     assert step.distance_level == 1
 
@@ -357,10 +413,10 @@ def test_a_sample_published_after_the_signal_counts_in_the_next_window(model):
     window(est, 1, 3, 0)
     est.sample(3, 150 * MS)                                    # after the signal...
     est.skeleton(0, 150 * MS)
-    step = est.epoch_signal(1, 100 * MS)                       # ...taken before it
+    step = est.epoch_signal(1, signal(1, 100 * MS))                       # ...taken before it
     assert (step.observation, step.distance_level) == (1, 3)
     window(est, 3, 0, 200 * MS, n=2)                           # 2 + the early one = 3
-    step = est.epoch_signal(2, 1000 * MS)
+    step = est.epoch_signal(2, signal(2, 1000 * MS))
     assert (step.observation, step.distance_level) == (3, 0)
 
 
@@ -368,27 +424,27 @@ def test_a_dropout_publishes_nothing_and_predicts_only(model):
     f = BeliefFilter(model)
     est = estimator(model)
     window(est, 2, 2, 0)
-    first = est.epoch_signal(1, 100 * MS).belief
+    first = est.epoch_signal(1, signal(1, 100 * MS)).belief
     est.action(MH)
     est.sample(2, 200 * MS)                                    # 1 sample < 3
-    step = est.epoch_signal(2, 1000 * MS)
+    step = est.epoch_signal(2, signal(2, 1000 * MS))
     assert step.observation is None and step.belief is None and step.distance_level is None
     kinds = sorted(r.kind for r in step.reports)
     assert kinds == ['no_observation', 'no_skeleton']
     np.testing.assert_allclose(est.belief, f.update(first, MH, NO_EVIDENCE))
     window(est, 2, 2, 1100 * MS)                               # no action: dn
-    step = est.epoch_signal(3, 2000 * MS)
+    step = est.epoch_signal(3, signal(3, 2000 * MS))
     np.testing.assert_allclose(step.belief, f.update(f.update(first, MH, NO_EVIDENCE), DN, 2))
 
 
 def test_the_estimator_follows_a_restart_and_refuses_a_repeat(model):
     est = estimator(model)
     window(est, 1, 1, 0)
-    est.epoch_signal(4, 100 * MS)
+    est.epoch_signal(4, signal(4, 100 * MS))
     with pytest.raises(InputError):
-        est.epoch_signal(4, 200 * MS)
+        est.epoch_signal(4, signal(4, 200 * MS))
     window(est, 2, 2, 300 * MS)
-    step = est.epoch_signal(1, 400 * MS)
+    step = est.epoch_signal(1, signal(1, 3200 * MS))       # after 3 s of silence
     assert step.reports[0].kind == 'restart' and step.observation == 2 and est.epoch == 1
 
 
@@ -398,7 +454,7 @@ def test_the_estimator_memory_is_bounded(model):
         est.sample(1 + i % 3, i)
         est.skeleton(i % 4, i)
     assert len(est._levels) == 64 and len(est._distances) == 64
-    step = est.epoch_signal(1, 20_000)
+    step = est.epoch_signal(1, signal(1, 20_000))
     # the vote counts every sample of the window (3334 of level 1), not only the kept pairs
     assert step.observation == 1 and step.distance_level == 9_999 % 4
 
@@ -438,3 +494,23 @@ def test_a_held_action_reacts_with_the_latest_state_at_the_timeout_or_the_next_a
     assert (first.action, first.task_state) == (DP, X1) and 'before the next action' in first.late
     assert pairing.held == RH2
 
+
+
+# -- timeouts that follow the period ----------------------------------------------------------
+def test_a_follower_learns_the_epoch_period_from_source_stamps():
+    period = PeriodEstimate()
+    assert period.period_ns is None
+    assert timeout_ns(0.0, 0.25, period.period_ns, 0.25) == 250 * MS    # unknown: fallback
+    for k, jitter in enumerate((0, 0, 0, 40, 40, 40)):                   # one late epoch
+        period.observe(k * 200 * MS + jitter * MS)
+    assert period.period_ns == 200 * MS                                  # the median
+    assert timeout_ns(0.0, 0.25, period.period_ns, 0.25) == 50 * MS
+    assert timeout_ns(0.4, 0.25, period.period_ns, 0.25) == 400 * MS    # explicit wins
+    period.observe(0)                                                    # a restart
+    assert period.period_ns is None
+
+
+def test_sequence_gaps_count_what_a_writer_sent_and_never_arrived():
+    gaps = SequenceGaps()
+    assert [gaps.observe(s) for s in (1, 2, 5, 6, 10)] == [0, 0, 2, 0, 3] and gaps.lost == 5
+    assert gaps.observe(1) == 0 and gaps.observe(None) == 0     # a new writer; no numbers

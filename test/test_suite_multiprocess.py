@@ -23,7 +23,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import String, UInt8MultiArray, UInt32
 
 from hrc_ros.core.model import HRCModel
 from hrc_ros.core.policy import load_policy
@@ -149,7 +149,12 @@ def observed_rows(listener):
     return rows
 
 
-def test_four_processes_run_the_case_study(processes, default_config, policy_path):
+@pytest.mark.parametrize('stray_epoch', [False, True], ids=['clean', 'stray_epoch'])
+def test_four_processes_run_the_case_study(processes, default_config, policy_path,
+                                           stray_epoch):
+    """With `stray_epoch`, a second writer puts one hrc/epoch of 4294967295 on the running cell
+    at epoch 5 (issue 13: the followers then refused every real epoch and the robot sat in dn
+    for good); the run must stay the simulator's, decision for decision."""
     suite, listener = processes
     deadline = time.monotonic() + DEADLINE
     # The decision node owns the clock: start it once the others are on the graph. A node
@@ -161,6 +166,13 @@ def test_four_processes_run_the_case_study(processes, default_config, policy_pat
                              deadline - time.monotonic())
     assert up and not suite.dead(), suite.logs()
     suite.start('decision_node')
+    if stray_epoch:
+        assert listener.spin_until(lambda: len(listener.actions) >= 5 or suite.dead(),
+                                   deadline - time.monotonic()), suite.logs()
+        stray = listener.node.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+        assert listener.spin_until(lambda: stray.get_subscription_count() >= 2,
+                                   deadline - time.monotonic())
+        stray.publish(UInt32(data=4294967295))
     done = listener.spin_until(
         lambda: (len(listener.actions) >= EPOCHS and len(listener.task_states) >= EPOCHS
                  and len(listener.true_states) > EPOCHS

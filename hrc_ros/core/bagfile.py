@@ -13,8 +13,10 @@ ros2/rosbag2#1476 that made metadata version 9).
 
 Format notes (an MCAP file):
 
-- Header profile ``ros2``. No ``rosbag2`` metadata record: it is optional, and a reader that
-  finds one must decode it fully, so leaving it out is the safe choice.
+- Header profile ``ros2``. A ``rosbag2`` Metadata record (key ``serialized_metadata``: the YAML
+  of rosbag2's BagMetadata, every field of metadata.yaml's ``rosbag2_bagfile_information``), as
+  rosbag2_storage_mcap writes it, so ``ros2 bag info file.mcap`` on the file alone knows the
+  distribution; `bag_info` reads it back (`BagInfo.ros_distro`).
 - One schema per message type: name ``pkg/msg/Type``, encoding ``ros2msg``, data = the type's
   ``.msg`` text, then for every dependency, depth first and each type once, ``"\\n"``, a line of
   80 ``=``, a line ``MSG: pkg/msg/Type`` and that type's ``.msg`` text. Dependencies of one type
@@ -64,6 +66,7 @@ MESSAGE_ENCODING = 'cdr'
 METADATA_VERSION = 9          # rosbag2 jazzy's BagMetadata::version
 ROS_DISTRO = 'jazzy'
 METADATA_FILE = 'metadata.yaml'
+ROSBAG2_METADATA = 'rosbag2'    # the MCAP metadata record rosbag2_storage_mcap reads and writes
 DEFINITION_SEPARATOR = '=' * 80
 LIBRARY = 'hrc_ros.bag'
 
@@ -399,11 +402,14 @@ class BagWriter:
         self.end_ns = log_time_ns if self.end_ns is None else max(self.end_ns, log_time_ns)
 
     def close(self) -> None:
-        """Write the summary section and footer (and metadata.yaml for a directory)."""
+        """Write the `rosbag2` metadata record, the summary section and footer (and
+        metadata.yaml for a directory)."""
         if self.closed:
             return
         self.closed = True
         try:
+            self._writer.add_metadata(ROSBAG2_METADATA, {
+                'serialized_metadata': _dump_yaml(self.bag_information())})
             self._writer.finish()
         finally:
             self._stream.close()
@@ -412,6 +418,11 @@ class BagWriter:
 
     def metadata_yaml(self) -> str:
         """rosbag2 jazzy's ``metadata.yaml`` for this bag (metadata version 9)."""
+        return _dump_yaml({'rosbag2_bagfile_information': self.bag_information()})
+
+    def bag_information(self) -> dict:
+        """rosbag2's BagMetadata of this bag: metadata.yaml's `rosbag2_bagfile_information`,
+        which is also the `serialized_metadata` of the MCAP's `rosbag2` metadata record."""
         start = self.start_ns or 0
         duration = (self.end_ns - self.start_ns) if self.start_ns is not None else 0
         relative = self.path.name
@@ -440,7 +451,7 @@ class BagWriter:
             'custom_data': None,
             'ros_distro': ROS_DISTRO,
         }
-        return _dump_yaml({'rosbag2_bagfile_information': information})
+        return information
 
     def _check_open(self) -> None:
         if self.closed:
@@ -478,6 +489,11 @@ class BagInfo:
     message_count: int
     start_ns: int
     end_ns: int
+    metadata: dict = field(default_factory=dict)   # the rosbag2 record's BagMetadata, if any
+
+    @property
+    def ros_distro(self) -> str:
+        return str(self.metadata.get('ros_distro') or 'unknown')
 
     @property
     def duration_ns(self) -> int:
@@ -496,6 +512,7 @@ class BagInfo:
             f'Start:             {stamp(self.start_ns)}',
             f'End:               {stamp(self.end_ns)}',
             f'Messages:          {self.message_count}',
+            f'ROS Distro:        {self.ros_distro}',
         ]
         for i, topic in enumerate(self.topics):
             label = 'Topic information: ' if i == 0 else ' ' * 19
@@ -646,6 +663,7 @@ def bag_info(path: str | os.PathLike, verify: bool = True) -> BagInfo:
     _check_container(bag_file)
     with open(bag_file, 'rb') as stream:
         contents = _open_contents(bag_file, stream)
+        metadata = _rosbag2_metadata(bag_file, contents.reader)
     statistics = contents.summary.statistics
     counts = dict(statistics.channel_message_counts)
     if verify:
@@ -662,4 +680,22 @@ def bag_info(path: str | os.PathLike, verify: bool = True) -> BagInfo:
                         channel.metadata.get('topic_type_hash', ''))
               for channel_id, channel in sorted(contents.summary.channels.items())]
     return BagInfo(bag_file, bag_file.stat().st_size, topics, int(statistics.message_count),
-                   int(statistics.message_start_time), int(statistics.message_end_time))
+                   int(statistics.message_start_time), int(statistics.message_end_time),
+                   metadata)
+
+
+def _rosbag2_metadata(bag_file: Path, reader) -> dict:
+    """The BagMetadata of the last `rosbag2` Metadata record ({} without one); BagError for a
+    record rosbag2 could not read either."""
+    found: dict = {}
+    try:
+        for record in reader.iter_metadata():
+            if record.name == ROSBAG2_METADATA:
+                found = yaml.safe_load(record.metadata.get('serialized_metadata', '')) or {}
+    except yaml.YAMLError as exc:
+        raise BagError(f'{bag_file}: its rosbag2 metadata record is not YAML ({exc})') from None
+    except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes
+        raise BagError(f'{bag_file}: corrupt MCAP metadata ({type(exc).__name__})') from None
+    if not isinstance(found, dict):
+        raise BagError(f'{bag_file}: its rosbag2 metadata record is not a mapping')
+    return found

@@ -11,7 +11,8 @@ Sections:
 - `model`: rho, sigma, p_accept (per em), p_delta (per ea, Delta = -1, 0, +1), emotion chains
   (down, stay, up) per action group and emotion variable;
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
-- `solver`: gamma, eta, sweeps (null = run to eta; an integer = the paper's fixed sweep count),
+- `solver`: gamma, eta, sweeps (null = run to eta, at most MAX_SWEEPS; an integer = the paper's
+  fixed sweep count, at most MAX_SWEEPS),
   fail_safe_aware (false = MODEL.md: every action at every state; true = only dn at d = 0, the
   action the decision node's fail-safe enforces there, so the policy plans around it);
 - `observation`: the Table 5 rows, the bayes-mode epsilon and the belief mode (MODEL.md 6).
@@ -44,12 +45,13 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
               'p_delta': 'rows[3x3]', 'emotion': 'chains'},
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
-    'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'int>=1|null',
+    'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
     'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode'},
 }
 
 PROBABILITY_TOLERANCE = 1e-9
+MAX_SWEEPS = 100_000   # value iteration's bound: a fixed count, or the cap of a run to eta
 
 
 class ConfigError(ValueError):
@@ -245,11 +247,16 @@ def _prob_rows(name: str, value: Any, rows: int, cols: int) -> list[list[float]]
 
 
 def _check(name: str, kind: str, value: Any) -> Any:
-    if kind in ('int>=1', 'int>=1|null'):
-        if value is None and kind.endswith('|null'):
-            return None
+    if kind == 'int>=1':
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f'{name} must be an integer >= 1, got {value!r}')
+        return int(value)
+    if kind == 'sweeps':
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SWEEPS:
+            raise ConfigError(f'{name} must be null (run to eta) or an integer in '
+                              f'1..{MAX_SWEEPS}, got {value!r}')
         return int(value)
     if kind == 'bool':
         if not isinstance(value, bool):

@@ -24,6 +24,8 @@ nothing.
 - `EstimatorEpochs`: the belief estimator's epoch windows split by the signal's source
   timestamp, O_k, d_k and the belief update.
 - `ActionPairing`: the simulated cell's pairing of a_k with the task state x_k.
+- `PeriodEstimate`, `timeout_ns`: timeouts that follow the epoch period (a parameter of 0 means
+  a fraction of the period; the followers learn the period from the epochs they receive).
 
 `InputError` is the one exception for an unusable input: the ring drops the message with a
 throttled warning and a diagnostic.
@@ -70,34 +72,130 @@ def _seconds(ns: int) -> float:
     return ns * 1e-9
 
 
-# -- hrc/epoch --------------------------------------------------------------------------------
-class EpochFollower:
-    """The epochs a follower takes: k > the last one taken, or 1 after a higher one.
+# -- timeouts that follow the epoch period ------------------------------------------------------
+class PeriodEstimate:
+    """The epoch period a follower sees: the median of the last intervals between the source
+    timestamps of a periodic input (hrc/epoch, hrc/action); None before two of them."""
 
-    A restart (k = 1 after a higher epoch: the decision node restarted, a replay began again) is
-    followed, with a WARN report, or every later epoch would be refused until the new count
-    passed the old one. Any other k <= last is refused: a repeat, or a second epoch source
-    interleaving its count, which must not renumber the cell at every tick.
+    def __init__(self, window: int = 5):
+        self._stamps: deque = deque(maxlen=window + 1)
+
+    def observe(self, published_ns: int) -> None:
+        if self._stamps and published_ns <= self._stamps[-1]:
+            self._stamps.clear()          # a restart, or a clock step: start again
+        self._stamps.append(published_ns)
+
+    @property
+    def period_ns(self) -> int | None:
+        if len(self._stamps) < 2:
+            return None
+        stamps = list(self._stamps)
+        return int(np.median(np.diff(stamps)))
+
+
+def timeout_ns(explicit_s: float, fraction: float, period_ns: int | None,
+               fallback_s: float) -> int:
+    """A timeout parameter's value: `explicit_s` seconds if it is > 0, else `fraction` of the
+    epoch period (`fallback_s` while the period is unknown)."""
+    if explicit_s > 0:
+        return int(explicit_s * 1e9)
+    if period_ns is None:
+        return int(fallback_s * 1e9)
+    return int(fraction * period_ns)
+
+
+# -- hrc/epoch ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Stamp:
+    """Where a message came from: the writer's source timestamp and its publication sequence
+    number (per writer, +1 for every message it sends; None where the middleware gives none)."""
+
+    published_ns: int
+    sequence: int | None = None
+
+
+SILENT_PERIODS = 2.5        # the followed epoch source is gone after this many silent periods
+SILENT_FALLBACK_S = 3.0     # ... or these seconds while the period is unknown
+
+
+class EpochFollower:
+    """Which `hrc/epoch` messages a follower takes: one epoch source at a time.
+
+    The follower locks onto the source of the first epoch it takes. A message of the same
+    source continues its count: its writer's sequence number and its epoch advance together
+    (the decision node and a bag player publish one message per epoch), or the epoch is the
+    next one and the sequence has moved on (the writer's own refused message in between).
+    Anything else is another source (a stray `ros2 topic pub`, a second decision node) and is
+    refused with `InputError`, so one stray epoch of 4294967295 cannot stop the cell. When the
+    followed source has been silent for `SILENT_PERIODS` epoch periods (it stopped or
+    restarted), the next source is followed from where it is: a count that starts again at 1
+    is a restart (a WARN report), another one a new source. Without sequence numbers the rule
+    falls back to the count alone: the next epoch, or 1 after silence.
     """
 
     def __init__(self):
-        self.last = 0
+        self.last = 0                       # the last epoch taken
+        self._sequence: int | None = None
+        self.last_published_ns: int | None = None
+        self.period = PeriodEstimate()
+        self.ignored = 0                    # messages of another source
 
-    def check(self, k: int) -> Report | None:
-        """Raise `InputError` if epoch k is refused; a WARN report if it restarts the count.
-        Does not take k: call `take(k)` once the caller acted on it."""
-        if k > self.last:
+    @property
+    def silence_ns(self) -> int:
+        return timeout_ns(0.0, SILENT_PERIODS, self.period.period_ns, SILENT_FALLBACK_S)
+
+    def _continues(self, k: int, stamp: Stamp) -> bool:
+        if self._sequence is None or stamp.sequence is None:
+            return k == self.last + 1
+        advance = stamp.sequence - self._sequence
+        return advance > 0 and k - self.last in (advance, 1)
+
+    def check(self, k: int, stamp: Stamp) -> Report | None:
+        """Raise `InputError` if epoch k comes from another source; a WARN report if it starts
+        a new count (a restart, or a new source after silence). Call `take` once acted on."""
+        if self.last_published_ns is None or self._continues(k, stamp):
             return None
-        if k != 1 or self.last == 1:
-            raise InputError(f'epoch {k} repeats the previous epoch' if k == self.last else
-                             f'epoch {k} does not follow the previous epoch {self.last} '
-                             '(only a restart at 1 may go back)')
-        return Report(WARN, 'epoch', f'hrc/epoch restarted at {k} after {self.last} (the epoch '
-                      'source restarted); following it', {'epoch': k, 'previous_epoch': self.last},
+        silent = stamp.published_ns - self.last_published_ns > self.silence_ns
+        if not silent:
+            self.ignored += 1
+            raise InputError(
+                f'ignored hrc/epoch {k}: it does not continue the epoch source followed (last '
+                f'epoch {self.last}); a second epoch source, or a stray message')
+        if k == 1:
+            message = (f'hrc/epoch restarted at 1 after {self.last} (the epoch source '
+                       'restarted); following it')
+        else:
+            message = (f'following a new epoch source at epoch {k} (the last one, at epoch '
+                       f'{self.last}, fell silent)')
+        return Report(WARN, 'epoch', message, {'epoch': k, 'previous_epoch': self.last},
                       kind='restart')
 
-    def take(self, k: int) -> None:
-        self.last = k
+    def take(self, k: int, stamp: Stamp) -> None:
+        restarted = self.last_published_ns is not None and not self._continues(k, stamp)
+        if restarted:
+            self.period = PeriodEstimate()
+        self.last, self._sequence, self.last_published_ns = k, stamp.sequence, stamp.published_ns
+        self.period.observe(stamp.published_ns)
+
+
+class SequenceGaps:
+    """Messages a writer sent that never arrived: its publication sequence numbers skip.
+
+    Only meaningful while one writer publishes (without a publisher id in the message info,
+    two writers' numbers interleave): the caller checks that. A number that does not increase
+    starts again (a new writer)."""
+
+    def __init__(self):
+        self.last: int | None = None
+        self.lost = 0
+
+    def observe(self, sequence: int | None) -> int:
+        """The count of messages missing before this one (0 for the first, or a new writer)."""
+        last, self.last = self.last, sequence
+        if last is None or sequence is None or sequence <= last:
+            return 0
+        self.lost += sequence - last - 1
+        return sequence - last - 1
 
 
 # -- the task manager -------------------------------------------------------------------------
@@ -122,6 +220,11 @@ class TaskEpochs:
     with a WARN report. In the window after such a refusal, a response published before that
     window's action is the late answer to the refused request: it is ignored, with a report.
     A restarted count finalises the old count's last action like any epoch, then renumbers.
+
+    Epochs come through an `EpochFollower` (one source; a stray or second source is refused).
+    The task book counts the epochs taken (from 1, and from 1 again after a restart), not the
+    numbers on `hrc/epoch`, so a number that jumps (lost epochs, a source followed mid-count)
+    never releases the schedule early: the schedule's epochs are the cell's epochs.
     """
 
     def __init__(self, book: TaskBook, input_timeout_ns: int):
@@ -144,18 +247,19 @@ class TaskEpochs:
         return None if self.hold_since is None else self.hold_since + self.input_timeout_ns
 
     # -- inputs ----------------------------------------------------------------------------
-    def epoch(self, k: int, now: int) -> TaskStep:
+    def epoch(self, k: int, stamp: Stamp, now: int) -> TaskStep:
         step = TaskStep()
-        restart = self.epochs.check(k)
-        if restart is not None:
-            step.reports.append(restart)
-        self.epochs.take(k)
+        new_count = self.epochs.check(k, stamp)
+        if new_count is not None:
+            step.reports.append(new_count)
+        self.epochs.take(k, stamp)
         if self.next_epoch is not None:       # epoch k came before k-1 was finalised
             self._finalise(step, now, timed_out=True)
-        self.next_epoch = k
-        self.renumber = restart is not None   # the old count's last action is finalised first
+        restart = new_count is not None and k == 1
+        self.next_epoch = 1 if restart else self.book.epoch + 1
+        self.renumber = restart               # the old count's last action is finalised first
         if self.book.epoch < 1:
-            self._begin(step, k)
+            self._begin(step, self.next_epoch)
         else:
             self._finalise(step, now)
         return step
@@ -443,12 +547,18 @@ class Tick:
 
 
 class ClockStart:
-    """When the decision node's epoch clock starts (timer mode).
+    """When the decision node's epoch clock starts (timer mode), and a second epoch source.
 
     Epoch 1 comes one tick after the graph is ready (every input has a publisher and enough
     `hrc/epoch` subscribers are discovered), so that the first epochs are not lost to DDS
     discovery, or, at the latest, at the first tick after `stale_timeout_ns`, with a warning.
     Until then each tick reports that the node waits and publishes no action.
+
+    One cell has one epoch clock. While another node publishes `hrc/epoch` or `hrc/action`
+    (`other_sources`), a clock that has not started does not start (ERROR: both identities):
+    the newer decision node stays silent and the cell stays deterministic. A running clock
+    that sees another source goes on (the followers stay locked onto it) and reports it as
+    ERROR at every tick.
     """
 
     def __init__(self, started_ns: int, stale_timeout_ns: int, running: bool = False):
@@ -458,7 +568,20 @@ class ClockStart:
         self._ready = False
 
     def tick(self, now: int, graph_ready: Callable[[], bool],
-             graph: Callable[[], dict] = dict) -> Tick:
+             graph: Callable[[], dict] = dict, other_sources: Callable[[], list] = list,
+             me: str = 'this decision node') -> Tick:
+        others = other_sources()
+        if others:
+            names = ', '.join(others)
+            if self.running:
+                return Tick(True, Report(
+                    ERROR, 'clock', f'another epoch source publishes on the cell: {names}; '
+                    f'{me} keeps its clock (the followers stay locked onto it). Stop one.',
+                    {'this_node': me, 'other_sources': names}, kind='second_source'))
+            return Tick(False, Report(
+                ERROR, 'clock', f'another epoch source publishes on the cell: {names}; {me} '
+                'does not start its clock while it runs (one cell, one epoch clock)',
+                {'this_node': me, 'other_sources': names}, kind='second_source'))
         if self.running:
             return Tick(True)
         waited = _seconds(now - self.started_ns)
@@ -546,12 +669,15 @@ class EstimatorEpochs:
         stream.extend(later)
         return window
 
-    def epoch_signal(self, k: int, signal_ns: int) -> EstimatorStep:
+    def epoch_signal(self, k: int, stamp: Stamp) -> EstimatorStep:
+        """Close window k at the signal's source timestamp; `InputError` for an epoch of
+        another source (`EpochFollower`)."""
+        signal_ns = stamp.published_ns
         step = EstimatorStep(k, None, None, None)
-        restart = self.epochs.check(k)
+        restart = self.epochs.check(k, stamp)
         if restart is not None:
             step.reports.append(restart)
-        self.epochs.take(k)
+        self.epochs.take(k, stamp)
         action = DN if self._action is None else self._action
         self._split(self._levels, signal_ns)
         counts = self._counts.copy()          # the window, less what was published later

@@ -15,10 +15,11 @@ import importlib
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
+from ..tools.common import Parser, bounded_float, bounded_int
 from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
                             format_size, full_type_name, policy_name, read_bag, split_type_name)
 
@@ -261,6 +262,7 @@ class PlayResult:
     message_count: int
     duration_s: float        # wall time from the first to the last publication
     interrupted: bool        # the context shut down (Ctrl-C) before the last message
+    skipped: dict = field(default_factory=dict)   # topic -> why it was not played
 
 
 PLAY_ORDERS = ('log', 'publish')
@@ -308,17 +310,24 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
     context = node.context
     publishers = {}
     try:
+        skipped = {}
         for topic in info.topics:
-            if topic.topic in wanted:
-                publishers[topic.topic] = node.create_publisher(
-                    message_class(topic.type_name), topic.topic,
-                    qos_from_offers(topic.qos_profiles))
+            if topic.topic not in wanted:
+                continue
+            try:
+                cls = message_class(topic.type_name)
+            except BagError as exc:   # as rosbag2's player: warn, and play the other topics
+                skipped[topic.topic] = str(exc)
+                continue
+            publishers[topic.topic] = node.create_publisher(
+                cls, topic.topic, qos_from_offers(topic.qos_profiles))
+        wanted = set(publishers)
         deadline = time.monotonic() + max(0.0, wait_for_subscribers)
         while (wait_for_subscribers > 0 and context.ok() and time.monotonic() < deadline
                and any(p.get_subscription_count() < 1 for p in publishers.values())):
             time.sleep(0.02)
         count, first_ns, start, last_wall = 0, None, 0.0, 0.0
-        messages = read_bag(info.path, topics=wanted)
+        messages = read_bag(info.path, topics=wanted) if wanted else iter(())
         if order == 'publish':
             messages = sorted(messages, key=lambda m: m.publish_time_ns)
 
@@ -345,7 +354,7 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                     == QoSReliabilityPolicy.RELIABLE):
                 publishers[topic.topic].wait_for_all_acked(Duration(seconds=ack_timeout))
         return PlayResult(count, max(0.0, last_wall - start) if count else 0.0,
-                          interrupted=not context.ok())
+                          interrupted=not context.ok(), skipped=skipped)
     finally:
         if context.ok():
             for publisher in publishers.values():
@@ -443,6 +452,13 @@ def _play_command(args: argparse.Namespace) -> int:
     info = bag_info(args.bag)
     print(f'hrc-bag: playing {info.path}: {info.message_count} messages, '
           f'{info.duration_ns / 1e9:.3f} s at rate {args.rate:g}', flush=True)
+    for topic in info.topics:
+        if args.topics is None or topic.topic in args.topics:
+            try:
+                message_class(topic.type_name)
+            except BagError as exc:
+                print(f'hrc-bag: warning: not playing {topic.topic} ({topic.message_count} '
+                      f'messages): {exc}', file=sys.stderr, flush=True)
     rclpy.init()
     node = rclpy.create_node('hrc_bag_player')
     try:
@@ -466,26 +482,29 @@ def _info_command(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-bag', description='Record, play and inspect rosbag2-compatible MCAP bags.')
     commands = parser.add_subparsers(dest='command', required=True)
     record = commands.add_parser('record', help='record topics into a bag directory')
     record.add_argument('-o', '--output', required=True,
                         help='bag directory to create (or a file name ending in .mcap)')
-    record.add_argument('--duration', type=float, default=None, help='stop after S seconds')
-    record.add_argument('--max-messages', type=int, default=None,
+    record.add_argument('--duration', type=bounded_float(0.0, 1e7), default=None,
+                        help='stop after S seconds')
+    record.add_argument('--max-messages', type=bounded_int(1, 2 ** 62), default=None,
                         help='stop after N messages')
-    record.add_argument('--wait-timeout', type=float, default=10.0,
+    record.add_argument('--wait-timeout', type=bounded_float(0.0, 86400.0), default=10.0,
                         help='seconds to wait for every topic to have a publisher (default 10)')
     record.add_argument('topics', nargs='+', metavar='TOPIC')
     player = commands.add_parser('play', help='publish a bag with its recorded timing')
     player.add_argument('bag', metavar='FILE_OR_DIR')
-    player.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    player.add_argument('--rate', type=bounded_float(1e-3, 1e3), default=1.0,
+                        help='playback speed factor')
     player.add_argument('--topics', nargs='+', default=None, metavar='T',
                         help='play only these topics')
-    player.add_argument('--start-delay', type=float, default=0.0,
+    player.add_argument('--start-delay', type=bounded_float(0.0, 86400.0), default=0.0,
                         help='seconds to wait before the first message')
-    player.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
+    player.add_argument('--wait-for-subscribers', type=bounded_float(0.0, 86400.0), default=0.0,
+                        metavar='S',
                         help='wait up to S s for every topic to have a subscriber')
     player.add_argument('--order', choices=PLAY_ORDERS, default='log',
                         help="timing and order by 'log' (receive) time, as ros2 bag play, or "

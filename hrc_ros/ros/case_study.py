@@ -27,7 +27,6 @@ The trajectory is assembled by publication time around the epoch signals (`assem
 
 from __future__ import annotations
 
-import argparse
 import bisect
 import os
 import shutil
@@ -46,6 +45,9 @@ from ..core.plots import plot_trajectory
 from ..core.policy import PolicyError, default_policy_path, load_policy
 from ..core.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
 from ..core.tasks import TaskBook
+from ..core.selection import SELECTORS
+from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
+                            output_folder)
 from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS
 from .processes import NodeProcessError, NodeProcesses
 
@@ -73,6 +75,9 @@ BODY_TRACKING_TOPICS = {'body_tracking_data': 'visualization_msgs/msg/MarkerArra
 WATCHED = ('hrc/epoch', 'hrc/task_state', 'hrc/observation', 'hrc/distance_level',
            'hrc/belief', 'hrc/action', 'hrc/human_response', 'hrc/sim/true_state')
 LATCHED_TOPICS = ('hrc/task_state', 'hrc/distance_level', 'hrc/belief', 'hrc/sim/true_state')
+
+
+MAX_RUN_EPOCHS = 10_000   # 83 minutes at the default period
 
 
 class CaseStudyError(RuntimeError):
@@ -277,13 +282,14 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='hrc-case-study', description=__doc__.split('\n')[0])
+    parser = Parser(prog='hrc-case-study', description=__doc__.split('\n')[0])
     parser.add_argument('--out', default='out/case_study', help='output folder')
-    parser.add_argument('--epochs', type=int, default=20)
-    parser.add_argument('--epoch-period', type=float, default=0.5,
+    parser.add_argument('--epochs', type=bounded_int(1, MAX_RUN_EPOCHS), default=20)
+    parser.add_argument('--epoch-period', type=bounded_float(0.05, 60.0), default=0.5,
                         help='seconds per decision epoch (default 0.5)')
-    parser.add_argument('--seed', type=int, default=0, help="the simulated human's seed")
-    parser.add_argument('--selector', default='paper', choices=('paper', 'qmdp', 'mls'))
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help="the simulated human's seed")
+    parser.add_argument('--selector', default='paper', choices=SELECTORS)
     parser.add_argument('--belief-mode', default='', choices=('', 'bayes', 'table'),
                         help="'' = the configuration's mode")
     parser.add_argument('--config', default='', help='model configuration (default: shipped)')
@@ -293,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
                         'decline, collision, e.g. dropout:5 collision:14-15')
     parser.add_argument('--bag', default='', help='bag folder (default: <out>/bag); it also '
                         'receives the params files of the run, in params/')
-    parser.add_argument('--timeout', type=float, default=90.0, help='seconds for the run')
+    parser.add_argument('--timeout', type=bounded_float(1.0, 86400.0), default=None,
+                        help='seconds for the run (default: epochs x epoch period + 60)')
     parser.add_argument('--input', default='joint_states', choices=INPUTS,
                         help="how the human's motion reaches the estimator: joint_states (the "
                         'simulated cell publishes human/*) or body_tracking (through a synthetic '
@@ -301,13 +308,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--no-view', dest='view', action='store_false',
                         help='do not start cell_view_node (hrc/markers)')
     args = parser.parse_args(argv)
+    if args.timeout is None:
+        args.timeout = args.epochs * args.epoch_period + 60.0
     out = Path(args.out)
     bag_dir = Path(args.bag) if args.bag else out / 'bag'
     try:
         parse_faults(args.faults)
-    except ValueError as exc:
-        print(f'hrc-case-study: {exc}', file=sys.stderr)
-        return 2
+        output_folder(out)
+    except (ValueError, ToolError) as exc:
+        return fail('hrc-case-study', exc)
     if bag_dir.exists() and any(bag_dir.iterdir()):
         if args.bag:
             print(f'hrc-case-study: bag folder {bag_dir} is not empty; choose a new one',
@@ -319,8 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         model = HRCModel(config)
         load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
     except (ConfigError, PolicyError) as exc:
-        print(f'hrc-case-study: {exc}', file=sys.stderr)
-        return 2
+        return fail('hrc-case-study', exc)
     shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'

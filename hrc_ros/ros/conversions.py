@@ -71,6 +71,33 @@ class MessageError(InputError):
     by a conversion)."""
 
 
+QUOTE_LIMIT = 200   # characters of a message's content quoted in an error (logs, diagnostics)
+
+
+def quote(value, limit: int = QUOTE_LIMIT) -> str:
+    """A message's content for an error text: its repr, cut to `limit` characters with the
+    original size, so a 10 MB string or 20,000 NaNs never become a 10 MB log line."""
+    shown = limit // 4                     # values shown of a sequence (each >= 3 characters)
+    if isinstance(value, np.ndarray):
+        size, cut = f'{value.size} values', value.size > shown
+        text = repr(value.reshape(-1)[:shown].tolist())
+    elif isinstance(value, (list, tuple)):
+        size, cut, text = f'{len(value)} values', len(value) > shown, repr(list(value[:shown]))
+    elif isinstance(value, (str, bytes)):
+        size, cut, text = f'{len(value)} characters', len(value) > limit, repr(value[:limit])
+    else:
+        text = repr(value)
+        size, cut = f'{len(text)} characters', False
+    if len(text) <= limit and not cut:
+        return text
+    return f'{text[:limit]}... ({size})'
+
+
+def cap(text: str, limit: int = 4 * QUOTE_LIMIT) -> str:
+    """An error text cut to `limit` characters, with its original length."""
+    return text if len(text) <= limit else f'{text[:limit]}... ({len(text)} characters)'
+
+
 # -- time -------------------------------------------------------------------------------------
 def stamp_to_seconds(stamp: Time) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
@@ -99,7 +126,7 @@ def _finite_vector(values, what: str, n: int) -> np.ndarray | None:
         raise MessageError(f'JointState has {n} names but {len(values)} {what} values')
     array = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(array)):
-        raise MessageError(f'JointState {what} holds NaN or inf: {array.tolist()}')
+        raise MessageError(f'JointState {what} holds NaN or inf: {quote(array)}')
     return array
 
 
@@ -109,7 +136,7 @@ def joint_sample_from_msg(msg: JointState) -> JointSample:
     if not names:
         raise MessageError('JointState is empty (no joint names)')
     if len(set(names)) != len(names):
-        raise MessageError(f'JointState names are not unique: {list(names)}')
+        raise MessageError(f'JointState names are not unique: {quote(names)}')
     velocity = _finite_vector(msg.velocity, 'velocity', len(names))
     position = _finite_vector(msg.position, 'position', len(names))
     if velocity is None and position is None:
@@ -133,7 +160,13 @@ def joint_velocities(sample: JointSample, previous: JointSample | None = None
         raise MessageError(f'JointState without velocities and a header stamp ({sample.stamp:.9f}'
                            f' s) not after the previous one ({previous.stamp:.9f} s): cannot '
                            'derive velocities from positions')
-    return (sample.position - previous.position) / dt
+    with np.errstate(over='ignore', invalid='ignore'):
+        velocity = (sample.position - previous.position) / dt
+    if not np.all(np.isfinite(velocity)):
+        raise MessageError(f'JointState positions {quote(sample.position)} after '
+                           f'{quote(previous.position)} in {dt:.3g} s give a velocity that is '
+                           'not finite')
+    return velocity
 
 
 def joint_state_to_msg(names: Sequence[str], velocity, position=None,
@@ -152,7 +185,7 @@ def joint_state_to_msg(names: Sequence[str], velocity, position=None,
 def keypoints_from_msg(msg: PoseArray, frame_id: str = ROBOT_BASE_FRAME) -> np.ndarray:
     """Keypoint positions (n, 3) in metres; the header frame must be the robot base frame."""
     if msg.header.frame_id != frame_id:
-        raise MessageError(f'PoseArray is in frame {msg.header.frame_id!r}, expected '
+        raise MessageError(f'PoseArray is in frame {quote(msg.header.frame_id)}, expected '
                            f'{frame_id!r} (keypoints must be in the robot base frame)')
     if not msg.poses:
         raise MessageError('PoseArray holds no keypoints')
@@ -236,7 +269,7 @@ def _record_from_msg(msg: UInt8MultiArray, labels: Sequence[str], what: str,
                            f'got {len(values)}')
     got = [dim.label for dim in msg.layout.dim]
     if got and got != list(labels):
-        raise MessageError(f'{what} layout labels {got} are not {list(labels)}')
+        raise MessageError(f'{what} layout labels {quote(got)} are not {list(labels)}')
     if tops is not None:
         for name, value, top in zip(labels, values, tops):
             if value > top:
@@ -274,7 +307,8 @@ def task_request_from_msg(msg: UInt8MultiArray, rho: int | None = None,
     """A task request (tp, tc, tx): priority 1..rho, duration 1..sigma, nature 0..3."""
     values = [int(v) for v in msg.data]
     if len(values) != 3:
-        raise MessageError(f'task request must be [priority, duration, nature], got {values}')
+        raise MessageError('task request must be [priority, duration, nature], got '
+                           f'{quote(values)}')
     tp, tc, tx = values
     limits = (('tp (priority)', tp, rho), ('tc (duration)', tc, sigma),
               ('tx (nature)', tx, _NATURE_COMMITMENT_TOP))
@@ -307,13 +341,13 @@ def belief_from_msg(msg: Float64MultiArray) -> np.ndarray:
                            f'{values.size}')
     dims = [(d.label, d.size) for d in msg.layout.dim]
     if dims and dims != [(label, size) for label, size, _ in BELIEF_DIMS]:
-        raise MessageError(f'belief layout {dims} is not motivation (3) x aggression (3)')
+        raise MessageError(f'belief layout {quote(dims)} is not motivation (3) x aggression (3)')
     if msg.layout.data_offset != 0:
         raise MessageError(f'belief layout data_offset must be 0, got {msg.layout.data_offset}')
     if not np.all(np.isfinite(values)):
-        raise MessageError(f'belief holds NaN or inf: {values.tolist()}')
+        raise MessageError(f'belief holds NaN or inf: {quote(values)}')
     if np.any(values < 0.0):
-        raise MessageError(f'belief holds a negative probability: {values.tolist()}')
+        raise MessageError(f'belief holds a negative probability: {quote(values)}')
     total = float(values.sum())
     if abs(total - 1.0) > BELIEF_TOLERANCE:
         raise MessageError(f'belief sums to {total:.9g}, not 1')
@@ -323,7 +357,8 @@ def belief_from_msg(msg: Float64MultiArray) -> np.ndarray:
 # -- action -----------------------------------------------------------------------------------
 def action_from_msg(msg: String) -> int:
     if msg.data not in ACTION_INDEX:
-        raise MessageError(f'unknown action {msg.data!r}; expected one of {" ".join(ACTIONS)}')
+        raise MessageError(f'unknown action {quote(msg.data)}; expected one of '
+                           f'{" ".join(ACTIONS)}')
     return ACTION_INDEX[msg.data]
 
 

@@ -7,9 +7,9 @@ Parameters. A node lists its parameters as `ParamSpec`s; `NodeParameters` declar
 merged proposed values. The callback is registered before the declarations, so values from a
 `--params-file` are validated by the same code at start-up (a bad value stops the node with
 the reason). Changes accepted at run time reach the node through
-`add_post_set_parameters_callback`. An array parameter whose default is empty is declared by
-type (rclpy infers a byte array from ``[]``), so it reads as "not set" until given; `value()`
-returns the spec's default then.
+`add_post_set_parameters_callback`. An array parameter whose default is empty is declared with
+that typed empty value (`NodeParameters._declare_empty_array`), so every parameter has a value
+that `ros2 param get` and `ros2 param dump` show.
 
 Inputs. `Inputs.subscribe` wraps a subscription: the callback converts the message (a
 `conversions` function) and hands the value to the node; a `MessageError`, raised by the
@@ -40,6 +40,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import qos_policy_name_from_kind
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -49,9 +51,9 @@ from rclpy.signals import SignalHandlerOptions
 from ..core import protocol
 from ..core.config import ConfigError, load_config
 from ..core.paths import default_config_path
-from ..core.protocol import InputError, Report
+from ..core.protocol import InputError, Report, Stamp
 from . import qos
-from .conversions import diagnostic_array, diagnostic_status
+from .conversions import cap, diagnostic_array, diagnostic_status
 
 WARNING_THROTTLE_SEC = 5.0   # one warning (and one drop diagnostic) per input per this period
 STATUS_PERIOD_SEC = 1.0      # periodic health status of the nodes
@@ -106,9 +108,28 @@ class NodeParameters:
         node.add_on_set_parameters_callback(self._on_set)
         for spec in specs:
             empty_array = isinstance(spec.default, (list, tuple)) and not spec.default
-            default = spec.type if empty_array else spec.default
-            node.declare_parameter(spec.name, default, spec.descriptor())
+            if empty_array and not node.has_parameter(spec.name):
+                self._declare_empty_array(spec)
+            else:
+                node.declare_parameter(spec.name, spec.default, spec.descriptor())
         node.add_post_set_parameters_callback(self._post_set)
+
+    def _declare_empty_array(self, spec: ParamSpec) -> None:
+        """Declare an array parameter whose default is empty with that typed empty value.
+
+        rclpy infers a byte array from ``[]``, and a parameter declared by type alone reads as
+        "not set": `ros2 param get` then says so and the get-parameters service answers
+        nothing for a request that names it (so `ros2 param dump` printed ``{}``). rclpy's
+        public API cannot declare a typed empty array (its value is inferred), so the typed
+        value goes through the declaration step rclpy uses itself; a value from a params
+        file (an override, typed by rcl) still wins. test_nodes checks that every parameter
+        of every node has a value."""
+        descriptor = spec.descriptor()
+        override = self.node._parameter_overrides.get(spec.name)    # typed by rcl
+        value = (override if override is not None and override.type_ == spec.type
+                 else Parameter(spec.name, spec.type, []))
+        self.node._declare_parameter_common([Parameter(spec.name, spec.type, value.value)],
+                                            {spec.name: descriptor})
 
     def value(self, name: str) -> Any:
         try:
@@ -134,7 +155,7 @@ class NodeParameters:
         try:
             reason = self._check(merged)
         except (TypeError, ValueError) as exc:
-            reason = str(exc)
+            reason = cap(str(exc))
         if reason:
             return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
@@ -305,12 +326,15 @@ class Inputs:
     # -- subscriptions -----------------------------------------------------------------------
     def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
                   handle: Callable[..., None], name: str | None = None,
-                  with_published: bool = False):
+                  with_published: bool = False, with_stamp: bool = False):
         """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported.
 
         With `with_published`, `handle(value, published_ns)` also gets the message's
         publication time: the writer's source timestamp (system clock, ns), or the system time
-        of its receipt where the middleware gives none."""
+        of its receipt where the middleware gives none. With `with_stamp`, `handle(value,
+        stamp)` gets a `core.protocol.Stamp` (that time and the writer's sequence number).
+        A publisher whose QoS cannot match the subscription's (`incompatible_qos` event) is
+        reported as ERROR on /diagnostics, naming the topic and the policy."""
         name = name or topic.rsplit('/', 1)[-1]
 
         def guarded(msg, *extra):
@@ -322,15 +346,34 @@ class Inputs:
             except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
                 self.internal_error(name, topic, traceback.format_exc())
 
-        if not with_published:
+        if not (with_published or with_stamp):
             def callback(msg):
                 guarded(msg)
         else:
             def callback(msg, info):
-                published = info.get('source_timestamp') if isinstance(info, dict) else None
-                guarded(msg, int(published or time.time_ns()))
+                info = info if isinstance(info, dict) else {}
+                published = int(info.get('source_timestamp') or time.time_ns())
+                guarded(msg, Stamp(published, info.get('publication_sequence_number'))
+                        if with_stamp else published)
 
-        return self.node.create_subscription(msg_type, topic, callback, profile)
+        events = SubscriptionEventCallbacks(
+            incompatible_qos=lambda event: self.incompatible_qos(name, topic, event))
+        return self.node.create_subscription(msg_type, topic, callback, profile,
+                                             event_callbacks=events)
+
+    def incompatible_qos(self, name: str, topic: str, event) -> None:
+        """A publisher offers a QoS this subscription cannot match: its messages never arrive.
+        Reported as ERROR (throttled per input), with the policy that failed."""
+        try:
+            policy = qos_policy_name_from_kind(event.last_policy_kind)
+        except (AttributeError, ValueError):
+            policy = 'unknown policy'
+
+        message = (f'a publisher of {topic} offers a QoS this subscription cannot match '
+                   f'({policy}); its messages are not received (total '
+                   f'{getattr(event, "total_count", "?")})')
+        self.report(Report(protocol.ERROR, f'{name} input', message,
+                           {'topic': topic, 'policy': policy}, kind='incompatible_qos'))
 
     def _logger(self, name: str):
         if name not in self._loggers:
@@ -338,7 +381,9 @@ class Inputs:
         return self._loggers[name]
 
     def drop(self, name: str, topic: str, reason: str) -> None:
-        """Count a dropped message, warn (throttled) and report it on /diagnostics."""
+        """Count a dropped message, warn (throttled) and report it on /diagnostics; the reason
+        is capped (`conversions.cap`), whatever a conversion quoted."""
+        reason = cap(reason)
         self.dropped[name] += 1
         self._unreported[name] += 1
         self.last_drop_reason[name] = reason
@@ -365,11 +410,12 @@ class Inputs:
         (both throttled per input, like drops, so a bug hit at 1 kHz cannot flood)."""
         self.dropped[name] += 1
         self._unreported[name] += 1
-        self._logger(name).error(f'internal error while handling {topic}:\n{trace}',
+        self._logger(name).error(f'internal error while handling {topic}:\n{cap(trace, 8000)}',
                                  throttle_duration_sec=WARNING_THROTTLE_SEC)
         if self._report_due(self._last_error_report, name):
             self.publish(self.status(f'{name} input', ERROR, f'internal error handling {topic}',
-                                     {'topic': topic, 'error': trace.strip().splitlines()[-1],
+                                     {'topic': topic,
+                                      'error': cap(trace.strip().splitlines()[-1]),
                                       'dropped': self.dropped[name]}))
 
     def report(self, report: Report) -> None:

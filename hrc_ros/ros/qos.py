@@ -3,11 +3,17 @@
 - `SENSOR_DATA`: human motion streams (`human/joint_states`, `human/skeleton`). Best effort,
   keep last 5: a late sample is worth less than the next one, and a slow subscriber must never
   make the tracker queue up.
-- `LATCHED`: state that a late joiner needs at once (`hrc/belief`, `hrc/task_state`,
-  `hrc/distance_level`, the simulator's `hrc/sim/true_state`). Reliable, transient local,
-  depth 1: the last value is kept by the publisher and handed to every new subscriber.
-  A subscriber must use it too, or it does not receive the stored sample.
-- `RELIABLE`: events (`hrc/action`, `hrc/epoch`, `hrc/observation`, `hrc/task_request`,
+- `LATCHED`: what the suite's publishers offer for state that a late joiner needs at once
+  (`hrc/belief`, `hrc/task_state`, `hrc/distance_level`, the simulator's `hrc/sim/true_state`).
+  Reliable, transient local, depth 1: the last value is kept by the publisher and handed to
+  every new subscriber that asks for it.
+- `STATE_INPUT`: what the nodes subscribe such state with. Reliable but volatile: a volatile
+  subscription matches a transient-local publisher and an ordinary (volatile) one alike, so a
+  perception node or `ros2 topic pub` with default QoS is heard; a transient-local one would
+  refuse the volatile publisher ("offering incompatible QoS ... DURABILITY"). The nodes do not
+  need the stored sample: every state is published again each epoch.
+- `ORDERS`: `hrc/task_request`, reliable and keep-all: an order is never overwritten unseen.
+- `RELIABLE`: events (`hrc/action`, `hrc/epoch`, `hrc/observation`,
   `hrc/human_response`, `/diagnostics`). Reliable, volatile, keep last 10.
 """
 
@@ -21,6 +27,18 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+STATE_INPUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+# Orders that must not be lost (`hrc/task_request`): reliable and keep-all, so a burst is taken
+# whole (what the task queue cannot hold is refused with a report), never overwritten unseen in
+# the reader's history. Fast DDS bounds a keep-all reader by its resource limits; beyond them a
+# reliable writer blocks and its publish fails, so the sender learns of it.
+ORDERS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)

@@ -1,17 +1,110 @@
-"""What the ROS-free command lines share: the model and policy arguments and their loading."""
+"""What the command lines share: one-line errors, bounded arguments, output folders, and the
+model and policy arguments with their loading.
+
+Every command refuses what it cannot do before any work starts, with one line on stderr and
+exit status 2: an argument out of its range (numbers are bounded, so no typo runs for hours), an
+output folder that is a file or cannot be written, a configuration or policy that does not load,
+a model that would not fit in memory.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+from pathlib import Path
+from typing import NoReturn
 
 from ..core.config import Config, ConfigError, load_config
 from ..core.model import HRCModel
 from ..core.paths import default_config_path
 from ..core.policy import Policy, PolicyError, default_policy_path, load_policy
 
+MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
+MAX_EPOCHS = 100_000            # one closed-loop run
+MAX_EPISODES = 1_000_000
+MAX_EPISODE_EPOCHS = 200_000_000   # episodes x epochs of one evaluation (about an hour)
+
 
 class ToolError(RuntimeError):
     """A command cannot run with what it was given; the text says why (exit status 2)."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with a one-line error: ``prog: error: message`` on stderr, exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f'{self.prog}: error: {" ".join(message.split())}\n')
+
+
+def _bounded(kind: type, low, high, what: str, span: str):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not {what}') from None
+        if not low <= value <= high:   # NaN fails too
+            raise argparse.ArgumentTypeError(f'{value} is outside {span}')
+        return value
+    return parse
+
+
+def bounded_int(low: int, high: int):
+    """An argparse type: an integer in low..high, or a one-line error naming the range."""
+    return _bounded(int, low, high, 'an integer', f'{low}..{high}')
+
+
+def bounded_float(low: float, high: float):
+    """An argparse type: a finite number in [low, high]."""
+    return _bounded(float, low, high, 'a number', f'[{low}, {high}]')
+
+
+def output_folder(path: str | Path) -> Path:
+    """The output folder `path`, created (with its parents) and checked writable; ToolError
+    if it is a file or cannot be created or written."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise ToolError(f'output folder {folder} is a file; name a folder')
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f'.hrc_write_test_{os.getpid()}'
+        probe.write_bytes(b'')
+        probe.unlink()
+    except OSError as exc:
+        raise ToolError(f'cannot write into output folder {folder}: '
+                        f'{exc.strerror or exc}') from None
+    return folder
+
+
+def output_file(path: str | Path) -> Path:
+    """An output file path whose folder exists (or is created) and is writable, and which is
+    not a folder itself; ToolError otherwise."""
+    target = Path(path)
+    if target.is_dir():
+        raise ToolError(f'output {target} is a folder; name a file')
+    output_folder(target.parent if str(target.parent) else '.')
+    return target
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable), or None."""
+    try:
+        with open('/proc/meminfo') as meminfo:
+            for line in meminfo:
+                if line.startswith('MemAvailable:'):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(needed: int, what: str) -> None:
+    """ToolError if `needed` bytes are more than the memory available now."""
+    available = available_memory()
+    if available is not None and needed > available:
+        raise ToolError(f'{what} needs about {needed / 2**30:.1f} GiB of memory and '
+                        f'{available / 2**30:.1f} GiB are available; use a smaller model '
+                        '(rho, sigma) or a larger machine')
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, policy: bool = True) -> None:
@@ -33,3 +126,9 @@ def load_model(args: argparse.Namespace) -> tuple[Config, HRCModel, Policy | Non
     except (ConfigError, PolicyError) as exc:
         raise ToolError(str(exc)) from None
     return config, HRCModel(config), policy
+
+
+def fail(prog: str, error: Exception) -> int:
+    """Print a refusal as one line and return the exit status 2."""
+    print(f'{prog}: error: {" ".join(str(error).split())}', file=sys.stderr)
+    return 2

@@ -8,22 +8,22 @@ Prints the table of means with 95% intervals and writes `summary.csv`, `summary.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import sys
 import time
-from pathlib import Path
 
 from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_table, paired_difference,
                                summarize)
 from ..core.plots import plot_summaries
 from ..core.simulation import SIMULATION_SELECTORS
-from .common import ToolError, add_model_arguments, load_model
+from .common import (MAX_EPISODE_EPOCHS, MAX_EPISODES, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
+                     add_model_arguments, bounded_float, bounded_int, fail, load_model,
+                     output_folder)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-evaluate',
         description='Compare the action selectors (and the full-information MDP bound) over '
                     'many seeded episodes with random task streams.')
@@ -32,11 +32,11 @@ def main(argv=None) -> int:
                         help="'random' task streams and humans (default), or the paper's "
                              "'case-study' with human seeds seed, seed+1, ... (as hrc-simulate "
                              '--seed)')
-    parser.add_argument('--episodes', type=int, default=1000)
-    parser.add_argument('--epochs', type=int, default=None,
+    parser.add_argument('--episodes', type=bounded_int(1, MAX_EPISODES), default=1000)
+    parser.add_argument('--epochs', type=bounded_int(1, MAX_EPOCHS), default=None,
                         help='epochs per episode (default: 50, the case study 20)')
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--task-rate', type=float, default=0.2,
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0)
+    parser.add_argument('--task-rate', type=bounded_float(0.0, 1.0), default=0.2,
                         help='probability of a new task per epoch (one always at epoch 1)')
     parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
                         help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
@@ -47,24 +47,23 @@ def main(argv=None) -> int:
     parser.add_argument('--out', default='out/evaluate', help='output folder')
     args = parser.parse_args(argv)
     selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
+    if not selectors:
+        parser.error('--selectors names no selector; choose from '
+                     + ', '.join(SIMULATION_SELECTORS))
     for s in selectors:
         if s not in SIMULATION_SELECTORS:
             parser.error(f'unknown selector {s!r} in --selectors; choose from '
                          f'{", ".join(SIMULATION_SELECTORS)}')
     if args.epochs is None:
         args.epochs = 20 if args.scenario == 'case-study' else 50
-    for name in ('episodes', 'epochs'):
-        if getattr(args, name) < 1:
-            parser.error(f'--{name} must be >= 1')
-    if args.seed < 0:
-        parser.error('--seed must be >= 0')
-    if not 0.0 <= args.task_rate <= 1.0:
-        parser.error('--task-rate must lie in [0, 1]')
+    if args.episodes * args.epochs > MAX_EPISODE_EPOCHS:
+        parser.error(f'--episodes x --epochs = {args.episodes * args.epochs:,} is more than '
+                     f'{MAX_EPISODE_EPOCHS:,} epochs per selector (about an hour)')
     try:
         config, model, policy = load_model(args)
+        out = output_folder(args.out)
     except ToolError as exc:
-        print(f'hrc-evaluate: error: {exc}', file=sys.stderr)
-        return 2
+        return fail('hrc-evaluate', exc)
     t0 = time.perf_counter()
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe,
@@ -83,8 +82,6 @@ def main(argv=None) -> int:
           f'{config.gamma}; {elapsed:.1f} s')
     print(format_table(summaries, differences))
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     with (out / 'summary.csv').open('w', newline='') as f:
         writer = csv.writer(f)
         writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])

@@ -7,17 +7,16 @@ Prints the run as the paper's Table 6 and writes `trajectory.csv` and the plots 
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
 from ..core.plots import plot_trajectory
 from ..core.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
-from .common import ToolError, add_model_arguments, load_model
+from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int,
+                     fail, load_model, output_folder)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog='hrc-simulate',
         description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
                     'Table 6, write a CSV and PNG plots.')
@@ -26,18 +25,17 @@ def main(argv=None) -> int:
                         help='action selection (mdp = the true state, an upper bound)')
     parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
                         help='belief mode (default: the configuration\'s)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the simulated human')
-    parser.add_argument('--epochs', type=int, default=None,
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help='seed of the simulated human')
+    parser.add_argument('--epochs', type=bounded_int(1, MAX_EPOCHS), default=None,
                         help='number of epochs (default: the case study\'s 20)')
     parser.add_argument('--out', default='out/simulate', help='output folder')
     args = parser.parse_args(argv)
-    if args.epochs is not None and args.epochs < 1:
-        parser.error(f'--epochs must be >= 1, got {args.epochs}')
     try:
         _, model, policy = load_model(args)
+        out = output_folder(args.out)
     except ToolError as exc:
-        print(f'hrc-simulate: error: {exc}', file=sys.stderr)
-        return 2
+        return fail('hrc-simulate', exc)
     scenario = case_study()
     if args.epochs is not None:
         scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
@@ -45,7 +43,6 @@ def main(argv=None) -> int:
     trajectory = simulate(model, policy, scenario, selector=args.selector, mode=args.mode,
                           seed=args.seed)
     print(trajectory.table())
-    out = Path(args.out)
     written = [trajectory.to_csv(out / 'trajectory.csv')] + plot_trajectory(trajectory, out)
     for path in written:
         print(f'wrote {path}')

@@ -8,44 +8,44 @@ file it wrote.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from ..core.config import ConfigError, load_config
-from ..core.model import ACTIONS, HRCModel
-from ..core.paths import default_config_path
+from ..core.config import MAX_SWEEPS
+from ..core.model import ACTIONS
 from ..core.policy import save_policy
-from ..core.solver import solve
+from ..core.solver import memory_estimate, solve
+from .common import (Parser, ToolError, add_model_arguments, bounded_int, check_memory, fail,
+                     load_model, output_file)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='hrc-solve', description=__doc__.split('\n')[1])
-    parser.add_argument('--config', default=str(default_config_path()),
-                        help='configuration YAML (default: the shipped default.yaml)')
+    parser = Parser(prog='hrc-solve', description=__doc__.split('\n')[1])
+    add_model_arguments(parser, policy=False)
     parser.add_argument('-o', '--output', required=True, help='policy file to write (.npz)')
-    parser.add_argument('--sweeps', type=int, default=None,
+    parser.add_argument('--sweeps', type=bounded_int(1, MAX_SWEEPS), default=None,
                         help='run exactly this many sweeps (overrides solver.sweeps)')
-    parser.add_argument('--every', type=int, default=1, help='print every N sweeps')
+    parser.add_argument('--every', type=bounded_int(1, MAX_SWEEPS), default=1,
+                        help='print every N sweeps')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f'hrc-solve: {exc}', file=sys.stderr)
-        return 2
-    model = HRCModel(config)
+        config, model, _ = load_model(args)
+        output = output_file(args.output)
+        check_memory(memory_estimate(model), f'solving {model.n_states:,} states')
+    except ToolError as exc:
+        return fail('hrc-solve', exc)
     sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '
           f'gamma={config.gamma}, eta={config.eta:g}, '
           f'sweeps={"to eta" if sweeps is None else sweeps}', flush=True)
 
     def progress(sweep: int, residual: float, elapsed: float) -> None:
-        if not args.quiet and (sweep % max(1, args.every) == 0 or sweep == 1):
+        if not args.quiet and (sweep % args.every == 0 or sweep == 1):
             print(f'  sweep {sweep:4d}  residual {residual:.3e}  elapsed {elapsed:7.3f} s',
                   flush=True)
 
     result = solve(model, sweeps=args.sweeps, progress=progress)
-    path = save_policy(args.output, result, config)
+    path = save_policy(output, result, config)
     counts = ' '.join(f'{a}={int((result.policy == i).sum())}' for i, a in enumerate(ACTIONS))
     print(f'hrc-solve: {"converged" if result.converged else "stopped"} after '
           f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '

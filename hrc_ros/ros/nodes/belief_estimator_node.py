@@ -25,7 +25,7 @@ from ...core.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                                  velocity_level)
-from ...core.protocol import EstimatorEpochs
+from ...core.protocol import EstimatorEpochs, Stamp
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, StartupError,
@@ -101,7 +101,7 @@ class BeliefEstimatorNode(Node):
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda action: self.windows.action(action))
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch, with_published=True)
+                              self._on_epoch, with_stamp=True)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _apply_parameters(self, values) -> None:
@@ -137,8 +137,8 @@ class BeliefEstimatorNode(Node):
         self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
                                              self.safety_radii), published_ns)
 
-    def _on_epoch(self, k: int, signal_ns: int) -> None:
-        step = self.windows.epoch_signal(k, signal_ns)
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        step = self.windows.epoch_signal(k, stamp)
         if step.distance_level is not None:
             self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
         if step.observation is not None:

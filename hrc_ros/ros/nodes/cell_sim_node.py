@@ -24,13 +24,15 @@ from ...core import faults
 from ...core.cell import SimulatedHuman
 from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
 from ...core.observation import synthesize_joint_velocities, synthesize_skeleton
-from ...core.protocol import ActionPairing
+from ...core.protocol import ActionPairing, PeriodEstimate, timeout_ns
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
                             ParamSpec, StartupError, check_array, control_clock, node_setup, run)
 from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
 
+HOLD_FRACTION = 0.25   # task_state_timeout 0: this fraction of the observed action period
+HOLD_FALLBACK = 0.25   # ... and these seconds until the period is known
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
 IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
 
@@ -46,9 +48,10 @@ PARAMETERS = (
     ParamSpec('sensor_rate', T.DOUBLE, 50.0, 'Hz of joint states and skeletons',
               range=(0.1, 1000.0)),
     *MOTION_PARAMETERS,
-    ParamSpec('task_state_timeout', T.DOUBLE, 0.25, 'seconds an action waits for its '
-              "epoch's hrc/task_state before the cell reacts with the latest one",
-              range=(0.0, 60.0)),
+    ParamSpec('task_state_timeout', T.DOUBLE, 0.0, 'seconds an action waits for its '
+              "epoch's hrc/task_state before the cell reacts with the latest one; 0 = "
+              f'{HOLD_FRACTION:g} x the epoch period seen on hrc/action ({HOLD_FALLBACK:g} s '
+              'before two actions)', range=(0.0, 60.0)),
     ParamSpec('faults', T.STRING_ARRAY, [], 'injected faults "KIND:EPOCHS" with KIND one of '
               + ', '.join(faults.FAULT_KINDS) + ' and EPOCHS "7" or "7-9"', read_only=True),
 )
@@ -80,7 +83,9 @@ class CellSimNode(Node):
         self.sensor_rng = np.random.default_rng([values['seed'], SENSOR_STREAM])
         self.faults = faults.parse_faults(values['faults'])
         self.clock = control_clock(self)
-        self.pairing = ActionPairing(int(values['task_state_timeout'] * 1e9))
+        self.period = PeriodEstimate()
+        self.task_state_timeout = values['task_state_timeout']
+        self.pairing = ActionPairing(self._hold_ns())
         self.reactions = 0
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
         self._last_sample_ns: int | None = None
@@ -94,8 +99,8 @@ class CellSimNode(Node):
                                                     qos.LATCHED)
         self.inputs = Inputs(self)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
-                              self._on_action)
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
+                              self._on_action, with_published=True)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                               self._task_state_from_msg, self._on_task_state)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
         self.hold = DeadlineTimer(self, lambda now: self._react(self.pairing.expire(now)))
@@ -129,7 +134,8 @@ class CellSimNode(Node):
     def _apply_parameters(self, values) -> None:
         self._apply_motion(values)
         self.sensor_timer.timer_period_ns = int(1e9 / values['sensor_rate'])
-        self.pairing.timeout_ns = int(values['task_state_timeout'] * 1e9)
+        self.task_state_timeout = values['task_state_timeout']
+        self.pairing.timeout_ns = self._hold_ns()
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
@@ -138,7 +144,13 @@ class CellSimNode(Node):
     def _on_task_state(self, task_state: dict) -> None:
         self._react(self.pairing.task_state_received(task_state, self.clock.now().nanoseconds))
 
-    def _on_action(self, action: int) -> None:
+    def _hold_ns(self) -> int:
+        return timeout_ns(self.task_state_timeout, HOLD_FRACTION, self.period.period_ns,
+                          HOLD_FALLBACK)
+
+    def _on_action(self, action: int, published_ns: int) -> None:
+        self.period.observe(published_ns)
+        self.pairing.timeout_ns = self._hold_ns()
         self._react(self.pairing.action_received(action, self.clock.now().nanoseconds))
 
     def _react(self, pairings) -> None:

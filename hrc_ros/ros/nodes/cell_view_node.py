@@ -41,14 +41,10 @@ from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_R
 
 T = Parameter.Type
 STOP_ACK_SEC = 1.0
-# Reader histories deep enough for the messages of several epochs between two ticks.
-SAMPLED_DEPTH = 100
-SAMPLED_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SAMPLED_DEPTH,
-                            reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.VOLATILE)
-SAMPLED_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SAMPLED_DEPTH,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Reader histories deep enough for the messages of several epochs between two ticks; volatile,
+# so that any publisher of the state topics matches (qos.STATE_INPUT's reasoning).
+SAMPLED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 PARAMETERS = (
     SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME,
     ParamSpec('refresh_rate', T.DOUBLE, 5.0, 'Hz: how often the inputs are read and, if '
@@ -74,15 +70,15 @@ class CellViewNode(Node):
         self.inputs = Inputs(self)
         self.sampled = SampledInputs(self, self.inputs)
         subscribe = self.sampled.subscribe
-        subscribe(UInt32, 'hrc/epoch', SAMPLED_EVENTS, conv.epoch_from_msg)
-        subscribe(String, 'hrc/action', SAMPLED_EVENTS,
+        subscribe(UInt32, 'hrc/epoch', SAMPLED, conv.epoch_from_msg)
+        subscribe(String, 'hrc/action', SAMPLED,
                   lambda msg: ACTIONS[conv.action_from_msg(msg)])
-        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED_LATCHED, conv.belief_from_msg)
-        subscribe(UInt8, 'hrc/distance_level', SAMPLED_LATCHED, conv.distance_level_from_msg)
-        subscribe(UInt8MultiArray, 'hrc/task_state', SAMPLED_LATCHED, conv.task_state_from_msg)
+        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg)
+        subscribe(UInt8, 'hrc/distance_level', SAMPLED, conv.distance_level_from_msg)
+        subscribe(UInt8MultiArray, 'hrc/task_state', SAMPLED, conv.task_state_from_msg)
         subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
                   lambda msg: conv.keypoints_from_msg(msg, self.robot_frame), latest_only=True)
-        subscribe(DiagnosticArray, '/diagnostics', SAMPLED_EVENTS, self._decision_report,
+        subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._decision_report,
                   name='decision')
         self.refresh = self.create_timer(1.0 / self.params.value('refresh_rate'), self._refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)

@@ -20,7 +20,8 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.policy import PolicyError, default_policy_path, load_policy
-from ...core.protocol import ClockStart, DecisionGate, EpochFollower, Report
+from ...core.protocol import (ClockStart, DecisionGate, EpochFollower, Report, Stamp,
+                              timeout_ns)
 from ...core.selection import SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
@@ -28,6 +29,9 @@ from ..node_support import (CONFIG, DeadlineTimer, Inputs, ParamSpec, StartupErr
                             control_clock, node_setup, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
+INPUT_FRACTION = 0.5   # input_timeout 0: this fraction of the epoch period
+STALE_PERIODS = 3.0    # stale_timeout 0: this many epoch periods
+GRAPH_WAIT_MIN = 3.0   # stale_timeout 0: seconds the clock may wait for DDS discovery at least
 T = Parameter.Type
 PARAMETERS = (
     CONFIG,
@@ -38,10 +42,14 @@ PARAMETERS = (
               + ', '.join(SELECTORS), constraints=' or '.join(SELECTORS)),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
               range=(0.01, 3600.0)),
-    ParamSpec('input_timeout', T.DOUBLE, 0.5, "seconds to wait for an epoch's inputs; below "
-              'epoch_period', range=(0.001, 3600.0), constraints='< epoch_period'),
-    ParamSpec('stale_timeout', T.DOUBLE, 3.0, 'seconds after which an input is stale',
-              range=(0.001, 86400.0)),
+    ParamSpec('input_timeout', T.DOUBLE, 0.0, "seconds to wait for an epoch's inputs; 0 = "
+              f'{INPUT_FRACTION:g} x epoch_period', range=(0.0, 3600.0),
+              constraints='0 (follow the period) or < epoch_period'),
+    ParamSpec('stale_timeout', T.DOUBLE, 0.0, 'seconds after which an input is stale, and the '
+              'longest wait for the graph before epoch 1; 0 = '
+              f'{STALE_PERIODS:g} x epoch_period (and a graph wait of at least '
+              f'{GRAPH_WAIT_MIN:g} s)', range=(0.0, 86400.0),
+              constraints='0 (follow the period) or > epoch_period'),
     ParamSpec('epoch_source', T.STRING, 'timer', "'timer': publish hrc/epoch; 'topic': follow "
               'hrc/epoch (replay)', read_only=True, constraints=' or '.join(EPOCH_SOURCES)),
     ParamSpec('min_epoch_subscribers', T.INTEGER, 1, 'timer mode: subscribers of hrc/epoch '
@@ -57,10 +65,23 @@ def check_parameters(values) -> str | None:
     if 'epoch_source' in values and values['epoch_source'] not in EPOCH_SOURCES:
         return (f'epoch_source must be one of {", ".join(EPOCH_SOURCES)}, got '
                 f'{values["epoch_source"]!r}')
-    period, timeout = values.get('epoch_period'), values.get('input_timeout')
-    if period is not None and timeout is not None and not timeout < period:
-        return f'input_timeout ({timeout} s) must be shorter than epoch_period ({period} s)'
+    period = values.get('epoch_period')
+    timeout, stale = values.get('input_timeout', 0.0), values.get('stale_timeout', 0.0)
+    if period is not None and timeout and not timeout < period:
+        return (f'input_timeout ({timeout} s) must be shorter than epoch_period ({period} s); '
+                f'0 follows the period ({INPUT_FRACTION:g} x)')
+    if period is not None and stale and not stale > period:
+        return (f'stale_timeout ({stale} s) must be longer than epoch_period ({period} s), or '
+                'every input would be stale at every epoch; 0 follows the period '
+                f'({STALE_PERIODS:g} x)')
     return None
+
+
+def timeouts_ns(values) -> tuple[int, int]:
+    """(input_timeout, stale_timeout) in ns: the explicit values, or fractions of the period."""
+    period_ns = int(values['epoch_period'] * 1e9)
+    return (timeout_ns(values['input_timeout'], INPUT_FRACTION, period_ns, 0.0),
+            timeout_ns(values['stale_timeout'], STALE_PERIODS, period_ns, 0.0))
 
 
 class DecisionNode(Node):
@@ -81,10 +102,11 @@ class DecisionNode(Node):
         self.epoch_source = values['epoch_source']
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
-        self.gate = DecisionGate(self.selector.select, int(values['stale_timeout'] * 1e9),
-                                 int(values['input_timeout'] * 1e9),
+        input_ns, stale_ns = timeouts_ns(values)
+        self.gate = DecisionGate(self.selector.select, stale_ns, input_ns,
                                  fresh_at_epoch=self.epoch_source == 'timer')
-        self.clock_start = ClockStart(self._now(), self.gate.stale_timeout_ns,
+        self.stale_timeout = values['stale_timeout']
+        self.clock_start = ClockStart(self._now(), self._graph_wait_ns(),
                                       running=self.epoch_source == 'topic')
         self.epochs = EpochFollower()
         self.last_action: int | None = None
@@ -92,13 +114,13 @@ class DecisionNode(Node):
         self.action_pub = self.create_publisher(String, 'hrc/action', qos.RELIABLE)
         self.inputs = Inputs(self)
         self.input_subscriptions = [
-            self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.LATCHED,
+            self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.STATE_INPUT,
                                   self._guard('belief', conv.belief_from_msg),
                                   self._input('belief')),
-            self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.LATCHED,
+            self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                                   self._guard('task_state', self._task_state_from_msg),
                                   self._input('task_state')),
-            self.inputs.subscribe(UInt8, 'hrc/distance_level', qos.LATCHED,
+            self.inputs.subscribe(UInt8, 'hrc/distance_level', qos.STATE_INPUT,
                                   self._guard('distance_level', conv.distance_level_from_msg),
                                   self._input('distance_level')),
         ]
@@ -111,7 +133,7 @@ class DecisionNode(Node):
             self.epoch_pub = None
             self.epoch_timer = None
             self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                                  self._on_epoch)
+                                  self._on_epoch, with_stamp=True)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
             f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
@@ -121,14 +143,21 @@ class DecisionNode(Node):
     def epoch(self) -> int:
         return self.gate.epoch
 
+    def _graph_wait_ns(self) -> int:
+        """The longest wait for the graph: an explicit stale_timeout, else 3 periods but at
+        least GRAPH_WAIT_MIN (DDS discovery does not follow the epoch period)."""
+        if self.stale_timeout > 0:
+            return self.gate.stale_timeout_ns
+        return max(self.gate.stale_timeout_ns, int(GRAPH_WAIT_MIN * 1e9))
+
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
     def _apply_parameters(self, values) -> None:
         self.selector.set_method(values['selector'])   # qmdp's Q table is built here
-        self.gate.stale_timeout_ns = int(values['stale_timeout'] * 1e9)
-        self.gate.input_timeout_ns = int(values['input_timeout'] * 1e9)
-        self.clock_start.stale_timeout_ns = self.gate.stale_timeout_ns
+        self.gate.input_timeout_ns, self.gate.stale_timeout_ns = timeouts_ns(values)
+        self.stale_timeout = values['stale_timeout']
+        self.clock_start.stale_timeout_ns = self._graph_wait_ns()
         if self.epoch_timer is not None:
             self.epoch_timer.timer_period_ns = int(values['epoch_period'] * 1e9)
         self.deadline.sync(self.gate.deadline)
@@ -143,7 +172,7 @@ class DecisionNode(Node):
             try:
                 return convert(msg)
             except conv.MessageError as exc:
-                self._act(self.gate.malformed(name, str(exc), self._now()))
+                self._act(self.gate.malformed(name, conv.cap(str(exc)), self._now()))
                 raise
         return convert_or_mark
 
@@ -162,8 +191,25 @@ class DecisionNode(Node):
         return (self.epoch_pub.get_subscription_count() >= self.min_epoch_subscribers
                 and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions))
 
+    def _other_sources(self) -> list[str]:
+        """Other publishers of hrc/epoch or hrc/action: a second decision node, say (also one
+        with this node's name: one publisher per topic of this name is this node's own)."""
+        me = (self.get_namespace(), self.get_name())
+        found = []
+        for topic in (self.epoch_pub.topic_name, self.action_pub.topic_name):
+            own = 1
+            for info in self.get_publishers_info_by_topic(topic):
+                if own and (info.node_namespace, info.node_name) == me:
+                    own = 0
+                    continue
+                name = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+                gid = '.'.join(f'{b:02x}' for b in list(info.endpoint_gid)[:12])
+                found.append(f'{name} on {topic} (gid {gid})')
+        return found
+
     def _on_tick(self) -> None:
-        tick = self.clock_start.tick(self._now(), self._graph_ready, self._graph)
+        tick = self.clock_start.tick(self._now(), self._graph_ready, self._graph,
+                                     self._other_sources, self.get_fully_qualified_name())
         if tick.report is not None:
             self.inputs.report(tick.report)
         if tick.start_epoch:
@@ -171,11 +217,11 @@ class DecisionNode(Node):
             self._act(self.gate.begin(k, self._now()))
             self.epoch_pub.publish(conv.epoch_to_msg(k))
 
-    def _on_epoch(self, k: int) -> None:
-        restart = self.epochs.check(k)     # a restarted replay is followed
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        restart = self.epochs.check(k, stamp)     # another source: InputError, dropped
         if restart is not None:
             self.inputs.report(restart)
-        self.epochs.take(k)
+        self.epochs.take(k, stamp)
         self._act(self.gate.begin(k, self._now()))
 
     # -- the decision ----------------------------------------------------------------------
@@ -186,6 +232,8 @@ class DecisionNode(Node):
             publish_ms = (time.perf_counter() - start) * 1e3
             self.last_action = decision.action
             values = {**decision.values(), 'selector': self.selector.method,
+                      'input_timeout_s': self.gate.input_timeout_ns * 1e-9,
+                      'stale_timeout_s': self.gate.stale_timeout_ns * 1e-9,
                       'publish_ms': publish_ms,
                       'policy_file': self.policy.path,
                       'policy_config_sha256': self.policy.config_sha256,

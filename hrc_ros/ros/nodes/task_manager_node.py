@@ -10,11 +10,14 @@ topics, the parameters and the timer.
 
 from __future__ import annotations
 
+from collections import Counter
+
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
 
-from ...core.protocol import TaskEpochs
+from ...core.protocol import (ERROR, InputError, Report, SequenceGaps, Stamp, TaskEpochs,
+                              timeout_ns)
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
@@ -22,6 +25,8 @@ from ..node_support import (CONFIG, STATUS_PERIOD_SEC, DeadlineTimer, Inputs, Pa
                             StartupError, check_array, control_clock, node_setup, run)
 
 T = Parameter.Type
+HOLD_FRACTION = 0.25   # input_timeout 0: this fraction of the observed epoch period
+HOLD_FALLBACK = 0.25   # ... and these seconds until the period is known
 PARAMETERS = (
     CONFIG,
     ParamSpec('initial_task', T.INTEGER_ARRAY, [], '(tp, tc, tx) of the task present at epoch '
@@ -32,9 +37,11 @@ PARAMETERS = (
     ParamSpec('max_queue', T.INTEGER, 100, 'tasks that may wait in the queue; a request '
               'beyond them is refused (dropped with a diagnostic)', read_only=True,
               range=(1, 1000000)),
-    ParamSpec('input_timeout', T.DOUBLE, 0.25, 'seconds after hrc/epoch k to wait for a_{k-1} '
-              'and, for an eligible request, the human response; then dn / refused. Keep it '
-              "below the decision node's input_timeout", range=(0.0, 3600.0)),
+    ParamSpec('input_timeout', T.DOUBLE, 0.0, 'seconds after hrc/epoch k to wait for a_{k-1} '
+              'and, for an eligible request, the human response; then dn / refused. 0 = '
+              f'{HOLD_FRACTION:g} x the epoch period seen on hrc/epoch ({HOLD_FALLBACK:g} s '
+              "before two epochs); keep an explicit value below the decision node's "
+              'input_timeout', range=(0.0, 3600.0)),
 )
 
 
@@ -65,13 +72,15 @@ class TaskManagerNode(Node):
         except ValueError as exc:
             raise StartupError(f'task parameters: {exc}') from None
         self.clock = control_clock(self)
-        self.tasks = TaskEpochs(book, int(values['input_timeout'] * 1e9))
+        self.input_timeout = values['input_timeout']
+        self.tasks = TaskEpochs(book, timeout_ns(self.input_timeout, HOLD_FRACTION, None,
+                                                 HOLD_FALLBACK))
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
         self.inputs = Inputs(self)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              lambda k: self._step(self.tasks.epoch(k, self._now())))
+                              self._on_epoch, with_stamp=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda a, t: self._step(self.tasks.action(a, t, self._now())),
                               with_published=True)
@@ -79,8 +88,11 @@ class TaskManagerNode(Node):
                               conv.human_response_from_msg,
                               lambda yes, t: self._step(self.tasks.answer(yes, t, self._now())),
                               with_published=True)
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.RELIABLE,
-                              self._task_request_from_msg, self._on_task_request)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.ORDERS,
+                              self._task_request_from_msg, self._on_task_request,
+                              with_stamp=True)
+        self.requests = Counter()            # task requests: accepted, refused, lost
+        self.request_gaps = SequenceGaps()
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self.hold = DeadlineTimer(self, lambda now: self._step(self.tasks.expire(now)))
 
@@ -91,15 +103,47 @@ class TaskManagerNode(Node):
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
+    def _hold_ns(self) -> int:
+        """input_timeout, or a fraction of the epoch period the follower sees."""
+        return timeout_ns(self.input_timeout, HOLD_FRACTION, self.tasks.epochs.period.period_ns,
+                          HOLD_FALLBACK)
+
     def _apply_parameters(self, values) -> None:
-        self.tasks.input_timeout_ns = int(values['input_timeout'] * 1e9)
+        self.input_timeout = values['input_timeout']
+        self.tasks.input_timeout_ns = self._hold_ns()
+
+    def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        step = self.tasks.epoch(k, stamp, self._now())   # InputError: another epoch source
+        self.tasks.input_timeout_ns = self._hold_ns()
+        self._step(step)
 
     def _task_request_from_msg(self, msg):
         return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
 
-    def _on_task_request(self, task: tuple) -> None:
-        self.tasks.request(*task)
+    def _on_task_request(self, task: tuple, stamp: Stamp) -> None:
+        self._check_lost_requests(stamp)
+        try:
+            self.tasks.request(*task)
+        except InputError:
+            self.requests['refused'] += 1
+            raise
+        self.requests['accepted'] += 1
         self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
+
+    def _check_lost_requests(self, stamp: Stamp) -> None:
+        """Report requests a writer sent that never arrived (a writer's own keep-last history
+        can overwrite a burst before it is sent): with one publisher on the topic, its
+        sequence numbers must not skip."""
+        last = self.request_gaps.last
+        lost = self.request_gaps.observe(stamp.sequence)
+        if lost and self.count_publishers('hrc/task_request') == 1:
+            self.requests['lost'] += lost
+            self.inputs.report(Report(
+                ERROR, 'task_request input', f'{lost} task request(s) sent on hrc/task_request '
+                "never arrived (the publisher's sequence numbers skip from "
+                f'{last} to {stamp.sequence}): publish orders with a deeper history or '
+                'KEEP_ALL', {'lost': lost, 'lost_total': self.requests['lost']},
+                kind='lost_requests'))
 
     def _step(self, step) -> None:
         for report in step.reports:
@@ -110,7 +154,11 @@ class TaskManagerNode(Node):
         self.hold.sync(self.tasks.deadline)
 
     def _publish_status(self) -> None:
-        self.inputs.publish_health('tasks', self.tasks.status())
+        timeout_s = self.tasks.input_timeout_ns * 1e-9
+        self.inputs.publish_health('tasks', {
+            **self.tasks.status(), 'input_timeout_s': timeout_s,
+            **{f'requests_{fate}': self.requests[fate]
+               for fate in ('accepted', 'refused', 'lost')}})
 
 
 def main(args=None):
