@@ -16,7 +16,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from test_nodes import Graph
 from test_tracking import CAMERA, DT, body
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -91,15 +90,6 @@ def test_a_malformed_driver_array_is_refused_with_the_reason(change, reason):
 
 
 # -- body_tracking_node -----------------------------------------------------------------------
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
-
-
 DRIVER_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 

@@ -9,6 +9,7 @@ reproduce it epoch by epoch.
 """
 
 import csv
+import re
 import subprocess
 import sys
 
@@ -92,7 +93,12 @@ def test_a_body_tracker_stream_drives_the_suite_to_the_same_decisions(run, body_
     actions in every epoch."""
     out, proc = body_tracking_run
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert 'tracker_sim_node exit 0, body_tracking_node exit 0' in proc.stdout
+    stopped = next(line for line in proc.stdout.splitlines() if line.startswith('nodes stopped'))
+    failed = re.findall(r'(\w+) exit (-?[1-9]\d*)', stopped)
+    assert not failed, stopped + ''.join(
+        f'\n--- {name}.log ---\n' + (out / 'logs' / f'{name}.log').read_text()[-3000:]
+        for name, _ in failed)
+    assert 'tracker_sim_node exit 0, body_tracking_node exit 0' in stopped
     counts = {t.topic: t.message_count for t in bag_info(out / 'bag').topics}
     assert counts['/body_tracking_data'] > 100 and counts['/human/joint_states'] > 100
     assert counts['/hrc/action'] == 20

@@ -28,7 +28,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
-from test_nodes import Graph, console_script, spin_until
+from test_nodes import console_script, spin_until
 from visualization_msgs.msg import Marker, MarkerArray
 
 from hrc_ros.core.model import TASK_VARIABLES
@@ -172,15 +172,6 @@ def test_markers_replace_the_picture_and_carry_the_shapes():
 
 
 # -- cell_view_node in-process ----------------------------------------------------------------
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
-
-
 def decision_status(epoch: int, action: str, faults: str) -> DiagnosticArray:
     return conv.diagnostic_array([conv.diagnostic_status(
         'decision: decision', DiagnosticStatus.ERROR, 'fail-safe',
