@@ -126,15 +126,6 @@ def new_epoch_source(graph, follower):
     return graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
 
 
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
-
-
 @pytest.fixture(scope='module')
 def model(default_config):
     return HRCModel(default_config)
