@@ -107,3 +107,14 @@ def policy(default_config, policy_path):
     """The default policy (shipped, or solved once), loaded."""
     from hrc_ros.core.policy import load_policy
     return load_policy(policy_path, default_config)
+
+
+@pytest.fixture
+def graph():
+    """test_nodes.Graph: a Context, its executor and a probe node, closed after the test."""
+    from test_nodes import Graph
+    g = Graph()
+    try:
+        yield g
+    finally:
+        g.close()

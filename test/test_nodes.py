@@ -127,15 +127,6 @@ def new_epoch_source(graph, follower):
     return graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
 
 
-@pytest.fixture
-def graph():
-    g = Graph()
-    try:
-        yield g
-    finally:
-        g.close()
-
-
 @pytest.fixture(scope='module')
 def model(default_config):
     return HRCModel(default_config)
@@ -1018,10 +1009,10 @@ def test_task_manager_drops_a_second_epoch_source(graph):
     made every real epoch 'not follow' and ran begin_epoch(4294967295); an interleaved
     second count is dropped too. The followed source goes on."""
     tasks = Tasks(graph, initial_task=[1, 1, 0], schedule=['5:2,2,1'])
+    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
     for k in (1, 2, 3):
         tasks.epoch(k, 'dn')
-    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))
+    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))   # while the source is alive
     assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
     tasks.send('epoch', stray, conv.epoch_to_msg(2))
     assert tasks.node.book.epoch == 3 and tasks.node.book.pending == []
