@@ -1319,3 +1319,33 @@ def test_state_inputs_take_ordinary_publishers_and_name_an_incompatible_one(grap
                                                       ERROR))
     status = graph.diagnostics('task_manager: human_response input', ERROR)[0]
     assert 'RELIABILITY' in status.message and 'hrc/human_response' in status.message
+
+
+def test_ctrl_c_while_a_node_is_being_built_is_a_clean_stop():
+    """A SIGINT that lands while a node's constructor is still creating entities shuts the
+    context down, and the next create_* raises RCLError ('context is invalid'): tracker_sim
+    once exited 1 that way. It is the shutdown, so run() returns 0; with the context up an
+    error in the constructor still propagates."""
+    from rclpy.node import Node
+
+    from hrc_ros.ros.node_support import run
+
+    class Interrupted(Node):
+        NODE_NAME = 'interrupted_at_start'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            rclpy.shutdown()                                   # what the signal handler does
+            self.create_subscription(String, 'x', lambda m: None, 10)
+
+    class Broken(Node):
+        NODE_NAME = 'broken_at_start'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            raise KeyError('a bug')
+
+    assert run(Interrupted, args=[]) == 0
+    with pytest.raises(KeyError):
+        run(Broken, args=[])
+    assert not rclpy.ok()

@@ -562,6 +562,15 @@ def run(node_class, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
         return 0
+    except Exception:
+        # Ctrl-C while the node is being built: rclpy's signal handler shuts the context
+        # down, and the next entity the constructor creates fails with an RCLError ("context
+        # is invalid"). That is still the shutdown; with the context up, the error is real.
+        interrupted = not rclpy.ok()
+        rclpy.try_shutdown()
+        if not interrupted:
+            raise
+        return 0
     try:
         if last_word:
             executor = SingleThreadedExecutor()
