@@ -27,6 +27,7 @@ setup(
             glob('config/*.yaml') + glob('config/*.xml') + glob('config/*.json')
             + glob('config/*.rviz'))),
         ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
+        ('share/' + PACKAGE + '/policies/pomdp', sorted(glob('policies/pomdp/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib', 'numba'],

@@ -275,6 +275,7 @@ def phase_loop(args, processes: Processes, policy: str) -> dict:
         sensors.start()
         processes.start('decision', [
             script('decision_node'), '--ros-args', '-p', f'policy:={policy}',
+            '-p', f'selector:={args.selector}',
             '-p', f'epoch_period:={args.epoch}', '-p', f'input_timeout:={0.8 * args.epoch}',
             '-p', 'stale_timeout:=5.0'])
         if not spin_until(executor, lambda: bench.epoch > WARMUP_EPOCHS, 60):
@@ -398,6 +399,8 @@ def main(argv=None) -> int:
     parser.add_argument('--lag-seconds', type=float, default=30.0,
                         help='duration of the 1 kHz belief estimator run')
     parser.add_argument('--policy', default='', help="policy file ('' = shipped default)")
+    parser.add_argument('--selector', default='paper',
+                        help="the decision node's selector (e.g. pomdp: its compute figure)")
     parser.add_argument('--skip-lag', action='store_true', help='phase 1 only')
     parser.add_argument('--view', action='store_true',
                         help='phase 1 with cell_view_node running (hrc/markers)')
@@ -415,7 +418,7 @@ def main(argv=None) -> int:
     command = ' '.join(shlex.quote(a) for a in [sys.executable, 'bench/loop_latency.py',
                                                 *(argv if argv is not None else sys.argv[1:])])
     print(f'hrc_ros loop latency (ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}, '
-          f'{os.cpu_count()} CPUs, policy {policy})')
+          f'{os.cpu_count()} CPUs, policy {policy}, selector {args.selector})')
     if args.view_pairs:
         try:
             compare_view(args, processes, policy)

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.duration import Duration
@@ -470,6 +471,7 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, 0.0], '3 values'),
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
+    ('belief_mode', 'posterior', 'does not receive'),
     ('config', '/tmp/other.yaml', 'read-only'),
 ])
 def test_estimator_rejects_bad_parameters(graph, name, value, reason):
@@ -565,6 +567,38 @@ def test_decision_other_selectors(graph, model, policy_path):
     selector = ActionSelector(model, load_policy(policy_path, model.config), method='mls')
     observable = tuple(TASK_1[n] for n in TASK_VARIABLES) + (1,)
     assert dec.run(1)[0] == ACTIONS[selector.select(LOW_MOTIVATION, observable).action]
+
+
+@pytest.mark.parametrize('method', ['pomdp', 'fib'])
+def test_decision_runs_the_shipped_pomdp_policy(graph, model, policy_path, method):
+    """selector:=pomdp (or fib) takes the shipped POMDP policy of the configuration and
+    decides as ActionSelector does; its diagnostics name that file."""
+    dec = Decision(graph, policy_path, selector=method)
+    selector = ActionSelector(model, load_policy(policy_path, model.config), method=method)
+    observable = tuple(TASK_1[n] for n in TASK_VARIABLES) + (1,)
+    expected = ACTIONS[selector.select(LOW_MOTIVATION, observable).action]
+    assert dec.run(2)[:2] == [expected, expected]
+    values = conv.diagnostic_values(dec.status(1))
+    assert values['selector'] == method and values['faults'] == 'none'
+    assert Path(values['pomdp_policy_file']).parent.name == 'pomdp'
+    assert float(values['compute_ms']) < 50.0
+
+
+def test_decision_refuses_pomdp_without_a_pomdp_policy(graph, other_config_policy_path,
+                                                       default_config, tmp_path):
+    """No POMDP policy solved for the configuration: selector:=pomdp is refused at start-up
+    and at run time, with the command that solves one."""
+    from hrc_ros.ros.node_support import StartupError
+    other = tmp_path / 'reduced.yaml'
+    data = default_config.data
+    other.write_text(yaml.safe_dump({**data, 'model': {**data['model'], 'rho': 1, 'sigma': 1}}))
+    with pytest.raises(StartupError, match='--method pomdp'):
+        graph.start(DecisionNode, config=str(other), policy=other_config_policy_path,
+                    selector='pomdp')
+    node = graph.start(DecisionNode, config=str(other), policy=other_config_policy_path)
+    result = node.set_parameters([Parameter('selector', value='fib')])[0]
+    assert not result.successful and '--method pomdp' in result.reason
+    assert node.selector.method == 'paper'
 
 
 def _bad_belief(data, labels=None):

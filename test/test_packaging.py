@@ -185,6 +185,10 @@ def test_colcon_install_ships_the_policies(prefix):
     assert 'default.npz' in shipped
     installed = sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies').glob('*.npz'))
     assert installed == shipped
+    pomdp = sorted(p.name for p in (REPO / 'policies' / 'pomdp').glob('*.npz'))
+    assert {'default.npz', 'fail_safe_unaware.npz'} <= set(pomdp)
+    assert sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies' / 'pomdp')
+                  .glob('*.npz')) == pomdp
 
 
 def test_colcon_install_declares_the_setup_py_scripts(prefix):

@@ -22,7 +22,7 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt
 from ...core.policy import PolicyError, default_policy_path, load_policy
 from ...core.protocol import (ClockStart, DecisionGate, EpochFollower, Report, Stamp,
                               timeout_ns)
-from ...core.selection import SELECTORS, ActionSelector
+from ...core.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, DeadlineTimer, Inputs, ParamSpec, StartupError, config_path,
@@ -89,8 +89,9 @@ class DecisionNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
+        self.selector = None
         self.params, values, self.config, self.model = node_setup(
-            self, PARAMETERS, check_parameters, self._apply_parameters)
+            self, PARAMETERS, self._check_parameters, self._apply_parameters)
         policy_path = values['policy'] or str(default_policy_path(self.config))
         try:
             self.policy = load_policy(policy_path, self.config)
@@ -98,7 +99,10 @@ class DecisionNode(Node):
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
                 f'sha256 {self.config.policy_hash})') from None
-        self.selector = ActionSelector(self.model, self.policy, method=values['selector'])
+        try:   # pomdp and fib read the shipped POMDP policy solved for the configuration
+            self.selector = ActionSelector(self.model, self.policy, method=values['selector'])
+        except PolicyError as exc:
+            raise StartupError(f'selector {values["selector"]}: {exc}') from None
         self.epoch_source = values['epoch_source']
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
@@ -152,6 +156,16 @@ class DecisionNode(Node):
 
     def _now(self) -> int:
         return self.clock.now().nanoseconds
+
+    def _check_parameters(self, values) -> str | None:
+        reason = check_parameters(values)
+        if reason is None and self.selector is not None \
+                and values.get('selector') in POMDP_SELECTORS:
+            try:
+                self.selector.prepare(values['selector'])    # loads the POMDP policy
+            except PolicyError as exc:
+                return f'selector {values["selector"]}: {exc}'
+        return reason
 
     def _apply_parameters(self, values) -> None:
         self.selector.set_method(values['selector'])   # qmdp's Q table is built here
@@ -236,6 +250,8 @@ class DecisionNode(Node):
                       'stale_timeout_s': self.gate.stale_timeout_ns * 1e-9,
                       'publish_ms': publish_ms,
                       'policy_file': self.policy.path,
+                      **({'pomdp_policy_file': getattr(self.selector.pomdp, 'path', '')}
+                         if self.selector.method in POMDP_SELECTORS else {}),
                       'policy_config_sha256': self.policy.config_sha256,
                       'config': self.config.source,
                       'config_sha256': self.config.policy_hash,
