@@ -6,7 +6,8 @@ from setuptools import find_packages, setup
 
 PACKAGE = 'hrc_ros'
 
-NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node']
+NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node',
+         'cell_view_node', 'body_tracking_node', 'tracker_sim_node']
 TOOLS = {
     'hrc-solve': 'hrc_ros.tools.solve:main',
     'hrc-simulate': 'hrc_ros.tools.simulate:main',
@@ -23,8 +24,11 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml', 'README.md']),
-        ('share/' + PACKAGE + '/config', sorted(glob('config/*.yaml') + glob('config/*.xml'))),
+        ('share/' + PACKAGE + '/config', sorted(
+            glob('config/*.yaml') + glob('config/*.xml') + glob('config/*.json')
+            + glob('config/*.rviz'))),
         ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
+        ('share/' + PACKAGE + '/policies/pomdp', sorted(glob('policies/pomdp/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',

@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/loop_latency.py                  # ~75 s
     .venv/bin/python bench/loop_latency.py --seconds 20 --lag-seconds 30 --epoch 0.05
+    .venv/bin/python bench/loop_latency.py --skip-lag --view   # phase 1 with cell_view_node
+    .venv/bin/python bench/loop_latency.py --view-pairs 6 --seconds 20   # paired, ~6 min
 
 Phase 1, the decision loop (separate processes: `belief_estimator_node`, `decision_node`, an
 echo node, and this bench, which plays the skeleton tracker and the task manager):
@@ -16,6 +18,13 @@ echo node, and this bench, which plays the skeleton tracker and the task manager
   floor. Targets: end-to-end p99 within 2 ms of the echo p99;
 - the decision's compute time alone (fault checks and selection, without publishing) is what
   the decision node reports per epoch on /diagnostics (`compute_ms`). Target: p99 < 1 ms.
+- with `--view`, `cell_view_node` runs beside them (it listens to the epoch, the belief, the
+  distance, the task state, the action, every skeleton and /diagnostics, and draws
+  `hrc/markers`, which this bench also subscribes, as RViz would): nothing of the loop waits for
+  it, so the figures must not change. `--view-pairs N` runs phase 1 N times without and N
+  times with it, alternating which comes first, and prints the paired differences (with - without)
+  of the p50 / p99 latencies and of the fail-safe epochs with 95% t intervals: on a shared
+  machine the background load drifts, and pairs cancel the drift.
 
 Phase 2, the belief estimator under load: a fresh `belief_estimator_node` gets joint states at
 1 kHz (and epochs at 1 Hz) for `--lag-seconds`; its per-second status reports the lag, receive
@@ -169,6 +178,12 @@ def percentiles(values, qs=(50, 99)) -> dict:
                                                                           for q in qs}
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (/proc/<pid>/stat)."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
 def rss_kib(pid: int) -> int:
     for line in Path(f'/proc/{pid}/status').read_text().splitlines():
         if line.startswith('VmRSS:'):
@@ -237,6 +252,7 @@ class LoopBench:
 
 
 def phase_loop(args, processes: Processes, policy: str) -> dict:
+    from visualization_msgs.msg import MarkerArray
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('bench_loop', context=context)
@@ -244,20 +260,31 @@ def phase_loop(args, processes: Processes, policy: str) -> dict:
     executor.add_node(node)
     bench = LoopBench(node, executor)
     sensors = SensorThread(node, 100.0, skeleton_every=1)
+    pictures = []
+    node.create_subscription(MarkerArray, 'hrc/markers', lambda m: pictures.append(1),
+                             qos.LATCHED)
     try:
         processes.start('echo', [sys.executable, str(Path(__file__).resolve()), '--echo'])
+        view = None
+        if args.view:
+            view = processes.start('cell_view', [script('cell_view_node')])
+            spin_until(executor, lambda: pictures, 60)
         processes.start('belief_estimator', [script('belief_estimator_node')])
         spin_until(executor, lambda: node.count_subscribers('human/joint_states') > 0
                    and node.count_subscribers('bench/ping') > 0, 60)
         sensors.start()
         processes.start('decision', [
             script('decision_node'), '--ros-args', '-p', f'policy:={policy}',
+            '-p', f'selector:={args.selector}',
             '-p', f'epoch_period:={args.epoch}', '-p', f'input_timeout:={0.8 * args.epoch}',
             '-p', 'stale_timeout:=5.0'])
         if not spin_until(executor, lambda: bench.epoch > WARMUP_EPOCHS, 60):
             raise RuntimeError('the decision loop did not start; see the logs in '
                                f'{processes.log_dir}')
+        cpu_start, wall_start = (cpu_seconds(view.pid) if view else 0.0), time.monotonic()
         spin_until(executor, lambda: False, args.seconds)
+        view_cpu = (100.0 * (cpu_seconds(view.pid) - cpu_start)
+                    / (time.monotonic() - wall_start)) if view else 0.0
     finally:
         sensors.stop_event.set()
         sensors.join()
@@ -267,7 +294,7 @@ def phase_loop(args, processes: Processes, policy: str) -> dict:
         rclpy.try_shutdown(context=context)
     return {'latency': bench.latency_ms, 'epoch_to_action': bench.epoch_to_action_ms,
             'echo': bench.echo_ms, 'compute': bench.compute_ms, 'fail_safe': bench.fail_safe,
-            'sensor_rate': sensors.rate}
+            'sensor_rate': sensors.rate, 'pictures': len(pictures), 'view_cpu': view_cpu}
 
 
 # -- phase 2 ----------------------------------------------------------------------------------
@@ -332,6 +359,38 @@ def phase_lag(args, processes: Processes) -> dict:
             'rate': sensors.rate, 'received': received}
 
 
+def compare_view(args, processes: Processes, policy: str) -> None:
+    """Phase 1 in `args.view_pairs` pairs, without and with cell_view_node (module docstring)."""
+    from scipy import stats
+    metrics = ('input->action p50', 'input->action p99', 'epoch->action p50',
+               'epoch->action p99', 'fail-safe epochs %')
+    rows = {False: [], True: []}
+    view_cpu = []
+    for pair in range(args.view_pairs):
+        for view in ((False, True) if pair % 2 == 0 else (True, False)):
+            loop = phase_loop(argparse.Namespace(**{**vars(args), 'view': view}), processes,
+                              policy)
+            lat, e2a = percentiles(loop['latency']), percentiles(loop['epoch_to_action'])
+            fail_safe = 100.0 * loop['fail_safe'] / max(len(loop['compute']), 1)
+            rows[view].append((lat[50], lat[99], e2a[50], e2a[99], fail_safe))
+            if view:
+                view_cpu.append(loop['view_cpu'])
+            print(f'  pair {pair + 1} {"view   " if view else "no view"}: '
+                  + ', '.join(f'{m} {v:.3f}' for m, v in zip(metrics, rows[view][-1])),
+                  flush=True)
+    without, with_view = np.array(rows[False]), np.array(rows[True])
+    print(f'\nphase 1 with cell_view_node - without, {args.view_pairs} pairs of '
+          f'{args.seconds:.0f} s (mean difference, 95% t interval; ms, fail-safe in %); the '
+          f'view used {np.mean(view_cpu):.1f}% of a core:')
+    for i, metric in enumerate(metrics):
+        diff = with_view[:, i] - without[:, i]
+        half = stats.t.ppf(0.975, len(diff) - 1) * diff.std(ddof=1) / np.sqrt(len(diff))
+        mean = diff.mean()
+        print(f'  {metric:20s} without {without[:, i].mean():8.3f}  with '
+              f'{with_view[:, i].mean():8.3f}  difference {mean:+8.3f} '
+              f'[{mean - half:+.3f}, {mean + half:+.3f}]')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=30.0,
@@ -340,7 +399,14 @@ def main(argv=None) -> int:
     parser.add_argument('--lag-seconds', type=float, default=30.0,
                         help='duration of the 1 kHz belief estimator run')
     parser.add_argument('--policy', default='', help="policy file ('' = shipped default)")
+    parser.add_argument('--selector', default='paper',
+                        help="the decision node's selector (e.g. pomdp: its compute figure)")
     parser.add_argument('--skip-lag', action='store_true', help='phase 1 only')
+    parser.add_argument('--view', action='store_true',
+                        help='phase 1 with cell_view_node running (hrc/markers)')
+    parser.add_argument('--view-pairs', type=int, default=0, metavar='N',
+                        help='phase 1 only, N times without and N times with cell_view_node; '
+                        'paired differences')
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.echo:
@@ -352,7 +418,14 @@ def main(argv=None) -> int:
     command = ' '.join(shlex.quote(a) for a in [sys.executable, 'bench/loop_latency.py',
                                                 *(argv if argv is not None else sys.argv[1:])])
     print(f'hrc_ros loop latency (ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}, '
-          f'{os.cpu_count()} CPUs, policy {policy})')
+          f'{os.cpu_count()} CPUs, policy {policy}, selector {args.selector})')
+    if args.view_pairs:
+        try:
+            compare_view(args, processes, policy)
+        finally:
+            processes.stop_all()
+        print(f'\nlogs: {log_dir}\nreproduce: {command}')
+        return 0
     try:
         loop = phase_loop(args, processes, policy)
         lag = None if args.skip_lag else phase_lag(args, processes)
@@ -363,7 +436,9 @@ def main(argv=None) -> int:
     echo, compute = percentiles(loop['echo']), percentiles(loop['compute'])
     margin = lat[99] - echo[99]
     print(f'\nphase 1: decision loop, {len(loop["latency"])} epochs of {args.epoch} s, joint '
-          f'states at {loop["sensor_rate"]:.0f} Hz, fail-safe epochs {loop["fail_safe"]}')
+          f'states at {loop["sensor_rate"]:.0f} Hz, fail-safe epochs {loop["fail_safe"]}, '
+          + (f'cell_view_node running ({loop["pictures"]} pictures on hrc/markers, '
+             f'{loop["view_cpu"]:.1f}% of a core)' if args.view else 'no view'))
     print(f'  input -> action (task state published -> action received): '
           f'p50 {lat[50]:.3f} ms, p99 {lat[99]:.3f} ms')
     print(f'  echo node round trip (middleware floor):                   '

@@ -1,7 +1,8 @@
-"""Start one hrc_ros cell: belief estimator, decision, task manager and the simulated cell.
+"""Start one hrc_ros cell: belief estimator, decision, task manager, the simulated cell, the view.
 
     ros2 launch hrc_ros hrc.launch.py [params_file:=FILE] [config:=YAML] [policy:=NPZ]
         [selector:=paper|qmdp|mls] [namespace:=cell1] [use_sim:=true|false]
+        [view:=auto|true|false] [body_tracking:=false|true]
 
 The plan (which nodes, which parameters) is `hrc_ros.ros.launch_plan`; this file only turns it
 into launch_ros actions.
@@ -22,7 +23,8 @@ def _cell_nodes(context):
     values = {a.name: LaunchConfiguration(a.name).perform(context) for a in ARGUMENTS}
     plan = cell_nodes(get_package_share_directory(PACKAGE), **values)
     return [Node(package=PACKAGE, executable=node.executable, name=node.name,
-                 namespace=node.namespace, parameters=node.parameters, output='screen')
+                 namespace=node.namespace, parameters=node.parameters,
+                 remappings=node.remappings, output='screen')
             for node in plan]
 
 

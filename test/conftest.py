@@ -111,7 +111,7 @@ def policy(default_config, policy_path):
 
 @pytest.fixture
 def graph():
-    """An rclpy Context with an executor and a probe node (test_nodes.Graph), closed after."""
+    """test_nodes.Graph: a Context, its executor and a probe node, closed after the test."""
     from test_nodes import Graph
     g = Graph()
     try:

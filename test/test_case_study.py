@@ -1,11 +1,15 @@
-"""The main job, `hrc-case-study`, as README command 1 runs it (four node processes over DDS).
+"""The main job, `hrc-case-study`, as README command 1 runs it (node processes over DDS).
 
 Its trajectory must equal the ROS-free closed loop (`hrc_ros.core.simulation.simulate`) for the
 same seed: the nodes run the same core with the same random streams, so any difference is a bug in
-the ROS layer (windowing, epoch alignment, conversions).
+the ROS layer (windowing, epoch alignment, conversions). The same run with the human's motion
+arriving through a body tracker's stream (`--input body_tracking`: the simulated cell's motion
+played as an Azure Kinect stream by tracker_sim_node and read back by body_tracking_node) must
+reproduce it epoch by epoch.
 """
 
 import csv
+import re
 import subprocess
 import sys
 
@@ -22,30 +26,46 @@ from hrc_ros.ros.bag import bag_info
 SEED = 3
 
 
+def hrc_case_study(out, *options):
+    return subprocess.run([sys.executable, '-m', 'hrc_ros.ros.case_study', '--out', str(out),
+                           '--seed', str(SEED), '--epoch-period', '0.5', *options],
+                          capture_output=True, text=True, timeout=180)
+
+
 @pytest.fixture(scope='module')
 def run(tmp_path_factory, ros_domain_id):
     out = tmp_path_factory.mktemp('case_study')
-    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.ros.case_study', '--out', str(out),
-                           '--seed', str(SEED), '--epoch-period', '0.5'],
-                          capture_output=True, text=True, timeout=180)
-    return out, proc
+    return out, hrc_case_study(out)
+
+
+@pytest.fixture(scope='module')
+def body_tracking_run(tmp_path_factory, ros_domain_id):
+    out = tmp_path_factory.mktemp('case_study_body_tracking')
+    return out, hrc_case_study(out, '--input', 'body_tracking')
+
+
+def trajectory(out):
+    with open(out / 'trajectory.csv') as f:
+        return list(csv.DictReader(f))
 
 
 def test_the_main_job_runs_and_says_where_it_wrote(run):
     out, proc = run
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert 'four nodes up' in proc.stdout
+    assert '5 nodes up (cell_sim_node, task_manager_node, belief_estimator_node, ' \
+        'cell_view_node, decision_node)' in proc.stdout
     for name in ('trajectory.csv', 'task_status.png', 'activity.png', 'distance.png',
                  'actions.png', 'belief.png'):
         assert (out / name).stat().st_size > 0
         assert f'wrote {out / name}' in proc.stdout
     assert 'tasks completed 3/3' in proc.stdout
     assert 'cell_sim_node exit 0, task_manager_node exit 0, belief_estimator_node exit 0, ' \
-           'decision_node exit 0' in proc.stdout
+           'cell_view_node exit 0, decision_node exit 0' in proc.stdout
     info = bag_info(out / 'bag')
     counts = {t.topic: t.message_count for t in info.topics}
     assert counts['/hrc/action'] == counts['/hrc/epoch'] == 20
     assert counts['/human/joint_states'] > 100
+    assert counts['/hrc/markers'] >= 20           # the view: at least one picture an epoch
     assert sorted(p.name for p in (out / 'bag' / 'params').glob('*.yaml')) == \
         ['1_hrc_params.yaml', '2_case_study_params.yaml', '3_run_params.yaml']
 
@@ -56,8 +76,7 @@ def test_the_ros_trajectory_equals_the_ros_free_simulation(run):
     config = load_config(default_config_path())
     expected = simulate(HRCModel(config), load_policy(default_policy_path(), config),
                         case_study(), seed=SEED)
-    with open(out / 'trajectory.csv') as f:
-        rows = list(csv.DictReader(f))
+    rows = trajectory(out)
     assert len(rows) == len(expected.rows) == 20
     for got, want in zip(rows, expected.rows):
         k = want['epoch']
@@ -67,3 +86,28 @@ def test_the_ros_trajectory_equals_the_ros_free_simulation(run):
         assert got['action'] == want['action'], k
         np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
                                    [want[f'b{h}'] for h in range(9)], atol=1e-5)
+
+
+def test_a_body_tracker_stream_drives_the_suite_to_the_same_decisions(run, body_tracking_run):
+    """The same human motion through either input: the same states, observations, beliefs and
+    actions in every epoch."""
+    out, proc = body_tracking_run
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    stopped = next(line for line in proc.stdout.splitlines() if line.startswith('nodes stopped'))
+    failed = re.findall(r'(\w+) exit (-?[1-9]\d*)', stopped)
+    assert not failed, stopped + ''.join(
+        f'\n--- {name}.log ---\n' + (out / 'logs' / f'{name}.log').read_text()[-3000:]
+        for name, _ in failed)
+    assert 'tracker_sim_node exit 0, body_tracking_node exit 0' in stopped
+    counts = {t.topic: t.message_count for t in bag_info(out / 'bag').topics}
+    assert counts['/body_tracking_data'] > 100 and counts['/human/joint_states'] > 100
+    assert counts['/hrc/action'] == 20
+    direct = trajectory(run[0])
+    tracked = trajectory(out)
+    assert len(direct) == len(tracked) == 20
+    for a, b in zip(direct, tracked):
+        k = a['epoch']
+        assert [a[n] for n in STATE_VARIABLES] == [b[n] for n in STATE_VARIABLES], k
+        assert (a['O'], a['action']) == (b['O'], b['action']), k
+        np.testing.assert_allclose([float(b[f'b{h}']) for h in range(9)],
+                                   [float(a[f'b{h}']) for h in range(9)], atol=1e-5)

@@ -32,8 +32,8 @@ def test_random_scenarios_are_seeded_and_valid(model):
     assert 0.2 < releases < 0.4
 
 
-@pytest.mark.parametrize('mode', ['bayes', 'table'])
-@pytest.mark.parametrize('selector', SELECTORS)
+@pytest.mark.parametrize('mode', ['bayes', 'table', 'posterior'])
+@pytest.mark.parametrize('selector', SELECTORS + ('pomdp', 'fib'))
 def test_batch_reproduces_simulate_episode_by_episode(model, policy, mode, selector):
     scenarios = random_scenarios(model, 12, 30, seed=3, task_rate=0.35)
     seeds = [human_seed(3, e) for e in range(12)]

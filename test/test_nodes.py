@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.duration import Duration
@@ -470,6 +471,7 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, 0.0], '3 values'),
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
+    ('belief_mode', 'posterior', 'does not receive'),
     ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
      'read configuration file /tmp/no-such-config.yaml'),
 ])
@@ -566,6 +568,38 @@ def test_decision_other_selectors(graph, model, policy_path):
     selector = ActionSelector(model, load_policy(policy_path, model.config), method='mls')
     observable = tuple(TASK_1[n] for n in TASK_VARIABLES) + (1,)
     assert dec.run(1)[0] == ACTIONS[selector.select(LOW_MOTIVATION, observable).action]
+
+
+@pytest.mark.parametrize('method', ['pomdp', 'fib'])
+def test_decision_runs_the_shipped_pomdp_policy(graph, model, policy_path, method):
+    """selector:=pomdp (or fib) takes the shipped POMDP policy of the configuration and
+    decides as ActionSelector does; its diagnostics name that file."""
+    dec = Decision(graph, policy_path, selector=method)
+    selector = ActionSelector(model, load_policy(policy_path, model.config), method=method)
+    observable = tuple(TASK_1[n] for n in TASK_VARIABLES) + (1,)
+    expected = ACTIONS[selector.select(LOW_MOTIVATION, observable).action]
+    assert dec.run(2)[:2] == [expected, expected]
+    values = conv.diagnostic_values(dec.status(1))
+    assert values['selector'] == method and values['faults'] == 'none'
+    assert Path(values['pomdp_policy_file']).parent.name == 'pomdp'
+    assert float(values['compute_ms']) < 50.0
+
+
+def test_decision_refuses_pomdp_without_a_pomdp_policy(graph, other_config_policy_path,
+                                                       default_config, tmp_path):
+    """No POMDP policy solved for the configuration: selector:=pomdp is refused at start-up
+    and at run time, with the command that solves one."""
+    from hrc_ros.ros.node_support import StartupError
+    other = tmp_path / 'reduced.yaml'
+    data = default_config.data
+    other.write_text(yaml.safe_dump({**data, 'model': {**data['model'], 'rho': 1, 'sigma': 1}}))
+    with pytest.raises(StartupError, match='--method pomdp'):
+        graph.start(DecisionNode, config=str(other), policy=other_config_policy_path,
+                    selector='pomdp')
+    node = graph.start(DecisionNode, config=str(other), policy=other_config_policy_path)
+    result = node.set_parameters([Parameter('selector', value='fib')])[0]
+    assert not result.successful and '--method pomdp' in result.reason
+    assert node.selector.method == 'paper'
 
 
 def _bad_belief(data, labels=None):
@@ -978,10 +1012,10 @@ def test_task_manager_drops_a_second_epoch_source(graph):
     made every real epoch 'not follow' and ran begin_epoch(4294967295); an interleaved
     second count is dropped too. The followed source goes on."""
     tasks = Tasks(graph, initial_task=[1, 1, 0], schedule=['5:2,2,1'])
+    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
     for k in (1, 2, 3):
         tasks.epoch(k, 'dn')
-    stray = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))
+    tasks.send('epoch', stray, conv.epoch_to_msg(4294967295))   # while the source is alive
     assert_dropped(graph, tasks.node, 'epoch', 'does not continue the epoch source')
     tasks.send('epoch', stray, conv.epoch_to_msg(2))
     assert tasks.node.book.epoch == 3 and tasks.node.book.pending == []
@@ -1288,3 +1322,33 @@ def test_state_inputs_take_ordinary_publishers_and_name_an_incompatible_one(grap
                                                       ERROR))
     status = graph.diagnostics('task_manager: human_response input', ERROR)[0]
     assert 'RELIABILITY' in status.message and 'hrc/human_response' in status.message
+
+
+def test_ctrl_c_while_a_node_is_being_built_is_a_clean_stop():
+    """A SIGINT that lands while a node's constructor is still creating entities shuts the
+    context down, and the next create_* raises RCLError ('context is invalid'): tracker_sim
+    once exited 1 that way. It is the shutdown, so run() returns 0; with the context up an
+    error in the constructor still propagates."""
+    from rclpy.node import Node
+
+    from hrc_ros.ros.node_support import run
+
+    class Interrupted(Node):
+        NODE_NAME = 'interrupted_at_start'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            rclpy.shutdown()                                   # what the signal handler does
+            self.create_subscription(String, 'x', lambda m: None, 10)
+
+    class Broken(Node):
+        NODE_NAME = 'broken_at_start'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            raise KeyError('a bug')
+
+    assert run(Interrupted, args=[]) == 0
+    with pytest.raises(KeyError):
+        run(Broken, args=[])
+    assert not rclpy.ok()

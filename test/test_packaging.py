@@ -46,7 +46,13 @@ NODE_NAMES = {  # executable -> node name (DESIGN.md, config/hrc_params.yaml)
     'decision_node': 'decision',
     'task_manager_node': 'task_manager',
     'cell_sim_node': 'cell_sim',
+    'cell_view_node': 'cell_view',
+    'body_tracking_node': 'body_tracking',
+    'tracker_sim_node': 'tracker_sim',
 }
+# Nodes that cannot start on hrc_params.yaml alone (no camera pose): the params they also need.
+EXTRA_PARAMS = {'body_tracking_node': 'body_tracking_sim_params.yaml',
+                'tracker_sim_node': 'body_tracking_sim_params.yaml'}
 DOMAIN_ID = random.Random().randint(215, 230)
 BUILD_TIMEOUT = 120
 GRAPH_TIMEOUT = 30.0
@@ -179,6 +185,10 @@ def test_colcon_install_ships_the_policies(prefix):
     assert 'default.npz' in shipped
     installed = sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies').glob('*.npz'))
     assert installed == shipped
+    pomdp = sorted(p.name for p in (REPO / 'policies' / 'pomdp').glob('*.npz'))
+    assert {'default.npz', 'fail_safe_unaware.npz'} <= set(pomdp)
+    assert sorted(p.name for p in (prefix / 'share' / PACKAGE / 'policies' / 'pomdp')
+                  .glob('*.npz')) == pomdp
 
 
 def test_colcon_install_declares_the_setup_py_scripts(prefix):
@@ -276,10 +286,13 @@ def test_installed_node_joins_graph_and_stops_on_sigint(executable, prefix, ros_
                                                         graph_probe, tmp_path):
     name = NODE_NAMES[executable]
     path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
-    params = prefix / 'share' / PACKAGE / 'config' / 'hrc_params.yaml'
+    config = prefix / 'share' / PACKAGE / 'config'
+    params = ['--params-file', str(config / 'hrc_params.yaml')]
+    if executable in EXTRA_PARAMS:
+        params += ['--params-file', str(config / EXTRA_PARAMS[executable])]
     log = tmp_path / f'{executable}.log'
     with open(log, 'w') as output:
-        process = subprocess.Popen([path, '--ros-args', '--params-file', str(params)],
+        process = subprocess.Popen([path, '--ros-args', *params],
                                    env=ros_env, stdin=subprocess.DEVNULL, stdout=output,
                                    stderr=subprocess.STDOUT, start_new_session=True)
     try:
@@ -365,7 +378,8 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
 # --- the launch file ------------------------------------------------------------------------
 
 LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
-LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'namespace', 'use_sim'}
+LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'namespace', 'use_sim', 'view',
+                    'body_tracking'}
 
 
 def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
@@ -374,24 +388,51 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     share = tmp_path / 'share'
     base = str(share / 'config' / 'hrc_params.yaml')
     plan = cell_nodes(share)
-    assert {(n.executable, n.name) for n in plan} == set(NODE_NAMES.items())
-    assert (plan[-1].executable, plan[-1].name) == ('cell_sim_node', 'cell_sim')
-    assert len(plan) == 4 and all(n.namespace == '' for n in plan)
+    # the default: the decision nodes, the view and the simulated cell, last
+    assert [(n.executable, n.name) for n in plan] == [
+        ('belief_estimator_node', 'belief_estimator'), ('decision_node', 'decision'),
+        ('task_manager_node', 'task_manager'), ('cell_view_node', 'cell_view'),
+        ('cell_sim_node', 'cell_sim')]
+    assert all(n.namespace == '' and n.remappings == [] for n in plan)
     assert all(n.parameters == [base, {}] for n in plan)   # nothing set: the params file rules
     plan = cell_nodes(share, params_file='extra.yaml', namespace='cell1', config='c.yaml',
                       policy='p.npz', selector='qmdp', use_sim='false')
     by_name = {n.name: n for n in plan}
-    assert set(by_name) == set(NODE_NAMES.values()) - {'cell_sim'}
+    # a real cell: no simulated human, and the view only when asked for
+    assert set(by_name) == {'belief_estimator', 'decision', 'task_manager'}
     assert all(n.namespace == 'cell1' for n in plan)
     assert by_name['decision'].parameters == [base, 'extra.yaml', {
         'config': 'c.yaml', 'policy': 'p.npz', 'selector': 'qmdp'}]
     assert by_name['task_manager'].parameters == [base, 'extra.yaml', {'config': 'c.yaml'}]
+    assert {n.name for n in cell_nodes(share, use_sim='false', view='true')} == \
+        {'belief_estimator', 'decision', 'task_manager', 'cell_view'}
+    assert 'cell_view' not in {n.name for n in cell_nodes(share, view='false')}
     # the shipped params file named again is not loaded twice
     assert cell_nodes(share, params_file=base)[0].parameters == [base, {}]
-    with pytest.raises(ValueError, match='selector'):
-        cell_nodes(share, selector='greedy')
-    with pytest.raises(ValueError, match='use_sim'):
-        cell_nodes(share, use_sim='maybe')
+    for name, bad in (('selector', 'greedy'), ('use_sim', 'maybe'), ('view', 'yes'),
+                      ('body_tracking', 'on')):
+        with pytest.raises(ValueError, match=name):
+            cell_nodes(share, **{name: bad})
+
+
+def test_launch_plan_reads_human_motion_from_a_body_tracker(tmp_path):
+    """body_tracking:=true: body_tracking_node feeds human/*; with the simulated cell its motion
+    goes to tracker_sim_node (remapped), with the synthetic camera's pose."""
+    from hrc_ros.ros.launch_plan import cell_nodes
+    share = tmp_path / 'share'
+    base = str(share / 'config' / 'hrc_params.yaml')
+    sim = str(share / 'config' / 'body_tracking_sim_params.yaml')
+    plan = {n.name: n for n in cell_nodes(share, body_tracking='true', params_file='mine.yaml')}
+    assert set(plan) == {'belief_estimator', 'decision', 'task_manager', 'cell_view',
+                         'body_tracking', 'tracker_sim', 'cell_sim'}
+    assert plan['cell_sim'].remappings == [('human/joint_states', 'sim/human/joint_states'),
+                                           ('human/skeleton', 'sim/human/skeleton')]
+    assert all(n.remappings == [] for name, n in plan.items() if name != 'cell_sim')
+    assert all(n.parameters == [base, sim, 'mine.yaml', {}] for n in plan.values())
+    real = {n.name: n for n in cell_nodes(share, body_tracking='true', use_sim='false',
+                                           params_file='camera.yaml')}
+    assert set(real) == {'belief_estimator', 'decision', 'task_manager', 'body_tracking'}
+    assert real['body_tracking'].parameters == [base, 'camera.yaml', {}]
 
 
 def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
@@ -428,12 +469,13 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
     assert [(d.args[0], d.kwargs['default_value'], tuple(d.kwargs.get('choices', ())))
             for d in declared] == [(a.name, a.default, a.choices) for a in ARGUMENTS]
     values = {a.name: a.default for a in ARGUMENTS}
-    values.update(namespace='cell2', selector='mls', use_sim='false')
+    values.update(namespace='cell2', selector='mls', body_tracking='true')
     nodes = opaque.kwargs['function'](values)
     plan = cell_nodes(tmp_path, **values)
     assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
-             n.kwargs['namespace'], n.kwargs['parameters']) for n in nodes] == \
-        [(PACKAGE, p.executable, p.name, p.namespace, p.parameters) for p in plan]
+             n.kwargs['namespace'], n.kwargs['parameters'], n.kwargs['remappings'])
+            for n in nodes] == \
+        [(PACKAGE, p.executable, p.name, p.namespace, p.parameters, p.remappings) for p in plan]
 
 
 # --- the ROS parameter files against DESIGN.md's table --------------------------------------
@@ -513,7 +555,8 @@ def check_type(kind: str, rcl_type: str, value) -> None:
         assert len(value) == int(size[:-1])
 
 
-@pytest.mark.parametrize('name', ['hrc_params.yaml', 'case_study_params.yaml'])
+@pytest.mark.parametrize('name', ['hrc_params.yaml', 'case_study_params.yaml',
+                                  'body_tracking_sim_params.yaml'])
 def test_params_file_parses(name):
     document = yaml.safe_load((REPO / 'config' / name).read_text())
     design = design_parameters()
@@ -555,6 +598,24 @@ def test_case_study_params_add_the_schedule():
         assert list(value) == expected
     assert effective['cell_sim']['initial_emotions'][1] == [0, 0]
     assert effective['cell_sim']['initial_distance'][1] == 1
+
+
+def test_body_tracking_sim_params_give_both_camera_nodes_one_pose():
+    from hrc_ros.core.tracking import RigidTransform
+    design = design_parameters()
+    effective = effective_parameters(REPO / 'config' / 'hrc_params.yaml',
+                                     REPO / 'config' / 'body_tracking_sim_params.yaml')
+    poses = []
+    for node in ('body_tracking', 'tracker_sim'):
+        pose = []
+        for name in ('camera_frame', 'camera_translation', 'camera_rotation'):
+            rcl_type, value = effective[node][name]
+            check_type(design[node][name][0], rcl_type, value)
+            pose.append(value if isinstance(value, str) else list(value))
+        poses.append(pose)
+    assert poses[0] == poses[1]
+    RigidTransform.from_parameters(poses[0][1], poses[0][2])   # a unit quaternion
+    assert effective['cell_sim']['sensor_rate'][1] == 30.0
 
 
 # --- .ci/run ---------------------------------------------------------------------------------

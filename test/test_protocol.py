@@ -7,7 +7,8 @@ import pytest
 from hrc_ros.core.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
-                                   SILENT_FALLBACK_S, PeriodEstimate, SequenceGaps, Stamp,
+                                   SILENT_FALLBACK_S, SILENT_MIN_S, PeriodEstimate, SequenceGaps,
+                                   Stamp,
                                    timeout_ns,
                                    DecisionGate, EpochFollower, EstimatorEpochs, InputError,
                                    TaskEpochs)
@@ -79,6 +80,16 @@ def test_a_restarted_or_new_source_is_followed_once_the_old_one_fell_silent():
     assert epochs.silence_ns == 2500 * MS
     new = follow(epochs, 57, 20_000, sequence=3)               # a replay started mid-count
     assert 'new epoch source at epoch 57' in new.message and epochs.last == 57
+
+
+def test_silence_is_never_shorter_than_a_second():
+    """Fast epochs (50 ms) and a scheduling stall: 2.5 periods would be 125 ms."""
+    epochs = EpochFollower()
+    for k in (1, 2, 3):
+        follow(epochs, k, 50 * k)
+    assert epochs.silence_ns == SILENT_MIN_S * 1e9
+    with pytest.raises(InputError):
+        epochs.check(4294967295, signal(4294967295, 800 * MS, 1))
 
 
 def test_without_sequence_numbers_the_count_alone_decides():

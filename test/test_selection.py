@@ -111,7 +111,7 @@ def test_point_mass_beliefs_give_the_policy_action(model, solved):
     for i in rng.integers(0, model.n_states, size=150):
         state = model.state(int(i))
         b = np.eye(9)[3 * state[0] + state[1]]
-        for method in SELECTORS:
+        for method in ('paper', 'qmdp', 'mls'):    # pomdp and fib are not the MDP's policy
             assert selector.select(b, state[2:], method).action == solved.policy[i], method
 
 

@@ -38,6 +38,17 @@ evidence alone, b' = l / sum(l) (the belief `initial` would give under a uniform
 than return NaN. The same fallback applies whenever the normaliser is below the smallest normal
 float, where the quotient would lose precision.
 
+Evidence of the observable transition (mode ``posterior``). Acting reveals more than O': the
+human's answer to an eligible request depends on em and the distance move on ea, both at the
+epoch's start (MODEL.md 3). With their likelihood e(h) = P(x' | x, h, a)
+(`HRCModel.transition_likelihood`) the exact posterior is
+
+    b'(h') ∝ L[O, h'] sum_h b(h) e(h) E_a[h, h'],
+
+which is what the POMDP policy plans with (`pomdp`). In ``posterior`` mode `update` and
+`update_many` take e as `evidence`; ``bayes`` and ``table`` ignore it (MODEL.md 6 as
+written), and ``posterior`` without evidence is ``bayes``.
+
 `update_many` is the same update for a batch of beliefs (the batch evaluator's episodes).
 
 All functions are pure: they return new arrays and never modify their inputs.
@@ -96,6 +107,14 @@ def _check_table(table) -> np.ndarray:
         raise ValueError(f'table column h={h} is zero under every O: the bayes likelihood '
                          'is undefined')
     return t
+
+
+def _checked_evidence(evidence) -> np.ndarray:
+    e = np.asarray(evidence, dtype=float)
+    if e.shape != (N_HIDDEN,) or not np.all(np.isfinite(e)) or e.min() < 0.0:
+        raise ValueError('evidence must be 9 finite non-negative likelihoods P(x\' | x, h, a), '
+                         f'got {evidence!r}')
+    return e
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -171,13 +190,16 @@ class BeliefFilter:
             return self.table[o].copy() if lik is None else self._table_vector(lik)
         return self._evidence_only[o].copy() if lik is None else lik / lik.sum()
 
-    def update(self, belief, action, observation) -> np.ndarray:
-        """b' after taking `action` (name or index) and then observing `observation`."""
+    def update(self, belief, action, observation, evidence=None) -> np.ndarray:
+        """b' after taking `action` (name or index) and then observing `observation`;
+        `evidence` (9,): P(x' | x, h, a), used in ``posterior`` mode."""
         b = validate_belief(belief)
         a = action_index(action)
         o, lik = self._observation(observation)
         if self.mode == 'table':
             return self.table[o].copy() if lik is None else self._table_vector(lik)
+        if evidence is not None and self.mode == 'posterior':
+            b = b * _checked_evidence(evidence)
         if lik is None:
             post = b @ self._predict_correct[a, o]
         else:
@@ -189,14 +211,18 @@ class BeliefFilter:
         post /= total
         return post
 
-    def update_many(self, beliefs, actions, observations) -> np.ndarray:
+    def update_many(self, beliefs, actions, observations, evidence=None) -> np.ndarray:
         """`update` of a batch: beliefs (E, 9), action indices (E,), observations O (E,) in
-        1..3; the same arithmetic, and the same restart from the evidence where the
-        normaliser vanishes. Inputs are trusted (no per-row validation: a hot path)."""
+        1..3, `evidence` (E, 9) or None; the same arithmetic, and the same restart from the
+        evidence where the normaliser vanishes. Inputs are trusted (no per-row validation: a
+        hot path)."""
         o = np.asarray(observations, dtype=np.intp) - 1
         if self.mode == 'table':
             return self.table[o].copy()
-        post = np.einsum('eh,ehk->ek', np.asarray(beliefs, dtype=float),
+        beliefs = np.asarray(beliefs, dtype=float)
+        if evidence is not None and self.mode == 'posterior':
+            beliefs = beliefs * evidence
+        post = np.einsum('eh,ehk->ek', beliefs,
                          self._predict_correct[np.asarray(actions, dtype=np.intp), o])
         total = post.sum(axis=1, keepdims=True)
         lost = total[:, 0] < _TINY

@@ -43,7 +43,7 @@ import yaml
 EMOTION_GROUPS = ('base', 'motivate', 'request')
 ALPHAS = tuple(f'alpha{i}' for i in range(1, 14))
 BETAS = tuple(f'beta{i}' for i in range(1, 7))
-BELIEF_MODES = ('table', 'bayes')
+BELIEF_MODES = ('table', 'bayes', 'posterior')
 
 # The schema: section -> key -> kind. Kinds are checked by _check_* below.
 _SCHEMA: dict[str, dict[str, str]] = {

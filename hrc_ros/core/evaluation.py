@@ -6,9 +6,11 @@ random numbers: episode e of every selector sees the same scenario (initial (em,
 releases) and the same uniform stream of its simulated human (`cell.SimulatedHuman` with seed
 ``(seed, e)``), so differences between selectors come from their decisions, not from luck.
 
-Selectors: ``paper`` (the weighted vote), ``qmdp``, ``mls`` and ``mdp``, the policy action of
-the *true* state: a full-information bound that no belief-based selector should beat on
-average. Every selector is subject to the fail-safe (d = 0 -> dn) unless `--no-fail-safe`.
+Selectors: ``paper`` (the weighted vote), ``qmdp``, ``mls``, ``pomdp`` and ``fib`` (the solved
+POMDP's alpha vectors and fast informed bound, `pomdp.AlphaPolicy`'s batch forms) and ``mdp``,
+the policy action of the *true* state: a full-information bound that no belief-based selector
+should beat on average. Every selector is subject to the fail-safe (d = 0 -> dn) unless
+`--no-fail-safe`.
 
 Metrics per episode (then mean and a 95% normal confidence interval over episodes):
 
@@ -21,7 +23,8 @@ Metrics per episode (then mean and a 95% normal confidence interval over episode
 For speed the episodes run side by side: `BatchSimulator` is the epoch protocol of
 `simulator.simulate` written over arrays of episodes (task steps as lookup tables, the human's
 draws by inverse CDF from the same uniforms, belief and selection as array arithmetic with the
-same tie rules as `selection.ActionSelector`, the belief by `BeliefFilter.update_many`). The
+same tie rules as `selection.ActionSelector`, the belief by `BeliefFilter.update_many`, given the
+epoch's observable transition as evidence in ``posterior`` mode). The
 test suite checks that it reproduces `simulate` episode by episode. qmdp uses the full Q table
 of one Bellman step on the solved value (`FactoredBellman.q`), computed once.
 """
@@ -38,7 +41,7 @@ from .cell import UNIFORMS_PER_EPOCH, sample_index
 from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, SAFETY_ORDER,
                     TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
 from .policy import policy_arrays
-from .selection import Q_TOLERANCE, VOTE_TOLERANCE
+from .selection import POMDP_SELECTORS, Q_TOLERANCE, VOTE_TOLERANCE
 from .simulation import SIMULATION_SELECTORS, Scenario, case_study
 
 METRICS = (
@@ -145,7 +148,7 @@ class BatchSimulator:
     """`simulator.simulate` over an array of episodes (see the module docstring)."""
 
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
-                 fail_safe: bool = True, world: HRCModel | None = None):
+                 fail_safe: bool = True, pomdp=None, world: HRCModel | None = None):
         self.policy, value = policy_arrays(policy, value)
         self.model = model
         world = model if world is None else world
@@ -187,6 +190,7 @@ class BatchSimulator:
         self.observation_cdf = np.cumsum(likelihood, axis=0).T
         self.safety = np.array(SAFETY_ORDER)
         self._q = None
+        self.pomdp = pomdp
 
     @property
     def q_table(self) -> np.ndarray:
@@ -197,6 +201,15 @@ class BatchSimulator:
             from .solver import FactoredBellman
             self._q = np.ascontiguousarray(FactoredBellman(self.model).q(self.value).T)
         return self._q
+
+    @property
+    def alphas(self):
+        """The POMDP policy's `AlphaPolicy` (pomdp and fib; the shipped one for the
+        configuration when none was given)."""
+        if self.pomdp is None:
+            from .pomdp_policy import load_shipped_pomdp_policy
+            self.pomdp = load_shipped_pomdp_policy(self.model.config)
+        return getattr(self.pomdp, 'policy', self.pomdp)
 
     # -- selection, vectorised with ActionSelector's tie rules ---------------------------
     def _first_safe(self, tied: np.ndarray) -> np.ndarray:
@@ -247,6 +260,8 @@ class BatchSimulator:
             raise ValueError('the scenarios of one batch must have the same number of epochs')
         if selector == 'qmdp' and self.value is None:     # fail early, before any work
             raise ValueError("selector 'qmdp' needs the solved value function")
+        if selector in POMDP_SELECTORS:
+            self.alphas                                    # noqa: B018 - load it now
         model, n = self.model, len(scenarios)
         rows = np.arange(n)
         initial = np.array([s.initial_state for s in scenarios], dtype=np.int64)
@@ -321,6 +336,10 @@ class BatchSimulator:
                 action = self._paper(belief, column)
             elif selector == 'mls':
                 action = self._mls(belief, column).astype(np.intp)
+            elif selector == 'pomdp':
+                action = self.alphas.pomdp_many(belief, column)
+            elif selector == 'fib':
+                action = self.alphas.fib_many(belief, column)
             else:
                 action = self._qmdp(belief, column)
             if exploring is not None:
@@ -348,6 +367,7 @@ class BatchSimulator:
                                     ('accepted', np.where(eligible, accepted, -1))):
                     kept[name][:, k - 1] = value
             delta = sample_index(self.delta_cdf[ea], u[:, 1])
+            d_start = d
             d = self.next_d[action, d, delta]
             em = sample_index(self.em_cdf[action, em], u[:, 2])
             ea = sample_index(self.ea_cdf[action, ea], u[:, 3])
@@ -358,7 +378,9 @@ class BatchSimulator:
             complete[rows[done], current[done]] = k
             current[done] = -1
             y = y_next
-            belief = self.filter.update_many(belief, action, observation)
+            evidence = (model.transition_likelihood(action, eligible, accepted, d_start, d)
+                        if self.mode == 'posterior' else None)
+            belief = self.filter.update_many(belief, action, observation, evidence)
 
         completed = complete > 0
         latency = np.where(completed, complete - task[:, :, 0] + 1, 0)
@@ -427,10 +449,27 @@ def format_table(summaries: dict, differences: dict) -> str:
     return '\n'.join(lines)
 
 
+def format_paired(results: dict, baseline: str) -> str:
+    """Per selector, the paired (same episodes) discounted-cost difference to `baseline`:
+    mean, 95% interval, and whether the interval excludes zero."""
+    reference = results[baseline]
+    lines = [f'paired differences of the discounted cost to {baseline} (same episodes, 95%):']
+    for selector, result in results.items():
+        if selector == baseline:
+            continue
+        d = paired_difference(result, reference)
+        verdict = ('higher' if d['low'] > 0 else 'lower' if d['high'] < 0
+                   else 'not distinguishable')
+        lines.append(f'  {selector:<9} - {baseline:<9} {d["mean"]:+8.3f} ± {d["half_width"]:.3f}'
+                     f'  [{d["low"]:+.3f}, {d["high"]:+.3f}]  {verdict}')
+    return '\n'.join(lines)
+
+
 def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
-             progress=None, scenario: str = 'random', world: HRCModel | None = None) -> dict:
+             progress=None, scenario: str = 'random', pomdp=None,
+             world: HRCModel | None = None) -> dict:
     """selector -> BatchResult over the same seeded episodes (common random numbers).
 
     `world`: the model the human and the costs are drawn from when it is not the one the
@@ -441,7 +480,8 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
     scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate)
-    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, world=world)
+    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, pomdp=pomdp,
+                         world=world)
     results = {}
     for selector in selectors:
         t0 = time.perf_counter()

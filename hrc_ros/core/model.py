@@ -228,6 +228,29 @@ class HRCModel:
         """P(accepted | s, a): p_accept[em] for an eligible request, else 0."""
         return np.where(request_eligible(action, tp, tx, ty), self.config.p_accept[em], 0.0)
 
+    @cached_property
+    def distance_matrices(self) -> np.ndarray:
+        """(8, 3, 4, 4): `distance_matrix` of every action."""
+        out = np.stack([self.distance_matrix(a) for a in range(len(ACTIONS))])
+        out.flags.writeable = False
+        return out
+
+    def transition_likelihood(self, action, eligible, accepted, d, d_next) -> np.ndarray:
+        """P(the epoch's observable outcome | h, x, a) as a function of the epoch-start h,
+        shape (..., 9): the human's answer to an eligible request (p_accept[em] or its
+        complement; 1 for anything else) times the distance move P(d' | d, ea, a). Given
+        those two the task step is deterministic (MODEL.md 3), so this is P(x' | x, h, a):
+        the evidence about h that acting reveals besides O' (the exact posterior's factor,
+        `BeliefFilter.update(..., evidence=)`). Broadcasts over its array arguments."""
+        h = np.arange(N_HIDDEN)
+        p = self.config.p_accept[h // 3]
+        eligible = np.asarray(eligible, dtype=bool)[..., None]
+        accepted = np.asarray(accepted, dtype=bool)[..., None]
+        answer = np.where(eligible, np.where(accepted, p, 1.0 - p), 1.0)
+        move = self.distance_matrices[np.asarray(action)[..., None], h % 3,
+                                      np.asarray(d)[..., None], np.asarray(d_next)[..., None]]
+        return answer * move
+
     # -- actions -------------------------------------------------------------------------
     @cached_property
     def availability(self) -> np.ndarray:

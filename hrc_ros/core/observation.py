@@ -33,6 +33,9 @@ import numpy as np
 
 from .model import DISTANCE_LEVELS, OBSERVATION_LEVELS
 
+# The six arm joints of the paper's observation set (shoulder, elbow, hand/wrist, left and
+# right), REP-155 style names: the joint names of `human/joint_states`.
+HUMAN_JOINTS = ('l_shoulder', 'r_shoulder', 'l_elbow', 'r_elbow', 'l_wrist', 'r_wrist')
 # Node defaults of DESIGN.md (rad/s and metres).
 DEFAULT_VELOCITY_THRESHOLDS = (0.3, 0.8)
 DEFAULT_SAFETY_RADII = (0.2, 0.6, 1.2)
@@ -122,6 +125,17 @@ def distance_level(keypoints, robot_point=(0.0, 0.0, 0.0), radii=DEFAULT_SAFETY_
     return int(np.searchsorted(r, rmin, side='right'))
 
 
+def distance_band(d: int, radii=DEFAULT_SAFETY_RADII) -> tuple[float, float]:
+    """The closest distances (lo, hi) that the synthesized motion of level d keeps to: d's band
+    between its radii (d = 3: up to OUTER_BAND_WIDTH beyond the middle radius), less
+    BAND_MARGIN of its width at either edge, so no rounding at an edge can flip the level."""
+    d = _level_arg('d', d, DISTANCE_LEVELS)
+    r = _increasing_positive('radii', radii, 3)
+    edges = (0.0, r[0], r[1], r[2], r[2] + OUTER_BAND_WIDTH)
+    pad = BAND_MARGIN * (edges[d + 1] - edges[d])
+    return float(edges[d] + pad), float(edges[d + 1] - pad)
+
+
 def _inside(lo: float, hi: float, rng: np.random.Generator) -> float:
     """A uniform draw strictly inside (lo, hi), BAND_MARGIN of the width from either edge."""
     pad = BAND_MARGIN * (hi - lo)
@@ -161,17 +175,15 @@ def synthesize_skeleton(d: int, radii=DEFAULT_SAFETY_RADII, robot_point=(0.0, 0.
     u.o > 0 (pointing away from the robot), so ||r u + o||^2 = r^2 + 2 r u.o + |o|^2 > r^2 and
     the closest distance is exactly r. The keypoint order is shuffled.
     """
-    d = _level_arg('d', d, DISTANCE_LEVELS)
+    lo, hi = distance_band(d, radii)
     if isinstance(n_keypoints, bool) or not isinstance(n_keypoints, (int, np.integer)) \
             or n_keypoints < 1:
         raise ValueError(f'n_keypoints must be an integer >= 1, got {n_keypoints!r}')
-    r = _increasing_positive('radii', radii, 3)
     p = _finite_array('robot_point', robot_point)
     if p.shape != (3,):
         raise ValueError(f'robot_point must have shape (3,), got {p.shape}')
     rng = np.random.default_rng() if rng is None else rng
-    edges = (0.0, r[0], r[1], r[2], r[2] + OUTER_BAND_WIDTH)
-    distance = _inside(edges[d], edges[d + 1], rng)
+    distance = float(rng.uniform(lo, hi))
     u = rng.normal(size=3)
     u /= np.linalg.norm(u)
     closest = distance * u

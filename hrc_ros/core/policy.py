@@ -161,24 +161,29 @@ def policy_arrays(policy, value=None) -> tuple[np.ndarray, np.ndarray | None]:
     return np.asarray(policy), (None if value is None else np.asarray(value, dtype=float))
 
 
-def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
-    path = Path(path)
-    meta = {
+def policy_meta(config: Config, **fields) -> dict:
+    """The meta every policy file carries (the configuration, its hash, gamma, eta, the solver
+    version, the creation time, the actions) and `fields`."""
+    return {
         'config': config.data,
         'config_source': config.source,
         'config_sha256': config.policy_hash,
         'gamma': config.gamma,
         'eta': config.eta,
-        'method': result.method,
-        'iterations': result.iterations,
-        'sweeps': result.iterations if result.method == 'value_iteration' else None,
-        'residual': result.residual,
-        'converged': result.converged,
+        **fields,
         'solver_version': SOLVER_VERSION,
         'created': _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds'),
-        'n_states': int(result.policy.size),
         'actions': list(ACTIONS),
     }
+
+
+def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
+    path = Path(path)
+    meta = policy_meta(
+        config, method=result.method, iterations=result.iterations,
+        sweeps=result.iterations if result.method == 'value_iteration' else None,
+        residual=result.residual, converged=result.converged,
+        n_states=int(result.policy.size))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + '.tmp.npz')
     np.savez_compressed(tmp, policy=result.policy.astype(np.int8),
@@ -239,16 +244,22 @@ def peek_policy(path: str | Path, config: Config) -> dict:
 
 def check_policy(policy: Policy, config: Config, states: int | None = None) -> None:
     """Refuse a policy solved for another configuration."""
-    expected = config.policy_hash
-    if policy.config_sha256 != expected:
-        raise PolicyError(
-            f'policy {policy.path} was solved for configuration {policy.config_sha256[:12]} '
-            f'({policy.meta.get("config_source", "unknown source")}), but the configuration '
-            f'in use ({config.source}) is {expected[:12]}. Solve a policy for it: '
-            f'hrc-solve --config {config.source} -o <policy.npz>, or pass the matching '
-            'configuration.')
+    check_config_hash(policy.path, policy.meta, config)
     n = HRCModel(config).n_states
     size = policy.policy.size if states is None else states
     if size != n:
         raise PolicyError(f'policy {policy.path} has {size} states, the '
                           f'configuration has {n}. Solve it again with hrc-solve.')
+
+
+def check_config_hash(path, meta: dict, config: Config, solve: str = '') -> None:
+    """Refuse a policy file (its `meta`) solved for another configuration than `config`."""
+    expected = config.policy_hash
+    found = meta['config_sha256']
+    if found != expected:
+        raise PolicyError(
+            f'policy {path} was solved for configuration {str(found)[:12]} '
+            f'({meta.get("config_source", "unknown source")}), but the configuration '
+            f'in use ({config.source}) is {expected[:12]}. Solve a policy for it: '
+            f'hrc-solve --config {config.source}{solve} -o <policy.npz>, or pass the matching '
+            'configuration.')

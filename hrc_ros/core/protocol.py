@@ -115,6 +115,7 @@ class Stamp:
 
 
 SILENT_PERIODS = 2.5        # the followed epoch source is gone after this many silent periods
+SILENT_MIN_S = 1.0          # ... and never sooner than this (a scheduling stall is no silence)
 SILENT_FALLBACK_S = 3.0     # ... or these seconds while the period is unknown
 
 
@@ -127,10 +128,11 @@ class EpochFollower:
     next one and the sequence has moved on (the writer's own refused message in between).
     Anything else is another source (a stray `ros2 topic pub`, a second decision node) and is
     refused with `InputError`, so one stray epoch of 4294967295 cannot stop the cell. When the
-    followed source has been silent for `SILENT_PERIODS` epoch periods (it stopped or
-    restarted), the next source is followed from where it is: a count that starts again at 1
-    is a restart (a WARN report), another one a new source. Without sequence numbers the rule
-    falls back to the count alone: the next epoch, or 1 after silence.
+    followed source has been silent for `SILENT_PERIODS` epoch periods, and at least
+    `SILENT_MIN_S` (it stopped or restarted), the next source is followed from where it is:
+    a count that starts again at 1 is a restart (a WARN report), another one a new source.
+    Without sequence numbers the rule falls back to the count alone: the next epoch, or 1
+    after silence.
     """
 
     def __init__(self):
@@ -142,7 +144,8 @@ class EpochFollower:
 
     @property
     def silence_ns(self) -> int:
-        return timeout_ns(0.0, SILENT_PERIODS, self.period.period_ns, SILENT_FALLBACK_S)
+        return max(timeout_ns(0.0, SILENT_PERIODS, self.period.period_ns, SILENT_FALLBACK_S),
+                   int(SILENT_MIN_S * 1e9))
 
     def _continues(self, k: int, stamp: Stamp) -> bool:
         if self._sequence is None or stamp.sequence is None:

@@ -21,6 +21,13 @@ Selectors (`SELECTORS`):
   expected Q (8,). Needs `value`.
 - ``mls`` (most likely state): the policy action of h* = argmax_h b(h); ties in h (within 1e-12)
   go to the lowest h, i.e. the calmer, less motivated human. scores = one-hot of the action.
+- ``pomdp``: the action of the best alpha vector of the solved POMDP (`pomdp`,
+  docs/POMDP.md) for (x, b); vectors within 1e-9 * max(1, |best|) of the best go to the first
+  action of the safety order. scores[a] = the best value of a's vectors (-inf where a has
+  none). Needs a POMDP policy (`pomdp=`, else the shipped one solved for the configuration).
+- ``fib``: a* = argmax_a sum_h b(h) Q_fib(s_h, a), the fast informed bound's Q (a step past
+  QMDP: it averages over the next observation before maximising); ties as qmdp. scores = the
+  expected Q_fib (-inf where unavailable). From the same POMDP policy file.
 
 The selectors are pure and do not apply the epoch's fail-safe (d = 0 -> dn); the caller does
 (DESIGN.md, one decision epoch, step 3).
@@ -36,7 +43,8 @@ from .belief import validate_belief
 from .model import ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, SAFETY_ORDER
 from .policy import policy_arrays
 
-SELECTORS = ('paper', 'qmdp', 'mls')
+SELECTORS = ('paper', 'qmdp', 'mls', 'pomdp', 'fib')
+POMDP_SELECTORS = ('pomdp', 'fib')   # read the POMDP policy file
 VOTE_TOLERANCE = 1e-12
 Q_TOLERANCE = 1e-9
 N_ACTIONS = len(ACTIONS)
@@ -65,9 +73,11 @@ class ActionSelector:
 
     `policy` is the (N,) array of action indices, or an object with `.policy` (a loaded
     `Policy` or a `SolveResult`); then its `.value` serves qmdp when `value` is not given.
+    `pomdp` is a loaded `PomdpPolicy` (or its `AlphaPolicy`) for pomdp and fib; without it
+    the shipped one solved for the configuration is loaded when such a method is chosen.
     """
 
-    def __init__(self, model, policy, value=None, method: str = 'paper'):
+    def __init__(self, model, policy, value=None, method: str = 'paper', pomdp=None):
         policy, value = policy_arrays(policy, value)
         self.model = model
         n = model.n_states
@@ -85,6 +95,7 @@ class ActionSelector:
                                  f'{value.shape}')
         self.value = value
         self._q = None   # Q (8, N) for qmdp, formed once from value (27 MB at full size)
+        self.pomdp = pomdp
         self.set_method(method)
         self._h_offsets = np.arange(N_HIDDEN) * (n // N_HIDDEN)
         dims = model.dims[2:]
@@ -96,9 +107,17 @@ class ActionSelector:
     def set_method(self, method: str) -> None:
         """Change the default method (validated); qmdp's Q table is formed now, not in the
         next `select`."""
-        self.method = self._check_method(method)
-        if self.method == 'qmdp':
+        self.method = self.prepare(method)
+
+    def prepare(self, method: str) -> str:
+        """Validate `method` and load what it needs (qmdp's Q table, the POMDP policy for
+        pomdp and fib: `PolicyError` when there is none); the default method is unchanged."""
+        method = self._check_method(method)
+        if method == 'qmdp':
             self._q_table()
+        if method in POMDP_SELECTORS:
+            self._alphas()
+        return method
 
     def _check_method(self, method: str) -> str:
         if method not in SELECTORS:
@@ -143,7 +162,18 @@ class ActionSelector:
             return self._paper(b, self._by_h[:, column])
         if method == 'qmdp':
             return self._qmdp(b, self._h_offsets + column)
+        if method in POMDP_SELECTORS:
+            action, scores = getattr(self._alphas(), method)(b, column)
+            return Selection(action, scores, method)
         return self._mls(b, self._by_h[:, column])
+
+    def _alphas(self):
+        """The POMDP policy's `AlphaPolicy` (the shipped one for the configuration, loaded
+        once, when none was given); `PolicyError` when there is none."""
+        if self.pomdp is None:
+            from .pomdp_policy import load_shipped_pomdp_policy
+            self.pomdp = load_shipped_pomdp_policy(self.model.config)
+        return getattr(self.pomdp, 'policy', self.pomdp)
 
     def _paper(self, b: np.ndarray, actions: np.ndarray) -> Selection:
         scores = np.bincount(actions, weights=b, minlength=N_ACTIONS)

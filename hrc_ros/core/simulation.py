@@ -12,7 +12,8 @@ One decision epoch k = 1, 2, ... follows docs/DESIGN.md, the same protocol as th
 4. the human reacts to a_k (acceptance, Delta, em', ea', O_{k+1}; see `cell.py`);
 5. ``book.apply(a_k, accepted)`` and b_{k+1} = ``update(b_k, a_k, O_{k+1})``.
 
-Selectors: ``paper`` (the paper's weighted vote), ``qmdp``, ``mls`` (MODEL.md 6), and ``mdp``:
+Selectors: ``paper`` (the paper's weighted vote), ``qmdp``, ``mls`` (MODEL.md 6), ``pomdp``
+and ``fib`` (the solved POMDP's alpha vectors and its fast informed bound, `pomdp`), and ``mdp``:
 the policy action of the *true* state, a full-information upper bound on what any belief-based
 selector can achieve (the fail-safe applies to it too).
 
@@ -142,13 +143,16 @@ class Trajectory:
 
 
 def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper',
-             mode: str | None = None, seed=0, value=None, fail_safe: bool = True
-             ) -> Trajectory:
+             mode: str | None = None, seed=0, value=None, fail_safe: bool = True,
+             pomdp=None) -> Trajectory:
     """Run `scenario` in closed loop; `seed` seeds the simulated human (cell.SimulatedHuman).
 
     `policy`: a loaded `Policy`, a `SolveResult` or the (N,) action array; `value` (for qmdp)
     defaults to its `.value`. `mode`: belief mode `bayes` or `table` (None: the config's).
     `fail_safe=False` lets the selector act at d = 0 too (for studying the fail-safe only).
+    `pomdp`: the POMDP policy for the pomdp and fib selectors (default: the shipped one).
+    The belief update is given the epoch's observable transition (the human's answer and the
+    distance move) as evidence; only the ``posterior`` mode uses it (`belief`).
     """
     if selector not in SIMULATION_SELECTORS:
         raise ValueError(f'unknown selector {selector!r}; expected one of '
@@ -162,7 +166,8 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
                     schedule=scenario.schedule)
     human = SimulatedHuman(model, seed=seed, em=em, ea=ea, d=d)
     belief_filter = BeliefFilter(model, mode=mode)
-    chooser = None if selector == 'mdp' else ActionSelector(model, pi, value, method=selector)
+    chooser = (None if selector == 'mdp'
+               else ActionSelector(model, pi, value, method=selector, pomdp=pomdp))
     belief = belief_filter.initial(human.observation)
     observation = human.observation
     rows = []
@@ -189,7 +194,9 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
         row['cost'] = cost
         rows.append(row)
         book.apply(action, reaction.accepted)
-        belief = belief_filter.update(belief, action, reaction.observation)
+        evidence = model.transition_likelihood(action, reaction.accepted is not None,
+                                               bool(reaction.accepted), x[-1], reaction.d)
+        belief = belief_filter.update(belief, action, reaction.observation, evidence)
         observation = reaction.observation
     return Trajectory(rows, scenario, selector, belief_filter.mode, seed, model.gamma,
                       tasks=list(book.records))

@@ -1,14 +1,20 @@
-"""hrc-case-study: the paper's case study end to end through the four ROS 2 nodes.
+"""hrc-case-study: the paper's case study end to end through the ROS 2 nodes.
 
     hrc-case-study --out out/case_study [--epochs 20] [--epoch-period 0.5] [--seed 0]
+        [--input joint_states|body_tracking] [--no-view]
 
 What it does, as a user would by hand:
 
 1. writes the run's parameter file (`run_params.yaml`, loaded after the shipped
    `hrc_params.yaml` and `case_study_params.yaml`) into the output folder;
-2. starts `cell_sim_node`, `task_manager_node`, `belief_estimator_node` and then
-   `decision_node` as four separate processes (their console scripts), each logging to
-   `logs/<node>.log`, and waits until the graph shows them;
+2. starts `cell_sim_node`, `task_manager_node`, `belief_estimator_node`, `cell_view_node`
+   (unless --no-view) and then `decision_node` as separate processes (their console scripts),
+   each logging to `logs/<node>.log`, and waits until the graph shows them. With
+   `--input body_tracking` the simulated human's motion reaches the estimator through a body
+   tracker's stream instead: `cell_sim_node`'s motion is remapped to `sim/human/*`,
+   `tracker_sim_node` turns it into an Azure Kinect body-tracking stream and
+   `body_tracking_node` reads that back into `human/*` (with
+   `config/body_tracking_sim_params.yaml`);
 3. records every hrc topic into a rosbag2-compatible MCAP bag (`bag/`) while it watches the
    run over DDS, until the decision node has acted in the last epoch;
 4. stops the nodes (SIGINT to each process group) and prints the trajectory as the paper's
@@ -42,11 +48,14 @@ from ..core.tasks import TaskBook
 from ..core.selection import SELECTORS
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
                             output_folder)
+from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS
 from .processes import NodeProcessError, NodeProcesses
 
-NODES = ('cell_sim_node', 'task_manager_node', 'belief_estimator_node', 'decision_node')
 NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
-              'belief_estimator_node': 'belief_estimator', 'decision_node': 'decision'}
+              'belief_estimator_node': 'belief_estimator', 'decision_node': 'decision',
+              'cell_view_node': 'cell_view', 'tracker_sim_node': 'tracker_sim',
+              'body_tracking_node': 'body_tracking'}
+INPUTS = ('joint_states', 'body_tracking')
 TOPICS = {
     'human/joint_states': 'sensor_msgs/msg/JointState',
     'human/skeleton': 'geometry_msgs/msg/PoseArray',
@@ -61,6 +70,8 @@ TOPICS = {
     'hrc/sim/true_state': 'std_msgs/msg/UInt8MultiArray',
     '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
 }
+VIEW_TOPICS = {'hrc/markers': 'visualization_msgs/msg/MarkerArray'}
+BODY_TRACKING_TOPICS = {'body_tracking_data': 'visualization_msgs/msg/MarkerArray'}
 WATCHED = ('hrc/epoch', 'hrc/task_state', 'hrc/observation', 'hrc/distance_level',
            'hrc/belief', 'hrc/action', 'hrc/human_response', 'hrc/sim/true_state')
 LATCHED_TOPICS = ('hrc/task_state', 'hrc/distance_level', 'hrc/belief', 'hrc/sim/true_state')
@@ -73,6 +84,19 @@ class CaseStudyError(RuntimeError):
     pass
 
 
+def cell_nodes(args) -> list[str]:
+    """The node processes of the run, in start order, the decision node last."""
+    return (['cell_sim_node', 'task_manager_node', 'belief_estimator_node']
+            + ['cell_view_node'] * args.view
+            + ['tracker_sim_node', 'body_tracking_node'] * (args.input == 'body_tracking')
+            + ['decision_node'])
+
+
+def recorded_topics(args) -> dict[str, str]:
+    return {**TOPICS, **(VIEW_TOPICS if args.view else {}),
+            **(BODY_TRACKING_TOPICS if args.input == 'body_tracking' else {})}
+
+
 def write_run_params(path: Path, args) -> Path:
     params = {
         '/**': {'ros__parameters': {'config': args.config or ''}},
@@ -80,8 +104,9 @@ def write_run_params(path: Path, args) -> Path:
             # most of the epoch for its inputs (they normally take milliseconds): a scheduling
             # stall on a loaded machine must not turn into a fail-safe dn
             'epoch_period': args.epoch_period, 'input_timeout': 0.8 * args.epoch_period,
-            # the task manager, the belief estimator and this observer
-            'min_epoch_subscribers': 3,
+            # every listener that must not miss epoch 1: the task manager, the belief
+            # estimator, this observer and the view
+            'min_epoch_subscribers': 3 + bool(args.view),
             'selector': args.selector,
             'policy': args.policy or ''}},
         '/**/cell_sim': {'ros__parameters': {'seed': args.seed}},
@@ -196,7 +221,7 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
             latched if topic in LATCHED_TOPICS else reliable)
     try:
         with BagWriter(bag_dir) as writer:
-            recorder = Recorder(node, TOPICS, writer)
+            recorder = Recorder(node, recorded_topics(args), writer)
 
             def spin_until(predicate, timeout, what):
                 deadline = time.monotonic() + timeout
@@ -211,13 +236,16 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
                 present = {n for n, _ in node.get_node_names_and_namespaces()}
                 return all(NODE_NAMES[n] in present for n in names)
 
-            for executable in NODES[:3]:
-                run.start(executable)
-            spin_until(lambda: in_graph(NODES[:3]), 30, 'the cell, task manager and belief '
-                       'estimator nodes to appear')
+            nodes = cell_nodes(args)
+            for executable in nodes[:-1]:
+                run.start(executable, SIM_MOTION_REMAPS if executable == 'cell_sim_node'
+                          and args.input == 'body_tracking' else ())
+            spin_until(lambda: in_graph(nodes[:-1]), 30, 'the nodes before the decision node '
+                       f'({", ".join(nodes[:-1])}) to appear')
             run.start('decision_node')
-            spin_until(lambda: in_graph(NODES), 30, 'the decision node to appear')
-            print(f'hrc-case-study: four nodes up; recording to {bag_dir}', flush=True)
+            spin_until(lambda: in_graph(nodes), 30, 'the decision node to appear')
+            print(f'hrc-case-study: {len(nodes)} nodes up ({", ".join(nodes)}); recording to '
+                  f'{bag_dir}', flush=True)
             last = [0]
 
             def done():
@@ -264,6 +292,12 @@ def main(argv: list[str] | None = None) -> int:
                         'receives the params files of the run, in params/')
     parser.add_argument('--timeout', type=bounded_float(1.0, 86400.0), default=None,
                         help='seconds for the run (default: epochs x epoch period + 60)')
+    parser.add_argument('--input', default='joint_states', choices=INPUTS,
+                        help="how the human's motion reaches the estimator: joint_states (the "
+                        'simulated cell publishes human/*) or body_tracking (through a synthetic '
+                        'Azure Kinect stream and body_tracking_node)')
+    parser.add_argument('--no-view', dest='view', action='store_false',
+                        help='do not start cell_view_node (hrc/markers)')
     args = parser.parse_args(argv)
     if args.timeout is None:
         args.timeout = args.epochs * args.epoch_period + 60.0
@@ -289,8 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'
-    params = [shipped / 'hrc_params.yaml', shipped / 'case_study_params.yaml',
-              write_run_params(out / 'run_params.yaml', args)]
+    params = [shipped / 'hrc_params.yaml', shipped / 'case_study_params.yaml'] \
+        + [shipped / BODY_TRACKING_SIM_PARAMS] * (args.input == 'body_tracking') \
+        + [write_run_params(out / 'run_params.yaml', args)]
     # Single-host run: keep DDS on this host, and let participants announce themselves every
     # 0.1 s (config/fastdds_fast_discovery.xml) so the nodes find each other at once.
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -28,6 +28,12 @@ Wire formats (INTERFACES.md, plus the decisions below):
 - `hrc/observation`, `hrc/distance_level` (std_msgs/UInt8), `hrc/epoch` (std_msgs/UInt32),
   `hrc/human_response` (std_msgs/Bool).
 - `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
+- `body_tracking_data` (visualization_msgs/MarkerArray, the Azure Kinect / Orbbec drivers'
+  layout, `core.tracking`): ADD markers, one per joint, ``id = body * 100 + joint`` with the
+  joint < 32, all in `camera_frame`, all with one stamp, finite, every body with all 32
+  joints; other actions (DELETE, DELETEALL) carry no joint and are skipped. An array without
+  ADD markers is a frame without bodies.
+- `hrc/markers` (visualization_msgs/MarkerArray): `core.view` shapes after a DELETEALL.
 """
 
 from __future__ import annotations
@@ -37,21 +43,23 @@ from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
-from builtin_interfaces.msg import Time
+from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseArray
+from geometry_msgs.msg import Point, Pose, PoseArray
 from sensor_msgs.msg import JointState
 from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
                           UInt8MultiArray, UInt32)
+from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.belief import BELIEF_TOLERANCE
 from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSERVATION_LEVELS,
                           STATE_VARIABLES, TASK_VARIABLES, action_index)
+from ..core.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
 from ..core.protocol import InputError
+from ..core.tracking import K4ABT_JOINTS, MARKER_ID_STRIDE, BodyFrame, split_marker_id
+from ..core.view import Shape
 
 ROBOT_BASE_FRAME = 'base_link'
-# The six arm joints of the paper's observation set, REP-155 style names.
-HUMAN_JOINTS = ('l_shoulder', 'r_shoulder', 'l_elbow', 'r_elbow', 'l_wrist', 'r_wrist')
 BELIEF_DIMS = (('motivation', 3, 9), ('aggression', 3, 3))
 # Domain of each task variable besides the priorities / counters (whose top is rho / sigma).
 _NATURE_COMMITMENT_TOP = 3
@@ -371,6 +379,111 @@ def config_identity_from_msg(msg: String) -> tuple[str, str]:
     if len(sha) != 64 or any(c not in '0123456789abcdef' for c in sha):
         raise MessageError(f'expected "<sha256> <configuration file>", got {msg.data[:80]!r}')
     return sha, source
+
+
+# -- body tracking: visualization_msgs/MarkerArray of the Azure Kinect / Orbbec drivers -------
+# The drivers' colour per body id (cycled), as they draw their markers.
+BODY_COLORS = ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1.0, 0.0),
+               (1.0, 0.0, 1.0), (0.0, 1.0, 1.0))
+BODY_MARKER_LIFETIME = 0.25    # seconds, as the Azure Kinect driver sets it
+BODY_MARKER_SIZE = 0.05        # metres
+
+
+def body_frame_from_msg(msg: MarkerArray, camera_frame: str) -> BodyFrame:
+    """One body frame: each body's 32 joints (metres, `camera_frame`) and the stamp (s; None
+    for an array without joints, which has no stamp)."""
+    joints = [m for m in msg.markers if m.action == Marker.ADD]
+    if not joints:
+        return BodyFrame(None, {})
+    frames = sorted({m.header.frame_id for m in joints})
+    if frames != [camera_frame]:
+        raise MessageError(f'body-tracking markers are in frame(s) {frames}, expected '
+                           f'{camera_frame!r} (the camera_frame that camera_translation and '
+                           'camera_rotation place in the robot frame)')
+    stamps = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in joints}
+    if len(stamps) != 1:
+        raise MessageError(f'body-tracking markers of one array carry {len(stamps)} stamps; a '
+                           'body frame has one capture stamp')
+    bodies: dict[int, np.ndarray] = {}
+    for m in joints:
+        if m.id < 0:
+            raise MessageError(f'body-tracking marker id {m.id} is negative')
+        body, joint = split_marker_id(m.id)
+        if joint >= len(K4ABT_JOINTS):
+            raise MessageError(f'body-tracking marker id {m.id}: joint {joint} is not one of the '
+                               f'{len(K4ABT_JOINTS)} joints (id = body * {MARKER_ID_STRIDE} + '
+                               'joint)')
+        position = bodies.setdefault(body, np.full((len(K4ABT_JOINTS), 3), np.nan))
+        if not np.isnan(position[joint, 0]):
+            raise MessageError(f'body-tracking marker id {m.id} (body {body}, joint '
+                               f'{K4ABT_JOINTS[joint]}) appears twice')
+        p = m.pose.position
+        position[joint] = (p.x, p.y, p.z)
+        if not np.all(np.isfinite(position[joint])):
+            raise MessageError(f'body {body} joint {K4ABT_JOINTS[joint]} holds NaN or inf')
+    for body, position in bodies.items():
+        missing = [K4ABT_JOINTS[j] for j in np.flatnonzero(np.isnan(position[:, 0]))]
+        if missing:
+            raise MessageError(f'body {body} lacks joints {missing}: a body frame holds all '
+                               f'{len(K4ABT_JOINTS)}')
+    return BodyFrame(stamp_to_seconds(joints[0].header.stamp), bodies)
+
+
+def body_frame_to_msg(bodies: Mapping[int, np.ndarray], stamp: Time,
+                      camera_frame: str) -> MarkerArray:
+    """A body frame as the drivers publish it: a SPHERE per joint, id = body * 100 + joint."""
+    msg = MarkerArray()
+    for body, joints in sorted(bodies.items()):
+        r, g, b = BODY_COLORS[body % len(BODY_COLORS)]
+        for joint, (x, y, z) in enumerate(np.asarray(joints, dtype=float).tolist()):
+            marker = Marker(id=int(body) * MARKER_ID_STRIDE + joint, type=Marker.SPHERE,
+                            action=Marker.ADD)
+            marker.header.frame_id = camera_frame
+            marker.header.stamp = stamp
+            marker.lifetime = seconds_to_duration(BODY_MARKER_LIFETIME)
+            marker.color.r, marker.color.g, marker.color.b, marker.color.a = r, g, b, 1.0
+            marker.scale.x = marker.scale.y = marker.scale.z = BODY_MARKER_SIZE
+            marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = x, y, z
+            marker.pose.orientation.w = 1.0
+            msg.markers.append(marker)
+    return msg
+
+
+def seconds_to_duration(seconds: float) -> Duration:
+    sec = math.floor(seconds)
+    return Duration(sec=int(sec), nanosec=int(round((seconds - sec) * 1e9)))
+
+
+# -- hrc/markers ------------------------------------------------------------------------------
+MARKER_TYPES = {'disc': Marker.CYLINDER, 'sphere': Marker.SPHERE, 'spheres': Marker.SPHERE_LIST,
+                'line': Marker.LINE_LIST, 'text': Marker.TEXT_VIEW_FACING}
+
+
+def delete_all_markers_msg() -> MarkerArray:
+    """One DELETEALL: the viewers drop every marker of the topic."""
+    return MarkerArray(markers=[Marker(action=Marker.DELETEALL)])
+
+
+def markers_to_msg(shapes: Iterable[Shape], frame_id: str, stamp: Time) -> MarkerArray:
+    """A whole picture: DELETEALL, then one marker per shape (`core.view`)."""
+    msg = delete_all_markers_msg()
+    for shape in shapes:
+        marker = Marker(ns=shape.ns, id=int(shape.id), type=MARKER_TYPES[shape.kind],
+                        action=Marker.ADD, text=shape.text)
+        marker.header.frame_id = frame_id
+        marker.header.stamp = stamp
+        marker.pose.orientation.w = 1.0
+        marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in shape.scale)
+        marker.color.r, marker.color.g, marker.color.b, marker.color.a = (
+            float(v) for v in shape.color)
+        points = np.asarray(shape.points, dtype=float).reshape(-1, 3)
+        if shape.kind in ('spheres', 'line'):
+            marker.points = [Point(x=x, y=y, z=z) for x, y, z in points.tolist()]
+        else:
+            marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = \
+                points[0].tolist()
+        msg.markers.append(marker)
+    return msg
 
 
 # -- diagnostics ------------------------------------------------------------------------------

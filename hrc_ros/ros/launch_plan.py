@@ -6,7 +6,12 @@ takes their values and returns one `NodeLaunch` per node: every node reads the s
 `config/hrc_params.yaml` first, then `params_file`, then the overrides of the arguments the
 user set ('' leaves the params files be); `namespace` moves the whole cell (all topics are
 relative); `use_sim` false leaves out `cell_sim_node`, for a cell with a real tracker, robot
-controller and HMI.
+controller and HMI. `view` starts `cell_view_node` (`hrc/markers` for RViz and Foxglove;
+'auto': with the simulated cell). `body_tracking` starts `body_tracking_node`, which reads a
+body tracker's MarkerArray stream into `human/*`; with the simulated cell it also starts
+`tracker_sim_node`, fed by the cell's motion (remapped to `sim/human/*`), and loads
+`config/body_tracking_sim_params.yaml` (the synthetic camera's pose) before `params_file`. On a
+real cell the camera's pose comes from `params_file` (`camera_translation`, `camera_rotation`).
 """
 
 from __future__ import annotations
@@ -38,6 +43,11 @@ ARGUMENTS = (
     LaunchArgument('namespace', '', 'namespace of the whole cell, e.g. cell1'),
     LaunchArgument('use_sim', 'true', 'start cell_sim_node, the simulated human and cell',
                    ('true', 'false')),
+    LaunchArgument('view', 'auto', "start cell_view_node (hrc/markers for RViz and Foxglove); "
+                   "'auto': with the simulated cell", ('auto', 'true', 'false')),
+    LaunchArgument('body_tracking', 'false', 'start body_tracking_node: human motion from a body '
+                   "tracker's MarkerArray stream (with use_sim: tracker_sim_node's)",
+                   ('true', 'false')),
 )
 
 # (executable, node name) of the cell's nodes; the simulated cell is the last.
@@ -47,6 +57,13 @@ DECISION_NODES = (
     ('task_manager_node', 'task_manager'),
 )
 SIMULATION_NODE = ('cell_sim_node', 'cell_sim')
+VIEW_NODE = ('cell_view_node', 'cell_view')
+BODY_TRACKING_NODE = ('body_tracking_node', 'body_tracking')
+TRACKER_SIM_NODE = ('tracker_sim_node', 'tracker_sim')
+BODY_TRACKING_SIM_PARAMS = 'body_tracking_sim_params.yaml'
+# cell_sim's motion goes to tracker_sim instead of the estimator when a tracker is simulated.
+SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
+                     ('human/skeleton', 'sim/human/skeleton')]
 
 
 @dataclass(frozen=True)
@@ -57,21 +74,34 @@ class NodeLaunch:
     name: str
     namespace: str
     parameters: list = field(default_factory=list)   # params file paths, then one dict
+    remappings: list = field(default_factory=list)   # (from, to) topic names
+
+
+def _flag(name: str, value, choices=('true', 'false')) -> str:
+    value = str(value).lower()
+    if value not in choices:
+        raise ValueError(f"{name} must be {' or '.join(repr(c) for c in choices)}, got {value!r}")
+    return value
 
 
 def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = '',
                config: str = '', policy: str = '', selector: str = '',
-               use_sim: str | bool = 'true') -> list[NodeLaunch]:
+               use_sim: str | bool = 'true', view: str | bool = 'auto',
+               body_tracking: str | bool = 'false') -> list[NodeLaunch]:
     """The nodes of one cell for the launch arguments' values (strings, as launch gives them)."""
     if selector not in ('',) + SELECTORS:
         raise ValueError(f'selector must be one of {", ".join(SELECTORS)} or empty, got '
                          f'{selector!r}')
-    use_sim = str(use_sim).lower()
-    if use_sim not in ('true', 'false'):
-        raise ValueError(f"use_sim must be 'true' or 'false', got {use_sim!r}")
-    base_params = os.path.join(str(share_dir), 'config', 'hrc_params.yaml')
+    use_sim = _flag('use_sim', use_sim) == 'true'
+    view = _flag('view', view, ('auto', 'true', 'false'))
+    view = use_sim if view == 'auto' else view == 'true'
+    body_tracking = _flag('body_tracking', body_tracking) == 'true'
+    config_dir = os.path.join(str(share_dir), 'config')
+    base_params = os.path.join(config_dir, 'hrc_params.yaml')
     params_files = [base_params]
-    if params_file and os.path.abspath(params_file) != os.path.abspath(base_params):
+    if body_tracking and use_sim:
+        params_files.append(os.path.join(config_dir, BODY_TRACKING_SIM_PARAMS))
+    if params_file and os.path.abspath(params_file) not in map(os.path.abspath, params_files):
         params_files.append(params_file)
     common = {'config': config} if config else {}
     decision = dict(common)
@@ -80,7 +110,9 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     if selector:
         decision['selector'] = selector
     overrides = {'decision': decision}
-    nodes = list(DECISION_NODES) + ([SIMULATION_NODE] if use_sim == 'true' else [])
+    nodes = list(DECISION_NODES) + [VIEW_NODE] * view + [BODY_TRACKING_NODE] * body_tracking \
+        + [TRACKER_SIM_NODE] * (body_tracking and use_sim) + [SIMULATION_NODE] * use_sim
+    remaps = {'cell_sim': SIM_MOTION_REMAPS} if body_tracking else {}
     return [NodeLaunch(executable, name, namespace,
-                       params_files + [overrides.get(name, common)])
+                       params_files + [overrides.get(name, common)], list(remaps.get(name, [])))
             for executable, name in nodes]

@@ -28,6 +28,7 @@ time), so the machines decide what a timeout means and the nodes only keep time.
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 import traceback
@@ -43,9 +44,10 @@ from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import qos_policy_name_from_kind
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
@@ -500,8 +502,79 @@ class Inputs:
         return out
 
 
+class SampledInputs:
+    """Subscriptions a node reads when it chooses (`take`), not as messages arrive.
+
+    rclpy rebuilds its wait set each time a message wakes the executor (about a millisecond of
+    Python for a node with a dozen entities), so a node that only needs its inputs at its own
+    rate, like the view, should not wake for each of them. These subscriptions live on a helper
+    node (`<node>_inputs`, same namespace and context, no parameter services) that no executor
+    spins; messages wait in the DDS reader's history (keep last `depth`) until `take()` drains
+    them. Conversion errors are dropped and reported through the owner's `Inputs`, and any other
+exception is reported as an internal error, as `Inputs.subscribe` does."""
+
+    def __init__(self, node: Node, inputs: Inputs):
+        self.inputs = inputs
+        self.helper = rclpy.create_node(f'{node.get_name()}_inputs',
+                                        namespace=node.get_namespace(), context=node.context,
+                                        start_parameter_services=False, enable_rosout=False)
+        self._topics: list[tuple] = []
+
+    def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
+                  name: str | None = None, latest_only: bool = False):
+        """`convert(msg)` each message; with `latest_only`, only the last one of each `take`
+        (the others are taken as bytes and never deserialised)."""
+        name = name or topic.rsplit('/', 1)[-1]
+        subscription = self.helper.create_subscription(msg_type, topic, lambda *_: None,
+                                                       profile, raw=latest_only)
+        self._topics.append((name, topic, subscription, convert, latest_only))
+        return subscription
+
+    def take(self) -> list[tuple[int, str, Any]]:
+        """Everything received since the last call as (published ns, input name, value), in
+        publication order (the writers' source timestamps)."""
+        from rclpy.serialization import deserialize_message
+        events = []
+        for name, topic, subscription, convert, latest_only in self._topics:
+            taken = []
+            with subscription.handle:
+                while True:
+                    message = subscription.handle.take_message(subscription.msg_type,
+                                                               subscription.raw)
+                    if message is None:
+                        break
+                    taken.append(message)
+            self.inputs.received[name] += len(taken)
+            if latest_only:
+                taken = [(deserialize_message(taken[-1][0], subscription.msg_type),
+                          taken[-1][1])] if taken else []
+            for msg, info in taken:
+                try:
+                    value = convert(msg)
+                except InputError as exc:
+                    self.inputs.drop(name, topic, str(exc))
+                    continue
+                except Exception:  # noqa: BLE001 - a bug must not stop the node; it is reported
+                    self.inputs.internal_error(name, topic, traceback.format_exc())
+                    continue
+                published = info.get('source_timestamp') if isinstance(info, dict) else None
+                events.append((int(published or time.time_ns()), name, value))
+        events.sort(key=lambda event: event[0])
+        return events
+
+    def destroy(self) -> None:
+        self.helper.destroy_node()
+
+
 # -- main -------------------------------------------------------------------------------------
 STARTUP_ERRORS = (StartupError, ParameterException)
+
+
+STOP_POLL_SEC = 0.1   # how often a node with a last word (`on_stop`) looks for a signal
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt(f'signal {signum}')
 
 
 def run(node_class, args=None) -> int:
@@ -509,8 +582,20 @@ def run(node_class, args=None) -> int:
 
     A node that cannot start (`StartupError`, a rejected parameter) logs why and returns 1,
     with no traceback. Ctrl-C (SIGINT) stops it cleanly with 0.
+
+    A node class with an `on_stop()` method has a last word (cell_view's DELETEALL). rclpy's
+    signal handler shuts the context down before Python sees the signal, and nothing can be
+    published after that, so such a node runs without it: SIGINT and SIGTERM raise
+    KeyboardInterrupt, the executor spins in slices of STOP_POLL_SEC so that Python notices,
+    and `on_stop()` runs while the context is still up.
     """
-    rclpy.init(args=args)
+    last_word = hasattr(node_class, 'on_stop')
+    if last_word:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGINT, _interrupt)
+        signal.signal(signal.SIGTERM, _interrupt)
+    else:
+        rclpy.init(args=args)
     try:
         node = node_class()
     except STARTUP_ERRORS as exc:
@@ -520,8 +605,23 @@ def run(node_class, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
         return 0
+    except Exception:
+        # Ctrl-C while the node is being built: rclpy's signal handler shuts the context
+        # down, and the next entity the constructor creates fails with an RCLError ("context
+        # is invalid"). That is still the shutdown; with the context up, the error is real.
+        interrupted = not rclpy.ok()
+        rclpy.try_shutdown()
+        if not interrupted:
+            raise
+        return 0
     try:
-        rclpy.spin(node)
+        if last_word:
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while node.context.ok():
+                executor.spin_once(timeout_sec=STOP_POLL_SEC)
+        else:
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
@@ -532,6 +632,13 @@ def run(node_class, args=None) -> int:
         if node.context.ok():
             raise
     finally:
+        if last_word and node.context.ok():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)    # a second Ctrl-C: still the last word
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            try:
+                node.on_stop()
+            except Exception:  # noqa: BLE001 - the node stops anyway; say why its last word failed
+                node.get_logger().error(f'on_stop failed:\n{traceback.format_exc()}')
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -43,10 +43,12 @@ class NodeProcesses:
                     'PYTHONUNBUFFERED': '1'}
         self.processes: dict[str, subprocess.Popen] = {}
 
-    def start(self, executable: str) -> None:
+    def start(self, executable: str, remappings: Iterable[tuple[str, str]] = ()) -> None:
         cmd = node_command(executable) + ['--ros-args']
         for path in self.params:
             cmd += ['--params-file', path]
+        for old, new in remappings:
+            cmd += ['-r', f'{old}:={new}']
         with open(self.log_dir / f'{executable}.log', 'w') as log:
             self.processes[executable] = subprocess.Popen(
                 cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

@@ -128,6 +128,24 @@ def load_model(args: argparse.Namespace) -> tuple[Config, HRCModel, Policy | Non
     return config, HRCModel(config), policy
 
 
+def add_pomdp_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--pomdp-policy', default=None,
+                        help='POMDP policy file for the pomdp and fib selectors (default: the '
+                             'shipped one solved for the configuration, policies/pomdp/)')
+
+
+def load_pomdp(args: argparse.Namespace, config: Config, selectors) -> object | None:
+    """The POMDP policy when one of `selectors` needs it (pomdp, fib), else None."""
+    from ..core.pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
+    from ..core.selection import POMDP_SELECTORS
+    if not any(s in POMDP_SELECTORS for s in selectors):
+        return None
+    try:
+        return load_pomdp_policy(args.pomdp_policy or default_pomdp_policy_path(config), config)
+    except PolicyError as exc:
+        raise ToolError(str(exc)) from None
+
+
 def fail(prog: str, error: Exception) -> int:
     """Print a refusal as one line and return the exit status 2."""
     print(f'{prog}: error: {" ".join(str(error).split())}', file=sys.stderr)

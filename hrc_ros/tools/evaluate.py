@@ -1,16 +1,19 @@
 """hrc-evaluate: the action selectors compared over many seeded episodes (core.evaluation).
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
-                 [--true-config TRUE.yaml [--true-policy TRUE.npz]]
+                 [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
 
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
-`episodes.csv` and `summary.png` into `--out`.
+`episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
+paired difference to S (same episodes) with its 95% interval (`paired.csv`).
 
 Model mismatch: with `--true-config` the human and the costs are drawn from that
 configuration (the world) while the robot plans with `--config` and its policy (policy and
 belief filter). The same episodes are also run planning with the true configuration (its
 `--true-policy`, else the shipped one solved for it, else solved here), and the regret of each
-selector is the paired difference of the two costs, with its 95% interval.
+selector is the paired difference of the two costs, with its 95% interval. The POMDP
+selectors (pomdp, fib) are left out of that comparison: they would need a POMDP policy solved
+for the true configuration too.
 """
 
 from __future__ import annotations
@@ -20,16 +23,16 @@ import json
 import sys
 import time
 
-from ..core.config import ConfigError, load_config
-from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_regret, format_table,
-                               paired_difference, summarize)
+from ..core.config import BELIEF_MODES, ConfigError, load_config
+from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_regret,
+                               format_table, paired_difference, summarize)
 from ..core.model import HRCModel
 from ..core.policy import PolicyError, default_policy_path, load_policy
 from ..core.plots import plot_summaries
 from ..core.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODE_EPOCHS, MAX_EPISODES, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
-                     add_model_arguments, bounded_float, bounded_int, fail, load_model,
-                     output_folder)
+                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, fail,
+                     load_model, load_pomdp, output_folder)
 
 
 def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
@@ -52,17 +55,13 @@ def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
     return world, None
 
 
-def solve(model: HRCModel):
-    from ..core.solver import solve as solve_model
-    return solve_model(model)
-
-
 def main(argv=None) -> int:
     parser = Parser(
         prog='hrc-evaluate',
         description='Compare the action selectors (and the full-information MDP bound) over '
                     'many seeded episodes with random task streams.')
     add_model_arguments(parser)
+    add_pomdp_argument(parser)
     parser.add_argument('--scenario', default='random', choices=SCENARIOS,
                         help="'random' task streams and humans (default), or the paper's "
                              "'case-study' with human seeds seed, seed+1, ... (as hrc-simulate "
@@ -75,7 +74,10 @@ def main(argv=None) -> int:
                         help='probability of a new task per epoch (one always at epoch 1)')
     parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
                         help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
-    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
+    parser.add_argument('--baseline', default=None,
+                        help='also print every selector\'s paired cost difference to this one '
+                             '(one of --selectors), with 95%% intervals')
+    parser.add_argument('--mode', default=None, choices=BELIEF_MODES,
                         help="belief mode (default: the configuration's)")
     parser.add_argument('--no-fail-safe', action='store_true',
                         help='let the selectors act at d = 0 (for studying the fail-safe)')
@@ -98,6 +100,13 @@ def main(argv=None) -> int:
         if s not in SIMULATION_SELECTORS:
             parser.error(f'unknown selector {s!r} in --selectors; choose from '
                          f'{", ".join(SIMULATION_SELECTORS)}')
+    if args.true_config and {'pomdp', 'fib'} & set(selectors):
+        parser.error('--true-config compares the selectors that read a policy file (paper, '
+                     'qmdp, mls, mdp); pomdp and fib would need a POMDP policy of the true '
+                     'configuration too')
+    if args.baseline is not None and args.baseline not in selectors:
+        parser.error(f'--baseline {args.baseline!r} must be one of --selectors '
+                     f'({", ".join(selectors)})')
     if args.epochs is None:
         args.epochs = 20 if args.scenario == 'case-study' else 50
     if args.episodes * args.epochs > MAX_EPISODE_EPOCHS:
@@ -105,6 +114,7 @@ def main(argv=None) -> int:
                      f'{MAX_EPISODE_EPOCHS:,} epochs per selector (about an hour)')
     try:
         config, model, policy = load_model(args)
+        pomdp = load_pomdp(args, config, selectors)
         world = true_policy = None
         if args.true_config:
             world, true_policy = load_world(args.true_config, args.true_policy, model)
@@ -113,13 +123,14 @@ def main(argv=None) -> int:
         return fail('hrc-evaluate', exc)
     t0 = time.perf_counter()
     if world is not None and true_policy is None:
+        from ..core.solver import solve
         print(f'solving {world.config.source} (no shipped policy was solved for it) ...',
               flush=True)
         true_policy = solve(world)
     progress = lambda m: print(m, flush=True)   # noqa: E731
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe, progress=progress,
-                       scenario=args.scenario, world=world)
+                       scenario=args.scenario, pomdp=pomdp, world=world)
     true_results = None
     if world is not None:
         true_results = evaluate(world, true_policy, args.episodes, args.epochs, args.seed,
@@ -132,12 +143,18 @@ def main(argv=None) -> int:
     mode = args.mode or config.belief_mode
     planning = ('plans with the fail-safe (only dn at d = 0)' if config.fail_safe_aware
                 else 'plans with every action at d = 0')
-    print(f'{config.source} ({planning}), policy {policy.path}')
+    print(f'{config.source} ({planning}), policy {policy.path}'
+          + ('' if pomdp is None else f', POMDP policy {pomdp.path}'))
     print(f'{args.episodes} episodes x {args.epochs} epochs of scenario {args.scenario}, seed '
           f'{args.seed}' + (f', task rate {args.task_rate}' if args.scenario == 'random' else '')
           + f', belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, gamma '
           f'{config.gamma}; {elapsed:.1f} s')
     print(format_table(summaries, differences))
+    paired = {}
+    if args.baseline is not None:
+        print(format_paired(results, args.baseline))
+        paired = {s: paired_difference(r, results[args.baseline])
+                  for s, r in results.items() if s != args.baseline}
     regret = {}
     if true_results is not None:
         regret = {s: paired_difference(r, true_results[s]) for s, r in results.items()}
@@ -163,12 +180,15 @@ def main(argv=None) -> int:
             for e in range(args.episodes):
                 writer.writerow([s, e] + [f'{getattr(r, f)[e]:.6g}' for f in fields])
     settings = {'config': config.source, 'config_sha256': config.policy_hash,
-                'policy': policy.path, 'episodes': args.episodes, 'epochs': args.epochs,
+                'policy': policy.path, 'pomdp_policy': None if pomdp is None else pomdp.path,
+                'episodes': args.episodes, 'epochs': args.epochs,
                 'fail_safe_aware': config.fail_safe_aware, 'scenario': args.scenario,
                 'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
                 'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
                 'seconds': round(elapsed, 3)}
-    report = {'settings': settings, 'selectors': summaries, 'cost_minus_mdp_cost': differences}
+    report = {'settings': settings, 'selectors': summaries, 'cost_minus_mdp_cost': differences,
+              **({'baseline': args.baseline, 'cost_minus_baseline_cost': paired}
+                 if args.baseline else {})}
     if true_results is not None:
         settings.update(true_config=world.config.source,
                         true_config_sha256=world.config.policy_hash,
@@ -178,6 +198,15 @@ def main(argv=None) -> int:
     (out / 'summary.json').write_text(json.dumps(report, indent=2) + '\n')
     written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
                plot_summaries(summaries, out / 'summary.png', differences)]
+    if args.baseline is not None:
+        with (out / 'paired.csv').open('w', newline='') as f:
+            writer = csv.writer(f)
+            writer.writerow(['selector', 'baseline', 'mean_difference', 'ci95_low',
+                             'ci95_high'])
+            for s, d in paired.items():
+                writer.writerow([s, args.baseline, f'{d["mean"]:.6g}', f'{d["low"]:.6g}',
+                                 f'{d["high"]:.6g}'])
+        written.append(out / 'paired.csv')
     for path in written:
         print(f'wrote {path}')
     return 0

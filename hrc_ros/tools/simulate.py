@@ -1,6 +1,7 @@
 """hrc-simulate: the case study (MODEL.md 7) in closed loop without ROS.
 
-    hrc-simulate [--config YAML] [--policy NPZ] [--selector paper|qmdp|mls|mdp] [--seed N]
+    hrc-simulate [--config YAML] [--policy NPZ] [--selector paper|qmdp|mls|pomdp|fib|mdp]
+                 [--seed N]
 
 Prints the run as the paper's Table 6 and writes `trajectory.csv` and the plots into `--out`.
 """
@@ -9,10 +10,12 @@ from __future__ import annotations
 
 import sys
 
+from ..core.config import BELIEF_MODES
 from ..core.plots import plot_trajectory
 from ..core.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
-from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int,
-                     fail, load_model, output_folder)
+from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments,
+                     add_pomdp_argument, bounded_int, fail, load_model, load_pomdp,
+                     output_folder)
 
 
 def main(argv=None) -> int:
@@ -21,9 +24,10 @@ def main(argv=None) -> int:
         description='Run the case study (MODEL.md 7) in closed loop; print it as the paper\'s '
                     'Table 6, write a CSV and PNG plots.')
     add_model_arguments(parser)
+    add_pomdp_argument(parser)
     parser.add_argument('--selector', default='paper', choices=SIMULATION_SELECTORS,
                         help='action selection (mdp = the true state, an upper bound)')
-    parser.add_argument('--mode', default=None, choices=('bayes', 'table'),
+    parser.add_argument('--mode', default=None, choices=BELIEF_MODES,
                         help='belief mode (default: the configuration\'s)')
     parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
                         help='seed of the simulated human')
@@ -32,7 +36,8 @@ def main(argv=None) -> int:
     parser.add_argument('--out', default='out/simulate', help='output folder')
     args = parser.parse_args(argv)
     try:
-        _, model, policy = load_model(args)
+        config, model, policy = load_model(args)
+        pomdp = load_pomdp(args, config, (args.selector,))
         out = output_folder(args.out)
     except ToolError as exc:
         return fail('hrc-simulate', exc)
@@ -41,7 +46,7 @@ def main(argv=None) -> int:
         scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
                             scenario.name)
     trajectory = simulate(model, policy, scenario, selector=args.selector, mode=args.mode,
-                          seed=args.seed)
+                          seed=args.seed, pomdp=pomdp)
     print(trajectory.table())
     written = [trajectory.to_csv(out / 'trajectory.csv')] + plot_trajectory(trajectory, out)
     for path in written:

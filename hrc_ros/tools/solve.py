@@ -1,9 +1,11 @@
 """hrc-solve: solve the HRC model of a configuration into a policy file.
 
     hrc-solve --config config/default.yaml -o policies/default.npz
+    hrc-solve --method pomdp --config config/default.yaml -o policies/pomdp/default.npz
 
 Prints the residual and elapsed time of every sweep (every `--every` sweeps), then the policy
-file it wrote.
+file it wrote. `--method pomdp` solves the POMDP over the belief (core.pomdp: point-based
+sweeps between a lower and an upper bound) and prints their progress and final gap.
 """
 
 from __future__ import annotations
@@ -14,14 +16,28 @@ from ..core.config import MAX_SWEEPS
 from ..core.model import ACTIONS
 from ..core.policy import save_policy
 from ..core.solver import memory_estimate, solve
-from .common import (Parser, ToolError, add_model_arguments, bounded_int, check_memory, fail,
-                     load_model, output_file)
+from .common import (MAX_SEED, Parser, ToolError, add_model_arguments,
+                     bounded_int, check_memory, fail, load_model, output_file)
+
+POMDP = 'pomdp'
+MAX_ROUNDS = 20
+MAX_POMDP_EPISODES = 100_000   # x 50 epochs of 9 floats: under 2 GB of gathered beliefs
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-solve', description=__doc__.split('\n')[1])
     add_model_arguments(parser, policy=False)
     parser.add_argument('-o', '--output', required=True, help='policy file to write (.npz)')
+    parser.add_argument('--method', default='value_iteration', choices=('value_iteration', POMDP),
+                        help='value_iteration (the MDP, default) or pomdp '
+                             '(alpha vectors over the belief; see docs/POMDP.md)')
+    parser.add_argument('--episodes', type=bounded_int(1, MAX_POMDP_EPISODES), default=2000,
+                        help='pomdp: simulated episodes per round that gather belief points')
+    parser.add_argument('--rounds', type=bounded_int(0, MAX_ROUNDS), default=1,
+                        help='pomdp: rounds of gathering with the solved policy after the '
+                             'first')
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help='pomdp: seed of the gathering')
     parser.add_argument('--sweeps', type=bounded_int(1, MAX_SWEEPS), default=None,
                         help='run exactly this many sweeps (overrides solver.sweeps)')
     parser.add_argument('--every', type=bounded_int(1, MAX_SWEEPS), default=1,
@@ -34,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
         check_memory(memory_estimate(model), f'solving {model.n_states:,} states')
     except ToolError as exc:
         return fail('hrc-solve', exc)
+    if args.method == POMDP:
+        return _solve_pomdp(args, config, model, output)
     sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '
           f'gamma={config.gamma}, eta={config.eta:g}, '
@@ -52,6 +70,24 @@ def main(argv: list[str] | None = None) -> int:
           f'{result.timings["total"]:.2f} s')
     print(f'hrc-solve: actions {counts}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
+    return 0
+
+
+def _solve_pomdp(args, config, model, output) -> int:
+    from ..core.pomdp import report_lines, solve_pomdp
+    from ..core.pomdp_policy import save_pomdp_policy
+
+    print(f'hrc-solve: {config.source}: POMDP over the belief, {model.n_states:,} states '
+          f'({args.episodes} episodes per round, {args.rounds} rounds after the first)',
+          flush=True)
+    quiet = args.quiet
+    result = solve_pomdp(model, episodes=args.episodes, rounds=args.rounds, seed=args.seed,
+                         progress=None if quiet else (lambda m: print(f'  {m}', flush=True)))
+    path = save_pomdp_policy(output, result, config)
+    for line in report_lines(result.report):
+        print(f'hrc-solve: {line}')
+    print(f'hrc-solve: wrote {path} ({path.stat().st_size / 1e6:.2f} MB, config sha256 '
+          f'{config.policy_hash[:12]})')
     return 0
 
 

@@ -76,10 +76,20 @@ def check_motion_parameters(values) -> str | None:
                 else None))
 
 
+# The posterior mode's evidence (the human's answer, the distance move) needs the task states,
+# which this node does not take; it runs bayes or table (docs/POMDP.md, "The belief").
+ESTIMATOR_MODES = tuple(m for m in BELIEF_MODES if m != 'posterior')
+NO_POSTERIOR = ("belief mode 'posterior' needs the epoch's observable transition (the human's "
+                "answer and the task states), which the belief estimator does not receive; use "
+                "'bayes' (docs/POMDP.md)")
+
+
 def check_parameters(values) -> str | None:
     mode = values.get('belief_mode', '')
-    if mode not in ('',) + BELIEF_MODES:
-        return f"belief_mode must be '', {' or '.join(BELIEF_MODES)}, got {mode!r}"
+    if mode == 'posterior':
+        return NO_POSTERIOR
+    if mode not in ('',) + ESTIMATOR_MODES:
+        return f"belief_mode must be '', {' or '.join(ESTIMATOR_MODES)}, got {mode!r}"
     return check_motion_parameters(values)
 
 
@@ -145,6 +155,8 @@ class BeliefEstimatorNode(Node):
             belief_filter = BeliefFilter(self.model, mode=values['belief_mode'] or None)
         except ValueError as exc:
             raise StartupError(f'belief filter: {exc}') from None
+        if belief_filter.mode == 'posterior':
+            raise StartupError(f'{NO_POSTERIOR} (the configuration\'s observation.mode)')
         if self.windows is None:
             self.windows = EstimatorEpochs(belief_filter, values['min_window_samples'])
         self.windows.filter = belief_filter

@@ -39,7 +39,7 @@ from ...core.model import HRCModel
 from ...core.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
 from ...core.protocol import (ERROR, OK, WARN, ClockStart, DecisionGate, EpochFollower, Report,
                               Stamp, timeout_ns)
-from ...core.selection import SELECTORS, ActionSelector
+from ...core.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
@@ -153,6 +153,10 @@ class DecisionNode(Node):
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
                 f'sha256 {config.policy_hash})') from None
+        try:   # pomdp and fib read the shipped POMDP policy solved for the configuration
+            selector = ActionSelector(model, policy, method=values['selector'])
+        except PolicyError as exc:
+            raise StartupError(f'selector {values["selector"]}: {exc}') from None
         self.loader = BackgroundLoad('decision')
         self.staged: Staged | None = None
         self.estimator_config: tuple[str, str] | None = None   # (belief sha256, source)
@@ -160,7 +164,7 @@ class DecisionNode(Node):
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
         self.running = Running(values['config'], values['policy'], config, model, policy,
-                               ActionSelector(model, policy, method=values['selector']))
+                               selector)
         input_ns, stale_ns = timeouts_ns(values)
         self.gate = DecisionGate(self.selector.select, stale_ns, input_ns,
                                  fresh_at_epoch=self.epoch_source == 'timer')
@@ -222,7 +226,14 @@ class DecisionNode(Node):
 
     # -- parameters ------------------------------------------------------------------------
     def _check_parameters(self, values) -> str | None:
-        return check_parameters(values) or self._check_swap(values)
+        reason = check_parameters(values)
+        if reason is None and self.running is not None \
+                and values.get('selector') in POMDP_SELECTORS:
+            try:
+                self.selector.prepare(values['selector'])    # loads the POMDP policy
+            except PolicyError as exc:
+                return f'selector {values["selector"]}: {exc}'
+        return reason or self._check_swap(values)
 
     def _check_swap(self, values) -> str | None:
         """The quick check of a new (config, policy) pair, in the parameter callback."""
@@ -377,6 +388,8 @@ class DecisionNode(Node):
                       'stale_timeout_s': self.gate.stale_timeout_ns * 1e-9,
                       'publish_ms': publish_ms,
                       'policy_file': self.policy.path,
+                      **({'pomdp_policy_file': getattr(self.selector.pomdp, 'path', '')}
+                         if self.selector.method in POMDP_SELECTORS else {}),
                       'policy_config_sha256': self.policy.config_sha256,
                       'config': self.config.source,
                       'config_sha256': self.config.policy_hash,

@@ -1,0 +1,203 @@
+"""Point backups of the mixed-observability POMDP solver (numba; see `pomdp`).
+
+The state is (x, h): x observed, h hidden (H values). From x under action a the observed part
+moves to one of at most K successors x'_k with probability l_k(h) = P(x'_k | x, h, a) (the
+acceptance and the distance step of the HRC cell depend on h), the hidden part moves and is
+observed through the action group's kernel Z_g[o, h, h'] = P(h', o | h) = E_g[h, h'] L[o, h'].
+For a belief b over h at x, the successor after (a, x'_k, o) is
+
+    b'(h') ∝ sum_h b(h) l_k(h) Z_g[o, h, h'],      with probability  sum of the same.
+
+Lower bound (alpha vectors, `lb_backup`): the point-based backup
+
+    alpha_a(h) = r(x, a, h) + gamma sum_{k, o} l_k(h) [Z_g[o] alpha*_{k,o}](h),
+    alpha*_{k,o} = argmax_{alpha in Gamma(x'_k)} sum_h b(h) l_k(h) [Z_g[o] alpha](h),
+
+with the projections ``proj[g, o, i] = Z_g[o] @ alpha_i`` formed once per sweep; the best
+action's vector is kept (ties within 1e-9 relative go to the first action of `order`, the
+safety order).
+
+Upper bound (`ub_backup`): the same one-step lookahead on the upper bound U(x', b') =
+min(FIB(x', b'), sawtooth(x', b')), where FIB(x, b) = max_a sum_h b(h) Q_fib(x, a, h) and the
+sawtooth interpolates the corner values c(x, h) and the point values (b_i, v_i) of x:
+
+    sawtooth(x, b) = min( c.b,  min_i c.b + kappa_i (v_i - c.b_i) ),
+    kappa_i = min_{h : b_i(h) > 0} b(h) / b_i(h).
+
+Both are parallel over the points (numba prange) and never allocate per successor.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+TIE = 1e-9
+
+
+def _ub_value(x, b, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets):
+    """min(FIB, sawtooth) at (x, b); b is normalised. The sawtooth points of x are given by
+    `ub_inverse[i, h]` = 1 / b_i(h) (0 where b_i(h) = 0) and `ub_slope[i]` = v_i - c.b_i < 0
+    (points with v_i >= c.b_i cannot lower the bound and are left out)."""
+    n_a = q_fib.shape[1]
+    n_h = b.shape[0]
+    fib = -np.inf
+    for a in range(n_a):
+        if not available[x, a]:
+            continue
+        s = 0.0
+        for h in range(n_h):
+            s += q_fib[x, a, h] * b[h]
+        if s > fib:
+            fib = s
+    base = 0.0
+    for h in range(n_h):
+        base += corner[x, h] * b[h]
+    best = min(fib, base)
+    for i in range(ub_offsets[x], ub_offsets[x + 1]):
+        kappa = np.inf
+        for h in range(n_h):
+            inv = ub_inverse[i, h]
+            if inv > 0.0:
+                r = b[h] * inv
+                if r < kappa:
+                    kappa = r
+        v = base + kappa * ub_slope[i]
+        if v < best:
+            best = v
+    return best
+
+
+_ub_value_inline = numba.njit(inline='always')(_ub_value)
+ub_value = numba.njit(cache=True)(_ub_value)
+
+
+def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order, proj,
+               offsets, gamma, out_vec, out_act, out_val):
+    n_points, n_h = points.shape
+    n_k = succ_x.shape[2]
+    n_o = proj.shape[1]
+    for p in numba.prange(n_points):
+        x = point_x[p]
+        b = points[p]
+        vec = np.empty(n_h)
+        bl = np.empty(n_h)
+        best_val = -np.inf
+        for ai in range(order.shape[0]):
+            a = order[ai]
+            if not available[x, a]:
+                continue
+            g = group[a]
+            for h in range(n_h):
+                vec[h] = reward[x, a, h]
+            for k in range(n_k):
+                xn = succ_x[x, a, k]
+                if xn < 0:
+                    break
+                for h in range(n_h):
+                    bl[h] = b[h] * succ_l[x, a, k, h]
+                lo = offsets[xn]
+                hi = offsets[xn + 1]
+                for o in range(n_o):
+                    best_i = lo
+                    best_s = -np.inf
+                    for i in range(lo, hi):
+                        s = 0.0
+                        for h in range(n_h):
+                            s += bl[h] * proj[g, o, i, h]
+                        if s > best_s:
+                            best_s = s
+                            best_i = i
+                    for h in range(n_h):
+                        vec[h] += gamma * succ_l[x, a, k, h] * proj[g, o, best_i, h]
+            val = 0.0
+            for h in range(n_h):
+                val += vec[h] * b[h]
+            if best_val == -np.inf or val > best_val + TIE * max(1.0, abs(best_val)):
+                best_val = val
+                out_act[p] = a
+                for h in range(n_h):
+                    out_vec[p, h] = vec[h]
+        out_val[p] = best_val
+
+
+lb_backup = numba.njit(parallel=True, cache=True, nogil=True)(_lb_backup)
+
+
+def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order, kernel,
+               gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, out_val, out_act):
+    n_points, n_h = points.shape
+    n_k = succ_x.shape[2]
+    n_o = kernel.shape[1]
+    for p in numba.prange(n_points):
+        x = point_x[p]
+        b = points[p]
+        bl = np.empty(n_h)
+        nb = np.empty(n_h)
+        best_val = -np.inf
+        for ai in range(order.shape[0]):
+            a = order[ai]
+            if not available[x, a]:
+                continue
+            g = group[a]
+            q = 0.0
+            for h in range(n_h):
+                q += b[h] * reward[x, a, h]
+            for k in range(n_k):
+                xn = succ_x[x, a, k]
+                if xn < 0:
+                    break
+                for h in range(n_h):
+                    bl[h] = b[h] * succ_l[x, a, k, h]
+                for o in range(n_o):
+                    total = 0.0
+                    for h2 in range(n_h):
+                        s = 0.0
+                        for h in range(n_h):
+                            s += bl[h] * kernel[g, o, h, h2]
+                        nb[h2] = s
+                        total += s
+                    if total <= 0.0:
+                        continue
+                    for h2 in range(n_h):
+                        nb[h2] /= total
+                    q += gamma * total * _ub_value_inline(
+                        xn, nb, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets)
+            if best_val == -np.inf or q > best_val + TIE * max(1.0, abs(best_val)):
+                best_val = q
+                out_act[p] = a
+        out_val[p] = best_val
+
+
+ub_backup = numba.njit(parallel=True, cache=True, nogil=True)(_ub_backup)
+
+
+def _lb_values(points, point_x, alpha, offsets, out_val, out_index):
+    """max_{alpha in Gamma(x)} alpha . b per point, and the index of the maximiser."""
+    n_points, n_h = points.shape
+    for p in numba.prange(n_points):
+        x = point_x[p]
+        best = -np.inf
+        best_i = -1
+        for i in range(offsets[x], offsets[x + 1]):
+            s = 0.0
+            for h in range(n_h):
+                s += alpha[i, h] * points[p, h]
+            if s > best:
+                best = s
+                best_i = i
+        out_val[p] = best
+        out_index[p] = best_i
+
+
+lb_values = numba.njit(parallel=True, cache=True, nogil=True)(_lb_values)
+
+
+def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets,
+               out_val):
+    for p in numba.prange(points.shape[0]):
+        out_val[p] = _ub_value_inline(point_x[p], points[p], q_fib, available, corner,
+                                      ub_inverse, ub_slope, ub_offsets)
+
+
+ub_values = numba.njit(parallel=True, cache=True, nogil=True)(_ub_values)

@@ -1,0 +1,864 @@
+"""Planning over the belief: a point-based solver for the mixed-observability HRC POMDP.
+
+The cell's state is s = (h, x): the hidden emotions h = 3*em + ea (9 values) and the observable
+part x = (y, d) (task/activity part y, distance d). Only h is hidden, so the belief is a vector
+over 9 values for the observed x, and the value function is one convex piecewise-linear function
+per x: V(x, b) = max_{alpha in Gamma(x)} alpha . b (a mixed-observability MDP, Ong et al. 2010).
+
+One epoch under action a (MODEL.md 3), as the POMDP sees it:
+
+- the observable part moves x -> x' with P(x' | x, h, a): acceptance of an eligible request
+  with p_accept[em], the distance step with p_delta[ea], the task step deterministic given
+  those. So x' is evidence about h *before* the emotion step: l_{x'}(h) = P(x' | x, h, a);
+- h moves by the emotion chain of the action's group g, E_g[h, h'], and O' is drawn from
+  P(O' | h') = L[O', h'] (the belief filter's `likelihood`, Table 5 read by Bayes' rule).
+
+The exact posterior after (a, x', O') is therefore
+
+    b'(h') ∝ L[O', h'] sum_h b(h) l_{x'}(h) E_g[h, h'],
+
+which uses the acceptance and the distance move as well as O'. `BeliefFilter` computes exactly
+this when it is given the observable transition (`BeliefFilter.update(..., evidence=...)` with
+`transition_evidence`; docs/POMDP.md says where the running system does so).
+
+Solver family: **point-based value iteration with Perseus's improvement rule over a gathered
+belief set, bracketed by an upper bound** (`solve_pomdp`). Why this family: the observable part
+the task book can produce is small (149 task states x 4 distances at full size, `hrc_pomdp`
+computes the closure) while the evaluation visits beliefs all over it, so a fixed, broad belief
+set backed up in full sweeps (PBVI) serves the whole policy rather than one start (HSVI and
+SARSOP spend their effort on the beliefs reachable from one initial belief); every point is
+backed up in each sweep, in parallel (numba), and a point keeps its old vector when the new one
+is worse (Perseus), so the lower bound never decreases at any point. The belief set is gathered
+where the cell goes: simulated episodes (the case study's start and random task streams with
+new tasks entering an idle cell, as `hrc-evaluate` runs them) with the exact posterior, acting
+by the current bound's policy with some random actions, plus the 9 corners, the Table 5 rows
+and the filter's first beliefs at every x; then more points from episodes run with the solved
+policy (PBVI's belief expansion), and solved again from the current vectors.
+
+Bounds. The lower bound starts from the blind policies (always a, dn where a is not
+available) and only ever holds vectors that are values of executable conditional plans, so
+max alpha.b <= V*(x, b). The upper bound is the fast informed bound (Hauskrecht 2000),
+
+    Q_fib(x, a, h) = r(x, a, h) + gamma sum_{x', O'} max_a' sum_h' P(x', h', O' | x, h, a)
+                     Q_fib(x', a', h'),
+
+iterated from the MDP's Q (each iterate is an upper bound), tightened at the belief points by
+sawtooth interpolation (Hauskrecht 2000; Smith and Simmons 2005) of point-wise backed-up
+values, U(x, b) = min(FIB(x, b), sawtooth(x, b)). The solve reports U - L at the case study's
+first beliefs and over the belief set.
+
+Vectorised numpy builds the structure; the backups are numba kernels (`_pomdp_kernels`).
+The transition pieces come from `solver.FactoredBellman` (task maps, acceptance, costs) and
+`HRCModel` (distance matrices, availability), so the POMDP and the MDP are one model: over the
+solved x the MDP Q of this module equals `FactoredBellman.q` (a test holds them equal).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from . import _pomdp_kernels as kernels
+from .belief import BeliefFilter
+from .config import EMOTION_GROUPS
+from .model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
+                    SAFETY_ORDER, TASK_VARIABLES, HRCModel)
+from .solver import FactoredBellman
+
+TIE_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class MixedPOMDP:
+    """A POMDP over (x observed, h hidden), in arrays.
+
+    X observable states, A actions, H hidden values, K successors at most, G action groups,
+    O observations. `succ_x[x, a, k]` is the k-th possible x' (-1 pads) and
+    `succ_l[x, a, k, h] = P(x'_k | x, h, a)` (sums to 1 over k); `kernel[g, o, h, h'] =
+    P(h', o | h)` under group g; `reward[x, a, h]` = -cost; `available[x, a]`; `group[a]`;
+    `order`: the actions in tie order (the first wins a tie).
+    """
+
+    succ_x: np.ndarray
+    succ_l: np.ndarray
+    reward: np.ndarray
+    available: np.ndarray
+    group: np.ndarray
+    kernel: np.ndarray
+    gamma: float
+    order: np.ndarray
+
+    def __post_init__(self):
+        n_x, n_a, n_k = self.succ_x.shape
+        if self.succ_l.shape[:3] != (n_x, n_a, n_k) or self.reward.shape != (
+                n_x, n_a, self.n_hidden):
+            raise ValueError('succ_x, succ_l and reward disagree in shape')
+        if not np.all(self.available.any(axis=1)):
+            raise ValueError('every observable state needs an available action')
+        total = np.where(self.succ_x >= 0, 1, 0)[..., None] * self.succ_l
+        ok = np.abs(total.sum(axis=2) - 1.0) < 1e-9
+        if not np.all(ok | ~self.available[..., None]):
+            raise ValueError('P(x\' | x, h, a) must sum to 1 over the successors')
+        if not np.allclose(self.kernel.sum(axis=(1, 3)), 1.0, atol=1e-9):
+            raise ValueError('kernel[g] must be a distribution over (o, h\') for every h')
+
+    @property
+    def n_x(self) -> int:
+        return self.succ_x.shape[0]
+
+    @property
+    def n_actions(self) -> int:
+        return self.succ_x.shape[1]
+
+    @property
+    def n_hidden(self) -> int:
+        return self.succ_l.shape[3]
+
+    @property
+    def hidden_transition(self) -> np.ndarray:
+        """E_g[h, h'] = sum_o kernel[g, o, h, h'], shape (G, H, H)."""
+        return self.kernel.sum(axis=1)
+
+    def expected_next(self, value: np.ndarray) -> np.ndarray:
+        """sum_k l_k(h) sum_h' E_g[h, h'] value[x'_k, h'] for every (x, a, h): (X, A, H)."""
+        e = self.hidden_transition[self.group]                     # (A, H, H)
+        stepped = np.einsum('ahk,xk->xah', e, value)                # value after the h step
+        nxt = np.maximum(self.succ_x, 0)
+        a_index = np.arange(self.n_actions)[None, :, None]
+        gathered = stepped[nxt, a_index, :]                         # (X, A, K, H)
+        gathered = np.where((self.succ_x >= 0)[..., None], gathered, 0.0)
+        return np.einsum('xakh,xakh->xah', self.succ_l, gathered)
+
+    def successor_belief(self, x: int, b: np.ndarray, a: int):
+        """[(x'_k, o, P(x'_k, o | b), b')] after action a from (x, b): the exact posterior."""
+        out = []
+        g = self.group[a]
+        for k in range(self.succ_x.shape[2]):
+            xn = int(self.succ_x[x, a, k])
+            if xn < 0:
+                break
+            bl = b * self.succ_l[x, a, k]
+            for o in range(self.kernel.shape[1]):
+                nb = bl @ self.kernel[g, o]
+                p = float(nb.sum())
+                if p > 0.0:
+                    out.append((xn, o, p, nb / p))
+        return out
+
+
+# -- the HRC cell as a MixedPOMDP ---------------------------------------------------------------
+@dataclass(frozen=True)
+class HRCPomdp:
+    """The HRC POMDP over the observable states the task book can produce.
+
+    `columns[i]` is the observable column y * 4 + d of solved state i (the column of
+    `ActionSelector`); `column_index[c]` the solved state of column c, -1 outside the set.
+    `enter[i, j]` is the solved state after task j of `tasks` enters the idle cell of state i
+    (-1 where the cell is busy); `likelihood` is P(O | h), (3, 9).
+    """
+
+    model: HRCModel
+    pomdp: MixedPOMDP
+    columns: np.ndarray
+    column_index: np.ndarray
+    tasks: np.ndarray
+    enter: np.ndarray
+    likelihood: np.ndarray
+
+    def state(self, observable) -> int:
+        """The solved state of observable x = (tp, tc, tx, ty, hp, hc, bp, bc, d)."""
+        *task, d = (int(v) for v in observable)
+        y = self.model.task_index({n: np.asarray(v) for n, v in zip(TASK_VARIABLES, task)})
+        i = int(self.column_index[int(y) * N_DISTANCE + d])
+        if i < 0:
+            raise ValueError(f'observable state {tuple(observable)} is not one the task book '
+                             'can produce; the POMDP policy does not cover it')
+        return i
+
+
+def entering_task(model: HRCModel, y: np.ndarray, tp, tc, tx) -> np.ndarray:
+    """The task state after task (tp, tc, tx) enters an idle cell in task state y: the task
+    uncommitted (ty = 0), the activities as they were (`TaskBook.begin_epoch`)."""
+    grid = model.task_grid
+    task = {n: grid[n][y] for n in TASK_VARIABLES}
+    shape = np.shape(y)
+    task.update(tp=np.broadcast_to(tp, shape), tc=np.broadcast_to(tc, shape),
+                tx=np.broadcast_to(tx, shape), ty=np.zeros(shape, dtype=np.int64))
+    return np.asarray(model.task_index(task), dtype=np.intp)
+
+
+def _task_outcomes(op: FactoredBellman):
+    """Per action: (y' when refused or not a request, y' when accepted or -1, eligible)."""
+    rh1 = np.zeros(op.n_y, dtype=bool)
+    rh2 = np.zeros(op.n_y, dtype=bool)
+    rh1[op.request_y[~op.request_is_rh2]] = True
+    rh2[op.request_y[op.request_is_rh2]] = True
+    commit = np.where(op.t_commit_full >= 0, op.t_commit_full, op.t_default)
+    out = []
+    for a in range(len(ACTIONS)):
+        refused = {DN: op.t_pause, CT: commit}.get(a, op.t_default)
+        eligible = {RH1: rh1, RH2: rh2}.get(a, np.zeros(op.n_y, dtype=bool))
+        out.append((refused, np.where(eligible, op.t_accept_full, -1), eligible))
+    return out
+
+
+def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
+    """The MixedPOMDP of `model` over the closure of the task states the task book produces:
+    the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
+    reach from them, at every distance."""
+    op = operator or FactoredBellman(model)
+    outcomes = _task_outcomes(op)
+    grid = model.task_grid
+    tasks = np.array([(tp, tc, tx) for tp in range(1, model.rho + 1)
+                      for tc in range(1, model.sigma + 1) for tx in range(4)])
+    idle_y = entering_task(model, np.array([0]), 0, 0, 0)[0]    # tp = 0 everywhere: y = 0
+    reach = np.zeros(model.n_task, dtype=bool)
+    reach[idle_y] = True
+    while True:
+        ys = np.flatnonzero(reach)
+        nxt = [refused[ys] for refused, _, _ in outcomes]
+        nxt += [accepted[ys][accepted[ys] >= 0] for _, accepted, _ in outcomes]
+        idle = ys[grid['tp'][ys] == 0]
+        nxt += [entering_task(model, idle, *t) for t in tasks]
+        before = int(reach.sum())
+        reach[np.concatenate(nxt)] = True
+        if int(reach.sum()) == before:
+            break
+    ys = np.flatnonzero(reach)
+    n_y = ys.size
+    y_index = np.full(model.n_task, -1, dtype=np.intp)
+    y_index[ys] = np.arange(n_y)
+    columns = (ys[:, None] * N_DISTANCE + np.arange(N_DISTANCE)[None, :]).ravel()
+    n_x = columns.size                                              # x = i_y * 4 + d
+    column_index = np.full(model.n_task * N_DISTANCE, -1, dtype=np.intp)
+    column_index[columns] = np.arange(n_x)
+
+    ea = np.arange(N_HIDDEN) % 3
+    p_accept = op.p_accept_vector                                   # by h
+    n_a = len(ACTIONS)
+    n_k = 2 * 3
+    succ_x = np.full((n_x, n_a, n_k), -1, dtype=np.intp)
+    succ_l = np.zeros((n_x, n_a, n_k, N_HIDDEN))
+    d_of_x = np.tile(np.arange(N_DISTANCE), n_y)
+    for a, (refused, accepted, eligible) in enumerate(outcomes):
+        dist = model.distance_matrix(a)[ea]                         # (9, d, d')
+        branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
+        branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
+        k = np.zeros(n_x, dtype=np.intp)
+        for y_next, p_y in branches:
+            has = y_next >= 0
+            for d_next in range(N_DISTANCE):
+                p_d = dist[:, :, d_next].T                          # (d, 9)
+                lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_x, 9)
+                use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
+                rows = np.flatnonzero(use)
+                target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
+                succ_x[rows, a, k[rows]] = target * N_DISTANCE + d_next
+                succ_l[rows, a, k[rows]] = lik[rows]
+                k[rows] += 1
+    cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)
+    reward = -(cost[:, None, :] + op.g[None, :, None])
+    available = model.availability[:, d_of_x].T.copy()             # (x, a)
+    likelihood = BeliefFilter(model).likelihood
+    emotion = np.stack([model.emotion_matrices[g] for g in EMOTION_GROUPS])
+    kernel = emotion[:, None, :, :] * likelihood[None, :, None, :]  # (g, o, h, h')
+    group = np.array([EMOTION_GROUPS.index(ACTION_EMOTION_GROUP[a]) for a in range(n_a)])
+    pomdp = MixedPOMDP(succ_x=succ_x, succ_l=succ_l, reward=reward, available=available,
+                       group=group, kernel=np.ascontiguousarray(kernel), gamma=model.gamma,
+                       order=np.array(SAFETY_ORDER))
+    idle_x = np.repeat(grid['tp'][ys] == 0, N_DISTANCE)
+    enter = np.full((n_x, len(tasks)), -1, dtype=np.intp)
+    for j, t in enumerate(tasks):
+        entered = y_index[entering_task(model, ys, *t)]
+        enter[:, j] = np.where(idle_x, np.repeat(entered, N_DISTANCE) * N_DISTANCE + d_of_x, -1)
+    return HRCPomdp(model, pomdp, columns, column_index, tasks, enter, likelihood)
+
+
+# -- the MDP and the fast informed bound over the solved states -------------------------------
+def _greedy_value(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
+    return np.where(pomdp.available[..., None], q, -np.inf).max(axis=1)
+
+
+def mdp_q(pomdp: MixedPOMDP, tol: float = 1e-9, max_sweeps: int = 100_000) -> np.ndarray:
+    """Q of the fully observed MDP over (x, h), (X, A, H), by value iteration to `tol`."""
+    value = np.zeros((pomdp.n_x, pomdp.n_hidden))
+    for _ in range(max_sweeps):
+        q = pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+        new = _greedy_value(pomdp, q)
+        change = np.max(np.abs(new - value))
+        value = new
+        if change < tol:
+            break
+    return pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+
+
+def fib_step(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
+    """One fast-informed-bound backup of Q (X, A, H)."""
+    masked = np.where(pomdp.available[..., None], q, -np.inf)       # (X, A', H')
+    # w[x', g, o, h] = max_a' sum_h' kernel[g, o, h, h'] q[x', a', h']
+    proj = np.einsum('gohk,xak->xgoha', pomdp.kernel, np.where(np.isfinite(masked), q, 0.0))
+    proj = np.where(pomdp.available[:, None, None, None, :], proj, -np.inf)
+    w = proj.max(axis=4).sum(axis=2)                                 # (X, G, H)
+    nxt = np.maximum(pomdp.succ_x, 0)
+    gathered = w[nxt, pomdp.group[None, :, None], :]                # (X, A, K, H)
+    gathered = np.where((pomdp.succ_x >= 0)[..., None], gathered, 0.0)
+    return pomdp.reward + pomdp.gamma * np.einsum('xakh,xakh->xah', pomdp.succ_l, gathered)
+
+
+def fib_q(pomdp: MixedPOMDP, tol: float = 1e-9, start: np.ndarray | None = None,
+          max_sweeps: int = 100_000) -> tuple[np.ndarray, int]:
+    """The fast informed bound's Q, (X, A, H), iterated from the MDP's Q (an upper bound, so
+    every iterate is one); returns (Q, sweeps)."""
+    q = mdp_q(pomdp, tol) if start is None else start
+    for n in range(1, max_sweeps + 1):
+        new = fib_step(pomdp, q)
+        change = np.max(np.abs(np.where(pomdp.available[..., None], new - q, 0.0)))
+        q = np.minimum(q, new)     # a valid upper bound stays one; guards rounding drift
+        if change < tol:
+            return q, n
+    return q, max_sweeps
+
+
+def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9) -> np.ndarray:
+    """Values (A, X, H) of the blind policies 'always a (where a is unavailable, the first
+    available action of the tie order)': executable whatever the belief, so lower bounds."""
+    n_a, n_x = pomdp.n_actions, pomdp.n_x
+    first = pomdp.order[np.argmax(pomdp.available[:, pomdp.order], axis=1)]   # (X,)
+    act = np.where(pomdp.available.T, np.arange(n_a)[:, None], first[None, :])  # (A, X)
+    rows = np.arange(n_x)[None, :]
+    reward = pomdp.reward[rows, act]                                # (A, X, H)
+    e = pomdp.hidden_transition[pomdp.group[act]]                   # (A, X, H, H')
+    succ_x = pomdp.succ_x[rows, act]                                # (A, X, K)
+    succ_l = pomdp.succ_l[rows, act]                                # (A, X, K, H)
+    exists = (succ_x >= 0)[..., None]
+    nxt = np.maximum(succ_x, 0)
+    blind = np.arange(n_a)[:, None, None]
+    value = np.zeros((n_a, n_x, pomdp.n_hidden))
+    while True:
+        gathered = np.where(exists, value[blind, nxt], 0.0)         # (A, X, K, H')
+        future = np.einsum('axkh,axhj,axkj->axh', succ_l, e, gathered)
+        new = reward + pomdp.gamma * future
+        change = np.max(np.abs(new - value))
+        value = new
+        if change < tol:
+            return value
+
+
+# -- belief points ------------------------------------------------------------------------------
+def q_policy(pomdp: MixedPOMDP, q: np.ndarray):
+    """(x array, b array) -> argmax_a sum_h b(h) q[x, a, h] over available a, tie order."""
+    def act(x, b):
+        scores = np.einsum('eah,eh->ea', q[x], b)
+        return first_of_best(np.where(pomdp.available[x], scores, -np.inf), pomdp.order)
+    return act
+
+
+def first_of_best(scores: np.ndarray, order=SAFETY_ORDER) -> np.ndarray:
+    """Per row of scores (E, A), the first action of `order` within the tie tolerance
+    (1e-9 * max(1, |best|)) of the row's best."""
+    best = scores.max(axis=1, keepdims=True)
+    tied = scores >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+    order = np.asarray(order)
+    return order[np.argmax(tied[:, order], axis=1)]
+
+
+@dataclass
+class Starts:
+    """Where sampled episodes begin: observable states, the true h's distribution and the
+    prior the belief starts from (b_1 ∝ prior * L[O_1], O_1 drawn from the true h)."""
+
+    x: np.ndarray
+    truth: np.ndarray     # (S, H)
+    prior: np.ndarray     # (S, H)
+
+
+def sample_beliefs(pomdp: MixedPOMDP, likelihood: np.ndarray, starts: Starts, policy,
+                   episodes: int, epochs: int, seed: int = 0, explore: float = 0.2,
+                   enter: np.ndarray | None = None, task_rate: float = 0.2):
+    """Beliefs (x, b) met in `episodes` simulated episodes of `epochs` epochs, with the exact
+    posterior. Actions: `policy(x, b)`, or with probability `explore` a random available one.
+    With `enter` (X, T), a task enters an idle cell with probability `task_rate` per epoch
+    (as in `hrc-evaluate`'s random task streams). Returns (x (E*K,), b (E*K, H))."""
+    rng = np.random.default_rng(seed)
+    n_h = pomdp.n_hidden
+    s = rng.integers(0, len(starts.x), size=episodes)
+    x = starts.x[s].astype(np.intp)
+    h = _draw(rng, starts.truth[s])
+    o = _draw(rng, likelihood.T[h])
+    b = starts.prior[s] * likelihood[o]
+    b /= b.sum(axis=1, keepdims=True)
+    xs, bs = [], []
+    for _ in range(epochs):
+        xs.append(x.copy())
+        bs.append(b.copy())
+        a = policy(x, b)
+        wild = rng.random(episodes) < explore
+        if wild.any():
+            avail = pomdp.available[x[wild]].astype(float)
+            a[wild] = _draw(rng, avail / avail.sum(axis=1, keepdims=True))
+        p_k = pomdp.succ_l[x, a, :, h]                               # (E, K)
+        k = _draw(rng, p_k)
+        lik = pomdp.succ_l[x, a, k]                                  # (E, H)
+        x_next = pomdp.succ_x[x, a, k]
+        g = pomdp.group[a]
+        joint = pomdp.kernel[g, :, h, :].reshape(episodes, -1)       # (E, O*H')
+        oh = _draw(rng, joint)
+        o, h = oh // n_h, oh % n_h
+        b = np.einsum('eh,ehk->ek', b * lik, pomdp.kernel[g, o])
+        b /= b.sum(axis=1, keepdims=True)
+        x = x_next
+        if enter is not None:
+            can = enter[x, 0] >= 0
+            arrive = can & (rng.random(episodes) < task_rate)
+            if arrive.any():
+                j = rng.integers(0, enter.shape[1], size=int(arrive.sum()))
+                x[arrive] = enter[x[arrive], j]
+    return np.concatenate(xs), np.concatenate(bs)
+
+
+def _draw(rng, p: np.ndarray) -> np.ndarray:
+    """One index per row of p (rows are distributions), by inverse CDF."""
+    c = np.cumsum(p, axis=1)
+    u = rng.random(len(p)) * c[:, -1]
+    return np.minimum((c <= u[:, None]).sum(axis=1), p.shape[1] - 1)
+
+
+def thin_points(x: np.ndarray, b: np.ndarray, resolution: float = 0.01,
+                per_state: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct beliefs per x at `resolution` (rounded), at most `per_state` per x (random
+    ones beyond), sorted by x."""
+    key = np.round(b / resolution).astype(np.int64)
+    _, first = np.unique(np.column_stack([x, key]), axis=0, return_index=True)
+    x, b = x[first], b[first]
+    rng = np.random.default_rng(seed)
+    keep = np.ones(len(x), dtype=bool)
+    order = np.argsort(x, kind='stable')
+    x, b = x[order], b[order]
+    starts = np.flatnonzero(np.r_[True, x[1:] != x[:-1]])
+    ends = np.r_[starts[1:], len(x)]
+    for lo, hi in zip(starts, ends):
+        if hi - lo > per_state:
+            drop = rng.choice(np.arange(lo, hi), size=hi - lo - per_state, replace=False)
+            keep[drop] = False
+    return x[keep], b[keep]
+
+
+# -- the solver -----------------------------------------------------------------------------------
+@dataclass
+class AlphaSet:
+    """Alpha vectors grouped by observable state: Gamma(x) = alpha[offsets[x]:offsets[x+1]]."""
+
+    alpha: np.ndarray     # (n, H) float64
+    action: np.ndarray    # (n,) int8
+    offsets: np.ndarray   # (X + 1,) int64
+
+    @classmethod
+    def build(cls, x, alpha, action, n_x: int) -> 'AlphaSet':
+        """From unsorted rows; exact duplicates (same x, action, vector) are merged."""
+        rows = np.column_stack([x.astype(float), action.astype(float), alpha])
+        _, first = np.unique(rows, axis=0, return_index=True)
+        first = first[np.argsort(x[first], kind='stable')]
+        x, alpha, action = x[first], alpha[first], action[first]
+        offsets = np.searchsorted(x, np.arange(n_x + 1)).astype(np.int64)
+        return cls(np.ascontiguousarray(alpha), action.astype(np.int8), offsets)
+
+    @property
+    def owner(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets))
+
+    def __len__(self) -> int:
+        return len(self.alpha)
+
+
+@dataclass
+class UpperBound:
+    """FIB's Q, the corner values and the sawtooth points (sorted by x) with their values."""
+
+    q_fib: np.ndarray     # (X, A, H)
+    available: np.ndarray  # (X, A)
+    corner: np.ndarray    # (X, H)
+    points_x: np.ndarray  # (P,) sorted
+    points: np.ndarray    # (P, H)
+    values: np.ndarray    # (P,)
+
+    @classmethod
+    def from_fib(cls, q_fib, available, points_x, points) -> 'UpperBound':
+        corner = np.where(available[..., None], q_fib, -np.inf).max(axis=1)
+        ub = cls(q_fib, available, corner, points_x, points, np.full(len(points), np.inf))
+        ub.values = ub.evaluate(points_x, points)
+        return ub
+
+    def sawtooth(self):
+        """(1 / b_i, v_i - c.b_i, offsets) of the points that lower the bound (v_i < c.b_i)."""
+        base = np.einsum('ph,ph->p', self.corner[self.points_x], self.points)
+        slope = self.values - base
+        use = slope < -1e-12
+        with np.errstate(divide='ignore'):
+            inverse = np.where(self.points[use] > 0, 1.0 / self.points[use], 0.0)
+        offsets = np.searchsorted(self.points_x[use], np.arange(len(self.corner) + 1))
+        return (np.ascontiguousarray(inverse), np.ascontiguousarray(slope[use]),
+                offsets.astype(np.int64))
+
+    def evaluate(self, x, b) -> np.ndarray:
+        """U(x, b) = min(FIB, sawtooth) for rows (x, b)."""
+        x = np.ascontiguousarray(x, dtype=np.intp)
+        b = np.ascontiguousarray(b, dtype=float)
+        out = np.empty(len(x))
+        kernels.ub_values(b, x, self.q_fib, self.available, self.corner, *self.sawtooth(), out)
+        return out
+
+
+def initial_bounds(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
+                   tol: float = 1e-9) -> tuple[AlphaSet, UpperBound]:
+    """The blind policies' vectors (lower bound) and FIB with the points' values (upper)."""
+    q_fib, _ = fib_q(pomdp, tol)
+    blind = blind_alphas(pomdp, tol)
+    n_x, n_a = pomdp.n_x, pomdp.n_actions
+    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, pomdp.n_hidden),
+                            np.repeat(np.arange(n_a), n_x), n_x)
+    return alphas, UpperBound.from_fib(q_fib, pomdp.available, points_x, points)
+
+
+def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
+                  alphas: AlphaSet, upper: UpperBound, max_sweeps: int, tol: float,
+                  targets=None, progress: Callable[[dict], None] | None = None,
+                  time_limit: float | None = None, ub_every: int = 25
+                  ) -> tuple[AlphaSet, UpperBound, list]:
+    """Full point-based sweeps of both bounds until neither moves by `tol` at any point.
+
+    Lower bound: every point backed up from the current vectors (`lb_backup`); a point keeps
+    its current best vector where the new one is worse (Perseus's rule), so the bound never
+    decreases at a point; the new set is the vectors the points hold. Upper bound: every point
+    backed up through min(FIB, sawtooth) (`ub_backup`), keeping the smaller value; the corners
+    (points e_h) lower the corner values. `targets` = (x, b) rows whose gap is reported.
+    """
+    n_x, n_h = pomdp.n_x, pomdp.n_hidden
+    order = np.ascontiguousarray(pomdp.order, dtype=np.intp)
+    group = np.ascontiguousarray(pomdp.group, dtype=np.intp)
+    succ_x = np.ascontiguousarray(pomdp.succ_x, dtype=np.intp)
+    n_p = len(points)
+    vec = np.empty((n_p, n_h))
+    act = np.empty(n_p, dtype=np.intp)
+    val = np.empty(n_p)
+    old_val = np.empty(n_p)
+    old_idx = np.empty(n_p, dtype=np.intp)
+    ub_new = np.empty(n_p)
+    ub_act = np.empty(n_p, dtype=np.intp)
+    is_corner = points.max(axis=1) >= 1.0
+    corner_h = points.argmax(axis=1)
+    t0 = time.perf_counter()
+    history = []
+    ub_change = np.inf
+    for sweep in range(1, max_sweeps + 1):
+        proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
+        kernels.lb_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
+                          pomdp.available, group, order, proj, alphas.offsets, pomdp.gamma,
+                          vec, act, val)
+        kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx)
+        better = val > old_val
+        keep_vec = np.where(better[:, None], vec, alphas.alpha[old_idx])
+        keep_act = np.where(better, act, alphas.action[old_idx])
+        lb_change = float(np.max(np.maximum(val - old_val, 0.0)))
+        # states without points keep their vectors
+        lonely = np.ones(n_x, dtype=bool)
+        lonely[points_x] = False
+        held = lonely[alphas.owner]
+        alphas = AlphaSet.build(np.concatenate([points_x, alphas.owner[held]]),
+                                np.vstack([keep_vec, alphas.alpha[held]]),
+                                np.concatenate([keep_act, alphas.action[held]]), n_x)
+
+        last = lb_change < tol or sweep == max_sweeps or (
+            time_limit is not None and time.perf_counter() - t0 > time_limit)
+        if sweep == 1 or sweep % ub_every == 0 or last:
+            kernels.ub_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
+                              pomdp.available, group, order, pomdp.kernel, pomdp.gamma,
+                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act)
+            ub_change = float(np.max(np.maximum(upper.values - ub_new, 0.0)))
+            upper.values = np.minimum(upper.values, ub_new)
+            c = upper.corner.copy()
+            np.minimum.at(c, (points_x[is_corner], corner_h[is_corner]),
+                          upper.values[is_corner])
+            upper.corner = c
+        lower_now = np.maximum(val, old_val)
+        gap = upper.values - lower_now
+        row = {'sweep': sweep, 'vectors': len(alphas), 'lb_change': lb_change,
+               'ub_change': ub_change, 'gap_max': float(gap.max()),
+               'gap_mean': float(gap.mean()), 'elapsed': time.perf_counter() - t0}
+        if targets is not None:
+            tx, tb = targets
+            lo = np.array([(alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+                           for x, b in zip(tx, tb)])
+            hi = upper.evaluate(tx, tb)
+            row['target_lower'] = lo.tolist()
+            row['target_upper'] = hi.tolist()
+            row['target_gap'] = float(np.max((hi - lo) / np.maximum(1.0, np.abs(lo))))
+        history.append(row)
+        if progress is not None:
+            progress(row)
+        if lb_change < tol and ub_change < tol:
+            break
+        if time_limit is not None and time.perf_counter() - t0 > time_limit:
+            break
+    return alphas, upper, history
+
+
+# -- the solve ---------------------------------------------------------------------------------
+@dataclass
+class PomdpResult:
+    """What `solve_pomdp` returns: the policy's arrays, both bounds and the report."""
+
+    hrc: HRCPomdp
+    alphas: AlphaSet
+    upper: UpperBound
+    points_x: np.ndarray
+    points: np.ndarray
+    report: dict
+
+    def policy(self) -> 'AlphaPolicy':
+        pomdp = self.hrc.pomdp
+        return AlphaPolicy(self.hrc.columns, self.alphas.alpha, self.alphas.action,
+                           self.alphas.offsets, self.upper.q_fib, pomdp.available,
+                           self.hrc.model.n_task * N_DISTANCE)
+
+
+def case_study_targets(hrc: HRCPomdp) -> tuple[list, np.ndarray, np.ndarray]:
+    """The case study's first beliefs (MODEL.md 7: task (1, 1, 3) at d = 1): b_1 after each
+    O_1 (`BeliefFilter.initial`, bayes), as (names, x, b)."""
+    model = hrc.model
+    observable = (1, 1, 3, 0, 0, 0, 0, 0, 1)
+    x1 = hrc.state(observable)
+    filt = BeliefFilter(model, mode='bayes')
+    names = [f'case study, b_1 after O_1 = {o}' for o in (1, 2, 3)]
+    beliefs = np.array([filt.initial(o) for o in (1, 2, 3)])
+    return names, np.full(3, x1), beliefs
+
+
+def _starts(hrc: HRCPomdp) -> Starts:
+    """The case study's start (true h = (0, 0), belief from O_1 alone) and every task
+    entering the idle cell at d = 1..3 with a uniformly random human (`hrc-evaluate`)."""
+    uniform = np.full(N_HIDDEN, 1.0 / N_HIDDEN)
+    _, tx, _ = case_study_targets(hrc)
+    idle = hrc.column_index[np.arange(N_DISTANCE)]          # y = 0: the idle cell
+    xs = [tx[0]] + [hrc.enter[idle[d], j] for d in (1, 2, 3) for j in range(len(hrc.tasks))]
+    truth = np.vstack([np.eye(N_HIDDEN)[0]] + [uniform] * (len(xs) - 1))
+    return Starts(np.array(xs), truth, np.tile(uniform, (len(xs), 1)))
+
+
+def _fixed_points(hrc: HRCPomdp) -> tuple[np.ndarray, np.ndarray]:
+    """At every x: the 9 corners, the filter's first beliefs L[O] / sum L[O] and the Table 5
+    rows."""
+    n_x = hrc.pomdp.n_x
+    lik = hrc.likelihood
+    rows = np.vstack([np.eye(N_HIDDEN), lik / lik.sum(axis=1, keepdims=True),
+                      hrc.model.config.observation_table])
+    return np.repeat(np.arange(n_x), len(rows)), np.tile(rows, (n_x, 1))
+
+
+def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
+                per_state: int = 100, rounds: int = 1, tol: float = 1e-3,
+                max_sweeps: int = 2000, seed: int = 0, explore: float = 0.2,
+                resolution: float = 0.01, progress: Callable[[str], None] | None = None
+                ) -> PomdpResult:
+    """Solve the HRC POMDP of `model` (see the module docstring).
+
+    Round 0 gathers beliefs from `episodes` simulated episodes of `epochs` epochs acting by
+    the fast informed bound (with probability `explore` a random action), thins them to at
+    most `per_state` distinct beliefs per x at `resolution`, adds the fixed points and sweeps
+    both bounds until neither moves by `tol`; each further round gathers as many episodes
+    acting by the current lower bound's policy, adds their beliefs and sweeps again.
+    """
+    say = progress or (lambda message: None)
+    t0 = time.perf_counter()
+    op = FactoredBellman(model)
+    hrc = hrc_pomdp(model, op)
+    pomdp = hrc.pomdp
+    q_mdp = mdp_q(pomdp, tol=1e-9)
+    q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp)
+    blind = blind_alphas(pomdp, tol=1e-9)
+    n_x, n_a = pomdp.n_x, pomdp.n_actions
+    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, N_HIDDEN),
+                            np.repeat(np.arange(n_a), n_x), n_x)
+    t_bounds = time.perf_counter()
+    say(f'{n_x} observable states ({n_x // N_DISTANCE} task states x {N_DISTANCE} '
+        f'distances), FIB {fib_sweeps} sweeps, {t_bounds - t0:.1f} s')
+    names, tx, tb = case_study_targets(hrc)
+    starts = _starts(hrc)
+    fixed_x, fixed_b = _with_fixed(tx, tb, *_fixed_points(hrc))
+    points_x, points = fixed_x, fixed_b
+    upper = UpperBound.from_fib(q_fib, pomdp.available, points_x, points)
+    sweeps = []
+
+    def show(row, name):
+        if row['sweep'] % 25 == 0 or row['sweep'] == 1:
+            say(f'{name} sweep {row["sweep"]:4d}: {row["vectors"]} vectors, lower '
+                f'+{row["lb_change"]:.2e}, upper -{row["ub_change"]:.2e}, gap at the case '
+                f'study {100 * row["target_gap"]:.3f}%, {row["elapsed"]:.1f} s')
+    # Warm start: the fixed points alone (corners, first beliefs, Table 5 rows at every x)
+    # converge in a fraction of the time and lift the blind vectors for the sampled points.
+    alphas, upper, history = backup_sweeps(pomdp, points_x, points, alphas, upper, max_sweeps,
+                                           tol, (tx, tb), lambda row: show(row, 'fixed'))
+    sweeps.append(len(history))
+    say(f'fixed points: {len(points_x)} points, {len(history)} sweeps, {len(alphas)} vectors')
+    for r in range(rounds + 1):
+        policy = (q_policy(pomdp, q_fib) if r == 0
+                  else AlphaPolicy.from_set(alphas, q_fib, pomdp.available, hrc).act)
+        xs, bs = sample_beliefs(pomdp, hrc.likelihood, starts, policy, episodes, epochs,
+                                seed=seed + r, explore=explore, enter=hrc.enter)
+        points_x, points = thin_points(np.concatenate([points_x, xs]), np.vstack([points, bs]),
+                                       resolution, per_state, seed=seed + r)
+        points_x, points = _with_fixed(points_x, points, fixed_x, fixed_b)
+        upper = UpperBound(q_fib, pomdp.available, upper.corner, points_x, points,
+                           upper.evaluate(points_x, points))
+        alphas, upper, history = backup_sweeps(pomdp, points_x, points, alphas, upper,
+                                               max_sweeps, tol, (tx, tb),
+                                               lambda row, r=r: show(row, f'round {r}'))
+        sweeps.append(len(history))
+        say(f'round {r}: {len(points_x)} points, {len(history)} sweeps, {len(alphas)} '
+            f'vectors, gap at the case study {100 * history[-1]["target_gap"]:.3f}%')
+    t_end = time.perf_counter()
+    lower = np.array([(alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+                      for x, b in zip(points_x, points)])
+    upper_values = upper.evaluate(points_x, points)
+    gap = upper_values - lower
+    target_lower = np.array([(alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+                             for x, b in zip(tx, tb)])
+    target_upper = upper.evaluate(tx, tb)
+    relative = (target_upper - target_lower) / np.abs(target_lower)
+    report = {
+        'family': 'point-based value iteration (PBVI sweeps, Perseus improvement rule) with '
+                  'fast-informed-bound and sawtooth upper bound',
+        'observable_states': int(n_x), 'points': int(len(points_x)),
+        'fixed_points': int(len(fixed_x)),
+        'vectors': int(len(alphas)), 'rounds': rounds, 'sweeps': sweeps,
+        'episodes': episodes, 'epochs': epochs, 'per_state': per_state, 'tol': tol,
+        'explore': explore, 'resolution': resolution, 'seed': seed,
+        'fib_sweeps': int(fib_sweeps),
+        'targets': [{'name': n, 'lower': float(lo), 'upper': float(hi),
+                     'gap': float(hi - lo), 'relative_gap': float(rel)}
+                    for n, lo, hi, rel in zip(names, target_lower, target_upper, relative)],
+        'case_study_relative_gap': float(relative.max()),
+        'points_gap': {'mean': float(gap.mean()), 'median': float(np.median(gap)),
+                       'p95': float(np.quantile(gap, 0.95)), 'max': float(gap.max()),
+                       'mean_relative': float(np.mean(gap / np.maximum(1.0, np.abs(lower))))},
+        'seconds': {'bounds': t_bounds - t0, 'total': t_end - t0},
+    }
+    return PomdpResult(hrc, alphas, upper, points_x, points, report)
+
+
+def report_lines(report: dict) -> list[str]:
+    """The bounds of a solve's report as lines: the gap at each case-study target and over
+    the belief points (hrc-solve and bench/pomdp_bench.py print them)."""
+    lines = [f'{t["name"]}: lower {t["lower"]:.4f}, upper {t["upper"]:.4f}, gap {t["gap"]:.4f} '
+             f'({100 * t["relative_gap"]:.3f}%)' for t in report['targets']]
+    g = report['points_gap']
+    lines.append(f'{report["points"]} belief points: gap mean {g["mean"]:.4f}, median '
+                 f'{g["median"]:.4f}, p95 {g["p95"]:.4f}, max {g["max"]:.4f}; '
+                 f'{report["vectors"]} vectors over {report["observable_states"]} observable '
+                 f'states; sweeps {report["sweeps"]}; {report["seconds"]["total"]:.1f} s')
+    return lines
+
+
+def _with_fixed(points_x, points, fixed_x, fixed_b):
+    """The points with the fixed ones always present (thinning may have dropped some)."""
+    x = np.concatenate([points_x, fixed_x])
+    b = np.vstack([points, fixed_b])
+    key = np.round(b * 1e9).astype(np.int64)
+    _, first = np.unique(np.column_stack([x, key]), axis=0, return_index=True)
+    first = first[np.argsort(x[first], kind='stable')]
+    return x[first], np.ascontiguousarray(b[first])
+
+
+# -- the policy online ---------------------------------------------------------------------------
+class AlphaPolicy:
+    """The solved POMDP over its observable states, for selection (pomdp and fib).
+
+    `columns[i]` is the observable column (y * 4 + d) of solved state i; Gamma(i) =
+    `alpha[offsets[i]:offsets[i+1]]` with `action`; `q_fib[i]` (A, H) the fast informed
+    bound's Q. pomdp: the action of the best vector for (x, b), vectors within the tie
+    tolerance of the best go to the first action of the safety order; scores[a] = the best
+    value of a's vectors (-inf where a has none). fib: argmax_a b . Q_fib(x, a) over the
+    available actions, ties likewise; scores = b . Q_fib(x, a) (-inf where unavailable).
+    """
+
+    def __init__(self, columns, alpha, action, offsets, q_fib, available, n_columns: int):
+        self.columns = np.asarray(columns, dtype=np.int64)
+        self.alpha = np.ascontiguousarray(alpha, dtype=float)
+        self.action = np.asarray(action, dtype=np.intp)
+        self._actions = self.action.tolist()
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.q_fib = np.asarray(q_fib, dtype=float)
+        self.available = np.asarray(available, dtype=bool)
+        self.column_index = np.full(int(n_columns), -1, dtype=np.intp)
+        self.column_index[self.columns] = np.arange(len(self.columns))
+        rank = np.empty(len(SAFETY_ORDER), dtype=np.intp)      # position in the safety order
+        rank[np.array(SAFETY_ORDER)] = np.arange(len(SAFETY_ORDER))
+        self.fib_scores = np.where(self.available[..., None], self.q_fib, -np.inf)
+        # dense (X, M, H) copy for selecting many at once; padding never wins
+        counts = np.diff(self.offsets)
+        width = int(counts.max())
+        owner = np.repeat(np.arange(len(counts)), counts)
+        slot = np.arange(len(self.alpha)) - self.offsets[owner]
+        self.dense = np.zeros((len(counts), width, self.alpha.shape[1]))
+        self.dense[owner, slot] = self.alpha
+        self.dense_valid = np.zeros((len(counts), width), dtype=bool)
+        self.dense_valid[owner, slot] = True
+        self.dense_rank = np.full((len(counts), width), len(SAFETY_ORDER), dtype=np.intp)
+        self.dense_rank[owner, slot] = rank[self.action]
+
+    @classmethod
+    def from_set(cls, alphas: AlphaSet, q_fib, available, hrc: HRCPomdp) -> 'AlphaPolicy':
+        return cls(hrc.columns, alphas.alpha, alphas.action, alphas.offsets, q_fib, available,
+                   hrc.model.n_task * N_DISTANCE)
+
+    def state(self, column: int) -> int:
+        i = int(self.column_index[column])
+        if i < 0:
+            raise ValueError('the observable state is not one the task book can produce, so '
+                             'the POMDP policy does not cover it (solved: the task states '
+                             'reachable from an idle cell with tasks entering it)')
+        return i
+
+    def states(self, columns) -> np.ndarray:
+        i = self.column_index[np.asarray(columns, dtype=np.intp)]
+        if np.any(i < 0):
+            self.state(int(np.asarray(columns)[np.argmax(i < 0)]))
+        return i
+
+    def pomdp(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
+        """(action, scores (A,)) of the best vector at (x, b). An action is tied when its best
+        vector is within the tolerance of the best, so the tie rule works on the scores."""
+        i = self.state(column)
+        lo, hi = int(self.offsets[i]), int(self.offsets[i + 1])
+        scores = [-np.inf] * self.q_fib.shape[1]
+        for v, a in zip((self.alpha[lo:hi] @ b).tolist(), self._actions[lo:hi]):
+            if v > scores[a]:
+                scores[a] = v
+        best = max(scores)
+        floor = best - TIE_TOLERANCE * max(1.0, abs(best))
+        action = next(a for a in SAFETY_ORDER if scores[a] >= floor)
+        return action, np.array(scores)
+
+    def fib(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
+        i = self.state(column)
+        scores = self.fib_scores[i] @ b
+        return int(first_of_best(scores[None, :])[0]), scores
+
+    def pomdp_many(self, b: np.ndarray, columns) -> np.ndarray:
+        i = self.states(columns)
+        values = np.einsum('emh,eh->em', self.dense[i], b)
+        values = np.where(self.dense_valid[i], values, -np.inf)
+        best = values.max(axis=1, keepdims=True)
+        tied = values >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+        rank = np.where(tied, self.dense_rank[i], len(SAFETY_ORDER))
+        return np.array(SAFETY_ORDER)[rank.min(axis=1)]
+
+    def fib_many(self, b: np.ndarray, columns) -> np.ndarray:
+        i = self.states(columns)
+        return first_of_best(np.einsum('eah,eh->ea', self.fib_scores[i], b))
+
+    def act(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The pomdp action for solved-state indices x (the sampler's policy)."""
+        return self.pomdp_many(b, self.columns[x])

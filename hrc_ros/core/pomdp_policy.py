@@ -1,0 +1,204 @@
+"""POMDP policy files (`policies/pomdp/*.npz`, written by `hrc-solve --method pomdp`).
+
+A POMDP policy file holds the solved alpha vectors and the fast informed bound over the
+observable states the task book can produce (`pomdp.hrc_pomdp`):
+
+- ``columns`` int64 (X,): the observable column y * 4 + d of each solved state, increasing;
+- ``alpha`` float64 (n, 9), ``alpha_action`` int8 (n,), ``alpha_offsets`` int64 (X + 1,):
+  Gamma(x_i) = alpha[offsets[i]:offsets[i + 1]], every set non-empty;
+- ``q_fib`` float64 (X, 8, 9): the fast informed bound's Q (the `fib` selector);
+- ``meta``: JSON, the meta of every policy file (`policy.policy_meta`: the configuration, its
+  SHA-256 over the model, cost and solver sections, gamma, eta, solver version, creation time)
+  with ``kind: pomdp``, ``observation_sha256`` and the solve's report (bounds, gap, points).
+
+The POMDP also depends on the observation model (Table 5 and epsilon, which the MDP does not
+use and which the configuration hash leaves out), so a POMDP file records
+``observation_sha256`` over those two, and `load_pomdp_policy` refuses a file whose
+configuration hash *or* observation hash differs from the configuration in use, with the
+command that solves the right one. The belief mode is not part of either: the policy is solved
+for the exact posterior (`BeliefFilter` in bayes mode with the observable transition as
+evidence) and runs on whatever belief it is given.
+
+Shipped files live in `policies/pomdp/` (a folder of their own, so the MDP's lookup never
+meets them); `default_pomdp_policy_path(config)` finds the one solved for a configuration.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config, config_hash
+from .model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
+from .paths import share_dir
+from .policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
+                     _parse_meta, check_config_hash, policy_meta)
+from .pomdp import AlphaPolicy, PomdpResult
+
+KIND = 'pomdp'
+ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')
+MAX_VECTORS = 10_000_000    # 720 MB of vectors; a solved full-size policy holds about 12,000
+
+
+def observation_hash(config: Config) -> str:
+    """SHA-256 of what the POMDP takes from the observation section: Table 5 and epsilon."""
+    obs = config.data['observation']
+    return config_hash({'table': obs['table'], 'epsilon': obs['epsilon']})
+
+
+@dataclass
+class PomdpPolicy:
+    policy: AlphaPolicy
+    meta: dict
+    path: str
+
+    @property
+    def config_sha256(self) -> str:
+        return self.meta['config_sha256']
+
+
+def pomdp_folder() -> Path:
+    return share_dir() / 'policies' / KIND
+
+
+def default_pomdp_policy_path(config: Config) -> Path:
+    """The shipped POMDP policy solved for `config` (by both hashes); when none matches,
+    `policies/pomdp/default.npz`, whose check then says what to solve."""
+    folder = pomdp_folder()
+    want = (config.policy_hash, observation_hash(config))
+    for path in sorted(folder.glob('*.npz')):
+        try:
+            meta = _check_meta_only(path)                # reads and bounds `meta` only
+        except PolicyError:   # a damaged shipped file is reported when it is loaded
+            continue
+        if (meta.get('config_sha256'), meta.get('observation_sha256')) == want:
+            return path
+    return folder / 'default.npz'
+
+
+def load_shipped_pomdp_policy(config: Config) -> PomdpPolicy:
+    """The shipped POMDP policy solved for `config` (`PolicyError`, saying what to solve,
+    when there is none)."""
+    return load_pomdp_policy(default_pomdp_policy_path(config), config)
+
+
+def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> Path:
+    path = Path(path)
+    alphas, hrc = result.alphas, result.hrc
+    meta = policy_meta(config, kind=KIND, method='pomdp',
+                       observation_sha256=observation_hash(config),
+                       observable_states=int(len(hrc.columns)), vectors=int(len(alphas)),
+                       n_states=int(hrc.model.n_states), report=result.report)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + '.tmp.npz')
+    np.savez_compressed(tmp, columns=hrc.columns.astype(np.int64),
+                        alpha=alphas.alpha.astype(np.float64),
+                        alpha_action=alphas.action.astype(np.int8),
+                        alpha_offsets=alphas.offsets.astype(np.int64),
+                        q_fib=result.upper.q_fib.astype(np.float64),
+                        meta=np.array(json.dumps(meta)))
+    os.replace(tmp, path)
+    return path
+
+
+def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPolicy:
+    """Load and check a POMDP policy file; with `config`, also check it was solved for it."""
+    path = Path(path)
+    how = ('Solve it: hrc-solve --method pomdp --config <your config.yaml> -o '
+           f'{path}')
+    if not path.is_file():
+        raise PolicyError(f'POMDP policy file {path} does not exist. {how}')
+    n_columns = None
+    if config is not None:
+        model = HRCModel(config)
+        n_columns = model.n_task * N_DISTANCE
+    _check_headers(path, _headers(path, how), n_columns, how)   # before reading any array
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in ARRAYS}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+        raise PolicyError(f'{path} is corrupt or not a POMDP policy file '
+                          f'({type(exc).__name__}: {str(exc)[:200]}). {how}') from None
+    meta = _parse_meta(path, str(arrays.pop('meta')), how)
+    if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
+        raise PolicyError(f'{path} has no POMDP meta (kind, configuration and observation '
+                          f'hashes). {how}')
+    _check_arrays(path, arrays, how)
+    columns = arrays['columns']
+    if config is not None:
+        check_config_hash(path, meta, config, solve=' --method pomdp')
+        if meta['observation_sha256'] != observation_hash(config):
+            raise PolicyError(
+                f'POMDP policy {path} was solved for another observation model (Table 5 or '
+                f'epsilon) than the configuration in use ({config.source}). Solve it again: '
+                f'hrc-solve --method pomdp --config {config.source} -o {path}')
+        if int(columns.max()) >= n_columns:
+            raise PolicyError(f'{path}: observable columns beyond the configuration\'s '
+                              f'{n_columns}. {how}')
+        available = model.availability[:, columns % N_DISTANCE].T
+    else:
+        n_columns = int(columns.max()) + 1
+        available = np.ones((len(columns), len(ACTIONS)), dtype=bool)
+    policy = AlphaPolicy(columns, arrays['alpha'], arrays['alpha_action'],
+                         arrays['alpha_offsets'], arrays['q_fib'], available, n_columns)
+    return PomdpPolicy(policy, meta, str(path))
+
+
+def _check_headers(path: Path, headers: dict, n_columns: int | None, how: str) -> None:
+    """Names, dtypes and bounded shapes of the members, from their .npy headers only."""
+    missing = set(ARRAYS) - set(headers)
+    if missing:
+        raise PolicyError(f'{path} is not an hrc_ros POMDP policy file (missing '
+                          f'{", ".join(sorted(missing))}). {how}')
+    n_x = headers['columns'][0][:1]
+    n_alpha = headers['alpha'][0][:1]
+    limit_x = MAX_STATES if n_columns is None else n_columns
+    expected = {
+        'columns': (np.int64, n_x, n_x and n_x[0] <= limit_x),
+        'alpha': (np.float64, n_alpha + (N_HIDDEN,), n_alpha and n_alpha[0] <= MAX_VECTORS),
+        'alpha_action': (np.int8, n_alpha, True),
+        'alpha_offsets': (np.int64, tuple(n + 1 for n in n_x), True),
+        'q_fib': (np.float64, n_x + (len(ACTIONS), N_HIDDEN), True),
+    }
+    for name, (dtype, shape, bounded) in expected.items():
+        got_shape, got_dtype, _ = headers[name]
+        if got_dtype != np.dtype(dtype) or got_shape != shape or not bounded:
+            raise PolicyError(f'{path}: {name} must be {np.dtype(dtype)} of shape {shape} '
+                              f'(at most {limit_x} states, {MAX_VECTORS} vectors), got '
+                              f'{got_dtype} {got_shape}. {how}')
+    shape, dtype, _ = headers['meta']
+    if shape != () or dtype.kind != 'U' or dtype.itemsize // 4 > MAX_META_CHARS:
+        raise PolicyError(f'{path}: meta must be one JSON string of at most {MAX_META_CHARS} '
+                          f'characters. {how}')
+
+
+def _check_arrays(path: Path, a: dict, how: str) -> None:
+    def bad(what: str):
+        raise PolicyError(f'{path}: {what}. {how}')
+    columns, alpha, action = a['columns'], a['alpha'], a['alpha_action']
+    offsets, q_fib = a['alpha_offsets'], a['q_fib']
+    if columns.dtype != np.int64 or columns.ndim != 1 or columns.size == 0:
+        bad('columns must be a non-empty 1-D int64 array')
+    if columns.min() < 0 or np.any(np.diff(columns) <= 0):
+        bad('columns must be non-negative and increasing')
+    n_x = columns.size
+    if alpha.dtype != np.float64 or alpha.ndim != 2 or alpha.shape[1] != N_HIDDEN:
+        bad(f'alpha must be float64 of shape (n, {N_HIDDEN})')
+    if action.dtype != np.int8 or action.shape != (alpha.shape[0],):
+        bad('alpha_action must be int8, one per vector')
+    if action.size and (action.min() < 0 or action.max() >= len(ACTIONS)):
+        bad(f'alpha_action holds action indices outside 0..{len(ACTIONS) - 1}')
+    if offsets.dtype != np.int64 or offsets.shape != (n_x + 1,):
+        bad(f'alpha_offsets must be int64 of shape ({n_x + 1},)')
+    if offsets[0] != 0 or offsets[-1] != alpha.shape[0] or np.any(np.diff(offsets) < 1):
+        bad('alpha_offsets must run from 0 to the number of vectors, every state holding one '
+            'or more')
+    if q_fib.dtype != np.float64 or q_fib.shape != (n_x, len(ACTIONS), N_HIDDEN):
+        bad(f'q_fib must be float64 of shape ({n_x}, {len(ACTIONS)}, {N_HIDDEN})')
+    if not (np.all(np.isfinite(alpha)) and np.all(np.isfinite(q_fib))):
+        bad('alpha or q_fib holds NaN or inf')

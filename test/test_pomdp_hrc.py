@@ -1,0 +1,335 @@
+"""The HRC POMDP: its structure against the model, the exact posterior, the reduced model's
+bounds and the pomdp selector's achieved cost against them, the policy files and the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.config import load_config
+from hrc_ros.core.evaluation import BatchSimulator, human_seed, random_scenarios
+from hrc_ros.core.model import ACTIONS, DN, N_DISTANCE, NW, RH2, HRCModel, step_task
+from hrc_ros.core.paths import default_config_path, shipped_config_path
+from hrc_ros.core.policy import PolicyError, save_policy
+from hrc_ros.core.pomdp import AlphaPolicy, case_study_targets, hrc_pomdp, solve_pomdp
+from hrc_ros.core.pomdp_policy import (default_pomdp_policy_path, load_pomdp_policy,
+                                       save_pomdp_policy)
+from hrc_ros.core.selection import ActionSelector
+from hrc_ros.core.simulation import Scenario
+from hrc_ros.core.solver import FactoredBellman, solve
+from hrc_ros.core.tasks import TaskBook
+
+REDUCED = {'model': {'rho': 1, 'sigma': 1}}
+CASE_TASK = (1, 1, 3, 0, 0, 0, 0, 0)
+# The reduced solve's gap at the case study's first beliefs stays below this share of |V|.
+STATED_GAP = 0.01
+
+
+@pytest.fixture(scope='module')
+def reduced():
+    return HRCModel(load_config(default_config_path(), overrides=REDUCED))
+
+
+@pytest.fixture(scope='module')
+def reduced_hrc(reduced):
+    return hrc_pomdp(reduced)
+
+
+@pytest.fixture(scope='module')
+def reduced_solution(reduced):
+    return solve_pomdp(reduced, episodes=400, per_state=40, rounds=1, seed=3)
+
+
+def test_successors_are_the_rule_by_rule_transition(reduced, reduced_hrc):
+    """P(x' | x, h, a) of the POMDP equals the model's explicit transition summed over h'."""
+    hrc, pomdp = reduced_hrc, reduced_hrc.pomdp
+    rng = np.random.default_rng(4)
+    n_columns = reduced.n_task * N_DISTANCE
+    for i in rng.choice(pomdp.n_x, size=60, replace=False):
+        for h in (0, 4, 8):
+            for a in range(len(ACTIONS)):
+                t = reduced.transition([h * n_columns + hrc.columns[i]], a)
+                column = t.target % n_columns
+                expected = np.bincount(column, weights=t.probability, minlength=n_columns)
+                got = np.zeros(n_columns)
+                for k in range(pomdp.succ_x.shape[2]):
+                    if pomdp.succ_x[i, a, k] >= 0:
+                        got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
+                np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+def test_the_mdp_over_the_solved_states_is_the_factored_bellman_q(reduced, reduced_hrc):
+    hrc, pomdp = reduced_hrc, reduced_hrc.pomdp
+    value = np.random.default_rng(2).normal(size=reduced.n_states) * 20
+    q = FactoredBellman(reduced).q(value).reshape(len(ACTIONS), 9, -1)[:, :, hrc.columns]
+    v = value.reshape(9, -1)[:, hrc.columns].T                        # (x, h)
+    mine = pomdp.reward + pomdp.gamma * pomdp.expected_next(v)
+    available = pomdp.available[..., None]
+    np.testing.assert_allclose(np.where(available, mine, 0.0),
+                               np.where(available, q.transpose(2, 0, 1), 0.0), atol=1e-10)
+
+
+def test_the_task_book_never_leaves_the_solved_states(reduced, reduced_hrc):
+    rng = np.random.default_rng(9)
+    for _ in range(40):
+        book = TaskBook(reduced, schedule=[(k, (1, 1, int(rng.integers(0, 4))))
+                                           for k in range(1, 60, 3)])
+        for k in range(1, 60):
+            book.begin_epoch(k)
+            reduced_hrc.state(book.observable(int(rng.integers(0, 4))))   # raises if outside
+            a = int(rng.integers(0, len(ACTIONS)))
+            book.apply(a, bool(rng.random() < 0.5))
+    with pytest.raises(ValueError, match='does not cover'):
+        reduced_hrc.state((0, 1, 0, 0, 0, 0, 0, 0, 1))     # no task but time left: unreachable
+
+
+def test_posterior_is_bayes_rule_on_the_joint(reduced):
+    """The posterior mode's update equals Bayes' rule on P(h, x', h', O') enumerated from the
+    rule-by-rule transition; bayes mode ignores the evidence (MODEL.md 6 as written)."""
+    model = reduced
+    posterior = BeliefFilter(model, mode='posterior')
+    bayes = BeliefFilter(model, mode='bayes')
+    lik = posterior.likelihood
+    rng = np.random.default_rng(1)
+    y = model.task_index({n: np.asarray(v) for n, v in zip(
+        ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc'), CASE_TASK)})
+    n_columns = model.n_task * N_DISTANCE
+    for a, accepted, d in ((RH2, True, 1), (RH2, False, 2), (NW, False, 1), (DN, False, 3)):
+        b = rng.dirichlet(np.ones(9))
+        grid = {n: np.asarray(v) for n, v in zip(
+            ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc'), CASE_TASK)}
+        y_next = int(model.task_index(step_task(grid, a, accepted)))
+        for d_next in range(4):
+            joint = np.zeros(9)          # P(h', x' = (y', d')) summed over h
+            for h in range(9):
+                t = model.transition([h * n_columns + int(y) * 4 + d], a)
+                hit = (t.target % n_columns) == y_next * 4 + d_next
+                np.add.at(joint, t.target[hit] // n_columns, b[h] * t.probability[hit])
+            if joint.sum() == 0:
+                continue
+            eligible = a == RH2
+            evidence = model.transition_likelihood(a, eligible, accepted, d, d_next)
+            for o in (1, 2, 3):
+                expected = joint * lik[o - 1]
+                expected /= expected.sum()
+                got = posterior.update(b, a, o, evidence)
+                np.testing.assert_allclose(got, expected, atol=1e-12)
+                many = posterior.update_many(b[None], [a], [o], evidence[None])[0]
+                np.testing.assert_allclose(many, expected, atol=1e-12)
+                np.testing.assert_allclose(bayes.update(b, a, o, evidence),
+                                           bayes.update(b, a, o), atol=0)
+
+
+def test_reduced_bounds_meet_within_the_stated_gap(reduced_solution):
+    r = reduced_solution.report
+    assert r['case_study_relative_gap'] < STATED_GAP
+    for target in r['targets']:
+        assert target['lower'] <= target['upper']
+        assert target['gap'] < STATED_GAP * abs(target['lower'])
+    assert r['points_gap']['mean'] < 0.05 and r['points_gap']['max'] >= 0.0
+
+
+def test_the_lower_bound_is_below_fib_and_the_mdp_everywhere(reduced, reduced_solution):
+    s = reduced_solution
+    lower = np.array([(s.alphas.alpha[s.alphas.offsets[x]:s.alphas.offsets[x + 1]] @ b).max()
+                      for x, b in zip(s.points_x, s.points)])
+    assert np.all(lower <= s.upper.evaluate(s.points_x, s.points) + 1e-9)
+    q_fib = s.upper.q_fib
+    fib = np.where(s.hrc.pomdp.available[s.points_x], np.einsum(
+        'pah,ph->pa', q_fib[s.points_x], s.points), -np.inf).max(axis=1)
+    assert np.all(lower <= fib + 1e-9)
+
+
+def test_pomdp_selector_achieves_the_lower_bound_from_the_case_study_start(
+        reduced, reduced_solution, tmp_path):
+    """Episodes from the case study's task at d = 1 with the hidden state uniform, so that
+    P(h | O_1) is exactly b_1 = initial(O_1); no further tasks, as the POMDP models; the exact
+    posterior. The mean discounted cost agrees with -E[lower bound at b_1] (and lies above
+    -E[upper bound]) within its 95% interval and the 150-epoch truncation."""
+    s = reduced_solution
+    names, tx, tb = case_study_targets(s.hrc)
+    p_o = BeliefFilter(reduced).likelihood.sum(axis=1) / 9.0           # P(O_1)
+    lower = sum(p * t['lower'] for p, t in zip(p_o, s.report['targets']))
+    upper = sum(p * t['upper'] for p, t in zip(p_o, s.report['targets']))
+    epochs, per_h = 150, 400
+    scenarios = [Scenario((h // 3, h % 3) + CASE_TASK + (1,), (), epochs)
+                 for h in range(9) for _ in range(per_h)]
+    seeds = [human_seed(11, e) for e in range(len(scenarios))]
+    mdp = solve(reduced)
+    sim = BatchSimulator(reduced, mdp, mode='posterior', pomdp=s.policy())
+    cost = np.concatenate([sim.run(scenarios[i:i + 900], seeds[i:i + 900], 'pomdp')
+                           .discounted_cost for i in range(0, len(scenarios), 900)])
+    half = 1.96 * cost.std(ddof=1) / np.sqrt(cost.size)
+    tail = 0.95 ** epochs * 200.0                    # what 150 epochs leave out, at most
+    assert cost.mean() - half <= -lower + tail
+    assert cost.mean() + half >= -upper - tail
+    assert abs(cost.mean() + lower) < half + (upper - lower) + tail
+
+
+def test_pomdp_and_fib_ties_go_to_the_safety_order():
+    alpha = np.array([[1.0] * 9, [1.0] * 9, [0.0] * 9])
+    policy = AlphaPolicy(columns=[5], alpha=alpha, action=[NW, DN, RH2], offsets=[0, 3],
+                         q_fib=np.ones((1, 8, 9)), available=np.ones((1, 8), dtype=bool),
+                         n_columns=8)
+    b = np.full(9, 1 / 9)
+    action, scores = policy.pomdp(b, 5)
+    assert action == DN and scores[NW] == scores[DN] == pytest.approx(1.0)
+    assert scores[RH2] == pytest.approx(0.0) and np.isneginf(scores[1])
+    assert policy.fib(b, 5)[0] == DN                    # all eight tied
+    assert list(policy.pomdp_many(b[None], [5])) == [DN]
+    assert list(policy.fib_many(b[None], [5])) == [DN]
+    with pytest.raises(ValueError, match='does not cover'):
+        policy.pomdp(b, 4)
+
+
+def test_selector_and_batch_agree_with_the_alpha_policy(reduced, reduced_solution):
+    """ActionSelector's pomdp and fib are the AlphaPolicy's; BatchSimulator reproduces
+    `simulate` action for action with them (posterior and bayes)."""
+    from hrc_ros.core.simulation import simulate
+    policy = reduced_solution.policy()
+    mdp = solve(reduced)
+    rng = np.random.default_rng(5)
+    selector = ActionSelector(reduced, mdp, method='pomdp', pomdp=policy)
+    for i in rng.choice(len(policy.columns), size=30, replace=False):
+        column = int(policy.columns[i])
+        y, d = divmod(column, N_DISTANCE)
+        observable = tuple(int(reduced.task_grid[n][y]) for n in
+                           ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc')) + (d,)
+        b = rng.dirichlet(np.ones(9) * 0.3)
+        for method in ('pomdp', 'fib'):
+            got = selector.select(b, observable, method)
+            action, scores = getattr(policy, method)(b, column)
+            assert got.action == action and got.method == method
+            np.testing.assert_array_equal(got.scores, scores)
+    scenarios = random_scenarios(reduced, 10, 30, seed=2, task_rate=0.3)
+    seeds = [human_seed(2, e) for e in range(10)]
+    for mode in ('posterior', 'bayes'):
+        for method in ('pomdp', 'fib'):
+            batch = BatchSimulator(reduced, mdp, mode=mode, pomdp=policy).run(
+                scenarios, seeds, method, keep_actions=True)
+            for e, scenario in enumerate(scenarios):
+                t = simulate(reduced, mdp, scenario, selector=method, mode=mode, seed=seeds[e],
+                             pomdp=policy)
+                assert [ACTIONS[a] for a in batch.actions[e]] == t.actions
+                assert batch.discounted_cost[e] == pytest.approx(t.discounted_cost, rel=1e-12)
+
+
+# -- policy files ------------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def reduced_file(reduced, reduced_solution, tmp_path_factory):
+    path = tmp_path_factory.mktemp('pomdp') / 'reduced.npz'
+    return save_pomdp_policy(path, reduced_solution, reduced.config)
+
+
+def test_policy_file_round_trip(reduced, reduced_solution, reduced_file):
+    loaded = load_pomdp_policy(reduced_file, reduced.config)
+    s = reduced_solution
+    np.testing.assert_array_equal(loaded.policy.alpha, s.alphas.alpha)
+    np.testing.assert_array_equal(loaded.policy.action, s.alphas.action)
+    np.testing.assert_array_equal(loaded.policy.columns, s.hrc.columns)
+    assert loaded.meta['kind'] == 'pomdp'
+    assert loaded.config_sha256 == reduced.config.policy_hash
+    assert loaded.meta['report']['case_study_relative_gap'] < STATED_GAP
+    b = np.full(9, 1 / 9)
+    for column in loaded.policy.columns[:50]:
+        assert loaded.policy.pomdp(b, column)[0] == s.policy().pomdp(b, column)[0]
+
+
+def test_policy_file_refuses_another_configuration(reduced, reduced_file, default_config):
+    with pytest.raises(PolicyError, match='hrc-solve --config .* --method pomdp'):
+        load_pomdp_policy(reduced_file, default_config)
+    table = np.array(reduced.config.observation_table)
+    table[0] = [0.7, 0.2, 0, 0.1, 0, 0, 0, 0, 0]
+    other = reduced.config.with_overrides({'observation': {'table': table.tolist()}})
+    assert other.policy_hash == reduced.config.policy_hash      # the MDP would not notice
+    with pytest.raises(PolicyError, match='another observation model'):
+        load_pomdp_policy(reduced_file, other)
+
+
+def test_policy_file_refuses_damage(reduced, reduced_file, tmp_path):
+    with pytest.raises(PolicyError, match='does not exist'):
+        load_pomdp_policy(tmp_path / 'none.npz', reduced.config)
+    junk = tmp_path / 'junk.npz'
+    junk.write_bytes(b'not a zip')
+    with pytest.raises(PolicyError, match='corrupt'):
+        load_pomdp_policy(junk, reduced.config)
+    with np.load(reduced_file) as archive:
+        arrays = {k: archive[k] for k in archive.files}
+
+    def broken(**changes):
+        path = tmp_path / f'broken_{len(list(tmp_path.glob("broken_*")))}.npz'
+        np.savez(path, **{**arrays, **changes})
+        return path
+    mdp_file = save_policy(tmp_path / 'mdp.npz', solve(reduced), reduced.config)
+    for path, message in (
+            (mdp_file, 'not an hrc_ros POMDP policy file'),
+            (broken(alpha_action=arrays['alpha_action'] + 20), 'outside 0..7'),
+            (broken(alpha_offsets=arrays['alpha_offsets'][:-1]), 'alpha_offsets'),
+            (broken(alpha=arrays['alpha'] * np.nan), 'NaN'),
+            (broken(columns=arrays['columns'][::-1].copy()), 'increasing'),
+            (broken(meta=np.array(json.dumps({'kind': 'mdp'}))), 'configuration hash'),
+            (broken(meta=np.array(json.dumps({'config_sha256': 'a' * 64}))), 'no POMDP meta'),
+            (broken(alpha=np.zeros((3, 4))), 'alpha must be float64'),
+            (broken(q_fib=arrays['q_fib'][:, :3]), 'q_fib')):
+        with pytest.raises(PolicyError, match=message):
+            load_pomdp_policy(path, reduced.config)
+
+
+def test_shipped_pomdp_policies_are_found_by_configuration():
+    for name in ('default', 'fail_safe_unaware'):
+        config = load_config(shipped_config_path(name))
+        path = default_pomdp_policy_path(config)
+        assert path.name == f'{name}.npz' and path.parent.name == 'pomdp'
+        loaded = load_pomdp_policy(path, config)
+        assert loaded.meta['report']['case_study_relative_gap'] < 0.01
+        assert path.stat().st_size < 20e6
+    paper = load_config(shipped_config_path('paper'))
+    with pytest.raises(PolicyError, match='hrc-solve --config .* --method pomdp'):
+        load_pomdp_policy(default_pomdp_policy_path(paper), paper)
+    with pytest.raises(PolicyError):
+        ActionSelector(HRCModel(paper), np.zeros(HRCModel(paper).n_states, dtype=np.int8),
+                       method='pomdp')
+
+
+# -- command lines -----------------------------------------------------------------------------
+def test_cli_solves_a_pomdp_and_evaluates_it_paired(reduced, tmp_path, capsys):
+    from hrc_ros.tools.evaluate import main as evaluate_main
+    from hrc_ros.tools.solve import main as solve_main
+    config = tmp_path / 'reduced.yaml'
+    data = yaml.safe_load(default_config_path().read_text())
+    data['model'].update(REDUCED['model'])
+    config.write_text(yaml.safe_dump(data))
+    mdp, pomdp = tmp_path / 'mdp.npz', tmp_path / 'pomdp.npz'
+    assert solve_main(['--config', str(config), '-o', str(mdp), '-q']) == 0
+    assert solve_main(['--method', 'pomdp', '--config', str(config), '-o', str(pomdp),
+                       '--episodes', '150', '--rounds', '0', '-q']) == 0
+    out = capsys.readouterr().out
+    assert 'case study, b_1 after O_1 = 1: lower' in out and f'wrote {pomdp}' in out
+    assert load_pomdp_policy(pomdp, load_config(config)).meta['report']['rounds'] == 0
+    code = evaluate_main(['--config', str(config), '--policy', str(mdp), '--pomdp-policy',
+                          str(pomdp), '--episodes', '60', '--epochs', '20',
+                          '--selectors', 'paper,qmdp,fib,pomdp,mdp', '--baseline', 'pomdp',
+                          '--mode', 'posterior', '--out', str(tmp_path / 'ev')])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert 'paired differences of the discounted cost to pomdp' in out
+    for name in ('paper', 'qmdp', 'fib', 'mdp'):
+        assert f'  {name:<9} - pomdp' in out
+    summary = json.loads((tmp_path / 'ev' / 'summary.json').read_text())
+    assert summary['baseline'] == 'pomdp' and set(summary['cost_minus_baseline_cost']) == {
+        'paper', 'qmdp', 'fib', 'mdp'}
+    assert (tmp_path / 'ev' / 'paired.csv').read_text().startswith('selector,baseline')
+
+
+def test_cli_refuses_a_baseline_not_evaluated_and_a_missing_pomdp_policy(tmp_path, capsys):
+    from hrc_ros.tools.evaluate import main as evaluate_main
+    with pytest.raises(SystemExit) as exc:
+        evaluate_main(['--selectors', 'paper,mls', '--baseline', 'pomdp'])
+    assert exc.value.code == 2
+    assert '--baseline' in capsys.readouterr().err
+    code = evaluate_main(['--selectors', 'paper,pomdp', '--pomdp-policy',
+                          str(tmp_path / 'none.npz'), '--out', str(tmp_path)])
+    assert code == 2
+    assert 'does not exist' in capsys.readouterr().err
