@@ -369,3 +369,31 @@ def test_the_fitted_configuration_loads_and_the_filter_and_the_cell_use_its_like
     human = SimulatedHuman(model)
     np.testing.assert_array_equal(human.likelihood, fitted.observation_likelihood)
     assert fitted.cost == base.cost and fitted.sigma == base.sigma
+
+
+def test_the_fits_evidence_is_the_models_transition_likelihood(base):
+    """fit.emission (and so the kernel) reads the answer and the move as the model does
+    (`HRCModel.transition_likelihood`, the exact posterior's factor): one rule, two users."""
+    rng = np.random.default_rng(12)
+    rows = [[0.2, 0.5, 0.3], [0.05, 0.15, 0.8], [0.6, 0.3, 0.1]]
+    config = base.with_overrides({'model': {'p_accept': rng.random(3).round(3).tolist(),
+                                            'p_delta': rows}})
+    model = HRCModel(config)
+    n = 400
+    action = rng.integers(0, 8, n)
+    d = rng.integers(0, 4, n)
+    delta = rng.integers(0, 3, n)
+    d_next = np.array([next_distance(d[i], int(action[i]), DELTAS[delta[i]]) for i in range(n)])
+    eligible = rng.random(n) < 0.5
+    accepted = rng.random(n) < 0.5
+    outcomes = np.array([[next_distance(d[i], int(action[i]), x) for x in DELTAS]
+                         for i in range(n)])
+    data = fit.FitData(group=fit.ACTION_GROUP[action], observation=np.full(n, 3),
+                       answer=np.where(eligible, np.where(accepted, 1, 2), 0),
+                       move=(outcomes == d_next[:, None]).astype(float),
+                       has_move=np.ones(n, dtype=bool), unique_delta=np.zeros((n, 3), bool),
+                       seg_start=np.arange(n + 1), seg_episode=np.arange(n), episodes=[],
+                       issues=[])
+    expected = model.transition_likelihood(action, eligible, accepted, d, d_next)
+    np.testing.assert_allclose(fit.emission(fit.Params.from_config(config), data), expected,
+                               rtol=1e-12)

@@ -382,8 +382,9 @@ def e_step(params: Params, data: FitData, seg_weight: np.ndarray | None = None) 
 
 
 def emission(params: Params, data: FitData) -> np.ndarray:
-    """(T, 9): e_t(h), the evidence of each epoch given h_t (module docstring); the kernel
-    computes the same inline (the tests hold the two equal)."""
+    """(T, 9): e_t(h), the evidence of each epoch given h_t (module docstring): the reference
+    form of what the kernel computes inline, and with the answer and the move the model's own
+    `HRCModel.transition_likelihood` (the tests hold all three equal)."""
     observation = np.vstack([params.likelihood, np.ones(N_HIDDEN)])[data.observation]
     answer = np.stack([np.ones(3), params.p_accept, 1.0 - params.p_accept])[data.answer]
     distance = data.move @ params.p_delta.T                       # (T, ea)
