@@ -12,6 +12,7 @@ TOOLS = {
     'hrc-solve': 'hrc_ros.tools.solve:main',
     'hrc-simulate': 'hrc_ros.tools.simulate:main',
     'hrc-evaluate': 'hrc_ros.tools.evaluate:main',
+    'hrc-fit': 'hrc_ros.tools.fit:main',
     'hrc-bag': 'hrc_ros.ros.bag:main',
     'hrc-case-study': 'hrc_ros.ros.case_study:main',
 }
@@ -30,7 +31,8 @@ setup(
         ('share/' + PACKAGE + '/policies/pomdp', sorted(glob('policies/pomdp/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'matplotlib', 'numba'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
+                      'matplotlib', 'numba'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',

@@ -12,7 +12,7 @@ from hrc_ros.core.paths import default_config_path
 
 MODULES = {'hrc-simulate': 'hrc_ros.tools.simulate', 'hrc-evaluate': 'hrc_ros.tools.evaluate',
            'hrc-solve': 'hrc_ros.tools.solve', 'hrc-case-study': 'hrc_ros.ros.case_study',
-           'hrc-bag': 'hrc_ros.ros.bag'}
+           'hrc-bag': 'hrc_ros.ros.bag', 'hrc-fit': 'hrc_ros.tools.fit'}
 
 
 def refused(command, *args, cwd=None):
@@ -47,6 +47,9 @@ def a_file(tmp_path):
     ('hrc-case-study', ['--epoch-period', '0'], 'outside [0.05, 60.0]'),
     ('hrc-solve', ['-o', 'x.npz', '--sweeps', str(10 ** 9)], 'outside 1..100000'),
     ('hrc-bag', ['play', 'x', '--rate', '0'], 'outside'),
+    ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--bootstrap', '-1'], '-1 is outside 0..10000'),
+    ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--starts', '0'], '0 is outside 1..100'),
+    ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--tol', 'nan'], 'outside [1e-15, 1.0]'),
 ])
 def test_out_of_range_arguments_are_refused(command, args, reason, tmp_path):
     assert reason in refused(command, *args, cwd=tmp_path)
@@ -57,6 +60,10 @@ def test_out_of_range_arguments_are_refused(command, args, reason, tmp_path):
 def test_an_output_folder_that_is_a_file_or_unwritable_is_refused(command, a_file, tmp_path):
     assert 'is a file' in refused(command, '--out', a_file)
     assert 'cannot write into' in refused(command, '--out', a_file / 'below')
+
+
+def test_hrc_fit_refuses_an_output_that_is_a_folder_before_reading(tmp_path):
+    assert 'is a folder' in refused('hrc-fit', tmp_path / 'missing.csv', '-o', tmp_path)
 
 
 def test_hrc_solve_refuses_a_model_that_does_not_fit_in_memory(tmp_path, a_file):

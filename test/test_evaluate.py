@@ -157,3 +157,69 @@ def test_bad_api_inputs_raise(model, policy):
         random_scenarios(model, 1, 5, task_rate=2.0)
     with pytest.raises(ValueError, match='unknown selector'):
         evaluate(model, policy, episodes=2, epochs=2, selectors=('paper', 'best'))
+
+
+# -- model mismatch: --true-config ------------------------------------------------------------
+def reluctant(default_config):
+    """A world whose human refuses more and steps closer than the default assumes."""
+    return default_config.with_overrides({'model': {
+        'p_accept': [0.05, 0.35, 0.7],
+        'p_delta': [[0.05, 0.65, 0.30], [0.05, 0.55, 0.40], [0.02, 0.38, 0.60]]}})
+
+
+def test_the_world_is_drawn_from_the_true_model_and_the_robot_plans_with_its_own(
+        model, policy, default_config):
+    from hrc_ros.core.model import HRCModel
+    world = HRCModel(reluctant(default_config))
+    scenarios = random_scenarios(model, 200, 30, seed=4)
+    seeds = [human_seed(4, e) for e in range(200)]
+    mismatched = BatchSimulator(model, policy, world=world).run(scenarios, seeds, record=True)
+    matched = BatchSimulator(model, policy).run(scenarios, seeds, record=True)
+    # the same decisions at epoch 1 (same policy, filter, initial observation), other answers
+    np.testing.assert_array_equal(mismatched.trajectory['action'][:, 0],
+                                  matched.trajectory['action'][:, 0])
+    t = mismatched.trajectory
+    answered = t['accepted'] >= 0
+    rate = t['accepted'][answered].mean()
+    expected = np.asarray(world.config.p_accept)[t['em'][answered]].mean()
+    assert abs(rate - expected) < 0.08            # the world's p_accept, not the plan's
+    assert mismatched.refused_requests.sum() > matched.refused_requests.sum()
+
+
+def test_planning_with_the_true_model_has_no_regret_and_the_default_has_some(
+        model, policy, default_config):
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.solver import solve
+    world = HRCModel(reluctant(default_config))
+    true_policy = solve(world)
+    true = evaluate(world, true_policy, 300, 40, 3, selectors=('paper',), world=world)
+    same = evaluate(world, true_policy, 300, 40, 3, selectors=('paper',), world=world)
+    assert paired_difference(same['paper'], true['paper'])['mean'] == 0.0
+    wrong = evaluate(model, policy, 300, 40, 3, selectors=('paper',), world=world)
+    regret = paired_difference(wrong['paper'], true['paper'])
+    assert regret['low'] > 0                      # planning with the wrong model costs
+
+
+def test_cli_true_config_prints_and_writes_the_regret(tmp_path, capsys, default_config):
+    import yaml
+    path = tmp_path / 'true.yaml'
+    path.write_text(yaml.safe_dump(reluctant(default_config).data))
+    assert main(['--episodes', '30', '--epochs', '20', '--selectors', 'paper,mdp',
+                 '--true-config', str(path), '--out', str(tmp_path / 'out')]) == 0
+    out = capsys.readouterr().out
+    assert f'the world is {path}' in out and 'solving' in out and 'regret (paired)' in out
+    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
+    assert summary['settings']['true_config'] == str(path)
+    assert set(summary['regret']) == {'paper', 'mdp'}
+    assert set(summary['true_model']) == {'paper', 'mdp'}
+
+
+def test_cli_true_config_must_describe_the_same_cell(tmp_path, capsys, default_config):
+    import yaml
+    path = tmp_path / 'small.yaml'
+    path.write_text(yaml.safe_dump(default_config.with_overrides(
+        {'model': {'rho': 1, 'sigma': 1}}).data))
+    assert main(['--true-config', str(path), '--out', str(tmp_path)]) == 2
+    assert 'they must describe the same cell' in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(['--true-policy', 'x.npz', '--out', str(tmp_path)])

@@ -472,7 +472,8 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
     ('belief_mode', 'posterior', 'does not receive'),
-    ('config', '/tmp/other.yaml', 'read-only'),
+    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
+     'read configuration file /tmp/no-such-config.yaml'),
 ])
 def test_estimator_rejects_bad_parameters(graph, name, value, reason):
     node = graph.start(BeliefEstimatorNode)
@@ -737,8 +738,10 @@ def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
     ('epoch_period', -1.0, 'range'),
     ('stale_timeout', -1.0, 'range'),
     ('stale_timeout', 0.1, 'longer than epoch_period'),
-    ('policy', '/tmp/other.npz', 'read-only'),
-    ('config', '/tmp/other.yaml', 'read-only'),
+    ('policy', '/tmp/no-such-policy.npz', 'policy refused: policy file '
+     '/tmp/no-such-policy.npz does not exist'),
+    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
+     'read configuration file /tmp/no-such-config.yaml'),
     ('epoch_source', 'topic', 'read-only'),
 ])
 def test_decision_rejects_bad_parameters(graph, policy_path, name, value, reason):

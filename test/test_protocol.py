@@ -366,6 +366,26 @@ def test_a_new_epoch_decides_the_pending_one_first():
     assert gate.epoch == 2 and gate.pending
 
 
+def test_a_swapped_selector_decides_from_the_new_epoch_never_the_pending_one():
+    """A policy swapped in at epoch k's boundary (the live swap) never decides epoch k - 1,
+    even when k - 1 is still pending, and decides all of epoch k."""
+    old_calls, new_calls = [], []
+    gate = gate_for(fixed_selector(MH, old_calls))
+    gate.begin(1, 0)
+    assert feed(gate, 1 * MS)[0].action == MH
+    gate.begin(2, 1000 * MS)
+    feed(gate, 1001 * MS, belief=np.eye(9)[4])
+    gate.begin(3, 2000 * MS)
+    gate.received('task_state', TASK, 2001 * MS)              # epoch 3 still pending ...
+    decisions = gate.begin(4, 2400 * MS, select=fixed_selector(CT, new_calls))
+    assert [(d.epoch, d.action) for d in decisions] == [(3, DN)]   # ... decided by the old rules
+    decision, = feed(gate, 2410 * MS)
+    assert (decision.epoch, decision.action) == (4, CT)
+    assert len(old_calls) == 2 and len(new_calls) == 1
+    gate.begin(5, 3400 * MS)                                   # the new one stays
+    assert feed(gate, 3410 * MS)[0].action == CT
+
+
 def test_topic_mode_counts_inputs_that_precede_the_epoch_signal():
     """A replay may play an epoch's inputs before its epoch signal."""
     gate = gate_for(fresh_at_epoch=False)

@@ -470,6 +470,7 @@ class BagMessage:
     publish_time_ns: int
     data: bytes
     qos_profiles: list = field(default_factory=list, compare=False)
+    decoded: Any = field(default=None, compare=False)   # with read_bag(decode=True)
 
 
 @dataclass(frozen=True)
@@ -628,24 +629,45 @@ def _open_contents(path: Path, stream) -> _Contents:
     return _Contents(reader, summary, topic_types, qos)
 
 
-def read_bag(path: str | os.PathLike,
-             topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+def _decoder_factory():
+    """mcap_ros2's CDR decoder, which builds each message type from the schema text stored in
+    the bag (no ROS needed)."""
+    try:
+        from mcap_ros2.decoder import DecoderFactory
+    except ImportError:
+        raise BagError('decoding bag messages without ROS needs mcap_ros2: pip install '
+                       'mcap-ros2-support') from None
+    return DecoderFactory()
+
+
+def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
+             decode: bool = False) -> Iterator[BagMessage]:
     """Yield the messages of a bag (a .mcap file or a bag directory) in log-time order.
 
-    ``topics``: only these topics. Raises `BagError` for a bag that is missing, not MCAP,
-    truncated or corrupt (also part way through: chunk CRCs are checked as chunks are read).
+    ``topics``: only these topics. ``decode``: also decode each message from its schema text
+    (`BagMessage.decoded`, mcap_ros2's dynamic message: fields as attributes). Raises `BagError`
+    for a bag that is missing, not MCAP, truncated or corrupt (also part way through: chunk
+    CRCs are checked as chunks are read), and for a message its schema cannot decode.
     """
     bag_file = resolve_bag_file(path)
     _check_container(bag_file)
     wanted = None if topics is None else set(topics)
+    factory = _decoder_factory() if decode else None
     with open(bag_file, 'rb') as stream:
         contents = _open_contents(bag_file, stream)
         try:
-            for _schema, channel, message in contents.reader.iter_messages(
+            for schema, channel, message in contents.reader.iter_messages(
                     topics=None if wanted is None else sorted(wanted), log_time_order=True):
+                decoded = None
+                if factory is not None:
+                    decoder = factory.decoder_for(channel.message_encoding, schema)
+                    if decoder is None:
+                        raise BagError(f'{bag_file}: topic {channel.topic} has no ros2msg '
+                                       'schema to decode it with')
+                    decoded = decoder(message.data)
                 yield BagMessage(channel.topic, contents.topic_types[channel.id],
                                  message.log_time, message.publish_time, bytes(message.data),
-                                 contents.qos[channel.id])
+                                 contents.qos[channel.id], decoded)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes

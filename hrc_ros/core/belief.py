@@ -19,6 +19,11 @@ Table 5 gives, for each velocity level O, a distribution T[O, h] over h. Two mod
   Both steps are one product with the precomputed 9x9 matrix M[a, O] = E_a * L[O] (columns
   scaled), so `update` is a vector-matrix product and a normalisation.
 
+A configuration may instead give P(O | h) itself (`observation.likelihood`, for example fitted
+from recordings by `hrc-fit`): then L is that matrix as it is (no epsilon mix: a fitted matrix
+is already the estimate), unless a `table` or `epsilon` is passed explicitly, which asks for
+the Table 5 form. Table mode always reads Table 5.
+
 Evidence other than one velocity level: `observation` may be a likelihood vector l (9,),
 l(h) = P(evidence | h) (all ones: no evidence, the prediction alone); bayes mode corrects with l
 instead of L[O]. In table mode a vector yields the posterior under the prior that Table 5
@@ -125,6 +130,7 @@ class BeliefFilter:
         self.model = model
         self.table = _read_only(_check_table(cfg.observation_table if table is None
                                              else table))
+        explicit_epsilon = epsilon
         epsilon = cfg.epsilon if epsilon is None else epsilon
         if isinstance(epsilon, bool) or not isinstance(epsilon, (int, float, np.floating)) \
                 or not 0.0 <= float(epsilon) <= 1.0:
@@ -137,9 +143,13 @@ class BeliefFilter:
 
         column_mass = self.table.sum(axis=0)           # c(h) = sum_O T[O, h]
         self.table_prior = _read_only(column_mass / column_mass.sum())
-        exact = self.table / column_mass                # L0[O, h], columns sum to 1
-        self.likelihood = _read_only((1.0 - self.epsilon) * exact
-                                     + self.epsilon / N_OBSERVATIONS)
+        given = cfg.observation_likelihood
+        if given is not None and table is None and explicit_epsilon is None:
+            self.likelihood = _read_only(np.array(given, dtype=float))
+        else:
+            exact = self.table / column_mass            # L0[O, h], columns sum to 1
+            self.likelihood = _read_only((1.0 - self.epsilon) * exact
+                                         + self.epsilon / N_OBSERVATIONS)
         # initial(O) in bayes mode: uniform prior corrected by L[O].
         self._evidence_only = _read_only(self.likelihood
                                          / self.likelihood.sum(axis=1, keepdims=True))

@@ -15,7 +15,12 @@ Sections:
   fixed sweep count, at most MAX_SWEEPS),
   fail_safe_aware (false = MODEL.md: every action at every state; true = only dn at d = 0, the
   action the decision node's fail-safe enforces there, so the policy plans around it);
-- `observation`: the Table 5 rows, the bayes-mode epsilon and the belief mode (MODEL.md 6).
+- `observation`: the Table 5 rows, the bayes-mode epsilon and the belief mode (MODEL.md 6), and
+  optionally `likelihood`: P(O | h) as 3 rows (O = 1, 2, 3) of 9 columns (h = 3*em + ea), each
+  column a distribution over O. Absent or null: the bayes filter derives P(O | h) from Table 5
+  and epsilon (MODEL.md 6); given (for example fitted from recordings by `hrc-fit`), the filter
+  and the simulated cell use it as it is, and epsilon applies to the Table 5 form only. It is
+  the one optional key: a file written before it existed stays valid.
 
 The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
 sections that determine the policy (`model`, `cost`, `solver`). Observation settings do not
@@ -47,8 +52,11 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
     'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
-    'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode'},
+    'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode',
+                    'likelihood': 'columns[3x9]|null'},
 }
+# Keys that may be left out (they then read as null).
+_OPTIONAL = {('observation', 'likelihood')}
 
 PROBABILITY_TOLERANCE = 1e-9
 MAX_SWEEPS = 100_000   # value iteration's bound: a fixed count, or the cap of a run to eta
@@ -115,6 +123,13 @@ class Config:
         return np.asarray(self.data['observation']['table'], dtype=float)
 
     @property
+    def observation_likelihood(self) -> np.ndarray | None:
+        """P(O | h), shape (3, 9) (row O-1, column h), if the configuration gives one; else None
+        (the bayes filter then derives it from Table 5 and epsilon)."""
+        value = self.data['observation'].get('likelihood')
+        return None if value is None else np.asarray(value, dtype=float)
+
+    @property
     def epsilon(self) -> float:
         return float(self.data['observation']['epsilon'])
 
@@ -131,6 +146,14 @@ class Config:
     def policy_hash(self) -> str:
         """SHA-256 of the sections that determine the policy (model, cost, solver)."""
         return config_hash(self.policy_sections)
+
+    @property
+    def belief_hash(self) -> str:
+        """SHA-256 of the sections the belief filter reads (model: its emotion chains;
+        observation), so two nodes can tell whether they track the human with one model."""
+        observation = dict(self.data['observation'])
+        observation.setdefault('likelihood', None)
+        return config_hash({'model': self.data['model'], 'observation': observation})
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
         data = copy.deepcopy(self.data)
@@ -159,8 +182,10 @@ def _canonical(value: Any) -> Any:
 def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
     for key, value in overrides.items():
         name = f'{prefix}{key}'
-        if key not in base:
+        if key not in base and tuple(name.split('.')) not in _OPTIONAL:
             raise ConfigError(f'unknown configuration key {name!r}')
+        if key not in base:
+            base[key] = None
         if isinstance(value, Mapping) and isinstance(base[key], dict):
             _merge(base[key], value, name + '.')
         else:
@@ -210,6 +235,8 @@ def validate(data: Any) -> dict:
         for key, kind in keys.items():
             name = f'{section}.{key}'
             if key not in body:
+                if (section, key) in _OPTIONAL:
+                    continue
                 raise ConfigError(f'missing key {name}')
             out[section][key] = _check(name, kind, body[key])
     return out
@@ -293,6 +320,23 @@ def _check(name: str, kind: str, value: Any) -> Any:
             h = int(np.argmin(column_mass))
             raise ConfigError(f'{name}: hidden state h={h} has zero probability under every '
                               'observation, so the bayes likelihood is undefined')
+        return rows
+    if kind == 'columns[3x9]|null':
+        if value is None:
+            return None
+        if not isinstance(value, (list, tuple)) or len(value) != 3:
+            raise ConfigError(f'{name} must be 3 rows (O = 1, 2, 3) of 9 probabilities '
+                              '(h = 0..8), or null')
+        rows = [_prob_vector(f'{name}[{r}]', row, 9) for r, row in enumerate(value)]
+        column_mass = np.asarray(rows).sum(axis=0)
+        for h, total in enumerate(column_mass):
+            if abs(total - 1.0) > PROBABILITY_TOLERANCE:
+                raise ConfigError(f'{name}: column h={h} (P(O | h) over O = 1, 2, 3) sums to '
+                                  f'{total:.12g}, not 1')
+        for r, row in enumerate(rows):
+            if not any(row):
+                raise ConfigError(f'{name}: observation O={r + 1} has probability 0 under every '
+                                  'hidden state, so the filter could not take it')
         return rows
     if kind == 'chains':
         if not isinstance(value, dict):

@@ -121,6 +121,22 @@ class BatchResult:
     tasks_completed: np.ndarray
     tasks_released: np.ndarray
     actions: np.ndarray | None = None   # (E, K) action indices
+    trajectory: dict | None = None      # with run(record=True): (E, K) arrays, see `run`
+
+    def recordings(self, model: HRCModel) -> list:
+        """The recorded episodes as `recordings.Recording`s (what a robot sees: no em, ea)."""
+        from .recordings import Recording
+        t = self.trajectory
+        if t is None:
+            raise ValueError('run the batch with record=True to keep its trajectories')
+        grid = model.task_grid
+        epochs = np.arange(1, t['action'].shape[1] + 1)
+        out = []
+        for e in range(t['action'].shape[0]):
+            task = np.stack([grid[n][t['y'][e]] for n in TASK_VARIABLES], axis=1)
+            out.append(Recording('simulation', str(e), epochs, task, t['d'][e],
+                                 t['observation'][e], t['action'][e], t['accepted'][e], epochs))
+        return out
 
     @property
     def collision_stuck(self) -> np.ndarray:
@@ -132,12 +148,17 @@ class BatchSimulator:
     """`simulator.simulate` over an array of episodes (see the module docstring)."""
 
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
-                 fail_safe: bool = True, pomdp=None):
+                 fail_safe: bool = True, pomdp=None, world: HRCModel | None = None):
         self.policy, value = policy_arrays(policy, value)
         self.model = model
+        world = model if world is None else world
+        self.world = world
         if self.policy.shape != (model.n_states,):
             raise ValueError(f'the policy has {self.policy.size} states, the model '
                              f'{model.n_states}')
+        if world.dims != model.dims:
+            raise ValueError(f'the world (rho {world.rho}, sigma {world.sigma}) and the planning '
+                             f'model (rho {model.rho}, sigma {model.sigma}) differ in size')
         self.value = value
         self.fail_safe = fail_safe
         self.filter = BeliefFilter(model, mode=mode)
@@ -145,8 +166,8 @@ class BatchSimulator:
         n_y = model.n_task
         self.columns = n_y * N_DISTANCE
         self.by_h = self.policy.reshape(N_HIDDEN, self.columns)
-        self.state_cost = model.state_cost_vector
-        self.action_cost = model.action_cost
+        self.state_cost = world.state_cost_vector
+        self.action_cost = world.action_cost
         grid = model.task_grid
         self.grid = grid
         # y' = task_step[a, accepted, y]; eligible[a, y]: an eligible request.
@@ -155,17 +176,18 @@ class BatchSimulator:
             for a in range(len(ACTIONS))]).astype(np.intp)
         self.eligible = np.stack([request_eligible(a, grid['tp'], grid['tx'], grid['ty'])
                                   for a in range(len(ACTIONS))])
-        cfg = model.config
+        cfg = world.config        # the human's side: the world's
         self.p_accept = cfg.p_accept
         self.delta_cdf = np.cumsum(cfg.p_delta, axis=1)
         self.next_d = np.array([[[next_distance(d, a, delta) for delta in DELTAS]
                                  for d in range(N_DISTANCE)] for a in range(len(ACTIONS))])
-        chains = model.emotion_chains
+        chains = world.emotion_chains
         self.em_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][0], axis=1)
                                 for a in range(len(ACTIONS))])
         self.ea_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][1], axis=1)
                                 for a in range(len(ACTIONS))])
-        self.observation_cdf = np.cumsum(self.filter.likelihood, axis=0).T
+        likelihood = (self.filter if world is model else BeliefFilter(world)).likelihood
+        self.observation_cdf = np.cumsum(likelihood, axis=0).T
         self.safety = np.array(SAFETY_ORDER)
         self._q = None
         self.pomdp = pomdp
@@ -216,9 +238,18 @@ class BatchSimulator:
         return self._first_safe(tied)
 
     # -- the episodes --------------------------------------------------------------------
-    def run(self, scenarios, seeds, selector: str = 'paper', keep_actions: bool = False
-            ) -> BatchResult:
-        """Run the scenarios side by side; `seeds[e]` seeds episode e's human."""
+    def run(self, scenarios, seeds, selector: str = 'paper', keep_actions: bool = False,
+            explore: float = 0.0, record: bool = False) -> BatchResult:
+        """Run the scenarios side by side; `seeds[e]` seeds episode e's human.
+
+        `explore`: each epoch, with this probability, the robot takes an action drawn
+        uniformly from the eight instead of the selector's (before the fail-safe), from a
+        stream of its own per episode (spawned from the human's seed), so the human's draws
+        stay common to every run. `record`: keep per epoch the task index `y`, `d`,
+        `observation` O_k, `action`, `accepted` (1 / 0 for an eligible request, else -1) and
+        the hidden `em`, `ea` in `BatchResult.trajectory` ((E, K) arrays)."""
+        if not 0.0 <= explore <= 1.0:
+            raise ValueError(f'explore must be a probability in [0, 1], got {explore!r}')
         if selector not in SIMULATION_SELECTORS:
             raise ValueError(f'unknown selector {selector!r}; expected one of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
@@ -268,6 +299,13 @@ class BatchSimulator:
                              for seed in seeds])
         observation = sample_index(self.observation_cdf[3 * em + ea], uniforms[:, 0]) + 1
         belief = self.filter.initial_many(observation)
+        exploring = None
+        if explore > 0.0:
+            exploring = np.stack([np.random.default_rng(np.random.SeedSequence(
+                seed).spawn(1)[0]).random(2 * epochs) for seed in seeds]).reshape(n, epochs, 2)
+        kept = ({name: np.zeros((n, epochs), dtype=np.int64) for name in
+                 ('y', 'd', 'observation', 'action', 'accepted', 'em', 'ea')} if record
+                else None)
 
         cost = np.zeros(n)
         collisions = np.zeros(n, dtype=np.int64)
@@ -304,11 +342,15 @@ class BatchSimulator:
                 action = self.alphas.fib_many(belief, column)
             else:
                 action = self._qmdp(belief, column)
+            if exploring is not None:
+                other = exploring[:, k - 1, 0] < explore
+                action = np.where(other, (exploring[:, k - 1, 1] * len(ACTIONS)).astype(np.intp),
+                                  action)
             if self.fail_safe:
                 action = np.where(d == 0, DN, action)
             if keep_actions:
                 actions_kept[:, k - 1] = action
-            cost += model.gamma ** (k - 1) * (self.state_cost[h * self.columns + column]
+            cost += self.world.gamma ** (k - 1) * (self.state_cost[h * self.columns + column]
                                               + self.action_cost[action])
             collisions += d == 0
             run = np.where(d == 0, run + 1, 0)
@@ -319,6 +361,11 @@ class BatchSimulator:
             accepted = eligible & (u[:, 0] < self.p_accept[em])
             requests += eligible
             refused += eligible & ~accepted
+            if kept is not None:
+                for name, value in (('y', y), ('d', d), ('observation', observation),
+                                    ('action', action), ('em', em), ('ea', ea),
+                                    ('accepted', np.where(eligible, accepted, -1))):
+                    kept[name][:, k - 1] = value
             delta = sample_index(self.delta_cdf[ea], u[:, 1])
             d_start = d
             d = self.next_d[action, d, delta]
@@ -341,7 +388,7 @@ class BatchSimulator:
         with np.errstate(invalid='ignore', divide='ignore'):
             mean_latency = np.where(n_done > 0, latency.sum(axis=1) / n_done, np.nan)
         return BatchResult(selector, cost, mean_latency, collisions, longest_run, refused,
-                           requests, n_done, released, actions_kept)
+                           requests, n_done, released, actions_kept, kept)
 
 
 # -- statistics and outputs ------------------------------------------------------------------
@@ -368,6 +415,22 @@ def paired_difference(result: BatchResult, reference: BatchResult) -> dict:
 
 TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'stuck > 3 at d=0',
                 'refused requests', 'tasks completed', 'cost - mdp cost')
+
+
+def format_regret(planned: dict, true: dict) -> str:
+    """Per selector: the cost planning with the configuration, with the true one, and the
+    regret (their paired difference, 95% interval), over the same episodes of the true world."""
+    head = (f'{"selector":<9}{"cost, planned model":>22}{"cost, true model":>22}'
+            f'{"regret (paired)":>22}')
+    lines = [head, '-' * len(head)]
+    for selector, result in planned.items():
+        a = summarize(result)['discounted_cost']
+        b = summarize(true[selector])['discounted_cost']
+        r = paired_difference(result, true[selector])
+        lines.append(f'{selector:<9}{a["mean"]:>13.3f} ± {a["half_width"]:<6.3f}'
+                     f'{b["mean"]:>13.3f} ± {b["half_width"]:<6.3f}'
+                     f'{r["mean"]:>+13.3f} ± {r["half_width"]:<6.3f}')
+    return '\n'.join(lines)
 
 
 def format_table(summaries: dict, differences: dict) -> str:
@@ -405,14 +468,20 @@ def format_paired(results: dict, baseline: str) -> str:
 def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, seed: int = 0,
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
-             progress=None, scenario: str = 'random', pomdp=None) -> dict:
-    """selector -> BatchResult over the same seeded episodes (common random numbers)."""
+             progress=None, scenario: str = 'random', pomdp=None,
+             world: HRCModel | None = None) -> dict:
+    """selector -> BatchResult over the same seeded episodes (common random numbers).
+
+    `world`: the model the human and the costs are drawn from when it is not the one the
+    robot plans with (`model`: its policy and belief filter); the episodes and the human's
+    uniforms do not depend on either, so runs with different planning models are paired."""
     for s in selectors:
         if s not in SIMULATION_SELECTORS:
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
     scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate)
-    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, pomdp=pomdp)
+    sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, pomdp=pomdp,
+                         world=world)
     results = {}
     for selector in selectors:
         t0 = time.perf_counter()
@@ -425,5 +494,5 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
                          f'({time.perf_counter() - t0:.1f} s)')
         results[selector] = BatchResult(selector, *(
             np.concatenate([getattr(p, f.name) for p in parts])
-            for f in fields(BatchResult)[1:-1]))
+            for f in fields(BatchResult)[1:-2]))
     return results

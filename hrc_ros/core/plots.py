@@ -135,3 +135,39 @@ def plot_summaries(summaries: dict, path, differences: dict | None = None) -> Pa
         ax.grid(axis='y', alpha=0.3)
     fig.suptitle('Selectors over the same episodes (mean, 95% confidence interval)')
     return _save_figure(plt, fig, Path(path))
+
+
+def plot_fit(result, path) -> Path:
+    """`hrc-fit --plot`: each fitted parameter beside the base configuration's, with its
+    bootstrap 95% interval; one panel per family group (a `fit.FitResult`)."""
+    from .fit import PARAMETER_FAMILIES, PARAMETER_NAMES
+    plt = _pyplot()
+    fitted, base = result.params.vector(), result.base.vector()
+    families = np.array(PARAMETER_FAMILIES)
+    panels = (('acceptance and distance', ('p_accept', 'p_delta')),
+              ('emotion chains (down, stay, up)', tuple(f for f in dict.fromkeys(families)
+                                                        if f.startswith('emotion.'))),
+              ('observation likelihood P(O | h)', ('likelihood',)))
+    fig, axes = plt.subplots(len(panels), 1, figsize=(13, 11))
+    for ax, (title, names) in zip(axes, panels):
+        index = np.flatnonzero(np.isin(families, names))
+        x = np.arange(len(index))
+        ax.plot(x, base[index], 's', mfc='none', mec='0.4', ms=6, label='base')
+        if result.interval is not None:
+            low, high = result.interval[:, index]
+            ax.errorbar(x, fitted[index], yerr=[fitted[index] - np.minimum(low, fitted[index]),
+                                                np.maximum(high, fitted[index]) - fitted[index]],
+                        fmt='o', color='tab:blue', ms=4, capsize=2, label='fitted, 95% interval')
+        else:
+            ax.plot(x, fitted[index], 'o', color='tab:blue', ms=4, label='fitted')
+        held = np.isin(families[index], result.hold)
+        if held.any():
+            ax.plot(x[held], fitted[index][held], 'x', color='tab:red', ms=7, label='held')
+        ax.set_xticks(x, [PARAMETER_NAMES[i] for i in index], rotation=90, fontsize=6)
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc='upper right')
+    fig.suptitle(f'hrc-fit: {result.epochs} epochs, {result.episodes} episodes, log likelihood '
+                 f'{result.loglik:.2f}')
+    return _save_figure(plt, fig, Path(path))

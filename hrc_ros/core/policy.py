@@ -219,12 +219,36 @@ def load_policy(path: str | Path, config: Config | None = None) -> Policy:
     return loaded
 
 
-def check_policy(policy: Policy, config: Config) -> None:
+def peek_policy(path: str | Path, config: Config) -> dict:
+    """The quick half of `load_policy`, for a check that must not stall its caller (a node's
+    parameter callback): the file exists, its members' headers are a policy's for `config`'s
+    state count, and its meta says it was solved for `config`. Reads the headers and the meta
+    only (milliseconds); `load_policy` then reads and checks the arrays. PolicyError as there."""
+    path = Path(path)
+    resolve = f'Solve it again: hrc-solve --config <your config.yaml> -o {path}'
+    if not path.is_file():
+        raise PolicyError(f'policy file {path} does not exist. {resolve}')
+    headers = _headers(path, resolve)
+    _check_headers(path, headers, HRCModel(config).n_states, resolve)
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            text = str(archive['meta'])
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+        raise PolicyError(f'{path} is corrupt or not a policy file ({type(exc).__name__}: '
+                          f'{str(exc)[:200]}). {resolve}') from None
+    meta = _parse_meta(path, text, resolve)
+    check_policy(Policy(np.zeros(0, dtype=np.int8), np.zeros(0), meta, str(path)), config,
+                 states=headers['policy'][0][0])
+    return meta
+
+
+def check_policy(policy: Policy, config: Config, states: int | None = None) -> None:
     """Refuse a policy solved for another configuration."""
     check_config_hash(policy.path, policy.meta, config)
     n = HRCModel(config).n_states
-    if policy.policy.size != n:
-        raise PolicyError(f'policy {policy.path} has {policy.policy.size} states, the '
+    size = policy.policy.size if states is None else states
+    if size != n:
+        raise PolicyError(f'policy {policy.path} has {size} states, the '
                           f'configuration has {n}. Solve it again with hrc-solve.')
 
 

@@ -475,9 +475,14 @@ class DecisionGate:
         slot.bad_seq, slot.bad_reason = self._next_seq(), reason
         return self._maybe_decide(now)
 
-    def begin(self, k: int, now: int) -> list[Decision]:
-        """Open epoch k; a still pending epoch is decided first (as timed out)."""
+    def begin(self, k: int, now: int, select: Callable[[Any, tuple], Any] | None = None
+              ) -> list[Decision]:
+        """Open epoch k; a still pending epoch is decided first (as timed out). A new `select`
+        (a policy swapped in) decides from epoch k on: never the pending epoch, never half an
+        epoch."""
         decisions = [self._decide(now, timed_out=True)] if self.pending else []
+        if select is not None:
+            self.select = select
         self.epoch = k
         self.pending = True
         self.started_ns = now

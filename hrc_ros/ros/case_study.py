@@ -27,7 +27,6 @@ The trajectory is assembled by publication time around the epoch signals (`assem
 
 from __future__ import annotations
 
-import bisect
 import os
 import shutil
 import sys
@@ -43,6 +42,7 @@ from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from ..core.paths import default_config_path, share_dir
 from ..core.plots import plot_trajectory
 from ..core.policy import PolicyError, default_policy_path, load_policy
+from ..core.recordings import place_in_epochs
 from ..core.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
 from ..core.tasks import TaskBook
 from ..core.selection import SELECTORS
@@ -131,21 +131,12 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
     window without joint states has no observation or belief (the row shows O = 0 and no
     belief).
     """
-    signals = sorted((t, value) for topic, value, t in events if topic == 'hrc/epoch')
-    times = [t for t, _ in signals]
-
-    def epoch_of(t: int) -> int:
-        i = bisect.bisect_right(times, t)
-        return signals[i - 1][1] if i else 0
-
-    first: dict[tuple, object] = {}
-    true_states: dict[int, tuple] = {}
-    for topic, value, t in sorted(events, key=lambda e: e[2]):
-        k = epoch_of(t)
-        if topic == 'hrc/sim/true_state':
-            true_states[k + 1] = value        # the last one seen in epoch k
-        elif topic != 'hrc/epoch':
-            first.setdefault((topic, k), value)
+    placed = place_in_epochs([(t, value) for topic, value, t in events if topic == 'hrc/epoch'],
+                             [e for e in events if e[0] != 'hrc/epoch'])
+    first = {key: values[0][1] for key, values in placed.items()}
+    # the last true state seen in epoch k is epoch k + 1's
+    true_states = {k + 1: values[-1][1] for (topic, k), values in placed.items()
+                   if topic == 'hrc/sim/true_state'}
     missing = [k for k in range(1, args.epochs + 1) if ('hrc/action', k) not in first]
     if missing:
         raise CaseStudyError(f'no action was seen for epochs {missing}')

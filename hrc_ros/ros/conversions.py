@@ -23,6 +23,8 @@ Wire formats (INTERFACES.md, plus the decisions below):
   em, ea), layout dims ``motivation`` (size 3, stride 9) and ``aggression`` (size 3, stride 3).
   Non-negative, finite, summing to 1 within `BELIEF_TOLERANCE`.
 - `hrc/action` (std_msgs/String): one of ``nw rh1 rh2 ct dp dm mh dn``, exactly.
+- `hrc/estimator_config` (std_msgs/String): ``"<sha256> <source>"``, the `Config.belief_hash`
+  (64 hex digits) of the configuration the belief estimator runs, a space, and its file.
 - `hrc/observation`, `hrc/distance_level` (std_msgs/UInt8), `hrc/epoch` (std_msgs/UInt32),
   `hrc/human_response` (std_msgs/Bool).
 - `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
@@ -364,6 +366,19 @@ def action_from_msg(msg: String) -> int:
 
 def action_to_msg(action) -> String:
     return String(data=ACTIONS[action_index(action)])
+
+
+# -- hrc/estimator_config ---------------------------------------------------------------------
+def config_identity_to_msg(sha256: str, source: str) -> String:
+    return String(data=f'{sha256} {source}')
+
+
+def config_identity_from_msg(msg: String) -> tuple[str, str]:
+    """(belief sha256, source) of the configuration the belief estimator announces."""
+    sha, _, source = msg.data.partition(' ')
+    if len(sha) != 64 or any(c not in '0123456789abcdef' for c in sha):
+        raise MessageError(f'expected "<sha256> <configuration file>", got {msg.data[:80]!r}')
+    return sha, source
 
 
 # -- body tracking: visualization_msgs/MarkerArray of the Azure Kinect / Orbbec drivers -------

@@ -29,6 +29,7 @@ time), so the machines decide what a timeout means and the nodes only keep time.
 from __future__ import annotations
 
 import signal
+import threading
 import time
 import traceback
 from collections import Counter
@@ -94,6 +95,10 @@ Check = Callable[[Mapping[str, Any]], 'str | None']
 
 CONFIG = ParamSpec('config', Parameter.Type.STRING, '', "model configuration YAML ('' = the "
                    'shipped default.yaml)', read_only=True)
+# The decision node and the belief estimator take a new configuration while they run.
+LIVE_CONFIG = ParamSpec('config', Parameter.Type.STRING, '', "model configuration YAML ('' = "
+                        'the shipped default.yaml); settable at run time: checked at once, '
+                        'loaded off the epoch path and used from the next epoch on')
 
 
 class NodeParameters:
@@ -216,6 +221,44 @@ def check_core(values: Mapping[str, Any], name: str, probe: Callable[[Any], Any]
     except ValueError as exc:
         return f'{name}: {exc}'
     return None
+
+
+class BackgroundLoad:
+    """Load files off the executor thread; the node takes the result at an epoch boundary.
+
+    `start(load)` runs `load()` in a daemon thread (reading and checking a policy takes
+    ~0.1 s: inside a callback it would delay the epoch that falls due meanwhile). `take()`
+    returns what the latest start produced, once: its value or the exception it raised, or None
+    while it runs (a newer start supersedes an older one that has not finished)."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self._lock = threading.Lock()
+        self._generation = 0
+        self._done: tuple | None = None
+
+    def start(self, load: Callable[[], Any]) -> None:
+        with self._lock:
+            self._generation += 1
+            generation = self._generation
+            self._done = None
+
+        def work():
+            try:
+                done = (load(), None)
+            except Exception as exc:  # noqa: BLE001 - handed to the node, which reports it
+                done = (None, exc)
+            with self._lock:
+                if generation == self._generation:
+                    self._done = done
+
+        threading.Thread(target=work, name=f'{self.name} load', daemon=True).start()
+
+    def take(self) -> tuple | None:
+        """(value, None) or (None, exception) of the latest load, once; None until it ends."""
+        with self._lock:
+            done, self._done = self._done, None
+        return done
 
 
 # -- inputs and diagnostics -------------------------------------------------------------------

@@ -4,7 +4,8 @@
   keep last 5: a late sample is worth less than the next one, and a slow subscriber must never
   make the tracker queue up.
 - `LATCHED`: what the suite's publishers offer for state that a late joiner needs at once
-  (`hrc/belief`, `hrc/task_state`, `hrc/distance_level`, the simulator's `hrc/sim/true_state`).
+  (`hrc/belief`, `hrc/task_state`, `hrc/distance_level`, `hrc/estimator_config`, the
+  simulator's `hrc/sim/true_state`).
   Reliable, transient local, depth 1: the last value is kept by the publisher and handed to
   every new subscriber that asks for it.
 - `STATE_INPUT`: what the nodes subscribe such state with. Reliable but volatile: a volatile

@@ -1,11 +1,19 @@
 """hrc-evaluate: the action selectors compared over many seeded episodes (core.evaluation).
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
-                 [--baseline pomdp]
+                 [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
 
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
 `episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
 paired difference to S (same episodes) with its 95% interval (`paired.csv`).
+
+Model mismatch: with `--true-config` the human and the costs are drawn from that
+configuration (the world) while the robot plans with `--config` and its policy (policy and
+belief filter). The same episodes are also run planning with the true configuration (its
+`--true-policy`, else the shipped one solved for it, else solved here), and the regret of each
+selector is the paired difference of the two costs, with its 95% interval. The POMDP
+selectors (pomdp, fib) are left out of that comparison: they would need a POMDP policy solved
+for the true configuration too.
 """
 
 from __future__ import annotations
@@ -15,14 +23,36 @@ import json
 import sys
 import time
 
-from ..core.config import BELIEF_MODES
-from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_table,
-                               paired_difference, summarize)
+from ..core.config import BELIEF_MODES, ConfigError, load_config
+from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_regret,
+                               format_table, paired_difference, summarize)
+from ..core.model import HRCModel
+from ..core.policy import PolicyError, default_policy_path, load_policy
 from ..core.plots import plot_summaries
 from ..core.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODE_EPOCHS, MAX_EPISODES, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
                      add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, fail,
                      load_model, load_pomdp, output_folder)
+
+
+def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
+    """(the true model, its policy or None when it must be solved); ToolError otherwise."""
+    try:
+        config = load_config(config_path)
+    except ConfigError as exc:
+        raise ToolError(f'--true-config: {exc}') from None
+    world = HRCModel(config)
+    if world.dims != planning.dims:
+        raise ToolError(f'--true-config has rho {world.rho}, sigma {world.sigma}; the planning '
+                        f'configuration {planning.rho}, {planning.sigma}: they must describe '
+                        'the same cell')
+    path = policy_path or default_policy_path(config)
+    try:
+        return world, load_policy(path, config)
+    except PolicyError as exc:
+        if policy_path:
+            raise ToolError(f'--true-policy: {exc}') from None
+    return world, None
 
 
 def main(argv=None) -> int:
@@ -51,8 +81,17 @@ def main(argv=None) -> int:
                         help="belief mode (default: the configuration's)")
     parser.add_argument('--no-fail-safe', action='store_true',
                         help='let the selectors act at d = 0 (for studying the fail-safe)')
+    parser.add_argument('--true-config', default=None,
+                        help='the world the episodes are drawn from, when it is not the '
+                        'configuration the robot plans with: adds the regret against planning '
+                        'with it')
+    parser.add_argument('--true-policy', default=None,
+                        help="policy solved for --true-config (default: the shipped one, else "
+                        'solved here, about 2 s)')
     parser.add_argument('--out', default='out/evaluate', help='output folder')
     args = parser.parse_args(argv)
+    if args.true_policy and not args.true_config:
+        parser.error('--true-policy needs --true-config')
     selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
     if not selectors:
         parser.error('--selectors names no selector; choose from '
@@ -61,6 +100,10 @@ def main(argv=None) -> int:
         if s not in SIMULATION_SELECTORS:
             parser.error(f'unknown selector {s!r} in --selectors; choose from '
                          f'{", ".join(SIMULATION_SELECTORS)}')
+    if args.true_config and {'pomdp', 'fib'} & set(selectors):
+        parser.error('--true-config compares the selectors that read a policy file (paper, '
+                     'qmdp, mls, mdp); pomdp and fib would need a POMDP policy of the true '
+                     'configuration too')
     if args.baseline is not None and args.baseline not in selectors:
         parser.error(f'--baseline {args.baseline!r} must be one of --selectors '
                      f'({", ".join(selectors)})')
@@ -72,14 +115,27 @@ def main(argv=None) -> int:
     try:
         config, model, policy = load_model(args)
         pomdp = load_pomdp(args, config, selectors)
+        world = true_policy = None
+        if args.true_config:
+            world, true_policy = load_world(args.true_config, args.true_policy, model)
         out = output_folder(args.out)
     except ToolError as exc:
         return fail('hrc-evaluate', exc)
     t0 = time.perf_counter()
+    if world is not None and true_policy is None:
+        from ..core.solver import solve
+        print(f'solving {world.config.source} (no shipped policy was solved for it) ...',
+              flush=True)
+        true_policy = solve(world)
+    progress = lambda m: print(m, flush=True)   # noqa: E731
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
-                       selectors, args.mode, not args.no_fail_safe,
-                       progress=lambda m: print(m, flush=True), scenario=args.scenario,
-                       pomdp=pomdp)
+                       selectors, args.mode, not args.no_fail_safe, progress=progress,
+                       scenario=args.scenario, pomdp=pomdp, world=world)
+    true_results = None
+    if world is not None:
+        true_results = evaluate(world, true_policy, args.episodes, args.epochs, args.seed,
+                                args.task_rate, selectors, args.mode, not args.no_fail_safe,
+                                progress=progress, scenario=args.scenario, world=world)
     elapsed = time.perf_counter() - t0
     summaries = {s: summarize(r) for s, r in results.items()}
     differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
@@ -99,6 +155,13 @@ def main(argv=None) -> int:
         print(format_paired(results, args.baseline))
         paired = {s: paired_difference(r, results[args.baseline])
                   for s, r in results.items() if s != args.baseline}
+    regret = {}
+    if true_results is not None:
+        regret = {s: paired_difference(r, true_results[s]) for s, r in results.items()}
+        print(f'\nthe world is {world.config.source}: planning with {config.source} against '
+              f'planning with the true configuration (policy '
+              f'{getattr(true_policy, "path", "solved here")}), same episodes')
+        print(format_regret(results, true_results))
 
     with (out / 'summary.csv').open('w', newline='') as f:
         writer = csv.writer(f)
@@ -123,11 +186,16 @@ def main(argv=None) -> int:
                 'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
                 'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
                 'seconds': round(elapsed, 3)}
-    (out / 'summary.json').write_text(json.dumps(
-        {'settings': settings, 'selectors': summaries,
-         'cost_minus_mdp_cost': differences,
-         **({'baseline': args.baseline, 'cost_minus_baseline_cost': paired}
-            if args.baseline else {})}, indent=2) + '\n')
+    report = {'settings': settings, 'selectors': summaries, 'cost_minus_mdp_cost': differences,
+              **({'baseline': args.baseline, 'cost_minus_baseline_cost': paired}
+                 if args.baseline else {})}
+    if true_results is not None:
+        settings.update(true_config=world.config.source,
+                        true_config_sha256=world.config.policy_hash,
+                        true_policy=getattr(true_policy, 'path', None))
+        report.update(true_model={s: summarize(r) for s, r in true_results.items()},
+                      regret=regret)
+    (out / 'summary.json').write_text(json.dumps(report, indent=2) + '\n')
     written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
                plot_summaries(summaries, out / 'summary.png', differences)]
     if args.baseline is not None:

@@ -10,6 +10,12 @@ level (closest keypoint, `robot_frame`); the windows, O_k and the belief update 
 `core.protocol.EstimatorEpochs`. A malformed message is dropped with a diagnostic; a window
 without enough joint states or without a skeleton publishes nothing for that input, so the
 decision node fails safe.
+
+It announces the configuration its filter runs on `hrc/estimator_config` (latched:
+`Config.belief_hash` and the file), so the decision node can flag a mismatch. A new `config`
+(`ros2 param set /belief_estimator config <file>`) is checked in the parameter callback (it
+must load), its filter (observation likelihood, emotion chains) is built off the epoch path
+(`BackgroundLoad`) and takes over at the next epoch signal, from the belief it has reached.
 """
 
 from __future__ import annotations
@@ -23,13 +29,15 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt32
 
 from ...core.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
+from ...core.model import HRCModel
 from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                                  velocity_level)
-from ...core.protocol import EstimatorEpochs, Stamp
+from ...core.protocol import ERROR, OK, EstimatorEpochs, Report, Stamp
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, StartupError,
-                            check_array, check_core, node_setup, run)
+from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, Inputs, ParamSpec,
+                            StartupError, check_array, check_core, load_node_config,
+                            node_setup, run)
 
 T = Parameter.Type
 VELOCITY_THRESHOLDS = ParamSpec(
@@ -49,7 +57,7 @@ ROBOT_FRAME = ParamSpec(
     read_only=True, constraints='non-empty')
 MOTION_PARAMETERS = (VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME)
 PARAMETERS = (
-    CONFIG,
+    LIVE_CONFIG,
     ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
               "configuration's observation.mode)", constraints="'', 'bayes' or 'table'"),
     ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
@@ -91,9 +99,14 @@ class BeliefEstimatorNode(Node):
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
         self.windows: EstimatorEpochs | None = None
+        self.config_value: str | None = None      # set below: changes are checked from then on
         self.params, values, self.config, self.model = node_setup(
-            self, PARAMETERS, check_parameters, self._apply_parameters)
+            self, PARAMETERS, self._check_parameters, self._apply_parameters)
+        self.loader = BackgroundLoad('belief_estimator')
+        self.config_pub = self.create_publisher(String, 'hrc/estimator_config', qos.LATCHED)
         self._apply_parameters(values)
+        self.config_value = values['config']
+        self._announce()
         self._previous_sample: conv.JointSample | None = None
         self._lag = LagStats()
 
@@ -114,7 +127,30 @@ class BeliefEstimatorNode(Node):
                               self._on_epoch, with_stamp=True)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
+    def _check_parameters(self, values) -> str | None:
+        reason = check_parameters(values)
+        if reason or self.config_value is None or values.get('config') == self.config_value:
+            return reason
+        try:
+            config = load_node_config(values['config'])
+            BeliefFilter(HRCModel(config), mode=values['belief_mode'] or None)
+        except (StartupError, ValueError) as exc:
+            return f'config refused: {exc}'
+        return None
+
+    def _announce(self) -> None:
+        self.config_pub.publish(conv.config_identity_to_msg(self.config.belief_hash,
+                                                            self.config.source))
+
     def _apply_parameters(self, values) -> None:
+        if self.config_value is not None and values['config'] != self.config_value:
+            value, mode = values['config'], values['belief_mode'] or None
+
+            def load():
+                config = load_node_config(value)
+                model = HRCModel(config)
+                return value, config, model, BeliefFilter(model, mode=mode)
+            self.loader.start(load)
         try:
             belief_filter = BeliefFilter(self.model, mode=values['belief_mode'] or None)
         except ValueError as exc:
@@ -149,7 +185,27 @@ class BeliefEstimatorNode(Node):
         self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
                                              self.safety_radii), published_ns)
 
+    def _swap(self, k: int) -> None:
+        """At epoch k's signal: a configuration loaded meanwhile takes over the filter."""
+        done = self.loader.take()
+        if done is None:
+            return
+        loaded, error = done
+        if error is not None:
+            self.inputs.report(Report(ERROR, 'estimator', f'refused configuration: {error}; '
+                                      f'still running {self.config.source}', {'epoch': k}))
+            self.set_parameters([Parameter('config', value=self.config_value)])
+            return
+        old = self.config.source
+        self.config_value, self.config, self.model, self.windows.filter = loaded
+        self._announce()
+        self.inputs.report(Report(OK, 'estimator', f'epoch {k}: belief filter now from '
+                                  f'{self.config.source} (before: {old})',
+                                  {'epoch': k, 'config': self.config.source}, kind='swap'))
+
     def _on_epoch(self, k: int, stamp: Stamp) -> None:
+        self._swap(k)
+        self._announce()        # again each epoch: state is republished (qos.STATE_INPUT)
         step = self.windows.epoch_signal(k, stamp)
         if step.distance_level is not None:
             self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
@@ -167,6 +223,8 @@ class BeliefEstimatorNode(Node):
                   'distance_level': w.distance_level,
                   'belief': None if w.belief is None else np.round(w.belief, 4),
                   'belief_mode': w.filter.mode,
+                  'config': self.config.source,
+                  'config_belief_sha256': self.config.belief_hash,
                   'joint_states_in_period': lag['count'],
                   'joint_state_lag_ms_mean': lag['mean_ms'],
                   'joint_state_lag_ms_max': lag['max_ms']}

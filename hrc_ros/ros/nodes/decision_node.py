@@ -9,24 +9,42 @@ by the `selector`, or `dn` when an input is missing, stale, malformed or late, o
 `core.protocol.DecisionGate` and `ClockStart`; this node owns the topics, the policy file,
 the parameters and the timers. It refuses to start (exit 1, one line) on a missing policy or
 one solved for another configuration.
+
+Live swap (`ros2 param set /decision policy <file>`, and `config`; docs/LEARNING.md): the
+parameter callback checks the pair (the configuration loads and describes the same cell; the
+policy file exists, is a policy and was solved for that configuration: its meta only, a few
+ms) and refuses a bad one with the reason, keeping the old. A policy solved for another
+configuration than `config` is refused; a `config` set alone while `policy` is not solved for
+it is accepted but staged (reported; the old pair keeps running) until a `policy` solved for
+it is set, so that `ros2 param set`, one parameter at a time, can change both. An accepted pair
+is loaded and fully checked in a background thread (`BackgroundLoad`) and swapped in at the
+next epoch boundary (`DecisionGate.begin(select=...)`), so no epoch waits for the file; if the
+full check still fails (damaged arrays) the parameters return to the pair in use, with an
+ERROR status. The estimator announces its configuration on `hrc/estimator_config`; every
+decision status names the policy and configuration in use and whether the estimator's belief
+sections match, and a mismatch is a WARN status.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
-from ...core.policy import PolicyError, default_policy_path, load_policy
-from ...core.protocol import (ClockStart, DecisionGate, EpochFollower, Report, Stamp,
-                              timeout_ns)
+from ...core.config import Config
+from ...core.model import HRCModel
+from ...core.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
+from ...core.protocol import (ERROR, OK, WARN, ClockStart, DecisionGate, EpochFollower, Report,
+                              Stamp, timeout_ns)
 from ...core.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (CONFIG, DeadlineTimer, Inputs, ParamSpec, StartupError, config_path,
-                            control_clock, node_setup, run)
+from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
+                            StartupError, config_path, control_clock, load_node_config,
+                            node_setup, run)
 
 EPOCH_SOURCES = ('timer', 'topic')
 INPUT_FRACTION = 0.5   # input_timeout 0: this fraction of the epoch period
@@ -34,10 +52,10 @@ STALE_PERIODS = 3.0    # stale_timeout 0: this many epoch periods
 GRAPH_WAIT_MIN = 3.0   # stale_timeout 0: seconds the clock may wait for DDS discovery at least
 T = Parameter.Type
 PARAMETERS = (
-    CONFIG,
+    LIVE_CONFIG,
     ParamSpec('policy', T.STRING, '', "policy file solved for the configuration ('' = the "
               'shipped policy solved for config, e.g. policies/paper.npz for paper.yaml; else '
-              'default.npz)', read_only=True),
+              'default.npz); settable at run time: swapped in at the next epoch boundary'),
     ParamSpec('selector', T.STRING, 'paper', 'action selection from the belief: '
               + ', '.join(SELECTORS), constraints=' or '.join(SELECTORS)),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
@@ -77,6 +95,42 @@ def check_parameters(values) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class Running:
+    """A (configuration, policy) pair, loaded and checked: what decides, or is about to."""
+
+    config_value: str        # the parameters as set
+    policy_value: str
+    config: Config
+    model: HRCModel
+    policy: Policy
+    selector: ActionSelector
+
+
+@dataclass(frozen=True)
+class Staged:
+    """A configuration set without a policy solved for it yet."""
+
+    config_value: str
+    policy_value: str
+    reason: str
+
+
+def load_pair(config_value: str, policy_value: str, method: str) -> Running | Staged:
+    """Load and check a (configuration, policy) pair as the parameters name it; `Staged` when
+    the policy was not solved for the configuration; StartupError / PolicyError otherwise."""
+    config = load_node_config(config_value)
+    path = policy_value or str(default_policy_path(config))
+    try:
+        peek_policy(path, config)
+    except PolicyError as exc:
+        return Staged(config_value, policy_value, str(exc))
+    model = HRCModel(config)
+    policy = load_policy(path, config)
+    return Running(config_value, policy_value, config, model, policy,
+                   ActionSelector(model, policy, method=method))
+
+
 def timeouts_ns(values) -> tuple[int, int]:
     """(input_timeout, stale_timeout) in ns: the explicit values, or fractions of the period."""
     period_ns = int(values['epoch_period'] * 1e9)
@@ -89,23 +143,28 @@ class DecisionNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.selector = None
-        self.params, values, self.config, self.model = node_setup(
+        self.running: Running | None = None      # set below: swaps are checked from then on
+        self.params, values, config, model = node_setup(
             self, PARAMETERS, self._check_parameters, self._apply_parameters)
-        policy_path = values['policy'] or str(default_policy_path(self.config))
+        policy_path = values['policy'] or str(default_policy_path(config))
         try:
-            self.policy = load_policy(policy_path, self.config)
+            policy = load_policy(policy_path, config)
         except PolicyError as exc:
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
-                f'sha256 {self.config.policy_hash})') from None
+                f'sha256 {config.policy_hash})') from None
         try:   # pomdp and fib read the shipped POMDP policy solved for the configuration
-            self.selector = ActionSelector(self.model, self.policy, method=values['selector'])
+            selector = ActionSelector(model, policy, method=values['selector'])
         except PolicyError as exc:
             raise StartupError(f'selector {values["selector"]}: {exc}') from None
+        self.loader = BackgroundLoad('decision')
+        self.staged: Staged | None = None
+        self.estimator_config: tuple[str, str] | None = None   # (belief sha256, source)
         self.epoch_source = values['epoch_source']
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
+        self.running = Running(values['config'], values['policy'], config, model, policy,
+                               selector)
         input_ns, stale_ns = timeouts_ns(values)
         self.gate = DecisionGate(self.selector.select, stale_ns, input_ns,
                                  fresh_at_epoch=self.epoch_source == 'timer')
@@ -138,6 +197,8 @@ class DecisionNode(Node):
             self.epoch_timer = None
             self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                                   self._on_epoch, with_stamp=True)
+        self.inputs.subscribe(String, 'hrc/estimator_config', qos.STATE_INPUT,
+                              conv.config_identity_from_msg, self._on_estimator_config)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
             f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
@@ -146,6 +207,12 @@ class DecisionNode(Node):
     @property
     def epoch(self) -> int:
         return self.gate.epoch
+
+    # the pair in use
+    config = property(lambda self: self.running.config)
+    model = property(lambda self: self.running.model)
+    policy = property(lambda self: self.running.policy)
+    selector = property(lambda self: self.running.selector)
 
     def _graph_wait_ns(self) -> int:
         """The longest wait for the graph: an explicit stale_timeout, else 3 periods but at
@@ -157,17 +224,48 @@ class DecisionNode(Node):
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
+    # -- parameters ------------------------------------------------------------------------
     def _check_parameters(self, values) -> str | None:
         reason = check_parameters(values)
-        if reason is None and self.selector is not None \
+        if reason is None and self.running is not None \
                 and values.get('selector') in POMDP_SELECTORS:
             try:
                 self.selector.prepare(values['selector'])    # loads the POMDP policy
             except PolicyError as exc:
                 return f'selector {values["selector"]}: {exc}'
-        return reason
+        return reason or self._check_swap(values)
+
+    def _check_swap(self, values) -> str | None:
+        """The quick check of a new (config, policy) pair, in the parameter callback."""
+        running = self.running
+        if running is None or 'config' not in values or 'policy' not in values:
+            return None            # start-up: __init__ loads and checks the pair itself
+        if (values['config'], values['policy']) == (running.config_value, running.policy_value):
+            return None
+        try:
+            config = load_node_config(values['config'])
+        except StartupError as exc:
+            return f'config refused: {exc}'
+        if (config.rho, config.sigma) != (running.model.rho, running.model.sigma):
+            return (f'config refused: {config.source} has rho {config.rho}, sigma '
+                    f'{config.sigma}; the running cell {running.model.rho}, '
+                    f'{running.model.sigma}: restart the nodes to change the state space')
+        path = values['policy'] or str(default_policy_path(config))
+        try:
+            peek_policy(path, config)
+        except PolicyError as exc:
+            if values['policy'] == running.policy_value:
+                return None        # config set alone: staged until a policy for it is set
+            return (f'policy refused: {exc} (the configuration set is {config.source}; to '
+                    'change both, set config first, then policy)')
+        return None
 
     def _apply_parameters(self, values) -> None:
+        running = self.running
+        if running is not None and (values['config'], values['policy']) != (
+                running.config_value, running.policy_value):
+            method = values['selector']
+            self.loader.start(lambda: load_pair(values['config'], values['policy'], method))
         self.selector.set_method(values['selector'])   # qmdp's Q table is built here
         self.gate.input_timeout_ns, self.gate.stale_timeout_ns = timeouts_ns(values)
         self.stale_timeout = values['stale_timeout']
@@ -228,7 +326,7 @@ class DecisionNode(Node):
             self.inputs.report(tick.report)
         if tick.start_epoch:
             k = self.epoch + 1
-            self._act(self.gate.begin(k, self._now()))
+            self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
             self.epoch_pub.publish(conv.epoch_to_msg(k))
 
     def _on_epoch(self, k: int, stamp: Stamp) -> None:
@@ -236,7 +334,45 @@ class DecisionNode(Node):
         if restart is not None:
             self.inputs.report(restart)
         self.epochs.take(k, stamp)
-        self._act(self.gate.begin(k, self._now()))
+        self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
+
+    def _swap(self, k: int):
+        """At the boundary of epoch k: a pair loaded meanwhile takes over (its `select`)."""
+        done = self.loader.take()
+        if done is None:
+            return None
+        loaded, error = done
+        old = self.running
+        if isinstance(loaded, Running):
+            if loaded.selector.method != self.params.value('selector'):
+                loaded.selector.set_method(self.params.value('selector'))
+            self.running, self.staged = loaded, None
+            self.inputs.report(Report(
+                OK, 'policy', f'epoch {k}: now deciding with policy {loaded.policy.path} '
+                f'(configuration {loaded.config.source}, sha256 '
+                f'{loaded.config.policy_hash[:12]}); before: {old.policy.path}',
+                {'epoch': k, 'policy_file': loaded.policy.path, 'config': loaded.config.source,
+                 'previous_policy_file': old.policy.path}, kind='swap'))
+            return loaded.selector.select
+        if isinstance(loaded, Staged):
+            self.staged = loaded
+            self.inputs.report(Report(
+                WARN, 'policy', f'configuration {config_path(loaded.config_value)} is set but '
+                f'not in use: {loaded.reason}; still deciding with {old.policy.path} '
+                f'({old.config.source}). Set policy to a file solved for it.',
+                {'config_staged': config_path(loaded.config_value),
+                 'policy_file': old.policy.path}, kind='staged'))
+            return None
+        self.inputs.report(Report(
+            ERROR, 'policy', f'refused the new configuration / policy: {error}; still deciding '
+            f'with {old.policy.path} ({old.config.source})',
+            {'policy_file': old.policy.path, 'error': str(error)}, kind='refused'))
+        self.set_parameters([Parameter('config', value=old.config_value),
+                             Parameter('policy', value=old.policy_value)])
+        return None
+
+    def _on_estimator_config(self, identity: tuple[str, str]) -> None:
+        self.estimator_config = identity
 
     # -- the decision ----------------------------------------------------------------------
     def _act(self, decisions) -> None:
@@ -245,6 +381,8 @@ class DecisionNode(Node):
             self.action_pub.publish(conv.action_to_msg(decision.action))
             publish_ms = (time.perf_counter() - start) * 1e3
             self.last_action = decision.action
+            estimator = self.estimator_config
+            matches = None if estimator is None else estimator[0] == self.config.belief_hash
             values = {**decision.values(), 'selector': self.selector.method,
                       'input_timeout_s': self.gate.input_timeout_ns * 1e-9,
                       'stale_timeout_s': self.gate.stale_timeout_ns * 1e-9,
@@ -255,9 +393,21 @@ class DecisionNode(Node):
                       'policy_config_sha256': self.policy.config_sha256,
                       'config': self.config.source,
                       'config_sha256': self.config.policy_hash,
+                      'config_staged': (None if self.staged is None
+                                        else config_path(self.staged.config_value)),
+                      'estimator_config': None if estimator is None else estimator[1],
+                      'estimator_config_matches': matches,
                       **self.inputs.counts()}
             self.inputs.report(Report(decision.level, 'decision', decision.message, values,
                                       log=bool(decision.faults), kind='fail_safe'))
+            if matches is False:
+                self.inputs.report(Report(
+                    WARN, 'configuration', f'epoch {decision.epoch}: the belief estimator runs '
+                    f'{estimator[1]} (belief sections sha256 {estimator[0][:12]}), this node '
+                    f'{self.config.source} ({self.config.belief_hash[:12]}): its belief is not '
+                    "the one the policy's model would give; set the estimator's config too",
+                    {'epoch': decision.epoch, 'estimator_config': estimator[1],
+                     'config': self.config.source}, kind='estimator_config'))
         self.deadline.sync(self.gate.deadline)
 
 

@@ -1,0 +1,173 @@
+"""The E-step of `fit` (numba): evidence, scaled forward-backward and expected counts, fused.
+
+One pass per segment (a run of epochs whose transitions are all usable), t = a .. b-1, with
+h = 3*em + ea:
+
+    e_t(h)   = L[O_t, h] * acc_t(em) * sum_D move[t, D] p_delta[ea, D]     (module `fit`)
+    alpha_a  = pi * e_a / c_a,          alpha_t = (alpha_{t-1} E_{g(t-1)}) * e_t / c_t
+    beta_{b-1} = 1,                     beta_t  = E_{g(t)} (e_{t+1} * beta_{t+1}) / c_{t+1}
+    gamma_t  = alpha_t * beta_t,        xi_t(h, h') = alpha_t(h) E(h, h') e_{t+1}(h')
+                                                      beta_{t+1}(h') / c_{t+1}
+    log P(segment) = sum_t log c_t      (Rabiner's scaling: no underflow at any length)
+
+and the counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
+(1, or how often a bootstrap resample drew its episode; 0 skips the segment):
+
+    first[h]          sum of gamma at the segments' first epochs
+    accept[0|1, em]   sum of gamma_t(em) over accepted | refused eligible requests
+    delta[ea, D]      sum of gamma_t(ea) r_t(D | ea) over known moves, r the posterior of D
+    xi[g, h, h']      expected transitions under action group g
+    observed[O, h]    sum of gamma_t(h) over epochs that observed O
+    unique[ea, D]     sum of gamma_t(ea) over moves that tell D apart from both others
+
+Arguments (T epochs, S segments): `likelihood` (3, 9), `p_accept` (3,), `p_delta` (3, 3),
+`pi` (9,), `transition` (3, 9, 9); per epoch `group` (T,) the emotion group of a_t,
+`observation` (T,) O_t - 1 or 3 for none, `answer` (T,) 0 none, 1 accepted, 2 refused,
+`move` (T, 3) 1 where Delta fits the move (all 1 when it is unknown), `has_move` (T,),
+`unique_move` (T, 3); `seg_start` (S + 1,), `seg_weight` (S,); work arrays `alpha`, `emission`
+(T, 9); outputs `loglik` (S,) (unweighted, -inf for evidence impossible under the parameters)
+and the counts above (overwritten).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, transition,
+              group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
+              alpha, emission, scale, loglik, first, accept, delta, xi, observed, unique):
+    """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
+    n_h = 9
+    nxt = np.empty(n_h)
+    beta = np.empty(n_h)
+    gamma = np.empty(n_h)
+    dist = np.empty(3)
+    for s in range(first_segment, last_segment):
+        a = seg_start[s]
+        b = seg_start[s + 1]
+        w = seg_weight[s]
+        if w == 0.0:
+            loglik[s] = 0.0
+            continue
+        # evidence
+        for t in range(a, b):
+            o = observation[t]
+            for ea in range(3):
+                dist[ea] = (move[t, 0] * p_delta[ea, 0] + move[t, 1] * p_delta[ea, 1]
+                            + move[t, 2] * p_delta[ea, 2])
+            for em in range(3):
+                acc = 1.0
+                if answer[t] == 1:
+                    acc = p_accept[em]
+                elif answer[t] == 2:
+                    acc = 1.0 - p_accept[em]
+                for ea in range(3):
+                    h = 3 * em + ea
+                    v = acc * dist[ea]
+                    if o < 3:
+                        v *= likelihood[o, h]
+                    emission[t, h] = v
+        # forward
+        total = 0.0
+        possible = True
+        for t in range(a, b):
+            c = 0.0
+            if t == a:
+                for j in range(n_h):
+                    v = pi[j] * emission[t, j]
+                    alpha[t, j] = v
+                    c += v
+            else:
+                m = transition[group[t - 1]]
+                for j in range(n_h):
+                    v = 0.0
+                    for i in range(n_h):
+                        v += alpha[t - 1, i] * m[i, j]
+                    v *= emission[t, j]
+                    alpha[t, j] = v
+                    c += v
+            if not c > 0.0:
+                possible = False
+                break
+            inverse = 1.0 / c
+            for j in range(n_h):
+                alpha[t, j] *= inverse
+            scale[t] = c
+            total += math.log(c)
+        if not possible:
+            loglik[s] = -math.inf
+            continue
+        loglik[s] = total
+        # backward, with the counts of epoch t once beta_t is known
+        for j in range(n_h):
+            beta[j] = 1.0
+        for t in range(b - 1, a - 1, -1):
+            if t < b - 1:
+                m = transition[group[t]]
+                xs = xi[group[t]]
+                inverse = 1.0 / scale[t + 1]
+                for j in range(n_h):
+                    nxt[j] = emission[t + 1, j] * beta[j] * inverse
+                for i in range(n_h):
+                    ai = alpha[t, i] * w
+                    v = 0.0
+                    for j in range(n_h):
+                        p = m[i, j] * nxt[j]
+                        v += p
+                        xs[i, j] += ai * p
+                    beta[i] = v
+            z = 0.0
+            for h in range(n_h):
+                gamma[h] = alpha[t, h] * beta[h]
+                z += gamma[h]
+            z = w / z
+            for h in range(n_h):
+                gamma[h] *= z
+            if t == a:
+                for h in range(n_h):
+                    first[h] += gamma[h]
+            o = observation[t]
+            if o < 3:
+                for h in range(n_h):
+                    observed[o, h] += gamma[h]
+            if answer[t] > 0:
+                for em in range(3):
+                    accept[answer[t] - 1, em] += gamma[3 * em] + gamma[3 * em + 1] \
+                        + gamma[3 * em + 2]
+            if has_move[t]:
+                for ea in range(3):
+                    g_ea = gamma[ea] + gamma[3 + ea] + gamma[6 + ea]
+                    norm = 0.0
+                    for k in range(3):
+                        norm += move[t, k] * p_delta[ea, k]
+                    for k in range(3):
+                        if norm > 0.0:
+                            delta[ea, k] += g_ea * move[t, k] * p_delta[ea, k] / norm
+                        if unique_move[t, k]:
+                            unique[ea, k] += g_ea
+
+
+def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, answer, move,
+            has_move, unique_move, seg_start, seg_weight, alpha, emission, loglik, first,
+            accept, delta, xi, observed, unique):
+    first[:] = 0.0
+    accept[:] = 0.0
+    delta[:] = 0.0
+    xi[:] = 0.0
+    observed[:] = 0.0
+    unique[:] = 0.0
+    _segments_jit(0, seg_start.shape[0] - 1, likelihood, p_accept, p_delta, pi, transition,
+                  group, observation, answer, move, has_move, unique_move, seg_start,
+                  seg_weight, alpha, emission, np.empty(emission.shape[0]), loglik, first,
+                  accept, delta, xi, observed, unique)
+
+
+# fastmath without assuming finite values (an impossible segment's -inf must survive). One
+# thread: on two shared cores numba's parallel pass over the segments measured slower.
+_FLAGS = {'reassoc', 'contract', 'arcp', 'nsz'}
+_segments_jit = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_segments)
+e_step = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_e_step)

@@ -1,0 +1,916 @@
+"""Learning the cell's model from its recordings: an input-output HMM fitted by EM (`hrc-fit`).
+
+The robot never sees the human's motivation em and aggression ea; it sees, per epoch k, the
+observable state x_k (task part and distance d_k), the velocity level O_k, its own action a_k
+and, for an eligible request, the answer. With h = 3*em + ea the recordings are an
+input-output hidden Markov model whose inputs are the actions (MODEL.md 3 and 6):
+
+    h_1 ~ pi,     h_{k+1} | h_k, a_k ~ E_{g(a_k)}[h_k, .]   (g: the action's emotion group,
+                                                             E = kron(em chain, ea chain))
+    evidence of epoch k given h_k:
+        e_k(h) = L[O_k, h]                                  (no factor when O_k is missing)
+               * p_accept[em]^acc (1 - p_accept[em])^(1-acc) (eligible requests with an answer)
+               * sum_{Delta: next_distance(d_k, a_k, Delta) = d_{k+1}} p_delta[ea, Delta]
+                                                            (when d_{k+1} is known)
+
+so an observed move of d may be explained by several Delta values (MODEL.md 3.3's clipping),
+and a (down, stay, up) chain by several moves at its bounds. Every factor of e_k depends on
+h_k only, so the forward-backward recursions (`_fit_kernels.forward_backward`, scaled) give
+the posteriors gamma_k(h) and the expected transition counts xi_g(h, h') per action group.
+
+EM. The complete data add the hidden h_k, the Delta of every move and the move of each emotion
+chain; their log likelihood is a sum of multinomial terms, so every M-step is closed form:
+
+    p_accept[em]   = sum_k gamma_k(em) [accepted] / sum_k gamma_k(em)      (answered requests)
+    p_delta[ea, D] = sum_k gamma_k(ea) r_k(D | ea) / sum_k gamma_k(ea),
+                     r_k(D | ea) = p_delta[ea, D] [D fits the move] / sum_D' (the same)
+    chain (g, var) = expected moves: the counts C[i, j] of var going i -> j under group g
+                     (summed from xi_g), each split over the moves m with clip(i + m) = j in
+                     proportion to the current chain, normalised
+    L[O, h]        = sum_k gamma_k(h) [O_k = O] / sum_k gamma_k(h)          (epochs with an O)
+    pi             = sum over segments of gamma at the segment's first epoch, normalised
+
+(pi is a nuisance parameter: the configuration has no initial distribution.) Each family can
+be held fixed at the base configuration's value. The log likelihood never decreases; the fit
+stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
+the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
+an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation.
+
+Initialisations. EM finds a local maximum. The first start is the base configuration (mixed
+with `INIT_FLOOR` of uniform, because EM can never move a probability away from exactly 0 or
+1); the others draw each free family around it (Dirichlet with `INIT_CONCENTRATION`). Each start
+runs `SHORT_RUN` iterations; the best continues to convergence (the short-run strategy of
+Biernacki, Celeux and Govaert, 2003). The likelihood does not change when em is relabelled
+2 - em (reversing p_accept and swapping every em chain's down and up) or ea 2 - ea; the cost
+(MODEL.md 4) does, so among the relabellings that leave the held families unchanged the fit
+keeps the one nearest the base configuration: the base's labels say which end is "low".
+
+Uncertainty. A nonparametric bootstrap over episodes: `bootstrap` resamples of the episodes
+with replacement (as multiplicities, so the data are not copied), each fitted by EM from the
+estimate; the 95% interval of a parameter is the 2.5 and 97.5 percentiles of its resampled
+values. Support: the posterior-expected number of epochs that inform a parameter (answered
+requests by em; moves that tell this Delta apart from both others, by ea; chain moves whose
+outcome is unique, from the level they start at; epochs with an observation, by h). Effective
+support: p (1 - p) / bootstrap variance, the number of directly observed events that would
+pin it down as well; where h is hard to tell it is far below the support. A parameter below
+`min_support` in either gets a warning, as does a family never exercised (a chain of an action
+never taken keeps its start value).
+
+Data preparation (`prepare`): rows come from `recordings` and never include em or ea. A row
+whose answer contradicts the model (an ineligible request accepted) is reported and left out;
+a transition the model cannot produce (d moving where no Delta leads, a task state that is not
+the rules' successor, MODEL.md 3.2, nor a new task entering an idle cell) is reported and the
+episode is cut there; a gap in the epoch numbers cuts it too. An eligible request without an
+answer takes the answer its successor's task state shows (accepted requests commit the task);
+with no successor it adds no acceptance evidence. The segments of one episode are resampled
+together.
+"""
+
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import yaml
+
+from . import _fit_kernels
+from .config import EMOTION_GROUPS, Config, validate
+from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, N_HIDDEN, N_OBSERVATIONS,
+                    TASK_VARIABLES, next_distance, request_eligible, step_task)
+from .recordings import NO_OBSERVATION, UNANSWERED, UNKNOWN_DISTANCE, Recording
+
+EMOTION_VARIABLES = ('em', 'ea')
+MOVES = ('down', 'stay', 'up')
+CHAIN_FAMILIES = tuple(f'emotion.{g}.{v}' for g in EMOTION_GROUPS for v in EMOTION_VARIABLES)
+FAMILIES = ('p_accept', 'p_delta') + CHAIN_FAMILIES + ('likelihood',)
+GROUP_INDEX = {g: i for i, g in enumerate(EMOTION_GROUPS)}
+ACTION_GROUP = np.array([GROUP_INDEX[ACTION_EMOTION_GROUP[a]] for a in range(len(ACTIONS))])
+
+INIT_FLOOR = 0.02          # share of uniform mixed into the starting values
+INIT_CONCENTRATION = 10.0  # Dirichlet concentration of the random starts around the base
+SHORT_RUN = 10             # EM iterations of every start before the best one continues
+TOL = 1e-8                 # stop when the log likelihood rises by less than this per epoch
+MAX_ITER = 1000
+BOOTSTRAP = 200
+MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
+UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
+_ACCEPTED, _REFUSED = 1, 2
+
+
+class FitError(ValueError):
+    """The fit cannot run on what it was given; the one-line message says why."""
+
+
+def expand_hold(names) -> tuple[str, ...]:
+    """Families named by `names`: a family, `emotion` (all six chains) or `emotion.<group>`."""
+    out: list[str] = []
+    for name in names:
+        name = name.strip()
+        if not name:
+            continue
+        matched = [f for f in FAMILIES if f == name or f.startswith(name + '.')]
+        if not matched:
+            raise FitError(f'unknown parameter family {name!r} to hold; families: '
+                           f'{", ".join(FAMILIES)} (or emotion, emotion.<group>)')
+        out += [f for f in matched if f not in out]
+    return tuple(out)
+
+
+# -- parameters -------------------------------------------------------------------------------
+@dataclass
+class Params:
+    """The fitted quantities: pi (9,), p_accept (3,), p_delta (3, 3) [ea, Delta], chains
+    (3, 2, 3) [group, variable, move], likelihood (3, 9) [O - 1, h]."""
+
+    pi: np.ndarray
+    p_accept: np.ndarray
+    p_delta: np.ndarray
+    chains: np.ndarray
+    likelihood: np.ndarray
+
+    @classmethod
+    def from_config(cls, config: Config) -> 'Params':
+        from .belief import BeliefFilter
+        from .model import HRCModel
+        chains = np.array([[config.emotion_chain(g, v) for v in EMOTION_VARIABLES]
+                           for g in EMOTION_GROUPS])
+        likelihood = BeliefFilter(HRCModel(config)).likelihood
+        return cls(np.full(N_HIDDEN, 1.0 / N_HIDDEN), config.p_accept.copy(),
+                   config.p_delta.copy(), chains, np.array(likelihood))
+
+    def copy(self) -> 'Params':
+        return Params(*(np.array(getattr(self, f)) for f in _PARAM_FIELDS))
+
+    def family(self, name: str) -> np.ndarray:
+        """The array of one family (a view)."""
+        if name in ('p_accept', 'p_delta', 'likelihood'):
+            return getattr(self, name)
+        _, group, variable = name.split('.')
+        return self.chains[GROUP_INDEX[group], EMOTION_VARIABLES.index(variable)]
+
+    def vector(self) -> np.ndarray:
+        """The 57 configuration parameters in `PARAMETER_NAMES` order."""
+        return np.concatenate([self.p_accept, self.p_delta.ravel(), self.chains.ravel(),
+                               self.likelihood.ravel()])
+
+    def emotion_matrices(self) -> np.ndarray:
+        """(3, 9, 9): kron(em chain, ea chain) per group."""
+        from .model import chain_matrix
+        return np.stack([np.kron(chain_matrix(*self.chains[g, 0]),
+                                 chain_matrix(*self.chains[g, 1]))
+                         for g in range(len(EMOTION_GROUPS))])
+
+
+_PARAM_FIELDS = ('pi', 'p_accept', 'p_delta', 'chains', 'likelihood')
+
+
+def _parameter_names() -> tuple[list[str], list[str]]:
+    names, families = [], []
+    for em in range(3):
+        names.append(f'p_accept[em={em}]')
+        families.append('p_accept')
+    for ea in range(3):
+        for delta in DELTAS:
+            names.append(f'p_delta[ea={ea}][Delta={delta:+d}]')
+            families.append('p_delta')
+    for g in EMOTION_GROUPS:
+        for v in EMOTION_VARIABLES:
+            for m in MOVES:
+                names.append(f'emotion.{g}.{v}.{m}')
+                families.append(f'emotion.{g}.{v}')
+    for o in range(N_OBSERVATIONS):
+        for h in range(N_HIDDEN):
+            names.append(f'likelihood[O={o + 1}][h={h}]')
+            families.append('likelihood')
+    return names, families
+
+
+PARAMETER_NAMES, PARAMETER_FAMILIES = _parameter_names()
+
+
+# -- data -------------------------------------------------------------------------------------
+@dataclass
+class FitData:
+    """Flat per-epoch arrays over every kept epoch (T), in segments (see `prepare`)."""
+
+    group: np.ndarray          # (T,) emotion group of a_t (moves h_t to h_{t+1})
+    observation: np.ndarray    # (T,) O_t - 1, or 3 when there is none
+    answer: np.ndarray         # (T,) 0 no acceptance evidence, 1 accepted, 2 refused
+    move: np.ndarray           # (T, 3) 1 where Delta fits the move d_t -> d_{t+1}, else 0
+    has_move: np.ndarray       # (T,) whether d_t -> d_{t+1} is known
+    unique_delta: np.ndarray   # (T, 3) the move tells this Delta apart from both others
+    seg_start: np.ndarray      # (S + 1,)
+    seg_episode: np.ndarray    # (S,) episode index of each segment
+    episodes: list             # episode names
+    issues: list               # what was left out or cut, and why
+    rows_read: int = 0
+
+    @property
+    def epochs(self) -> int:
+        return int(self.group.size)
+
+    @property
+    def segments(self) -> int:
+        return int(self.seg_episode.size)
+
+    @property
+    def seg_of_epoch(self) -> np.ndarray:
+        return np.repeat(np.arange(self.segments), np.diff(self.seg_start))
+
+
+def _task_dict(task: np.ndarray) -> dict:
+    return {n: task[:, i] for i, n in enumerate(TASK_VARIABLES)}
+
+
+def _successor_ok(task, action, accepted, nxt) -> np.ndarray:
+    """Whether each next task state follows from (task, action, accepted) by MODEL.md 3.2,
+    or is a new task entering the cell that the step left idle (the task book's rule)."""
+    out = np.zeros(len(task), dtype=bool)
+    for a in np.unique(action):
+        rows = np.flatnonzero(action == a)
+        stepped = step_task(_task_dict(task[rows]), int(a), accepted[rows])
+        stepped = np.stack([stepped[n] for n in TASK_VARIABLES], axis=1)
+        same = np.all(stepped == nxt[rows], axis=1)
+        entered = ((stepped[:, 0] == 0) & (nxt[rows, 0] > 0) & (nxt[rows, 3] == 0)
+                   & np.all(stepped[:, 4:] == nxt[rows, 4:], axis=1))
+        out[rows] = same | entered
+    return out
+
+
+def _delta_outcomes(d: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """(n, 3): next_distance of each Delta."""
+    out = np.empty((len(d), len(DELTAS)), dtype=np.int64)
+    for a in np.unique(action):
+        rows = np.flatnonzero(action == a)
+        for k, delta in enumerate(DELTAS):
+            out[rows, k] = next_distance(d[rows], int(a), delta)
+    return out
+
+
+def prepare(recordings: list[Recording]) -> FitData:
+    """The fit's arrays from recorded episodes (rules in the module docstring), vectorised
+    over the concatenated episodes."""
+    issues: list[str] = []
+    for r in recordings:
+        for message in r.issues:
+            if message not in issues:
+                issues.append(message)
+    recordings = [r for r in recordings if len(r)]
+    if not recordings:
+        raise FitError('no usable epoch in the recordings')
+    episode = np.repeat(np.arange(len(recordings)), [len(r) for r in recordings])
+    task = np.concatenate([r.task for r in recordings])
+    action, d, epoch, observation, accepted, line = (
+        np.concatenate([getattr(r, f) for r in recordings]).astype(np.int64)
+        for f in ('action', 'd', 'epoch', 'observation', 'accepted', 'line'))
+    n = len(action)
+
+    def where(i: int) -> str:
+        return f'{recordings[episode[i]].source}:{line[i]}'
+
+    eligible = np.zeros(n, dtype=bool)
+    for a in np.unique(action):
+        rows = action == a
+        eligible[rows] = request_eligible(int(a), task[rows, 0], task[rows, 2], task[rows, 3])
+    keep = ~((accepted == 1) & ~eligible)
+    for i in np.flatnonzero(~keep):
+        issues.append(f'{where(i)}: {ACTIONS[action[i]]} was accepted, but it was not an '
+                      'eligible request (MODEL.md 3.1); row left out')
+    accepted = np.where(eligible, accepted, UNANSWERED)   # an ineligible request's "no" is no news
+    # link[i]: the transition from row i to row i + 1 (same episode) is usable
+    same = np.zeros(n, dtype=bool)
+    same[:-1] = episode[1:] == episode[:-1]
+    step = np.zeros(n, dtype=np.int64)
+    step[:-1] = np.diff(epoch)
+    both = same & keep & np.append(keep[1:], False)
+    for i in np.flatnonzero(both & (step != 1)):
+        issues.append(f'{where(i + 1)}: epoch {epoch[i + 1]} follows epoch {epoch[i]}: the '
+                      'episode is cut at the gap')
+    link = both & (step == 1)
+    outcomes = _delta_outcomes(np.maximum(d, 0), action)
+    d_next = np.append(d[1:], UNKNOWN_DISTANCE)
+    known = link & (d >= 0) & (d_next >= 0)
+    fits = outcomes == d_next[:, None]
+    bad_move = known & ~fits.any(axis=1)
+    for i in np.flatnonzero(bad_move):
+        issues.append(f'{where(i + 1)}: d goes from {d[i]} to {d[i + 1]} under '
+                      f'{ACTIONS[action[i]]}, which no Delta gives (MODEL.md 3.3); the episode '
+                      'is cut there')
+    follows = {}
+    for value in (False, True):
+        follows[value] = np.zeros(n, dtype=bool)
+        follows[value][:-1] = _successor_ok(task[:-1], action[:-1], np.full(n - 1, value),
+                                            task[1:])
+    # an unanswered eligible request: its successor's task state tells the answer
+    infer = link & eligible & (accepted == UNANSWERED)
+    accepted[infer & follows[True] & ~follows[False]] = 1
+    accepted[infer & follows[False] & ~follows[True]] = 0
+    answer_ok = np.where(accepted == 1, follows[True],
+                         np.where(accepted == 0, follows[False], follows[False] | follows[True]))
+    bad_task = link & ~answer_ok
+    for i in np.flatnonzero(bad_task):
+        issues.append(f'{where(i + 1)}: the task state does not follow from epoch {epoch[i]} '
+                      f'under {ACTIONS[action[i]]} (MODEL.md 3.2); the episode is cut there')
+    link &= ~bad_move & ~bad_task
+    kept = np.flatnonzero(keep)
+    if not kept.size:
+        raise FitError('no usable epoch in the recordings')
+    has_move = (known & link)[kept]
+    distinct = (outcomes[kept][:, :, None] != outcomes[kept][:, None, :]).sum(axis=2) == 2
+    obs = observation[kept]
+    acc = accepted[kept]
+    ends = np.flatnonzero(~link[kept]) + 1          # every segment ends at an unusable link
+    starts = np.concatenate([[0], ends[:-1]])
+    used = np.unique(episode[kept])
+    renumber = np.full(len(recordings), -1)
+    renumber[used] = np.arange(len(used))
+    return FitData(
+        group=np.ascontiguousarray(ACTION_GROUP[action[kept]]),
+        observation=np.where(obs == NO_OBSERVATION, N_OBSERVATIONS, obs - 1),
+        answer=np.where(acc == 1, _ACCEPTED, np.where(acc == 0, _REFUSED, 0)),
+        move=np.ascontiguousarray(np.where(has_move[:, None], fits[kept], True), dtype=float),
+        has_move=has_move, unique_delta=np.ascontiguousarray(distinct & has_move[:, None]),
+        seg_start=np.concatenate([[0], ends]).astype(np.int64),
+        seg_episode=renumber[episode[kept][starts]],
+        episodes=[recordings[e].name for e in used], issues=issues, rows_read=n)
+
+
+# -- E-step and M-step ------------------------------------------------------------------------
+@dataclass
+class Expected:
+    """Expected complete-data counts of one E-step (weighted by segment multiplicity)."""
+
+    loglik: float
+    first: np.ndarray          # (9,) posterior of each segment's first hidden state, summed
+    accept: np.ndarray         # (2, 3) [accepted, refused] by em
+    delta: np.ndarray          # (3, 3) [ea, Delta]
+    transitions: np.ndarray    # (3, 2, 3, 3) [group, variable, level i, level j]
+    observed: np.ndarray       # (3, 9) [O - 1, h]
+    unique_moves: np.ndarray   # (3, 3) [ea, Delta]: moves telling Delta apart from the others
+
+
+def e_step(params: Params, data: FitData, seg_weight: np.ndarray | None = None) -> Expected:
+    """The E-step (`_fit_kernels.e_step`) at `params`; FitError if the data are impossible."""
+    seg_weight = (np.ones(data.segments) if seg_weight is None
+                  else np.ascontiguousarray(seg_weight, dtype=float))
+    work = np.empty((2, data.epochs, N_HIDDEN))
+    loglik = np.zeros(data.segments)
+    first = np.zeros(N_HIDDEN)
+    accept = np.zeros((2, 3))
+    delta = np.zeros((3, 3))
+    xi = np.zeros((len(EMOTION_GROUPS), N_HIDDEN, N_HIDDEN))
+    observed = np.zeros((N_OBSERVATIONS, N_HIDDEN))
+    unique = np.zeros((3, 3))
+    _fit_kernels.e_step(
+        np.ascontiguousarray(params.likelihood), np.ascontiguousarray(params.p_accept),
+        np.ascontiguousarray(params.p_delta), np.ascontiguousarray(params.pi),
+        np.ascontiguousarray(params.emotion_matrices()), data.group, data.observation,
+        data.answer, data.move, data.has_move, data.unique_delta, data.seg_start, seg_weight,
+        work[0], work[1], loglik, first, accept, delta, xi, observed, unique)
+    if not np.all(np.isfinite(loglik)):
+        s = int(np.flatnonzero(~np.isfinite(loglik))[0])
+        raise FitError(f'{data.episodes[data.seg_episode[s]]} is impossible under the '
+                       'parameters held fixed: hold fewer families')
+    x = xi.reshape(len(EMOTION_GROUPS), 3, 3, 3, 3)                # [g, em, ea, em', ea']
+    transitions = np.stack([x.sum(axis=(2, 4)), x.sum(axis=(1, 3))], axis=1)
+    return Expected(float(np.dot(loglik, seg_weight)), first, accept, delta, transitions,
+                    observed, unique)
+
+
+def emission(params: Params, data: FitData) -> np.ndarray:
+    """(T, 9): e_t(h), the evidence of each epoch given h_t (module docstring): the reference
+    form of what the kernel computes inline, and with the answer and the move the model's own
+    `HRCModel.transition_likelihood` (the tests hold all three equal)."""
+    observation = np.vstack([params.likelihood, np.ones(N_HIDDEN)])[data.observation]
+    answer = np.stack([np.ones(3), params.p_accept, 1.0 - params.p_accept])[data.answer]
+    distance = data.move @ params.p_delta.T                       # (T, ea)
+    return observation * (answer[:, :, None] * distance[:, None, :]).reshape(-1, N_HIDDEN)
+
+
+def _chain_moves(counts: np.ndarray, chain: np.ndarray) -> np.ndarray:
+    """Expected (down, stay, up) moves from the level counts C[i, j] of a bounded chain."""
+    moves = np.zeros(3)
+    for i in range(3):
+        targets = (max(i - 1, 0), i, min(i + 1, 2))
+        for j in set(targets):
+            share = np.array([chain[m] if targets[m] == j else 0.0 for m in range(3)])
+            if share.sum() > 0:
+                moves += counts[i, j] * share / share.sum()
+    return moves
+
+
+def _normalised(counts: np.ndarray, old: np.ndarray) -> np.ndarray:
+    """counts / sum over the last axis; rows without counts keep their old values."""
+    total = counts.sum(axis=-1, keepdims=True)
+    return np.where(total > 0, counts / np.where(total > 0, total, 1.0), old)
+
+
+def m_step(stats: Expected, params: Params, hold: tuple = ()) -> Params:
+    new = params.copy()
+    new.pi = _normalised(stats.first, params.pi)
+    if 'p_accept' not in hold:
+        answered = stats.accept.sum(axis=0)
+        new.p_accept = np.where(answered > 0, stats.accept[0] / np.where(answered > 0, answered,
+                                                                          1.0), params.p_accept)
+    if 'p_delta' not in hold:
+        new.p_delta = _normalised(stats.delta, params.p_delta)
+    for g in range(len(EMOTION_GROUPS)):
+        for v in range(len(EMOTION_VARIABLES)):
+            if f'emotion.{EMOTION_GROUPS[g]}.{EMOTION_VARIABLES[v]}' in hold:
+                continue
+            moves = _chain_moves(stats.transitions[g, v], params.chains[g, v])
+            new.chains[g, v] = _normalised(moves, params.chains[g, v])
+    if 'likelihood' not in hold:
+        new.likelihood = _normalised(stats.observed.T, params.likelihood.T).T
+    return new
+
+
+@dataclass
+class EMRun:
+    params: Params
+    trace: list                 # log likelihood after each iteration (the start's first)
+    converged: bool
+    stats: Expected | None = None
+    e_steps: int = 0
+
+    @property
+    def iterations(self) -> int:
+        return max(0, len(self.trace) - 1)
+
+
+def _pack(params: Params) -> np.ndarray:
+    return np.concatenate([np.ravel(getattr(params, f)) for f in _PARAM_FIELDS])
+
+
+def _unpack(vector: np.ndarray, like: Params) -> Params:
+    out, at = like.copy(), 0
+    for f in _PARAM_FIELDS:
+        shape = getattr(like, f).shape
+        size = int(np.prod(shape))
+        setattr(out, f, vector[at:at + size].reshape(shape).copy())
+        at += size
+    return out
+
+
+def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
+           max_iter: int = MAX_ITER, seg_weight=None, run: EMRun | None = None,
+           accelerate: bool = True) -> EMRun:
+    """EM from `start` (or continuing `run`) until the log likelihood rises by less than
+    `tol` per epoch in an iteration, or after `max_iter` iterations in all.
+
+    With `accelerate` an iteration is one SQUAREM cycle (Varadhan and Roland 2008, scheme
+    S3, with the step control of their SQUAREM package): two EM steps theta1 = M(theta0),
+    theta2 = M(theta1); the extrapolation x = theta0 - 2 alpha r + alpha^2 v (r = theta1 -
+    theta0, v = theta2 - 2 theta1 + theta0, alpha = -|r| / |v|, at most `step_max` in size,
+    halved towards -1 while x leaves the probabilities' domain; alpha = -1 is theta2); one EM
+    step from x, kept if its likelihood is not below theta0's, else theta2. `step_max` starts
+    at 1, grows 4-fold when alpha reaches it and shrinks 4-fold when an extrapolation is
+    refused. So the likelihood never decreases from cycle to cycle, and EM's crawl along flat
+    directions (its rate is the share of missing information) is cut several times over.
+    Without it an iteration is one EM step. The returned parameters' E-step is `stats` (the
+    trace's last entry)."""
+    n = max(1.0, data.epochs if seg_weight is None else float(np.dot(
+        np.asarray(seg_weight, dtype=float), np.diff(data.seg_start))))
+    params = start if run is None else run.params
+    trace = [] if run is None else list(run.trace)
+    e_steps = 0 if run is None else run.e_steps
+
+    def expect(p):
+        nonlocal e_steps
+        e_steps += 1
+        return e_step(p, data, seg_weight)
+
+    stats = run.stats if run is not None else expect(params)
+    if run is None:
+        trace.append(stats.loglik)
+    converged = False
+    step_max = 1.0
+    while len(trace) <= max_iter:
+        p1 = m_step(stats, params, hold)
+        if not accelerate:
+            params, stats = p1, expect(p1)
+        else:
+            s1 = expect(p1)
+            p2 = m_step(s1, p1, hold)
+            s2 = expect(p2)
+            x0, x1, x2 = _pack(params), _pack(p1), _pack(p2)
+            r, v = x1 - x0, x2 - 2 * x1 + x0
+            start_loglik = stats.loglik
+            params, stats = p2, s2
+            if np.linalg.norm(v) > 0:
+                alpha = max(-step_max, min(-1.0, -np.linalg.norm(r) / np.linalg.norm(v)))
+                if alpha == -step_max:
+                    step_max *= 4.0
+                x = x0 - 2 * alpha * r + alpha ** 2 * v
+                while alpha < -1.0 and not (np.all(x >= 0) and np.all(x <= 1)):
+                    alpha = min(-1.0, (alpha - 1.0) / 2 + 1e-12) if alpha < -1.01 else -1.0
+                    x = x0 - 2 * alpha * r + alpha ** 2 * v
+                if alpha < -1.0:
+                    try:
+                        px = _unpack(x, params)
+                        p3 = m_step(expect(px), px, hold)     # the M-step of x's E-step
+                        s3 = expect(p3)
+                    except FitError:      # the extrapolation made some evidence impossible
+                        s3 = None
+                    if s3 is not None and s3.loglik >= start_loglik:
+                        params, stats = p3, s3
+                    else:
+                        step_max = max(1.0, step_max / 4.0)
+        trace.append(stats.loglik)
+        if abs(trace[-1] - trace[-2]) < tol * n:
+            converged = True
+            break
+    return EMRun(params, trace, converged, stats, e_steps)
+
+
+# -- starts and labels ------------------------------------------------------------------------
+def _free(hold: tuple) -> list[str]:
+    return [f for f in FAMILIES if f not in hold]
+
+
+def _smoothed(params: Params, hold: tuple) -> Params:
+    """`params` with INIT_FLOOR of uniform mixed into every free family (EM cannot move a
+    probability off exactly 0 or 1)."""
+    out = params.copy()
+    for name in _free(hold):
+        values = out.family(name)
+        if name == 'p_accept':
+            values[:] = (1 - INIT_FLOOR) * values + INIT_FLOOR * 0.5
+        elif name == 'likelihood':
+            values[:] = (1 - INIT_FLOOR) * values + INIT_FLOOR / N_OBSERVATIONS
+        else:
+            values[...] = (1 - INIT_FLOOR) * values + INIT_FLOOR / values.shape[-1]
+    return out
+
+
+def _random_start(base: Params, hold: tuple, rng: np.random.Generator) -> Params:
+    """Each free family drawn around the (smoothed) base: Dirichlet(c * base + 0.5)."""
+    out = _smoothed(base, hold)
+    for name in _free(hold):
+        values = out.family(name)
+        if name == 'p_accept':
+            values[:] = rng.beta(INIT_CONCENTRATION * values + 0.5,
+                                 INIT_CONCENTRATION * (1 - values) + 0.5)
+        elif name == 'likelihood':
+            values[:] = np.stack([rng.dirichlet(INIT_CONCENTRATION * values[:, h] + 0.5)
+                                  for h in range(N_HIDDEN)], axis=1)
+        else:
+            rows = values.reshape(-1, 3)
+            values[...] = np.stack([rng.dirichlet(INIT_CONCENTRATION * row + 0.5)
+                                    for row in rows]).reshape(values.shape)
+    return out
+
+
+def relabel(params: Params, flip_em: bool, flip_ea: bool) -> Params:
+    """The same model with em read as 2 - em and/or ea as 2 - ea (the likelihood is equal)."""
+    out = params.copy()
+    em = np.arange(3)[::-1] if flip_em else np.arange(3)
+    ea = np.arange(3)[::-1] if flip_ea else np.arange(3)
+    h = (3 * em[:, None] + ea[None, :]).ravel()        # new h -> old h
+    out.pi = params.pi[h]
+    out.likelihood = params.likelihood[:, h]
+    if flip_em:
+        out.p_accept = params.p_accept[::-1].copy()
+        out.chains[:, 0] = params.chains[:, 0, ::-1]
+    if flip_ea:
+        out.p_delta = params.p_delta[::-1].copy()
+        out.chains[:, 1] = params.chains[:, 1, ::-1]
+    return out
+
+
+def canonical_labels(params: Params, base: Params, hold: tuple) -> tuple[Params, str]:
+    """Of the relabellings that leave every held family unchanged, the nearest to `base`."""
+    best, best_name, best_distance = params, '', math.inf
+    for flip_em in (False, True):
+        for flip_ea in (False, True):
+            candidate = relabel(params, flip_em, flip_ea)
+            if any(not np.allclose(candidate.family(f), params.family(f)) for f in hold):
+                continue
+            distance = float(np.sum((candidate.vector() - base.vector()) ** 2))
+            if distance < best_distance - 1e-12:
+                name = '+'.join(v for v, f in (('em', flip_em), ('ea', flip_ea)) if f)
+                best, best_name, best_distance = candidate, name, distance
+    return best, best_name
+
+
+# -- the fit ----------------------------------------------------------------------------------
+@dataclass
+class FitResult:
+    params: Params
+    base: Params
+    hold: tuple
+    trace: list                    # log likelihood per iteration of the chosen start
+    start_logliks: list            # each start's log likelihood after its short run
+    chosen_start: int              # 0: the base configuration
+    converged: bool
+    relabelled: str                # '' or the variables read reversed ('em', 'ea', 'em+ea')
+    support: np.ndarray            # (57,) expected informative epochs
+    interval: np.ndarray | None    # (2, 57) bootstrap 2.5 and 97.5 percentiles
+    samples: np.ndarray | None     # (B, 57) bootstrap estimates
+    effective: np.ndarray | None   # (57,) p (1 - p) / bootstrap variance (module docstring)
+    warnings: list
+    epochs: int
+    segments: int
+    episodes: int
+    rows_read: int
+    issues: list
+    seconds: dict = field(default_factory=dict)
+    min_support: float = MIN_SUPPORT
+
+    @property
+    def iterations(self) -> int:
+        return max(0, len(self.trace) - 1)
+
+    @property
+    def weak(self) -> np.ndarray:
+        """(57,) bool: a free parameter below `min_support` in support or effective support."""
+        free = ~np.isin(PARAMETER_FAMILIES, self.hold)
+        low = self.support < self.min_support
+        if self.effective is not None:
+            low |= self.effective < self.min_support
+        return free & low
+
+    @property
+    def loglik(self) -> float:
+        return self.trace[-1]
+
+    @property
+    def free(self) -> list[str]:
+        return _free(self.hold)
+
+
+def effective_support(estimate: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """p (1 - p) / var: how many fully observed events would pin each parameter down as well
+    as the data do (the bootstrap variance of a binomial share is p (1 - p) / n)."""
+    variance = samples.var(axis=0, ddof=1) if len(samples) > 1 else np.full(samples.shape[1],
+                                                                             np.inf)
+    share = np.clip(estimate, 0.0, 1.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return np.where(variance > 0, share * (1 - share) / variance, np.inf)
+
+
+def support_of(stats: Expected) -> np.ndarray:
+    """(57,) expected informative epochs per parameter (module docstring)."""
+    out = [stats.accept.sum(axis=0), stats.unique_moves.ravel()]
+    leaving = stats.transitions.sum(axis=3)                  # [g, v, level i]
+    chain = np.stack([leaving[..., 1] + leaving[..., 2], leaving[..., 1],
+                      leaving[..., 0] + leaving[..., 1]], axis=-1)
+    out.append(chain.ravel())
+    out.append(np.tile(stats.observed.sum(axis=0), N_OBSERVATIONS))
+    return np.concatenate(out)
+
+
+def _listed(names, values, which, family) -> str:
+    """'name (value), ...', or 'all N (from a to b)' when the whole family is listed."""
+    if np.array_equal(which, family) and which.sum() > 3:
+        return (f'all {int(which.sum())} (from {values[which].min():.0f} to '
+                f'{values[which].max():.0f})')
+    return ', '.join(f'{n} ({v:.0f})' for n, v in zip(names[which], values[which]))
+
+
+def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
+              min_support: float, episodes: int, bootstrap: int) -> list[str]:
+    """A warning per family with parameters below `min_support` informative epochs, or, with
+    a bootstrap, below `min_support` effective events (the data may hold many epochs that say
+    little about a parameter when the hidden state is hard to tell)."""
+    out = []
+    if bootstrap and episodes < 10:
+        out.append(f'only {episodes} episode{"s" if episodes != 1 else ""}: bootstrap '
+                   'intervals over episodes need more to mean much')
+    names = np.array(PARAMETER_NAMES)
+    families = np.array(PARAMETER_FAMILIES)
+    for family in FAMILIES:
+        if family in hold:
+            continue
+        rows = families == family
+        if not np.any(support[rows] > 0):
+            out.append(f'{family}: no epoch informs it (for a chain: its actions were never '
+                       'taken, or never from a level where a move shows); it keeps its start '
+                       'value')
+            continue
+        weak = rows & (support < min_support)
+        if weak.any():
+            out.append(f'{family}: poorly supported, fewer than {min_support:g} informative '
+                       f'epochs: {_listed(names, support, weak, rows)}')
+        if effective is not None:
+            vague = rows & (support >= min_support) & (effective < min_support)
+            if vague.any():
+                out.append(f'{family}: poorly determined, the data weigh less than '
+                           f'{min_support:g} observed events (bootstrap): '
+                           f'{_listed(names, effective, vague, rows)}')
+    return out
+
+
+def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
+        tol: float = TOL, max_iter: int = MAX_ITER, bootstrap: int = BOOTSTRAP,
+        min_support: float = MIN_SUPPORT, progress=None) -> FitResult:
+    """EM from `n_init` starts (the base first), then the bootstrap (module docstring)."""
+    hold = expand_hold(hold)
+    if n_init < 1:
+        raise FitError(f'n_init must be >= 1, got {n_init}')
+    if bootstrap < 0:
+        raise FitError(f'bootstrap must be >= 0, got {bootstrap}')
+    say = progress or (lambda message: None)
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    base_params = Params.from_config(base)
+    rng = np.random.default_rng(seed)
+    starts = [_smoothed(base_params, hold)]
+    starts += [_random_start(base_params, hold, rng) for _ in range(n_init - 1)]
+    runs = [run_em(data, s, hold, tol, min(SHORT_RUN, max_iter), accelerate=False)
+            for s in starts]
+    start_logliks = [r.trace[-1] for r in runs]
+    chosen = int(np.argmax(start_logliks))
+    say(f'{n_init} start{"s" if n_init > 1 else ""}, log likelihood after {SHORT_RUN} '
+        'iterations: ' + ', '.join(f'{v:.3f}' for v in start_logliks)
+        + f'; continuing start {chosen}')
+    best = runs[chosen]
+    if not best.converged:
+        best = run_em(data, best.params, hold, tol, max_iter, run=best)
+    params, relabelled = canonical_labels(best.params, base_params, hold)
+    stats = e_step(params, data)
+    support = support_of(stats)
+    seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
+    say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
+        f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
+    interval = samples = effective = None
+    if bootstrap:
+        t1 = time.perf_counter()
+        n_episodes = len(data.episodes)
+        samples = np.empty((bootstrap, len(PARAMETER_NAMES)))
+        for b in range(bootstrap):
+            counts = rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
+            run = run_em(data, params, hold, tol, max_iter,
+                         seg_weight=counts[data.seg_episode].astype(float))
+            samples[b] = run.params.vector()
+            if (b + 1) % max(1, bootstrap // 10) == 0:
+                say(f'bootstrap {b + 1}/{bootstrap} ({time.perf_counter() - t1:.1f} s)')
+        interval = np.percentile(samples, [2.5, 97.5], axis=0)
+        effective = effective_support(params.vector(), samples)
+        seconds['bootstrap'] = time.perf_counter() - t1
+    warnings = _warnings(support, effective, hold, min_support, len(data.episodes), bootstrap)
+    if 'likelihood' not in hold:
+        warnings += [f'no epoch observed O={o + 1}: the configuration gives it P(O | h) = '
+                     f'{UNSEEN_FLOOR:g} for every h so that a filter can take it'
+                     for o in np.flatnonzero(stats.observed.sum(axis=1) == 0)]
+    return FitResult(params, base_params, hold, best.trace, start_logliks, chosen,
+                     best.converged, relabelled, support, interval, samples, effective,
+                     warnings,
+                     data.epochs, data.segments, len(data.episodes), data.rows_read,
+                     data.issues, seconds, min_support)
+
+
+# -- outputs ----------------------------------------------------------------------------------
+def _row(values, digits: int = 6) -> list[float]:
+    """Rounded for a readable file, still a distribution (the largest entry takes the rest)."""
+    r = np.round(np.asarray(values, dtype=float), digits)
+    r[int(np.argmax(r))] += 1.0 - r.sum()
+    return [float(round(v, 12)) for v in r]
+
+
+def fitted_data(result: FitResult, base: Config) -> dict:
+    """The base configuration's data with the fitted families in place."""
+    data = copy.deepcopy(base.data)
+    p = result.params
+    model = data['model']
+    if 'p_accept' in result.free:
+        model['p_accept'] = [float(round(v, 6)) for v in p.p_accept]
+    if 'p_delta' in result.free:
+        model['p_delta'] = [_row(row) for row in p.p_delta]
+    for g, group in enumerate(EMOTION_GROUPS):
+        for v, variable in enumerate(EMOTION_VARIABLES):
+            if f'emotion.{group}.{variable}' in result.free:
+                model['emotion'][group][variable] = _row(p.chains[g, v])
+    if 'likelihood' in result.free:
+        likelihood = p.likelihood.copy()
+        unseen = ~np.any(likelihood > 0, axis=1)
+        if unseen.any():    # a filter must be able to take every level: a floor, renormalised
+            likelihood[unseen] = UNSEEN_FLOOR
+            likelihood /= likelihood.sum(axis=0, keepdims=True)
+        columns = [_row(likelihood[:, h], digits=7) for h in range(N_HIDDEN)]
+        data['observation']['likelihood'] = [[columns[h][o] for h in range(N_HIDDEN)]
+                                             for o in range(N_OBSERVATIONS)]
+    return validate(data)
+
+
+def _yaml_lines(value, indent: int = 0) -> list[str]:
+    """A configuration mapping as block YAML with each list of numbers on one line."""
+    def scalar(v) -> str:
+        return yaml.safe_dump(v, default_flow_style=True, width=10 ** 6).strip().removesuffix(
+            '\n...').removesuffix('...').strip()
+    pad = ' ' * indent
+    lines = []
+    for key, v in value.items():
+        if isinstance(v, dict):
+            lines.append(f'{pad}{key}:')
+            lines += _yaml_lines(v, indent + 2)
+        elif isinstance(v, list) and v and isinstance(v[0], list):
+            lines.append(f'{pad}{key}:')
+            lines += [f'{pad}  - {scalar(row)}' for row in v]
+        else:
+            lines.append(f'{pad}{key}: {scalar(v)}')
+    return lines
+
+
+def config_yaml(result: FitResult, base: Config, sources) -> str:
+    """The fitted configuration as a complete YAML file with a header saying what it is."""
+    import textwrap
+    data = fitted_data(result, base)
+    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds')
+    sources = [str(s) for s in sources]
+    header = [
+        f'hrc_ros model configuration fitted by hrc-fit on {now} (docs/LEARNING.md) from '
+        f'{len(sources)} input(s): {", ".join(sources)}.',
+        f'{result.epochs} epochs in {result.episodes} episode(s) ({result.segments} segment(s); '
+        f'{len(result.issues)} rows or transitions left out, see the report).',
+        f'Base configuration: {base.source}. Fitted: {", ".join(result.free) or "none"}. '
+        f'Held at the base values: {", ".join(result.hold) or "none"}.',
+        f'EM: {result.iterations} iterations, log likelihood {result.loglik:.4f}'
+        f'{"" if result.converged else " (NOT converged)"}, start {result.chosen_start} of '
+        f'{len(result.start_logliks)} (0 = the base); {len(result.warnings)} warning(s) in the '
+        'report.',
+        "Everything else (rho, sigma, cost, solver, observation table, epsilon, mode) is the "
+        "base's. Solve it before use: hrc-solve --config <this file> -o <policy.npz>",
+    ]
+    lines = [f'# {line}' for paragraph in header
+             for line in textwrap.wrap(paragraph, 97, break_on_hyphens=False)]
+    return '\n'.join(lines + [''] + _yaml_lines(data)) + '\n'
+
+
+def _fmt(v: float) -> str:
+    return f'{v:.4f}'
+
+
+def report_text(result: FitResult, trace_every: int = 10) -> str:
+    p = result.params.vector()
+    b = result.base.vector()
+    lines = [f'{"parameter":<30}{"fitted":>9}{"base":>9}{"95% interval":>20}{"support":>10}'
+             f'{"effective":>11}']
+    lines.append('-' * len(lines[0]))
+    families = PARAMETER_FAMILIES
+    weak = result.weak
+    for i, name in enumerate(PARAMETER_NAMES):
+        if families[i] in result.hold:
+            interval = 'held'
+        elif result.interval is None:
+            interval = '-'
+        else:
+            interval = f'[{_fmt(result.interval[0, i])}, {_fmt(result.interval[1, i])}]'
+        flag = '  !' if weak[i] else ''
+        effective = ('' if result.effective is None or families[i] in result.hold
+                     else 'no spread' if not np.isfinite(result.effective[i])
+                     else f'{result.effective[i]:.0f}')
+        lines.append(f'{name:<30}{_fmt(p[i]):>9}{_fmt(b[i]):>9}{interval:>20}'
+                     f'{result.support[i]:>10.0f}{effective:>11}{flag}')
+    trace = result.trace
+    shown = [(i, v) for i, v in enumerate(trace) if i % trace_every == 0 or i == len(trace) - 1]
+    lines += ['', 'initial hidden state (nuisance, not in the configuration): '
+              + ' '.join(f'{v:.3f}' for v in result.params.pi),
+              'log likelihood by iteration: '
+              + ', '.join(f'{i}: {v:.4f}' for i, v in shown),
+              f'{result.iterations} EM iterations '
+              f'({"converged" if result.converged else "NOT converged"}), '
+              f'start {result.chosen_start} of {len(result.start_logliks)} '
+              f'(0 = the base; after the short runs: '
+              + ', '.join(f'{v:.3f}' for v in result.start_logliks) + ')'
+              + (f'; labels read reversed for {result.relabelled} to match the base'
+                 if result.relabelled else ''),
+              f'epochs used {result.epochs} of {result.rows_read} read, {result.episodes} '
+              f'episodes, {result.segments} segments']
+    if result.interval is not None:
+        lines.append(f'bootstrap: {len(result.samples)} resamples of the episodes')
+    if result.issues:
+        lines.append(f'left out or cut ({len(result.issues)}):')
+        lines += [f'  {m}' for m in result.issues[:20]]
+        if len(result.issues) > 20:
+            lines.append(f'  ... and {len(result.issues) - 20} more (all in the JSON report)')
+    for w in result.warnings:
+        lines.append(f'warning: {w}')
+    return '\n'.join(lines)
+
+
+def report_dict(result: FitResult) -> dict:
+    p = result.params.vector()
+    b = result.base.vector()
+    parameters = []
+    for i, name in enumerate(PARAMETER_NAMES):
+        held = PARAMETER_FAMILIES[i] in result.hold
+        parameters.append({
+            'name': name, 'family': PARAMETER_FAMILIES[i], 'fitted': float(p[i]),
+            'base': float(b[i]), 'held': held, 'support': float(result.support[i]),
+            'effective_support': None if held or result.effective is None
+            else float(min(result.effective[i], 1e12)),
+            'ci95': None if held or result.interval is None
+            else [float(result.interval[0, i]), float(result.interval[1, i])]})
+    return {'parameters': parameters, 'initial_hidden_state': result.params.pi.tolist(),
+            'loglik_trace': list(result.trace), 'iterations': result.iterations,
+            'converged': result.converged, 'start_logliks': result.start_logliks,
+            'chosen_start': result.chosen_start, 'relabelled': result.relabelled,
+            'hold': list(result.hold), 'epochs': result.epochs,
+            'rows_read': result.rows_read, 'episodes': result.episodes,
+            'segments': result.segments, 'bootstrap': 0 if result.samples is None
+            else len(result.samples), 'issues': result.issues, 'warnings': result.warnings,
+            'seconds': result.seconds}

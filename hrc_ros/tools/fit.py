@@ -1,0 +1,98 @@
+"""hrc-fit: learn the cell's model from its recordings (core.fit; docs/LEARNING.md).
+
+    hrc-fit INPUT... -o OUT.yaml [--base CONFIG] [--hold FAMILY,...] [--bootstrap 200] [--plot]
+
+INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .csv files.
+Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
+OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
+support, the log likelihood trace, the epochs used and the warnings.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from ..core.config import ConfigError, load_config
+from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
+                        expand_hold, fit, prepare, report_dict, report_text)
+from ..core.paths import default_config_path
+from ..core.recordings import RecordingError, read_recordings
+from .common import MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail, output_file
+
+
+def main(argv=None) -> int:
+    parser = Parser(
+        prog='hrc-fit', description='Fit the model (acceptance, distance drift, emotion chains, '
+        'observation likelihood) to recorded runs by EM; write a configuration and a report.')
+    parser.add_argument('inputs', nargs='+', metavar='INPUT',
+                        help='bag folders, .mcap files or trajectory .csv files')
+    parser.add_argument('-o', '--output', required=True, help='configuration YAML to write')
+    parser.add_argument('--base', default=None, help='configuration the fit starts from and '
+                        'copies everything else from (default: the shipped default.yaml)')
+    parser.add_argument('--hold', default='', help='comma-separated families to keep at the '
+                        f'base values: {", ".join(FAMILIES)}, or emotion, emotion.<group>')
+    parser.add_argument('--starts', type=bounded_int(1, 100), default=4,
+                        help='EM initialisations, the base first (default 4)')
+    parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
+                        help='seed of the starts and bootstrap')
+    parser.add_argument('--tol', type=bounded_float(1e-15, 1.0), default=TOL,
+                        help='stop when the log likelihood rises by less than this per epoch '
+                        f'(default {TOL:g})')
+    parser.add_argument('--max-iter', type=bounded_int(1, 100_000), default=MAX_ITER)
+    parser.add_argument('--bootstrap', type=bounded_int(0, 10_000), default=BOOTSTRAP,
+                        help=f'resamples of the episodes for the 95%% intervals (default '
+                        f'{BOOTSTRAP}; 0: none)')
+    parser.add_argument('--min-support', type=bounded_float(0.0, 1e12), default=MIN_SUPPORT,
+                        help='warn below this many informative epochs per parameter')
+    parser.add_argument('--namespace', default=None,
+                        help="the cell's namespace in the bags (default: the only one)")
+    parser.add_argument('--report', default=None,
+                        help='JSON report to write (default: OUT with .report.json)')
+    parser.add_argument('--plot', nargs='?', const='', default=None, metavar='PNG',
+                        help='also plot fitted vs base parameters (default: OUT with .png)')
+    parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
+    args = parser.parse_args(argv)
+    try:
+        output = output_file(args.output)
+        report_path = output_file(args.report or output.with_suffix('.report.json'))
+        plot_path = (None if args.plot is None
+                     else output_file(args.plot or output.with_suffix('.png')))
+        hold = expand_hold(args.hold.split(','))
+        base = load_config(args.base or default_config_path())
+        recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
+        data = prepare(recordings)
+    except (ToolError, ConfigError, RecordingError, FitError) as exc:
+        return fail('hrc-fit', exc)
+    say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episode(s) from '
+        f'{len(args.inputs)} input(s); base {base.source}; holding {", ".join(hold) or "none"}')
+    try:
+        result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
+                     max_iter=args.max_iter, bootstrap=args.bootstrap,
+                     min_support=args.min_support, progress=say)
+    except FitError as exc:
+        return fail('hrc-fit', exc)
+    output.write_text(config_yaml(result, base, args.inputs))
+    try:
+        load_config(output)         # what was written is a configuration load_config accepts
+    except ConfigError as exc:
+        return fail('hrc-fit', f'the fitted configuration does not validate: {exc}')
+    report = report_dict(result)
+    report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
+    report_path.write_text(json.dumps(report, indent=2) + '\n')
+    print(report_text(result) if not args.quiet else
+          f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '
+          f'{len(result.warnings)} warning(s)')
+    written = [output, report_path]
+    if plot_path is not None:
+        from ..core.plots import plot_fit
+        written.append(plot_fit(result, plot_path))
+    for path in written:
+        print(f'wrote {path}')
+    print(f'next: hrc-solve --config {output} -o {output.with_suffix(".npz")}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

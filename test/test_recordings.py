@@ -1,0 +1,307 @@
+"""What hrc-fit reads: trajectory CSVs and bags, good and bad (core.recordings, core.fit.prepare,
+tools.fit).
+
+- A CSV with a missing column, an unreadable or out-of-range value, an unknown action or
+  epochs going backwards is refused in one line naming the file (and line) and what is wrong,
+  by the reader and by `hrc-fit` (exit 2, nothing written).
+- Rows that contradict the model are reported and left out (an ineligible request accepted),
+  and transitions it cannot produce cut the episode (a jump of d, a task state that does not
+  follow, a gap in the epochs); an unanswered request takes the answer its successor shows.
+- The shipped bags read as the run recorded them: one row per epoch with the recorded action,
+  observation, distance and task state, placed by the epoch signals' source timestamps. A bag
+  without a needed topic, a damaged bag and a message that cannot be read are handled.
+- `hrc-fit` end to end on CSVs: a configuration `load_config` accepts, a JSON report, a plot.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hrc_ros.core import fit
+from hrc_ros.core.config import load_config
+from hrc_ros.core.model import ACTIONS, HRCModel
+from hrc_ros.core.paths import share_dir
+from hrc_ros.core.recordings import RecordingError, read_csv, read_recordings
+from hrc_ros.core.simulation import Scenario, simulate
+
+BAGS = share_dir() / 'bags'
+HEADER = 'episode,epoch,tp,tc,tx,ty,hp,hc,bp,bc,d,O,action,accepted,em,ea'
+# a joint task: rh2 accepted at epoch 2, then worked together (d stays 1 under nw only if
+# Delta = 0), then the task ends
+GOOD = [
+    '1,1,1,1,3,0,0,0,0,0,1,1,mh,,2,0',
+    '1,2,1,1,3,0,0,0,0,0,1,2,rh2,1,2,0',
+    '1,3,1,1,3,3,1,1,1,1,1,2,nw,,2,0',
+    '1,4,0,0,0,0,1,0,1,0,1,1,dn,,2,0',
+]
+
+
+def write(tmp_path, rows, header=HEADER, name='run.csv'):
+    path = tmp_path / name
+    path.write_text('\n'.join([header] + rows) + '\n')
+    return path
+
+
+def test_a_good_csv_reads_as_one_episode_per_episode_value(tmp_path):
+    rows = GOOD + [r.replace('1,', '2,', 1) for r in GOOD]
+    recordings = read_csv(write(tmp_path, rows), 2, 2)
+    assert [r.episode for r in recordings] == ['1', '2']
+    r = recordings[0]
+    assert r.epoch.tolist() == [1, 2, 3, 4]
+    assert [ACTIONS[a] for a in r.action] == ['mh', 'rh2', 'nw', 'dn']
+    assert r.accepted.tolist() == [-1, 1, -1, -1] and r.observation.tolist() == [1, 2, 2, 1]
+    assert r.task[2].tolist() == [1, 1, 3, 3, 1, 1, 1, 1]
+    data = fit.prepare(recordings)
+    assert (data.epochs, data.segments, data.issues) == (8, 2, [])
+    assert data.answer.tolist() == [0, 1, 0, 0] * 2
+
+
+def test_without_an_episode_column_the_file_is_one_episode(tmp_path):
+    header = HEADER.split(',', 1)[1]
+    rows = [r.split(',', 1)[1] for r in GOOD]
+    recordings = read_csv(write(tmp_path, rows, header), 2, 2)
+    assert len(recordings) == 1 and len(recordings[0]) == 4
+
+
+@pytest.mark.parametrize('header, rows, message', [
+    ('episode,epoch,tp,tc,tx,ty,hp,hc,bp,bc,d,action', GOOD,
+     'missing columns O, accepted (a trajectory CSV needs'),
+    (HEADER, [GOOD[0].replace(',1,mh', ',7,mh')], ':2: column O = 7 is out of range 1..3'),
+    (HEADER, [GOOD[0].replace('1,1,1,1,3', '1,1,5,1,3', 1)], ':2: column tp = 5 is out of range '
+     '0..2'),
+    (HEADER, [GOOD[0].replace(',mh,', ',jump,')], ":2: column action = 'jump' is not one of"),
+    (HEADER, [GOOD[1].replace(',rh2,1,', ',rh2,yes,')], ':2: column accepted must be 1, 0 or '
+     "empty, got 'yes'"),
+    (HEADER, [GOOD[0].replace('1,1,1,1,3,0,0,0,0,0,1', '1,1,1,1,3,0,0,0,0,0,x')],
+     ":2: column d must be an integer in 0..3, got 'x'"),
+    (HEADER, [GOOD[1], GOOD[0]], ':3: epochs out of order in episode 1: epoch 1 after epoch 2'),
+    (HEADER, [GOOD[0], GOOD[0]], ':3: epochs out of order in episode 1: epoch 1 after epoch 1'),
+    (HEADER, [], 'no rows'),
+    (HEADER, [GOOD[0] + ',extra'], ':2: the row has 16 columns in the header but not in this'),
+])
+def test_a_bad_csv_is_refused_in_one_line_naming_the_file(tmp_path, header, rows, message):
+    path = write(tmp_path, rows, header)
+    with pytest.raises(RecordingError) as error:
+        read_csv(path, 2, 2)
+    text = str(error.value)
+    assert text.startswith(str(path)) and message in text and '\n' not in text
+
+
+def test_rows_the_model_cannot_produce_are_reported_and_left_out(tmp_path):
+    rows = [
+        '1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0',   # rh1 on a joint task: not eligible, "accepted"
+        '1,2,1,1,3,0,0,0,0,0,1,1,nw,,0,0',
+        '1,3,1,1,3,0,0,0,0,0,3,1,nw,,0,0',     # d from 1 to 3 under nw: no Delta does that
+        '1,4,1,1,3,0,0,0,0,0,3,1,ct,,0,0',     # ct cannot start a joint task ...
+        '1,5,1,1,3,2,0,0,1,1,3,1,nw,,0,0',     # ... so this task state does not follow
+        '1,6,1,1,3,2,0,0,1,1,3,1,nw,,0,0',     # (also: 5 -> 6 does not count bc down)
+        '1,8,0,0,0,0,0,0,0,0,3,1,dn,,0,0',     # a gap: epoch 7 is missing
+        '1,9,0,0,0,0,0,0,0,0,3,2,dn,,0,0',
+    ]
+    path = write(tmp_path, rows)
+    data = fit.prepare(read_csv(path, 2, 2))
+    issues = '\n'.join(data.issues)
+    assert f'{path}:2: rh1 was accepted, but it was not an eligible request' in issues
+    assert f'{path}:4: d goes from 1 to 3 under nw, which no Delta gives' in issues
+    assert f'{path}:6: the task state does not follow from epoch 4 under ct' in issues
+    assert f'{path}:7: the task state does not follow from epoch 5 under nw' in issues
+    assert f'{path}:8: epoch 8 follows epoch 6: the episode is cut at the gap' in issues
+    assert len(data.issues) == 5
+    assert data.epochs == 7                                     # row 2 left out
+    assert np.diff(data.seg_start).tolist() == [1, 2, 1, 1, 2]  # cut at every bad transition
+    assert data.has_move.tolist() == [False, True, False, False, False, True, False]
+
+
+def test_an_unanswered_request_takes_the_answer_its_successor_shows(tmp_path):
+    rows = [GOOD[0], GOOD[1].replace(',rh2,1,', ',rh2,,'), GOOD[2],
+            '1,5,1,1,3,0,0,0,0,0,1,2,rh2,,2,0', '1,6,1,1,3,0,0,0,0,0,1,2,nw,,2,0',
+            '1,8,1,1,3,0,0,0,0,0,1,2,rh2,,2,0']       # a gap before it, and the last row
+    data = fit.prepare(read_csv(write(tmp_path, rows), 2, 2))
+    # accepted (the task became joint), refused (the task waits), unknown (no successor)
+    assert data.answer.tolist() == [0, 1, 0, 2, 0, 0]
+
+
+def simulated_csv(tmp_path, model, policy, seeds, epochs=40):
+    paths = []
+    for seed in seeds:
+        scenario = Scenario((seed % 3, 1, 1, 1, 3, 0, 0, 0, 0, 0, 1),
+                            tuple((k, (2, 2, k % 4)) for k in range(3, epochs, 4)), epochs)
+        trajectory = simulate(model, policy, scenario, seed=seed)
+        paths.append(trajectory.to_csv(tmp_path / f'sim{seed}.csv'))
+    return paths
+
+
+def test_hrc_fit_on_csv_writes_a_loadable_configuration_a_report_and_a_plot(tmp_path, policy,
+                                                                           default_config):
+    model = HRCModel(default_config)
+    paths = simulated_csv(tmp_path, model, policy, range(12))
+    out = tmp_path / 'out' / 'fitted.yaml'
+    result = subprocess.run(
+        [sys.executable, '-m', 'hrc_ros.tools.fit', *map(str, paths), '-o', str(out),
+         '--bootstrap', '10', '--starts', '2', '--hold', 'emotion.motivate', '--plot'],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    fitted = load_config(out)
+    assert fitted.emotion_chain('motivate', 'em').tolist() == \
+        default_config.emotion_chain('motivate', 'em').tolist()
+    assert fitted.observation_likelihood is not None
+    report = json.loads(out.with_suffix('.report.json').read_text())
+    assert report['epochs'] == 12 * 40 and report['episodes'] == 12
+    assert report['hold'] == ['emotion.motivate.em', 'emotion.motivate.ea']
+    assert len(report['parameters']) == 57 and report['bootstrap'] == 10
+    held = [p for p in report['parameters'] if p['held']]
+    assert len(held) == 6 and all(p['ci95'] is None for p in held)
+    assert all(p['ci95'][0] <= p['ci95'][1] for p in report['parameters'] if not p['held'])
+    assert report['loglik_trace'] == sorted(report['loglik_trace'])
+    assert out.with_suffix('.png').stat().st_size > 10_000
+    assert 'p_accept[em=0]' in result.stdout and 'log likelihood by iteration' in result.stdout
+    assert f'next: hrc-solve --config {out}' in result.stdout
+
+
+@pytest.mark.parametrize('make, message', [
+    (lambda d: (d / 'missing.csv', None), 'missing.csv: cannot read: No such file'),
+    (lambda d: (d / 'x.txt', 'hello'), 'x.txt: not a .csv file, a .mcap file or a bag folder'),
+    (lambda d: (d / 'bad.csv', 'epoch,tp\n1,0\n'), 'bad.csv: missing columns tc, tx, ty'),
+    (lambda d: (d / 'no.mcap', b'not mcap at all'), 'no.mcap'),
+])
+def test_hrc_fit_refuses_bad_input_in_one_line_before_writing(tmp_path, make, message):
+    path, content = make(tmp_path)
+    if isinstance(content, str):
+        path.write_text(content)
+    elif content is not None:
+        path.write_bytes(content)
+    out = tmp_path / 'fitted.yaml'
+    result = subprocess.run([sys.executable, '-m', 'hrc_ros.tools.fit', str(path), '-o',
+                             str(out)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('hrc-fit: error: ') and message in lines[0]
+    assert not out.exists()
+
+
+def test_hrc_fit_refuses_an_unknown_family_to_hold(tmp_path):
+    path = write(tmp_path, GOOD)
+    result = subprocess.run([sys.executable, '-m', 'hrc_ros.tools.fit', str(path), '-o',
+                             str(tmp_path / 'f.yaml'), '--hold', 'p_acept'],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "unknown parameter family 'p_acept'" in result.stderr
+
+
+# -- bags -------------------------------------------------------------------------------------
+def bag_messages(path):
+    """(topic, publish time, value) of the hrc topics of a bag, decoded with rclpy."""
+    from hrc_ros.core.bagfile import read_bag
+    from hrc_ros.ros.bag import deserialize
+    out = []
+    for m in read_bag(path):
+        if m.topic.startswith('/hrc/') and not m.topic.startswith('/hrc/sim'):
+            out.append((m.topic, m.publish_time_ns, deserialize(m)))
+    return out
+
+
+@pytest.mark.parametrize('name', ['case_study', 'fault_injection'])
+def test_a_shipped_bag_reads_as_its_epochs(name):
+    recordings = read_recordings([BAGS / name], 2, 2)
+    assert len(recordings) == 1
+    r = recordings[0]
+    messages = bag_messages(BAGS / name)
+    actions = [m.data for topic, _, m in sorted(messages, key=lambda x: x[1])
+               if topic == '/hrc/action']
+    epochs = [m.data for topic, _, m in sorted(messages, key=lambda x: x[1])
+              if topic == '/hrc/epoch']
+    assert r.epoch.tolist() == epochs == list(range(1, 21))
+    assert [ACTIONS[a] for a in r.action] == actions
+    tasks = [list(m.data) for topic, _, m in sorted(messages, key=lambda x: x[1])
+             if topic == '/hrc/task_state']
+    assert r.task.tolist() == tasks
+    observations = [m.data for topic, _, m in sorted(messages, key=lambda x: x[1])
+                    if topic == '/hrc/observation']
+    assert [o for o in r.observation.tolist() if o] == observations
+    answers = [m.data for topic, _, m in messages if topic == '/hrc/human_response']
+    assert sorted(r.accepted[r.accepted >= 0].tolist()) == sorted(int(a) for a in answers)
+
+
+def test_the_fault_injection_bag_collision_is_cut_not_fitted():
+    data = fit.prepare(read_recordings([BAGS / 'fault_injection'], 2, 2))
+    assert any('d goes from 3 to 0 under dn, which no Delta gives' in m for m in data.issues)
+    assert data.segments == 2
+
+
+def write_bag(path, topics, rows):
+    """A bag of the given hrc topics; rows: (epoch, task, d, O, action, answer or None)."""
+    from std_msgs.msg import Bool, String, UInt8, UInt8MultiArray, UInt32
+
+    from hrc_ros.ros.bag import BagWriter
+    types = {'hrc/epoch': 'std_msgs/msg/UInt32', 'hrc/task_state': 'std_msgs/msg/UInt8MultiArray',
+             'hrc/distance_level': 'std_msgs/msg/UInt8', 'hrc/observation': 'std_msgs/msg/UInt8',
+             'hrc/action': 'std_msgs/msg/String', 'hrc/human_response': 'std_msgs/msg/Bool'}
+    t = 1_000_000_000
+    with BagWriter(path) as writer:
+        for topic in topics:
+            writer.add_topic('/' + topic, types[topic])
+
+        def put(topic, message):
+            nonlocal t
+            t += 1000
+            if topic in topics:
+                writer.write('/' + topic, message, t, t)
+
+        for epoch, task, d, o, action, answer in rows:
+            if epoch == 1:
+                t += 10_000_000_000     # a restart: the epoch source was silent for 10 s
+            put('hrc/epoch', UInt32(data=epoch))
+            put('hrc/task_state', UInt8MultiArray(data=list(task)))
+            put('hrc/distance_level', UInt8(data=d))
+            if o:
+                put('hrc/observation', UInt8(data=o))
+            put('hrc/action', String(data=action))
+            if answer is not None:
+                put('hrc/human_response', Bool(data=answer))
+    return path
+
+
+ROWS = [(1, (1, 1, 3, 0, 0, 0, 0, 0), 1, 1, 'mh', None),
+        (4000000000, (1, 1, 3, 0, 0, 0, 0, 0), 1, 1, 'mh', None),   # a stray epoch
+        (2, (1, 1, 3, 0, 0, 0, 0, 0), 1, 2, 'rh2', True),
+        (3, (1, 1, 3, 3, 1, 1, 1, 1), 1, 0, 'nw', None),
+        (4, (0, 0, 0, 0, 1, 0, 1, 0), 1, 1, 'dn', None),
+        (1, (1, 1, 3, 0, 0, 0, 0, 0), 2, 3, 'rh2', False),     # a restart: episode 2
+        (2, (1, 1, 3, 0, 0, 0, 0, 0), 2, 3, 'fly', None)]      # an unreadable action
+
+
+def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported(tmp_path):
+    from hrc_ros.core.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
+    bag = write_bag(tmp_path / 'bag', BAG_TOPICS + OPTIONAL_BAG_TOPICS, ROWS)
+    recordings = read_recordings([bag], 2, 2)
+    assert [len(r) for r in recordings] == [4, 1]
+    first, second = recordings
+    assert any('ignored hrc/epoch 4000000000' in m and 'left out' in m for m in first.issues)
+    assert first.accepted.tolist() == [-1, 1, -1, -1]
+    assert first.observation.tolist() == [1, 2, 0, 1]
+    assert second.accepted.tolist() == [0]
+    assert any("a hrc/action message published at" in m and "unknown action 'fly'" in m
+               for m in first.issues)
+    assert any('epoch 2 has no action; the epoch is left out' in m for m in first.issues)
+
+
+@pytest.mark.parametrize('leave_out', ['hrc/observation', 'hrc/task_state', 'hrc/epoch'])
+def test_a_bag_without_a_needed_topic_is_refused_naming_it(tmp_path, leave_out):
+    from hrc_ros.core.recordings import BAG_TOPICS
+    topics = tuple(t for t in BAG_TOPICS if t != leave_out)
+    bag = write_bag(tmp_path / 'bag', topics, ROWS[:3])
+    with pytest.raises(RecordingError) as error:
+        read_recordings([bag], 2, 2)
+    assert f'has no {leave_out}' in str(error.value) and str(tmp_path) in str(error.value)
+
+
+def test_a_truncated_bag_is_refused(tmp_path):
+    source = next((BAGS / 'case_study').glob('*.mcap'))
+    broken = tmp_path / 'broken.mcap'
+    broken.write_bytes(source.read_bytes()[:len(source.read_bytes()) // 2])
+    with pytest.raises(RecordingError, match='broken.mcap'):
+        read_recordings([broken], 2, 2)
