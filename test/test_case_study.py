@@ -111,3 +111,30 @@ def test_a_body_tracker_stream_drives_the_suite_to_the_same_decisions(run, body_
         assert (a['O'], a['action']) == (b['O'], b['action']), k
         np.testing.assert_allclose([float(b[f'b{h}']) for h in range(9)],
                                    [float(a[f'b{h}']) for h in range(9)], atol=1e-5)
+
+
+def test_the_posterior_estimator_on_the_graph_equals_the_ros_free_posterior(tmp_path,
+                                                                           ros_domain_id):
+    """belief_mode posterior: the estimator holds b_k for the task manager's x_k and takes the
+    human's answer and the distance move, as the ROS-free loop does with the same seed."""
+    proc = hrc_case_study(tmp_path, '--belief-mode', 'posterior', '--no-view')
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    config = load_config(default_config_path())
+    model = HRCModel(config)
+    policy = load_policy(default_policy_path(), config)
+    expected = simulate(model, policy, case_study(), seed=SEED, mode='posterior')
+    bayes = simulate(model, policy, case_study(), seed=SEED)
+    rows = trajectory(tmp_path)
+    assert len(rows) == len(expected.rows) == 20
+    for got, want in zip(rows, expected.rows):
+        k = want['epoch']
+        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
+        assert (int(got['O']), got['action']) == (want['O'], want['action']), k
+        np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
+                                   [want[f'b{h}'] for h in range(9)], atol=1e-5)
+    # the answers and moves are evidence: the beliefs differ from bayes in some epoch
+    gap = max(abs(float(g[f'b{h}']) - b[f'b{h}']) for g, b in zip(rows, bayes.rows)
+              for h in range(9))
+    assert gap > 1e-3
+    assert 'no task state within the hold' not in (tmp_path / 'logs' /
+                                                   'belief_estimator_node.log').read_text()

@@ -471,7 +471,6 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, 0.0], '3 values'),
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
-    ('belief_mode', 'posterior', 'does not receive'),
     ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
      'read configuration file /tmp/no-such-config.yaml'),
 ])

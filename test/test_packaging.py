@@ -378,8 +378,8 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
 # --- the launch file ------------------------------------------------------------------------
 
 LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
-LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'namespace', 'use_sim', 'view',
-                    'body_tracking'}
+LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'belief_mode', 'namespace',
+                    'use_sim', 'view', 'body_tracking'}
 
 
 def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
@@ -404,12 +404,19 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert by_name['decision'].parameters == [base, 'extra.yaml', {
         'config': 'c.yaml', 'policy': 'p.npz', 'selector': 'qmdp'}]
     assert by_name['task_manager'].parameters == [base, 'extra.yaml', {'config': 'c.yaml'}]
+    # the pomdp selector with the exact posterior it plans with
+    by_name = {n.name: n for n in cell_nodes(share, config='c.yaml', selector='pomdp',
+                                             belief_mode='posterior')}
+    assert by_name['belief_estimator'].parameters == [base, {'config': 'c.yaml',
+                                                             'belief_mode': 'posterior'}]
+    assert by_name['decision'].parameters[-1] == {'config': 'c.yaml', 'selector': 'pomdp'}
     assert {n.name for n in cell_nodes(share, use_sim='false', view='true')} == \
         {'belief_estimator', 'decision', 'task_manager', 'cell_view'}
     assert 'cell_view' not in {n.name for n in cell_nodes(share, view='false')}
     # the shipped params file named again is not loaded twice
     assert cell_nodes(share, params_file=base)[0].parameters == [base, {}]
-    for name, bad in (('selector', 'greedy'), ('use_sim', 'maybe'), ('view', 'yes'),
+    for name, bad in (('selector', 'greedy'), ('belief_mode', 'kalman'), ('use_sim', 'maybe'),
+                      ('view', 'yes'),
                       ('body_tracking', 'on')):
         with pytest.raises(ValueError, match=name):
             cell_nodes(share, **{name: bad})

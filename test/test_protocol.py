@@ -490,6 +490,107 @@ def test_the_estimator_memory_is_bounded(model):
     assert step.observation == 1 and step.distance_level == 9_999 % 4
 
 
+# -- EstimatorEpochs, posterior mode ----------------------------------------------------------
+HOLD = 200 * MS
+OPEN = {'tp': 2, 'tc': 3, 'tx': 1, 'ty': 0, 'hp': 0, 'hc': 0, 'bp': 0, 'bc': 0}   # rh1 eligible
+TAKEN = {**OPEN, 'ty': 1, 'hp': 2, 'hc': 3}                         # x_k after an accepted rh1
+
+
+def posterior_start(model):
+    """Epoch 1 (O 2, d 2), x_1 with an open task (published after the signal), then rh1 and
+    epoch 2's window (O 1, d 1) closed at 1000 ms: b_2 is held for x_2."""
+    f = BeliefFilter(model, mode='posterior')
+    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    window(est, 2, 2, 0)
+    first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
+    assert est.task_state(OPEN, 150 * MS) is None and est.deadline is None
+    est.action(RH1)
+    window(est, 1, 1, 200 * MS)
+    step = est.epoch_signal(2, signal(2, 1000 * MS), now=1001 * MS)
+    return f, est, first, step
+
+
+@pytest.mark.parametrize('after, accepted', [(TAKEN, True), (OPEN, False)])
+def test_posterior_b_k_waits_for_x_k_and_takes_the_answer_and_the_move(model, after, accepted):
+    f, est, first, step = posterior_start(model)
+    assert (step.observation, step.distance_level, step.belief) == (1, 1, None)   # O_k at once
+    assert est.deadline == 1001 * MS + HOLD
+    assert est.task_state(after, 990 * MS) is None          # published before the signal: x_1
+    done = est.task_state(after, 1050 * MS)
+    want = f.update(first, RH1, 1, model.transition_likelihood(RH1, True, accepted, 2, 1))
+    np.testing.assert_allclose(done.belief, want)
+    assert done.reports == [] and est.deadline is None
+    # the answer moved the belief: bayes (the answer ignored) is another belief
+    assert not np.allclose(done.belief, BeliefFilter(model).update(first, RH1, 1), atol=1e-3)
+
+
+def test_posterior_without_x_k_leaves_the_answer_out_after_the_hold(model):
+    f, est, first, _ = posterior_start(model)
+    assert est.expire(1001 * MS + HOLD - 1) is None
+    done = est.expire(1001 * MS + HOLD)
+    np.testing.assert_allclose(done.belief, f.update(
+        first, RH1, 1, model.transition_likelihood(RH1, False, False, 2, 1)))
+    assert [r.kind for r in done.reports] == ['no_task_state'] and done.reports[0].level == WARN
+    assert est.deadline is None and est.expire(10_000 * MS) is None
+
+
+def test_posterior_x_k_delivered_before_its_signal_completes_at_the_signal(model):
+    f = BeliefFilter(model, mode='posterior')
+    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    window(est, 2, 2, 0)
+    first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
+    est.task_state(OPEN, 150 * MS)
+    est.action(RH1)
+    window(est, 1, 1, 200 * MS)
+    assert est.task_state(TAKEN, 1010 * MS) is None        # x_2, overtaking the signal
+    step = est.epoch_signal(2, signal(2, 1000 * MS), now=1020 * MS)
+    np.testing.assert_allclose(step.belief, f.update(
+        first, RH1, 1, model.transition_likelihood(RH1, True, True, 2, 1)))
+    assert est.deadline is None
+
+
+def test_posterior_after_a_dropout_or_without_a_skeleton_predicts_with_what_is_known(model):
+    f = BeliefFilter(model, mode='posterior')
+    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    window(est, 2, 2, 0)
+    first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
+    est.task_state(OPEN, 150 * MS)
+    est.action(RH1)
+    est.sample(1, 200 * MS)                                  # 1 sample < 3, no skeleton
+    step = est.epoch_signal(2, signal(2, 1000 * MS), now=1000 * MS)
+    assert (step.observation, step.distance_level, step.belief) == (None, None, None)
+    done = est.task_state(OPEN, 1050 * MS)                   # refused
+    assert done.belief is None                               # a dropout: predicted only
+    # the move is unknown (no skeleton): only the refusal counts
+    move_unknown = model.transition_likelihood(RH1, True, False, None, None)
+    np.testing.assert_allclose(move_unknown, 1.0 - model.config.p_accept[np.arange(9) // 3])
+    np.testing.assert_allclose(est.belief, f.update(first, RH1, NO_EVIDENCE, move_unknown))
+
+
+def test_a_new_signal_closes_a_held_posterior_update_first(model):
+    f, est, first, _ = posterior_start(model)
+    est.action(DN)
+    window(est, 3, 1, 1100 * MS)
+    step = est.epoch_signal(3, signal(3, 2000 * MS), now=2000 * MS)
+    assert 'no_task_state' in [r.kind for r in step.reports]
+    held = f.update(first, RH1, 1, model.transition_likelihood(RH1, False, False, 2, 1))
+    done = est.task_state(OPEN, 2050 * MS)
+    np.testing.assert_allclose(done.belief, f.update(
+        held, DN, 3, model.transition_likelihood(DN, False, False, 1, 1)))
+
+
+def test_the_bayes_estimator_ignores_task_states(model):
+    est = estimator(model)
+    window(est, 2, 2, 0)
+    est.epoch_signal(1, signal(1, 100 * MS))
+    est.task_state(OPEN, 150 * MS)
+    est.action(RH1)
+    window(est, 1, 1, 200 * MS)
+    step = est.epoch_signal(2, signal(2, 1000 * MS))
+    assert step.belief is not None and est.deadline is None
+    assert est.task_state(TAKEN, 1050 * MS) is None
+
+
 # -- ActionPairing ----------------------------------------------------------------------------
 X1, X2 = {'tp': 1}, {'tp': 2}
 

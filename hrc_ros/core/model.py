@@ -241,12 +241,16 @@ class HRCModel:
         complement; 1 for anything else) times the distance move P(d' | d, ea, a). Given
         those two the task step is deterministic (MODEL.md 3), so this is P(x' | x, h, a):
         the evidence about h that acting reveals besides O' (the exact posterior's factor,
-        `BeliefFilter.update(..., evidence=)`). Broadcasts over its array arguments."""
+        `BeliefFilter.update(..., evidence=)`). Broadcasts over its array arguments. `d` or
+        `d_next` None (a window without a skeleton on the ROS graph): the move is unknown and
+        left out, only the answer counts."""
         h = np.arange(N_HIDDEN)
         p = self.config.p_accept[h // 3]
         eligible = np.asarray(eligible, dtype=bool)[..., None]
         accepted = np.asarray(accepted, dtype=bool)[..., None]
         answer = np.where(eligible, np.where(accepted, p, 1.0 - p), 1.0)
+        if d is None or d_next is None:
+            return answer * np.ones(np.shape(action) + (N_HIDDEN,))
         move = self.distance_matrices[np.asarray(action)[..., None], h % 3,
                                       np.asarray(d)[..., None], np.asarray(d_next)[..., None]]
         return answer * move

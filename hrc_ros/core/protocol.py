@@ -613,13 +613,29 @@ class ClockStart:
 @dataclass
 class EstimatorStep:
     """What the estimator publishes for epoch k: d_k (None: no skeleton in the window), O_k
-    and b_k (None: too few joint states, a dropout), and reports."""
+    (None: too few joint states, a dropout), b_k (None: a dropout, or held for the epoch's
+    task state in ``posterior`` mode), and reports."""
 
     epoch: int
     distance_level: int | None
     observation: int | None
     belief: np.ndarray | None
     reports: list[Report] = field(default_factory=list)
+
+
+@dataclass
+class _HeldBelief:
+    """Epoch k's update, waiting for the task state x_k that shows the human's answer."""
+
+    epoch: int
+    signal_ns: int
+    since_ns: int
+    action: int
+    observation: object        # O_k, or NO_EVIDENCE after a dropout
+    publish: bool              # b_k is published (False after a dropout: predicted only)
+    task_before: dict | None   # x_{k-1}'s task variables
+    d_before: int | None
+    d_after: int | None
 
 
 class EstimatorEpochs:
@@ -638,10 +654,25 @@ class EstimatorEpochs:
     taken. A window without a skeleton publishes no distance level. A missing a_{k-1} counts
     as dn. Only the window's level counts and the last `RECENT` (publication time, level)
     pairs are kept (to split the window at the signal), so memory is bounded at any rate.
+
+    In ``posterior`` mode the update also takes what acting revealed (MODEL.md 6, the exact
+    posterior the POMDP plans with): the human's answer to an eligible request and the
+    distance move, `HRCModel.transition_likelihood(a_{k-1}, eligible, accepted, d_{k-1},
+    d_k)`. Eligibility comes from x_{k-1} (the task state published after epoch k-1's signal)
+    and the answer from x_k (the first published after epoch k's signal: the task manager
+    publishes it once it has applied a_{k-1} and the answer): accepted means a commitment. So
+    b_k waits for x_k (`task_state`), at most `hold_ns` (`deadline`, `expire`); without it the
+    answer is left out of the evidence, with a WARN. O_k and d_k are published at once.
     """
 
-    def __init__(self, belief_filter, min_window_samples: int, recent: int = RECENT):
+    def __init__(self, belief_filter, min_window_samples: int, recent: int = RECENT,
+                 hold_ns: int = 0):
         self.filter = belief_filter
+        self.hold_ns = int(hold_ns)
+        self._task_states: deque = deque(maxlen=8)      # (published_ns, task variables)
+        self._held: _HeldBelief | None = None
+        self._last_signal_ns: int | None = None
+        self._window_distance: int | None = None
         self.min_window_samples = int(min_window_samples)
         self.recent = recent
         self.epochs = EpochFollower()
@@ -669,6 +700,54 @@ class EstimatorEpochs:
     def action(self, action: int) -> None:
         self._action = action
 
+    @property
+    def deadline(self) -> int | None:
+        return None if self._held is None else self._held.since_ns + self.hold_ns
+
+    def task_state(self, state: dict, published_ns: int) -> EstimatorStep | None:
+        """A task state from the task manager; completes a held b_k when it is x_k."""
+        self._task_states.append((published_ns, state))
+        if self._held is not None and published_ns >= self._held.signal_ns:
+            return self._complete(state)
+        return None
+
+    def expire(self, now: int) -> EstimatorStep | None:
+        if self.deadline is not None and now >= self.deadline:
+            held = self._held
+            step = self._complete(None)
+            step.reports.append(Report(
+                WARN, 'epoch', f'epoch {held.epoch}: no task state within the hold; the '
+                "human's answer is left out of the posterior update", {'epoch': held.epoch},
+                kind='no_task_state'))
+            return step
+        return None
+
+    def _task_after(self, signal_ns: int | None, before_ns: int | None = None) -> dict | None:
+        """The first task state published at or after a signal (and before `before_ns`)."""
+        if signal_ns is None:
+            return None
+        later = [(t, state) for t, state in self._task_states
+                 if t >= signal_ns and (before_ns is None or t < before_ns)]
+        return min(later, key=lambda entry: entry[0])[1] if later else None
+
+    def _evidence(self, held: _HeldBelief, task_after: dict | None) -> np.ndarray:
+        """P(x_k | x_{k-1}, h, a_{k-1}) of what is known (`HRCModel.transition_likelihood`):
+        the answer (an accepted request commits the task, ty != 0 in x_k: a task lasts at
+        least one epoch, so it cannot also complete) and the distance move."""
+        before = held.task_before
+        known = before is not None and task_after is not None
+        eligible = known and bool(request_eligible(held.action, before['tp'], before['tx'],
+                                                   before['ty']))
+        return self.filter.model.transition_likelihood(
+            held.action, eligible, eligible and task_after['ty'] != 0, held.d_before,
+            held.d_after)
+
+    def _complete(self, task_after: dict | None) -> EstimatorStep:
+        held, self._held = self._held, None
+        self.belief = self.filter.update(self.belief, held.action, held.observation,
+                                         self._evidence(held, task_after))
+        return EstimatorStep(held.epoch, None, None, self.belief if held.publish else None)
+
     def _split(self, stream: deque, signal_ns: int) -> list:
         """Remove and return the entries published before the signal; later ones stay."""
         window = [e for e in stream if e[0] < signal_ns]
@@ -677,9 +756,9 @@ class EstimatorEpochs:
         stream.extend(later)
         return window
 
-    def epoch_signal(self, k: int, stamp: Stamp) -> EstimatorStep:
+    def epoch_signal(self, k: int, stamp: Stamp, now: int | None = None) -> EstimatorStep:
         """Close window k at the signal's source timestamp; `InputError` for an epoch of
-        another source (`EpochFollower`)."""
+        another source (`EpochFollower`). `now` (the node's clock) starts a posterior hold."""
         signal_ns = stamp.published_ns
         step = EstimatorStep(k, None, None, None)
         restart = self.epochs.check(k, stamp)
@@ -694,26 +773,45 @@ class EstimatorEpochs:
             self._counts[level - 1] += 1
         counts -= self._counts
         distances = self._split(self._distances, signal_ns)
+        d_before = self._window_distance              # d_{k-1}, None without a skeleton
+        self._window_distance = max(distances)[1] if distances else None
         if distances:
-            self.distance_level = step.distance_level = max(distances)[1]
+            self.distance_level = step.distance_level = self._window_distance
         else:
             step.reports.append(Report(WARN, 'epoch', f'epoch {k}: no skeleton since the last '
                                        'epoch; distance level not published', {'epoch': k},
                                        kind='no_skeleton'))
+        posterior = self.filter.mode == 'posterior' and self.belief is not None
+        if posterior:
+            if self._held is not None:          # the previous epoch's x_k never came
+                step.reports.extend(self.expire(self._held.since_ns + self.hold_ns).reports)
+            observed = counts.sum() >= self.min_window_samples
+            self._held = _HeldBelief(
+                k, signal_ns, now if now is not None else signal_ns, action,
+                window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts)) if observed
+                else NO_EVIDENCE, observed, self._task_after(self._last_signal_ns, signal_ns),
+                d_before, step.distance_level)
         if counts.sum() >= self.min_window_samples:
             self.observation = window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts))
-            self.belief = (self.filter.initial(self.observation) if self.belief is None
-                           else self.filter.update(self.belief, action, self.observation))
-            step.observation, step.belief = self.observation, self.belief
+            if self.belief is None:
+                self.belief = self.filter.initial(self.observation)
+            elif not posterior:
+                self.belief = self.filter.update(self.belief, action, self.observation)
+            step.observation = self.observation
+            step.belief = None if posterior else self.belief
         else:
             self.observation = None
-            if self.belief is not None:
+            if self.belief is not None and not posterior:
                 self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
             step.reports.append(Report(
                 WARN, 'epoch', f'epoch {k}: no joint states to observe ({int(counts.sum())} '
                 f'valid samples in its window, fewer than {self.min_window_samples}); belief not '
                 'published (predicted only)', {'epoch': k}, kind='no_observation'))
         self._action = None
+        self._last_signal_ns = signal_ns
+        early = self._task_after(signal_ns) if self._held is not None else None
+        if early is not None:           # x_k was delivered before the signal
+            step.belief = self._complete(early).belief
         return step
 
 

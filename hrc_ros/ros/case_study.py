@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..core.config import ConfigError, load_config
+from ..core.config import BELIEF_MODES, ConfigError, load_config
 from ..core.faults import parse_faults
 from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from ..core.paths import default_config_path, share_dir
@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
                         help="the simulated human's seed")
     parser.add_argument('--selector', default='paper', choices=SELECTORS)
-    parser.add_argument('--belief-mode', default='', choices=('', 'bayes', 'table'),
+    parser.add_argument('--belief-mode', default='', choices=('',) + BELIEF_MODES,
                         help="'' = the configuration's mode")
     parser.add_argument('--config', default='', help='model configuration (default: shipped)')
     parser.add_argument('--policy', default='', help='policy file (default: shipped)')

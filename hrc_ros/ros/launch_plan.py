@@ -20,6 +20,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..core.config import BELIEF_MODES
 from ..core.selection import SELECTORS
 
 
@@ -40,6 +41,9 @@ ARGUMENTS = (
                    'else the shipped policy solved for config)'),
     LaunchArgument('selector', '', "action selection from the belief ('' = the params files', "
                    'else paper)', ('',) + SELECTORS),
+    LaunchArgument('belief_mode', '', "the belief estimator's filter ('' = the params files', "
+                   "else the configuration's observation.mode); posterior is the exact posterior "
+                   'the pomdp and fib selectors plan with', ('',) + BELIEF_MODES),
     LaunchArgument('namespace', '', 'namespace of the whole cell, e.g. cell1'),
     LaunchArgument('use_sim', 'true', 'start cell_sim_node, the simulated human and cell',
                    ('true', 'false')),
@@ -85,13 +89,16 @@ def _flag(name: str, value, choices=('true', 'false')) -> str:
 
 
 def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = '',
-               config: str = '', policy: str = '', selector: str = '',
+               config: str = '', policy: str = '', selector: str = '', belief_mode: str = '',
                use_sim: str | bool = 'true', view: str | bool = 'auto',
                body_tracking: str | bool = 'false') -> list[NodeLaunch]:
     """The nodes of one cell for the launch arguments' values (strings, as launch gives them)."""
     if selector not in ('',) + SELECTORS:
         raise ValueError(f'selector must be one of {", ".join(SELECTORS)} or empty, got '
                          f'{selector!r}')
+    if belief_mode not in ('',) + BELIEF_MODES:
+        raise ValueError(f'belief_mode must be one of {", ".join(BELIEF_MODES)} or empty, got '
+                         f'{belief_mode!r}')
     use_sim = _flag('use_sim', use_sim) == 'true'
     view = _flag('view', view, ('auto', 'true', 'false'))
     view = use_sim if view == 'auto' else view == 'true'
@@ -110,6 +117,8 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     if selector:
         decision['selector'] = selector
     overrides = {'decision': decision}
+    if belief_mode:
+        overrides['belief_estimator'] = {**common, 'belief_mode': belief_mode}
     nodes = list(DECISION_NODES) + [VIEW_NODE] * view + [BODY_TRACKING_NODE] * body_tracking \
         + [TRACKER_SIM_NODE] * (body_tracking and use_sim) + [SIMULATION_NODE] * use_sim
     remaps = {'cell_sim': SIM_MOTION_REMAPS} if body_tracking else {}

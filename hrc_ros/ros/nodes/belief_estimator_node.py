@@ -25,18 +25,18 @@ from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String, UInt8, UInt32
+from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
 from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                                  velocity_level)
-from ...core.protocol import ERROR, OK, EstimatorEpochs, Report, Stamp
+from ...core.protocol import ERROR, OK, EstimatorEpochs, Report, Stamp, timeout_ns
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, Inputs, ParamSpec,
-                            StartupError, check_array, check_core, load_node_config,
+from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, DeadlineTimer, Inputs,
+                            ParamSpec, StartupError, check_array, check_core, load_node_config,
                             node_setup, run)
 
 T = Parameter.Type
@@ -58,8 +58,10 @@ ROBOT_FRAME = ParamSpec(
 MOTION_PARAMETERS = (VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME)
 PARAMETERS = (
     LIVE_CONFIG,
-    ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes' or 'table' ('' = the "
-              "configuration's observation.mode)", constraints="'', 'bayes' or 'table'"),
+    ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes', 'table' or 'posterior' "
+              "(bayes and the human's answers and distance moves: the exact posterior the "
+              "pomdp selector plans with; '' = the configuration's observation.mode)",
+              constraints="'', 'bayes', 'table' or 'posterior'"),
     ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
               'for an observation; fewer count as a sensor dropout (no observation)',
               range=(1, 100000)),
@@ -76,20 +78,15 @@ def check_motion_parameters(values) -> str | None:
                 else None))
 
 
-# The posterior mode's evidence (the human's answer, the distance move) needs the task states,
-# which this node does not take; it runs bayes or table (docs/POMDP.md, "The belief").
-ESTIMATOR_MODES = tuple(m for m in BELIEF_MODES if m != 'posterior')
-NO_POSTERIOR = ("belief mode 'posterior' needs the epoch's observable transition (the human's "
-                "answer and the task states), which the belief estimator does not receive; use "
-                "'bayes' (docs/POMDP.md)")
+HOLD_FRACTION = 0.4    # posterior mode: b_k waits for x_k at most this part of the period,
+HOLD_FALLBACK = 0.2    # (these seconds until the period is known): the decision node waits
+#                        half of it, the task manager publishes x_k within a quarter
 
 
 def check_parameters(values) -> str | None:
     mode = values.get('belief_mode', '')
-    if mode == 'posterior':
-        return NO_POSTERIOR
-    if mode not in ('',) + ESTIMATOR_MODES:
-        return f"belief_mode must be '', {' or '.join(ESTIMATOR_MODES)}, got {mode!r}"
+    if mode not in ('',) + BELIEF_MODES:
+        return f"belief_mode must be '', {' or '.join(BELIEF_MODES)}, got {mode!r}"
     return check_motion_parameters(values)
 
 
@@ -125,6 +122,11 @@ class BeliefEstimatorNode(Node):
                               lambda action: self.windows.action(action))
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch, with_stamp=True)
+        # posterior mode: x_k shows the human's answer to a_{k-1} (volatile: any publisher)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.RELIABLE,
+                              self._task_state_from_msg, self._on_task_state,
+                              with_published=True)
+        self.hold = DeadlineTimer(self, lambda now: self._publish(self.windows.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _check_parameters(self, values) -> str | None:
@@ -155,8 +157,6 @@ class BeliefEstimatorNode(Node):
             belief_filter = BeliefFilter(self.model, mode=values['belief_mode'] or None)
         except ValueError as exc:
             raise StartupError(f'belief filter: {exc}') from None
-        if belief_filter.mode == 'posterior':
-            raise StartupError(f'{NO_POSTERIOR} (the configuration\'s observation.mode)')
         if self.windows is None:
             self.windows = EstimatorEpochs(belief_filter, values['min_window_samples'])
         self.windows.filter = belief_filter
@@ -206,14 +206,27 @@ class BeliefEstimatorNode(Node):
     def _on_epoch(self, k: int, stamp: Stamp) -> None:
         self._swap(k)
         self._announce()        # again each epoch: state is republished (qos.STATE_INPUT)
-        step = self.windows.epoch_signal(k, stamp)
-        if step.distance_level is not None:
-            self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
-        if step.observation is not None:
-            self.observation_pub.publish(conv.observation_to_msg(step.observation))
-            self.belief_pub.publish(conv.belief_to_msg(step.belief))
-        for report in step.reports:
-            self.inputs.report(report)
+        self.windows.hold_ns = timeout_ns(0.0, HOLD_FRACTION,
+                                          self.windows.epochs.period.period_ns, HOLD_FALLBACK)
+        self._publish(self.windows.epoch_signal(k, stamp, self.hold.clock.now().nanoseconds))
+
+    def _task_state_from_msg(self, msg):
+        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
+
+    def _on_task_state(self, state: dict, published_ns: int) -> None:
+        self._publish(self.windows.task_state(state, published_ns))
+
+    def _publish(self, step) -> None:
+        if step is not None:
+            if step.distance_level is not None:
+                self.distance_pub.publish(conv.distance_level_to_msg(step.distance_level))
+            if step.observation is not None:
+                self.observation_pub.publish(conv.observation_to_msg(step.observation))
+            if step.belief is not None:
+                self.belief_pub.publish(conv.belief_to_msg(step.belief))
+            for report in step.reports:
+                self.inputs.report(report)
+        self.hold.sync(self.windows.deadline)
 
     # -- health ----------------------------------------------------------------------------
     def _publish_status(self) -> None:
