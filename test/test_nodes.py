@@ -471,8 +471,8 @@ def test_estimator_follows_a_restarted_epoch_count(graph, model):
     ('robot_reference_point', [0.0, 0.0], '3 values'),
     ('robot_reference_point', [0.0, math.nan, 0.0], 'finite'),
     ('belief_mode', 'kalman', 'belief_mode'),
-    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
-     'read configuration file /tmp/no-such-config.yaml'),
+    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: '
+     '/tmp/no-such-config.yaml: cannot read: No such file'),
 ])
 def test_estimator_rejects_bad_parameters(graph, name, value, reason):
     node = graph.start(BeliefEstimatorNode)
@@ -739,8 +739,8 @@ def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
     ('stale_timeout', 0.1, 'longer than epoch_period'),
     ('policy', '/tmp/no-such-policy.npz', 'policy refused: policy file '
      '/tmp/no-such-policy.npz does not exist'),
-    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: cannot '
-     'read configuration file /tmp/no-such-config.yaml'),
+    ('config', '/tmp/no-such-config.yaml', 'config refused: bad model configuration: '
+     '/tmp/no-such-config.yaml: cannot read: No such file'),
     ('epoch_source', 'topic', 'read-only'),
 ])
 def test_decision_rejects_bad_parameters(graph, policy_path, name, value, reason):

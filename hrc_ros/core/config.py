@@ -40,6 +40,8 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
+from .paths import read_text
+
 EMOTION_GROUPS = ('base', 'motivate', 'request')
 ALPHAS = tuple(f'alpha{i}' for i in range(1, 14))
 BETAS = tuple(f'beta{i}' for i in range(1, 7))
@@ -195,12 +197,7 @@ def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
 def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) -> Config:
     """Load and validate a configuration YAML file (complete; see module docstring)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f'cannot read configuration file {path}: {exc.strerror}') from None
-    except UnicodeDecodeError:
-        raise ConfigError(f'{path} is not a text (UTF-8) YAML file') from None
+    text = read_text(path, ConfigError, 'YAML configuration')
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

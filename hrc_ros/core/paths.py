@@ -51,3 +51,15 @@ def shipped_config_path(name: str) -> Path:
     """A shipped configuration by name: ``shipped_config_path('paper')`` is
     `config/paper.yaml` of the share folder."""
     return share_dir() / 'config' / f'{name}.yaml'
+
+
+def read_text(path: str | Path, error: type[Exception], kind: str) -> str:
+    """The text of a user's file, or `error` with one line that names it: cannot read (and why)
+    or not UTF-8 text (`kind`: what the file should be, e.g. 'YAML')."""
+    path = Path(path)
+    try:
+        return path.read_text()
+    except OSError as exc:
+        raise error(f'{path}: cannot read: {exc.strerror}') from None
+    except UnicodeDecodeError:
+        raise error(f'{path}: not a text (UTF-8) {kind} file') from None

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .model import ACTIONS, DISTANCE_LEVELS, OBSERVATION_LEVELS, TASK_VARIABLES, action_index
+from .paths import read_text
 from .protocol import EpochFollower, InputError, Stamp
 
 COLUMNS = ('epoch',) + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
@@ -112,12 +113,7 @@ def _integer(path, line: int, column: str, text: str, low: int, high: int) -> in
 def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     """The episodes of a trajectory CSV file (format in the module docstring)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise RecordingError(f'{path}: cannot read: {exc.strerror}') from None
-    except UnicodeDecodeError:
-        raise RecordingError(f'{path}: not a text (UTF-8) CSV file') from None
+    text = read_text(path, RecordingError, 'CSV')
     reader = csv.DictReader(text.splitlines())
     header = reader.fieldnames or []
     missing = [c for c in COLUMNS if c not in header]
