@@ -1351,3 +1351,52 @@ def test_ctrl_c_while_a_node_is_being_built_is_a_clean_stop():
     with pytest.raises(KeyError):
         run(Broken, args=[])
     assert not rclpy.ok()
+
+
+def test_ctrl_c_between_ok_and_shutdown_is_still_a_clean_stop():
+    """rclpy's signal handler shuts the context down from its own thread, outside the lock
+    `Context.try_shutdown` holds between `ok()` and `shutdown()`. When Ctrl-C landed there,
+    rcl refused the second shutdown ('rcl_shutdown already called') and decision_node exited
+    1 on SIGINT in CI. The race is replayed here on a real context: the handle runs the real
+    rcl shutdown right after answering `ok()`, as the signal handler did."""
+    import rclpy.context
+
+    from hrc_ros.ros.node_support import shutdown
+
+    def racing_context():
+        """A real context whose handle runs the real rcl shutdown right after answering
+        `ok()` once, as the signal handler's thread did."""
+        context = rclpy.context.Context()
+        rclpy.init(args=[], context=context)
+        handle = context._Context__context
+
+        class SignalLandsAfterOk:
+            raced = False
+
+            def __enter__(self):
+                return handle.__enter__()
+
+            def __exit__(self, *exc):
+                return handle.__exit__(*exc)
+
+            def ok(self):
+                answer = handle.ok()
+                if answer and not self.raced:
+                    self.raced = True
+                    handle.shutdown()
+                return answer
+
+            def shutdown(self):
+                handle.shutdown()
+
+        context._Context__context = race = SignalLandsAfterOk()
+        return context, race
+
+    context, race = racing_context()
+    with pytest.raises(Exception, match='already called'):     # rclpy alone: rcl refuses
+        context.try_shutdown()
+    assert race.raced
+
+    context, race = racing_context()
+    shutdown(context=context)                                   # the same race: a clean stop
+    assert race.raced and not context.ok()

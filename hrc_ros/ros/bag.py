@@ -299,6 +299,7 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
         raise BagError(f'{info.path} has no topic {", ".join(sorted(unknown))} '
                        f'(it has {", ".join(t.topic for t in info.topics) or "none"})')
     import rclpy
+    from .node_support import shutdown
     import rclpy.context
     from rclpy.duration import Duration
     from rclpy.qos import QoSReliabilityPolicy
@@ -361,7 +362,7 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                 node.destroy_publisher(publisher)
         if own_context is not None:
             node.destroy_node()
-            rclpy.try_shutdown(context=own_context)
+            shutdown(context=own_context)
 
 
 # --------------------------------------------------------------------------------------------
@@ -400,6 +401,7 @@ def _wait_for_topics(node: Any, topics: list[str], timeout: float) -> dict[str, 
 
 def _record_command(args: argparse.Namespace) -> int:
     import rclpy
+    from .node_support import shutdown
     from rclpy.executors import ExternalShutdownException
     writer = recorder = node = None
     started = time.monotonic()
@@ -437,7 +439,7 @@ def _record_command(args: argparse.Namespace) -> int:
             writer.close()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown()
     if writer is None:
         return 130
     print(f'hrc-bag: recorded {writer.message_count} messages on {len(writer.topics)} '
@@ -448,6 +450,7 @@ def _record_command(args: argparse.Namespace) -> int:
 
 def _play_command(args: argparse.Namespace) -> int:
     import rclpy
+    from .node_support import shutdown
     from rclpy.executors import ExternalShutdownException
     info = bag_info(args.bag)
     print(f'hrc-bag: playing {info.path}: {info.message_count} messages, '
@@ -470,7 +473,7 @@ def _play_command(args: argparse.Namespace) -> int:
         return 130
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown()
     print(f'hrc-bag: {"interrupted after" if result.interrupted else "played"} '
           f'{result.message_count} messages in {result.duration_s:.3f} s', flush=True)
     return 0

@@ -173,6 +173,7 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
 def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     """Record and watch the run until the last epoch's action (or the timeout)."""
     import rclpy
+    from .node_support import shutdown
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -268,7 +269,7 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
             recorder.close()
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown()
     return events
 
 

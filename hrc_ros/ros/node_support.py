@@ -573,6 +573,23 @@ STARTUP_ERRORS = (StartupError, ParameterException)
 STOP_POLL_SEC = 0.1   # how often a node with a last word (`on_stop`) looks for a signal
 
 
+def shutdown(context=None) -> None:
+    """`rclpy.try_shutdown`, safe against Ctrl-C landing at the same moment.
+
+    rclpy's signal handler shuts the context down from its own thread, without the lock
+    that `Context.try_shutdown` holds between asking `ok()` and calling `shutdown()`. When
+    the signal lands in between, rcl refuses the second shutdown ("rcl_shutdown already
+    called") and a node stopping cleanly exits 1 with a traceback. That error is the
+    shutdown we asked for; any error while the context is still up is real and propagates.
+    """
+    context = context if context is not None else rclpy.get_default_context()
+    try:
+        context.try_shutdown()
+    except Exception:
+        if context.ok():
+            raise
+
+
 def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt(f'signal {signum}')
 
@@ -600,17 +617,17 @@ def run(node_class, args=None) -> int:
         node = node_class()
     except STARTUP_ERRORS as exc:
         rclpy.logging.get_logger(node_class.NODE_NAME).error(f'cannot start: {exc}')
-        rclpy.try_shutdown()
+        shutdown()
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        rclpy.try_shutdown()
+        shutdown()
         return 0
     except Exception:
         # Ctrl-C while the node is being built: rclpy's signal handler shuts the context
         # down, and the next entity the constructor creates fails with an RCLError ("context
         # is invalid"). That is still the shutdown; with the context up, the error is real.
         interrupted = not rclpy.ok()
-        rclpy.try_shutdown()
+        shutdown()
         if not interrupted:
             raise
         return 0
@@ -640,5 +657,5 @@ def run(node_class, args=None) -> int:
             except Exception:  # noqa: BLE001 - the node stops anyway; say why its last word failed
                 node.get_logger().error(f'on_stop failed:\n{traceback.format_exc()}')
         node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown()
     return 0
