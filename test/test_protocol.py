@@ -496,16 +496,19 @@ OPEN = {'tp': 2, 'tc': 3, 'tx': 1, 'ty': 0, 'hp': 0, 'hc': 0, 'bp': 0, 'bc': 0} 
 TAKEN = {**OPEN, 'ty': 1, 'hp': 2, 'hc': 3}                         # x_k after an accepted rh1
 
 
-def posterior_start(model):
-    """Epoch 1 (O 2, d 2), x_1 with an open task (published after the signal), then rh1 and
-    epoch 2's window (O 1, d 1) closed at 1000 ms: b_2 is held for x_2."""
+def posterior_start(model, answered=True, d_after=1):
+    """Epoch 1 (O 2, d 2), x_1 with an open task (published after the signal), then rh1, the
+    human's answer (unless not `answered`) and epoch 2's window (O 1, d `d_after`) closed at
+    1000 ms: b_2 is held for x_2."""
     f = BeliefFilter(model, mode='posterior')
-    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
     window(est, 2, 2, 0)
     first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
     assert est.task_state(OPEN, 150 * MS) is None and est.deadline is None
     est.action(RH1)
-    window(est, 1, 1, 200 * MS)
+    if answered:
+        est.response(300 * MS)
+    window(est, 1, d_after, 200 * MS)
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1001 * MS)
     return f, est, first, step
 
@@ -536,11 +539,12 @@ def test_posterior_without_x_k_leaves_the_answer_out_after_the_hold(model):
 
 def test_posterior_x_k_delivered_before_its_signal_completes_at_the_signal(model):
     f = BeliefFilter(model, mode='posterior')
-    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
     window(est, 2, 2, 0)
     first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
     est.task_state(OPEN, 150 * MS)
     est.action(RH1)
+    est.response(300 * MS)
     window(est, 1, 1, 200 * MS)
     assert est.task_state(TAKEN, 1010 * MS) is None        # x_2, overtaking the signal
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1020 * MS)
@@ -551,11 +555,12 @@ def test_posterior_x_k_delivered_before_its_signal_completes_at_the_signal(model
 
 def test_posterior_after_a_dropout_or_without_a_skeleton_predicts_with_what_is_known(model):
     f = BeliefFilter(model, mode='posterior')
-    est = EstimatorEpochs(f, 3, hold_ns=HOLD)
+    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
     window(est, 2, 2, 0)
     first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
     est.task_state(OPEN, 150 * MS)
     est.action(RH1)
+    est.response(300 * MS)
     est.sample(1, 200 * MS)                                  # 1 sample < 3, no skeleton
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1000 * MS)
     assert (step.observation, step.distance_level, step.belief) == (None, None, None)
@@ -577,6 +582,106 @@ def test_a_new_signal_closes_a_held_posterior_update_first(model):
     done = est.task_state(OPEN, 2050 * MS)
     np.testing.assert_allclose(done.belief, f.update(
         held, DN, 3, model.transition_likelihood(DN, False, False, 1, 1)))
+
+
+def test_posterior_leaves_an_unanswered_request_out(model):
+    """No hrc/human_response between x_1 and x_2: the task manager took rh1 as refused for want
+    of an answer (ty stays 0). That says nothing about the human's motivation; it once counted
+    as a refusal. Only the move counts, with a WARN."""
+    f, est, first, _ = posterior_start(model, answered=False)
+    done = est.task_state(OPEN, 1300 * MS)
+    np.testing.assert_allclose(done.belief, f.update(
+        first, RH1, 1, model.transition_likelihood(RH1, False, False, 2, 1)))
+    assert [r.kind for r in done.reports] == ['no_answer'] and done.reports[0].level == WARN
+    # an answer published after x_2 (late: the task manager had finalised) is not one either
+    f, est, first, _ = posterior_start(model, answered=False)
+    est.response(1400 * MS)
+    assert [r.kind for r in est.task_state(OPEN, 1300 * MS).reports] == ['no_answer']
+
+
+def test_posterior_leaves_an_impossible_distance_move_out(model):
+    """d 2 -> 0 in one epoch is impossible under the model (moves of one level at most): the
+    whole move likelihood is 0, and the filter once restarted from O_2 alone, wiping out
+    everything learnt. Now the move is left out (a WARN) and the answer still counts."""
+    assert not model.transition_likelihood(RH1, False, False, 2, 0).any()
+    f, est, first, step = posterior_start(model, d_after=0)
+    done = est.task_state(OPEN, 1050 * MS)
+    want = f.update(first, RH1, 1, model.transition_likelihood(RH1, True, False, None, None))
+    np.testing.assert_allclose(done.belief, want)
+    assert [r.kind for r in done.reports] == ['impossible_move']
+    assert not np.allclose(done.belief, f.initial(1), atol=1e-3)
+
+
+def test_posterior_leaves_out_evidence_the_belief_calls_impossible():
+    """A cell whose most motivated humans always accept (p_accept 1.0) and a belief sure of
+    such a human: a refusal is impossible under the belief (b . e = 0), and the filter once
+    restarted from O alone. The evidence is left out instead, with a WARN."""
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.paths import default_config_path
+    certain = HRCModel(load_config(default_config_path(),
+                                   {'model': {'p_accept': [0.3, 0.8, 1.0]}}))
+    f = BeliefFilter(certain, mode='posterior')
+    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
+    window(est, 2, 2, 0)
+    est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS)
+    est.belief = sure = np.eye(9)[7]                         # em 2 (always accepts), ea 1
+    est.task_state(OPEN, 150 * MS)
+    est.action(RH1)
+    est.response(300 * MS)
+    window(est, 1, 2, 200 * MS)
+    est.epoch_signal(2, signal(2, 1000 * MS), now=1000 * MS)
+    done = est.task_state(OPEN, 1050 * MS)                   # refused
+    np.testing.assert_allclose(done.belief, f.update(sure, RH1, 1))
+    assert [r.kind for r in done.reports] == ['impossible_evidence']
+
+
+def test_posterior_hold_follows_the_period_known_at_the_signal(model):
+    """task_state_timeout 0: the hold is 0.4 of the period. At epoch 2 the period is known
+    only once epoch 2 is taken; the node once computed the hold before, from the 0.2 s
+    fallback, shorter than the task manager's 0.25 s wait for the answer."""
+    from hrc_ros.core.protocol import ESTIMATOR_HOLD_FALLBACK_S, ESTIMATOR_HOLD_FRACTION
+    f = BeliefFilter(model, mode='posterior')
+    est = EstimatorEpochs(f, 3)
+    assert est.hold_ns == int(ESTIMATOR_HOLD_FALLBACK_S * 1e9) > TIMEOUT
+    window(est, 2, 2, 0)
+    est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS)
+    window(est, 1, 1, 200 * MS)
+    est.epoch_signal(2, signal(2, 1100 * MS), now=1100 * MS)
+    assert est.deadline == 1100 * MS + int(ESTIMATOR_HOLD_FRACTION * 1000 * MS)
+    est.task_state_timeout_s = 0.35                         # an explicit value wins
+    window(est, 1, 1, 1200 * MS)
+    est.epoch_signal(3, signal(3, 2100 * MS), now=2100 * MS)
+    assert est.deadline == 2100 * MS + 350 * MS
+
+
+def test_posterior_keeps_the_x_k_that_completed_the_hold_against_a_flood(model):
+    """x_2 (rh1 taken, ty 1) completes b_2's hold; then a flood of stray task states (an open
+    task) is published before epoch 3. x_2 is what epoch 3's eligibility is read from, not
+    whatever the bounded store still holds: rh1 is not eligible at x_2, so no answer counts."""
+    f, est, first, _ = posterior_start(model)
+    b2 = est.task_state(TAKEN, 1050 * MS).belief
+    for i in range(200):
+        est.task_state(OPEN, 1100 * MS + i * MS)
+    est.action(RH1)
+    est.response(1400 * MS)
+    window(est, 1, 1, 1500 * MS)
+    est.epoch_signal(3, signal(3, 2000 * MS), now=2000 * MS)
+    done = est.task_state(TAKEN, 2050 * MS)
+    np.testing.assert_allclose(done.belief, f.update(
+        b2, RH1, 1, model.transition_likelihood(RH1, False, False, 1, 1)))
+
+
+def test_a_held_update_closes_at_the_next_signal_after_a_swap_to_bayes(model):
+    """A configuration swap from posterior to bayes while b_2 is held: the next signal closes
+    b_2 first (without the answer), then b_3 is a bayes update of it."""
+    f, est, first, _ = posterior_start(model)
+    est.filter = BeliefFilter(model, mode='bayes')
+    est.action(DN)
+    window(est, 3, 1, 1100 * MS)
+    step = est.epoch_signal(3, signal(3, 2000 * MS), now=2000 * MS)
+    assert 'no_task_state' in [r.kind for r in step.reports] and est.deadline is None
+    b2 = est.filter.update(first, RH1, 1)
+    np.testing.assert_allclose(step.belief, est.filter.update(b2, DN, 3))
 
 
 def test_the_bayes_estimator_ignores_task_states(model):

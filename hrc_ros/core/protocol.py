@@ -633,9 +633,16 @@ class _HeldBelief:
     action: int
     observation: object        # O_k, or NO_EVIDENCE after a dropout
     publish: bool              # b_k is published (False after a dropout: predicted only)
-    task_before: dict | None   # x_{k-1}'s task variables
+    task_before: tuple | None  # x_{k-1}: (published_ns, task variables)
     d_before: int | None
     d_after: int | None
+
+
+ESTIMATOR_HOLD_FRACTION = 0.4   # posterior hold (task_state_timeout 0): this part of the
+ESTIMATOR_HOLD_FALLBACK_S = 0.3  # period (these seconds until it is known). Longer than the
+# task manager's hold for the answer (0.25 of the period) so that x_k comes within it, and
+# shorter than the decision node's wait for b_k (0.5 of the period).
+TASK_STATES_KEPT = 64           # task states and responses kept to find x_{k-1}, x_k, answers
 
 
 class EstimatorEpochs:
@@ -658,24 +665,33 @@ class EstimatorEpochs:
     In ``posterior`` mode the update also takes what acting revealed (MODEL.md 6, the exact
     posterior the POMDP plans with): the human's answer to an eligible request and the
     distance move, `HRCModel.transition_likelihood(a_{k-1}, eligible, accepted, d_{k-1},
-    d_k)`. Eligibility comes from x_{k-1} (the task state published after epoch k-1's signal)
-    and the answer from x_k (the first published after epoch k's signal: the task manager
-    publishes it once it has applied a_{k-1} and the answer): accepted means a commitment. So
-    b_k waits for x_k (`task_state`), at most `hold_ns` (`deadline`, `expire`); without it the
-    answer is left out of the evidence, with a WARN. O_k and d_k are published at once.
+    d_k)`. Eligibility comes from x_{k-1} (the task state that completed the previous hold,
+    else the first published at or after epoch k-1's signal) and the answer from x_k (the
+    first published at or after epoch k's signal: the task manager publishes it once it has
+    applied a_{k-1} and the answer): accepted means a commitment. So b_k waits for x_k
+    (`task_state`), at most `hold_ns` (`deadline`, `expire`; `task_state_timeout_s`, or
+    `ESTIMATOR_HOLD_FRACTION` of the period). What is not known is left out of the evidence,
+    with a WARN: the answer without x_k, or when no `hrc/human_response` was published
+    between x_{k-1} and x_k (the task manager took the request as refused for want of an
+    answer: that says nothing about the human); the move when the model calls it impossible
+    (a jump of the distance level, a sensor fault), so one bad skeleton cannot wipe out the
+    belief. O_k and d_k are published at once.
     """
 
     def __init__(self, belief_filter, min_window_samples: int, recent: int = RECENT,
-                 hold_ns: int = 0):
+                 task_state_timeout_s: float = 0.0):
         self.filter = belief_filter
-        self.hold_ns = int(hold_ns)
-        self._task_states: deque = deque(maxlen=8)      # (published_ns, task variables)
+        self.task_state_timeout_s = float(task_state_timeout_s)
+        self._task_states: deque = deque(maxlen=TASK_STATES_KEPT)  # (published_ns, task vars)
+        self._responses: deque = deque(maxlen=TASK_STATES_KEPT)    # published_ns
+        self._x_last: tuple | None = None               # the x_k that completed the last hold
         self._held: _HeldBelief | None = None
         self._last_signal_ns: int | None = None
         self._window_distance: int | None = None
         self.min_window_samples = int(min_window_samples)
         self.recent = recent
         self.epochs = EpochFollower()
+        self.hold_ns = self._hold_ns()
         self.belief: np.ndarray | None = None
         self.observation: int | None = None
         self.distance_level: int | None = None
@@ -700,6 +716,14 @@ class EstimatorEpochs:
     def action(self, action: int) -> None:
         self._action = action
 
+    def response(self, published_ns: int) -> None:
+        """An `hrc/human_response` was published (its value is read from x_k's commitment)."""
+        self._responses.append(published_ns)
+
+    def _hold_ns(self) -> int:
+        return timeout_ns(self.task_state_timeout_s, ESTIMATOR_HOLD_FRACTION,
+                          self.epochs.period.period_ns, ESTIMATOR_HOLD_FALLBACK_S)
+
     @property
     def deadline(self) -> int | None:
         return None if self._held is None else self._held.since_ns + self.hold_ns
@@ -708,7 +732,7 @@ class EstimatorEpochs:
         """A task state from the task manager; completes a held b_k when it is x_k."""
         self._task_states.append((published_ns, state))
         if self._held is not None and published_ns >= self._held.signal_ns:
-            return self._complete(state)
+            return self._complete((published_ns, state))
         return None
 
     def expire(self, now: int) -> EstimatorStep | None:
@@ -722,31 +746,57 @@ class EstimatorEpochs:
             return step
         return None
 
-    def _task_after(self, signal_ns: int | None, before_ns: int | None = None) -> dict | None:
-        """The first task state published at or after a signal (and before `before_ns`)."""
+    def _task_after(self, signal_ns: int | None, before_ns: int | None = None) -> tuple | None:
+        """The first task state published at or after a signal (and before `before_ns`):
+        (published_ns, task variables)."""
         if signal_ns is None:
             return None
         later = [(t, state) for t, state in self._task_states
                  if t >= signal_ns and (before_ns is None or t < before_ns)]
-        return min(later, key=lambda entry: entry[0])[1] if later else None
+        return min(later, key=lambda entry: entry[0]) if later else None
 
-    def _evidence(self, held: _HeldBelief, task_after: dict | None) -> np.ndarray:
+    def _evidence(self, held: _HeldBelief, task_after: tuple | None,
+                  reports: list) -> np.ndarray | None:
         """P(x_k | x_{k-1}, h, a_{k-1}) of what is known (`HRCModel.transition_likelihood`):
         the answer (an accepted request commits the task, ty != 0 in x_k: a task lasts at
-        least one epoch, so it cannot also complete) and the distance move."""
-        before = held.task_before
-        known = before is not None and task_after is not None
-        eligible = known and bool(request_eligible(held.action, before['tp'], before['tx'],
-                                                   before['ty']))
-        return self.filter.model.transition_likelihood(
-            held.action, eligible, eligible and task_after['ty'] != 0, held.d_before,
-            held.d_after)
+        least one epoch, so it cannot also complete) and the distance move. What is unknown
+        or impossible is left out (a WARN in `reports`); None: no evidence at all."""
+        model, before, k = self.filter.model, held.task_before, held.epoch
+        eligible = (before is not None and task_after is not None and bool(
+            request_eligible(held.action, before[1]['tp'], before[1]['tx'], before[1]['ty'])))
+        if eligible and not any(before[0] <= t <= task_after[0] for t in self._responses):
+            eligible = False
+            reports.append(Report(
+                WARN, 'epoch', f'epoch {k}: no hrc/human_response to {ACTIONS[held.action]} '
+                'was published before the task state; the task manager took it as refused, '
+                "so the answer is left out of the posterior update", {'epoch': k},
+                kind='no_answer'))
+        d_before, d_after = held.d_before, held.d_after
+        if d_before is not None and d_after is not None and not model.transition_likelihood(
+                held.action, False, False, d_before, d_after).any():
+            reports.append(Report(
+                WARN, 'epoch', f'epoch {k}: the distance level moved {d_before} -> {d_after}, '
+                'which the model calls impossible (a sensor fault?); the move is left out of '
+                'the posterior update', {'epoch': k}, kind='impossible_move'))
+            d_before = d_after = None
+        evidence = model.transition_likelihood(
+            held.action, eligible, eligible and task_after[1]['ty'] != 0, d_before, d_after)
+        if not (self.belief * evidence).sum() > 0.0:
+            reports.append(Report(
+                WARN, 'epoch', f'epoch {k}: what acting revealed is impossible under the '
+                'belief; left out of the posterior update', {'epoch': k},
+                kind='impossible_evidence'))
+            return None
+        return evidence
 
-    def _complete(self, task_after: dict | None) -> EstimatorStep:
+    def _complete(self, task_after: tuple | None) -> EstimatorStep:
         held, self._held = self._held, None
-        self.belief = self.filter.update(self.belief, held.action, held.observation,
-                                         self._evidence(held, task_after))
-        return EstimatorStep(held.epoch, None, None, self.belief if held.publish else None)
+        reports: list[Report] = []
+        evidence = self._evidence(held, task_after, reports)
+        self.belief = self.filter.update(self.belief, held.action, held.observation, evidence)
+        self._x_last = task_after
+        return EstimatorStep(held.epoch, None, None, self.belief if held.publish else None,
+                             reports)
 
     def _split(self, stream: deque, signal_ns: int) -> list:
         """Remove and return the entries published before the signal; later ones stay."""
@@ -764,7 +814,10 @@ class EstimatorEpochs:
         restart = self.epochs.check(k, stamp)
         if restart is not None:
             step.reports.append(restart)
+        if self._held is not None:          # the previous epoch's x_k never came
+            step.reports.extend(self.expire(self._held.since_ns + self.hold_ns).reports)
         self.epochs.take(k, stamp)
+        self.hold_ns = self._hold_ns()              # the period is known from epoch 2 on
         action = DN if self._action is None else self._action
         self._split(self._levels, signal_ns)
         counts = self._counts.copy()          # the window, less what was published later
@@ -783,14 +836,14 @@ class EstimatorEpochs:
                                        kind='no_skeleton'))
         posterior = self.filter.mode == 'posterior' and self.belief is not None
         if posterior:
-            if self._held is not None:          # the previous epoch's x_k never came
-                step.reports.extend(self.expire(self._held.since_ns + self.hold_ns).reports)
+            before = self._x_last
+            if before is None or self._last_signal_ns is None or before[0] < self._last_signal_ns:
+                before = self._task_after(self._last_signal_ns, signal_ns)
             observed = counts.sum() >= self.min_window_samples
             self._held = _HeldBelief(
                 k, signal_ns, now if now is not None else signal_ns, action,
                 window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts)) if observed
-                else NO_EVIDENCE, observed, self._task_after(self._last_signal_ns, signal_ns),
-                d_before, step.distance_level)
+                else NO_EVIDENCE, observed, before, d_before, step.distance_level)
         if counts.sum() >= self.min_window_samples:
             self.observation = window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts))
             if self.belief is None:
@@ -809,9 +862,12 @@ class EstimatorEpochs:
                 'published (predicted only)', {'epoch': k}, kind='no_observation'))
         self._action = None
         self._last_signal_ns = signal_ns
+        self._x_last = None
         early = self._task_after(signal_ns) if self._held is not None else None
         if early is not None:           # x_k was delivered before the signal
-            step.belief = self._complete(early).belief
+            done = self._complete(early)
+            step.belief = done.belief
+            step.reports.extend(done.reports)
         return step
 
 

@@ -25,14 +25,15 @@ from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
+from std_msgs.msg import Bool, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
 from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
                                  velocity_level)
-from ...core.protocol import ERROR, OK, EstimatorEpochs, Report, Stamp, timeout_ns
+from ...core.protocol import (ERROR, ESTIMATOR_HOLD_FALLBACK_S, ESTIMATOR_HOLD_FRACTION, OK,
+                               EstimatorEpochs, Report, Stamp)
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, DeadlineTimer, Inputs,
@@ -65,6 +66,12 @@ PARAMETERS = (
     ParamSpec('min_window_samples', T.INTEGER, 3, 'joint-state samples an epoch window needs '
               'for an observation; fewer count as a sensor dropout (no observation)',
               range=(1, 100000)),
+    ParamSpec('task_state_timeout', T.DOUBLE, 0.0, 'posterior mode: seconds after hrc/epoch '
+              'k that b_k waits for the task state x_k (then the answer is left out). 0 = '
+              f'{ESTIMATOR_HOLD_FRACTION:g} x the epoch period seen on hrc/epoch '
+              f'({ESTIMATOR_HOLD_FALLBACK_S:g} s before two epochs); keep an explicit value '
+              "above the task manager's input_timeout and below the decision node's",
+              range=(0.0, 3600.0)),
 ) + MOTION_PARAMETERS
 
 
@@ -76,11 +83,6 @@ def check_motion_parameters(values) -> str | None:
             or check_array(values, 'robot_reference_point', 3)
             or ('robot_frame must not be empty' if values.get('robot_frame', 'x') == ''
                 else None))
-
-
-HOLD_FRACTION = 0.4    # posterior mode: b_k waits for x_k at most this part of the period,
-HOLD_FALLBACK = 0.2    # (these seconds until the period is known): the decision node waits
-#                        half of it, the task manager publishes x_k within a quarter
 
 
 def check_parameters(values) -> str | None:
@@ -122,9 +124,14 @@ class BeliefEstimatorNode(Node):
                               lambda action: self.windows.action(action))
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch, with_stamp=True)
-        # posterior mode: x_k shows the human's answer to a_{k-1} (volatile: any publisher)
+        # posterior mode: x_k shows the human's answer to a_{k-1}, if one was published
+        # (volatile: any publisher, as for the decision node; docs/ROBUSTNESS.md)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.RELIABLE,
                               self._task_state_from_msg, self._on_task_state,
+                              with_published=True)
+        self.inputs.subscribe(Bool, 'hrc/human_response', qos.RELIABLE,
+                              conv.human_response_from_msg,
+                              lambda _accepted, published_ns: self.windows.response(published_ns),
                               with_published=True)
         self.hold = DeadlineTimer(self, lambda now: self._publish(self.windows.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
@@ -160,6 +167,7 @@ class BeliefEstimatorNode(Node):
         if self.windows is None:
             self.windows = EstimatorEpochs(belief_filter, values['min_window_samples'])
         self.windows.filter = belief_filter
+        self.windows.task_state_timeout_s = values['task_state_timeout']
         self.windows.min_window_samples = values['min_window_samples']
         self.velocity_thresholds = tuple(values['velocity_thresholds'])
         self.safety_radii = tuple(values['safety_radii'])
@@ -206,8 +214,6 @@ class BeliefEstimatorNode(Node):
     def _on_epoch(self, k: int, stamp: Stamp) -> None:
         self._swap(k)
         self._announce()        # again each epoch: state is republished (qos.STATE_INPUT)
-        self.windows.hold_ns = timeout_ns(0.0, HOLD_FRACTION,
-                                          self.windows.epochs.period.period_ns, HOLD_FALLBACK)
         self._publish(self.windows.epoch_signal(k, stamp, self.hold.clock.now().nanoseconds))
 
     def _task_state_from_msg(self, msg):
