@@ -184,6 +184,22 @@ def test_pomdp_and_fib_ties_go_to_the_safety_order():
         policy.pomdp(b, 4)
 
 
+def test_fib_with_a_belief_that_rules_states_out_picks_the_best_available_action():
+    """An unavailable action's score was -inf * b(h): nan wherever b(h) = 0 (a sure belief),
+    and a nan best made every action untied, so fib fell to dn whatever Q said (and published
+    nan scores). The mask now applies after the product."""
+    q_fib = np.zeros((1, 8, 9))
+    q_fib[0, NW] = 5.0
+    available = np.ones((1, 8), dtype=bool)
+    available[0, RH2] = False
+    policy = AlphaPolicy(columns=[5], alpha=np.zeros((1, 9)), action=[DN], offsets=[0, 1],
+                         q_fib=q_fib, available=available, n_columns=8)
+    sure = np.eye(9)[4]
+    action, scores = policy.fib(sure, 5)
+    assert action == NW and not np.isnan(scores).any() and np.isneginf(scores[RH2])
+    assert list(policy.fib_many(sure[None], [5])) == [NW]
+
+
 def test_selector_and_batch_agree_with_the_alpha_policy(reduced, reduced_solution):
     """ActionSelector's pomdp and fib are the AlphaPolicy's; BatchSimulator reproduces
     `simulate` action for action with them (posterior and bayes)."""

@@ -795,7 +795,6 @@ class AlphaPolicy:
         self.column_index[self.columns] = np.arange(len(self.columns))
         rank = np.empty(len(SAFETY_ORDER), dtype=np.intp)      # position in the safety order
         rank[np.array(SAFETY_ORDER)] = np.arange(len(SAFETY_ORDER))
-        self.fib_scores = np.where(self.available[..., None], self.q_fib, -np.inf)
         # dense (X, M, H) copy for selecting many at once; padding never wins
         counts = np.diff(self.offsets)
         width = int(counts.max())
@@ -843,7 +842,8 @@ class AlphaPolicy:
 
     def fib(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
         i = self.state(column)
-        scores = self.fib_scores[i] @ b
+        # -inf after the product: -inf * b(h) = nan where b(h) = 0
+        scores = np.where(self.available[i], self.q_fib[i] @ b, -np.inf)
         return int(first_of_best(scores[None, :])[0]), scores
 
     def pomdp_many(self, b: np.ndarray, columns) -> np.ndarray:
@@ -857,7 +857,8 @@ class AlphaPolicy:
 
     def fib_many(self, b: np.ndarray, columns) -> np.ndarray:
         i = self.states(columns)
-        return first_of_best(np.einsum('eah,eh->ea', self.fib_scores[i], b))
+        return first_of_best(np.where(self.available[i],
+                                      np.einsum('eah,eh->ea', self.q_fib[i], b), -np.inf))
 
     def act(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The pomdp action for solved-state indices x (the sampler's policy)."""
