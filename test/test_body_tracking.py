@@ -82,8 +82,14 @@ def _set(index, **fields):
     (_set(3, id=-2), 'negative'),
     (_set(3, id=102), 'appears twice'),
     (lambda m: setattr(m.markers[7].header, 'stamp', conv.seconds_to_stamp(1.5)), '2 stamps'),
+    # a tracker in millimetres: the body 0.5 m away read as 500 m, the robot would go on
+    (lambda m: [setattr(k.pose.position, 'x', k.pose.position.x * 1000.0) for k in m.markers],
+     'm from the camera, beyond 10 m: positions must be in metres'),
+    (lambda m: m.markers.extend(tracker_msg(1.0, **{f'b{i}': body(1.0 + 0.1 * i)
+                                                    for i in range(3, 18)}).markers),
+     'more than 16 bodies'),
 ], ids=['nan', 'missing-joint', 'foreign-frame', 'bad-joint', 'negative-id', 'duplicate',
-        'two-stamps'])
+        'two-stamps', 'millimetres', 'too-many-bodies'])
 def test_a_malformed_driver_array_is_refused_with_the_reason(change, reason):
     with pytest.raises(conv.MessageError, match=reason):
         conv.body_frame_from_msg(_broken(change), CAMERA_FRAME)
@@ -156,7 +162,7 @@ def test_adapter_drops_bad_frames_with_diagnostics_and_never_a_wrong_skeleton(gr
     bad = {
         'holds NaN': _nan(frame(b1=body(0.5))),
         'tracking jump': frame(b1=body(3.0)),
-        'not after the previous': tracker_msg(t - 1.0, b1=body(0.5)),
+        'not after the previous': tracker_msg(t - 0.1, b1=body(0.5)),   # within max_gap
         "expected 'depth_camera_link'": frame('camera_base', b1=body(0.5)),
         'no body in view': MarkerArray(),
     }

@@ -222,6 +222,39 @@ def test_a_jump_of_metres_is_dropped_until_it_holds():
     assert machine.frame(frame(1.0 + 4 * DT, b1=body(2.5 - 0.9 * gate))).followed == 1
 
 
+def test_a_jump_toward_the_robot_keeps_its_skeleton_while_it_is_confirmed():
+    """A jump in the unsafe direction (2 m -> 0.3 m in one frame) was dropped like any jump,
+    so the estimator's window kept the older, farther skeleton: d 3 while the person stood in
+    the inner circle. Its skeleton now goes out at once; only its joint states wait."""
+    machine = tracker(confirm_frames=3)
+    for i in range(5):
+        machine.frame(frame(1.0 + i * DT, b1=body(2.0)))
+    for i in range(5, 7):
+        step = machine.frame(frame(1.0 + i * DT, b1=body(0.3)))
+        assert distance_level(step.keypoints) == 1 and step.velocities is None
+        assert step.followed is None and [r.kind for r in step.reports] == ['jump_nearer']
+        assert 'tracking jump' in step.reports[0].message
+    step = machine.frame(frame(1.0 + 7 * DT, b1=body(0.3)))        # confirmed: followed again
+    assert step.followed == 1 and step.reports[0].kind == 'relocated'
+    # the safe direction is still dropped: the nearer skeleton stays the latest
+    with pytest.raises(InputError, match='tracking jump'):
+        machine.frame(frame(1.0 + 8 * DT, b1=body(2.5)))
+
+
+def test_stamps_that_go_back_more_than_max_gap_start_the_tracker_again():
+    """A restarted driver, a stepped clock or a looped bag: every frame was dropped until the
+    stamps passed the old ones (hours, maybe). Beyond max_gap back, it starts again."""
+    machine = tracker(max_gap=0.5)
+    for i in range(5):
+        machine.frame(frame(1000.0 + i * DT, b1=body(1.0)))
+    with pytest.raises(InputError, match='not after the previous'):
+        machine.frame(frame(1000.0, b1=body(1.0)))              # a small reversal: dropped
+    step = machine.frame(frame(10.0, b1=body(1.0)))
+    assert [r.kind for r in step.reports][:1] == ['stamp_back'] and step.velocities is None
+    assert step.followed == 1
+    assert machine.frame(frame(10.0 + DT, b1=body(1.0))).velocities is not None
+
+
 def test_a_jump_that_does_not_hold_is_dropped_and_the_body_keeps_its_place():
     machine = tracker(confirm_frames=3)
     machine.frame(frame(1.0, b1=body(0.5)))
@@ -279,6 +312,22 @@ def test_no_frame_ever_gives_a_wrong_distance_level():
 
 
 # -- the synthetic tracker --------------------------------------------------------------------
+def test_synthetic_angles_stay_in_range_after_a_long_gap():
+    """A turn longer than the angle range (1.5 rad/s over a 2 s sensor dropout) once left the
+    range, below 0 where the measured angle folds; the angles now fold back inside, and the
+    next steps turn at the given speeds again."""
+    synthetic = SyntheticBody()
+    speeds = np.full(6, 1.5)
+    synthetic.step(speeds, 2, 0.0)
+    for t in (2.0, 4.3, 7.1):                                     # gaps of 2-3 s
+        angles = arm_angles(synthetic.step(speeds, 2, t))
+        assert np.all((angles >= ANGLE_RANGE[0]) & (angles <= ANGLE_RANGE[1])), angles
+        np.testing.assert_allclose(synthetic.angles, angles, atol=1e-9)
+    previous = arm_angles(synthetic.step(speeds, 2, 8.0))
+    after = arm_angles(synthetic.step(speeds, 2, 8.0 + DT))
+    np.testing.assert_allclose(np.abs(after - previous) / DT, speeds, rtol=1e-8)
+
+
 @pytest.mark.parametrize('direction', [(1.0, 0.0), (-0.3, 1.0)])
 def test_synthetic_body_turns_at_the_given_speeds_and_walks_into_the_level_band(direction):
     rng = np.random.default_rng(3)

@@ -47,9 +47,14 @@ never yields joint states without the skeleton of the same instant:
 - a body whose centroid moved more than ``max_speed * dt + JUMP_SLACK`` since the last accepted
   frame (a jump of metres in one frame): the frame is dropped; if the bodies stay at the new
   place for `confirm_frames` frames, that is where they are (accepted, the followed body chosen
-  again and the velocities restarted);
+  again and the velocities restarted). Never in the unsafe direction: a jumped frame whose
+  closest keypoint is nearer to the robot than the last accepted frame's still gives its
+  skeleton (the distance, with a WARN), only its joint states wait for the confirmation;
 - a stamp that does not increase: dropped (the velocities would divide by zero or go back);
-- NaN joints, missing joints, foreign frames are refused by the conversion.
+  one more than `max_gap` behind the last is a restarted tracker or a stepped clock (a looped
+  bag): the adapter starts again from it, with a WARN;
+- NaN joints, missing joints, foreign frames, joints farther than `MAX_RANGE` from the camera
+  (millimetres for metres) and more than `MAX_BODIES` bodies are refused by the conversion.
 
 The synthetic tracker (`SyntheticBody`) is the inverse, for simulation and tests: it turns a
 stream of joint speeds and distance levels (the simulated cell's `human/joint_states` and
@@ -94,6 +99,8 @@ _SEGMENTS = np.array([[JOINT_INDEX[j] for j in a + b] for _, a, b in ARM_ANGLES]
 MIN_SEGMENT = 1e-3          # metres: a shorter segment has no direction
 JUMP_SLACK = 0.15           # metres a centroid may move on top of max_speed * dt (tracker noise)
 QUATERNION_TOLERANCE = 1e-3  # |norm - 1| accepted (and normalised) in a rotation parameter
+MAX_RANGE = 10.0            # metres from the camera: farther is no depth camera's (millimetres?)
+MAX_BODIES = 16             # bodies in one frame (the Azure Kinect SDK tracks a handful)
 
 # Defaults of the body_tracking node (docs/DESIGN.md).
 DEFAULT_SWITCH_MARGIN = 0.3
@@ -226,6 +233,7 @@ class BodyTracking:
         self.followed: int | None = None
         self.last_stamp: float | None = None              # of any frame taken
         self._accepted: tuple[float, dict] | None = None  # stamp, body id -> centroid
+        self._nearest: float | None = None    # closest keypoint distance of the last accepted
         self._candidate: tuple[float, dict, int] | None = None  # a relocation being confirmed
         self._followed_at: tuple[float, int, np.ndarray, np.ndarray] | None = None
         #                  stamp, body, centroid, angles of the followed body's last frame
@@ -245,19 +253,42 @@ class BodyTracking:
             lost = self.followed is not None
             if self._accepted is not None:
                 self._accept(self._accepted[0], {})    # whoever comes next comes into view
+            self._nearest = None
             self._restart()
             raise InputError('no body in view' + (' (the followed body left)' if lost else ''))
         stamp = float(frame.stamp)
+        restarted = []
         if self.last_stamp is not None and not stamp > self.last_stamp:
-            raise InputError(f'body frame stamp {stamp:.9f} s is not after the previous one '
-                             f'({self.last_stamp:.9f} s)')
+            if self.last_stamp - stamp <= self.max_gap:
+                raise InputError(f'body frame stamp {stamp:.9f} s is not after the previous one '
+                                 f'({self.last_stamp:.9f} s)')
+            restarted = [Report(WARN, 'tracking', f'body frame stamps went back '
+                                f'{self.last_stamp - stamp:.3f} s (a restarted tracker, a stepped '
+                                'clock, a looped bag): starting again from this frame',
+                                {'stamp': stamp, 'previous_stamp': self.last_stamp},
+                                kind='stamp_back')]
+            self._accepted = self._candidate = self._nearest = None
+            self._restart()
         self.last_stamp = stamp
         joints = {b: self.transform.apply(j) for b, j in sorted(frame.bodies.items())}
         keypoints = {b: j[self.keypoints] for b, j in joints.items()}
         centroids = {b: k.mean(axis=0) for b, k in keypoints.items()}
         distances = {b: float(np.min(np.linalg.norm(k - self.reference_point, axis=1)))
                      for b, k in keypoints.items()}
-        reports = self._check_continuity(stamp, centroids)
+        nearest = min(distances.values())
+        try:
+            reports = restarted + self._check_continuity(stamp, centroids)
+        except InputError as exc:
+            if self._nearest is None or not nearest < self._nearest:
+                raise
+            # never drop in the unsafe direction: the distance stands, joint states wait
+            return TrackingStep(stamp, np.vstack(list(keypoints.values())), None, None, None,
+                                distances, restarted + [Report(
+                                    WARN, 'tracking', f'{exc}; its skeleton is kept: it is nearer '
+                                    f'to the robot ({nearest:.2f} m) than the last accepted '
+                                    f'({self._nearest:.2f} m)', {'nearest_m': nearest},
+                                    kind='jump_nearer')])
+        self._nearest = nearest
         reports += self._select(stamp, centroids, distances)
         angles = velocities = None
         if self.followed is not None:
@@ -425,7 +456,12 @@ class SyntheticBody:
         ahead = self.angles + self.turning * turn
         outside = (ahead < ANGLE_RANGE[0]) | (ahead > ANGLE_RANGE[1])
         self.turning[outside] *= -1.0
-        self.angles = self.angles + self.turning * turn
+        # a turn longer than the range (a long gap) still ends inside it: fold (a triangle wave)
+        low, span = ANGLE_RANGE[0], ANGLE_RANGE[1] - ANGLE_RANGE[0]
+        folded = np.mod(self.angles + self.turning * turn - low, 2.0 * span)
+        back = folded > span
+        self.angles = low + np.where(back, 2.0 * span - folded, folded)
+        self.turning[back] *= -1.0
         if self.rho is None:
             self.rho = 0.5 * (lo + hi)
         elif not lo <= self.rho <= hi:

@@ -56,7 +56,8 @@ from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSE
                           STATE_VARIABLES, TASK_VARIABLES, action_index)
 from ..core.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
 from ..core.protocol import InputError
-from ..core.tracking import K4ABT_JOINTS, MARKER_ID_STRIDE, BodyFrame, split_marker_id
+from ..core.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
+                             split_marker_id)
 from ..core.view import Shape
 
 ROBOT_BASE_FRAME = 'base_link'
@@ -395,6 +396,9 @@ def body_frame_from_msg(msg: MarkerArray, camera_frame: str) -> BodyFrame:
     joints = [m for m in msg.markers if m.action == Marker.ADD]
     if not joints:
         return BodyFrame(None, {})
+    if len(joints) > MAX_BODIES * len(K4ABT_JOINTS):
+        raise MessageError(f'body-tracking array of {len(joints)} joint markers: more than '
+                           f'{MAX_BODIES} bodies of {len(K4ABT_JOINTS)} joints')
     frames = sorted({m.header.frame_id for m in joints})
     if frames != [camera_frame]:
         raise MessageError(f'body-tracking markers are in frame(s) {frames}, expected '
@@ -421,6 +425,10 @@ def body_frame_from_msg(msg: MarkerArray, camera_frame: str) -> BodyFrame:
         position[joint] = (p.x, p.y, p.z)
         if not np.all(np.isfinite(position[joint])):
             raise MessageError(f'body {body} joint {K4ABT_JOINTS[joint]} holds NaN or inf')
+        if not np.linalg.norm(position[joint]) <= MAX_RANGE:
+            raise MessageError(f'body {body} joint {K4ABT_JOINTS[joint]} is '
+                               f'{np.linalg.norm(position[joint]):.3g} m from the camera, beyond '
+                               f'{MAX_RANGE:g} m: positions must be in metres')
     for body, position in bodies.items():
         missing = [K4ABT_JOINTS[j] for j in np.flatnonzero(np.isnan(position[:, 0]))]
         if missing:
