@@ -33,8 +33,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from hrc_ros.core.model import TASK_VARIABLES
 from hrc_ros.core.observation import closest_distance, synthesize_skeleton
-from hrc_ros.core.view import (DISC_THICKNESS, LEVEL_COLORS, CellState, CellView, action_line,
-                               scene, state_text, top_beliefs, with_alpha)
+from hrc_ros.core.view import (DISC_THICKNESS, GREY, LEVEL_COLORS, CellState, CellView,
+                               action_line, scene, state_text, top_beliefs, with_alpha)
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.cell_view_node import CellViewNode
@@ -138,6 +138,41 @@ def test_the_view_pairs_each_action_with_its_epochs_inputs():
     assert view.changed
     with pytest.raises(ValueError, match='unknown view input'):
         view.feed('joint_states', None)
+
+
+def test_nothing_old_is_shown_as_current():
+    """The view once drew the last skeleton forever: with nobody in view (the adapter then
+    publishes nothing) a person stood in the inner circle at "0.45 m", and a dead decision
+    node's last action stayed white. A stale skeleton is no longer drawn, a stale action is
+    greyed with its age, and fresh input clears both."""
+    view = CellView()
+    view.feed('epoch', 1, now=0.0)
+    view.feed('action', 'nw', now=0.1)
+    view.feed('skeleton', synthesize_skeleton(1, RADII, REFERENCE), now=0.2)
+    view.drawn()
+    view.age(1.2)                                   # 1.0 s: still current
+    assert not view.changed and view.state.keypoints is not None
+    view.age(1.3)
+    assert view.changed and view.state.keypoints is None and view.state.skeleton_age == 1
+    shapes = by_id(scene(view.state, RADII, REFERENCE))
+    assert not any(ns in ('human', 'closest') for ns, _ in shapes)
+    assert 'skeleton: none for 1 s' in shapes[('panel', 1)].text
+    view.drawn()
+    view.age(1.9)                                   # the same second: nothing new to draw
+    assert not view.changed
+    view.age(3.05)                                  # the skeleton's age moved on, not the action's
+    assert view.changed and view.state.skeleton_age == 2 and view.state.action_age is None
+    view.drawn()
+    view.age(4.2)
+    assert view.changed and view.state.action_age == 4
+    panel = by_id(scene(view.state, RADII, REFERENCE))[('panel', 0)]
+    assert panel.text == 'epoch 1: nw  (no action for 4 s)' and panel.color == GREY
+    view.feed('skeleton', synthesize_skeleton(2, RADII, REFERENCE), now=4.3)
+    view.feed('epoch', 2, now=4.3)
+    view.feed('action', 'dn', now=4.4)
+    view.age(4.5)
+    assert view.state.keypoints is not None and view.state.skeleton_age is None
+    assert view.state.action_age is None and action_line(view.state) == 'epoch 2: dn'
 
 
 # -- the messages -----------------------------------------------------------------------------

@@ -19,6 +19,10 @@ previous picture and nothing accumulates in RViz or Foxglove. The shapes, by nam
 
 `CellView` is the node's state: its inputs, fed in publication order, make one consistent epoch
 record (epoch, action, belief, d_k, task state, fail-safe reasons) and the latest skeleton.
+
+Nothing old is shown as current: a skeleton older than `SKELETON_STALE_S` is no longer drawn
+(nobody in view, or the tracker stopped: the panel says for how long), and an action older than
+`ACTION_STALE_S` is greyed with its age (the decision node stopped or the clock stalled).
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ DISC_THICKNESS = 0.004
 TEXT_HEIGHT = 0.08
 KEYPOINT_SIZE = 0.06
 PANEL_HEIGHT = 1.6        # metres above p: the action line; the state text below it
+SKELETON_STALE_S = 1.0    # a skeleton older than this is not drawn (nobody, or no tracker)
+ACTION_STALE_S = 3.0      # an action older than this is greyed with its age (no decision node)
 WHITE = (1.0, 1.0, 1.0, 1.0)
 GREY = (0.6, 0.6, 0.6, 1.0)
 KINDS = ('disc', 'sphere', 'spheres', 'line', 'text')
@@ -68,6 +74,8 @@ class CellState:
     distance_level: int | None = None   # d_k, hrc/distance_level
     task_state: dict | None = None
     keypoints: np.ndarray | None = None  # (n, 3), robot frame, the latest skeleton
+    skeleton_age: int | None = None     # whole seconds since the last skeleton, once stale
+    action_age: int | None = None       # whole seconds since the last action, once stale
 
 
 def with_alpha(rgb, alpha: float = 1.0) -> tuple:
@@ -92,12 +100,16 @@ def action_line(state: CellState) -> str:
     line = f'epoch {state.epoch}: {state.action}'
     if fail_safe(state):
         line += f'  FAIL-SAFE: {state.faults or "d = 0 (collision)"}'
+    if state.action_age is not None:
+        line += f'  (no action for {state.action_age} s)'
     return line
 
 
 def state_text(state: CellState) -> str:
     d = state.distance_level
     lines = [f'd_k {d} ({LEVEL_NAMES[d]})' if d is not None else 'd_k none yet']
+    if state.skeleton_age is not None:
+        lines.append(f'skeleton: none for {state.skeleton_age} s')
     if state.belief is None:
         lines.append('belief: none yet')
     else:
@@ -140,7 +152,8 @@ def scene(state: CellState, radii, reference_point) -> list[Shape]:
     shapes += [
         Shape('panel', 0, 'text', (p + [0.0, 0.0, PANEL_HEIGHT])[None],
               (0.0, 0.0, 1.5 * TEXT_HEIGHT),
-              with_alpha(LEVEL_COLORS[0]) if fail_safe(state) else WHITE, action_line(state)),
+              with_alpha(LEVEL_COLORS[0]) if fail_safe(state)
+              else GREY if state.action_age is not None else WHITE, action_line(state)),
         Shape('panel', 1, 'text', (p + [0.0, 0.0, PANEL_HEIGHT - 0.35])[None],
               (0.0, 0.0, TEXT_HEIGHT), WHITE, state_text(state)),
     ]
@@ -163,10 +176,17 @@ class CellView:
     state: CellState = field(default_factory=CellState)
     pending: dict = field(default_factory=dict)
     changed: bool = True            # the first picture, at the first refresh
+    skeleton_s: float | None = None  # when the latest skeleton / action came (`now`, seconds)
+    action_s: float | None = None
 
-    def feed(self, name: str, value) -> None:
+    def feed(self, name: str, value, now: float | None = None) -> None:
         """One input: 'epoch', 'action' (its name), 'belief', 'distance_level', 'task_state',
-        'skeleton' (keypoints), 'decision' ((epoch, action, faults) of its per-epoch status)."""
+        'skeleton' (keypoints), 'decision' ((epoch, action, faults) of its per-epoch status);
+        `now` (seconds, any monotonic clock) is when it came, for `age`."""
+        if name == 'skeleton':
+            self.skeleton_s, self.state.skeleton_age = now, None
+        elif name == 'action':
+            self.action_s, self.state.action_age = now, None
         if name == 'epoch':
             self.pending = {'epoch': value}
         elif name in STAGED:
@@ -191,6 +211,20 @@ class CellView:
                 self.changed = True
         else:
             raise ValueError(f'unknown view input {name!r}')
+
+    def age(self, now: float) -> None:
+        """At a refresh: stop drawing a stale skeleton, grey a stale action (module docstring);
+        `changed` when what the panel says changes (once a second at most)."""
+        if self.skeleton_s is not None and now - self.skeleton_s > SKELETON_STALE_S:
+            age = int(now - self.skeleton_s)
+            if self.state.keypoints is not None or age != self.state.skeleton_age:
+                self.state.keypoints, self.state.skeleton_age = None, age
+                self.changed = True
+        if self.action_s is not None and now - self.action_s > ACTION_STALE_S:
+            age = int(now - self.action_s)
+            if age != self.state.action_age:
+                self.state.action_age = age
+                self.changed = True
 
     def drawn(self) -> None:
         self.changed = False

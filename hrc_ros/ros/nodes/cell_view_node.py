@@ -21,6 +21,8 @@ without it.
 
 from __future__ import annotations
 
+import time
+
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rclpy.duration import Duration
@@ -103,9 +105,11 @@ class CellViewNode(Node):
 
     # -- the picture -----------------------------------------------------------------------
     def _refresh(self) -> None:
+        now = time.monotonic()          # ages are the viewer's: wall time since arrival
         for _, name, value in self.sampled.take():
             if value is not None:
-                self.view.feed(name, value)
+                self.view.feed(name, value, now)
+        self.view.age(now)
         if self.view.changed:
             self.draw()
 
