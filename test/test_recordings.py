@@ -92,6 +92,30 @@ def test_a_bad_csv_is_refused_in_one_line_naming_the_file(tmp_path, header, rows
     assert text.startswith(str(path)) and message in text and '\n' not in text
 
 
+@pytest.mark.parametrize('rows, line', [
+    # a blank line, then the bad row on line 4
+    ([GOOD[0], '', GOOD[1].replace(',1,2,rh2,', ',1,7,rh2,')], 4),
+    # a note quoted over two lines (2-3) and a blank line: the bad row is on line 5
+    ([GOOD[0] + ',"a note\nover two lines"', '', GOOD[1].replace(',1,2,rh2,', ',1,7,rh2,')], 5),
+    # the bad row itself spans lines 2-3: named by the line it starts on
+    ([GOOD[0].replace(',1,mh,', ',7,mh,') + ',"a note\nover two lines"'], 2),
+])
+def test_an_error_names_the_file_line_the_row_is_on(tmp_path, rows, line):
+    path = write(tmp_path, rows, HEADER + ',note')
+    with pytest.raises(RecordingError) as error:
+        read_csv(path, 2, 2)
+    assert str(error.value).startswith(f'{path}:{line}: column O = 7 is out of range')
+
+
+def test_the_reported_line_of_a_row_left_out_counts_blank_lines(tmp_path):
+    rows = ['1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0', '', '', '1,2,1,1,3,0,0,0,0,0,1,1,nw,,0,0']
+    path = write(tmp_path, rows)
+    data = fit.prepare(read_csv(path, 2, 2))
+    assert data.issues == [f'{path}:2: rh1 was accepted, but it was not an eligible request '
+                           '(MODEL.md 3.1); row left out']
+    assert read_csv(path, 2, 2)[0].line.tolist() == [2, 5]
+
+
 def test_rows_the_model_cannot_produce_are_reported_and_left_out(tmp_path):
     rows = [
         '1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0',   # rh1 on a joint task: not eligible, "accepted"

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import bisect
 import csv
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -110,12 +111,28 @@ def _integer(path, line: int, column: str, text: str, low: int, high: int) -> in
     return value
 
 
+def _records(path, text: str):
+    """(line, fields) of every record of a CSV text but blank lines; `line` is the file line
+    the record starts on, from csv's line_num, so blank lines and quoted fields that span lines
+    are counted."""
+    reader = csv.reader(io.StringIO(text, newline=''))
+    while True:
+        line = reader.line_num + 1
+        try:
+            fields = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise RecordingError(f'{path}:{line}: not a CSV record ({exc})') from None
+        if fields:
+            yield line, fields
+
+
 def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     """The episodes of a trajectory CSV file (format in the module docstring)."""
     path = Path(path)
-    text = read_text(path, RecordingError, 'CSV')
-    reader = csv.DictReader(text.splitlines())
-    header = reader.fieldnames or []
+    records = _records(path, read_text(path, RecordingError, 'CSV'))
+    _, header = next(records, (None, []))
     missing = [c for c in COLUMNS if c not in header]
     if missing:
         raise RecordingError(f'{path}: missing column{"s" if len(missing) > 1 else ""} '
@@ -124,8 +141,9 @@ def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     tops = {'tp': rho, 'tc': sigma, 'tx': 3, 'ty': 3, 'hp': rho, 'hc': sigma, 'bp': rho,
             'bc': sigma}
     episodes: dict[str, list] = {}
-    for line, row in enumerate(reader, start=2):
-        if None in row or any(row.get(c) is None for c in COLUMNS):
+    for line, fields in records:
+        row = dict(zip(header, fields))
+        if len(fields) > len(header) or any(c not in row for c in COLUMNS):
             raise RecordingError(f'{path}:{line}: the row has {len(header)} columns in the '
                                  'header but not in this line')
         episode = row['episode'].strip() if 'episode' in row and row['episode'] else '1'
