@@ -116,6 +116,24 @@ def test_the_reported_line_of_a_row_left_out_counts_blank_lines(tmp_path):
     assert read_csv(path, 2, 2)[0].line.tolist() == [2, 5]
 
 
+@pytest.mark.parametrize('header', [HEADER, HEADER.split(',', 1)[1]])
+def test_a_csv_saved_with_a_utf8_byte_order_mark_reads_as_without(tmp_path, header):
+    """Excel's "CSV UTF-8" starts the file with a byte order mark (and ends lines with CRLF):
+    the first column's name is still its name, whether it is episode or epoch."""
+    rows = GOOD + [r.replace('1,', '2,', 1) for r in GOOD]
+    if header != HEADER:
+        rows = [r.split(',', 1)[1] for r in GOOD]
+    plain = read_csv(write(tmp_path, rows, header), 2, 2)
+    path = tmp_path / 'excel.csv'
+    path.write_bytes(b'\xef\xbb\xbf' + '\r\n'.join([header] + rows).encode() + b'\r\n')
+    marked = read_csv(path, 2, 2)
+    assert [r.episode for r in marked] == [r.episode for r in plain]
+    assert len(plain) == (2 if header == HEADER else 1)
+    for a, b in zip(marked, plain):
+        for name in ('epoch', 'task', 'd', 'observation', 'action', 'accepted', 'line'):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def test_rows_the_model_cannot_produce_are_reported_and_left_out(tmp_path):
     rows = [
         '1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0',   # rh1 on a joint task: not eligible, "accepted"
