@@ -274,8 +274,11 @@ def test_the_fault_injection_bag_collision_is_cut_not_fitted():
     assert data.segments == 2
 
 
-def write_bag(path, topics, rows):
-    """A bag of the given hrc topics; rows: (epoch, task, d, O, action, answer or None)."""
+def write_bag(path, topics, rows, cut_action=None):
+    """A bag of the given hrc topics; rows: (epoch, task, d, O, action, answer or None).
+    cut_action: the index of a row whose hrc/action message is written with its CDR bytes cut
+    to 6 (inside the string's length field)."""
+    from rclpy.serialization import serialize_message
     from std_msgs.msg import Bool, String, UInt8, UInt8MultiArray, UInt32
 
     from hrc_ros.ros.bag import BagWriter
@@ -293,7 +296,7 @@ def write_bag(path, topics, rows):
             if topic in topics:
                 writer.write('/' + topic, message, t, t)
 
-        for epoch, task, d, o, action, answer in rows:
+        for i, (epoch, task, d, o, action, answer) in enumerate(rows):
             if epoch == 1:
                 t += 10_000_000_000     # a restart: the epoch source was silent for 10 s
             put('hrc/epoch', UInt32(data=epoch))
@@ -301,7 +304,8 @@ def write_bag(path, topics, rows):
             put('hrc/distance_level', UInt8(data=d))
             if o:
                 put('hrc/observation', UInt8(data=o))
-            put('hrc/action', String(data=action))
+            action = String(data=action)
+            put('hrc/action', serialize_message(action)[:6] if i == cut_action else action)
             if answer is not None:
                 put('hrc/human_response', Bool(data=answer))
     return path
@@ -329,6 +333,24 @@ def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported
     assert any("a hrc/action message published at" in m and "unknown action 'fly'" in m
                for m in first.issues)
     assert any('epoch 2 has no action; the epoch is left out' in m for m in first.issues)
+
+
+def test_a_message_whose_bytes_do_not_decode_is_reported_and_the_rest_of_the_bag_read(
+        tmp_path):
+    from hrc_ros.core.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
+    rows = [ROWS[0]] + ROWS[2:5]                   # epochs 1..4 of one episode
+    bag = write_bag(tmp_path / 'bag', BAG_TOPICS + OPTIONAL_BAG_TOPICS, rows, cut_action=2)
+    [recording] = read_recordings([bag], 2, 2)
+    assert recording.epoch.tolist() == [1, 2, 4]   # epoch 3 lost its action, only epoch 3
+    assert [ACTIONS[a] for a in recording.action] == ['mh', 'rh2', 'dn']
+    assert recording.accepted.tolist() == [-1, 1, -1]
+    unread = [m for m in recording.issues if 'a hrc/action message published at' in m]
+    assert len(unread) == 1
+    assert unread[0].startswith(f'{bag}/bag_0.mcap: ') and 'its 6 CDR bytes do not decode as ' \
+        'std_msgs/msg/String' in unread[0] and unread[0].endswith('; left out')
+    assert any('epoch 3 has no action; the epoch is left out' in m for m in recording.issues)
+    data = fit.prepare([recording])
+    assert data.epochs == 3 and unread[0] in data.issues
 
 
 @pytest.mark.parametrize('leave_out', ['hrc/observation', 'hrc/task_state', 'hrc/epoch'])

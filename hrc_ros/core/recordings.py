@@ -29,8 +29,10 @@ count after the source fell silent (a restart) begins a new episode, a stray epo
 not continue the count is left out and reported. Of each epoch's task state, distance level,
 observation and action the first one counts; the answer to a request is the latest
 `hrc/human_response` published after the action in its window (the task manager's rule,
-docs/DESIGN.md). A message that cannot be read is
-reported and left out (`Recording.issues`); a bag without one of the needed topics is refused.
+docs/DESIGN.md). A message that cannot be read (CDR bytes its schema does not decode, a value
+out of range) is reported and left out (`Recording.issues`), the rest of the bag is read; an
+epoch left without its task state or action goes too, reported. A bag without one of the needed
+topics is refused.
 """
 
 from __future__ import annotations
@@ -276,6 +278,8 @@ def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
                                 decode=True):
             suffix = topics[message.topic]
             try:
+                if message.decode_error:
+                    raise ValueError(message.decode_error)
                 value = decoders[suffix](message.decoded)
             except (ValueError, TypeError, AttributeError) as exc:
                 issues.append(f'{source}: a {suffix} message published at '
