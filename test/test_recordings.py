@@ -234,6 +234,58 @@ def test_hrc_fit_refuses_an_unknown_family_to_hold(tmp_path):
     assert result.returncode == 2 and "unknown parameter family 'p_acept'" in result.stderr
 
 
+def run_fit(capsys, *argv):
+    """hrc-fit in this process, so that a test can break one part of it: (exit status, the
+    lines on stderr)."""
+    from hrc_ros.tools.fit import main
+    status = main([str(a) for a in argv])
+    return status, capsys.readouterr().err.strip().splitlines()
+
+
+QUICK = ('--bootstrap', '0', '--starts', '1', '-q')
+
+
+@pytest.mark.parametrize('outputs, clash', [
+    (lambda d: ['-o', d / 'run.csv'], 'output {d}/run.csv (-o) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'link.csv'], 'output {d}/link.csv (-o) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'f.yaml', '--report', d / 'run.csv'],
+     'output {d}/run.csv (--report) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'f.yaml', '--plot', d / 'f.yaml'],
+     'output {d}/f.yaml (--plot) is also the -o output'),
+    (lambda d: ['-o', d / 'f.yaml', '--report', d / 'f.png', '--plot'],
+     'output {d}/f.png (--plot) is also the --report output'),
+    (lambda d: ['-o', d / 'base.yaml', '--base', d / 'base.yaml'],
+     'output {d}/base.yaml (-o) is the base configuration {d}/base.yaml'),
+    (lambda d: ['-o', d / 'bag' / 'metadata.yaml'],
+     'output {d}/bag/metadata.yaml (-o) is inside input {d}/bag'),
+])
+def test_hrc_fit_refuses_an_output_that_is_an_input_or_another_output(tmp_path, capsys, outputs,
+                                                                      clash):
+    path = write(tmp_path, GOOD)
+    (tmp_path / 'link.csv').symlink_to(path)
+    (tmp_path / 'base.yaml').write_text(share_dir().joinpath('config', 'default.yaml')
+                                        .read_text())
+    from hrc_ros.core.recordings import BAG_TOPICS
+    bag = write_bag(tmp_path / 'bag', BAG_TOPICS, ROWS[:5])     # bag_0.mcap and metadata.yaml
+
+    def files():
+        return {p: p.read_bytes() for p in tmp_path.rglob('*') if p.is_file()}
+    before = files()
+    status, lines = run_fit(capsys, path, bag, *outputs(tmp_path), *QUICK)
+    assert status == 2 and len(lines) == 1
+    assert lines[0].startswith('hrc-fit: error: ' + clash.format(d=tmp_path))
+    assert 'name ' in lines[0]
+    assert files() == before                                               # nothing lost
+
+
+def test_hrc_fit_makes_no_output_folder_before_the_inputs_are_read(tmp_path, capsys):
+    status, lines = run_fit(capsys, tmp_path / 'missing.csv', '-o', tmp_path / 'a' / 'f.yaml',
+                            '--plot', tmp_path / 'b' / 'f.png', '--report',
+                            tmp_path / 'c' / 'f.json')
+    assert status == 2 and len(lines) == 1 and 'missing.csv: cannot read' in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
 # -- bags -------------------------------------------------------------------------------------
 def bag_messages(path):
     """(topic, publish time, value) of the hrc topics of a bag, decoded with rclpy."""

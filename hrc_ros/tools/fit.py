@@ -6,12 +6,17 @@ INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .cs
 Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
 OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
 support, the log likelihood trace, the epochs used and the warnings.
+
+Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
+in an input bag folder, is the base configuration or is another output. Output folders are
+made only once the inputs have been read.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 from ..core.config import ConfigError, load_config
 from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
@@ -54,14 +59,19 @@ def main(argv=None) -> int:
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
-        output = output_file(args.output)
-        report_path = output_file(args.report or output.with_suffix('.report.json'))
+        output = Path(args.output)
+        report_path = Path(args.report or output.with_suffix('.report.json'))
         plot_path = (None if args.plot is None
-                     else output_file(args.plot or output.with_suffix('.png')))
+                     else Path(args.plot or output.with_suffix('.png')))
+        outputs = {'-o': output, '--report': report_path, '--plot': plot_path}
+        check_outputs(outputs, args.inputs, args.base or default_config_path())
         hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
         data = prepare(recordings)
+        for path in outputs.values():      # folders are made once the inputs have been read
+            if path is not None:
+                output_file(path)
     except (ToolError, ConfigError, RecordingError, FitError) as exc:
         return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
@@ -92,6 +102,30 @@ def main(argv=None) -> int:
         print(f'wrote {path}')
     print(f'next: hrc-solve --config {output} -o {output.with_suffix(".npz")}')
     return 0
+
+
+def check_outputs(outputs: dict, inputs, base) -> None:
+    """ToolError, before any work, when an output would overwrite what the run reads (an input,
+    a file in an input bag folder, the base configuration) or another output: the same file
+    after resolving symbolic links and relative parts. `outputs`: option -> path or None."""
+    read = [(Path(p).resolve(), f'input {p}') for p in inputs]
+    read.append((Path(base).resolve(), f'the base configuration {base}'))
+    taken: dict = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        if path.is_dir():
+            raise ToolError(f'output {path} ({option}) is a folder; name a file')
+        where = path.resolve()
+        for source, what in read:
+            if where == source or source in where.parents:
+                inside = '' if where == source else 'inside '
+                raise ToolError(f'output {path} ({option}) is {inside}{what}: the run would '
+                                f'overwrite what it reads; name another file with {option}')
+        if where in taken:
+            raise ToolError(f'output {path} ({option}) is also the {taken[where]} output: name '
+                            f'a different file with {option}')
+        taken[where] = option
 
 
 if __name__ == '__main__':
