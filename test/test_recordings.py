@@ -203,6 +203,8 @@ def test_hrc_fit_on_csv_writes_a_loadable_configuration_a_report_and_a_plot(tmp_
     assert out.with_suffix('.png').stat().st_size > 10_000
     assert 'p_accept[em=0]' in result.stdout and 'log likelihood by iteration' in result.stdout
     assert f'next: hrc-solve --config {out}' in result.stdout
+    assert sorted(p.name for p in out.parent.iterdir()) == ['fitted.png', 'fitted.report.json',
+                                                            'fitted.yaml']   # no temporary
 
 
 @pytest.mark.parametrize('make, message', [
@@ -284,6 +286,39 @@ def test_hrc_fit_makes_no_output_folder_before_the_inputs_are_read(tmp_path, cap
                             tmp_path / 'c' / 'f.json')
     assert status == 2 and len(lines) == 1 and 'missing.csv: cannot read' in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_fitted_configuration_that_does_not_validate_is_one_line_and_nothing_written(
+        tmp_path, capsys, monkeypatch):
+    from hrc_ros.core.config import ConfigError
+
+    def refuse(data):
+        raise ConfigError('model: p_delta row 0 does not sum to 1')
+    monkeypatch.setattr(fit, 'validate', refuse)       # the check fit.fitted_data ends with
+    path = write(tmp_path, GOOD)
+    status, lines = run_fit(capsys, path, '-o', tmp_path / 'out' / 'f.yaml', *QUICK)
+    assert status == 2 and lines == ['hrc-fit: error: the fitted configuration does not '
+                                     'validate (model: p_delta row 0 does not sum to 1); '
+                                     'nothing written']
+    assert list((tmp_path / 'out').iterdir()) == []
+
+
+def test_a_run_that_writes_an_invalid_configuration_leaves_the_older_one_as_it_was(
+        tmp_path, capsys, monkeypatch):
+    import hrc_ros.tools.fit as tool
+    config_yaml = tool.config_yaml
+    monkeypatch.setattr(tool, 'config_yaml',                  # cut short half way
+                        lambda *a: config_yaml(*a)[:len(config_yaml(*a)) // 2])
+    path = write(tmp_path, GOOD)
+    out = tmp_path / 'fitted.yaml'
+    out.write_text('# the fit of last week\n')
+    status, lines = run_fit(capsys, path, '-o', out, *QUICK)
+    assert status == 2
+    assert out.read_text() == '# the fit of last week\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['fitted.yaml', 'run.csv']
+    assert len(lines) == 1
+    assert lines[0].startswith('hrc-fit: error: the fitted configuration does not validate')
+    assert lines[0].endswith(f'; {out} was not written') and '.tmp' not in lines[0]
 
 
 # -- bags -------------------------------------------------------------------------------------

@@ -9,12 +9,15 @@ support, the log likelihood trace, the epochs used and the warnings.
 
 Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
 in an input bag folder, is the base configuration or is another output. Output folders are
-made only once the inputs have been read.
+made only once the inputs have been read. OUT.yaml is written to a temporary file beside it,
+loaded back with load_config and only then renamed over OUT.yaml, so a failed run leaves no
+half-written or invalid OUT.yaml (an older one stays as it was).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -81,16 +84,23 @@ def main(argv=None) -> int:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say)
+        text = config_yaml(result, base, args.inputs)
     except FitError as exc:
         return fail('hrc-fit', exc)
-    output.write_text(config_yaml(result, base, args.inputs))
-    try:
-        load_config(output)         # what was written is a configuration load_config accepts
     except ConfigError as exc:
-        return fail('hrc-fit', f'the fitted configuration does not validate: {exc}')
+        return fail('hrc-fit', f'the fitted configuration does not validate ({exc}); nothing '
+                    'written')
     report = report_dict(result)
     report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
-    report_path.write_text(json.dumps(report, indent=2) + '\n')
+    try:
+        # what is written is a configuration load_config accepts, or OUT.yaml is left as it was
+        write_replacing(output, text, check=load_config)
+        write_replacing(report_path, json.dumps(report, indent=2) + '\n')
+    except ConfigError as exc:
+        return fail('hrc-fit', f'the fitted configuration does not validate ({exc}); {output} '
+                    'was not written')
+    except ToolError as exc:
+        return fail('hrc-fit', exc)
     print(report_text(result) if not args.quiet else
           f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '
           f'{len(result.warnings)} warning(s)')
@@ -126,6 +136,26 @@ def check_outputs(outputs: dict, inputs, base) -> None:
             raise ToolError(f'output {path} ({option}) is also the {taken[where]} output: name '
                             f'a different file with {option}')
         taken[where] = option
+
+
+def write_replacing(path: Path, text: str, check=None) -> None:
+    """Write `text` to a temporary file beside `path`, `check(temporary)` it, then rename it
+    over `path` (os.replace, as save_policy does), so a run that fails on the way leaves `path`
+    as it was. The temporary file is removed in any case; ToolError when it cannot be written,
+    the check's ConfigError (naming `path`) when the check refuses it."""
+    temporary = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+    try:
+        temporary.write_text(text)
+        if check is not None:
+            try:
+                check(temporary)
+            except ConfigError as exc:    # it names the temporary file, which is about to go
+                raise ConfigError(str(exc).replace(str(temporary), str(path))) from None
+        os.replace(temporary, path)
+    except OSError as exc:
+        raise ToolError(f'cannot write {path}: {exc.strerror or exc}') from None
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 if __name__ == '__main__':
