@@ -1,8 +1,8 @@
 """hrc-fit's EM (core.fit) on data with a known answer.
 
 - The E-step (the numba kernel: evidence, scaled forward-backward, expected counts) equals the
-  brute-force sum over every hidden path of short segments, for the log likelihood and every
-  count the M-step reads.
+  brute-force sum over every hidden path of short segments, for the log likelihood, every
+  count the M-step reads and the unique-move counts the support is made of.
 - Where em is observed exactly (an observation likelihood that shows em), EM's p_accept is
   the closed-form ratio of the true counts and its em chains are the maximum of the chains'
   own likelihood found by a dense search; where nothing is observed exactly, EM's p_accept is
@@ -74,7 +74,7 @@ def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
     transition = params.emotion_matrices()
     out = {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
            'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
-           'observed': np.zeros((3, 9))}
+           'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
     for s, w in enumerate(weights):
         a, b = data.seg_start[s], data.seg_start[s + 1]
         paths = np.array(list(itertools.product(range(9), repeat=b - a)))
@@ -98,6 +98,8 @@ def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
                 r = data.move[a + t] * params.p_delta                  # [ea, Delta]
                 r = r / r.sum(axis=1, keepdims=True)
                 np.add.at(out['delta'], ea, post[:, None] * r[ea])
+                for k in np.flatnonzero(data.unique_delta[a + t]):   # Delta k would show
+                    np.add.at(out['unique_moves'][:, k], ea, post)
             if t < b - a - 1:
                 nxt = paths[:, t + 1]
                 g = data.group[a + t]
@@ -114,7 +116,14 @@ def test_the_e_step_equals_the_sum_over_every_hidden_path():
     stats = fit.e_step(params, data, weights)
     truth = brute_force(params, data, weights)
     assert stats.loglik == pytest.approx(truth['loglik'], rel=1e-12)
-    for name in ('first', 'accept', 'delta', 'transitions', 'observed'):
+    counts = ('first', 'accept', 'delta', 'transitions', 'observed', 'unique_moves')
+    assert set(counts) == set(vars(stats)) - {'loglik'}        # every count the E-step gives
+    # the data exercise every count: moves whose Delta is told apart uniquely, and moves that
+    # leave it to p_delta
+    moves = data.move[data.has_move].sum(axis=1)
+    assert (moves == 1).any() and (moves == 2).any() and data.unique_delta.any()
+    for name in counts:
+        assert truth[name].sum() > 0, name
         np.testing.assert_allclose(getattr(stats, name), truth[name], rtol=1e-9, atol=1e-12,
                                    err_msg=name)
 
