@@ -218,9 +218,10 @@ def test_with_em_observed_p_accept_is_the_count_ratio_and_the_chains_their_maxim
                 counts[group, em[k], em[k + 1]] += 1
     assert answered.min() > 30
     np.testing.assert_allclose(result.params.p_accept, accepted / answered, atol=1e-9)
+    # the policy takes nw, rh2 and mh: every action group's em chain has moves to check
+    assert sorted(set(fit.ACTION_GROUP[[NW, RH2, MH]])) == [0, 1, 2]
+    assert counts.sum(axis=(1, 2)).min() > 500, counts.sum(axis=(1, 2))
     for g in range(3):
-        if counts[g].sum() == 0:
-            continue
         fitted = result.params.chains[g, 0]
         grid = np.array([(a, b, 1 - a - b) for a in np.linspace(0, 1, 401)
                          for b in np.linspace(0, 1, 401) if a + b <= 1 + 1e-12])
