@@ -13,6 +13,7 @@
   the fit moves every family toward the truth and the well-determined ones (RECOVERED) to
   within RECOVERY_TOLERANCE = 0.05.
 - The fit never reads em, ea or the belief: scrambling those columns changes nothing.
+- The bootstrap's intervals are finite and hold the estimate of every supported parameter.
 """
 
 from __future__ import annotations
@@ -375,10 +376,16 @@ def test_the_bootstrap_gives_intervals_around_the_estimate_and_flags_weak_parame
     recordings, _ = simulated(base, policy, 60, seed=3)
     result = fit.fit(fit.prepare(recordings), base, n_init=1, bootstrap=30, min_support=100)
     estimate = result.params.vector()
+    low, high = result.interval
     assert result.samples.shape == (30, 57)
-    assert np.all(result.interval[0] <= result.interval[1])
-    inside = (result.interval[0] - 1e-9 <= estimate) & (estimate <= result.interval[1] + 1e-9)
-    assert inside.mean() > 0.8
+    assert np.all(np.isfinite(result.interval)) and np.all(low <= high)
+    # every parameter with support (not flagged below min_support) has its estimate inside its
+    # interval; the unsupported (the rare mh's chains, p_accept at low em) may sit at the edge
+    supported = result.support >= result.min_support
+    assert supported.sum() >= 45
+    inside = (low - 1e-9 <= estimate) & (estimate <= high + 1e-9)
+    outside = [n for n, ok in zip(fit.PARAMETER_NAMES, inside | ~supported) if not ok]
+    assert outside == []
     # 3000 epochs: mh is rare, so the motivate chains are poorly supported, and said to be
     assert any(w.startswith('emotion.motivate.em: poorly') for w in result.warnings)
     assert np.all(result.effective > 0)
