@@ -16,6 +16,7 @@ tools.fit).
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -201,7 +202,15 @@ def test_hrc_fit_on_csv_writes_a_loadable_configuration_a_report_and_a_plot(tmp_
     assert all(p['ci95'][0] <= p['ci95'][1] for p in report['parameters'] if not p['held'])
     assert report['loglik_trace'] == sorted(report['loglik_trace'])
     assert out.with_suffix('.png').stat().st_size > 10_000
-    assert 'p_accept[em=0]' in result.stdout and 'log likelihood by iteration' in result.stdout
+    assert 'p_accept[em=0]' in result.stdout
+    # as docs/LEARNING.md says: iteration 0, every 10th and the last, to 4 decimals
+    [trace] = [line.split(': ', 1)[1] for line in result.stdout.splitlines()
+               if line.startswith('log likelihood by iteration: ')]
+    shown = [entry.split(': ') for entry in trace.split(', ')]
+    last = len(report['loglik_trace']) - 1
+    assert last > 20                           # so that "every 10th" is seen
+    assert [int(i) for i, _ in shown] == sorted(set(range(0, last, 10)) | {last})
+    assert all(re.fullmatch(r'-\d+\.\d{4}', v) for _, v in shown)
     assert f'next: hrc-solve --config {out}' in result.stdout
     assert sorted(p.name for p in out.parent.iterdir()) == ['fitted.png', 'fitted.report.json',
                                                             'fitted.yaml']   # no temporary

@@ -5,7 +5,8 @@
 INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .csv files.
 Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
 OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
-support, the log likelihood trace, the epochs used and the warnings.
+support, the log likelihood at every 10th iteration and the last (the JSON report has every
+iteration), the epochs used and the warnings.
 
 Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
 in an input bag folder, is the base configuration or is another output. Output folders are
