@@ -3,14 +3,19 @@ tools.fit).
 
 - A CSV with a missing column, an unreadable or out-of-range value, an unknown action or
   epochs going backwards is refused in one line naming the file (and line) and what is wrong,
-  by the reader and by `hrc-fit` (exit 2, nothing written).
+  by the reader and by `hrc-fit` (exit 2, nothing written). The line is the file's own (blank
+  lines and quoted multi-line fields counted); a UTF-8 byte order mark changes nothing.
 - Rows that contradict the model are reported and left out (an ineligible request accepted),
   and transitions it cannot produce cut the episode (a jump of d, a task state that does not
   follow, a gap in the epochs); an unanswered request takes the answer its successor shows.
 - The shipped bags read as the run recorded them: one row per epoch with the recorded action,
   observation, distance and task state, placed by the epoch signals' source timestamps. A bag
-  without a needed topic, a damaged bag and a message that cannot be read are handled.
+  without a needed topic, a damaged bag and a message that cannot be read are handled: a
+  message whose CDR bytes do not decode is reported and skipped, the other epochs kept.
 - `hrc-fit` end to end on CSVs: a configuration `load_config` accepts, a JSON report, a plot.
+  An output that is an input, lies in an input bag, is the base or another output is refused
+  before any work; no output folder is made before the inputs are read; a fitted
+  configuration that does not validate is one line, and an older OUT.yaml stays as it was.
 """
 
 from __future__ import annotations
