@@ -3,19 +3,25 @@ tools.fit).
 
 - A CSV with a missing column, an unreadable or out-of-range value, an unknown action or
   epochs going backwards is refused in one line naming the file (and line) and what is wrong,
-  by the reader and by `hrc-fit` (exit 2, nothing written).
+  by the reader and by `hrc-fit` (exit 2, nothing written). The line is the file's own (blank
+  lines and quoted multi-line fields counted); a UTF-8 byte order mark changes nothing.
 - Rows that contradict the model are reported and left out (an ineligible request accepted),
   and transitions it cannot produce cut the episode (a jump of d, a task state that does not
   follow, a gap in the epochs); an unanswered request takes the answer its successor shows.
 - The shipped bags read as the run recorded them: one row per epoch with the recorded action,
   observation, distance and task state, placed by the epoch signals' source timestamps. A bag
-  without a needed topic, a damaged bag and a message that cannot be read are handled.
+  without a needed topic, a damaged bag and a message that cannot be read are handled: a
+  message whose CDR bytes do not decode is reported and skipped, the other epochs kept.
 - `hrc-fit` end to end on CSVs: a configuration `load_config` accepts, a JSON report, a plot.
+  An output that is an input, lies in an input bag, is the base or another output is refused
+  before any work; no output folder is made before the inputs are read; a fitted
+  configuration that does not validate is one line, and an older OUT.yaml stays as it was.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -92,6 +98,48 @@ def test_a_bad_csv_is_refused_in_one_line_naming_the_file(tmp_path, header, rows
     assert text.startswith(str(path)) and message in text and '\n' not in text
 
 
+@pytest.mark.parametrize('rows, line', [
+    # a blank line, then the bad row on line 4
+    ([GOOD[0], '', GOOD[1].replace(',1,2,rh2,', ',1,7,rh2,')], 4),
+    # a note quoted over two lines (2-3) and a blank line: the bad row is on line 5
+    ([GOOD[0] + ',"a note\nover two lines"', '', GOOD[1].replace(',1,2,rh2,', ',1,7,rh2,')], 5),
+    # the bad row itself spans lines 2-3: named by the line it starts on
+    ([GOOD[0].replace(',1,mh,', ',7,mh,') + ',"a note\nover two lines"'], 2),
+])
+def test_an_error_names_the_file_line_the_row_is_on(tmp_path, rows, line):
+    path = write(tmp_path, rows, HEADER + ',note')
+    with pytest.raises(RecordingError) as error:
+        read_csv(path, 2, 2)
+    assert str(error.value).startswith(f'{path}:{line}: column O = 7 is out of range')
+
+
+def test_the_reported_line_of_a_row_left_out_counts_blank_lines(tmp_path):
+    rows = ['1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0', '', '', '1,2,1,1,3,0,0,0,0,0,1,1,nw,,0,0']
+    path = write(tmp_path, rows)
+    data = fit.prepare(read_csv(path, 2, 2))
+    assert data.issues == [f'{path}:2: rh1 was accepted, but it was not an eligible request '
+                           '(MODEL.md 3.1); row left out']
+    assert read_csv(path, 2, 2)[0].line.tolist() == [2, 5]
+
+
+@pytest.mark.parametrize('header', [HEADER, HEADER.split(',', 1)[1]])
+def test_a_csv_saved_with_a_utf8_byte_order_mark_reads_as_without(tmp_path, header):
+    """Excel's "CSV UTF-8" starts the file with a byte order mark (and ends lines with CRLF):
+    the first column's name is still its name, whether it is episode or epoch."""
+    rows = GOOD + [r.replace('1,', '2,', 1) for r in GOOD]
+    if header != HEADER:
+        rows = [r.split(',', 1)[1] for r in GOOD]
+    plain = read_csv(write(tmp_path, rows, header), 2, 2)
+    path = tmp_path / 'excel.csv'
+    path.write_bytes(b'\xef\xbb\xbf' + '\r\n'.join([header] + rows).encode() + b'\r\n')
+    marked = read_csv(path, 2, 2)
+    assert [r.episode for r in marked] == [r.episode for r in plain]
+    assert len(plain) == (2 if header == HEADER else 1)
+    for a, b in zip(marked, plain):
+        for name in ('epoch', 'task', 'd', 'observation', 'action', 'accepted', 'line'):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def test_rows_the_model_cannot_produce_are_reported_and_left_out(tmp_path):
     rows = [
         '1,1,1,1,3,0,0,0,0,0,1,1,rh1,1,0,0',   # rh1 on a joint task: not eligible, "accepted"
@@ -159,8 +207,18 @@ def test_hrc_fit_on_csv_writes_a_loadable_configuration_a_report_and_a_plot(tmp_
     assert all(p['ci95'][0] <= p['ci95'][1] for p in report['parameters'] if not p['held'])
     assert report['loglik_trace'] == sorted(report['loglik_trace'])
     assert out.with_suffix('.png').stat().st_size > 10_000
-    assert 'p_accept[em=0]' in result.stdout and 'log likelihood by iteration' in result.stdout
+    assert 'p_accept[em=0]' in result.stdout
+    # as docs/LEARNING.md says: iteration 0, every 10th and the last, to 4 decimals
+    [trace] = [line.split(': ', 1)[1] for line in result.stdout.splitlines()
+               if line.startswith('log likelihood by iteration: ')]
+    shown = [entry.split(': ') for entry in trace.split(', ')]
+    last = len(report['loglik_trace']) - 1
+    assert last > 20                           # so that "every 10th" is seen
+    assert [int(i) for i, _ in shown] == sorted(set(range(0, last, 10)) | {last})
+    assert all(re.fullmatch(r'-\d+\.\d{4}', v) for _, v in shown)
     assert f'next: hrc-solve --config {out}' in result.stdout
+    assert sorted(p.name for p in out.parent.iterdir()) == ['fitted.png', 'fitted.report.json',
+                                                            'fitted.yaml']   # no temporary
 
 
 @pytest.mark.parametrize('make, message', [
@@ -190,6 +248,91 @@ def test_hrc_fit_refuses_an_unknown_family_to_hold(tmp_path):
                              str(tmp_path / 'f.yaml'), '--hold', 'p_acept'],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unknown parameter family 'p_acept'" in result.stderr
+
+
+def run_fit(capsys, *argv):
+    """hrc-fit in this process, so that a test can break one part of it: (exit status, the
+    lines on stderr)."""
+    from hrc_ros.tools.fit import main
+    status = main([str(a) for a in argv])
+    return status, capsys.readouterr().err.strip().splitlines()
+
+
+QUICK = ('--bootstrap', '0', '--starts', '1', '-q')
+
+
+@pytest.mark.parametrize('outputs, clash', [
+    (lambda d: ['-o', d / 'run.csv'], 'output {d}/run.csv (-o) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'link.csv'], 'output {d}/link.csv (-o) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'f.yaml', '--report', d / 'run.csv'],
+     'output {d}/run.csv (--report) is input {d}/run.csv'),
+    (lambda d: ['-o', d / 'f.yaml', '--plot', d / 'f.yaml'],
+     'output {d}/f.yaml (--plot) is also the -o output'),
+    (lambda d: ['-o', d / 'f.yaml', '--report', d / 'f.png', '--plot'],
+     'output {d}/f.png (--plot) is also the --report output'),
+    (lambda d: ['-o', d / 'base.yaml', '--base', d / 'base.yaml'],
+     'output {d}/base.yaml (-o) is the base configuration {d}/base.yaml'),
+    (lambda d: ['-o', d / 'bag' / 'metadata.yaml'],
+     'output {d}/bag/metadata.yaml (-o) is inside input {d}/bag'),
+])
+def test_hrc_fit_refuses_an_output_that_is_an_input_or_another_output(tmp_path, capsys, outputs,
+                                                                      clash):
+    path = write(tmp_path, GOOD)
+    (tmp_path / 'link.csv').symlink_to(path)
+    (tmp_path / 'base.yaml').write_text(share_dir().joinpath('config', 'default.yaml')
+                                        .read_text())
+    from hrc_ros.core.recordings import BAG_TOPICS
+    bag = write_bag(tmp_path / 'bag', BAG_TOPICS, ROWS[:5])     # bag_0.mcap and metadata.yaml
+
+    def files():
+        return {p: p.read_bytes() for p in tmp_path.rglob('*') if p.is_file()}
+    before = files()
+    status, lines = run_fit(capsys, path, bag, *outputs(tmp_path), *QUICK)
+    assert status == 2 and len(lines) == 1
+    assert lines[0].startswith('hrc-fit: error: ' + clash.format(d=tmp_path))
+    assert 'name ' in lines[0]
+    assert files() == before                                               # nothing lost
+
+
+def test_hrc_fit_makes_no_output_folder_before_the_inputs_are_read(tmp_path, capsys):
+    status, lines = run_fit(capsys, tmp_path / 'missing.csv', '-o', tmp_path / 'a' / 'f.yaml',
+                            '--plot', tmp_path / 'b' / 'f.png', '--report',
+                            tmp_path / 'c' / 'f.json')
+    assert status == 2 and len(lines) == 1 and 'missing.csv: cannot read' in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_fitted_configuration_that_does_not_validate_is_one_line_and_nothing_written(
+        tmp_path, capsys, monkeypatch):
+    from hrc_ros.core.config import ConfigError
+
+    def refuse(data):
+        raise ConfigError('model: p_delta row 0 does not sum to 1')
+    monkeypatch.setattr(fit, 'validate', refuse)       # the check fit.fitted_data ends with
+    path = write(tmp_path, GOOD)
+    status, lines = run_fit(capsys, path, '-o', tmp_path / 'out' / 'f.yaml', *QUICK)
+    assert status == 2 and lines == ['hrc-fit: error: the fitted configuration does not '
+                                     'validate (model: p_delta row 0 does not sum to 1); '
+                                     'nothing written']
+    assert list((tmp_path / 'out').iterdir()) == []
+
+
+def test_a_run_that_writes_an_invalid_configuration_leaves_the_older_one_as_it_was(
+        tmp_path, capsys, monkeypatch):
+    import hrc_ros.tools.fit as tool
+    config_yaml = tool.config_yaml
+    monkeypatch.setattr(tool, 'config_yaml',                  # cut short half way
+                        lambda *a: config_yaml(*a)[:len(config_yaml(*a)) // 2])
+    path = write(tmp_path, GOOD)
+    out = tmp_path / 'fitted.yaml'
+    out.write_text('# the fit of last week\n')
+    status, lines = run_fit(capsys, path, '-o', out, *QUICK)
+    assert status == 2
+    assert out.read_text() == '# the fit of last week\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['fitted.yaml', 'run.csv']
+    assert len(lines) == 1
+    assert lines[0].startswith('hrc-fit: error: the fitted configuration does not validate')
+    assert lines[0].endswith(f'; {out} was not written') and '.tmp' not in lines[0]
 
 
 # -- bags -------------------------------------------------------------------------------------
@@ -232,8 +375,11 @@ def test_the_fault_injection_bag_collision_is_cut_not_fitted():
     assert data.segments == 2
 
 
-def write_bag(path, topics, rows):
-    """A bag of the given hrc topics; rows: (epoch, task, d, O, action, answer or None)."""
+def write_bag(path, topics, rows, cut_action=None):
+    """A bag of the given hrc topics; rows: (epoch, task, d, O, action, answer or None).
+    cut_action: the index of a row whose hrc/action message is written with its CDR bytes cut
+    to 6 (inside the string's length field)."""
+    from rclpy.serialization import serialize_message
     from std_msgs.msg import Bool, String, UInt8, UInt8MultiArray, UInt32
 
     from hrc_ros.ros.bag import BagWriter
@@ -251,7 +397,7 @@ def write_bag(path, topics, rows):
             if topic in topics:
                 writer.write('/' + topic, message, t, t)
 
-        for epoch, task, d, o, action, answer in rows:
+        for i, (epoch, task, d, o, action, answer) in enumerate(rows):
             if epoch == 1:
                 t += 10_000_000_000     # a restart: the epoch source was silent for 10 s
             put('hrc/epoch', UInt32(data=epoch))
@@ -259,7 +405,8 @@ def write_bag(path, topics, rows):
             put('hrc/distance_level', UInt8(data=d))
             if o:
                 put('hrc/observation', UInt8(data=o))
-            put('hrc/action', String(data=action))
+            action = String(data=action)
+            put('hrc/action', serialize_message(action)[:6] if i == cut_action else action)
             if answer is not None:
                 put('hrc/human_response', Bool(data=answer))
     return path
@@ -287,6 +434,24 @@ def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported
     assert any("a hrc/action message published at" in m and "unknown action 'fly'" in m
                for m in first.issues)
     assert any('epoch 2 has no action; the epoch is left out' in m for m in first.issues)
+
+
+def test_a_message_whose_bytes_do_not_decode_is_reported_and_the_rest_of_the_bag_read(
+        tmp_path):
+    from hrc_ros.core.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
+    rows = [ROWS[0]] + ROWS[2:5]                   # epochs 1..4 of one episode
+    bag = write_bag(tmp_path / 'bag', BAG_TOPICS + OPTIONAL_BAG_TOPICS, rows, cut_action=2)
+    [recording] = read_recordings([bag], 2, 2)
+    assert recording.epoch.tolist() == [1, 2, 4]   # epoch 3 lost its action, only epoch 3
+    assert [ACTIONS[a] for a in recording.action] == ['mh', 'rh2', 'dn']
+    assert recording.accepted.tolist() == [-1, 1, -1]
+    unread = [m for m in recording.issues if 'a hrc/action message published at' in m]
+    assert len(unread) == 1
+    assert unread[0].startswith(f'{bag}/bag_0.mcap: ') and 'its 6 CDR bytes do not decode as ' \
+        'std_msgs/msg/String' in unread[0] and unread[0].endswith('; left out')
+    assert any('epoch 3 has no action; the epoch is left out' in m for m in recording.issues)
+    data = fit.prepare([recording])
+    assert data.epochs == 3 and unread[0] in data.issues
 
 
 @pytest.mark.parametrize('leave_out', ['hrc/observation', 'hrc/task_state', 'hrc/epoch'])

@@ -471,6 +471,7 @@ class BagMessage:
     data: bytes
     qos_profiles: list = field(default_factory=list, compare=False)
     decoded: Any = field(default=None, compare=False)   # with read_bag(decode=True)
+    decode_error: str = field(default='', compare=False)   # why `decoded` is None, if it is
 
 
 @dataclass(frozen=True)
@@ -645,9 +646,12 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
     """Yield the messages of a bag (a .mcap file or a bag directory) in log-time order.
 
     ``topics``: only these topics. ``decode``: also decode each message from its schema text
-    (`BagMessage.decoded`, mcap_ros2's dynamic message: fields as attributes). Raises `BagError`
-    for a bag that is missing, not MCAP, truncated or corrupt (also part way through: chunk
-    CRCs are checked as chunks are read), and for a message its schema cannot decode.
+    (`BagMessage.decoded`, mcap_ros2's dynamic message: fields as attributes); a message whose
+    bytes its schema cannot decode comes with ``decoded`` None and `BagMessage.decode_error`
+    saying why, so that one bad message does not cost the rest of the bag: the caller reports
+    and skips it. Raises `BagError` for a bag that is missing, not MCAP, truncated or corrupt
+    (also part way through: chunk CRCs are checked as chunks are read), and for a topic whose
+    schema gives no decoder.
     """
     bag_file = resolve_bag_file(path)
     _check_container(bag_file)
@@ -658,16 +662,20 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
         try:
             for schema, channel, message in contents.reader.iter_messages(
                     topics=None if wanted is None else sorted(wanted), log_time_order=True):
-                decoded = None
+                decoded, decode_error = None, ''
                 if factory is not None:
                     decoder = factory.decoder_for(channel.message_encoding, schema)
                     if decoder is None:
                         raise BagError(f'{bag_file}: topic {channel.topic} has no ros2msg '
                                        'schema to decode it with')
-                    decoded = decoder(message.data)
+                    try:
+                        decoded = decoder(message.data)
+                    except Exception as exc:  # noqa: BLE001 - bad CDR: struct.error, ValueError..
+                        decode_error = (f'its {len(message.data)} CDR bytes do not decode as '
+                                        f'{schema.name}: {type(exc).__name__}: {exc}')
                 yield BagMessage(channel.topic, contents.topic_types[channel.id],
                                  message.log_time, message.publish_time, bytes(message.data),
-                                 contents.qos[channel.id], decoded)
+                                 contents.qos[channel.id], decoded, decode_error)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes

@@ -55,10 +55,11 @@ def shipped_config_path(name: str) -> Path:
 
 def read_text(path: str | Path, error: type[Exception], kind: str) -> str:
     """The text of a user's file, or `error` with one line that names it: cannot read (and why)
-    or not UTF-8 text (`kind`: what the file should be, e.g. 'YAML')."""
+    or not UTF-8 text (`kind`: what the file should be, e.g. 'YAML'). A UTF-8 byte order mark,
+    as Excel and Notepad write one, is dropped: it is not part of the text."""
     path = Path(path)
     try:
-        return path.read_text()
+        return path.read_text(encoding='utf-8-sig')
     except OSError as exc:
         raise error(f'{path}: cannot read: {exc.strerror}') from None
     except UnicodeDecodeError:

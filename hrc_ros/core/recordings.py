@@ -29,14 +29,17 @@ count after the source fell silent (a restart) begins a new episode, a stray epo
 not continue the count is left out and reported. Of each epoch's task state, distance level,
 observation and action the first one counts; the answer to a request is the latest
 `hrc/human_response` published after the action in its window (the task manager's rule,
-docs/DESIGN.md). A message that cannot be read is
-reported and left out (`Recording.issues`); a bag without one of the needed topics is refused.
+docs/DESIGN.md). A message that cannot be read (CDR bytes its schema does not decode, a value
+out of range) is reported and left out (`Recording.issues`), the rest of the bag is read; an
+epoch left without its task state or action goes too, reported. A bag without one of the needed
+topics is refused.
 """
 
 from __future__ import annotations
 
 import bisect
 import csv
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -110,12 +113,28 @@ def _integer(path, line: int, column: str, text: str, low: int, high: int) -> in
     return value
 
 
+def _records(path, text: str):
+    """(line, fields) of every record of a CSV text but blank lines; `line` is the file line
+    the record starts on, from csv's line_num, so blank lines and quoted fields that span lines
+    are counted."""
+    reader = csv.reader(io.StringIO(text, newline=''))
+    while True:
+        line = reader.line_num + 1
+        try:
+            fields = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise RecordingError(f'{path}:{line}: not a CSV record ({exc})') from None
+        if fields:
+            yield line, fields
+
+
 def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     """The episodes of a trajectory CSV file (format in the module docstring)."""
     path = Path(path)
-    text = read_text(path, RecordingError, 'CSV')
-    reader = csv.DictReader(text.splitlines())
-    header = reader.fieldnames or []
+    records = _records(path, read_text(path, RecordingError, 'CSV'))
+    _, header = next(records, (None, []))
     missing = [c for c in COLUMNS if c not in header]
     if missing:
         raise RecordingError(f'{path}: missing column{"s" if len(missing) > 1 else ""} '
@@ -124,8 +143,9 @@ def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     tops = {'tp': rho, 'tc': sigma, 'tx': 3, 'ty': 3, 'hp': rho, 'hc': sigma, 'bp': rho,
             'bc': sigma}
     episodes: dict[str, list] = {}
-    for line, row in enumerate(reader, start=2):
-        if None in row or any(row.get(c) is None for c in COLUMNS):
+    for line, fields in records:
+        row = dict(zip(header, fields))
+        if len(fields) > len(header) or any(c not in row for c in COLUMNS):
             raise RecordingError(f'{path}:{line}: the row has {len(header)} columns in the '
                                  'header but not in this line')
         episode = row['episode'].strip() if 'episode' in row and row['episode'] else '1'
@@ -258,6 +278,8 @@ def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
                                 decode=True):
             suffix = topics[message.topic]
             try:
+                if message.decode_error:
+                    raise ValueError(message.decode_error)
                 value = decoders[suffix](message.decoded)
             except (ValueError, TypeError, AttributeError) as exc:
                 issues.append(f'{source}: a {suffix} message published at '

@@ -5,13 +5,22 @@
 INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .csv files.
 Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
 OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
-support, the log likelihood trace, the epochs used and the warnings.
+support, the log likelihood at every 10th iteration and the last (the JSON report has every
+iteration), the epochs used and the warnings.
+
+Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
+in an input bag folder, is the base configuration or is another output. Output folders are
+made only once the inputs have been read. OUT.yaml is written to a temporary file beside it,
+loaded back with load_config and only then renamed over OUT.yaml, so a failed run leaves no
+half-written or invalid OUT.yaml (an older one stays as it was).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
+from pathlib import Path
 
 from ..core.config import ConfigError, load_config
 from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
@@ -54,14 +63,19 @@ def main(argv=None) -> int:
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
-        output = output_file(args.output)
-        report_path = output_file(args.report or output.with_suffix('.report.json'))
+        output = Path(args.output)
+        report_path = Path(args.report or output.with_suffix('.report.json'))
         plot_path = (None if args.plot is None
-                     else output_file(args.plot or output.with_suffix('.png')))
+                     else Path(args.plot or output.with_suffix('.png')))
+        outputs = {'-o': output, '--report': report_path, '--plot': plot_path}
+        check_outputs(outputs, args.inputs, args.base or default_config_path())
         hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
         data = prepare(recordings)
+        for path in outputs.values():      # folders are made once the inputs have been read
+            if path is not None:
+                output_file(path)
     except (ToolError, ConfigError, RecordingError, FitError) as exc:
         return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
@@ -71,16 +85,23 @@ def main(argv=None) -> int:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say)
+        text = config_yaml(result, base, args.inputs)
     except FitError as exc:
         return fail('hrc-fit', exc)
-    output.write_text(config_yaml(result, base, args.inputs))
-    try:
-        load_config(output)         # what was written is a configuration load_config accepts
     except ConfigError as exc:
-        return fail('hrc-fit', f'the fitted configuration does not validate: {exc}')
+        return fail('hrc-fit', f'the fitted configuration does not validate ({exc}); nothing '
+                    'written')
     report = report_dict(result)
     report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
-    report_path.write_text(json.dumps(report, indent=2) + '\n')
+    try:
+        # what is written is a configuration load_config accepts, or OUT.yaml is left as it was
+        write_replacing(output, text, check=load_config)
+        write_replacing(report_path, json.dumps(report, indent=2) + '\n')
+    except ConfigError as exc:
+        return fail('hrc-fit', f'the fitted configuration does not validate ({exc}); {output} '
+                    'was not written')
+    except ToolError as exc:
+        return fail('hrc-fit', exc)
     print(report_text(result) if not args.quiet else
           f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '
           f'{len(result.warnings)} warning(s)')
@@ -92,6 +113,50 @@ def main(argv=None) -> int:
         print(f'wrote {path}')
     print(f'next: hrc-solve --config {output} -o {output.with_suffix(".npz")}')
     return 0
+
+
+def check_outputs(outputs: dict, inputs, base) -> None:
+    """ToolError, before any work, when an output would overwrite what the run reads (an input,
+    a file in an input bag folder, the base configuration) or another output: the same file
+    after resolving symbolic links and relative parts. `outputs`: option -> path or None."""
+    read = [(Path(p).resolve(), f'input {p}') for p in inputs]
+    read.append((Path(base).resolve(), f'the base configuration {base}'))
+    taken: dict = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        if path.is_dir():
+            raise ToolError(f'output {path} ({option}) is a folder; name a file')
+        where = path.resolve()
+        for source, what in read:
+            if where == source or source in where.parents:
+                inside = '' if where == source else 'inside '
+                raise ToolError(f'output {path} ({option}) is {inside}{what}: the run would '
+                                f'overwrite what it reads; name another file with {option}')
+        if where in taken:
+            raise ToolError(f'output {path} ({option}) is also the {taken[where]} output: name '
+                            f'a different file with {option}')
+        taken[where] = option
+
+
+def write_replacing(path: Path, text: str, check=None) -> None:
+    """Write `text` to a temporary file beside `path`, `check(temporary)` it, then rename it
+    over `path` (os.replace, as save_policy does), so a run that fails on the way leaves `path`
+    as it was. The temporary file is removed in any case; ToolError when it cannot be written,
+    the check's ConfigError (naming `path`) when the check refuses it."""
+    temporary = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+    try:
+        temporary.write_text(text)
+        if check is not None:
+            try:
+                check(temporary)
+            except ConfigError as exc:    # it names the temporary file, which is about to go
+                raise ConfigError(str(exc).replace(str(temporary), str(path))) from None
+        os.replace(temporary, path)
+    except OSError as exc:
+        raise ToolError(f'cannot write {path}: {exc.strerror or exc}') from None
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 if __name__ == '__main__':
