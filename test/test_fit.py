@@ -448,3 +448,14 @@ def test_the_fits_evidence_is_the_models_transition_likelihood(base):
     expected = model.transition_likelihood(action, eligible, accepted, d, d_next)
     np.testing.assert_allclose(fit.emission(fit.Params.from_config(config), data), expected,
                                rtol=1e-12)
+
+
+def test_effective_support_reads_a_rounding_level_spread_as_none():
+    """Bootstrap fits that all land on the EM's fixed point differ by ~1e-15, a variance of
+    ~1e-30: the report printed an effective support of 10^18 events, which ran into the next
+    column. Such a spread is no spread (inf, printed 'no spread'); a real one still counts."""
+    estimate = np.array([0.3, 0.3])
+    samples = np.array([[0.3, 0.25], [0.3 + 1e-15, 0.35], [0.3 - 1e-15, 0.30]])
+    effective = fit.effective_support(estimate, samples)
+    assert np.isinf(effective[0])
+    assert effective[1] == pytest.approx(0.3 * 0.7 / samples[:, 1].var(ddof=1))

@@ -643,6 +643,9 @@ class FitResult:
         return _free(self.hold)
 
 
+NO_SPREAD_VARIANCE = 1e-18
+
+
 def effective_support(estimate: np.ndarray, samples: np.ndarray) -> np.ndarray:
     """p (1 - p) / var: how many fully observed events would pin each parameter down as well
     as the data do (the bootstrap variance of a binomial share is p (1 - p) / n)."""
@@ -650,7 +653,8 @@ def effective_support(estimate: np.ndarray, samples: np.ndarray) -> np.ndarray:
                                                                              np.inf)
     share = np.clip(estimate, 0.0, 1.0)
     with np.errstate(divide='ignore', invalid='ignore'):
-        return np.where(variance > 0, share * (1 - share) / variance, np.inf)
+        # a spread at rounding level (sd < 1e-9: the EM's fixed point, not the data) is none
+        return np.where(variance > NO_SPREAD_VARIANCE, share * (1 - share) / variance, np.inf)
 
 
 def support_of(stats: Expected) -> np.ndarray:
