@@ -599,6 +599,24 @@ def test_posterior_leaves_an_unanswered_request_out(model):
     assert [r.kind for r in est.task_state(OPEN, 1300 * MS).reports] == ['no_answer']
 
 
+def test_posterior_screens_the_late_answer_to_an_unanswered_request(model):
+    """rh1 of epoch 1 went unanswered (x_2 shows it refused for want of an answer); its late
+    answer is published after x_2 but before a_2. The task manager ignores it (it answers the
+    refused request), so a_2 is unanswered too; the estimator once read it as a_2's answer
+    and took x_3's refusal as evidence. An answer after a_2 is a_2's."""
+    for late_ns, answered in ((1350 * MS, False), (1450 * MS, True)):
+        f, est, first, _ = posterior_start(model, answered=False)
+        b2 = est.task_state(OPEN, 1300 * MS).belief                 # no_answer
+        est.response(late_ns)
+        est.action(RH1, 1400 * MS)
+        window(est, 1, 1, 1500 * MS)
+        est.epoch_signal(3, signal(3, 2000 * MS), now=2000 * MS)
+        done = est.task_state(OPEN, 2050 * MS)
+        np.testing.assert_allclose(done.belief, f.update(
+            b2, RH1, 1, model.transition_likelihood(RH1, answered, False, 1, 1)))
+        assert [r.kind for r in done.reports] == ([] if answered else ['no_answer'])
+
+
 def test_posterior_leaves_an_impossible_distance_move_out(model):
     """d 2 -> 0 in one epoch is impossible under the model (moves of one level at most): the
     whole move likelihood is 0, and the filter once restarted from O_2 alone, wiping out

@@ -631,6 +631,8 @@ class _HeldBelief:
     signal_ns: int
     since_ns: int
     action: int
+    action_ns: int | None      # a_{k-1}'s publication time
+    screening: bool            # a_{k-2} went unanswered: its late answer may come before a_{k-1}
     observation: object        # O_k, or NO_EVIDENCE after a dropout
     publish: bool              # b_k is published (False after a dropout: predicted only)
     task_before: tuple | None  # x_{k-1}: (published_ns, task variables)
@@ -685,6 +687,7 @@ class EstimatorEpochs:
         self._task_states: deque = deque(maxlen=TASK_STATES_KEPT)  # (published_ns, task vars)
         self._responses: deque = deque(maxlen=TASK_STATES_KEPT)    # published_ns
         self._x_last: tuple | None = None               # the x_k that completed the last hold
+        self._screening = False         # the last request went unanswered (TaskEpochs' rule)
         self._held: _HeldBelief | None = None
         self._last_signal_ns: int | None = None
         self._window_distance: int | None = None
@@ -699,6 +702,7 @@ class EstimatorEpochs:
         self._levels: deque = deque(maxlen=recent)      # (published_ns, O level), window
         self._distances: deque = deque(maxlen=recent)   # (published_ns, d), window
         self._action: int | None = None                 # a_{k-1}: the window's last action
+        self._action_ns: int | None = None              # ... and its publication time
 
     @property
     def epoch(self) -> int:
@@ -713,8 +717,8 @@ class EstimatorEpochs:
         """One skeleton's distance level."""
         self._distances.append((published_ns, d))
 
-    def action(self, action: int) -> None:
-        self._action = action
+    def action(self, action: int, published_ns: int | None = None) -> None:
+        self._action, self._action_ns = action, published_ns
 
     def response(self, published_ns: int) -> None:
         """An `hrc/human_response` was published (its value is read from x_k's commitment)."""
@@ -764,7 +768,12 @@ class EstimatorEpochs:
         model, before, k = self.filter.model, held.task_before, held.epoch
         eligible = (before is not None and task_after is not None and bool(
             request_eligible(held.action, before[1]['tp'], before[1]['tx'], before[1]['ty'])))
-        if eligible and not any(before[0] <= t <= task_after[0] for t in self._responses):
+        # an answer is published between x_{k-1} and x_k; after an unanswered request, one
+        # published before a_{k-1} is that request's late answer (`TaskEpochs._screen`)
+        since = before[0] if before is not None else 0
+        if held.screening and held.action_ns is not None:
+            since = max(since, held.action_ns)
+        if eligible and not any(since <= t <= task_after[0] for t in self._responses):
             eligible = False
             reports.append(Report(
                 WARN, 'epoch', f'epoch {k}: no hrc/human_response to {ACTIONS[held.action]} '
@@ -793,6 +802,7 @@ class EstimatorEpochs:
         held, self._held = self._held, None
         reports: list[Report] = []
         evidence = self._evidence(held, task_after, reports)
+        self._screening = any(r.kind == 'no_answer' for r in reports)
         self.belief = self.filter.update(self.belief, held.action, held.observation, evidence)
         self._x_last = task_after
         return EstimatorStep(held.epoch, None, None, self.belief if held.publish else None,
@@ -841,7 +851,8 @@ class EstimatorEpochs:
                 before = self._task_after(self._last_signal_ns, signal_ns)
             observed = counts.sum() >= self.min_window_samples
             self._held = _HeldBelief(
-                k, signal_ns, now if now is not None else signal_ns, action,
+                k, signal_ns, now if now is not None else signal_ns, action, self._action_ns,
+                self._screening,
                 window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts)) if observed
                 else NO_EVIDENCE, observed, before, d_before, step.distance_level)
         if counts.sum() >= self.min_window_samples:
@@ -860,7 +871,8 @@ class EstimatorEpochs:
                 WARN, 'epoch', f'epoch {k}: no joint states to observe ({int(counts.sum())} '
                 f'valid samples in its window, fewer than {self.min_window_samples}); belief not '
                 'published (predicted only)', {'epoch': k}, kind='no_observation'))
-        self._action = None
+        self._action = self._action_ns = None
+        self._screening = False
         self._last_signal_ns = signal_ns
         self._x_last = None
         early = self._task_after(signal_ns) if self._held is not None else None

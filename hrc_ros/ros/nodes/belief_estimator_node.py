@@ -121,7 +121,9 @@ class BeliefEstimatorNode(Node):
                               lambda msg: conv.keypoints_from_msg(msg, frame),
                               self._on_keypoints, with_published=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
-                              lambda action: self.windows.action(action))
+                              lambda action, published_ns: self.windows.action(action,
+                                                                               published_ns),
+                              with_published=True)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch, with_stamp=True)
         # posterior mode: x_k shows the human's answer to a_{k-1}, if one was published
