@@ -1400,3 +1400,50 @@ def test_ctrl_c_between_ok_and_shutdown_is_still_a_clean_stop():
     context, race = racing_context()
     shutdown(context=context)                                   # the same race: a clean stop
     assert race.raced and not context.ok()
+
+
+def test_ctrl_c_landing_inside_rclpy_while_the_context_is_up_is_a_clean_stop():
+    """Ctrl-C during take_message: the KeyboardInterrupt lands in rclpy's argument conversion
+    and comes out as RuntimeError('Unable to convert call argument ...'), and rclpy's thread
+    may not have shut the context down yet: belief_estimator_node exited 1 at the end of a
+    fresh clone's case study. Replayed with rclpy's handler removed, so the context is
+    certainly up: a signal was received, so it is the shutdown. Without a signal, a
+    RuntimeError in a callback is a bug and propagates."""
+    import signal as signals
+
+    import rclpy.signals
+    from rclpy.node import Node
+
+    from hrc_ros.ros.node_support import run
+
+    class InterruptedInTake(Node):
+        NODE_NAME = 'interrupted_in_take'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            rclpy.signals.uninstall_signal_handlers()   # the context stays up on SIGINT
+            self.create_timer(0.01, self.take)
+
+        def take(self):
+            try:
+                signals.raise_signal(signals.SIGINT)
+                for _ in range(1000):                   # the handler runs at a bytecode edge
+                    pass
+            except KeyboardInterrupt:
+                assert self.context.ok()
+                raise RuntimeError('Unable to convert call argument \'0\' to Python object') \
+                    from None
+
+    class BrokenInTake(Node):
+        NODE_NAME = 'broken_in_take'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            self.create_timer(0.01, self.take)
+
+        def take(self):
+            raise RuntimeError('a bug')
+
+    assert run(InterruptedInTake, args=[]) == 0
+    with pytest.raises(RuntimeError, match='a bug'):
+        run(BrokenInTake, args=[])

@@ -581,16 +581,22 @@ def shutdown(context=None) -> None:
     the signal lands in between, rcl refuses the second shutdown ("rcl_shutdown already
     called") and a node stopping cleanly exits 1 with a traceback. That error is the
     shutdown we asked for; any error while the context is still up is real and propagates.
+    Without `context`, rclpy's default context is shut down and forgotten (as by
+    `rclpy.try_shutdown()`), so that `rclpy.init` works again in the same process.
     """
-    context = context if context is not None else rclpy.get_default_context()
     try:
-        context.try_shutdown()
+        rclpy.try_shutdown(context=context)
     except Exception:
-        if context.ok():
+        if rclpy.ok(context=context):
             raise
+        rclpy.try_shutdown(context=context)     # already down: only forgets the default one
+
+
+_signalled: list[int] = []     # the stop signals this process received (run's handlers)
 
 
 def _interrupt(signum, frame) -> None:
+    _signalled.append(signum)
     raise KeyboardInterrupt(f'signal {signum}')
 
 
@@ -607,11 +613,16 @@ def run(node_class, args=None) -> int:
     and `on_stop()` runs while the context is still up.
     """
     last_word = hasattr(node_class, 'on_stop')
+    _signalled.clear()
     if last_word:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         signal.signal(signal.SIGINT, _interrupt)
         signal.signal(signal.SIGTERM, _interrupt)
     else:
+        # Python's handler (noted, then KeyboardInterrupt as by default) under rclpy's, which
+        # chains to it: a KeyboardInterrupt that lands inside rclpy's C++ code comes out as a
+        # RuntimeError, possibly before rclpy's thread has shut the context down
+        signal.signal(signal.SIGINT, _interrupt)
         rclpy.init(args=args)
     try:
         node = node_class()
@@ -626,7 +637,7 @@ def run(node_class, args=None) -> int:
         # Ctrl-C while the node is being built: rclpy's signal handler shuts the context
         # down, and the next entity the constructor creates fails with an RCLError ("context
         # is invalid"). That is still the shutdown; with the context up, the error is real.
-        interrupted = not rclpy.ok()
+        interrupted = not rclpy.ok() or bool(_signalled)
         shutdown()
         if not interrupted:
             raise
@@ -642,11 +653,12 @@ def run(node_class, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # Ctrl-C shuts the context down from rclpy's signal handler; if that lands while the
-        # executor is taking a message, rclpy raises a RuntimeError from take_message instead
-        # of ExternalShutdownException. That is still the shutdown; while the context is up,
-        # an error is real and propagates.
-        if node.context.ok():
+        # Ctrl-C while the executor is taking a message: rclpy raises a RuntimeError from
+        # take_message ("context is invalid" once its thread has shut the context down, or
+        # "Unable to convert call argument" when the KeyboardInterrupt lands in the
+        # conversion, maybe before). That is still the shutdown; without a signal and with
+        # the context up, an error is real and propagates.
+        if node.context.ok() and not _signalled:
             raise
     finally:
         if last_word and node.context.ok():
