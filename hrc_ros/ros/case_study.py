@@ -362,6 +362,10 @@ def main(argv: list[str] | None = None) -> int:
     for i, path in enumerate(params, 1):   # numbered in the order the nodes load them
         shutil.copy(path, bag_dir / 'params' / f'{i}_{path.name}')
     print('\nnodes stopped: ' + ', '.join(f'{n} exit {c}' for n, c in codes.items()))
+    for name, code in codes.items():
+        if code != 0:       # the run is complete; a node that failed to stop cleanly is a bug
+            print(f'hrc-case-study: warning: {name} exited {code} when stopped (SIGINT); see '
+                  f'{out / "logs" / (name + ".log")}', file=sys.stderr)
     print(f'wrote {csv_path}')
     for p in plots:
         print(f'wrote {p}')
