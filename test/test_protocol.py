@@ -496,10 +496,9 @@ OPEN = {'tp': 2, 'tc': 3, 'tx': 1, 'ty': 0, 'hp': 0, 'hc': 0, 'bp': 0, 'bc': 0} 
 TAKEN = {**OPEN, 'ty': 1, 'hp': 2, 'hc': 3}                         # x_k after an accepted rh1
 
 
-def posterior_start(model, answered=True, d_after=1):
-    """Epoch 1 (O 2, d 2), x_1 with an open task (published after the signal), then rh1, the
-    human's answer (unless not `answered`) and epoch 2's window (O 1, d `d_after`) closed at
-    1000 ms: b_2 is held for x_2."""
+def posterior_epoch_one(model, answered=True):
+    """Epoch 1 (O 2, d 2) closed at 100 ms, x_1 with an open task (published after the
+    signal), then rh1 and the human's answer at 300 ms (unless not `answered`)."""
     f = BeliefFilter(model, mode='posterior')
     est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
     window(est, 2, 2, 0)
@@ -508,6 +507,14 @@ def posterior_start(model, answered=True, d_after=1):
     est.action(RH1)
     if answered:
         est.response(300 * MS)
+    return f, est, first
+
+
+def posterior_start(model, answered=True, d_after=1):
+    """Epoch 1 (O 2, d 2), x_1 with an open task (published after the signal), then rh1, the
+    human's answer (unless not `answered`) and epoch 2's window (O 1, d `d_after`) closed at
+    1000 ms: b_2 is held for x_2."""
+    f, est, first = posterior_epoch_one(model, answered)
     window(est, 1, d_after, 200 * MS)
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1001 * MS)
     return f, est, first, step
@@ -538,13 +545,7 @@ def test_posterior_without_x_k_leaves_the_answer_out_after_the_hold(model):
 
 
 def test_posterior_x_k_delivered_before_its_signal_completes_at_the_signal(model):
-    f = BeliefFilter(model, mode='posterior')
-    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
-    window(est, 2, 2, 0)
-    first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
-    est.task_state(OPEN, 150 * MS)
-    est.action(RH1)
-    est.response(300 * MS)
+    f, est, first = posterior_epoch_one(model)
     window(est, 1, 1, 200 * MS)
     assert est.task_state(TAKEN, 1010 * MS) is None        # x_2, overtaking the signal
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1020 * MS)
@@ -554,13 +555,7 @@ def test_posterior_x_k_delivered_before_its_signal_completes_at_the_signal(model
 
 
 def test_posterior_after_a_dropout_or_without_a_skeleton_predicts_with_what_is_known(model):
-    f = BeliefFilter(model, mode='posterior')
-    est = EstimatorEpochs(f, 3, task_state_timeout_s=HOLD / 1e9)
-    window(est, 2, 2, 0)
-    first = est.epoch_signal(1, signal(1, 100 * MS), now=100 * MS).belief
-    est.task_state(OPEN, 150 * MS)
-    est.action(RH1)
-    est.response(300 * MS)
+    f, est, first = posterior_epoch_one(model)
     est.sample(1, 200 * MS)                                  # 1 sample < 3, no skeleton
     step = est.epoch_signal(2, signal(2, 1000 * MS), now=1000 * MS)
     assert (step.observation, step.distance_level, step.belief) == (None, None, None)
