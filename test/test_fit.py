@@ -459,3 +459,19 @@ def test_effective_support_reads_a_rounding_level_spread_as_none():
     effective = fit.effective_support(estimate, samples)
     assert np.isinf(effective[0])
     assert effective[1] == pytest.approx(0.3 * 0.7 / samples[:, 1].var(ddof=1))
+
+
+def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
+    """The first write-through-a-temporary version renamed over the link itself, turning a
+    linked OUT.yaml (e.g. into a shared configuration folder) into a plain file and leaving its
+    target stale; write_text, before, wrote through the link."""
+    from hrc_ros.tools.fit import write_replacing
+    shared = tmp_path / 'shared'
+    shared.mkdir()
+    real = shared / 'cell.yaml'
+    real.write_text('old\n')
+    link = tmp_path / 'OUT.yaml'
+    link.symlink_to(real)
+    write_replacing(link, 'new\n')
+    assert link.is_symlink() and real.read_text() == 'new\n'
+    assert sorted(p.name for p in shared.iterdir()) == ['cell.yaml']   # no temporary left

@@ -143,8 +143,10 @@ def write_replacing(path: Path, text: str, check=None) -> None:
     """Write `text` to a temporary file beside `path`, `check(temporary)` it, then rename it
     over `path` (os.replace, as save_policy does), so a run that fails on the way leaves `path`
     as it was. The temporary file is removed in any case; ToolError when it cannot be written,
-    the check's ConfigError (naming `path`) when the check refuses it."""
-    temporary = path.with_name(f'{path.name}.{os.getpid()}.tmp')
+    the check's ConfigError (naming `path`) when the check refuses it. A `path` that is a
+    symbolic link is written through (its target replaced, the link kept)."""
+    target = Path(path).resolve()
+    temporary = target.with_name(f'{target.name}.{os.getpid()}.tmp')
     try:
         temporary.write_text(text)
         if check is not None:
@@ -152,7 +154,7 @@ def write_replacing(path: Path, text: str, check=None) -> None:
                 check(temporary)
             except ConfigError as exc:    # it names the temporary file, which is about to go
                 raise ConfigError(str(exc).replace(str(temporary), str(path))) from None
-        os.replace(temporary, path)
+        os.replace(temporary, target)
     except OSError as exc:
         raise ToolError(f'cannot write {path}: {exc.strerror or exc}') from None
     finally:
