@@ -244,15 +244,31 @@ def test_a_jump_toward_the_robot_keeps_its_skeleton_while_it_is_confirmed():
 def test_stamps_that_go_back_more_than_max_gap_start_the_tracker_again():
     """A restarted driver, a stepped clock or a looped bag: every frame was dropped until the
     stamps passed the old ones (hours, maybe). Beyond max_gap back, it starts again."""
-    machine = tracker(max_gap=0.5)
+    machine = tracker(max_gap=0.5, confirm_frames=3)
     for i in range(5):
         machine.frame(frame(1000.0 + i * DT, b1=body(1.0)))
     with pytest.raises(InputError, match='not after the previous'):
         machine.frame(frame(1000.0, b1=body(1.0)))              # a small reversal: dropped
-    step = machine.frame(frame(10.0, b1=body(1.0)))
+    for i in range(2):                                          # far back: confirmed first
+        with pytest.raises(InputError, match='once it holds for 3 frames'):
+            machine.frame(frame(10.0 + i * DT, b1=body(1.0)))
+    step = machine.frame(frame(10.0 + 2 * DT, b1=body(1.0)))
     assert [r.kind for r in step.reports][:1] == ['stamp_back'] and step.velocities is None
     assert step.followed == 1
-    assert machine.frame(frame(10.0 + DT, b1=body(1.0))).velocities is not None
+    assert machine.frame(frame(10.0 + 3 * DT, b1=body(1.0))).velocities is not None
+
+
+def test_a_second_stream_with_an_older_clock_never_passes_between_the_live_frames():
+    """A bag played on a live cell: its frames (a person 2.5 m away, stamps ~990 s back)
+    interleave with the live ones (a person at 0.3 m). Restarting on any frame far back let
+    every recorded frame through, and the distance read d 3 every other frame."""
+    machine = tracker(max_gap=0.5, confirm_frames=3)
+    for i in range(60):
+        live = 1000.0 + i * DT
+        step = machine.frame(frame(live, b1=body(0.3)))
+        assert distance_level(step.keypoints) == 1
+        with pytest.raises(InputError, match='not after the previous'):
+            machine.frame(frame(10.0 + i * DT, b1=body(2.5)))
 
 
 def test_a_jump_that_does_not_hold_is_dropped_and_the_body_keeps_its_place():

@@ -51,8 +51,10 @@ never yields joint states without the skeleton of the same instant:
   closest keypoint is nearer to the robot than the last accepted frame's still gives its
   skeleton (the distance, with a WARN), only its joint states wait for the confirmation;
 - a stamp that does not increase: dropped (the velocities would divide by zero or go back);
-  one more than `max_gap` behind the last is a restarted tracker or a stepped clock (a looped
-  bag): the adapter starts again from it, with a WARN;
+  frames more than `max_gap` behind the last are a restarted tracker or a stepped clock (a
+  looped bag) once `confirm_frames` of them come in a row, with no newer frame between (a
+  second stream, such as a bag played on a live cell, never does): the adapter starts again
+  from them, with a WARN;
 - NaN joints, missing joints, foreign frames, joints farther than `MAX_RANGE` from the camera
   (millimetres for metres) and more than `MAX_BODIES` bodies are refused by the conversion.
 
@@ -234,6 +236,7 @@ class BodyTracking:
         self.last_stamp: float | None = None              # of any frame taken
         self._accepted: tuple[float, dict] | None = None  # stamp, body id -> centroid
         self._nearest: float | None = None    # closest keypoint distance of the last accepted
+        self._back: tuple[float, int] | None = None   # frames far back in a row: (stamp, count)
         self._candidate: tuple[float, dict, int] | None = None  # a relocation being confirmed
         self._followed_at: tuple[float, int, np.ndarray, np.ndarray] | None = None
         #                  stamp, body, centroid, angles of the followed body's last frame
@@ -259,16 +262,29 @@ class BodyTracking:
         stamp = float(frame.stamp)
         restarted = []
         if self.last_stamp is not None and not stamp > self.last_stamp:
+            message = (f'body frame stamp {stamp:.9f} s is not after the previous one '
+                       f'({self.last_stamp:.9f} s)')
             if self.last_stamp - stamp <= self.max_gap:
-                raise InputError(f'body frame stamp {stamp:.9f} s is not after the previous one '
-                                 f'({self.last_stamp:.9f} s)')
+                raise InputError(message)
+            # far back: a restarted tracker, a stepped clock, a looped bag; or a second stream
+            # (a bag played on a live cell) whose frames must not pass between the live ones.
+            # Taken once it alone has gone on for confirm_frames frames.
+            back = self._back
+            count = back[1] + 1 if back is not None and stamp > back[0] else 1
+            if count < self.confirm_frames:
+                self._back = (stamp, count)
+                raise InputError(f'{message}: {self.last_stamp - stamp:.3f} s back, taken as a '
+                                 f'restarted stream once it holds for {self.confirm_frames} '
+                                 'frames')
             restarted = [Report(WARN, 'tracking', f'body frame stamps went back '
-                                f'{self.last_stamp - stamp:.3f} s (a restarted tracker, a stepped '
-                                'clock, a looped bag): starting again from this frame',
-                                {'stamp': stamp, 'previous_stamp': self.last_stamp},
+                                f'{self.last_stamp - stamp:.3f} s for {count} frames (a '
+                                'restarted tracker, a stepped clock, a looped bag): starting '
+                                'again from them', {'stamp': stamp,
+                                                    'previous_stamp': self.last_stamp},
                                 kind='stamp_back')]
             self._accepted = self._candidate = self._nearest = None
             self._restart()
+        self._back = None
         self.last_stamp = stamp
         joints = {b: self.transform.apply(j) for b, j in sorted(frame.bodies.items())}
         keypoints = {b: j[self.keypoints] for b, j in joints.items()}
