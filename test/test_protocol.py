@@ -582,16 +582,38 @@ def test_a_new_signal_closes_a_held_posterior_update_first(model):
 def test_posterior_leaves_an_unanswered_request_out(model):
     """No hrc/human_response between x_1 and x_2: the task manager took rh1 as refused for want
     of an answer (ty stays 0). That says nothing about the human's motivation; it once counted
-    as a refusal. Only the move counts, with a WARN."""
+    as a refusal. b_2 waits for the answer to the hold's deadline, then only the move counts,
+    with a WARN."""
     f, est, first, _ = posterior_start(model, answered=False)
-    done = est.task_state(OPEN, 1300 * MS)
+    assert est.task_state(OPEN, 1150 * MS) is None and est.deadline == 1001 * MS + HOLD
+    done = est.expire(1001 * MS + HOLD)
     np.testing.assert_allclose(done.belief, f.update(
         first, RH1, 1, model.transition_likelihood(RH1, False, False, 2, 1)))
     assert [r.kind for r in done.reports] == ['no_answer'] and done.reports[0].level == WARN
     # an answer published after x_2 (late: the task manager had finalised) is not one either
     f, est, first, _ = posterior_start(model, answered=False)
-    est.response(1400 * MS)
-    assert [r.kind for r in est.task_state(OPEN, 1300 * MS).reports] == ['no_answer']
+    assert est.task_state(OPEN, 1150 * MS) is None
+    assert est.response(1160 * MS) is None
+    assert [r.kind for r in est.expire(1001 * MS + HOLD).reports] == ['no_answer']
+
+
+def test_posterior_takes_an_answer_delivered_after_its_task_state(model):
+    """The task manager's x_2 and the human's answer come from two publishers, and nothing
+    orders them at the estimator: with both ready at one wake, rclpy ran the task state first
+    and the answer, unseen, was read as missing. A refusal (ty 0) now waits for the answer
+    published before x_2; a commitment (ty 1) proves an answer at once."""
+    f, est, first, _ = posterior_start(model, answered=False)
+    assert est.task_state(OPEN, 1050 * MS) is None
+    done = est.response(300 * MS)                        # published long before, taken now
+    np.testing.assert_allclose(done.belief, f.update(
+        first, RH1, 1, model.transition_likelihood(RH1, True, False, 2, 1)))
+    assert done.reports == [] and est.deadline is None
+
+    f, est, first, _ = posterior_start(model, answered=False)
+    done = est.task_state(TAKEN, 1050 * MS)
+    np.testing.assert_allclose(done.belief, f.update(
+        first, RH1, 1, model.transition_likelihood(RH1, True, True, 2, 1)))
+    assert done.reports == [] and est.deadline is None
 
 
 def test_posterior_screens_the_late_answer_to_an_unanswered_request(model):
@@ -601,12 +623,13 @@ def test_posterior_screens_the_late_answer_to_an_unanswered_request(model):
     and took x_3's refusal as evidence. An answer after a_2 is a_2's."""
     for late_ns, answered in ((1350 * MS, False), (1450 * MS, True)):
         f, est, first, _ = posterior_start(model, answered=False)
-        b2 = est.task_state(OPEN, 1300 * MS).belief                 # no_answer
+        est.task_state(OPEN, 1150 * MS)
+        b2 = est.expire(1001 * MS + HOLD).belief                   # no_answer
         est.response(late_ns)
         est.action(RH1, 1400 * MS)
         window(est, 1, 1, 1500 * MS)
         est.epoch_signal(3, signal(3, 2000 * MS), now=2000 * MS)
-        done = est.task_state(OPEN, 2050 * MS)
+        done = est.task_state(OPEN, 2050 * MS) or est.expire(2000 * MS + HOLD)
         np.testing.assert_allclose(done.belief, f.update(
             b2, RH1, 1, model.transition_likelihood(RH1, answered, False, 1, 1)))
         assert [r.kind for r in done.reports] == ([] if answered else ['no_answer'])
@@ -661,10 +684,17 @@ def test_posterior_hold_follows_the_period_known_at_the_signal(model):
     window(est, 1, 1, 200 * MS)
     est.epoch_signal(2, signal(2, 1100 * MS), now=1100 * MS)
     assert est.deadline == 1100 * MS + int(ESTIMATOR_HOLD_FRACTION * 1000 * MS)
-    est.task_state_timeout_s = 0.35                         # an explicit value wins
     window(est, 1, 1, 1200 * MS)
-    est.epoch_signal(3, signal(3, 2100 * MS), now=2100 * MS)
-    assert est.deadline == 2100 * MS + 350 * MS
+    # the count restarts (the decision node restarted): the period starts again, but the last
+    # one known stands in; the 0.3 s fallback was longer than a 0.5 s period's input wait
+    step = est.epoch_signal(1, signal(1, 6000 * MS, sequence=1), now=6000 * MS)
+    assert [r.kind for r in step.reports][:2] == ['restart', 'no_task_state']
+    assert est.epochs.period.period_ns is None
+    assert est.deadline == 6000 * MS + int(ESTIMATOR_HOLD_FRACTION * 1000 * MS)
+    est.task_state_timeout_s = 0.35                         # an explicit value wins
+    window(est, 1, 1, 6200 * MS)
+    est.epoch_signal(2, signal(2, 7000 * MS), now=7000 * MS)
+    assert est.deadline == 7000 * MS + 350 * MS
 
 
 def test_posterior_keeps_the_x_k_that_completed_the_hold_against_a_flood(model):

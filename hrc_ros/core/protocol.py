@@ -638,6 +638,7 @@ class _HeldBelief:
     task_before: tuple | None  # x_{k-1}: (published_ns, task variables)
     d_before: int | None
     d_after: int | None
+    x_k: tuple | None = None   # x_k of a refusal whose answer has not been seen yet
 
 
 ESTIMATOR_HOLD_FRACTION = 0.4   # posterior hold (task_state_timeout 0): this part of the
@@ -694,6 +695,7 @@ class EstimatorEpochs:
         self.min_window_samples = int(min_window_samples)
         self.recent = recent
         self.epochs = EpochFollower()
+        self._known_period_ns: int | None = None
         self.hold_ns = self._hold_ns()
         self.belief: np.ndarray | None = None
         self.observation: int | None = None
@@ -720,13 +722,24 @@ class EstimatorEpochs:
     def action(self, action: int, published_ns: int | None = None) -> None:
         self._action, self._action_ns = action, published_ns
 
-    def response(self, published_ns: int) -> None:
-        """An `hrc/human_response` was published (its value is read from x_k's commitment)."""
+    def response(self, published_ns: int) -> EstimatorStep | None:
+        """An `hrc/human_response` was published (its value is read from x_k's commitment);
+        completes a held b_k whose x_k came first and shows a refusal this answer explains."""
         self._responses.append(published_ns)
+        held = self._held
+        if held is not None and held.x_k is not None and self._answered(held, held.x_k):
+            return self._complete(held.x_k)
+        return None
 
     def _hold_ns(self) -> int:
+        """The hold (`task_state_timeout_s`, else a part of the period). The last period known
+        stands in after a restart of the count, until the new one is known: the 0.3 s fallback
+        is longer than the decision node's wait below a 0.6 s period."""
+        period = self.epochs.period.period_ns
+        if period is not None:
+            self._known_period_ns = period
         return timeout_ns(self.task_state_timeout_s, ESTIMATOR_HOLD_FRACTION,
-                          self.epochs.period.period_ns, ESTIMATOR_HOLD_FALLBACK_S)
+                          self._known_period_ns, ESTIMATOR_HOLD_FALLBACK_S)
 
     @property
     def deadline(self) -> int | None:
@@ -736,12 +749,43 @@ class EstimatorEpochs:
         """A task state from the task manager; completes a held b_k when it is x_k."""
         self._task_states.append((published_ns, state))
         if self._held is not None and published_ns >= self._held.signal_ns:
-            return self._complete((published_ns, state))
+            return self._offer((published_ns, state))
         return None
+
+    def _offer(self, x_k: tuple) -> EstimatorStep | None:
+        """x_k for the held b_k: complete it, unless x_k shows an eligible request refused and
+        its answer has not been seen: nothing orders the task manager's x_k and the human's
+        answer at this node (rclpy takes ready messages in subscription order), so b_k waits
+        for the answer, at most to the hold's deadline (then: unanswered)."""
+        held = self._held
+        if held.x_k is None and self._eligible(held, x_k) and x_k[1]['ty'] == 0 \
+                and not self._answered(held, x_k):
+            held.x_k = x_k
+            return None
+        return self._complete(x_k)
+
+    def _eligible(self, held: _HeldBelief, x_k: tuple | None) -> bool:
+        before = held.task_before
+        return before is not None and x_k is not None and bool(
+            request_eligible(held.action, before[1]['tp'], before[1]['tx'], before[1]['ty']))
+
+    def _answered(self, held: _HeldBelief, x_k: tuple) -> bool:
+        """An answer to a_{k-1} was seen: x_k has the task committed (only an acceptance does
+        that), or a response was published between x_{k-1} and x_k; after an unanswered
+        request, one published before a_{k-1} is that request's late answer
+        (`TaskEpochs._screen`)."""
+        if x_k[1]['ty'] != 0:
+            return True
+        since = held.task_before[0] if held.task_before is not None else 0
+        if held.screening and held.action_ns is not None:
+            since = max(since, held.action_ns)
+        return any(since <= t <= x_k[0] for t in self._responses)
 
     def expire(self, now: int) -> EstimatorStep | None:
         if self.deadline is not None and now >= self.deadline:
             held = self._held
+            if held.x_k is not None:            # x_k came, its answer did not: unanswered
+                return self._complete(held.x_k)
             step = self._complete(None)
             step.reports.append(Report(
                 WARN, 'epoch', f'epoch {held.epoch}: no task state within the hold; the '
@@ -765,15 +809,9 @@ class EstimatorEpochs:
         the answer (an accepted request commits the task, ty != 0 in x_k: a task lasts at
         least one epoch, so it cannot also complete) and the distance move. What is unknown
         or impossible is left out (a WARN in `reports`); None: no evidence at all."""
-        model, before, k = self.filter.model, held.task_before, held.epoch
-        eligible = (before is not None and task_after is not None and bool(
-            request_eligible(held.action, before[1]['tp'], before[1]['tx'], before[1]['ty'])))
-        # an answer is published between x_{k-1} and x_k; after an unanswered request, one
-        # published before a_{k-1} is that request's late answer (`TaskEpochs._screen`)
-        since = before[0] if before is not None else 0
-        if held.screening and held.action_ns is not None:
-            since = max(since, held.action_ns)
-        if eligible and not any(since <= t <= task_after[0] for t in self._responses):
+        model, k = self.filter.model, held.epoch
+        eligible = self._eligible(held, task_after)
+        if eligible and not self._answered(held, task_after):
             eligible = False
             reports.append(Report(
                 WARN, 'epoch', f'epoch {k}: no hrc/human_response to {ACTIONS[held.action]} '
@@ -876,8 +914,8 @@ class EstimatorEpochs:
         self._last_signal_ns = signal_ns
         self._x_last = None
         early = self._task_after(signal_ns) if self._held is not None else None
-        if early is not None:           # x_k was delivered before the signal
-            done = self._complete(early)
+        done = self._offer(early) if early is not None else None
+        if done is not None:            # x_k was delivered before the signal
             step.belief = done.belief
             step.reports.extend(done.reports)
         return step

@@ -127,13 +127,15 @@ class BeliefEstimatorNode(Node):
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch, with_stamp=True)
         # posterior mode: x_k shows the human's answer to a_{k-1}, if one was published
-        # (volatile: any publisher, as for the decision node; docs/ROBUSTNESS.md)
-        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.RELIABLE,
-                              self._task_state_from_msg, self._on_task_state,
-                              with_published=True)
+        # (volatile: any publisher, as for the decision node; docs/ROBUSTNESS.md). The answer
+        # is subscribed first: rclpy takes the messages ready at one wake in that order.
         self.inputs.subscribe(Bool, 'hrc/human_response', qos.RELIABLE,
                               conv.human_response_from_msg,
-                              lambda _accepted, published_ns: self.windows.response(published_ns),
+                              lambda _accepted, published_ns: self._publish(
+                                  self.windows.response(published_ns)),
+                              with_published=True)
+        self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.RELIABLE,
+                              self._task_state_from_msg, self._on_task_state,
                               with_published=True)
         self.hold = DeadlineTimer(self, lambda now: self._publish(self.windows.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
