@@ -604,6 +604,7 @@ def test_posterior_takes_an_answer_delivered_after_its_task_state(model):
     published before x_2; a commitment (ty 1) proves an answer at once."""
     f, est, first, _ = posterior_start(model, answered=False)
     assert est.task_state(OPEN, 1050 * MS) is None
+    assert est.task_state(TAKEN, 1060 * MS) is None      # a later task state: x_2 stands
     done = est.response(300 * MS)                        # published long before, taken now
     np.testing.assert_allclose(done.belief, f.update(
         first, RH1, 1, model.transition_likelihood(RH1, True, False, 2, 1)))

@@ -756,10 +756,12 @@ class EstimatorEpochs:
         """x_k for the held b_k: complete it, unless x_k shows an eligible request refused and
         its answer has not been seen: nothing orders the task manager's x_k and the human's
         answer at this node (rclpy takes ready messages in subscription order), so b_k waits
-        for the answer, at most to the hold's deadline (then: unanswered)."""
+        for the answer, at most to the hold's deadline (then: unanswered). A later task state
+        while it waits changes nothing: x_k is the first."""
         held = self._held
-        if held.x_k is None and self._eligible(held, x_k) and x_k[1]['ty'] == 0 \
-                and not self._answered(held, x_k):
+        if held.x_k is not None:
+            return None
+        if self._eligible(held, x_k) and x_k[1]['ty'] == 0 and not self._answered(held, x_k):
             held.x_k = x_k
             return None
         return self._complete(x_k)
