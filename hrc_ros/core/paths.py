@@ -64,3 +64,21 @@ def read_text(path: str | Path, error: type[Exception], kind: str) -> str:
         raise error(f'{path}: cannot read: {exc.strerror}') from None
     except UnicodeDecodeError:
         raise error(f'{path}: not a text (UTF-8) {kind} file') from None
+
+
+def replace_file(path: str | Path, write, check=None) -> Path:
+    """Write a file whole or not at all: `write(temporary)` a file beside it (same suffix, so
+    numpy does not add one), `check(temporary)` it if given, then rename it over `path`
+    (os.replace); a `path` that is a symbolic link is written through (its target replaced,
+    the link kept). The temporary file is removed in any case, so a run that fails on the way
+    leaves `path` as it was. OSError and the check's errors propagate."""
+    target = Path(path).resolve()
+    temporary = target.with_name(f'{target.name}.{os.getpid()}.tmp{target.suffix}')
+    try:
+        write(temporary)
+        if check is not None:
+            check(temporary)
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return Path(path)

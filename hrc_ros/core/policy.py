@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 
 from .config import Config
 from .model import ACTIONS, HRCModel
-from .paths import share_dir
+from .paths import replace_file, share_dir
 from .solver import SOLVER_VERSION, SolveResult
 
 
@@ -185,11 +184,9 @@ def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
         residual=result.residual, converged=result.converged,
         n_states=int(result.policy.size))
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + '.tmp.npz')
-    np.savez_compressed(tmp, policy=result.policy.astype(np.int8),
-                        value=result.value.astype(np.float64), meta=np.array(json.dumps(meta)))
-    os.replace(tmp, path)
-    return path
+    return replace_file(path, lambda tmp: np.savez_compressed(
+        tmp, policy=result.policy.astype(np.int8), value=result.value.astype(np.float64),
+        meta=np.array(json.dumps(meta))))
 
 
 def load_policy(path: str | Path, config: Config | None = None) -> Policy:

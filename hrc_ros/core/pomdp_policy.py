@@ -26,7 +26,6 @@ meets them); `default_pomdp_policy_path(config)` finds the one solved for a conf
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ import numpy as np
 
 from .config import Config, config_hash
 from .model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
-from .paths import share_dir
+from .paths import replace_file, share_dir
 from .policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
                      _parse_meta, check_config_hash, policy_meta)
 from .pomdp import AlphaPolicy, PomdpResult
@@ -95,15 +94,11 @@ def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> 
                        observable_states=int(len(hrc.columns)), vectors=int(len(alphas)),
                        n_states=int(hrc.model.n_states), report=result.report)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + '.tmp.npz')
-    np.savez_compressed(tmp, columns=hrc.columns.astype(np.int64),
-                        alpha=alphas.alpha.astype(np.float64),
-                        alpha_action=alphas.action.astype(np.int8),
-                        alpha_offsets=alphas.offsets.astype(np.int64),
-                        q_fib=result.upper.q_fib.astype(np.float64),
-                        meta=np.array(json.dumps(meta)))
-    os.replace(tmp, path)
-    return path
+    return replace_file(path, lambda tmp: np.savez_compressed(
+        tmp, columns=hrc.columns.astype(np.int64), alpha=alphas.alpha.astype(np.float64),
+        alpha_action=alphas.action.astype(np.int8),
+        alpha_offsets=alphas.offsets.astype(np.int64),
+        q_fib=result.upper.q_fib.astype(np.float64), meta=np.array(json.dumps(meta))))
 
 
 def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPolicy:

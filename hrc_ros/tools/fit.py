@@ -18,14 +18,13 @@ half-written or invalid OUT.yaml (an older one stays as it was).
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
 from ..core.config import ConfigError, load_config
 from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
                         expand_hold, fit, prepare, report_dict, report_text)
-from ..core.paths import default_config_path
+from ..core.paths import default_config_path, replace_file
 from ..core.recordings import RecordingError, read_recordings
 from .common import MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail, output_file
 
@@ -140,25 +139,19 @@ def check_outputs(outputs: dict, inputs, base) -> None:
 
 
 def write_replacing(path: Path, text: str, check=None) -> None:
-    """Write `text` to a temporary file beside `path`, `check(temporary)` it, then rename it
-    over `path` (os.replace, as save_policy does), so a run that fails on the way leaves `path`
-    as it was. The temporary file is removed in any case; ToolError when it cannot be written,
-    the check's ConfigError (naming `path`) when the check refuses it. A `path` that is a
-    symbolic link is written through (its target replaced, the link kept)."""
-    target = Path(path).resolve()
-    temporary = target.with_name(f'{target.name}.{os.getpid()}.tmp')
+    """`paths.replace_file` of `text`: `path` is replaced whole once `check(temporary)` passes,
+    or left as it was; ToolError when it cannot be written, the check's ConfigError (naming
+    `path`) when the check refuses it."""
+    def checked(temporary: Path) -> None:
+        try:
+            check(temporary)
+        except ConfigError as exc:    # it names the temporary file, which is about to go
+            raise ConfigError(str(exc).replace(str(temporary), str(path))) from None
     try:
-        temporary.write_text(text)
-        if check is not None:
-            try:
-                check(temporary)
-            except ConfigError as exc:    # it names the temporary file, which is about to go
-                raise ConfigError(str(exc).replace(str(temporary), str(path))) from None
-        os.replace(temporary, target)
+        replace_file(path, lambda temporary: temporary.write_text(text),
+                     None if check is None else checked)
     except OSError as exc:
         raise ToolError(f'cannot write {path}: {exc.strerror or exc}') from None
-    finally:
-        temporary.unlink(missing_ok=True)
 
 
 if __name__ == '__main__':
