@@ -26,22 +26,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hrc_ros.core.belief import BeliefFilter  # noqa: E402
+from hrc_ros.core.pomdp.belief import BeliefFilter  # noqa: E402
 from hrc_ros.core.config import load_config  # noqa: E402
 from hrc_ros.core.model import ACTIONS, HRCModel  # noqa: E402
-from hrc_ros.core.selection import ActionSelector  # noqa: E402
+from hrc_ros.core.decision.selection import ActionSelector  # noqa: E402
 
 TARGET_US = 50.0
 
 
 def load_or_solve(model, policy_path: Path):
-    from hrc_ros.core.policy import PolicyError, load_policy
+    from hrc_ros.core.mdp.policy import PolicyError, load_policy
 
     try:
         policy = load_policy(policy_path, model.config)
         return policy.policy, f'{policy_path}'
     except PolicyError:
-        from hrc_ros.core.solver import solve
+        from hrc_ros.core.mdp.solver import solve
 
         t0 = time.perf_counter()
         result = solve(model)

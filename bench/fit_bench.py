@@ -15,8 +15,9 @@ and each size:
    probability EXPLORE, an action drawn uniformly from the eight, so every action group and
    every chain occurs. The fail-safe applies (dn at d = 0) and the recorded action is the one
    taken. The fit reads only what a robot records (`BatchResult.recordings`: no em, no ea).
-2. The fit: `core.fit.fit` with hrc-fit's defaults (4 starts, the default first; tol 1e-7 per
-   epoch) and `--bootstrap` resamples of the episodes. Fit and bootstrap are timed apart.
+2. The fit: `core.learning.fit.fit` with hrc-fit's defaults (4 starts, the default first;
+   tol 1e-7 per epoch) and `--bootstrap` resamples of the episodes. Fit and bootstrap are
+   timed apart.
 3. Recovery, per family: the largest |fitted - true| over the well-supported parameters and
    over all; and the share of the 57 true values inside their bootstrap 95% intervals.
    Well-supported: the data weigh at least as much as WELL_SUPPORTED fully observed events,
@@ -50,12 +51,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hrc_ros.core import fit as fitting  # noqa: E402
+from hrc_ros.core.learning import fit as fitting  # noqa: E402
 from hrc_ros.core.config import load_config, validate  # noqa: E402
-from hrc_ros.core.evaluation import (BatchSimulator, episodes_of, evaluate,  # noqa: E402
-                                     paired_difference)
+from hrc_ros.core.study.evaluation import (BatchSimulator, episodes_of, evaluate,  # noqa: E402
+                                           paired_difference)
 from hrc_ros.core.model import HRCModel  # noqa: E402
-from hrc_ros.core.solver import solve  # noqa: E402
+from hrc_ros.core.mdp.solver import solve  # noqa: E402
 
 EPOCHS = 50              # per episode
 EXPLORE = 0.2            # share of epochs with a uniformly drawn action

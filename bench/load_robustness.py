@@ -34,9 +34,9 @@ from pathlib import Path
 from hrc_ros.core.config import BELIEF_MODES, load_config
 from hrc_ros.core.model import STATE_VARIABLES, HRCModel
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.policy import default_policy_path, load_policy
-from hrc_ros.core.selection import SELECTORS
-from hrc_ros.core.simulation import case_study, simulate
+from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+from hrc_ros.core.decision.selection import SELECTORS
+from hrc_ros.core.study.simulation import case_study, simulate
 
 
 def spin(stop) -> None:

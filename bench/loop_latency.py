@@ -64,8 +64,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  #
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32  # noqa: E402
 
-from hrc_ros.core.observation import synthesize_joint_velocities, synthesize_skeleton  # noqa: E402
-from hrc_ros.core.policy import default_policy_path  # noqa: E402
+from hrc_ros.core.decision.observation import (synthesize_joint_velocities,  # noqa: E402
+                                               synthesize_skeleton)
+from hrc_ros.core.mdp.policy import default_policy_path  # noqa: E402
 from hrc_ros.ros import conversions as conv  # noqa: E402
 from hrc_ros.ros import qos  # noqa: E402
 

@@ -61,7 +61,7 @@ def solve(config: str, out: Path) -> dict:
 
 
 def decision_times(model, mdp, pomdp, rng, calls: int = 20_000) -> dict:
-    from hrc_ros.core.selection import ActionSelector
+    from hrc_ros.core.decision.selection import ActionSelector
     alphas = pomdp.policy
     columns = rng.choice(alphas.columns, size=calls)
     beliefs = rng.dirichlet(np.full(9, 0.4), size=calls)
@@ -86,9 +86,9 @@ def decision_times(model, mdp, pomdp, rng, calls: int = 20_000) -> dict:
 
 
 def case_study_start(model, mdp, pomdp, per_h: int, epochs: int = 150) -> dict:
-    from hrc_ros.core.belief import BeliefFilter
-    from hrc_ros.core.evaluation import BatchSimulator, paired_difference
-    from hrc_ros.core.simulation import Scenario
+    from hrc_ros.core.pomdp.belief import BeliefFilter
+    from hrc_ros.core.study.evaluation import BatchSimulator, paired_difference
+    from hrc_ros.core.study.simulation import Scenario
     targets = pomdp.meta['report']['targets']
     p_o = BeliefFilter(model).likelihood.sum(axis=1) / 9.0
     lower = float(sum(p * t['lower'] for p, t in zip(p_o, targets)))
@@ -125,9 +125,9 @@ def main() -> int:
     args = parser.parse_args()
     from hrc_ros.core.config import load_config
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.policy import default_policy_path, load_policy
-    from hrc_ros.core.pomdp import report_lines
-    from hrc_ros.core.pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.pomdp.solver import report_lines
+    from hrc_ros.core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
     command = ' '.join(shlex.quote(a) for a in ['.venv/bin/python', 'bench/pomdp_bench.py',
                                                 *sys.argv[1:]])
     config = load_config(args.config)

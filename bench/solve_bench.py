@@ -5,7 +5,8 @@
 
 Every measurement runs in its own subprocess so that its peak RSS (ru_maxrss) is its own.
 
-- hrc_ros: model construction + value iteration to eta (default 1e-6) with `hrc_ros.core.solver`.
+- hrc_ros: model construction + value iteration to eta (default 1e-6) with
+  `hrc_ros.core.mdp.solver`.
   The numba kernels are compiled (or loaded from numba's on-disk cache) before the clock
   starts; that one-off time is reported separately as `jit`.
 - mdptoolbox-hiive `ValueIteration` on the 8 explicit N x N CSR matrices built from the same
@@ -54,7 +55,7 @@ def _peak_mb() -> float:
 def child_hrc(rho: int, sigma: int, eta: float, policy_out: str | None) -> dict:
     t = time.perf_counter()
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.solver import solve
+    from hrc_ros.core.mdp.solver import solve
     solve(HRCModel(_config(1, 1, 1e-3)), sweeps=2)  # compile or load the numba kernels
     jit = time.perf_counter() - t
     cfg = _config(rho, sigma, eta)
@@ -116,7 +117,7 @@ def run_child(kind: str, rho: int, sigma: int, eta: float, policy_out: str | Non
 def compare_policies(ours_path: str, theirs_path: str, rho: int, sigma: int,
                      eta: float) -> dict:
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.solver import FactoredBellman
+    from hrc_ros.core.mdp.solver import FactoredBellman
     ours = np.load(ours_path)
     theirs = np.load(theirs_path)
     differ = np.flatnonzero(ours['policy'] != theirs['policy'])

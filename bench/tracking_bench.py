@@ -20,8 +20,8 @@ import numpy as np
 from rclpy.serialization import deserialize_message, serialize_message
 from visualization_msgs.msg import MarkerArray
 
-from hrc_ros.core.observation import HUMAN_JOINTS
-from hrc_ros.core.tracking import BodyTracking, SyntheticBody
+from hrc_ros.core.decision.observation import HUMAN_JOINTS
+from hrc_ros.core.cell.tracking import BodyTracking, SyntheticBody
 from hrc_ros.ros import conversions as conv
 
 TRACKER_HZ = 30.0

@@ -71,7 +71,7 @@ def default_config():
 @pytest.fixture(scope='session')
 def policy_path(default_config, tmp_path_factory) -> str:
     """A policy for the default configuration: the shipped one, else solved once (~5 s)."""
-    from hrc_ros.core.policy import PolicyError, default_policy_path, load_policy
+    from hrc_ros.core.mdp.policy import PolicyError, default_policy_path, load_policy
     shipped = default_policy_path()
     try:
         load_policy(shipped, default_config)
@@ -90,8 +90,8 @@ def other_config_policy_path(default_config, tmp_path_factory) -> str:
 
 def _solve(config, path: Path) -> Path:
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.policy import save_policy
-    from hrc_ros.core.solver import solve
+    from hrc_ros.core.mdp.policy import save_policy
+    from hrc_ros.core.mdp.solver import solve
     return save_policy(path, solve(HRCModel(config)), config)
 
 
@@ -105,7 +105,7 @@ def model(default_config):
 @pytest.fixture(scope='session')
 def policy(default_config, policy_path):
     """The default policy (shipped, or solved once), loaded."""
-    from hrc_ros.core.policy import load_policy
+    from hrc_ros.core.mdp.policy import load_policy
     return load_policy(policy_path, default_config)
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hrc_ros.core.belief import BeliefFilter, validate_belief
+from hrc_ros.core.pomdp.belief import BeliefFilter, validate_belief
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, HRCModel, chain_matrix
 from hrc_ros.core.paths import default_config_path

@@ -19,9 +19,9 @@ from sensor_msgs.msg import JointState
 from test_tracking import CAMERA, DT, body
 from visualization_msgs.msg import Marker, MarkerArray
 
-from hrc_ros.core.observation import (distance_level, synthesize_joint_velocities,
-                                      synthesize_skeleton, velocity_level)
-from hrc_ros.core.tracking import K4ABT_JOINTS, SyntheticBody, arm_angles
+from hrc_ros.core.decision.observation import (distance_level, synthesize_joint_velocities,
+                                               synthesize_skeleton, velocity_level)
+from hrc_ros.core.cell.tracking import K4ABT_JOINTS, SyntheticBody, arm_angles
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.node_support import StartupError

@@ -1,6 +1,7 @@
 """The main job, `hrc-case-study`, as README command 1 runs it (node processes over DDS).
 
-Its trajectory must equal the ROS-free closed loop (`hrc_ros.core.simulation.simulate`) for the
+Its trajectory must equal the ROS-free closed loop (`hrc_ros.core.study.simulation.simulate`) for
+the
 same seed: the nodes run the same core with the same random streams, so any difference is a bug in
 the ROS layer (windowing, epoch alignment, conversions). The same run with the human's motion
 arriving through a body tracker's stream (`--input body_tracking`: the simulated cell's motion
@@ -19,8 +20,8 @@ import pytest
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import STATE_VARIABLES, HRCModel
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.policy import default_policy_path, load_policy
-from hrc_ros.core.simulation import case_study, simulate
+from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+from hrc_ros.core.study.simulation import case_study, simulate
 from hrc_ros.ros.bag import bag_info
 
 SEED = 3

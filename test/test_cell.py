@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hrc_ros.core.belief import BeliefFilter
-from hrc_ros.core.cell import SimulatedHuman, sample_index
+from hrc_ros.core.pomdp.belief import BeliefFilter
+from hrc_ros.core.cell.human import SimulatedHuman, sample_index
 from hrc_ros.core.config import load_config
-from hrc_ros.core.faults import parse_faults
+from hrc_ros.core.cell.faults import parse_faults
 from hrc_ros.core.model import ACTION_INDEX, DELTAS, HRCModel, next_distance
 from hrc_ros.core.paths import default_config_path
 

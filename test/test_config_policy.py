@@ -13,8 +13,8 @@ import yaml
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.model import HRCModel
 from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
-from hrc_ros.core.policy import PolicyError, default_policy_path, load_policy, save_policy
-from hrc_ros.core.solver import solve
+from hrc_ros.core.mdp.policy import PolicyError, default_policy_path, load_policy, save_policy
+from hrc_ros.core.mdp.solver import solve
 
 DEFAULT = default_config_path()
 
@@ -90,7 +90,7 @@ def test_shipped_policies_load_and_match_their_configs():
 def test_the_shipped_policy_is_found_for_its_configuration():
     """No policy named: the shipped one solved for the configuration, else default.npz (whose
     check then says what to solve)."""
-    from hrc_ros.core.policy import default_policy_path
+    from hrc_ros.core.mdp.policy import default_policy_path
     for name in ('default', 'paper', 'fail_safe_unaware'):
         path = default_policy_path(load_config(shipped_config_path(name)))
         assert path.name == f'{name}.npz'

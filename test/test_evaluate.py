@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from reference import rule_q
 
-from hrc_ros.core.evaluation import (METRICS, BatchSimulator, evaluate, human_seed,
-                                     paired_difference, random_scenarios, summarize)
+from hrc_ros.core.study.evaluation import (METRICS, BatchSimulator, evaluate, human_seed,
+                                           paired_difference, random_scenarios, summarize)
 from hrc_ros.core.model import ACTIONS
-from hrc_ros.core.policy import default_policy_path
-from hrc_ros.core.simulation import simulate
+from hrc_ros.core.mdp.policy import default_policy_path
+from hrc_ros.core.study.simulation import simulate
 from hrc_ros.tools.evaluate import main
 
 SELECTORS = ('paper', 'qmdp', 'mls', 'mdp')
@@ -57,7 +57,7 @@ def test_batch_reproduces_simulate_episode_by_episode(model, policy, mode, selec
 
 
 def test_batch_handles_an_initial_task_and_the_fail_safe_switch(model, policy):
-    from hrc_ros.core.simulation import case_study
+    from hrc_ros.core.study.simulation import case_study
     scenario = case_study()
     for fail_safe in (True, False):
         batch = BatchSimulator(model, policy, fail_safe=fail_safe).run(
@@ -189,7 +189,7 @@ def test_the_world_is_drawn_from_the_true_model_and_the_robot_plans_with_its_own
 def test_planning_with_the_true_model_has_no_regret_and_the_default_has_some(
         model, policy, default_config):
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.solver import solve
+    from hrc_ros.core.mdp.solver import solve
     world = HRCModel(reluctant(default_config))
     true_policy = solve(world)
     true = evaluate(world, true_policy, 300, 40, 3, selectors=('paper',), world=world)

@@ -1,4 +1,4 @@
-"""hrc-fit's EM (core.fit) on data with a known answer.
+"""hrc-fit's EM (core.learning.fit) on data with a known answer.
 
 - The E-step (the numba kernel: evidence, scaled forward-backward, expected counts) equals the
   brute-force sum over every hidden path of short segments, for the log likelihood, every
@@ -26,14 +26,14 @@ import pytest
 import yaml
 from scipy.optimize import minimize
 
-from hrc_ros.core import fit
-from hrc_ros.core.cell import SimulatedHuman
+from hrc_ros.core.learning import fit
+from hrc_ros.core.cell.human import SimulatedHuman
 from hrc_ros.core.config import load_config
-from hrc_ros.core.evaluation import BatchSimulator, random_scenarios
+from hrc_ros.core.study.evaluation import BatchSimulator, random_scenarios
 from hrc_ros.core.model import ACTIONS, DELTAS, MH, NW, RH2, HRCModel, next_distance
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.recordings import Recording
-from hrc_ros.core.simulation import BELIEF_COLUMNS, Scenario, simulate
+from hrc_ros.core.learning.recordings import Recording
+from hrc_ros.core.study.simulation import BELIEF_COLUMNS, Scenario, simulate
 
 
 @pytest.fixture(scope='module')
@@ -340,7 +340,7 @@ def test_exploration_reaches_every_action_and_leaves_the_human_draws_alone(base,
 
 
 def test_the_fit_never_reads_em_ea_or_the_belief(base, policy, tmp_path):
-    from hrc_ros.core.recordings import read_csv
+    from hrc_ros.core.learning.recordings import read_csv
     model = HRCModel(base)
     rng = np.random.default_rng(10)
     paths = []
@@ -405,7 +405,7 @@ def test_a_chain_whose_actions_never_occur_keeps_its_start_and_is_reported(base)
 
 def test_the_fitted_configuration_loads_and_the_filter_and_the_cell_use_its_likelihood(
         base, policy, tmp_path):
-    from hrc_ros.core.belief import BeliefFilter
+    from hrc_ros.core.pomdp.belief import BeliefFilter
     recordings, _ = simulated(base, policy, 40, seed=4)
     result = fit.fit(fit.prepare(recordings), base, n_init=1, bootstrap=0)
     path = tmp_path / 'fitted.yaml'

@@ -32,9 +32,9 @@ from test_suite_multiprocess import Listener
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, HRCModel
-from hrc_ros.core.policy import load_policy
-from hrc_ros.core.recordings import place_in_epochs
-from hrc_ros.core.selection import ActionSelector
+from hrc_ros.core.mdp.policy import load_policy
+from hrc_ros.core.learning.recordings import place_in_epochs
+from hrc_ros.core.decision.selection import ActionSelector
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros.processes import NodeProcesses
 

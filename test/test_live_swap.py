@@ -19,11 +19,11 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from test_nodes import TASK_1, Decision, Estimator
 
-from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.model import ACTIONS, TASK_VARIABLES, HRCModel
-from hrc_ros.core.policy import load_policy, save_policy
-from hrc_ros.core.selection import ActionSelector
-from hrc_ros.core.solver import solve
+from hrc_ros.core.mdp.policy import load_policy, save_policy
+from hrc_ros.core.decision.selection import ActionSelector
+from hrc_ros.core.mdp.solver import solve
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 

@@ -37,12 +37,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
                           UInt8MultiArray, UInt32)
 
-from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.model import ACTIONS, DN, MH, TASK_VARIABLES, HRCModel
-from hrc_ros.core.observation import (distance_level, synthesize_joint_velocities,
-                                      synthesize_skeleton, velocity_level)
-from hrc_ros.core.policy import load_policy
-from hrc_ros.core.selection import ActionSelector
+from hrc_ros.core.decision.observation import (distance_level, synthesize_joint_velocities,
+                                               synthesize_skeleton, velocity_level)
+from hrc_ros.core.mdp.policy import load_policy
+from hrc_ros.core.decision.selection import ActionSelector
 from hrc_ros.core.tasks import TaskBook
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
@@ -1121,7 +1121,7 @@ def test_cell_streams_the_initial_observation_and_distance(graph):
 
 
 def test_cell_reacts_to_actions_like_the_simulated_human(graph, model):
-    from hrc_ros.core.cell import SimulatedHuman
+    from hrc_ros.core.cell.human import SimulatedHuman
     cell = Cell(graph, seed=11)
     twin = SimulatedHuman(model, seed=11, em=0, ea=0, d=1)
     task = dict(TASK_1)
@@ -1173,7 +1173,7 @@ def test_cell_drops_malformed_inputs(graph):
 def test_cell_holds_an_action_that_overtakes_its_task_state(graph, model):
     """a_k and x_k come from two writers; a_k may be processed first. The cell must answer
     the request with x_k (eligible), not with x_{k-1} (idle: ineligible, so false)."""
-    from hrc_ros.core.cell import SimulatedHuman
+    from hrc_ros.core.cell.human import SimulatedHuman
     idle = dict(zip(TASK_VARIABLES, (0,) * 8))
     task = {**idle, 'tp': 2, 'tc': 2, 'tx': 1}
     twin = SimulatedHuman(model, seed=2, em=0, ea=0, d=1)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from hrc_ros.core.observation import (closest_distance, distance_level,
-                                      synthesize_joint_velocities, synthesize_skeleton,
-                                      velocity_level, window_level)
+from hrc_ros.core.decision.observation import (closest_distance, distance_level,
+                                               synthesize_joint_velocities, synthesize_skeleton,
+                                               velocity_level, window_level)
 
 T = (0.3, 0.8)
 R = (0.2, 0.6, 1.2)

@@ -8,7 +8,7 @@
   `ament_index_python.get_package_prefix`). Tools and nodes then run from the install with the
   environment its `local_setup.sh` sets; the nodes join the ROS graph and stop cleanly on SIGINT.
 - pip: `pip install` into a fresh environment puts the same scripts in `<venv>/bin` and the
-  data in `<venv>/share/hrc_ros`, where `hrc_ros.core.policy.share_dir()` finds them.
+  data in `<venv>/share/hrc_ros`, where `hrc_ros.core.mdp.policy.share_dir()` finds them.
 - The launch file and the ROS parameter files, against docs/DESIGN.md's parameter table; the
   params files are parsed by rcl itself (through rclpy), as `--params-file` does.
 - `.ci/run` fails when pytest collects no tests.
@@ -230,7 +230,7 @@ def test_installed_tool_runs(prefix, ros_env):
 def test_install_is_self_contained(prefix, ros_env):
     """The install's code and data are used, not the checkout's or the dev venv's."""
     python = interpreter(str(prefix / 'lib' / PACKAGE / 'hrc-solve'))
-    result = run([python, '-c', 'import hrc_ros, hrc_ros.core.policy as p; '
+    result = run([python, '-c', 'import hrc_ros, hrc_ros.core.mdp.policy as p; '
                   'print(hrc_ros.__file__); print(p.share_dir())'], env=ros_env, timeout=60)
     assert result.returncode == 0, result.stdout
     module, share = result.stdout.split()[-2:]
@@ -608,7 +608,7 @@ def test_case_study_params_add_the_schedule():
 
 
 def test_body_tracking_sim_params_give_both_camera_nodes_one_pose():
-    from hrc_ros.core.tracking import RigidTransform
+    from hrc_ros.core.cell.tracking import RigidTransform
     design = design_parameters()
     effective = effective_parameters(REPO / 'config' / 'hrc_params.yaml',
                                      REPO / 'config' / 'body_tracking_sim_params.yaml')

@@ -1,12 +1,12 @@
-"""The point-based POMDP solver (core.pomdp) against problems with a known optimum, and its
+"""The point-based POMDP solver (core.pomdp.solver) against problems with a known optimum, and its
 structure against the MDP model it is built from."""
 
 import numpy as np
 import pytest
 
-from hrc_ros.core import _pomdp_kernels as kernels
-from hrc_ros.core.pomdp import (AlphaSet, MixedPOMDP, backup_sweeps, fib_q, initial_bounds,
-                                mdp_q)
+from hrc_ros.core.pomdp import _kernels as kernels
+from hrc_ros.core.pomdp.solver import (AlphaSet, MixedPOMDP, backup_sweeps, fib_q, initial_bounds,
+                                       mdp_q)
 
 GAMMA = 0.95
 LISTEN, OPEN_LEFT, OPEN_RIGHT = range(3)

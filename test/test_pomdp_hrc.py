@@ -7,18 +7,18 @@ import numpy as np
 import pytest
 import yaml
 
-from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.config import load_config
-from hrc_ros.core.evaluation import BatchSimulator, human_seed, random_scenarios
+from hrc_ros.core.study.evaluation import BatchSimulator, human_seed, random_scenarios
 from hrc_ros.core.model import ACTIONS, DN, N_DISTANCE, NW, RH2, HRCModel, step_task
 from hrc_ros.core.paths import default_config_path, shipped_config_path
-from hrc_ros.core.policy import PolicyError, save_policy
-from hrc_ros.core.pomdp import AlphaPolicy, case_study_targets, hrc_pomdp, solve_pomdp
-from hrc_ros.core.pomdp_policy import (default_pomdp_policy_path, load_pomdp_policy,
+from hrc_ros.core.mdp.policy import PolicyError, save_policy
+from hrc_ros.core.pomdp.solver import AlphaPolicy, case_study_targets, hrc_pomdp, solve_pomdp
+from hrc_ros.core.pomdp.policy import (default_pomdp_policy_path, load_pomdp_policy,
                                        save_pomdp_policy)
-from hrc_ros.core.selection import ActionSelector
-from hrc_ros.core.simulation import Scenario
-from hrc_ros.core.solver import FactoredBellman, solve
+from hrc_ros.core.decision.selection import ActionSelector
+from hrc_ros.core.study.simulation import Scenario
+from hrc_ros.core.mdp.solver import FactoredBellman, solve
 from hrc_ros.core.tasks import TaskBook
 
 REDUCED = {'model': {'rho': 1, 'sigma': 1}}
@@ -203,7 +203,7 @@ def test_fib_with_a_belief_that_rules_states_out_picks_the_best_available_action
 def test_selector_and_batch_agree_with_the_alpha_policy(reduced, reduced_solution):
     """ActionSelector's pomdp and fib are the AlphaPolicy's; BatchSimulator reproduces
     `simulate` action for action with them (posterior and bayes)."""
-    from hrc_ros.core.simulation import simulate
+    from hrc_ros.core.study.simulation import simulate
     policy = reduced_solution.policy()
     mdp = solve(reduced)
     rng = np.random.default_rng(5)

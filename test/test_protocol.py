@@ -4,15 +4,13 @@ answer, timeout and restart, deterministically and without DDS (core.protocol)."
 import numpy as np
 import pytest
 
-from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.model import CT, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from hrc_ros.core.protocol import (ERROR, NO_EVIDENCE, OK, WARN, ActionPairing, ClockStart,
                                    SILENT_FALLBACK_S, SILENT_MIN_S, PeriodEstimate, SequenceGaps,
-                                   Stamp,
-                                   timeout_ns,
-                                   DecisionGate, EpochFollower, EstimatorEpochs, InputError,
-                                   TaskEpochs)
-from hrc_ros.core.selection import Selection
+                                   Stamp, timeout_ns, DecisionGate, EpochFollower, EstimatorEpochs,
+                                   InputError, TaskEpochs)
+from hrc_ros.core.decision.selection import Selection
 from hrc_ros.core.tasks import TaskBook
 
 MS = 1_000_000

@@ -1,5 +1,5 @@
-"""What hrc-fit reads: trajectory CSVs and bags, good and bad (core.recordings, core.fit.prepare,
-tools.fit).
+"""What hrc-fit reads: trajectory CSVs and bags, good and bad (core.learning.recordings,
+core.learning.fit.prepare, tools.fit).
 
 - A CSV with a missing column, an unreadable or out-of-range value, an unknown action or
   epochs going backwards is refused in one line naming the file (and line) and what is wrong,
@@ -28,12 +28,12 @@ import sys
 import numpy as np
 import pytest
 
-from hrc_ros.core import fit
+from hrc_ros.core.learning import fit
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, HRCModel
 from hrc_ros.core.paths import share_dir
-from hrc_ros.core.recordings import RecordingError, read_csv, read_recordings
-from hrc_ros.core.simulation import Scenario, simulate
+from hrc_ros.core.learning.recordings import RecordingError, read_csv, read_recordings
+from hrc_ros.core.study.simulation import Scenario, simulate
 
 BAGS = share_dir() / 'bags'
 HEADER = 'episode,epoch,tp,tc,tx,ty,hp,hc,bp,bc,d,O,action,accepted,em,ea'
@@ -281,7 +281,7 @@ def test_hrc_fit_refuses_an_output_that_is_an_input_or_another_output(tmp_path, 
     (tmp_path / 'link.csv').symlink_to(path)
     (tmp_path / 'base.yaml').write_text(share_dir().joinpath('config', 'default.yaml')
                                         .read_text())
-    from hrc_ros.core.recordings import BAG_TOPICS
+    from hrc_ros.core.learning.recordings import BAG_TOPICS
     bag = write_bag(tmp_path / 'bag', BAG_TOPICS, ROWS[:5])     # bag_0.mcap and metadata.yaml
 
     def files():
@@ -422,7 +422,7 @@ ROWS = [(1, (1, 1, 3, 0, 0, 0, 0, 0), 1, 1, 'mh', None),
 
 
 def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported(tmp_path):
-    from hrc_ros.core.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
+    from hrc_ros.core.learning.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
     bag = write_bag(tmp_path / 'bag', BAG_TOPICS + OPTIONAL_BAG_TOPICS, ROWS)
     recordings = read_recordings([bag], 2, 2)
     assert [len(r) for r in recordings] == [4, 1]
@@ -438,7 +438,7 @@ def test_a_written_bag_reads_with_restarts_as_episodes_and_bad_messages_reported
 
 def test_a_message_whose_bytes_do_not_decode_is_reported_and_the_rest_of_the_bag_read(
         tmp_path):
-    from hrc_ros.core.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
+    from hrc_ros.core.learning.recordings import BAG_TOPICS, OPTIONAL_BAG_TOPICS
     rows = [ROWS[0]] + ROWS[2:5]                   # epochs 1..4 of one episode
     bag = write_bag(tmp_path / 'bag', BAG_TOPICS + OPTIONAL_BAG_TOPICS, rows, cut_action=2)
     [recording] = read_recordings([bag], 2, 2)
@@ -456,7 +456,7 @@ def test_a_message_whose_bytes_do_not_decode_is_reported_and_the_rest_of_the_bag
 
 @pytest.mark.parametrize('leave_out', ['hrc/observation', 'hrc/task_state', 'hrc/epoch'])
 def test_a_bag_without_a_needed_topic_is_refused_naming_it(tmp_path, leave_out):
-    from hrc_ros.core.recordings import BAG_TOPICS
+    from hrc_ros.core.learning.recordings import BAG_TOPICS
     topics = tuple(t for t in BAG_TOPICS if t != leave_out)
     bag = write_bag(tmp_path / 'bag', topics, ROWS[:3])
     with pytest.raises(RecordingError) as error:

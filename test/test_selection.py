@@ -6,8 +6,8 @@ import pytest
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTION_INDEX, DN, SAFETY_ORDER, HRCModel
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.selection import SELECTORS, ActionSelector
-from hrc_ros.core.solver import FactoredBellman, solve
+from hrc_ros.core.decision.selection import SELECTORS, ActionSelector
+from hrc_ros.core.mdp.solver import FactoredBellman, solve
 
 X = (1, 1, 3, 0, 0, 0, 0, 0, 1)   # the paper's initial observable state (reduced model)
 

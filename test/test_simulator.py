@@ -12,13 +12,13 @@ import csv
 import numpy as np
 import pytest
 
-from hrc_ros.core.belief import BeliefFilter
+from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, DN, HRCModel, request_eligible
-from hrc_ros.core.plots import plot_trajectory
+from hrc_ros.core.study.plots import plot_trajectory
 from hrc_ros.core.paths import shipped_config_path
-from hrc_ros.core.policy import default_policy_path, load_policy
-from hrc_ros.core.simulation import COLUMNS, STATE_VARIABLES, Scenario, case_study, simulate
+from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+from hrc_ros.core.study.simulation import COLUMNS, STATE_VARIABLES, Scenario, case_study, simulate
 from hrc_ros.tools.simulate import main
 
 
@@ -255,7 +255,7 @@ def test_the_default_never_freezes_in_the_collision_circle(model, policy):
     d = 0, the case study with seed 4 asked for joint work at d = 1, the human stepped into the
     collision circle, and the forced dn held it there for the remaining 14 epochs (0 of 3
     tasks); 4 of seeds 0-99 spent more than 3 epochs in a row at d = 0 and 7 missed a task."""
-    from hrc_ros.core.evaluation import STUCK_EPOCHS, BatchSimulator, episodes_of
+    from hrc_ros.core.study.evaluation import STUCK_EPOCHS, BatchSimulator, episodes_of
     assert model.config.fail_safe_aware
     trajectory = simulate(model, policy, case_study(), seed=4)
     assert sum(r.complete_epoch is not None for r in trajectory.tasks) == 3

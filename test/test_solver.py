@@ -8,8 +8,8 @@ from scipy import sparse
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, DN, NW, HRCModel
 from hrc_ros.core.paths import default_config_path
-from hrc_ros.core.solver import (FactoredBellman, greedy_policy, policy_iteration, solve,
-                                 value_iteration)
+from hrc_ros.core.mdp.solver import (FactoredBellman, greedy_policy, policy_iteration, solve,
+                                     value_iteration)
 
 CONFIG = default_config_path()
 REDUCED = {'model': {'rho': 1, 'sigma': 1}}
@@ -115,7 +115,7 @@ def test_safety_tie_order():
 
 def test_shipped_policy_behaviour_matches_the_paper(full):
     """MODEL.md 7, policy-level facts of the shipped default policy."""
-    from hrc_ros.core.policy import default_policy_path, load_policy
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
     policy = load_policy(default_policy_path(full.config), full.config).policy
 
     def act(state):

@@ -26,8 +26,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String, UInt8MultiArray, UInt32
 
 from hrc_ros.core.model import HRCModel
-from hrc_ros.core.policy import load_policy
-from hrc_ros.core.simulation import case_study, simulate
+from hrc_ros.core.mdp.policy import load_policy
+from hrc_ros.core.study.simulation import case_study, simulate
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.processes import NodeProcesses

@@ -1,5 +1,5 @@
 """The body-tracking input without DDS: frame transform, arm angles, body selection with
-hysteresis, velocity derivation, jump rejection and the synthetic tracker (core.tracking).
+hysteresis, velocity derivation, jump rejection and the synthetic tracker (core.cell.tracking).
 
 Bodies are built with `SyntheticBody` (joints at known angles and a known closest distance) and
 then moved, duplicated, swapped or broken frame by frame, as a tracker's bad streams would.
@@ -12,12 +12,12 @@ import math
 import numpy as np
 import pytest
 
-from hrc_ros.core.observation import (DEFAULT_SAFETY_RADII, closest_distance, distance_band,
-                                      distance_level)
+from hrc_ros.core.decision.observation import (DEFAULT_SAFETY_RADII, closest_distance,
+                                               distance_band, distance_level)
 from hrc_ros.core.protocol import InputError
-from hrc_ros.core.tracking import (ANGLE_RANGE, JOINT_INDEX, JUMP_SLACK, K4ABT_JOINTS,
-                                   BodyFrame, BodyTracking, RigidTransform, SyntheticBody,
-                                   arm_angles, joint_indices, split_marker_id)
+from hrc_ros.core.cell.tracking import (ANGLE_RANGE, JOINT_INDEX, JUMP_SLACK, K4ABT_JOINTS,
+                                        BodyFrame, BodyTracking, RigidTransform, SyntheticBody,
+                                        arm_angles, joint_indices, split_marker_id)
 
 DT = 1 / 30                                  # the Azure Kinect's frame period
 CAMERA = RigidTransform.from_parameters(     # 2.5 m ahead, 1.6 m up, looking back and down

@@ -1,5 +1,5 @@
-"""The live view: the picture of a known cell state (core.view), its markers, cell_view_node on
-the graph and its shutdown, and the Foxglove layout.
+"""The live view: the picture of a known cell state (core.cell.view), its markers, cell_view_node
+on the graph and its shutdown, and the Foxglove layout.
 
 - Core: circle radii and centre, the keypoints' colour at each distance level, the panel's text
   (epoch, action, FAIL-SAFE and why, top beliefs, task state), when the view draws.
@@ -32,9 +32,9 @@ from test_nodes import console_script, spin_until
 from visualization_msgs.msg import Marker, MarkerArray
 
 from hrc_ros.core.model import TASK_VARIABLES
-from hrc_ros.core.observation import closest_distance, synthesize_skeleton
-from hrc_ros.core.view import (DISC_THICKNESS, GREY, LEVEL_COLORS, CellState, CellView,
-                               action_line, scene, state_text, top_beliefs, with_alpha)
+from hrc_ros.core.decision.observation import closest_distance, synthesize_skeleton
+from hrc_ros.core.cell.view import (DISC_THICKNESS, GREY, LEVEL_COLORS, CellState, CellView,
+                                    action_line, scene, state_text, top_beliefs, with_alpha)
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.cell_view_node import CellViewNode

@@ -1,14 +1,18 @@
 """The ROS-free core of hrc_ros: the paper's model and the decision science (numpy, scipy,
-numba; no rclpy, no ROS message package, no ament).
+numba; no rclpy, no ROS message package, no ament), grouped by what each part serves.
 
-- `config`: configuration YAML, validation, hash; `paths`: where config/ and policies/ live;
-- `model`: MODEL.md's state space, rules and cost; `solver` (+ `_kernels`): value and policy
-  iteration on the factored Bellman operator; `policy`: policy files;
-- `observation`: human motion -> velocity level O and distance level d; `belief`: the filter
-  over the hidden emotions; `selection`: actions from (belief, observable state);
-- `tasks`: the task book; `cell`: the simulated human; `faults`: injected faults;
+Modules every part uses:
+- `config`: configuration YAML, validation, hash; `paths`: where config/ and policies/ live,
+  and reading and writing users' files safely;
+- `model`: MODEL.md's state space, rules and cost; `tasks`: the task book (MODEL.md 3.2);
 - `protocol`: the ROS epoch protocol as pure state machines (the nodes call it);
-- `simulation`, `evaluation`, `plots`: closed loops without ROS, many-episode comparisons and
-  their figures;
 - `bagfile`: the rosbag2-compatible MCAP format (write, read, check) without ROS.
+
+Packages:
+- `mdp/`: the factored Bellman operator, value and policy iteration, policy files;
+- `pomdp/`: the belief filter, the point-based POMDP solver, alpha-vector policy files;
+- `decision/`: human motion into O and d, actions from (belief, observable state);
+- `learning/`: recordings as per-epoch records, the model fitted by EM;
+- `cell/`: the simulated human, injected faults, body-tracking input, the cell as markers;
+- `study/`: closed loops without ROS (one trajectory, many paired episodes) and their plots.
 """

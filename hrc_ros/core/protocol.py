@@ -41,7 +41,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .model import ACTIONS, DN, OBSERVATION_LEVELS, TASK_VARIABLES, request_eligible
-from .observation import window_level
+from .decision.observation import window_level
 from .tasks import TaskBook, TaskRecord
 
 OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'

@@ -37,15 +37,15 @@ import numpy as np
 import yaml
 
 from ..core.config import BELIEF_MODES, ConfigError, load_config
-from ..core.faults import parse_faults
+from ..core.cell.faults import parse_faults
 from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from ..core.paths import default_config_path, share_dir
-from ..core.plots import plot_trajectory
-from ..core.policy import PolicyError, default_policy_path, load_policy
-from ..core.recordings import place_in_epochs
-from ..core.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
+from ..core.study.plots import plot_trajectory
+from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
+from ..core.learning.recordings import place_in_epochs
+from ..core.study.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
 from ..core.tasks import TaskBook
-from ..core.selection import SELECTORS
+from ..core.decision.selection import SELECTORS
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
                             output_folder)
 from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS

@@ -29,11 +29,11 @@ Wire formats (INTERFACES.md, plus the decisions below):
   `hrc/human_response` (std_msgs/Bool).
 - `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
 - `body_tracking_data` (visualization_msgs/MarkerArray, the Azure Kinect / Orbbec drivers'
-  layout, `core.tracking`): ADD markers, one per joint, ``id = body * 100 + joint`` with the
+  layout, `core.cell.tracking`): ADD markers, one per joint, ``id = body * 100 + joint`` with the
   joint < 32, all in `camera_frame`, all with one stamp, finite, every body with all 32
   joints; other actions (DELETE, DELETEALL) carry no joint and are skipped. An array without
   ADD markers is a frame without bodies.
-- `hrc/markers` (visualization_msgs/MarkerArray): `core.view` shapes after a DELETEALL.
+- `hrc/markers` (visualization_msgs/MarkerArray): `core.cell.view` shapes after a DELETEALL.
 """
 
 from __future__ import annotations
@@ -51,14 +51,14 @@ from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, 
                           UInt8MultiArray, UInt32)
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..core.belief import BELIEF_TOLERANCE
+from ..core.pomdp.belief import BELIEF_TOLERANCE
 from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSERVATION_LEVELS,
                           STATE_VARIABLES, TASK_VARIABLES, action_index)
-from ..core.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
+from ..core.decision.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
 from ..core.protocol import InputError
-from ..core.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
-                             split_marker_id)
-from ..core.view import Shape
+from ..core.cell.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
+                                  split_marker_id)
+from ..core.cell.view import Shape
 
 ROBOT_BASE_FRAME = 'base_link'
 BELIEF_DIMS = (('motivation', 3, 9), ('aggression', 3, 3))
@@ -473,7 +473,7 @@ def delete_all_markers_msg() -> MarkerArray:
 
 
 def markers_to_msg(shapes: Iterable[Shape], frame_id: str, stamp: Time) -> MarkerArray:
-    """A whole picture: DELETEALL, then one marker per shape (`core.view`)."""
+    """A whole picture: DELETEALL, then one marker per shape (`core.cell.view`)."""
     msg = delete_all_markers_msg()
     for shape in shapes:
         marker = Marker(ns=shape.ns, id=int(shape.id), type=MARKER_TYPES[shape.kind],

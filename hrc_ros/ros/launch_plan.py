@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..core.config import BELIEF_MODES
-from ..core.selection import SELECTORS
+from ..core.decision.selection import SELECTORS
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from typing import NoReturn
 from ..core.config import Config, ConfigError, load_config
 from ..core.model import HRCModel
 from ..core.paths import default_config_path
-from ..core.policy import Policy, PolicyError, default_policy_path, load_policy
+from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 
 MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
 MAX_EPOCHS = 100_000            # one closed-loop run
@@ -136,8 +136,8 @@ def add_pomdp_argument(parser: argparse.ArgumentParser) -> None:
 
 def load_pomdp(args: argparse.Namespace, config: Config, selectors) -> object | None:
     """The POMDP policy when one of `selectors` needs it (pomdp, fib), else None."""
-    from ..core.pomdp_policy import default_pomdp_policy_path, load_pomdp_policy
-    from ..core.selection import POMDP_SELECTORS
+    from ..core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
+    from ..core.decision.selection import POMDP_SELECTORS
     if not any(s in POMDP_SELECTORS for s in selectors):
         return None
     try:

@@ -1,4 +1,4 @@
-"""hrc-evaluate: the action selectors compared over many seeded episodes (core.evaluation).
+"""hrc-evaluate: the action selectors compared over many seeded episodes (core.study.evaluation).
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
@@ -24,12 +24,12 @@ import sys
 import time
 
 from ..core.config import BELIEF_MODES, ConfigError, load_config
-from ..core.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_regret,
-                               format_table, paired_difference, summarize)
+from ..core.study.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_regret,
+                                     format_table, paired_difference, summarize)
 from ..core.model import HRCModel
-from ..core.policy import PolicyError, default_policy_path, load_policy
-from ..core.plots import plot_summaries
-from ..core.simulation import SIMULATION_SELECTORS
+from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
+from ..core.study.plots import plot_summaries
+from ..core.study.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODE_EPOCHS, MAX_EPISODES, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
                      add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, fail,
                      load_model, load_pomdp, output_folder)
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
         return fail('hrc-evaluate', exc)
     t0 = time.perf_counter()
     if world is not None and true_policy is None:
-        from ..core.solver import solve
+        from ..core.mdp.solver import solve
         print(f'solving {world.config.source} (no shipped policy was solved for it) ...',
               flush=True)
         true_policy = solve(world)

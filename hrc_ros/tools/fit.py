@@ -1,4 +1,4 @@
-"""hrc-fit: learn the cell's model from its recordings (core.fit; docs/LEARNING.md).
+"""hrc-fit: learn the cell's model from its recordings (core.learning.fit; docs/LEARNING.md).
 
     hrc-fit INPUT... -o OUT.yaml [--base CONFIG] [--hold FAMILY,...] [--bootstrap 200] [--plot]
 
@@ -22,10 +22,10 @@ import sys
 from pathlib import Path
 
 from ..core.config import ConfigError, load_config
-from ..core.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError, config_yaml,
-                        expand_hold, fit, prepare, report_dict, report_text)
+from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError,
+                                 config_yaml, expand_hold, fit, prepare, report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
-from ..core.recordings import RecordingError, read_recordings
+from ..core.learning.recordings import RecordingError, read_recordings
 from .common import MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail, output_file
 
 
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
           f'{len(result.warnings)} warning(s)')
     written = [output, report_path]
     if plot_path is not None:
-        from ..core.plots import plot_fit
+        from ..core.study.plots import plot_fit
         written.append(plot_fit(result, plot_path))
     for path in written:
         print(f'wrote {path}')

@@ -4,7 +4,7 @@
     hrc-solve --method pomdp --config config/default.yaml -o policies/pomdp/default.npz
 
 Prints the residual and elapsed time of every sweep (every `--every` sweeps), then the policy
-file it wrote. `--method pomdp` solves the POMDP over the belief (core.pomdp: point-based
+file it wrote. `--method pomdp` solves the POMDP over the belief (core.pomdp.solver: point-based
 sweeps between a lower and an upper bound) and prints their progress and final gap.
 """
 
@@ -14,10 +14,10 @@ import sys
 
 from ..core.config import MAX_SWEEPS
 from ..core.model import ACTIONS
-from ..core.policy import save_policy
-from ..core.solver import memory_estimate, solve
-from .common import (MAX_SEED, Parser, ToolError, add_model_arguments,
-                     bounded_int, check_memory, fail, load_model, output_file)
+from ..core.mdp.policy import save_policy
+from ..core.mdp.solver import memory_estimate, solve
+from .common import (MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int, check_memory,
+                     fail, load_model, output_file)
 
 POMDP = 'pomdp'
 MAX_ROUNDS = 20
@@ -74,8 +74,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _solve_pomdp(args, config, model, output) -> int:
-    from ..core.pomdp import report_lines, solve_pomdp
-    from ..core.pomdp_policy import save_pomdp_policy
+    from ..core.pomdp.solver import report_lines, solve_pomdp
+    from ..core.pomdp.policy import save_pomdp_policy
 
     print(f'hrc-solve: {config.source}: POMDP over the belief, {model.n_states:,} states '
           f'({args.episodes} episodes per round, {args.rounds} rounds after the first)',

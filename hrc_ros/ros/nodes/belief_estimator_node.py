@@ -4,7 +4,7 @@ Contract (docs/DESIGN.md): subscribes `human/joint_states` and `human/skeleton` 
 QoS), `hrc/action` and `hrc/epoch`; on epoch k publishes `hrc/distance_level` d_k (latched),
 `hrc/observation` O_k and `hrc/belief` b_k (latched) of the window that epoch k closes, and a
 per-second status (rates, lag = receive time - header stamp of the joint states, drops). Each
-joint state gets its velocity level at once (`core.observation.velocity_level`; velocities
+joint state gets its velocity level at once (`core.decision.observation.velocity_level`; velocities
 derived from positions and stamps where the message has none) and each skeleton its distance
 level (closest keypoint, `robot_frame`); the windows, O_k and the belief update are
 `core.protocol.EstimatorEpochs`. A malformed message is dropped with a diagnostic; a window
@@ -27,13 +27,13 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
-from ...core.belief import BeliefFilter
+from ...core.pomdp.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
-from ...core.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS, distance_level,
-                                 velocity_level)
+from ...core.decision.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS,
+                                          distance_level, velocity_level)
 from ...core.protocol import (ERROR, ESTIMATOR_HOLD_FALLBACK_S, ESTIMATOR_HOLD_FRACTION, OK,
-                               EstimatorEpochs, Report, Stamp)
+                              EstimatorEpochs, Report, Stamp)
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, DeadlineTimer, Inputs,

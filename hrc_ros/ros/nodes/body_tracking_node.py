@@ -3,7 +3,7 @@
 Contract: subscribes `input_topic` (default `body_tracking_data`), a
 `visualization_msgs/MarkerArray` per body frame as the Azure Kinect and Orbbec (Femto Bolt /
 Mega, through Orbbec's K4A wrapper) body-tracking ROS drivers publish it (one marker per joint,
-id = body id * 100 + joint index, positions in `camera_frame`; `core.tracking`). For each
+id = body id * 100 + joint index, positions in `camera_frame`; `core.cell.tracking`). For each
 frame it publishes, in `robot_frame`, with the frame's capture stamp:
 
 - `human/skeleton` (geometry_msgs/PoseArray): the `keypoint_joints` of every body in view, the
@@ -38,10 +38,10 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ...core.observation import HUMAN_JOINTS
-from ...core.tracking import (DEFAULT_CONFIRM_FRAMES, DEFAULT_MAX_GAP, DEFAULT_MAX_SPEED,
-                              DEFAULT_SWITCH_MARGIN, K4ABT_JOINTS, BodyTracking, RigidTransform,
-                              joint_indices)
+from ...core.decision.observation import HUMAN_JOINTS
+from ...core.cell.tracking import (DEFAULT_CONFIRM_FRAMES, DEFAULT_MAX_GAP, DEFAULT_MAX_SPEED,
+                                   DEFAULT_SWITCH_MARGIN, K4ABT_JOINTS, BodyTracking,
+                                   RigidTransform, joint_indices)
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,

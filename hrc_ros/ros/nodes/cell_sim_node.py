@@ -5,10 +5,11 @@ velocities, and positions integrated from them) and `human/skeleton` (7 keypoint
 `robot_frame`) at `sensor_rate` Hz, every sample inside the velocity band of the human's current
 O and the distance band of the current d, so the belief estimator recovers both; reacts to each
 `hrc/action` a_k with the epoch's `hrc/task_state` x_k (`core.protocol.ActionPairing`) through a
-seeded `core.cell.SimulatedHuman` (the same draws as `hrc-simulate` for the same seed), answers
+seeded `core.cell.human.SimulatedHuman` (the same draws as `hrc-simulate` for the same seed),
+answers
 requests on `hrc/human_response` (false for an ineligible one), and publishes the debug topic
 `hrc/sim/true_state` (latched: the 11 state variables after each reaction). `faults` injects
-`core.faults` (dropout, nan_velocity, decline, collision) without changing the random draws.
+`core.cell.faults` (dropout, nan_velocity, decline, collision) without changing the random draws.
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, String, UInt8MultiArray
 
-from ...core import faults
-from ...core.cell import SimulatedHuman
+from ...core.cell import faults
+from ...core.cell.human import SimulatedHuman
 from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
-from ...core.observation import synthesize_joint_velocities, synthesize_skeleton
+from ...core.decision.observation import synthesize_joint_velocities, synthesize_skeleton
 from ...core.protocol import ActionPairing, PeriodEstimate, timeout_ns
 from .. import conversions as conv
 from .. import qos

@@ -3,7 +3,7 @@
 Contract: reads `hrc/epoch`, `hrc/action`, `hrc/belief`, `hrc/distance_level`,
 `hrc/task_state`, `human/skeleton` and the decision node's per-epoch status on /diagnostics (for
 the reasons of a fail-safe dn); publishes `visualization_msgs/MarkerArray` on `hrc/markers` in
-`robot_frame`: the whole picture of `core.view.scene` (the three safety circles, the human's
+`robot_frame`: the whole picture of `core.cell.view.scene` (the three safety circles, the human's
 keypoints coloured by their distance level, the closest keypoint and its distance, a text panel
 with the epoch, the action, the top beliefs over (em, ea) and the task state) after a DELETEALL,
 so every message replaces the last. `hrc/markers` is reliable and transient local (depth 1): a
@@ -12,7 +12,8 @@ lone DELETEALL, waits (at most `STOP_ACK_SEC`) until the subscribers have it, an
 the viewers empty.
 
 It only listens, and at its own pace: its inputs are `SampledInputs`, taken `refresh_rate` times
-a second in publication order (`core.view.CellView` pairs each action with its epoch's inputs),
+a second in publication order (`core.cell.view.CellView` pairs each action with its epoch's
+inputs),
 and a picture is drawn at a tick when something changed. So it never wakes for a message, its
 share of the CPU does not grow with the rate of the epochs or of the tracker, nothing of the
 decision loop waits for it, and bench/loop_latency.py --view-pairs measures the loop with and
@@ -33,7 +34,7 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt
 from visualization_msgs.msg import MarkerArray
 
 from ...core.model import ACTIONS
-from ...core.view import CellView, scene
+from ...core.cell.view import CellView, scene
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,

@@ -36,15 +36,15 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt
 
 from ...core.config import Config
 from ...core.model import HRCModel
-from ...core.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
+from ...core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
 from ...core.protocol import (ERROR, OK, WARN, ClockStart, DecisionGate, EpochFollower, Report,
                               Stamp, timeout_ns)
-from ...core.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
+from ...core.decision.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
-                            StartupError, config_path, control_clock, load_node_config,
-                            node_setup, run)
+                            StartupError, config_path, control_clock, load_node_config, node_setup,
+                            run)
 
 EPOCH_SOURCES = ('timer', 'topic')
 INPUT_FRACTION = 0.5   # input_timeout 0: this fraction of the epoch period

@@ -5,8 +5,8 @@ motion, `cell_sim_node` started with ``-r human/joint_states:=sim/human/joint_st
 human/skeleton:=sim/human/skeleton``) and publishes `body_tracking_data` as the Azure Kinect
 driver does (one body, id 1, 32 SPHERE markers, id = 100 + joint, `camera_frame`, reliable
 depth 1): for each joint state, one body frame with that state's stamp, from
-`core.tracking.SyntheticBody`: its arm angles turn at exactly the joint state's speeds, and its
-closest keypoint walks (at most `walk_speed`) into the band of the latest skeleton's distance
+`core.cell.tracking.SyntheticBody`: its arm angles turn at exactly the joint state's speeds, and
+its closest keypoint walks (at most `walk_speed`) into the band of the latest skeleton's distance
 level, so `body_tracking_node` in front of the estimator hands it the same velocity levels and,
 by each epoch's end, the same distance level as the simulated cell would directly. A joint state
 with NaN velocities (the cell's `nan_velocity` fault) gives a frame whose arm joints are NaN, a
@@ -27,8 +27,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
-from ...core.observation import distance_level
-from ...core.tracking import ARM_ANGLES, DEFAULT_WALK_SPEED, JOINT_INDEX, SyntheticBody
+from ...core.decision.observation import distance_level
+from ...core.cell.tracking import ARM_ANGLES, DEFAULT_WALK_SPEED, JOINT_INDEX, SyntheticBody
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,

@@ -1,4 +1,4 @@
-"""Recorded runs of the cell as per-epoch records: what `hrc-fit` (core.fit) learns from.
+"""Recorded runs of the cell as per-epoch records: what `hrc-fit` (core.learning.fit) learns from.
 
 A record of epoch k is what the robot saw and did, never the hidden emotions:
 
@@ -45,9 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .model import ACTIONS, DISTANCE_LEVELS, OBSERVATION_LEVELS, TASK_VARIABLES, action_index
-from .paths import read_text
-from .protocol import EpochFollower, InputError, Stamp
+from ..model import ACTIONS, DISTANCE_LEVELS, OBSERVATION_LEVELS, TASK_VARIABLES, action_index
+from ..paths import read_text
+from ..protocol import EpochFollower, InputError, Stamp
 
 COLUMNS = ('epoch',) + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
 OPTIONAL_COLUMNS = ('episode',)
@@ -257,7 +257,7 @@ def _decoders(rho: int, sigma: int) -> dict:
 def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
                        ) -> list[Recording]:
     """The episodes of a bag (a folder or a .mcap file; see the module docstring)."""
-    from .bagfile import BagError, bag_info, read_bag
+    from ..bagfile import BagError, bag_info, read_bag
 
     try:
         info = bag_info(path, verify=False)

@@ -45,9 +45,9 @@ from typing import Callable
 import numpy as np
 
 from . import _kernels
-from .config import MAX_SWEEPS
-from .model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, SAFETY_ORDER,
-                    HRCModel, commit_effective, request_eligible, step_task)
+from ..config import MAX_SWEEPS
+from ..model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, SAFETY_ORDER,
+                     HRCModel, commit_effective, request_eligible, step_task)
 
 SOLVER_VERSION = '2.0'
 TIE_TOLERANCE = 1e-9

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, next_distance,
-                    request_eligible)
+from ..model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, next_distance,
+                     request_eligible)
 
 UNIFORMS_PER_EPOCH = 5
 
@@ -74,7 +74,7 @@ class SimulatedHuman:
         self.ea = _check_level('ea', ea, 2)
         self.d = _check_level('d', d, 3)
         if likelihood is None:
-            from .belief import BeliefFilter
+            from ..pomdp.belief import BeliefFilter
             likelihood = BeliefFilter(model).likelihood
         likelihood = np.asarray(likelihood, dtype=float)
         if likelihood.shape != (3, 9):

@@ -36,12 +36,12 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .belief import BeliefFilter
-from .cell import UNIFORMS_PER_EPOCH, sample_index
-from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, SAFETY_ORDER,
-                    TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
-from .policy import policy_arrays
-from .selection import POMDP_SELECTORS, Q_TOLERANCE, VOTE_TOLERANCE
+from ..pomdp.belief import BeliefFilter
+from ..cell.human import UNIFORMS_PER_EPOCH, sample_index
+from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, SAFETY_ORDER,
+                     TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
+from ..mdp.policy import policy_arrays
+from ..decision.selection import POMDP_SELECTORS, Q_TOLERANCE, VOTE_TOLERANCE
 from .simulation import SIMULATION_SELECTORS, Scenario, case_study
 
 METRICS = (
@@ -125,7 +125,7 @@ class BatchResult:
 
     def recordings(self, model: HRCModel) -> list:
         """The recorded episodes as `recordings.Recording`s (what a robot sees: no em, ea)."""
-        from .recordings import Recording
+        from ..learning.recordings import Recording
         t = self.trajectory
         if t is None:
             raise ValueError('run the batch with record=True to keep its trajectories')
@@ -198,7 +198,7 @@ class BatchSimulator:
         if self._q is None:
             if self.value is None:
                 raise ValueError("selector 'qmdp' needs the solved value function")
-            from .solver import FactoredBellman
+            from ..mdp.solver import FactoredBellman
             self._q = np.ascontiguousarray(FactoredBellman(self.model).q(self.value).T)
         return self._q
 
@@ -207,7 +207,7 @@ class BatchSimulator:
         """The POMDP policy's `AlphaPolicy` (pomdp and fib; the shipped one for the
         configuration when none was given)."""
         if self.pomdp is None:
-            from .pomdp_policy import load_shipped_pomdp_policy
+            from ..pomdp.policy import load_shipped_pomdp_policy
             self.pomdp = load_shipped_pomdp_policy(self.model.config)
         return getattr(self.pomdp, 'policy', self.pomdp)
 

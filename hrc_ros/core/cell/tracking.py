@@ -72,8 +72,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .observation import HUMAN_JOINTS, distance_band
-from .protocol import WARN, InputError, Report
+from ..decision.observation import HUMAN_JOINTS, distance_band
+from ..protocol import WARN, InputError, Report
 
 # The Azure Kinect Body Tracking SDK's joints (k4abt_joint_id_t), in index order.
 K4ABT_JOINTS = (

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .evaluation import METRICS
-from .model import ACTIONS
+from ..model import ACTIONS
 
 if TYPE_CHECKING:
     from .simulation import Trajectory
@@ -140,7 +140,7 @@ def plot_summaries(summaries: dict, path, differences: dict | None = None) -> Pa
 def plot_fit(result, path) -> Path:
     """`hrc-fit --plot`: each fitted parameter beside the base configuration's, with its
     bootstrap 95% interval; one panel per family group (a `fit.FitResult`)."""
-    from .fit import PARAMETER_FAMILIES, PARAMETER_NAMES
+    from ..learning.fit import PARAMETER_FAMILIES, PARAMETER_NAMES
     plt = _pyplot()
     fitted, base = result.params.vector(), result.base.vector()
     families = np.array(PARAMETER_FAMILIES)

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .model import ACTIONS, HRCModel
-from .paths import replace_file, share_dir
+from ..config import Config
+from ..model import ACTIONS, HRCModel
+from ..paths import replace_file, share_dir
 from .solver import SOLVER_VERSION, SolveResult
 
 

@@ -39,9 +39,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .belief import validate_belief
-from .model import ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, SAFETY_ORDER
-from .policy import policy_arrays
+from ..pomdp.belief import validate_belief
+from ..model import ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, SAFETY_ORDER
+from ..mdp.policy import policy_arrays
 
 SELECTORS = ('paper', 'qmdp', 'mls', 'pomdp', 'fib')
 POMDP_SELECTORS = ('pomdp', 'fib')   # read the POMDP policy file
@@ -171,7 +171,7 @@ class ActionSelector:
         """The POMDP policy's `AlphaPolicy` (the shipped one for the configuration, loaded
         once, when none was given); `PolicyError` when there is none."""
         if self.pomdp is None:
-            from .pomdp_policy import load_shipped_pomdp_policy
+            from ..pomdp.policy import load_shipped_pomdp_policy
             self.pomdp = load_shipped_pomdp_policy(self.model.config)
         return getattr(self.pomdp, 'policy', self.pomdp)
 
@@ -193,7 +193,7 @@ class ActionSelector:
     def _q_table(self) -> np.ndarray:
         """Q(s, a) for every state, from one factored Bellman step on `value` (~50 ms)."""
         if self._q is None:
-            from .solver import FactoredBellman
+            from ..mdp.solver import FactoredBellman
             self._q = FactoredBellman(self.model).q(self.value)
         return self._q
 

@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .belief import BeliefFilter
-from .cell import SimulatedHuman
-from .model import ACTIONS, DN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
-from .policy import policy_arrays
-from .selection import SELECTORS, ActionSelector
-from .tasks import TaskBook, TaskRecord
+from ..pomdp.belief import BeliefFilter
+from ..cell.human import SimulatedHuman
+from ..model import ACTIONS, DN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
+from ..mdp.policy import policy_arrays
+from ..decision.selection import SELECTORS, ActionSelector
+from ..tasks import TaskBook, TaskRecord
 
 SIMULATION_SELECTORS = SELECTORS + ('mdp',)
 BELIEF_COLUMNS = tuple(f'b{h}' for h in range(9))

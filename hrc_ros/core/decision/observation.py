@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .model import DISTANCE_LEVELS, OBSERVATION_LEVELS
+from ..model import DISTANCE_LEVELS, OBSERVATION_LEVELS
 
 # The six arm joints of the paper's observation set (shoulder, elbow, hand/wrist, left and
 # right), REP-155 style names: the joint names of `human/joint_states`.

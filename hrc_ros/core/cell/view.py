@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import TASK_VARIABLES
-from .observation import closest_distance, distance_level
+from ..model import TASK_VARIABLES
+from ..decision.observation import closest_distance, distance_level
 
 LEVEL_COLORS = {0: (0.85, 0.1, 0.1), 1: (1.0, 0.5, 0.0), 2: (0.95, 0.8, 0.1),
                 3: (0.2, 0.7, 0.3)}

@@ -58,8 +58,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import BELIEF_MODES
-from .model import ACTIONS, N_HIDDEN, N_OBSERVATIONS, OBSERVATION_LEVELS, action_index
+from ..config import BELIEF_MODES
+from ..model import ACTIONS, N_HIDDEN, N_OBSERVATIONS, OBSERVATION_LEVELS, action_index
 
 BELIEF_TOLERANCE = 1e-6  # |sum(b) - 1| allowed in an input belief
 _TINY = np.finfo(float).tiny

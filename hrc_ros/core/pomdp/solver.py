@@ -61,12 +61,12 @@ from typing import Callable
 
 import numpy as np
 
-from . import _pomdp_kernels as kernels
+from . import _kernels as kernels
 from .belief import BeliefFilter
-from .config import EMOTION_GROUPS
-from .model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
-                    SAFETY_ORDER, TASK_VARIABLES, HRCModel)
-from .solver import FactoredBellman
+from ..config import EMOTION_GROUPS
+from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
+                     SAFETY_ORDER, TASK_VARIABLES, HRCModel)
+from ..mdp.solver import FactoredBellman
 
 TIE_TOLERANCE = 1e-9
 

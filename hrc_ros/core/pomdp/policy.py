@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config, config_hash
-from .model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
-from .paths import replace_file, share_dir
-from .policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
-                     _parse_meta, check_config_hash, policy_meta)
-from .pomdp import AlphaPolicy, PomdpResult
+from ..config import Config, config_hash
+from ..model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
+from ..paths import replace_file, share_dir
+from ..mdp.policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
+                          _parse_meta, check_config_hash, policy_meta)
+from .solver import AlphaPolicy, PomdpResult
 
 KIND = 'pomdp'
 ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')

@@ -77,10 +77,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
-from . import _fit_kernels
-from .config import EMOTION_GROUPS, Config, validate
-from .model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, N_HIDDEN, N_OBSERVATIONS,
-                    TASK_VARIABLES, next_distance, request_eligible, step_task)
+from . import _kernels as _fit_kernels
+from ..config import EMOTION_GROUPS, Config, validate
+from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, N_HIDDEN, N_OBSERVATIONS,
+                     TASK_VARIABLES, next_distance, request_eligible, step_task)
 from .recordings import NO_OBSERVATION, UNANSWERED, UNKNOWN_DISTANCE, Recording
 
 EMOTION_VARIABLES = ('em', 'ea')
@@ -134,8 +134,8 @@ class Params:
 
     @classmethod
     def from_config(cls, config: Config) -> 'Params':
-        from .belief import BeliefFilter
-        from .model import HRCModel
+        from ..pomdp.belief import BeliefFilter
+        from ..model import HRCModel
         chains = np.array([[config.emotion_chain(g, v) for v in EMOTION_VARIABLES]
                            for g in EMOTION_GROUPS])
         likelihood = BeliefFilter(HRCModel(config)).likelihood
@@ -159,7 +159,7 @@ class Params:
 
     def emotion_matrices(self) -> np.ndarray:
         """(3, 9, 9): kron(em chain, ea chain) per group."""
-        from .model import chain_matrix
+        from ..model import chain_matrix
         return np.stack([np.kron(chain_matrix(*self.chains[g, 0]),
                                  chain_matrix(*self.chains[g, 1]))
                          for g in range(len(EMOTION_GROUPS))])
