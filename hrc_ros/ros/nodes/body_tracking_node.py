@@ -90,7 +90,9 @@ PARAMETERS = CAMERA_PARAMETERS + (
               'faster move is a tracking jump (frame dropped until it holds confirm_frames '
               'frames)', range=(0.1, 100.0)),
     ParamSpec('max_gap', T.DOUBLE, DEFAULT_MAX_GAP, 'seconds between frames beyond which '
-              'velocities restart and the followed body is chosen again', range=(0.001, 60.0)),
+              'velocities restart and the followed body is chosen again; also how long the '
+              'followed stream may be silent before another publisher is followed, and how '
+              'long a frame not taken counts for the nearer person', range=(0.001, 60.0)),
     ParamSpec('confirm_frames', T.INTEGER, DEFAULT_CONFIRM_FRAMES, 'frames a relocated body '
               'must hold before it is taken as its new place', range=(1, 1000)),
 )

@@ -320,7 +320,8 @@ class DecisionNode(Node):
         """Other publishers of hrc/epoch or hrc/action (`Endpoint`s): a second decision node,
         say (also one with this node's name: one publisher per topic of this name is this
         node's own)."""
-        return [e for topic in ('hrc/epoch', 'hrc/action') for e in endpoints(self, topic)]
+        return (endpoints(self, 'hrc/epoch', skip_own=self.epoch_pub is not None)
+                + endpoints(self, 'hrc/action'))
 
     def _publish_claim(self) -> None:
         self.claim_pub.publish(conv.claim_to_msg(self.claim))
