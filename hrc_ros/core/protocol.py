@@ -13,19 +13,24 @@ its `deadline` (an absolute ``now`` value, or None): the node arms a timer for i
 `expire(now)` when it fires; `expire` re-checks the time, so an early or stale call does
 nothing.
 
-- `EpochFollower`: which `hrc/epoch` values a follower takes (the next one; 1 after a higher
-  one is a restart; anything else is refused).
+- `EpochFollower`: which `hrc/epoch` values a follower takes: one writer's line (the next one;
+  1 after a higher one is a restart; a forger's jump is refused; anything else is refused).
+- `StreamLock`: one writer of a sensor stream (the body tracker's frames).
 - `TaskEpochs`: the task manager's bookkeeping of epoch k: hold for a_{k-1} and the answer to
   an eligible request, finalise, begin epoch k; screen late answers; follow restarts.
+  `RequestCounts`: every task request accepted, refused or lost, once.
 - `DecisionGate`: the decision node's inputs of epoch k (fresh, stale, malformed, missing),
   the fail-safe rules and the decision itself.
 - `ClockStart`: when the decision node's epoch clock may start (graph ready, or waited long
-  enough).
-- `EstimatorEpochs`: the belief estimator's epoch windows split by the signal's source
-  timestamp, O_k, d_k and the belief update.
+  enough); `ClockOwner`: which decision node decides for the cell (the oldest `Claim`).
+- `EstimatorEpochs`: the belief estimator's epochs: its windows split by the signal's source
+  timestamp (`SampleWindows`), the posterior held for x_k (`PosteriorHold`), O_k, d_k and the
+  belief update.
 - `ActionPairing`: the simulated cell's pairing of a_k with the task state x_k.
-- `PeriodEstimate`, `timeout_ns`: timeouts that follow the epoch period (a parameter of 0 means
-  a fraction of the period; the followers learn the period from the epochs they receive).
+- `PeriodEstimate`, `timeout_ns`, `PeriodTimeout`: timeouts that follow the epoch period (a
+  parameter of 0 means a fraction of the period; the followers learn the period from the
+  epochs they receive), each defined once, and the order they must keep
+  (`check_timeout_order`).
 
 `InputError` is the one exception for an unusable input: the ring drops the message with a
 throttled warning and a diagnostic.
