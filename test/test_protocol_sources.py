@@ -162,6 +162,23 @@ def test_a_clock_that_learns_of_an_older_claim_yields_and_a_follower_publishes_n
     assert not tick.start_epoch and 'publishes no action' in tick.report.message
 
 
+def test_a_new_node_decides_nothing_before_it_has_heard_the_claims_the_graph_shows():
+    """The follower of a running cell once took an epoch before the running node's claim
+    arrived, and published an action for it: a second action in that epoch."""
+    follower = ClockOwner(claim(20, 1, '/replay', 'topic'))
+    clock = ClockStart(0, 3 * S, running=True, owner=follower)
+    tick = clock.tick(10 * MS, ready, claim_publishers=lambda: 2)   # its own and one other
+    assert not tick.start_epoch and 'waits to hear the claims' in tick.report.message
+    follower.heard(claim(5, 2, '/old'), 20 * MS)
+    tick = clock.tick(30 * MS, ready, claim_publishers=lambda: 2)
+    assert not tick.start_epoch and 'publishes no action' in tick.report.message
+    alone = ClockStart(0, 3 * S, running=True, owner=ClockOwner(claim(20, 1, '/replay')))
+    assert alone.tick(0, ready, claim_publishers=lambda: 1).start_epoch     # a replay: at once
+    silent = ClockStart(0, 3 * S, running=True, owner=ClockOwner(claim(20, 1, '/x')))
+    late = int(CLAIM_LIFETIME_S * S)
+    assert silent.tick(late, ready, claim_publishers=lambda: 2).start_epoch  # not for ever
+
+
 def test_an_unclaimed_source_keeps_a_clock_from_starting_and_is_named_only_once_known():
     owner = ClockOwner(claim(10))
     clock = ClockStart(0, 3 * S, owner=owner)

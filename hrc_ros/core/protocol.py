@@ -894,10 +894,20 @@ class ClockStart:
         self.follows = running              # topic mode: the epochs come from hrc/epoch
         self.owner = owner
         self._ready = False
+        self._settled = False
 
     def tick(self, now: int, graph_ready: Callable[[], bool],
              graph: Callable[[], dict] = dict, other_sources: Callable[[], list] = list,
-             me: str = 'this decision node') -> Tick:
+             me: str = 'this decision node',
+             claim_publishers: Callable[[], int] | None = None) -> Tick:
+        """One tick (timer mode) or one epoch taken (topic mode). `claim_publishers()` is the
+        count of claim publishers the graph shows, this node's own included: before its first
+        epoch a node waits until it has heard that many claims (`settled`)."""
+        if not self.settled(now, claim_publishers):
+            return Tick(False, Report(
+                WARN, 'clock', f'{me} waits to hear the claims of the decision nodes the graph '
+                'shows before it decides anything (one cell, one decider)', {'this_node': me},
+                log=False, kind='waiting'))
         sources, unclaimed, rivals = self._sources(now, list(other_sources()))
         if self.owner is not None and not self.owner.owns(now):
             return self._yield(now, me, sources)
@@ -919,6 +929,18 @@ class ClockStart:
             f'{", ".join(c.describe() for c in rivals)}; it defers to {me} (the older: one '
             'cell, one epoch clock). Stop one.', values, kind='second_source')
         return Tick(True, rival) if self.running else self._start(now, graph_ready, graph, rival)
+
+    def settled(self, now: int, claim_publishers: Callable[[], int] | None) -> bool:
+        """Every claim publisher the graph shows has been heard (or `CLAIM_LIFETIME_S` has
+        passed since the start): a node started beside a running one, whose endpoints it
+        already sees, does not act on an epoch before that one's claim has arrived. Once
+        settled, always settled."""
+        if self._settled or self.owner is None or claim_publishers is None:
+            return True
+        heard = len(self.owner.others(now)) + 1
+        self._settled = heard >= claim_publishers() \
+            or now - self.started_ns >= int(CLAIM_LIFETIME_S * 1e9)
+        return self._settled
 
     def _sources(self, now: int, endpoints: list) -> tuple[list, list, list]:
         """(every other source described, those no claim accounts for, the rival claims)."""

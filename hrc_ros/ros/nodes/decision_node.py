@@ -184,8 +184,9 @@ class DecisionNode(Node):
         self.action_pub = self.create_publisher(String, 'hrc/action', qos.RELIABLE)
         self.claim_pub = self.create_publisher(String, CLAIM_TOPIC, qos.CLAIMS)
         self.inputs = Inputs(self)
-        self.inputs.subscribe(String, CLAIM_TOPIC, qos.CLAIMS, conv.claim_from_msg,
-                              self._on_claim, name='clock_claim')
+        self.claim_sub = self.inputs.subscribe(String, CLAIM_TOPIC, qos.CLAIMS,
+                                               conv.claim_from_msg, self._on_claim,
+                                               name='clock_claim')
         self._publish_claim()
         self.claim_timer = self.create_timer(CLAIM_PERIOD_S, self._publish_claim,
                                              clock=self.steady)
@@ -332,7 +333,8 @@ class DecisionNode(Node):
     def _tick(self, graph_ready) -> bool:
         """The clock's, or (topic mode) the follower's, say in this epoch (`ClockStart`)."""
         tick = self.clock_start.tick(self.steady.now().nanoseconds, graph_ready, self._graph,
-                                     self._other_sources, self.get_fully_qualified_name())
+                                     self._other_sources, self.get_fully_qualified_name(),
+                                     self.claim_sub.get_publisher_count)
         if tick.report is not None:
             self.inputs.report(tick.report)
         return tick.start_epoch
