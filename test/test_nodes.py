@@ -1034,14 +1034,15 @@ def test_task_manager_stays_with_the_epoch_source_against_a_forger(graph):
     assert graph.spin_until(lambda: forger.get_subscription_count() > 0)
     for k in (1, 2, 3):
         tasks.epoch(k, 'dn')
-    for _ in range(1000):
+    for _ in range(1000):                 # its writer numbers them 1..1000, past the source's
         forger.publish(UInt32(data=0))
-    assert graph.spin_until(lambda: tasks.node.inputs.received['epoch'] >= 3 + 1000
-                            or tasks.node.inputs.dropped['epoch'] >= 10, timeout=10.0)
-    graph.executor.spin_once(timeout_sec=0.05)
+    assert forger.wait_for_all_acked(Duration(seconds=10.0))
+    assert graph.spin_until(lambda: tasks.node.inputs.dropped['epoch'] >= 10, timeout=10.0)
     tasks.epoch(4, 'dn')                                      # the decision node's k
-    tasks.send('epoch', forger, conv.epoch_to_msg(5))         # k + 1, right after it
-    tasks.send('epoch', forger, conv.epoch_to_msg(6))
+    follower = tasks.node.tasks.epochs
+    forger.publish(conv.epoch_to_msg(5))                      # k + 1, right after it
+    forger.publish(conv.epoch_to_msg(6))
+    assert graph.spin_until(lambda: follower.ignored == 2)   # both refused as another's
     assert tasks.node.book.epoch == 4 and tasks.node.book.pending == []
     state = tasks.epoch(5, 'dn')                              # the real k + 1
     assert tasks.node.book.epoch == 5 and state['tp'] == 1
