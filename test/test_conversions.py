@@ -11,6 +11,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
                           UInt8MultiArray, UInt32)
 
+from hrc_ros.core.decision.observation import (MAX_JOINT_SPEED, MAX_JOINTS, MAX_KEYPOINT_RANGE,
+                                               MAX_KEYPOINTS, distance_level, velocity_level)
 from hrc_ros.core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros.conversions import MessageError
@@ -89,10 +91,10 @@ def test_errors_quote_a_capped_part_of_the_content():
     with pytest.raises(MessageError) as caught:          # 9 values, each 20 k characters
         conv.task_request_from_msg(UInt8MultiArray(data=[1] * 20_000))
     assert len(str(caught.value)) < 500 and '(20000 values)' in str(caught.value)
-    with pytest.raises(MessageError) as caught:
-        conv.joint_sample_from_msg(JointState(name=[f'j{i}' for i in range(20_000)],
-                                              velocity=[float('nan')] * 20_000))
-    assert len(str(caught.value)) < 500 and '(20000 values)' in str(caught.value)
+    with pytest.raises(MessageError) as caught:       # as many joints as a sample may hold
+        conv.joint_sample_from_msg(JointState(name=[f'j{i}' for i in range(MAX_JOINTS)],
+                                              velocity=[float('nan')] * MAX_JOINTS))
+    assert len(str(caught.value)) < 500 and f'({MAX_JOINTS} values)' in str(caught.value)
     assert conv.cap('z' * 5000, 100) == 'z' * 100 + '... (5000 characters)'
 
 
@@ -123,6 +125,47 @@ def test_keypoints_refusals():
     bad.poses[1].position.y = math.nan
     with pytest.raises(MessageError, match='NaN or inf'):
         conv.keypoints_from_msg(bad)
+
+
+# -- finite but overflowing input (issue 17) --------------------------------------------------
+def test_a_keypoint_beyond_the_cell_is_malformed_never_far():
+    """A keypoint at 1e308 made the closest distance inf (sum of squares overflowing), read as
+    d = 3, the unsafe side, even beside a keypoint at 0.1 m; now the skeleton is refused."""
+    for far in (1e308, -1e200, MAX_KEYPOINT_RANGE + 0.5):
+        points = np.array([[0.1, 0.0, 0.0], [far, 0.0, 0.0]])
+        with pytest.raises(MessageError, match=f'farther than {MAX_KEYPOINT_RANGE:g} m'):
+            conv.keypoints_from_msg(conv.keypoints_to_msg(points))
+        with pytest.raises(ValueError, match='farther than'):
+            distance_level(points[1:])                         # the core refuses it too
+    diagonal = np.full((1, 3), 0.9 * MAX_KEYPOINT_RANGE)       # each coordinate in range
+    with pytest.raises(MessageError, match='from the frame origin'):
+        conv.keypoints_from_msg(conv.keypoints_to_msg(diagonal))
+    near = np.array([[0.1, 0.0, 0.0], [MAX_KEYPOINT_RANGE - 0.5, 0.0, 0.0]])
+    assert distance_level(conv.keypoints_from_msg(conv.keypoints_to_msg(near))) == 0
+    with pytest.raises(MessageError, match=f'more than {MAX_KEYPOINTS}'):
+        conv.keypoints_from_msg(conv.keypoints_to_msg(np.zeros((MAX_KEYPOINTS + 1, 3))))
+
+
+def test_a_joint_speed_beyond_any_human_is_malformed_and_a_sample_has_a_joint_cap():
+    """A velocity of 1e308 gave O = 3 (its mean overflows to inf); 100,000 joints were taken."""
+    with pytest.raises(MessageError, match=f'above {MAX_JOINT_SPEED:g} rad/s'):
+        conv.joint_sample_from_msg(JointState(name=list(conv.HUMAN_JOINTS),
+                                              velocity=[1e308] * 6))
+    with pytest.raises(ValueError, match='no human joint'):
+        velocity_level([1e308] * 6)
+    with pytest.raises(MessageError, match=f'more than {MAX_JOINTS}'):
+        conv.joint_sample_from_msg(JointState(name=[f'j{i}' for i in range(100_000)],
+                                              velocity=[0.1] * 100_000))
+    ok = conv.joint_sample_from_msg(JointState(name=[f'j{i}' for i in range(MAX_JOINTS)],
+                                               velocity=[MAX_JOINT_SPEED] * MAX_JOINTS))
+    assert velocity_level(ok.velocity) == 3
+    # positions 1 rad apart in 1 ms: 1000 rad/s derived, no human
+    first, second = (JointState(name=list(conv.HUMAN_JOINTS), position=[q] * 6)
+                     for q in (0.0, 1.0))
+    second.header.stamp = conv.seconds_to_stamp(0.001)
+    with pytest.raises(MessageError, match='derived from positions'):
+        conv.joint_velocities(conv.joint_sample_from_msg(second),
+                              conv.joint_sample_from_msg(first))
 
 
 # -- task state, requests, true state ---------------------------------------------------------

@@ -217,3 +217,33 @@ def test_a_live_config_of_another_cell_size_is_refused(graph, policy_path, defau
     assert not result.successful and 'restart the nodes to change the state space' in \
         result.reason
 
+
+
+def test_the_decision_node_and_the_estimator_agree_on_every_swap(graph, policy_path,
+                                                                 default_config, other,
+                                                                 tmp_path):
+    """Issue 17: the decision node refused a configuration with another rho/sigma, the belief
+    estimator took it and then checked task states against the new sizes. One rule
+    (`core.swap.check_swap`) decides for both: the same verdict, the same reason."""
+    import yaml
+    small = tmp_path / 'small.yaml'
+    small.write_text(yaml.safe_dump(default_config.with_overrides(
+        {'model': {'rho': 1, 'sigma': 1}}).data))
+    broken = tmp_path / 'broken.yaml'
+    broken.write_text('model: [unclosed\n')
+    cases = {'same cell, other model': other[1], 'another cell size': str(small),
+             'missing': str(tmp_path / 'none.yaml'), 'not YAML': str(broken),
+             'the one in use': ''}
+    decision = Decision(graph, policy_path).node
+    estimator = Estimator(graph).node
+    for case, path in cases.items():
+        verdicts = []
+        for node in (decision, estimator):
+            before = node.get_parameter('config').value
+            result = node.set_parameters([Parameter('config', value=path)])[0]
+            verdicts.append((result.successful, result.reason))
+            if result.successful:
+                node.set_parameters([Parameter('config', value=before)])
+        assert verdicts[0] == verdicts[1], (case, verdicts)
+        assert verdicts[0][0] == (case in ('same cell, other model', 'the one in use')), case
+    assert estimator.model.rho == decision.model.rho == default_config.rho

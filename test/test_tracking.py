@@ -14,7 +14,7 @@ import pytest
 
 from hrc_ros.core.decision.observation import (DEFAULT_SAFETY_RADII, closest_distance,
                                                distance_band, distance_level)
-from hrc_ros.core.protocol import InputError
+from hrc_ros.core.protocol import InputError, Stamp
 from hrc_ros.core.cell.tracking import (ANGLE_RANGE, JOINT_INDEX, JUMP_SLACK, K4ABT_JOINTS,
                                         BodyFrame, BodyTracking, RigidTransform, SyntheticBody,
                                         arm_angles, joint_indices, split_marker_id)
@@ -269,6 +269,91 @@ def test_a_second_stream_with_an_older_clock_never_passes_between_the_live_frame
         assert distance_level(step.keypoints) == 1
         with pytest.raises(InputError, match='not after the previous'):
             machine.frame(frame(10.0 + i * DT, b1=body(2.5)))
+
+
+# -- a second stream (issue 17) -------------------------------------------------------------
+AHEAD = 2.0                      # seconds: the second stream's stamps, more than max_gap ahead
+
+
+def two_streams(machine, second_bodies, frames=30, live_first=True):
+    """A live stream (sequence 5000.., a person at 0.1 m) and a second one (sequence 1..,
+    stamped AHEAD s ahead, `second_bodies`) interleaved, as the node gets them; the steps of
+    both, in order, as (stream, step or the InputError)."""
+    out = []
+    for i in range(frames):
+        live = (frame(100.0 + i * DT, b1=body(0.1)), Stamp(0, 5000 + i))
+        second = (frame(100.0 + AHEAD + i * DT, **second_bodies), Stamp(0, 1 + i))
+        for name, (f, source) in (('live', live), ('second', second)) if live_first \
+                else (('second', second), ('live', live)):
+            try:
+                out.append((name, machine.frame(f, source, now=10.0 + i * DT)))
+            except InputError as exc:
+                out.append((name, exc))
+    return out
+
+
+@pytest.mark.parametrize('second_bodies', [
+    {'b1': body(3.0)},                                         # the same body id, far away
+    {'b1': body(3.0), 'b2': body(2.5, (0, 1))},                # two body ids
+], ids=['same-id', 'two-ids'])
+def test_a_second_stream_stamped_ahead_never_takes_over(second_bodies):
+    """Issue 17: a second body_tracking_data stream stamped more than max_gap ahead made the
+    live frames 'not after the previous one': with the person at 0.1 m the estimator read
+    d = 3 from the second stream. The adapter follows one publisher: the live one."""
+    machine = tracker(max_gap=0.5)
+    steps = two_streams(machine, second_bodies)
+    live = [s for name, s in steps if name == 'live']
+    assert all(isinstance(s, type(live[0])) and not isinstance(s, InputError) for s in live)
+    assert all(distance_level(s.keypoints) == 0 for s in live)
+    assert all(s.followed == 1 for s in live) and all(s.velocities is not None
+                                                    for s in live[1:])
+    second = [s for name, s in steps if name == 'second']
+    assert all(isinstance(s, InputError) and 'second body-tracking stream' in str(s)
+               for s in second)
+    assert machine.lock.others == len(second)
+
+
+def test_when_two_streams_disagree_the_nearer_wins():
+    """The stream followed first is the far one (a bag of someone 3 m away); a second
+    tracker sees the person at 0.1 m: its skeleton is published, and every skeleton of the
+    followed stream carries it while it is recent (max_gap)."""
+    machine = tracker(max_gap=0.5)
+    steps = two_streams(machine, {'b1': body(3.0)}, live_first=False)
+    assert distance_level(steps[0][1].keypoints) == 3          # nobody nearer seen yet
+    followed = [s for name, s in steps[1:] if name == 'second']
+    assert all(distance_level(s.keypoints) == 0 for s in followed)   # the far stream's too
+    nearer = [s for name, s in steps if name == 'live' and not isinstance(s, InputError)]
+    assert nearer and all(s.velocities is None and s.reports[0].kind == 'nearer_reading'
+                          and distance_level(s.keypoints) == 0 for s in nearer)
+    # the near stream stops: after max_gap the followed stream's far person is the distance
+    later = machine.frame(frame(200.0, b1=body(3.0)), Stamp(0, 31), now=20.0)
+    assert distance_level(later.keypoints) == 3
+
+
+def test_without_sequence_numbers_the_nearer_rule_still_holds():
+    """An rmw without sequence numbers: both streams look like one, the ahead one is taken
+    and the live frames go 'back'; they are not taken, but the nearer person is published."""
+    machine = tracker(max_gap=0.5)
+    published = []
+    for i in range(30):
+        ahead = machine.frame(frame(100.0 + AHEAD + i * DT, b1=body(3.0)), now=10.0 + i * DT)
+        published.append(ahead)
+        try:
+            published.append(machine.frame(frame(100.0 + i * DT, b1=body(0.1)),
+                                           now=10.0 + i * DT))
+        except InputError as exc:
+            assert 'not after the previous' in str(exc)
+    assert distance_level(published[0].keypoints) == 3 and len(published) > 30
+    assert all(distance_level(s.keypoints) == 0 for s in published[1:])   # never d = 3 again
+
+
+def test_a_camera_pose_or_joints_beyond_the_cell_are_refused():
+    with pytest.raises(ValueError, match='metres expected'):
+        RigidTransform.from_parameters([1e308, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    machine = tracker()
+    far = body(1.0) + [25.0, 0.0, 0.0]                       # 26 m: no tracker of the cell
+    with pytest.raises(InputError, match='farther than'):
+        machine.frame(frame(1.0, b1=far))
 
 
 def test_a_jump_that_does_not_hold_is_dropped_and_the_body_keeps_its_place():

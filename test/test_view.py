@@ -81,6 +81,18 @@ def test_keypoints_are_coloured_by_their_distance_level(d):
     assert shapes[('closest', 2)].text == f'{distance:.2f} m ({name})'
 
 
+def test_the_view_never_draws_beyond_the_cell():
+    """Issue 17: a keypoint at 1e308 was drawn at 1e308 (and its distance read inf)."""
+    keypoints = np.array([[1.2, 2.0, 0.5], [1e308, 0.0, 0.0], [0.0, -30.0, 0.0],
+                          [np.nan, 0.0, 0.0]])
+    for shown in (3, 4):
+        shapes = by_id(scene(CellState(keypoints=keypoints[:shown]), RADII, REFERENCE))
+        np.testing.assert_allclose(shapes[('human', 0)].points, keypoints[:1])
+        assert all(np.all(np.abs(np.asarray(s.points)) < 100) for s in shapes.values())
+    nothing = by_id(scene(CellState(keypoints=keypoints[1:]), RADII, REFERENCE))
+    assert ('human', 0) not in nothing and ('closest', 0) not in nothing
+
+
 def test_the_panel_says_epoch_action_fail_safe_beliefs_and_task():
     state = CellState(epoch=7, action='rh2', belief=BELIEF, distance_level=1, task_state=TASK)
     assert action_line(state) == 'epoch 7: rh2'

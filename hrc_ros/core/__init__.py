@@ -5,7 +5,8 @@ Modules every part uses:
 - `config`: configuration YAML, validation, hash; `paths`: where config/ and policies/ live,
   and reading and writing users' files safely;
 - `model`: MODEL.md's state space, rules and cost; `tasks`: the task book (MODEL.md 3.2);
-- `protocol`: the ROS epoch protocol as pure state machines (the nodes call it);
+- `protocol`: the ROS epoch protocol as pure state machines (the nodes call it); `swap`: the
+  live-swap rule of the decision node and the belief estimator;
 - `bagfile`: the rosbag2-compatible MCAP format (write, read, check) without ROS.
 
 Packages:

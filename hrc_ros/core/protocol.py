@@ -13,19 +13,24 @@ its `deadline` (an absolute ``now`` value, or None): the node arms a timer for i
 `expire(now)` when it fires; `expire` re-checks the time, so an early or stale call does
 nothing.
 
-- `EpochFollower`: which `hrc/epoch` values a follower takes (the next one; 1 after a higher
-  one is a restart; anything else is refused).
+- `EpochFollower`: which `hrc/epoch` values a follower takes: one writer's line (the next one;
+  1 after a higher one is a restart; a forger's jump is refused; anything else is refused).
+- `StreamLock`: one writer of a sensor stream (the body tracker's frames).
 - `TaskEpochs`: the task manager's bookkeeping of epoch k: hold for a_{k-1} and the answer to
   an eligible request, finalise, begin epoch k; screen late answers; follow restarts.
+  `RequestCounts`: every task request accepted, refused or lost, once.
 - `DecisionGate`: the decision node's inputs of epoch k (fresh, stale, malformed, missing),
   the fail-safe rules and the decision itself.
 - `ClockStart`: when the decision node's epoch clock may start (graph ready, or waited long
-  enough).
-- `EstimatorEpochs`: the belief estimator's epoch windows split by the signal's source
-  timestamp, O_k, d_k and the belief update.
+  enough); `ClockOwner`: which decision node decides for the cell (the oldest `Claim`).
+- `EstimatorEpochs`: the belief estimator's epochs: its windows split by the signal's source
+  timestamp (`SampleWindows`), the posterior held for x_k (`PosteriorHold`), O_k, d_k and the
+  belief update.
 - `ActionPairing`: the simulated cell's pairing of a_k with the task state x_k.
-- `PeriodEstimate`, `timeout_ns`: timeouts that follow the epoch period (a parameter of 0 means
-  a fraction of the period; the followers learn the period from the epochs they receive).
+- `PeriodEstimate`, `timeout_ns`, `PeriodTimeout`: timeouts that follow the epoch period (a
+  parameter of 0 means a fraction of the period; the followers learn the period from the
+  epochs they receive), each defined once, and the order they must keep
+  (`check_timeout_order`).
 
 `InputError` is the one exception for an unusable input: the ring drops the message with a
 throttled warning and a diagnostic.
@@ -34,7 +39,7 @@ throttled warning and a diagnostic.
 from __future__ import annotations
 
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -104,6 +109,92 @@ def timeout_ns(explicit_s: float, fraction: float, period_ns: int | None,
     return int(fraction * period_ns)
 
 
+@dataclass(frozen=True)
+class PeriodTimeout:
+    """A timeout parameter that follows the epoch period T: 0 (the default) means
+    `fraction` x T, or `fallback_s` while the node does not know T yet (the followers learn it
+    from the source stamps of two epochs); an explicit value > 0 is taken as it is."""
+
+    node: str
+    parameter: str
+    fraction: float
+    fallback_s: float
+
+    def ns(self, explicit_s: float, period_ns: int | None) -> int:
+        return timeout_ns(explicit_s, self.fraction, period_ns, self.fallback_s)
+
+    def describe(self, explicit_s: float, period_s: float) -> str:
+        value = explicit_s if explicit_s > 0 else self.fraction * period_s
+        how = f'{value:g} s' if explicit_s > 0 else \
+            f'{self.fraction:g} x the period = {value:g} s'
+        return f"{self.node}'s {self.parameter} ({how})"
+
+
+# Every timeout that follows the period, defined once (docs/DESIGN.md "Node parameters").
+TASK_HOLD = PeriodTimeout('task_manager', 'input_timeout', 0.25, 0.25)
+ESTIMATOR_HOLD = PeriodTimeout('belief_estimator', 'task_state_timeout', 0.4, 0.3)
+DECISION_WAIT = PeriodTimeout('decision', 'input_timeout', 0.5, 0.5)
+STALE = PeriodTimeout('decision', 'stale_timeout', 3.0, 3.0)
+CELL_HOLD = PeriodTimeout('cell_sim', 'task_state_timeout', 0.25, 0.25)
+# The holds nest: after epoch k the task manager waits for a_{k-1} and the answer, then
+# publishes x_k; the posterior estimator holds b_k for x_k; the decision node waits for b_k
+# and x_k; all within the period, and an input is stale only after more than one period:
+#     TASK_HOLD < ESTIMATOR_HOLD < DECISION_WAIT < epoch period < STALE
+# A hold that ends after the one that waits for it turns every late input into dn.
+NESTED_TIMEOUTS = (TASK_HOLD, ESTIMATOR_HOLD, DECISION_WAIT)
+ESTIMATOR_HOLD_FRACTION = ESTIMATOR_HOLD.fraction
+ESTIMATOR_HOLD_FALLBACK_S = ESTIMATOR_HOLD.fallback_s
+
+
+def check_timeout_order(period_s: float | None, explicit: dict) -> str | None:
+    """Why the timeouts break the order of `NESTED_TIMEOUTS` for an epoch period of
+    `period_s` (None: not known yet), or None. `explicit` maps a `PeriodTimeout` to its
+    parameter value (0: follow the period); the others are at their defaults. A node checks
+    its own values against the others' defaults, the one order every node computes the same
+    way; without a period, only explicit values can be compared."""
+    given = {t: float(v) for t, v in explicit.items() if float(v) > 0}
+    return _period_reason(period_s, given) or _nesting_reason(period_s, given)
+
+
+def _period_reason(period_s: float | None, given: dict) -> str | None:
+    """An explicit hold not shorter than the period, or a stale_timeout not longer."""
+    if period_s is None:
+        return None
+    for timeout in NESTED_TIMEOUTS:
+        if timeout in given and not given[timeout] < period_s:
+            return (f'{timeout.parameter} ({given[timeout]:g} s) must be shorter than '
+                    f'epoch_period ({period_s:g} s); 0 follows the period '
+                    f'({timeout.fraction:g} x)')
+    if STALE in given and not given[STALE] > period_s:
+        return (f'stale_timeout ({given[STALE]:g} s) must be longer than epoch_period '
+                f'({period_s:g} s), or every input would be stale at every epoch; 0 follows '
+                f'the period ({STALE.fraction:g} x)')
+    return None
+
+
+def _nesting_reason(period_s: float | None, given: dict) -> str | None:
+    """Two holds of the chain, one of them explicit, in the wrong order."""
+    def value(timeout):
+        if timeout in given:
+            return given[timeout]
+        return None if period_s is None else timeout.fraction * period_s
+
+    def name(timeout):
+        if timeout in given:
+            return f"{timeout.node}'s {timeout.parameter} ({given[timeout]:g} s)"
+        return timeout.describe(0.0, period_s)
+
+    chain = [t for t in NESTED_TIMEOUTS if value(t) is not None]
+    pairs = [(a, b) for i, a in enumerate(chain) for b in chain[i + 1:]
+             if (a in given or b in given) and not value(a) < value(b)]
+    if not pairs:
+        return None
+    early, late = pairs[0]
+    order = ' < '.join(f'{t.node} {t.parameter}' for t in NESTED_TIMEOUTS)
+    return (f'{name(early)} must be shorter than {name(late)}: the holds nest ({order} < '
+            'epoch_period); 0 follows the period')
+
+
 # -- hrc/epoch ---------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Stamp:
@@ -117,22 +208,40 @@ class Stamp:
 SILENT_PERIODS = 2.5        # the followed epoch source is gone after this many silent periods
 SILENT_MIN_S = 1.0          # ... and never sooner than this (a scheduling stall is no silence)
 SILENT_FALLBACK_S = 3.0     # ... or these seconds while the period is unknown
+REFUSED_KEPT = 256          # sequence numbers of refused epochs kept to explain a writer's gap
 
 
 class EpochFollower:
     """Which `hrc/epoch` messages a follower takes: one epoch source at a time.
 
-    The follower locks onto the source of the first epoch it takes. A message of the same
-    source continues its count: its writer's sequence number and its epoch advance together
-    (the decision node and a bag player publish one message per epoch), or the epoch is the
-    next one and the sequence has moved on (the writer's own refused message in between).
-    Anything else is another source (a stray `ros2 topic pub`, a second decision node) and is
-    refused with `InputError`, so one stray epoch of 4294967295 cannot stop the cell. When the
-    followed source has been silent for `SILENT_PERIODS` epoch periods, and at least
-    `SILENT_MIN_S` (it stopped or restarted), the next source is followed from where it is:
-    a count that starts again at 1 is a restart (a WARN report), another one a new source.
-    Without sequence numbers the rule falls back to the count alone: the next epoch, or 1
-    after silence.
+    The follower locks onto the source of the first epoch it takes and follows that writer's
+    line of sequence numbers (per writer, +1 for every message it sends). A message continues
+    the line when
+
+    - its sequence number and its epoch both advance by one (the decision node and a bag
+      player publish one message per epoch);
+    - both advance by the same step (epochs lost on the way), or the epoch is the next one and
+      every sequence number in between belongs to a message this follower refused since the
+      last epoch it took (the writer's own repeat or stray in between, `refused`): both only
+      while no other writer is in evidence.
+
+    Another writer is in evidence, for `silence_ns` from the moment it shows, when a refused
+    message carries a sequence number the followed writer has already passed, or when the
+    followed writer's next epoch carries a lower number than one refused before it: one
+    writer's numbers only grow, and arrive in order. So a forger that sends refused epochs
+    (value 0, a stray count) to push its numbers past the decision node's, then k+1 right
+    after the decision node's k, is refused: the gap it jumps is not the followed writer's.
+    Anything that does not continue is refused with `InputError`, so one stray epoch of
+    4294967295 cannot stop the cell. When the followed source has been silent for
+    `SILENT_PERIODS` epoch periods, and at least `SILENT_MIN_S` (it stopped or restarted), the
+    next source is followed from where it is: a count that starts again at 1 is a restart (a
+    WARN report), another one a new source. Without sequence numbers the rule falls back to
+    the count alone: the next epoch, or 1 after silence.
+
+    Not defended: a writer that copies the followed one's sequence numbers exactly (it must
+    know them) cannot be told apart without a publisher id in the message info, which rclpy
+    (Jazzy) does not give; its epochs are still refused unless they come first, and the graph
+    names it (docs/ROBUSTNESS.md).
     """
 
     def __init__(self):
@@ -141,17 +250,50 @@ class EpochFollower:
         self.last_published_ns: int | None = None
         self.period = PeriodEstimate()
         self.ignored = 0                    # messages of another source
+        self._refused: list[int] = []       # sequence numbers refused since the last take
+        self._refused_overflow = False      # more than REFUSED_KEPT of them
+        self._foreign_ns: int | None = None  # when another writer last showed (source time)
+        self.lines = 0                      # writers followed so far (a restart is a new one)
 
     @property
     def silence_ns(self) -> int:
         return max(timeout_ns(0.0, SILENT_PERIODS, self.period.period_ns, SILENT_FALLBACK_S),
                    int(SILENT_MIN_S * 1e9))
 
+    def foreign_in_evidence(self, published_ns: int) -> bool:
+        """Another writer showed on hrc/epoch less than `silence_ns` before `published_ns`."""
+        return self._foreign_ns is not None and \
+            published_ns - self._foreign_ns <= self.silence_ns
+
+    def refused(self, stamp: Stamp) -> None:
+        """Note an hrc/epoch message that was not taken (`check` refused it, or the conversion
+        did: an epoch of 0): its sequence number may explain the followed writer's next gap,
+        or show another writer."""
+        sequence = stamp.sequence
+        if sequence is None or self._sequence is None:
+            return
+        if sequence <= self._sequence:
+            self._foreign_ns = stamp.published_ns      # a number the followed writer passed
+        elif len(self._refused) < REFUSED_KEPT:
+            self._refused.append(sequence)
+        else:
+            self._refused_overflow = True
+
     def _continues(self, k: int, stamp: Stamp) -> bool:
         if self._sequence is None or stamp.sequence is None:
             return k == self.last + 1
-        advance = stamp.sequence - self._sequence
-        return advance > 0 and k - self.last in (advance, 1)
+        advance, step = stamp.sequence - self._sequence, k - self.last
+        if advance <= 0 or step <= 0:
+            return False
+        if advance == step == 1:
+            return True
+        if self.foreign_in_evidence(stamp.published_ns):
+            return False
+        if advance == step:                      # messages lost on the way
+            return True
+        gap = range(self._sequence + 1, stamp.sequence)
+        return step == 1 and not self._refused_overflow and sorted(set(self._refused)) == \
+            list(gap)
 
     def check(self, k: int, stamp: Stamp) -> Report | None:
         """Raise `InputError` if epoch k comes from another source; a WARN report if it starts
@@ -161,6 +303,7 @@ class EpochFollower:
         silent = stamp.published_ns - self.last_published_ns > self.silence_ns
         if not silent:
             self.ignored += 1
+            self.refused(stamp)
             raise InputError(
                 f'ignored hrc/epoch {k}: it does not continue the epoch source followed (last '
                 f'epoch {self.last}); a second epoch source, or a stray message')
@@ -175,10 +318,60 @@ class EpochFollower:
 
     def take(self, k: int, stamp: Stamp) -> None:
         restarted = self.last_published_ns is not None and not self._continues(k, stamp)
+        if restarted or self.last_published_ns is None:
+            self.lines += 1
         if restarted:
             self.period = PeriodEstimate()
+            self._foreign_ns = None
+        elif stamp.sequence is not None and any(s > stamp.sequence for s in self._refused):
+            self._foreign_ns = stamp.published_ns      # numbers ahead of the followed writer
         self.last, self._sequence, self.last_published_ns = k, stamp.sequence, stamp.published_ns
+        self._refused, self._refused_overflow = [], False
         self.period.observe(stamp.published_ns)
+
+
+STREAM_MAX_SKIP = 64        # sequence numbers a followed stream may skip (frames lost on the way)
+
+
+class StreamLock:
+    """One writer per sensor stream (the body tracker's frames): is a message the followed
+    writer's?
+
+    rclpy (Jazzy) gives no publisher id with a message, but every writer numbers its messages
+    (publication sequence numbers, +1 per message). The lock follows the line of the first
+    writer heard: a message continues it when its number is above the line's last one by at
+    most `max_skip` (best-effort messages lost on the way), and is `FOLLOWED`. Any other is
+    `OTHER`: a second writer (a second tracker, a bag played on a live cell) or the followed
+    writer started again (its numbers restart). Once the followed line has been silent for
+    `silence` (receive time, the node's clock: two writers' stamps cannot be compared), the
+    next message's writer is followed (`NEW`). Without sequence numbers every message is taken
+    as the followed writer's. Two writers whose numbers run within `max_skip` of each other
+    (started together) cannot be told apart; the body tracker's nearer rule still holds for
+    them (`core.cell.tracking`)."""
+
+    FOLLOWED, OTHER, NEW = 'followed', 'other', 'new'
+
+    def __init__(self, max_skip: int = STREAM_MAX_SKIP):
+        self.max_skip = int(max_skip)
+        self.last: int | None = None        # the followed line's last sequence number
+        self.last_heard: float | None = None
+        self.others = 0                     # messages of another writer
+
+    def classify(self, sequence: int | None, now: float, silence: float) -> str:
+        if sequence is None:
+            self.last_heard = now
+            return self.FOLLOWED
+        if self.last is None:
+            self.last, self.last_heard = sequence, now
+            return self.FOLLOWED
+        if 0 < sequence - self.last <= self.max_skip:
+            self.last, self.last_heard = sequence, now
+            return self.FOLLOWED
+        if now - self.last_heard > silence:
+            self.last, self.last_heard = sequence, now
+            return self.NEW
+        self.others += 1
+        return self.OTHER
 
 
 class SequenceGaps:
@@ -199,6 +392,36 @@ class SequenceGaps:
             return 0
         self.lost += sequence - last - 1
         return sequence - last - 1
+
+
+class RequestCounts:
+    """The fate of every `hrc/task_request`: accepted (queued), refused (malformed, out of its
+    domain, or beyond the queue) or lost (the one publisher sent it and it never arrived: the
+    writer's sequence numbers skip). Each request that arrives is counted exactly once, as
+    accepted or refused, whatever refused it, so a refused request never reads as lost; lost
+    ones are known only while one publisher sends (two writers' numbers interleave)."""
+
+    def __init__(self):
+        self.gaps = SequenceGaps()
+        self.accepted = self.refused = self.lost = 0
+
+    def arrived(self, sequence: int | None, one_publisher: bool) -> int:
+        """A request arrived (before it is checked): the requests lost before it."""
+        lost = self.gaps.observe(sequence)
+        if not one_publisher:
+            return 0
+        self.lost += lost
+        return lost
+
+    def accept(self) -> None:
+        self.accepted += 1
+
+    def refuse(self) -> None:
+        self.refused += 1
+
+    def counts(self) -> dict:
+        return {'requests_accepted': self.accepted, 'requests_refused': self.refused,
+                'requests_lost': self.lost}
 
 
 # -- the task manager -------------------------------------------------------------------------
@@ -546,6 +769,97 @@ class DecisionGate:
             compute_ms=(time.perf_counter() - start) * 1e3)
 
 
+CLAIM_PERIOD_S = 1.0       # a decision node repeats its claim this often
+CLAIM_LIFETIME_S = 3.5     # a claim not heard again for this long is gone (its node stopped)
+CLAIMS_KEPT = 64           # claims of other decision nodes remembered at most
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A decision node's claim to decide for the cell (`ClockOwner`): when it started (the
+    system clock, ns: the hosts' clocks agree, as for source timestamps), a random id that
+    breaks ties, its fully qualified name and its `epoch_source`."""
+
+    started_ns: int
+    nonce: int
+    node: str
+    mode: str = 'timer'
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        return (self.started_ns, self.nonce)
+
+    def describe(self) -> str:
+        return f'{self.node} (epoch_source {self.mode}, claim {self.nonce:016x})'
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A publisher of hrc/epoch or hrc/action other than this node's own, as the graph shows
+    it: `node` is its fully qualified name, None while the graph does not name it yet (the
+    endpoint is discovered before its node's name), so a report never names a placeholder."""
+
+    topic: str
+    node: str | None
+    gid: str
+
+    def describe(self) -> str:
+        who = self.node if self.node else 'a node the graph does not name yet'
+        return f'{who} on {self.topic} (gid {self.gid})'
+
+
+class ClockOwner:
+    """Which decision node decides for the cell: one cell, one epoch clock, one action source.
+
+    Every decision node, in either epoch_source mode (a follower that publishes actions is an
+    action source too), claims the cell (`Claim`, repeated every `CLAIM_PERIOD_S` on a latched
+    topic). The owner is the live claim of the lowest rank: the oldest start, a tie broken by
+    the random id. Every node computes the same owner from the same claims, so two nodes
+    started at the same moment agree on one (no deadlock, never two clocks), and a node
+    started beside a running cell defers to it. A claim not heard for `CLAIM_LIFETIME_S` is
+    gone (the node stopped): the next oldest takes over."""
+
+    def __init__(self, mine: Claim):
+        self.mine = mine
+        self._heard: dict[int, tuple[Claim, int]] = {}    # nonce -> (claim, heard at)
+
+    def heard(self, claim: Claim, now: int) -> None:
+        if claim.nonce == self.mine.nonce:
+            return
+        self._heard.pop(claim.nonce, None)
+        self._heard[claim.nonce] = (claim, now)
+        while len(self._heard) > CLAIMS_KEPT:
+            self._heard.pop(next(iter(self._heard)))
+
+    def others(self, now: int) -> list[Claim]:
+        """The other live claims, oldest first."""
+        lifetime = int(CLAIM_LIFETIME_S * 1e9)
+        for nonce, (_, heard) in list(self._heard.items()):
+            if now - heard > lifetime:
+                del self._heard[nonce]
+        return sorted((claim for claim, _ in self._heard.values()), key=lambda c: c.rank)
+
+    def owner(self, now: int) -> Claim:
+        return min([self.mine] + self.others(now), key=lambda c: c.rank)
+
+    def owns(self, now: int) -> bool:
+        return self.owner(now) == self.mine
+
+    def unclaimed(self, endpoints: list[Endpoint], now: int) -> list[Endpoint]:
+        """The endpoints no live claim accounts for (one per topic for each claim of that
+        node name): sources that are not decision nodes of this suite (a stray publisher, an
+        older version), or whose claim has not arrived yet."""
+        out = []
+        for topic in dict.fromkeys(e.topic for e in endpoints):
+            names = Counter(c.node for c in self.others(now))
+            for endpoint in (e for e in endpoints if e.topic == topic):
+                if endpoint.node is not None and names[endpoint.node] > 0:
+                    names[endpoint.node] -= 1
+                else:
+                    out.append(endpoint)
+        return out
+
+
 @dataclass(frozen=True)
 class Tick:
     """What a tick of the decision node's clock does: start an epoch or wait (with a report)."""
@@ -562,51 +876,118 @@ class ClockStart:
     discovery, or, at the latest, at the first tick after `stale_timeout_ns`, with a warning.
     Until then each tick reports that the node waits and publishes no action.
 
-    One cell has one epoch clock. While another node publishes `hrc/epoch` or `hrc/action`
-    (`other_sources`), a clock that has not started does not start (ERROR: both identities):
-    the newer decision node stays silent and the cell stays deterministic. A running clock
-    that sees another source goes on (the followers stay locked onto it) and reports it as
-    ERROR at every tick.
+    One cell has one decision node. With an `owner` (`ClockOwner`), a node that is not the
+    owner does not start its clock, and a clock that started before its node learnt of an
+    older claim stops (it yields); in topic mode (`running` from the start) a node that is
+    not the owner publishes no action. Other publishers of `hrc/epoch` or `hrc/action`
+    (`other_sources`: `Endpoint`s, or their descriptions) that no claim accounts for keep a
+    clock that has not started from starting (ERROR: both identities): the newer node stays
+    silent and the cell stays deterministic. A running clock that sees another source goes on
+    (the followers stay locked onto it) and reports it as ERROR at every tick.
     """
 
-    def __init__(self, started_ns: int, stale_timeout_ns: int, running: bool = False):
+    def __init__(self, started_ns: int, stale_timeout_ns: int, running: bool = False,
+                 owner: ClockOwner | None = None):
         self.started_ns = started_ns
         self.stale_timeout_ns = int(stale_timeout_ns)
         self.running = running
+        self.follows = running              # topic mode: the epochs come from hrc/epoch
+        self.owner = owner
         self._ready = False
+        self._settled = False
 
     def tick(self, now: int, graph_ready: Callable[[], bool],
              graph: Callable[[], dict] = dict, other_sources: Callable[[], list] = list,
-             me: str = 'this decision node') -> Tick:
-        others = other_sources()
-        if others:
-            names = ', '.join(others)
-            if self.running:
-                return Tick(True, Report(
-                    ERROR, 'clock', f'another epoch source publishes on the cell: {names}; '
-                    f'{me} keeps its clock (the followers stay locked onto it). Stop one.',
-                    {'this_node': me, 'other_sources': names}, kind='second_source'))
+             me: str = 'this decision node',
+             claim_publishers: Callable[[], int] | None = None) -> Tick:
+        """One tick (timer mode) or one epoch taken (topic mode). `claim_publishers()` is the
+        count of claim publishers the graph shows, this node's own included: before its first
+        epoch a node waits until it has heard that many claims (`settled`)."""
+        if not self.settled(now, claim_publishers):
+            return Tick(False, Report(
+                WARN, 'clock', f'{me} waits to hear the claims of the decision nodes the graph '
+                'shows before it decides anything (one cell, one decider)', {'this_node': me},
+                log=False, kind='waiting'))
+        sources, unclaimed, rivals = self._sources(now, list(other_sources()))
+        if self.owner is not None and not self.owner.owns(now):
+            return self._yield(now, me, sources)
+        names = ', '.join(sources or [c.describe() for c in rivals])
+        values = {'this_node': me, 'other_sources': names}
+        act = 'keeps deciding' if self.follows else 'keeps its clock'
+        if self.running and (unclaimed or rivals):
+            return Tick(True, Report(
+                ERROR, 'clock', f'another epoch source publishes on the cell: {names}; '
+                f'{me} {act} (the followers stay locked onto it). Stop one.', values,
+                kind='second_source'))
+        if unclaimed:
             return Tick(False, Report(
                 ERROR, 'clock', f'another epoch source publishes on the cell: {names}; {me} '
-                'does not start its clock while it runs (one cell, one epoch clock)',
-                {'this_node': me, 'other_sources': names}, kind='second_source'))
-        if self.running:
-            return Tick(True)
+                'does not start its clock while it runs (one cell, one epoch clock)', values,
+                kind='second_source'))
+        rival = None if not rivals else Report(
+            ERROR, 'clock', f'another decision node is on the cell: '
+            f'{", ".join(c.describe() for c in rivals)}; it defers to {me} (the older: one '
+            'cell, one epoch clock). Stop one.', values, kind='second_source')
+        return Tick(True, rival) if self.running else self._start(now, graph_ready, graph, rival)
+
+    def settled(self, now: int, claim_publishers: Callable[[], int] | None) -> bool:
+        """Every claim publisher the graph shows has been heard (or `CLAIM_LIFETIME_S` has
+        passed since the start): a node started beside a running one, whose endpoints it
+        already sees, does not act on an epoch before that one's claim has arrived. Once
+        settled, always settled."""
+        if self._settled or self.owner is None or claim_publishers is None:
+            return True
+        heard = len(self.owner.others(now)) + 1
+        self._settled = heard >= claim_publishers() \
+            or now - self.started_ns >= int(CLAIM_LIFETIME_S * 1e9)
+        return self._settled
+
+    def _sources(self, now: int, endpoints: list) -> tuple[list, list, list]:
+        """(every other source described, those no claim accounts for, the rival claims)."""
+        sources = [e.describe() if isinstance(e, Endpoint) else str(e) for e in endpoints]
+        if self.owner is None:
+            return sources, sources, []
+        graph = [e for e in endpoints if isinstance(e, Endpoint)]
+        unclaimed = [e.describe() for e in self.owner.unclaimed(graph, now)] \
+            + [str(e) for e in endpoints if not isinstance(e, Endpoint)]
+        return sources, unclaimed, self.owner.others(now)
+
+    def _start(self, now: int, graph_ready: Callable[[], bool], graph: Callable[[], dict],
+               rival: Report | None) -> Tick:
+        """Epoch 1 one tick after the graph is ready, or after stale_timeout_ns anyway."""
         waited = _seconds(now - self.started_ns)
         if not (self._ready or now - self.started_ns >= self.stale_timeout_ns):
             if graph_ready():
                 self._ready = True          # epoch 1 at the next tick
-                return Tick(False)
-            return Tick(False, Report(
+                return Tick(False, rival)
+            return Tick(False, rival or Report(
                 WARN, 'decision', 'waiting for the graph: no hrc/epoch subscriber or no input '
                 'publisher discovered yet; no action published',
                 {'waited_s': waited, **graph()}, log=False, kind='waiting'))
         self.running = True
         if self._ready:
-            return Tick(True)
-        return Tick(True, Report(WARN, 'clock', f'starting the epoch clock after '
-                                 f'{waited:.1f} s without having discovered every input '
-                                 'publisher', {'waited_s': waited}, kind='forced_start'))
+            return Tick(True, rival)
+        return Tick(True, rival or Report(WARN, 'clock', f'starting the epoch clock after '
+                                          f'{waited:.1f} s without having discovered every '
+                                          'input publisher', {'waited_s': waited},
+                                          kind='forced_start'))
+
+    def _yield(self, now: int, me: str, sources: list[str]) -> Tick:
+        first = self.owner.owner(now)
+        if self.follows:
+            doing = 'publishes no action'
+        elif self.running:
+            doing = 'stops its clock'
+        else:
+            doing = 'does not start its clock'
+        if not self.follows:
+            self.running = False
+        return Tick(False, Report(
+            ERROR, 'clock', f'another decision node decides for the cell: {first.describe()} '
+            f'(the older claim); {me} {doing} while it runs (one cell, one epoch clock, one '
+            'action source)',
+            {'this_node': me, 'owner': first.node,
+             'other_sources': ', '.join(sources) or first.describe()}, kind='second_source'))
 
 
 # -- the belief estimator ---------------------------------------------------------------------
@@ -641,137 +1022,130 @@ class _HeldBelief:
     x_k: tuple | None = None   # x_k of a refusal whose answer has not been seen yet
 
 
-ESTIMATOR_HOLD_FRACTION = 0.4   # posterior hold (task_state_timeout 0): this part of the
-ESTIMATOR_HOLD_FALLBACK_S = 0.3  # period (these seconds until it is known). Longer than the
-# task manager's hold for the answer (0.25 of the period) so that x_k comes within it, and
-# shorter than the decision node's wait for b_k (0.5 of the period).
 TASK_STATES_KEPT = 64           # task states and responses kept to find x_{k-1}, x_k, answers
 
 
-class EstimatorEpochs:
-    """The belief estimator's windows (docs/DESIGN.md).
+def _split(stream: deque, signal_ns: int) -> list:
+    """Remove and return the entries published before the signal; later ones stay."""
+    window = [e for e in stream if e[0] < signal_ns]
+    later = [e for e in stream if e[0] >= signal_ns]
+    stream.clear()
+    stream.extend(later)
+    return window
 
-    Window k holds the samples received since epoch k-1's signal that were published before
-    epoch k's signal (by source timestamp); a sample published after the signal belongs to
-    window k+1 even if it is taken first. On epoch k:
 
-        O_k = window_level(levels of window k's joint-state samples)   (>= min_window_samples)
-        b_k = initial(O_k) at the first epoch, else update(b_{k-1}, a_{k-1}, O_k)
-        d_k = the distance level of window k's latest skeleton
+class SampleWindows:
+    """The estimator's sample windows: each joint-state sample's velocity level and each
+    skeleton's distance level with its publication time, split at an epoch signal's source
+    timestamp (`close`): window k holds what was published before epoch k's signal; a sample
+    published after it belongs to window k+1 even if it is taken first. Only the window's level
+    counts and the last `recent` (publication time, level) pairs are kept (to split the window
+    at the signal), so memory is bounded at any rate."""
 
-    A window with too few samples publishes no O and no belief; the belief is carried by the
-    prediction alone (`NO_EVIDENCE`), so the next update stays consistent with the actions
-    taken. A window without a skeleton publishes no distance level. A missing a_{k-1} counts
-    as dn. Only the window's level counts and the last `RECENT` (publication time, level)
-    pairs are kept (to split the window at the signal), so memory is bounded at any rate.
-
-    In ``posterior`` mode the update also takes what acting revealed (MODEL.md 6, the exact
-    posterior the POMDP plans with): the human's answer to an eligible request and the
-    distance move, `HRCModel.transition_likelihood(a_{k-1}, eligible, accepted, d_{k-1},
-    d_k)`. Eligibility comes from x_{k-1} (the task state that completed the previous hold,
-    else the first published at or after epoch k-1's signal) and the answer from x_k (the
-    first published at or after epoch k's signal: the task manager publishes it once it has
-    applied a_{k-1} and the answer): accepted means a commitment. So b_k waits for x_k
-    (`task_state`), at most `hold_ns` (`deadline`, `expire`; `task_state_timeout_s`, or
-    `ESTIMATOR_HOLD_FRACTION` of the period). What is not known is left out of the evidence,
-    with a WARN: the answer without x_k, or when no `hrc/human_response` was published
-    between x_{k-1} and x_k (the task manager took the request as refused for want of an
-    answer: that says nothing about the human); the move when the model calls it impossible
-    (a jump of the distance level, a sensor fault), so one bad skeleton cannot wipe out the
-    belief. O_k and d_k are published at once.
-    """
-
-    def __init__(self, belief_filter, min_window_samples: int, recent: int = RECENT,
-                 task_state_timeout_s: float = 0.0):
-        self.filter = belief_filter
-        self.task_state_timeout_s = float(task_state_timeout_s)
-        self._task_states: deque = deque(maxlen=TASK_STATES_KEPT)  # (published_ns, task vars)
-        self._responses: deque = deque(maxlen=TASK_STATES_KEPT)    # published_ns
-        self._x_last: tuple | None = None               # the x_k that completed the last hold
-        self._screening = False         # the last request went unanswered (TaskEpochs' rule)
-        self._held: _HeldBelief | None = None
-        self._last_signal_ns: int | None = None
-        self._window_distance: int | None = None
-        self.min_window_samples = int(min_window_samples)
+    def __init__(self, recent: int = RECENT):
         self.recent = recent
-        self.epochs = EpochFollower()
-        self._known_period_ns: int | None = None
-        self.hold_ns = self._hold_ns()
-        self.belief: np.ndarray | None = None
-        self.observation: int | None = None
-        self.distance_level: int | None = None
-        self._counts = np.zeros(len(OBSERVATION_LEVELS), dtype=np.int64)  # O levels, window
-        self._levels: deque = deque(maxlen=recent)      # (published_ns, O level), window
-        self._distances: deque = deque(maxlen=recent)   # (published_ns, d), window
-        self._action: int | None = None                 # a_{k-1}: the window's last action
-        self._action_ns: int | None = None              # ... and its publication time
-
-    @property
-    def epoch(self) -> int:
-        return self.epochs.last
+        self.counts = np.zeros(len(OBSERVATION_LEVELS), dtype=np.int64)  # O levels, window
+        self.levels: deque = deque(maxlen=recent)      # (published_ns, O level)
+        self.distances: deque = deque(maxlen=recent)   # (published_ns, d)
 
     def sample(self, level: int, published_ns: int) -> None:
-        """One joint-state sample's velocity level O in 1..3."""
-        self._counts[level - 1] += 1
-        self._levels.append((published_ns, level))
+        self.counts[level - 1] += 1
+        self.levels.append((published_ns, level))
 
     def skeleton(self, d: int, published_ns: int) -> None:
-        """One skeleton's distance level."""
-        self._distances.append((published_ns, d))
+        self.distances.append((published_ns, d))
 
-    def action(self, action: int, published_ns: int | None = None) -> None:
-        self._action, self._action_ns = action, published_ns
+    def close(self, signal_ns: int) -> tuple[np.ndarray, list]:
+        """Window k at its signal: the count of each O level, and its skeletons
+        (published_ns, d); what was published later opens window k+1."""
+        _split(self.levels, signal_ns)
+        counts = self.counts.copy()          # the window, less what was published later
+        self.counts[:] = 0
+        for _, level in self.levels:
+            self.counts[level - 1] += 1
+        counts -= self.counts
+        return counts, _split(self.distances, signal_ns)
 
-    def response(self, published_ns: int) -> EstimatorStep | None:
-        """An `hrc/human_response` was published (its value is read from x_k's commitment);
-        completes a held b_k whose x_k came first and shows a refusal this answer explains."""
-        self._responses.append(published_ns)
-        held = self._held
-        if held is not None and held.x_k is not None and self._answered(held, held.x_k):
-            return self._complete(held.x_k)
+
+class PosteriorHold:
+    """The held posterior of ``posterior`` mode: b_k waits for the task state x_k that shows
+    the human's answer to a_{k-1} (`EstimatorEpochs` has the rule). It keeps the task states
+    and responses published (the last `TASK_STATES_KEPT` of each), says when x_k completes
+    the hold, and what acting revealed: the evidence of the update (`evidence`)."""
+
+    def __init__(self):
+        self.task_states: deque = deque(maxlen=TASK_STATES_KEPT)  # (published_ns, task vars)
+        self.responses: deque = deque(maxlen=TASK_STATES_KEPT)    # published_ns
+        self.x_last: tuple | None = None         # the x_k that completed the last hold
+        self.screening = False          # the last request went unanswered (TaskEpochs' rule)
+        self.held: _HeldBelief | None = None
+        self.last_signal_ns: int | None = None
+
+    def deadline(self, hold_ns: int) -> int | None:
+        return None if self.held is None else self.held.since_ns + hold_ns
+
+    def hold(self, k: int, signal_ns: int, since_ns: int, action: int, action_ns: int | None,
+             observation, observed: bool, d_before: int | None, d_after: int | None) -> None:
+        """Hold b_k from epoch k's signal; x_{k-1} is the x_k that completed the last hold,
+        else the first task state published at or after epoch k-1's signal."""
+        before = self.x_last
+        if before is None or self.last_signal_ns is None or before[0] < self.last_signal_ns:
+            before = self.task_after(self.last_signal_ns, signal_ns)
+        self.held = _HeldBelief(k, signal_ns, since_ns, action, action_ns, self.screening,
+                                observation, observed, before, d_before, d_after)
+
+    def signalled(self, signal_ns: int) -> tuple | None:
+        """Epoch k's signal is handled: x_k if it was published before the signal was taken
+        (the held b_k may complete with it), else None."""
+        self.screening = False
+        self.last_signal_ns = signal_ns
+        self.x_last = None
+        return self.task_after(signal_ns) if self.held is not None else None
+
+    def response(self, published_ns: int) -> tuple | None:
+        """An `hrc/human_response` was published: x_k to complete the hold with, when x_k came
+        first and shows a refusal this answer explains; else None."""
+        self.responses.append(published_ns)
+        held = self.held
+        if held is not None and held.x_k is not None and self.answered(held, held.x_k):
+            return held.x_k
         return None
 
-    def _hold_ns(self) -> int:
-        """The hold (`task_state_timeout_s`, else a part of the period). The last period known
-        stands in after a restart of the count, until the new one is known: the 0.3 s fallback
-        is longer than the decision node's wait below a 0.6 s period."""
-        period = self.epochs.period.period_ns
-        if period is not None:
-            self._known_period_ns = period
-        return timeout_ns(self.task_state_timeout_s, ESTIMATOR_HOLD_FRACTION,
-                          self._known_period_ns, ESTIMATOR_HOLD_FALLBACK_S)
-
-    @property
-    def deadline(self) -> int | None:
-        return None if self._held is None else self._held.since_ns + self.hold_ns
-
-    def task_state(self, state: dict, published_ns: int) -> EstimatorStep | None:
-        """A task state from the task manager; completes a held b_k when it is x_k."""
-        self._task_states.append((published_ns, state))
-        if self._held is not None and published_ns >= self._held.signal_ns:
-            return self._offer((published_ns, state))
+    def task_state(self, state: dict, published_ns: int) -> tuple | None:
+        """A task state: x_k to complete the hold with (`offer`), else None."""
+        self.task_states.append((published_ns, state))
+        if self.held is not None and published_ns >= self.held.signal_ns:
+            return self.offer((published_ns, state))
         return None
 
-    def _offer(self, x_k: tuple) -> EstimatorStep | None:
-        """x_k for the held b_k: complete it, unless x_k shows an eligible request refused and
-        its answer has not been seen: nothing orders the task manager's x_k and the human's
-        answer at this node (rclpy takes ready messages in subscription order), so b_k waits
-        for the answer, at most to the hold's deadline (then: unanswered). A later task state
-        while it waits changes nothing: x_k is the first."""
-        held = self._held
+    def offer(self, x_k: tuple) -> tuple | None:
+        """x_k for the held b_k: x_k to complete it with, unless x_k shows an eligible request
+        refused and its answer has not been seen: nothing orders the task manager's x_k and
+        the human's answer at this node (rclpy takes ready messages in subscription order), so
+        b_k waits for the answer, at most to the hold's deadline (then: unanswered). A later
+        task state while it waits changes nothing: x_k is the first."""
+        held = self.held
         if held.x_k is not None:
             return None
-        if self._eligible(held, x_k) and x_k[1]['ty'] == 0 and not self._answered(held, x_k):
+        if self.eligible(held, x_k) and x_k[1]['ty'] == 0 and not self.answered(held, x_k):
             held.x_k = x_k
             return None
-        return self._complete(x_k)
+        return x_k
 
-    def _eligible(self, held: _HeldBelief, x_k: tuple | None) -> bool:
+    def take(self) -> _HeldBelief:
+        held, self.held = self.held, None
+        return held
+
+    def completed(self, x_k: tuple | None, unanswered: bool) -> None:
+        self.screening = unanswered
+        self.x_last = x_k
+
+    def eligible(self, held: _HeldBelief, x_k: tuple | None) -> bool:
         before = held.task_before
         return before is not None and x_k is not None and bool(
             request_eligible(held.action, before[1]['tp'], before[1]['tx'], before[1]['ty']))
 
-    def _answered(self, held: _HeldBelief, x_k: tuple) -> bool:
+    def answered(self, held: _HeldBelief, x_k: tuple) -> bool:
         """An answer to a_{k-1} was seen: x_k has the task committed (only an acceptance does
         that), or a response was published between x_{k-1} and x_k; after an unanswered
         request, one published before a_{k-1} is that request's late answer
@@ -781,39 +1155,26 @@ class EstimatorEpochs:
         since = held.task_before[0] if held.task_before is not None else 0
         if held.screening and held.action_ns is not None:
             since = max(since, held.action_ns)
-        return any(since <= t <= x_k[0] for t in self._responses)
+        return any(since <= t <= x_k[0] for t in self.responses)
 
-    def expire(self, now: int) -> EstimatorStep | None:
-        if self.deadline is not None and now >= self.deadline:
-            held = self._held
-            if held.x_k is not None:            # x_k came, its answer did not: unanswered
-                return self._complete(held.x_k)
-            step = self._complete(None)
-            step.reports.append(Report(
-                WARN, 'epoch', f'epoch {held.epoch}: no task state within the hold; the '
-                "human's answer is left out of the posterior update", {'epoch': held.epoch},
-                kind='no_task_state'))
-            return step
-        return None
-
-    def _task_after(self, signal_ns: int | None, before_ns: int | None = None) -> tuple | None:
+    def task_after(self, signal_ns: int | None, before_ns: int | None = None) -> tuple | None:
         """The first task state published at or after a signal (and before `before_ns`):
         (published_ns, task variables)."""
         if signal_ns is None:
             return None
-        later = [(t, state) for t, state in self._task_states
+        later = [(t, state) for t, state in self.task_states
                  if t >= signal_ns and (before_ns is None or t < before_ns)]
         return min(later, key=lambda entry: entry[0]) if later else None
 
-    def _evidence(self, held: _HeldBelief, task_after: tuple | None,
-                  reports: list) -> np.ndarray | None:
+    def evidence(self, held: _HeldBelief, task_after: tuple | None, model, belief,
+                 reports: list) -> np.ndarray | None:
         """P(x_k | x_{k-1}, h, a_{k-1}) of what is known (`HRCModel.transition_likelihood`):
         the answer (an accepted request commits the task, ty != 0 in x_k: a task lasts at
         least one epoch, so it cannot also complete) and the distance move. What is unknown
         or impossible is left out (a WARN in `reports`); None: no evidence at all."""
-        model, k = self.filter.model, held.epoch
-        eligible = self._eligible(held, task_after)
-        if eligible and not self._answered(held, task_after):
+        k = held.epoch
+        eligible = self.eligible(held, task_after)
+        if eligible and not self.answered(held, task_after):
             eligible = False
             reports.append(Report(
                 WARN, 'epoch', f'epoch {k}: no hrc/human_response to {ACTIONS[held.action]} '
@@ -830,7 +1191,7 @@ class EstimatorEpochs:
             d_before = d_after = None
         evidence = model.transition_likelihood(
             held.action, eligible, eligible and task_after[1]['ty'] != 0, d_before, d_after)
-        if not (self.belief * evidence).sum() > 0.0:
+        if not (belief * evidence).sum() > 0.0:
             reports.append(Report(
                 WARN, 'epoch', f'epoch {k}: what acting revealed is impossible under the '
                 'belief; left out of the posterior update', {'epoch': k},
@@ -838,23 +1199,162 @@ class EstimatorEpochs:
             return None
         return evidence
 
+
+class EstimatorEpochs:
+    """The belief estimator's epochs (docs/DESIGN.md): the windows (`SampleWindows`), the
+    held posterior (`PosteriorHold`) and the filter update, here. On epoch k:
+
+        O_k = window_level(levels of window k's joint-state samples)   (>= min_window_samples)
+        b_k = initial(O_k) at the first epoch, else update(b_{k-1}, a_{k-1}, O_k)
+        d_k = the distance level of window k's latest skeleton
+
+    A window with too few samples publishes no O and no belief; the belief is carried by the
+    prediction alone (`NO_EVIDENCE`), so the next update stays consistent with the actions
+    taken. A window without a skeleton publishes no distance level. A missing a_{k-1} counts
+    as dn.
+
+    In ``posterior`` mode the update also takes what acting revealed (MODEL.md 6, the exact
+    posterior the POMDP plans with): the human's answer to an eligible request and the
+    distance move, `HRCModel.transition_likelihood(a_{k-1}, eligible, accepted, d_{k-1},
+    d_k)`. Eligibility comes from x_{k-1} (the task state that completed the previous hold,
+    else the first published at or after epoch k-1's signal) and the answer from x_k (the
+    first published at or after epoch k's signal: the task manager publishes it once it has
+    applied a_{k-1} and the answer): accepted means a commitment. So b_k waits for x_k
+    (`task_state`), at most `hold_ns` (`deadline`, `expire`; `task_state_timeout_s`, or
+    `ESTIMATOR_HOLD`'s fraction of the period). What is not known is left out of the evidence,
+    with a WARN: the answer without x_k, or when no `hrc/human_response` was published
+    between x_{k-1} and x_k (the task manager took the request as refused for want of an
+    answer: that says nothing about the human); the move when the model calls it impossible
+    (a jump of the distance level, a sensor fault), so one bad skeleton cannot wipe out the
+    belief. O_k and d_k are published at once.
+    """
+
+    def __init__(self, belief_filter, min_window_samples: int, recent: int = RECENT,
+                 task_state_timeout_s: float = 0.0):
+        self.filter = belief_filter
+        self.task_state_timeout_s = float(task_state_timeout_s)
+        self.min_window_samples = int(min_window_samples)
+        self.windows = SampleWindows(recent)
+        self.posterior = PosteriorHold()
+        self.epochs = EpochFollower()
+        self._known_period_ns: int | None = None
+        self.hold_ns = self._hold_ns()
+        self.belief: np.ndarray | None = None
+        self.observation: int | None = None
+        self.distance_level: int | None = None
+        self._window_distance: int | None = None
+        self._action: int | None = None                 # a_{k-1}: the window's last action
+        self._action_ns: int | None = None              # ... and its publication time
+
+    @property
+    def epoch(self) -> int:
+        return self.epochs.last
+
+    @property
+    def recent(self) -> int:
+        return self.windows.recent
+
+    @property
+    def _levels(self) -> deque:
+        return self.windows.levels
+
+    @property
+    def _distances(self) -> deque:
+        return self.windows.distances
+
+    # -- inputs ----------------------------------------------------------------------------
+    def sample(self, level: int, published_ns: int) -> None:
+        """One joint-state sample's velocity level O in 1..3."""
+        self.windows.sample(level, published_ns)
+
+    def skeleton(self, d: int, published_ns: int) -> None:
+        """One skeleton's distance level."""
+        self.windows.skeleton(d, published_ns)
+
+    def action(self, action: int, published_ns: int | None = None) -> None:
+        self._action, self._action_ns = action, published_ns
+
+    def response(self, published_ns: int) -> EstimatorStep | None:
+        """An `hrc/human_response` was published (its value is read from x_k's commitment);
+        completes a held b_k whose x_k came first and shows a refusal this answer explains."""
+        x_k = self.posterior.response(published_ns)
+        return None if x_k is None else self._complete(x_k)
+
+    def task_state(self, state: dict, published_ns: int) -> EstimatorStep | None:
+        """A task state from the task manager; completes a held b_k when it is x_k."""
+        x_k = self.posterior.task_state(state, published_ns)
+        return None if x_k is None else self._complete(x_k)
+
+    # -- the hold --------------------------------------------------------------------------
+    def _hold_ns(self) -> int:
+        """The hold (`task_state_timeout_s`, else a part of the period). The last period known
+        stands in after a restart of the count, until the new one is known: the 0.3 s fallback
+        is longer than the decision node's wait below a 0.6 s period."""
+        period = self.epochs.period.period_ns
+        if period is not None:
+            self._known_period_ns = period
+        return ESTIMATOR_HOLD.ns(self.task_state_timeout_s, self._known_period_ns)
+
+    @property
+    def deadline(self) -> int | None:
+        return self.posterior.deadline(self.hold_ns)
+
+    def expire(self, now: int) -> EstimatorStep | None:
+        if self.deadline is not None and now >= self.deadline:
+            held = self.posterior.held
+            if held.x_k is not None:            # x_k came, its answer did not: unanswered
+                return self._complete(held.x_k)
+            step = self._complete(None)
+            step.reports.append(Report(
+                WARN, 'epoch', f'epoch {held.epoch}: no task state within the hold; the '
+                "human's answer is left out of the posterior update", {'epoch': held.epoch},
+                kind='no_task_state'))
+            return step
+        return None
+
+    # -- the filter update -----------------------------------------------------------------
     def _complete(self, task_after: tuple | None) -> EstimatorStep:
-        held, self._held = self._held, None
+        """The held b_k's update, with the evidence x_k (`task_after`) shows."""
+        held = self.posterior.take()
         reports: list[Report] = []
-        evidence = self._evidence(held, task_after, reports)
-        self._screening = any(r.kind == 'no_answer' for r in reports)
+        evidence = self.posterior.evidence(held, task_after, self.filter.model, self.belief,
+                                           reports)
+        self.posterior.completed(task_after, any(r.kind == 'no_answer' for r in reports))
         self.belief = self.filter.update(self.belief, held.action, held.observation, evidence)
-        self._x_last = task_after
         return EstimatorStep(held.epoch, None, None, self.belief if held.publish else None,
                              reports)
 
-    def _split(self, stream: deque, signal_ns: int) -> list:
-        """Remove and return the entries published before the signal; later ones stay."""
-        window = [e for e in stream if e[0] < signal_ns]
-        later = [e for e in stream if e[0] >= signal_ns]
-        stream.clear()
-        stream.extend(later)
-        return window
+    def _observe(self, step: EstimatorStep, k: int, action: int, counts: np.ndarray,
+                 posterior: bool) -> None:
+        """O_k from the window's counts, and b_k now (bayes, table) or the first b_1."""
+        if counts.sum() >= self.min_window_samples:
+            self.observation = window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts))
+            if self.belief is None:
+                self.belief = self.filter.initial(self.observation)
+            elif not posterior:
+                self.belief = self.filter.update(self.belief, action, self.observation)
+            step.observation = self.observation
+            step.belief = None if posterior else self.belief
+            return
+        self.observation = None
+        if self.belief is not None and not posterior:
+            self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
+        step.reports.append(Report(
+            WARN, 'epoch', f'epoch {k}: no joint states to observe ({int(counts.sum())} '
+            f'valid samples in its window, fewer than {self.min_window_samples}); belief not '
+            'published (predicted only)', {'epoch': k}, kind='no_observation'))
+
+    def _distance(self, step: EstimatorStep, k: int, distances: list) -> int | None:
+        """d_k from the window's latest skeleton; d_{k-1} (None without a skeleton)."""
+        d_before = self._window_distance
+        self._window_distance = max(distances)[1] if distances else None
+        if distances:
+            self.distance_level = step.distance_level = self._window_distance
+        else:
+            step.reports.append(Report(WARN, 'epoch', f'epoch {k}: no skeleton since the last '
+                                       'epoch; distance level not published', {'epoch': k},
+                                       kind='no_skeleton'))
+        return d_before
 
     def epoch_signal(self, k: int, stamp: Stamp, now: int | None = None) -> EstimatorStep:
         """Close window k at the signal's source timestamp; `InputError` for an epoch of
@@ -864,60 +1364,27 @@ class EstimatorEpochs:
         restart = self.epochs.check(k, stamp)
         if restart is not None:
             step.reports.append(restart)
-        if self._held is not None:          # the previous epoch's x_k never came
-            step.reports.extend(self.expire(self._held.since_ns + self.hold_ns).reports)
+        if self.posterior.held is not None:          # the previous epoch's x_k never came
+            step.reports.extend(self.expire(self.posterior.held.since_ns + self.hold_ns)
+                                .reports)
         self.epochs.take(k, stamp)
         self.hold_ns = self._hold_ns()              # the period is known from epoch 2 on
         action = DN if self._action is None else self._action
-        self._split(self._levels, signal_ns)
-        counts = self._counts.copy()          # the window, less what was published later
-        self._counts[:] = 0
-        for _, level in self._levels:
-            self._counts[level - 1] += 1
-        counts -= self._counts
-        distances = self._split(self._distances, signal_ns)
-        d_before = self._window_distance              # d_{k-1}, None without a skeleton
-        self._window_distance = max(distances)[1] if distances else None
-        if distances:
-            self.distance_level = step.distance_level = self._window_distance
-        else:
-            step.reports.append(Report(WARN, 'epoch', f'epoch {k}: no skeleton since the last '
-                                       'epoch; distance level not published', {'epoch': k},
-                                       kind='no_skeleton'))
+        counts, distances = self.windows.close(signal_ns)
+        d_before = self._distance(step, k, distances)
         posterior = self.filter.mode == 'posterior' and self.belief is not None
         if posterior:
-            before = self._x_last
-            if before is None or self._last_signal_ns is None or before[0] < self._last_signal_ns:
-                before = self._task_after(self._last_signal_ns, signal_ns)
             observed = counts.sum() >= self.min_window_samples
-            self._held = _HeldBelief(
+            self.posterior.hold(
                 k, signal_ns, now if now is not None else signal_ns, action, self._action_ns,
-                self._screening,
                 window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts)) if observed
-                else NO_EVIDENCE, observed, before, d_before, step.distance_level)
-        if counts.sum() >= self.min_window_samples:
-            self.observation = window_level(np.repeat(np.array(OBSERVATION_LEVELS), counts))
-            if self.belief is None:
-                self.belief = self.filter.initial(self.observation)
-            elif not posterior:
-                self.belief = self.filter.update(self.belief, action, self.observation)
-            step.observation = self.observation
-            step.belief = None if posterior else self.belief
-        else:
-            self.observation = None
-            if self.belief is not None and not posterior:
-                self.belief = self.filter.update(self.belief, action, NO_EVIDENCE)
-            step.reports.append(Report(
-                WARN, 'epoch', f'epoch {k}: no joint states to observe ({int(counts.sum())} '
-                f'valid samples in its window, fewer than {self.min_window_samples}); belief not '
-                'published (predicted only)', {'epoch': k}, kind='no_observation'))
+                else NO_EVIDENCE, observed, d_before, step.distance_level)
+        self._observe(step, k, action, counts, posterior)
         self._action = self._action_ns = None
-        self._screening = False
-        self._last_signal_ns = signal_ns
-        self._x_last = None
-        early = self._task_after(signal_ns) if self._held is not None else None
-        done = self._offer(early) if early is not None else None
-        if done is not None:            # x_k was delivered before the signal
+        early = self.posterior.signalled(signal_ns)
+        x_k = self.posterior.offer(early) if early is not None else None
+        if x_k is not None:                  # x_k was delivered before the signal
+            done = self._complete(x_k)
             step.belief = done.belief
             step.reports.extend(done.reports)
         return step

@@ -2,6 +2,7 @@
 
 - `conversions`: every message <-> numpy conversion and its validation; `qos`: the profiles;
 - `node_support`: parameters, guarded inputs, diagnostics, deadlines, the nodes' `main()`;
+- `sources`: who publishes on an input, named from the graph; the followers' `hrc/epoch`;
 - `nodes/`: the four nodes (console scripts `belief_estimator_node`, `decision_node`,
   `task_manager_node`, `cell_sim_node`), thin around `hrc_ros.core.protocol`;
 - `bag`: recording and playing rosbag2-compatible bags on the graph (`hrc-bag`);

@@ -8,12 +8,16 @@ builds the message of a value the core produced.
 
 Wire formats (INTERFACES.md, plus the decisions below):
 
-- `human/joint_states` (sensor_msgs/JointState): names non-empty and unique; `velocity`
-  (rad/s) and `position` (rad), when present, one per name and finite. If `velocity` is empty
-  it is derived from two successive messages with the same names:
-  ``v = (q_k - q_{k-1}) / (t_k - t_{k-1})`` with t the header stamps (`joint_velocities`).
+- `human/joint_states` (sensor_msgs/JointState): names non-empty, unique, at most
+  `MAX_JOINTS`; `velocity` (rad/s) and `position` (rad), when present, one per name and
+  finite, the velocities at most `observation.MAX_JOINT_SPEED` in magnitude. If `velocity`
+  is empty it is derived from two successive messages with the same names:
+  ``v = (q_k - q_{k-1}) / (t_k - t_{k-1})`` with t the header stamps (`joint_velocities`),
+  bounded alike.
 - `human/skeleton` (geometry_msgs/PoseArray): keypoint positions in metres in the robot base
-  frame `ROBOT_BASE_FRAME`; at least one keypoint; finite. Orientations are ignored.
+  frame `ROBOT_BASE_FRAME`; 1 to `MAX_KEYPOINTS` keypoints; finite and within
+  `observation.MAX_KEYPOINT_RANGE` of the frame's origin (a keypoint beyond any tracker's
+  range is malformed, never "far"). Orientations are ignored.
 - `hrc/task_state` (std_msgs/UInt8MultiArray): ``[tp, tc, tx, ty, hp, hc, bp, bc]`` with one
   layout dimension per variable, labelled by its name (size 1, stride 1): a labelled record,
   not a tensor. An empty layout is accepted (a hand-typed message); a layout with other labels
@@ -25,6 +29,8 @@ Wire formats (INTERFACES.md, plus the decisions below):
 - `hrc/action` (std_msgs/String): one of ``nw rh1 rh2 ct dp dm mh dn``, exactly.
 - `hrc/estimator_config` (std_msgs/String): ``"<sha256> <source>"``, the `Config.belief_hash`
   (64 hex digits) of the configuration the belief estimator runs, a space, and its file.
+- `hrc/_clock_claim` (std_msgs/String, hidden): a decision node's claim to decide for the
+  cell, ``"<started_ns> <id> <timer|topic> <node>"`` (`core.protocol.Claim`).
 - `hrc/observation`, `hrc/distance_level` (std_msgs/UInt8), `hrc/epoch` (std_msgs/UInt32),
   `hrc/human_response` (std_msgs/Bool).
 - `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
@@ -55,7 +61,9 @@ from ..core.pomdp.belief import BELIEF_TOLERANCE
 from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSERVATION_LEVELS,
                           STATE_VARIABLES, TASK_VARIABLES, action_index)
 from ..core.decision.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
-from ..core.protocol import InputError
+from ..core.decision.observation import (MAX_JOINTS, MAX_KEYPOINTS, check_joint_speeds,
+                                         check_keypoint_range)
+from ..core.protocol import Claim, InputError
 from ..core.cell.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
                                   split_marker_id)
 from ..core.cell.view import Shape
@@ -133,8 +141,19 @@ def _finite_vector(values, what: str, n: int) -> np.ndarray | None:
     return array
 
 
+def _bounded_speeds(velocity: np.ndarray, what: str) -> np.ndarray:
+    try:
+        return check_joint_speeds(velocity, what)
+    except ValueError as exc:
+        raise MessageError(f'JointState {exc}') from None
+
+
 def joint_sample_from_msg(msg: JointState) -> JointSample:
-    """Validate a JointState: names, lengths, finiteness; velocity or position present."""
+    """Validate a JointState: names (at most `MAX_JOINTS`), lengths, finiteness, velocities
+    within `MAX_JOINT_SPEED`; velocity or position present."""
+    if len(msg.name) > MAX_JOINTS:
+        raise MessageError(f'JointState has {len(msg.name)} joints, more than {MAX_JOINTS}: '
+                           "not one person's arm")
     names = tuple(msg.name)
     if not names:
         raise MessageError('JointState is empty (no joint names)')
@@ -144,6 +163,8 @@ def joint_sample_from_msg(msg: JointState) -> JointSample:
     position = _finite_vector(msg.position, 'position', len(names))
     if velocity is None and position is None:
         raise MessageError('JointState has neither velocities nor positions')
+    if velocity is not None:
+        _bounded_speeds(velocity, 'velocity')
     return JointSample(names, position, velocity, stamp_to_seconds(msg.header.stamp))
 
 
@@ -169,7 +190,7 @@ def joint_velocities(sample: JointSample, previous: JointSample | None = None
         raise MessageError(f'JointState positions {quote(sample.position)} after '
                            f'{quote(previous.position)} in {dt:.3g} s give a velocity that is '
                            'not finite')
-    return velocity
+    return _bounded_speeds(velocity, f'velocity derived from positions {dt:.3g} s apart')
 
 
 def joint_state_to_msg(names: Sequence[str], velocity, position=None,
@@ -192,10 +213,17 @@ def keypoints_from_msg(msg: PoseArray, frame_id: str = ROBOT_BASE_FRAME) -> np.n
                            f'{frame_id!r} (keypoints must be in the robot base frame)')
     if not msg.poses:
         raise MessageError('PoseArray holds no keypoints')
+    if len(msg.poses) > MAX_KEYPOINTS:
+        raise MessageError(f'PoseArray holds {len(msg.poses)} keypoints, more than '
+                           f'{MAX_KEYPOINTS} (16 bodies of 32 joints)')
     points = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses],
                       dtype=float)
     if not np.all(np.isfinite(points)):
         raise MessageError('PoseArray keypoints hold NaN or inf')
+    try:
+        check_keypoint_range(points)
+    except ValueError as exc:
+        raise MessageError(f'PoseArray {exc}') from None
     return points
 
 
@@ -380,6 +408,29 @@ def config_identity_from_msg(msg: String) -> tuple[str, str]:
     if len(sha) != 64 or any(c not in '0123456789abcdef' for c in sha):
         raise MessageError(f'expected "<sha256> <configuration file>", got {msg.data[:80]!r}')
     return sha, source
+
+
+# -- hrc/_clock_claim -------------------------------------------------------------------------
+CLAIM_MODES = ('timer', 'topic')
+
+
+def claim_to_msg(claim: Claim) -> String:
+    return String(data=f'{claim.started_ns} {claim.nonce:016x} {claim.mode} {claim.node}')
+
+
+def claim_from_msg(msg: String) -> Claim:
+    """A decision node's claim: ``"<started_ns> <id, 16 hex digits> <timer|topic> <node>"``."""
+    parts = msg.data.split(' ', 3)
+    try:
+        started, nonce, mode, node = parts
+        claim = Claim(int(started), int(nonce, 16), node, mode)
+    except ValueError:
+        raise MessageError('expected a claim "<started_ns> <id> <timer|topic> <node>", got '
+                           f'{quote(msg.data)}') from None
+    if claim.started_ns < 0 or len(nonce) != 16 or mode not in CLAIM_MODES \
+            or not node.startswith('/') or len(node) > 256:
+        raise MessageError(f'not a decision node claim: {quote(msg.data)}')
+    return claim
 
 
 # -- body tracking: visualization_msgs/MarkerArray of the Azure Kinect / Orbbec drivers -------

@@ -51,7 +51,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
-from ..core.paths import default_config_path
+from ..core.swap import config_path
 from ..core.protocol import InputError, Report, Stamp
 from . import qos
 from .conversions import cap, diagnostic_array, diagnostic_status
@@ -179,10 +179,6 @@ def node_setup(node: Node, specs: Sequence[ParamSpec], check: Check,
     values = params.values()
     config = load_node_config(values['config'])
     return params, values, config, HRCModel(config)
-
-
-def config_path(value: str) -> str:
-    return value if value else str(default_config_path())
 
 
 def load_node_config(value: str):
@@ -369,7 +365,8 @@ class Inputs:
     # -- subscriptions -----------------------------------------------------------------------
     def subscribe(self, msg_type, topic: str, profile, convert: Callable[[Any], Any],
                   handle: Callable[..., None], name: str | None = None,
-                  with_published: bool = False, with_stamp: bool = False):
+                  with_published: bool = False, with_stamp: bool = False,
+                  on_matched: Callable[..., None] | None = None):
         """Subscribe; `handle(convert(msg))` runs for valid messages, drops are reported.
 
         With `with_published`, `handle(value, published_ns)` also gets the message's
@@ -377,7 +374,8 @@ class Inputs:
         of its receipt where the middleware gives none. With `with_stamp`, `handle(value,
         stamp)` gets a `core.protocol.Stamp` (that time and the writer's sequence number).
         A publisher whose QoS cannot match the subscription's (`incompatible_qos` event) is
-        reported as ERROR on /diagnostics, naming the topic and the policy."""
+        reported as ERROR on /diagnostics, naming the topic and the policy. `on_matched(event)`
+        runs when a publisher matches the subscription or leaves it."""
         name = name or topic.rsplit('/', 1)[-1]
 
         def guarded(msg, *extra):
@@ -400,7 +398,8 @@ class Inputs:
                         if with_stamp else published)
 
         events = SubscriptionEventCallbacks(
-            incompatible_qos=lambda event: self.incompatible_qos(name, topic, event))
+            incompatible_qos=lambda event: self.incompatible_qos(name, topic, event),
+            matched=on_matched)
         return self.node.create_subscription(msg_type, topic, callback, profile,
                                              event_callbacks=events)
 

@@ -37,6 +37,13 @@ RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                       durability=DurabilityPolicy.VOLATILE)
 
 
+# The decision nodes' claims to decide for the cell (`hrc/_clock_claim`, `ClockOwner`):
+# reliable and transient local, so a node started later hears every running one's claim at
+# once; a reader keeps several, one per decision node that may claim at the same moment.
+CLAIMS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
 # Orders that must not be lost (`hrc/task_request`): reliable and keep-all, so a burst is taken
 # whole (what the task queue cannot hold is refused with a report), never overwritten unseen in
 # the reader's history. Fast DDS bounds a keep-all reader by its resource limits; beyond them a

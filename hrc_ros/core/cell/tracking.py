@@ -56,7 +56,24 @@ never yields joint states without the skeleton of the same instant:
   second stream, such as a bag played on a live cell, never does): the adapter starts again
   from them, with a WARN;
 - NaN joints, missing joints, foreign frames, joints farther than `MAX_RANGE` from the camera
-  (millimetres for metres) and more than `MAX_BODIES` bodies are refused by the conversion.
+  (millimetres for metres) and more than `MAX_BODIES` bodies are refused by the conversion;
+  a joint farther than `observation.MAX_KEYPOINT_RANGE` from the robot frame's origin once
+  transformed (a camera pose off the cell) is refused here: beyond range is malformed, never
+  "far".
+
+One tracker per cell (`BodyTracking.frame` with the message's `Stamp` and the node's clock).
+The adapter locks onto one publisher of the stream (`core.protocol.StreamLock`: its writer's
+sequence numbers, as the epoch followers do) and only that stream's frames make joint states
+and move the stamp, jump and selection rules: a second stream (a second tracker, a bag played
+on a live cell) stamped seconds ahead can no longer make the live frames "go back" and be
+dropped. Its frames are reported (the node names the publishers on /diagnostics), and they
+still count for the distance, on the safe side: when two streams disagree about where a
+person is, the nearer wins. Every frame that is not taken for timing or stream reasons (a
+second stream's, a stamp that does not increase) is kept for `max_gap` seconds of the node's
+clock as a reading; a reading nearer to the robot than the skeleton published is published
+at once (its skeleton, no joint states, a WARN), and every skeleton published while it is
+recent carries its keypoints too, so the estimator's latest skeleton always holds the nearest
+person any stream saw.
 
 The synthetic tracker (`SyntheticBody`) is the inverse, for simulation and tests: it turns a
 stream of joint speeds and distance levels (the simulated cell's `human/joint_states` and
@@ -72,8 +89,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..decision.observation import HUMAN_JOINTS, distance_band
-from ..protocol import WARN, InputError, Report
+from collections import deque
+
+from ..decision.observation import (HUMAN_JOINTS, MAX_KEYPOINT_RANGE, check_keypoint_range,
+                                    distance_band)
+from ..protocol import WARN, InputError, Report, Stamp, StreamLock
 
 # The Azure Kinect Body Tracking SDK's joints (k4abt_joint_id_t), in index order.
 K4ABT_JOINTS = (
@@ -103,6 +123,7 @@ JUMP_SLACK = 0.15           # metres a centroid may move on top of max_speed * d
 QUATERNION_TOLERANCE = 1e-3  # |norm - 1| accepted (and normalised) in a rotation parameter
 MAX_RANGE = 10.0            # metres from the camera: farther is no depth camera's (millimetres?)
 MAX_BODIES = 16             # bodies in one frame (the Azure Kinect SDK tracks a handful)
+READINGS_KEPT = 64          # readings of frames not taken, kept for the nearer rule
 
 # Defaults of the body_tracking node (docs/DESIGN.md).
 DEFAULT_SWITCH_MARGIN = 0.3
@@ -142,6 +163,9 @@ class RigidTransform:
         q = np.asarray(rotation, dtype=float)
         if t.shape != (3,) or not np.all(np.isfinite(t)):
             raise ValueError(f'translation must be 3 finite numbers (x, y, z), got {t.tolist()}')
+        if not float(np.abs(t).max()) <= MAX_KEYPOINT_RANGE:
+            raise ValueError(f'translation {t.tolist()} puts the camera farther than '
+                             f'{MAX_KEYPOINT_RANGE:g} m from the robot frame: metres expected')
         if q.shape != (4,) or not np.all(np.isfinite(q)):
             raise ValueError(f'rotation must be 4 finite numbers (x, y, z, w), got {q.tolist()}')
         norm = float(np.linalg.norm(q))
@@ -232,6 +256,7 @@ class BodyTracking:
         self.max_speed = float(max_speed)
         self.max_gap = float(max_gap)
         self.confirm_frames = int(confirm_frames)
+        self.lock = StreamLock()
         self.followed: int | None = None
         self.last_stamp: float | None = None              # of any frame taken
         self._accepted: tuple[float, dict] | None = None  # stamp, body id -> centroid
@@ -240,6 +265,8 @@ class BodyTracking:
         self._candidate: tuple[float, dict, int] | None = None  # a relocation being confirmed
         self._followed_at: tuple[float, int, np.ndarray, np.ndarray] | None = None
         #                  stamp, body, centroid, angles of the followed body's last frame
+        self._readings: deque = deque(maxlen=READINGS_KEPT)  # (now, keypoints, nearest)
+        self._published: tuple[float, np.ndarray, float] | None = None  # now, keypoints, nearest
 
     def gate(self, dt: float) -> float:
         """Metres a centroid may move in dt seconds."""
@@ -250,22 +277,84 @@ class BodyTracking:
         self.followed = None
         self._followed_at = None
 
-    def frame(self, frame: BodyFrame) -> TrackingStep:
-        """Take one frame: its step, or `InputError` when it gives the estimator nothing."""
+    def frame(self, frame: BodyFrame, source: Stamp | None = None,
+              now: float | None = None) -> TrackingStep:
+        """Take one frame: its step, or `InputError` when it gives the estimator nothing.
+
+        `source` is the message's writer stamp (its sequence number tells the streams apart,
+        `StreamLock`) and `now` the node's clock in seconds (the readings' age; the frame's
+        stamp when not given). Without `source` every frame is taken as one stream's."""
+        now = float(frame.stamp or 0.0) if now is None else float(now)
+        stream = self.lock.classify(None if source is None else source.sequence, now,
+                                    self.max_gap)
+        if stream == StreamLock.OTHER:
+            return self._other_stream(frame, now)
+        restarted = self._new_stream(frame) if stream == StreamLock.NEW else []
         if not frame.bodies:
-            lost = self.followed is not None
-            if self._accepted is not None:
-                self._accept(self._accepted[0], {})    # whoever comes next comes into view
-            self._nearest = None
-            self._restart()
-            raise InputError('no body in view' + (' (the followed body left)' if lost else ''))
+            return self._nobody(frame, now)
         stamp = float(frame.stamp)
-        restarted = []
+        joints, keypoints, distances = self._place(frame)
+        nearest = min(distances.values())
+        taken = self._check_stamp(stamp, keypoints, nearest, now)
+        if isinstance(taken, TrackingStep):
+            return taken
+        reports = restarted + taken
+        centroids = {b: k.mean(axis=0) for b, k in keypoints.items()}
+        try:
+            reports += self._check_continuity(stamp, centroids)
+        except InputError as exc:
+            if self._nearest is None or not nearest < self._nearest:
+                raise
+            # never drop in the unsafe direction: the distance stands, joint states wait
+            return self._publish(TrackingStep(
+                stamp, np.vstack(list(keypoints.values())), None, None, None, distances,
+                reports + [Report(WARN, 'tracking', f'{exc}; its skeleton is kept: it is '
+                                  f'nearer to the robot ({nearest:.2f} m) than the last '
+                                  f'accepted ({self._nearest:.2f} m)', {'nearest_m': nearest},
+                                  kind='jump_nearer')]), nearest, now)
+        self._nearest = nearest
+        reports += self._select(stamp, centroids, distances)
+        angles, velocities = self._arm(joints, centroids, stamp)
+        order = ([self.followed] if self.followed is not None else []) \
+            + [b for b in keypoints if b != self.followed]
+        return self._publish(TrackingStep(stamp, np.vstack([keypoints[b] for b in order]),
+                                          self.followed, angles, velocities, distances,
+                                          reports), nearest, now)
+
+    def _new_stream(self, frame: BodyFrame) -> list[Report]:
+        """The stream followed fell silent and another writer's frame came: start again."""
+        if self.last_stamp is None:
+            return []
+        self._accepted = self._candidate = self._nearest = self.last_stamp = None
+        self._back = None
+        self._restart()
+        return [Report(WARN, 'tracking', 'following a new body-tracking stream (the one '
+                       f'followed was silent for more than {self.max_gap:g} s)',
+                       {'stamp': frame.stamp if frame.stamp is not None else 'none'},
+                       kind='new_stream')]
+
+    def _nobody(self, frame: BodyFrame, now: float) -> TrackingStep:
+        """A frame without bodies: nothing, unless a recent reading shows someone."""
+        lost = self.followed is not None
+        if self._accepted is not None:
+            self._accept(self._accepted[0], {})    # whoever comes next comes into view
+        self._nearest = None
+        self._restart()
+        nearer = self._nearer_step(frame.stamp, None, now, 'the stream followed sees no body')
+        if nearer is not None:
+            return nearer
+        raise InputError('no body in view' + (' (the followed body left)' if lost else ''))
+
+    def _check_stamp(self, stamp: float, keypoints: dict, nearest: float,
+                     now: float) -> list[Report] | TrackingStep:
+        """The stamp rules (module docstring): the reports of a frame taken, or the step of a
+        frame not taken (`_not_taken`: a nearer skeleton, else `InputError`)."""
+        reports = []
         if self.last_stamp is not None and not stamp > self.last_stamp:
             message = (f'body frame stamp {stamp:.9f} s is not after the previous one '
                        f'({self.last_stamp:.9f} s)')
             if self.last_stamp - stamp <= self.max_gap:
-                raise InputError(message)
+                return self._not_taken(message, keypoints, nearest, stamp, now)
             # far back: a restarted tracker, a stepped clock, a looped bag; or a second stream
             # (a bag played on a live cell) whose frames must not pass between the live ones.
             # Taken once it alone has gone on for confirm_frames frames.
@@ -273,56 +362,119 @@ class BodyTracking:
             count = back[1] + 1 if back is not None and stamp > back[0] else 1
             if count < self.confirm_frames:
                 self._back = (stamp, count)
-                raise InputError(f'{message}: {self.last_stamp - stamp:.3f} s back, taken as a '
-                                 f'restarted stream once it holds for {self.confirm_frames} '
-                                 'frames')
-            restarted = [Report(WARN, 'tracking', f'body frame stamps went back '
-                                f'{self.last_stamp - stamp:.3f} s for {count} frames (a '
-                                'restarted tracker, a stepped clock, a looped bag): starting '
-                                'again from them', {'stamp': stamp,
-                                                    'previous_stamp': self.last_stamp},
-                                kind='stamp_back')]
+                return self._not_taken(
+                    f'{message}: {self.last_stamp - stamp:.3f} s back, taken as a restarted '
+                    f'stream once it holds for {self.confirm_frames} frames', keypoints,
+                    nearest, stamp, now)
+            reports = [Report(WARN, 'tracking', f'body frame stamps went back '
+                              f'{self.last_stamp - stamp:.3f} s for {count} frames (a '
+                              'restarted tracker, a stepped clock, a looped bag): starting '
+                              'again from them', {'stamp': stamp,
+                                                  'previous_stamp': self.last_stamp},
+                              kind='stamp_back')]
             self._accepted = self._candidate = self._nearest = None
             self._restart()
         self._back = None
         self.last_stamp = stamp
+        return reports
+
+    def _arm(self, joints: dict, centroids: dict, stamp: float) -> tuple:
+        """The followed body's arm angles and, after its previous frame, their velocities."""
+        if self.followed is None:
+            self._followed_at = None
+            return None, None
+        try:
+            angles = arm_angles(joints[self.followed])
+        except ValueError as exc:
+            raise InputError(f'body {self.followed}: {exc}') from None
+        velocities = None
+        last = self._followed_at
+        if last is not None and last[1] == self.followed and stamp - last[0] <= self.max_gap \
+                and _dist(centroids[self.followed], last[2]) <= self.gate(stamp - last[0]):
+            velocities = (angles - last[3]) / (stamp - last[0])
+        self._followed_at = (stamp, self.followed, centroids[self.followed], angles)
+        return angles, velocities
+
+    def _place(self, frame: BodyFrame) -> tuple[dict, dict, dict]:
+        """Each body's joints and keypoints in the robot frame, and its closest keypoint
+        distance; `InputError` for a joint beyond the cell's range."""
         joints = {b: self.transform.apply(j) for b, j in sorted(frame.bodies.items())}
+        try:
+            for b, j in joints.items():
+                check_keypoint_range(j, f'body {b} in the robot frame')
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         keypoints = {b: j[self.keypoints] for b, j in joints.items()}
-        centroids = {b: k.mean(axis=0) for b, k in keypoints.items()}
         distances = {b: float(np.min(np.linalg.norm(k - self.reference_point, axis=1)))
                      for b, k in keypoints.items()}
-        nearest = min(distances.values())
-        try:
-            reports = restarted + self._check_continuity(stamp, centroids)
-        except InputError as exc:
-            if self._nearest is None or not nearest < self._nearest:
-                raise
-            # never drop in the unsafe direction: the distance stands, joint states wait
-            return TrackingStep(stamp, np.vstack(list(keypoints.values())), None, None, None,
-                                distances, restarted + [Report(
-                                    WARN, 'tracking', f'{exc}; its skeleton is kept: it is nearer '
-                                    f'to the robot ({nearest:.2f} m) than the last accepted '
-                                    f'({self._nearest:.2f} m)', {'nearest_m': nearest},
-                                    kind='jump_nearer')])
-        self._nearest = nearest
-        reports += self._select(stamp, centroids, distances)
-        angles = velocities = None
-        if self.followed is not None:
-            try:
-                angles = arm_angles(joints[self.followed])
-            except ValueError as exc:
-                raise InputError(f'body {self.followed}: {exc}') from None
-            last = self._followed_at
-            if last is not None and last[1] == self.followed and stamp - last[0] <= self.max_gap \
-                    and _dist(centroids[self.followed], last[2]) <= self.gate(stamp - last[0]):
-                velocities = (angles - last[3]) / (stamp - last[0])
-            self._followed_at = (stamp, self.followed, centroids[self.followed], angles)
-        else:
-            self._followed_at = None
-        order = ([self.followed] if self.followed is not None else []) \
-            + [b for b in keypoints if b != self.followed]
-        return TrackingStep(stamp, np.vstack([keypoints[b] for b in order]), self.followed,
-                            angles, velocities, distances, reports)
+        return joints, keypoints, distances
+
+    # -- the nearer rule -------------------------------------------------------------------
+    def _recent(self, now: float) -> list[tuple[float, np.ndarray, float]]:
+        while self._readings and now - self._readings[0][0] > self.max_gap:
+            self._readings.popleft()
+        return [r for r in self._readings if now - r[0] <= self.max_gap]
+
+    def _publish(self, step: TrackingStep, nearest: float, now: float) -> TrackingStep:
+        """The step with the recent readings nearer than its own nearest keypoint added (the
+        nearer is the safe side); noted as what the estimator holds."""
+        nearer = [r[1] for r in self._recent(now) if r[2] < nearest]
+        if nearer:
+            step.keypoints = np.vstack([step.keypoints, *nearer])
+            nearest = min(r[2] for r in self._recent(now) if r[2] < nearest)
+        self._published = (now, step.keypoints, nearest)
+        return step
+
+    def _nearer_step(self, stamp: float | None, reading, now: float,
+                     why: str) -> TrackingStep | None:
+        """A skeleton-only step when a recent reading is nearer than the skeleton published
+        within `max_gap` (or none was), else None."""
+        if reading is not None:
+            self._readings.append(reading)
+        recent = self._recent(now)
+        if not recent:
+            return None
+        published = self._published
+        if published is not None and now - published[0] > self.max_gap:
+            published = None
+        nearest = min(r[2] for r in recent)
+        if published is not None and not nearest < published[2]:
+            return None
+        base = [] if published is None else [published[1]]
+        keypoints = np.vstack(base + [r[1] for r in recent
+                                      if published is None or r[2] < published[2]])
+        step = TrackingStep(stamp if stamp is not None else (self.last_stamp or 0.0), keypoints,
+                            None, None, None, {}, [Report(
+                                WARN, 'tracking', f'{why}; a frame not taken shows a person '
+                                f'nearer to the robot ({nearest:.2f} m): its skeleton is '
+                                'published (the nearer is the safe side), no joint states',
+                                {'nearest_m': nearest}, kind='nearer_reading')])
+        self._published = (now, keypoints, nearest)
+        return step
+
+    def _not_taken(self, message: str, keypoints: dict, nearest: float, stamp: float,
+                   now: float) -> TrackingStep:
+        """A frame of the followed stream refused for its stamp: its skeleton if it is nearer
+        than the one published, else `InputError`."""
+        step = self._nearer_step(stamp, (now, np.vstack(list(keypoints.values())), nearest),
+                                 now, message)
+        if step is None:
+            raise InputError(message)
+        return step
+
+    def _other_stream(self, frame: BodyFrame, now: float) -> TrackingStep:
+        """A frame of another writer: never followed; its skeleton counts when it is nearer."""
+        why = ('a frame of a second body-tracking stream (one tracker per cell: the adapter '
+               'follows one publisher)')
+        reading = None
+        if frame.bodies:
+            _, keypoints, distances = self._place(frame)
+            reading = (now, np.vstack(list(keypoints.values())), min(distances.values()))
+        step = self._nearer_step(frame.stamp, reading, now, why)
+        if step is None:
+            raise InputError(f'{why}: not followed, and no nearer to the robot than the stream '
+                             'followed')
+        return step
 
     def _check_continuity(self, stamp: float, centroids: dict) -> list[Report]:
         """Accept the frame's positions, or raise `InputError` for a jump (module docstring)."""

@@ -20,6 +20,11 @@ previous picture and nothing accumulates in RViz or Foxglove. The shapes, by nam
 `CellView` is the node's state: its inputs, fed in publication order, make one consistent epoch
 record (epoch, action, belief, d_k, task state, fail-safe reasons) and the latest skeleton.
 
+Nothing is drawn beyond the cell: keypoints that are not finite or lie farther than
+`observation.MAX_KEYPOINT_RANGE` from the frame's origin are left out of the picture (the
+conversion refuses such skeletons; the view does not rely on it), so no marker is ever
+placed at 1e308.
+
 Nothing old is shown as current: a skeleton older than `SKELETON_STALE_S` is no longer drawn
 (nobody in view, or the tracker stopped: the panel says for how long), and an action older than
 `ACTION_STALE_S` is greyed with its age (the decision node stopped or the clock stalled).
@@ -32,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model import TASK_VARIABLES
-from ..decision.observation import closest_distance, distance_level
+from ..decision.observation import MAX_KEYPOINT_RANGE, closest_distance, distance_level
 
 LEVEL_COLORS = {0: (0.85, 0.1, 0.1), 1: (1.0, 0.5, 0.0), 2: (0.95, 0.8, 0.1),
                 3: (0.2, 0.7, 0.3)}
@@ -124,6 +129,19 @@ def state_text(state: CellState) -> str:
     return '\n'.join(lines)
 
 
+def drawable(keypoints) -> np.ndarray:
+    """The keypoints (n, 3) inside the cell: finite and within `MAX_KEYPOINT_RANGE` of the
+    frame's origin (module docstring)."""
+    if keypoints is None:
+        return np.zeros((0, 3))
+    points = np.asarray(keypoints, dtype=float).reshape(-1, 3)
+    with np.errstate(invalid='ignore'):
+        inside = np.isfinite(points).all(axis=1) \
+            & (np.abs(points) <= MAX_KEYPOINT_RANGE).all(axis=1)
+    points = points[inside]
+    return points[np.sqrt((points ** 2).sum(axis=1)) <= MAX_KEYPOINT_RANGE]
+
+
 def scene(state: CellState, radii, reference_point) -> list[Shape]:
     """The whole picture of `state` (module docstring)."""
     p = np.asarray(reference_point, dtype=float).reshape(3)
@@ -134,8 +152,8 @@ def scene(state: CellState, radii, reference_point) -> list[Shape]:
                             (2 * radius, 2 * radius, DISC_THICKNESS),
                             with_alpha(LEVEL_COLORS[i], DISC_ALPHA)))
     shapes.append(Shape('robot', 0, 'sphere', p[None], (0.08, 0.08, 0.08), GREY))
-    if state.keypoints is not None and len(state.keypoints):
-        keypoints = np.asarray(state.keypoints, dtype=float)
+    keypoints = drawable(state.keypoints)
+    if len(keypoints):
         level = distance_level(keypoints, p, r)
         color = with_alpha(LEVEL_COLORS[level])
         shapes.append(Shape('human', 0, 'spheres', keypoints,

@@ -20,6 +20,14 @@ The distance level d of the tri-circle safety approach comes from the skeleton k
     rmin = min_k ||x_k - p||;   d = 0 if rmin < r0 (collision), 1 if < r1 (inner),
                                     2 if < r2 (middle), 3 otherwise (outer or beyond).
 
+Both inputs are bounded to the cell, so that a finite but absurd value is malformed, never a
+level (1e308 would overflow to an infinite distance, read d = 3, the unsafe side, or to an
+infinite speed, O = 3): a keypoint farther than `MAX_KEYPOINT_RANGE` from the frame's origin
+(no tracker in a cell sees that far: millimetres for metres, a bad transform), a joint speed
+above `MAX_JOINT_SPEED` (no human arm joint turns that fast: a glitch, or degrees for radians),
+more than `MAX_JOINTS` joints in a sample or `MAX_KEYPOINTS` keypoints in a skeleton
+(`check_keypoint_range`, `check_joint_speeds`; the conversions refuse such messages first).
+
 `synthesize_joint_velocities` and `synthesize_skeleton` invert these maps for the simulated
 cell: they draw motion whose level is, by construction, the requested one (strictly inside the
 band, so no rounding at an edge can flip it).
@@ -46,6 +54,11 @@ OUTER_BAND_WIDTH = 1.0  # metres beyond the middle radius for d = 3
 BAND_MARGIN = 0.05
 # Offsets of the other keypoints from the closest one (metres): a body-sized cluster.
 BODY_EXTENT = 0.5
+# The cell's bounds on the inputs (module docstring).
+MAX_KEYPOINT_RANGE = 20.0    # metres from the robot frame's origin
+MAX_JOINT_SPEED = 50.0       # rad/s (about 2900 deg/s)
+MAX_JOINTS = 100             # joints in one joint-state sample
+MAX_KEYPOINTS = 512          # keypoints in one skeleton (16 bodies of 32 joints)
 
 
 def _increasing_positive(name: str, values, length: int) -> np.ndarray:
@@ -79,9 +92,40 @@ def _level_arg(name: str, level, allowed: Sequence[int]) -> int:
     return int(level)
 
 
+def check_joint_speeds(speeds, what: str = 'speeds') -> np.ndarray:
+    """The joint velocities (rad/s) as an array; ValueError when one is not finite or its
+    magnitude is above `MAX_JOINT_SPEED`, or there are more than `MAX_JOINTS`."""
+    arr = _finite_array(what, speeds)
+    if arr.size > MAX_JOINTS:
+        raise ValueError(f'{what}: {arr.size} joints, more than {MAX_JOINTS}')
+    if arr.size and not np.abs(arr).max() <= MAX_JOINT_SPEED:
+        raise ValueError(f'{what}: a joint velocity of {np.abs(arr).max():.3g} rad/s, above '
+                         f'{MAX_JOINT_SPEED:g} rad/s: no human joint turns that fast (a sensor '
+                         'glitch, or degrees for radians)')
+    return arr
+
+
+def check_keypoint_range(points, what: str = 'keypoints') -> np.ndarray:
+    """Points (n, 3) as an array; ValueError when one is not finite or farther than
+    `MAX_KEYPOINT_RANGE` from the frame's origin (checked before squaring: no overflow)."""
+    arr = _finite_array(what, points)
+    flat = arr.reshape(-1, 3) if arr.size % 3 == 0 else arr.reshape(1, -1)
+    if flat.size and not np.abs(flat).max() <= MAX_KEYPOINT_RANGE:
+        raise ValueError(f'{what}: a coordinate of {np.abs(flat).max():.3g} m, farther than '
+                         f'{MAX_KEYPOINT_RANGE:g} m from the frame origin: beyond any tracker '
+                         'of the cell (metres expected)')
+    if flat.size and flat.shape[1] == 3:
+        norm = float(np.sqrt((flat ** 2).sum(axis=1)).max())
+        if not norm <= MAX_KEYPOINT_RANGE:
+            raise ValueError(f'{what}: a point {norm:.3g} m from the frame origin, farther '
+                             f'than {MAX_KEYPOINT_RANGE:g} m: beyond any tracker of the cell')
+    return arr
+
+
 def mean_speed(speeds) -> float:
-    """Mean absolute value of joint velocities (rad/s); finite and non-empty."""
-    arr = _finite_array('speeds', speeds)
+    """Mean absolute value of joint velocities (rad/s); finite, non-empty, bounded
+    (`check_joint_speeds`)."""
+    arr = check_joint_speeds(speeds)
     if arr.size == 0:
         raise ValueError('speeds is empty: a velocity level needs at least one joint velocity')
     return float(np.mean(np.abs(arr)))
@@ -108,13 +152,16 @@ def window_level(levels) -> int:
 
 
 def closest_distance(keypoints, robot_point) -> float:
-    """min_k ||x_k - p|| of keypoints (n, 3) to the robot reference point p (3,), metres."""
+    """min_k ||x_k - p|| of keypoints (n, 3) to the robot reference point p (3,), metres; both
+    within `MAX_KEYPOINT_RANGE` of the frame's origin, so the distance is finite."""
     kp = _finite_array('keypoints', keypoints)
     if kp.ndim != 2 or kp.shape[1] != 3 or kp.shape[0] == 0:
         raise ValueError(f'keypoints must have shape (n, 3) with n >= 1, got {kp.shape}')
     p = _finite_array('robot_point', robot_point)
     if p.shape != (3,):
         raise ValueError(f'robot_point must have shape (3,), got {p.shape}')
+    check_keypoint_range(kp)
+    check_keypoint_range(p[None], 'robot_point')
     return float(np.sqrt(np.min(np.sum((kp - p) ** 2, axis=1))))
 
 

@@ -13,9 +13,11 @@ decision node fails safe.
 
 It announces the configuration its filter runs on `hrc/estimator_config` (latched:
 `Config.belief_hash` and the file), so the decision node can flag a mismatch. A new `config`
-(`ros2 param set /belief_estimator config <file>`) is checked in the parameter callback (it
-must load), its filter (observation likelihood, emotion chains) is built off the epoch path
-(`BackgroundLoad`) and takes over at the next epoch signal, from the belief it has reached.
+(`ros2 param set /belief_estimator config <file>`) is checked in the parameter callback by the
+decision node's rule (`core.swap.check_swap`: it must load and describe the same cell size,
+rho and sigma; and its belief filter must build), its filter (observation likelihood, emotion
+chains) is built off the epoch path (`BackgroundLoad`) and takes over at the next epoch
+signal, from the belief it has reached.
 """
 
 from __future__ import annotations
@@ -25,20 +27,22 @@ from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
+from std_msgs.msg import Bool, Float64MultiArray, String, UInt8, UInt8MultiArray
 
 from ...core.pomdp.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
 from ...core.decision.observation import (DEFAULT_SAFETY_RADII, DEFAULT_VELOCITY_THRESHOLDS,
-                                          distance_level, velocity_level)
-from ...core.protocol import (ERROR, ESTIMATOR_HOLD_FALLBACK_S, ESTIMATOR_HOLD_FRACTION, OK,
-                              EstimatorEpochs, Report, Stamp)
+                                          check_keypoint_range, distance_level, velocity_level)
+from ...core.protocol import (ERROR, ESTIMATOR_HOLD, OK, WARN, EstimatorEpochs, Report, Stamp,
+                              check_timeout_order)
+from ...core.swap import ACCEPTED, check_swap
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, DeadlineTimer, Inputs,
                             ParamSpec, StartupError, check_array, check_core, load_node_config,
                             node_setup, run)
+from ..sources import subscribe_epochs
 
 T = Parameter.Type
 VELOCITY_THRESHOLDS = ParamSpec(
@@ -68,10 +72,10 @@ PARAMETERS = (
               range=(1, 100000)),
     ParamSpec('task_state_timeout', T.DOUBLE, 0.0, 'posterior mode: seconds after hrc/epoch '
               'k that b_k waits for the task state x_k (then the answer is left out). 0 = '
-              f'{ESTIMATOR_HOLD_FRACTION:g} x the epoch period seen on hrc/epoch '
-              f'({ESTIMATOR_HOLD_FALLBACK_S:g} s before two epochs); keep an explicit value '
-              "above the task manager's input_timeout and below the decision node's",
-              range=(0.0, 3600.0)),
+              f'{ESTIMATOR_HOLD.fraction:g} x the epoch period seen on hrc/epoch '
+              f'({ESTIMATOR_HOLD.fallback_s:g} s before two epochs); an explicit value must be '
+              "longer than the task manager's input_timeout and shorter than the decision "
+              "node's", range=(0.0, 3600.0)),
 ) + MOTION_PARAMETERS
 
 
@@ -81,6 +85,9 @@ def check_motion_parameters(values) -> str | None:
             or check_core(values, 'safety_radii',
                           lambda r: distance_level(np.zeros((1, 3)), (0.0, 0.0, 0.0), r))
             or check_array(values, 'robot_reference_point', 3)
+            or check_core(values, 'robot_reference_point',
+                          lambda point: check_keypoint_range(np.array(point)[None],
+                                                             'robot_reference_point'))
             or ('robot_frame must not be empty' if values.get('robot_frame', 'x') == ''
                 else None))
 
@@ -124,8 +131,9 @@ class BeliefEstimatorNode(Node):
                               lambda action, published_ns: self.windows.action(action,
                                                                                published_ns),
                               with_published=True)
-        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch, with_stamp=True)
+        self.epoch_publishers = subscribe_epochs(self.inputs, lambda: self.windows.epochs,
+                                                 self._on_epoch)
+        self._order_reported: str | None = None
         # posterior mode: x_k shows the human's answer to a_{k-1}, if one was published
         # (volatile: any publisher, as for the decision node; docs/ROBUSTNESS.md). The answer
         # is subscribed first: rclpy takes the messages ready at one wake in that order.
@@ -140,23 +148,45 @@ class BeliefEstimatorNode(Node):
         self.hold = DeadlineTimer(self, lambda now: self._publish(self.windows.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
+    def _period_s(self) -> float | None:
+        period = None if self.windows is None else self.windows.epochs.period.period_ns
+        return None if period is None else period * 1e-9
+
     def _check_parameters(self, values) -> str | None:
-        reason = check_parameters(values)
-        if reason or self.config_value is None or values.get('config') == self.config_value:
+        reason = check_parameters(values) or check_timeout_order(
+            self._period_s(), {ESTIMATOR_HOLD: values.get('task_state_timeout', 0.0)})
+        if reason or self.config_value is None or 'config' not in values:
             return reason
+        verdict = check_swap(self.model.rho, self.model.sigma, self.config_value,
+                             values['config'])
+        if verdict.verdict != ACCEPTED:
+            return verdict.reason or None
         try:
-            config = load_node_config(values['config'])
-            BeliefFilter(HRCModel(config), mode=values['belief_mode'] or None)
-        except (StartupError, ValueError) as exc:
+            BeliefFilter(HRCModel(verdict.config), mode=values['belief_mode'] or None)
+        except ValueError as exc:
             return f'config refused: {exc}'
         return None
+
+    def _check_timeout_order(self) -> None:
+        """An explicit task_state_timeout that the period learnt since makes too long or too
+        short: WARN once (it was accepted before the period was known)."""
+        explicit = self.windows.task_state_timeout_s
+        reason = check_timeout_order(self._period_s(), {ESTIMATOR_HOLD: explicit}) \
+            if explicit > 0 else None
+        if reason and reason != self._order_reported:
+            self.inputs.report(Report(WARN, 'timeouts', f'{reason} (epoch period seen on '
+                                      f'hrc/epoch: {self._period_s():g} s)',
+                                      {'task_state_timeout': explicit}, kind='order'))
+        self._order_reported = reason
 
     def _announce(self) -> None:
         self.config_pub.publish(conv.config_identity_to_msg(self.config.belief_hash,
                                                             self.config.source))
 
     def _apply_parameters(self, values) -> None:
-        if self.config_value is not None and values['config'] != self.config_value:
+        if self.config_value is not None and values['config'] == self.config_value:
+            self.loader.start(lambda: None)      # back to the one in use: nothing pending
+        elif self.config_value is not None:
             value, mode = values['config'], values['belief_mode'] or None
 
             def load():
@@ -203,6 +233,8 @@ class BeliefEstimatorNode(Node):
         if done is None:
             return
         loaded, error = done
+        if loaded is None and error is None:      # the parameter went back to the one in use
+            return
         if error is not None:
             self.inputs.report(Report(ERROR, 'estimator', f'refused configuration: {error}; '
                                       f'still running {self.config.source}', {'epoch': k}))
@@ -219,6 +251,7 @@ class BeliefEstimatorNode(Node):
         self._swap(k)
         self._announce()        # again each epoch: state is republished (qos.STATE_INPUT)
         self._publish(self.windows.epoch_signal(k, stamp, self.hold.clock.now().nanoseconds))
+        self._check_timeout_order()
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)

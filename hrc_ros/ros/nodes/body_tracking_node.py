@@ -24,6 +24,13 @@ estimator nothing (no body in view, NaN or missing joints, a foreign frame, a ju
 one frame, a stamp that goes back) is dropped with a throttled warning and a /diagnostics
 status; the estimator then lacks joint states, so the decision node fails safe (dn).
 
+One tracker per cell: the node follows one publisher of `input_topic` (its writer's sequence
+numbers, `core.protocol.StreamLock`); a second publisher's frames never make joint states nor
+move the followed stream's stamps, and are reported as ERROR (`body_tracking: tracking`, kind
+`second_stream`) naming the topic's publishers from the graph. When the two disagree about
+where a person is, the nearer wins: a second stream's frame nearer to the robot than the
+skeleton published is published at once (`core.cell.tracking`).
+
 Why a node in front of the estimator and not inside it: the estimator keeps one input contract
 (`human/*`, which bags, replays and the simulated cell use), the adapter can run next to the
 camera driver, and a cell with another tracker swaps this node only. It costs one hop of the
@@ -32,20 +39,26 @@ middleware (well under a millisecond here, against 1/30 s between frames).
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
 from geometry_msgs.msg import PoseArray
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ...core.decision.observation import HUMAN_JOINTS
+from ...core.decision.observation import HUMAN_JOINTS, check_keypoint_range
 from ...core.cell.tracking import (DEFAULT_CONFIRM_FRAMES, DEFAULT_MAX_GAP, DEFAULT_MAX_SPEED,
                                    DEFAULT_SWITCH_MARGIN, K4ABT_JOINTS, BodyTracking,
                                    RigidTransform, joint_indices)
+from ...core.protocol import ERROR, Report, Stamp
 from .. import conversions as conv
 from .. import qos
-from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
-                            check_array, check_core, run)
+from ..node_support import (STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, Inputs, NodeParameters,
+                            ParamSpec, StartupError, check_array, check_core, run)
+from ..sources import TopicPublishers
 from .belief_estimator_node import ROBOT_FRAME, ROBOT_REFERENCE_POINT
 
 T = Parameter.Type
@@ -77,7 +90,9 @@ PARAMETERS = CAMERA_PARAMETERS + (
               'faster move is a tracking jump (frame dropped until it holds confirm_frames '
               'frames)', range=(0.1, 100.0)),
     ParamSpec('max_gap', T.DOUBLE, DEFAULT_MAX_GAP, 'seconds between frames beyond which '
-              'velocities restart and the followed body is chosen again', range=(0.001, 60.0)),
+              'velocities restart and the followed body is chosen again; also how long the '
+              'followed stream may be silent before another publisher is followed, and how '
+              'long a frame not taken counts for the nearer person', range=(0.001, 60.0)),
     ParamSpec('confirm_frames', T.INTEGER, DEFAULT_CONFIRM_FRAMES, 'frames a relocated body '
               'must hold before it is taken as its new place', range=(1, 1000)),
 )
@@ -96,6 +111,9 @@ def check_camera(values) -> str | None:
 
 def check_parameters(values) -> str | None:
     return (check_camera(values) or check_array(values, 'robot_reference_point', 3)
+            or check_core(values, 'robot_reference_point',
+                          lambda point: check_keypoint_range(np.array(point)[None],
+                                                             'robot_reference_point'))
             or check_core(values, 'keypoint_joints',
                           lambda names: joint_indices(names or K4ABT_JOINTS))
             or ('input_topic must not be empty' if values.get('input_topic', 'x') == '' else None)
@@ -131,8 +149,12 @@ class BodyTrackingNode(Node):
         self.joint_pub = self.create_publisher(JointState, 'human/joint_states', qos.SENSOR_DATA)
         self.inputs = Inputs(self)
         self.input_topic = values['input_topic']
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.input_publishers = TopicPublishers(self, self.input_topic)
+        self._second_reported: float | None = None
         self.inputs.subscribe(MarkerArray, self.input_topic, qos.SENSOR_DATA, self._convert,
-                              self._on_frame, name='body_tracking')
+                              self._on_frame, name='body_tracking', with_stamp=True,
+                              on_matched=self.input_publishers.refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _apply(self, values) -> None:
@@ -149,9 +171,16 @@ class BodyTrackingNode(Node):
         stamp = next((m.header.stamp for m in msg.markers if m.action == Marker.ADD), None)
         return frame, stamp
 
-    def _on_frame(self, converted) -> None:
+    def _on_frame(self, converted, source: Stamp) -> None:
         frame, stamp = converted
-        step = self.tracking.frame(frame)
+        others = self.tracking.lock.others
+        try:
+            step = self.tracking.frame(frame, source, self.steady.now().nanoseconds * 1e-9)
+        finally:
+            if self.tracking.lock.others > others:
+                self._second_stream()
+        if stamp is None:                  # a second stream's person while nobody is followed
+            stamp = conv.seconds_to_stamp(step.stamp)
         for report in step.reports:
             self.inputs.report(report)
         self.skeleton_pub.publish(conv.keypoints_to_msg(step.keypoints, stamp, self.robot_frame))
@@ -161,12 +190,30 @@ class BodyTrackingNode(Node):
                                                            step.angles, stamp))
             self.published['joint_states'] += 1
 
+    def _second_stream(self) -> None:
+        """A frame of another publisher than the one followed: ERROR naming the topic's
+        publishers, at most once per WARNING_THROTTLE_SEC."""
+        now = time.monotonic()
+        if self._second_reported is not None \
+                and now - self._second_reported < WARNING_THROTTLE_SEC:
+            return
+        self._second_reported = now
+        names = self.input_publishers.names(others_only=False)
+        self.inputs.report(Report(
+            ERROR, 'tracking', f'a second body-tracking stream publishes on {self.input_topic} '
+            f'(publishers: {", ".join(names) or "none left on the graph"}); following one (one '
+            'tracker per cell): the other makes no joint states and counts for the distance '
+            'only where it sees a person nearer. Stop one.',
+            {'input_topic': self.input_topic, 'publishers': ', '.join(names),
+             'frames_of_other_streams': self.tracking.lock.others}, kind='second_stream'))
+
     def _publish_status(self) -> None:
         machine = self.tracking
         self.inputs.publish_health('tracking', {
             'input_topic': self.input_topic, 'followed': machine.followed,
             'published_skeletons': self.published['skeleton'],
-            'published_joint_states': self.published['joint_states']})
+            'published_joint_states': self.published['joint_states'],
+            'frames_of_other_streams': machine.lock.others})
 
 
 def main(args=None):

@@ -25,15 +25,13 @@ from ...core.cell import faults
 from ...core.cell.human import SimulatedHuman
 from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
 from ...core.decision.observation import synthesize_joint_velocities, synthesize_skeleton
-from ...core.protocol import ActionPairing, PeriodEstimate, timeout_ns
+from ...core.protocol import CELL_HOLD, ActionPairing, PeriodEstimate
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
                             ParamSpec, StartupError, check_array, control_clock, node_setup, run)
 from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
 
-HOLD_FRACTION = 0.25   # task_state_timeout 0: this fraction of the observed action period
-HOLD_FALLBACK = 0.25   # ... and these seconds until the period is known
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
 IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
 
@@ -51,7 +49,8 @@ PARAMETERS = (
     *MOTION_PARAMETERS,
     ParamSpec('task_state_timeout', T.DOUBLE, 0.0, 'seconds an action waits for its '
               "epoch's hrc/task_state before the cell reacts with the latest one; 0 = "
-              f'{HOLD_FRACTION:g} x the epoch period seen on hrc/action ({HOLD_FALLBACK:g} s '
+              f'{CELL_HOLD.fraction:g} x the epoch period seen on hrc/action '
+              f'({CELL_HOLD.fallback_s:g} s '
               'before two actions)', range=(0.0, 60.0)),
     ParamSpec('faults', T.STRING_ARRAY, [], 'injected faults "KIND:EPOCHS" with KIND one of '
               + ', '.join(faults.FAULT_KINDS) + ' and EPOCHS "7" or "7-9"', read_only=True),
@@ -146,8 +145,7 @@ class CellSimNode(Node):
         self._react(self.pairing.task_state_received(task_state, self.clock.now().nanoseconds))
 
     def _hold_ns(self) -> int:
-        return timeout_ns(self.task_state_timeout, HOLD_FRACTION, self.period.period_ns,
-                          HOLD_FALLBACK)
+        return CELL_HOLD.ns(self.task_state_timeout, self.period.period_ns)
 
     def _on_action(self, action: int, published_ns: int) -> None:
         self.period.observe(published_ns)

@@ -22,34 +22,49 @@ next epoch boundary (`DecisionGate.begin(select=...)`), so no epoch waits for th
 full check still fails (damaged arrays) the parameters return to the pair in use, with an
 ERROR status. The estimator announces its configuration on `hrc/estimator_config`; every
 decision status names the policy and configuration in use and whether the estimator's belief
-sections match, and a mismatch is a WARN status.
+sections match, and a mismatch is a WARN status. The swap rule is `core.swap.check_swap`, the
+belief estimator's too.
+
+One decider per cell (`core.protocol.ClockOwner`): every decision node, in either mode,
+claims the cell on the hidden latched topic `hrc/_clock_claim` (its start time, a random id,
+its name; repeated every second) and only the owner, the oldest claim, publishes epochs and
+actions: a newer one stays silent (or stops a clock it started before it heard the older),
+with an ERROR status naming the owner, and so does a follower (`epoch_source: topic`), which
+is an action source too. Other publishers of `hrc/epoch` or `hrc/action` are named from the
+graph, by node once the graph knows it, by GID until then.
 """
 
 from __future__ import annotations
 
+import secrets
 import time
 from dataclasses import dataclass
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.config import Config
 from ...core.model import HRCModel
-from ...core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy, peek_policy
-from ...core.protocol import (ERROR, OK, WARN, ClockStart, DecisionGate, EpochFollower, Report,
-                              Stamp, timeout_ns)
+from ...core.mdp.policy import Policy, PolicyError, load_policy
+from ...core.protocol import (CLAIM_PERIOD_S, DECISION_WAIT, ERROR, OK, STALE, WARN, Claim,
+                              ClockOwner, ClockStart, DecisionGate, EpochFollower, Report, Stamp,
+                              check_timeout_order)
 from ...core.decision.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
+from ...core.swap import SAME, STAGED, check_swap, policy_path
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
                             StartupError, config_path, control_clock, load_node_config, node_setup,
                             run)
+from ..sources import endpoints, subscribe_epochs
 
 EPOCH_SOURCES = ('timer', 'topic')
-INPUT_FRACTION = 0.5   # input_timeout 0: this fraction of the epoch period
-STALE_PERIODS = 3.0    # stale_timeout 0: this many epoch periods
+INPUT_FRACTION = DECISION_WAIT.fraction   # input_timeout 0: this fraction of the epoch period
+STALE_PERIODS = STALE.fraction            # stale_timeout 0: this many epoch periods
 GRAPH_WAIT_MIN = 3.0   # stale_timeout 0: seconds the clock may wait for DDS discovery at least
+CLAIM_TOPIC = 'hrc/_clock_claim'   # hidden: not recorded by a bag of every topic, not replayed
 T = Parameter.Type
 PARAMETERS = (
     LIVE_CONFIG,
@@ -83,16 +98,9 @@ def check_parameters(values) -> str | None:
     if 'epoch_source' in values and values['epoch_source'] not in EPOCH_SOURCES:
         return (f'epoch_source must be one of {", ".join(EPOCH_SOURCES)}, got '
                 f'{values["epoch_source"]!r}')
-    period = values.get('epoch_period')
-    timeout, stale = values.get('input_timeout', 0.0), values.get('stale_timeout', 0.0)
-    if period is not None and timeout and not timeout < period:
-        return (f'input_timeout ({timeout} s) must be shorter than epoch_period ({period} s); '
-                f'0 follows the period ({INPUT_FRACTION:g} x)')
-    if period is not None and stale and not stale > period:
-        return (f'stale_timeout ({stale} s) must be longer than epoch_period ({period} s), or '
-                'every input would be stale at every epoch; 0 follows the period '
-                f'({STALE_PERIODS:g} x)')
-    return None
+    return check_timeout_order(values.get('epoch_period'),
+                               {DECISION_WAIT: values.get('input_timeout', 0.0),
+                                STALE: values.get('stale_timeout', 0.0)})
 
 
 @dataclass(frozen=True)
@@ -116,17 +124,12 @@ class Staged:
     reason: str
 
 
-def load_pair(config_value: str, policy_value: str, method: str) -> Running | Staged:
-    """Load and check a (configuration, policy) pair as the parameters name it; `Staged` when
-    the policy was not solved for the configuration; StartupError / PolicyError otherwise."""
+def load_pair(config_value: str, policy_value: str, method: str) -> Running:
+    """Load and fully check a (configuration, policy) pair the swap rule accepted
+    (`core.swap.check_swap`); StartupError / PolicyError when a file turns out bad."""
     config = load_node_config(config_value)
-    path = policy_value or str(default_policy_path(config))
-    try:
-        peek_policy(path, config)
-    except PolicyError as exc:
-        return Staged(config_value, policy_value, str(exc))
     model = HRCModel(config)
-    policy = load_policy(path, config)
+    policy = load_policy(policy_path(policy_value, config), config)
     return Running(config_value, policy_value, config, model, policy,
                    ActionSelector(model, policy, method=method))
 
@@ -134,8 +137,8 @@ def load_pair(config_value: str, policy_value: str, method: str) -> Running | St
 def timeouts_ns(values) -> tuple[int, int]:
     """(input_timeout, stale_timeout) in ns: the explicit values, or fractions of the period."""
     period_ns = int(values['epoch_period'] * 1e9)
-    return (timeout_ns(values['input_timeout'], INPUT_FRACTION, period_ns, 0.0),
-            timeout_ns(values['stale_timeout'], STALE_PERIODS, period_ns, 0.0))
+    return (DECISION_WAIT.ns(values['input_timeout'], period_ns),
+            STALE.ns(values['stale_timeout'], period_ns))
 
 
 class DecisionNode(Node):
@@ -144,11 +147,11 @@ class DecisionNode(Node):
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
         self.running: Running | None = None      # set below: swaps are checked from then on
+        self._checked: tuple | None = None        # the last swap verdict, by its values
         self.params, values, config, model = node_setup(
             self, PARAMETERS, self._check_parameters, self._apply_parameters)
-        policy_path = values['policy'] or str(default_policy_path(config))
         try:
-            policy = load_policy(policy_path, config)
+            policy = load_policy(policy_path(values['policy'], config), config)
         except PolicyError as exc:
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
@@ -169,13 +172,24 @@ class DecisionNode(Node):
         self.gate = DecisionGate(self.selector.select, stale_ns, input_ns,
                                  fresh_at_epoch=self.epoch_source == 'timer')
         self.stale_timeout = values['stale_timeout']
-        self.clock_start = ClockStart(self._now(), self._graph_wait_ns(),
-                                      running=self.epoch_source == 'topic')
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)   # claims age on it, always
+        self.claim = Claim(time.time_ns(), secrets.randbits(63),
+                           self.get_fully_qualified_name(), self.epoch_source)
+        self.owner = ClockOwner(self.claim)
+        self.clock_start = ClockStart(self.steady.now().nanoseconds, self._graph_wait_ns(),
+                                      running=self.epoch_source == 'topic', owner=self.owner)
         self.epochs = EpochFollower()
         self.last_action: int | None = None
 
         self.action_pub = self.create_publisher(String, 'hrc/action', qos.RELIABLE)
+        self.claim_pub = self.create_publisher(String, CLAIM_TOPIC, qos.CLAIMS)
         self.inputs = Inputs(self)
+        self.claim_sub = self.inputs.subscribe(String, CLAIM_TOPIC, qos.CLAIMS,
+                                               conv.claim_from_msg, self._on_claim,
+                                               name='clock_claim')
+        self._publish_claim()
+        self.claim_timer = self.create_timer(CLAIM_PERIOD_S, self._publish_claim,
+                                             clock=self.steady)
         self.input_subscriptions = [
             self.inputs.subscribe(Float64MultiArray, 'hrc/belief', qos.STATE_INPUT,
                                   self._guard('belief', conv.belief_from_msg),
@@ -195,8 +209,7 @@ class DecisionNode(Node):
         else:
             self.epoch_pub = None
             self.epoch_timer = None
-            self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                                  self._on_epoch, with_stamp=True)
+            subscribe_epochs(self.inputs, lambda: self.epochs, self._on_epoch)
         self.inputs.subscribe(String, 'hrc/estimator_config', qos.STATE_INPUT,
                               conv.config_identity_from_msg, self._on_estimator_config)
         self.get_logger().info(
@@ -235,37 +248,38 @@ class DecisionNode(Node):
                 return f'selector {values["selector"]}: {exc}'
         return reason or self._check_swap(values)
 
+    def _verdict(self, values, checked: bool = False):
+        """The swap rule's verdict on the (config, policy) in `values` (`core.swap`). With
+        `checked` (the post-set callback), the verdict the parameter callback just reached on
+        the same values, so the files are read once per change."""
+        running = self.running
+        key = (running.config_value, running.policy_value, values['config'], values['policy'])
+        done, self._checked = self._checked, None
+        if checked and done is not None and done[0] == key:
+            return done[1]
+        verdict = check_swap(running.model.rho, running.model.sigma, running.config_value,
+                             values['config'], running.policy_value, values['policy'])
+        self._checked = None if checked else (key, verdict)
+        return verdict
+
     def _check_swap(self, values) -> str | None:
         """The quick check of a new (config, policy) pair, in the parameter callback."""
-        running = self.running
-        if running is None or 'config' not in values or 'policy' not in values:
+        if self.running is None or 'config' not in values or 'policy' not in values:
             return None            # start-up: __init__ loads and checks the pair itself
-        if (values['config'], values['policy']) == (running.config_value, running.policy_value):
-            return None
-        try:
-            config = load_node_config(values['config'])
-        except StartupError as exc:
-            return f'config refused: {exc}'
-        if (config.rho, config.sigma) != (running.model.rho, running.model.sigma):
-            return (f'config refused: {config.source} has rho {config.rho}, sigma '
-                    f'{config.sigma}; the running cell {running.model.rho}, '
-                    f'{running.model.sigma}: restart the nodes to change the state space')
-        path = values['policy'] or str(default_policy_path(config))
-        try:
-            peek_policy(path, config)
-        except PolicyError as exc:
-            if values['policy'] == running.policy_value:
-                return None        # config set alone: staged until a policy for it is set
-            return (f'policy refused: {exc} (the configuration set is {config.source}; to '
-                    'change both, set config first, then policy)')
-        return None
+        verdict = self._verdict(values)
+        return verdict.reason if verdict.refused else None
 
     def _apply_parameters(self, values) -> None:
-        running = self.running
-        if running is not None and (values['config'], values['policy']) != (
-                running.config_value, running.policy_value):
+        if self.running is not None:
+            verdict = self._verdict(values, checked=True)
             method = values['selector']
-            self.loader.start(lambda: load_pair(values['config'], values['policy'], method))
+            if verdict.verdict == STAGED:    # config set alone: until a policy for it is set
+                staged = Staged(values['config'], values['policy'], verdict.reason)
+                self.loader.start(lambda: staged)
+            elif verdict.verdict == SAME:    # back to the pair in use: nothing pending
+                self.loader.start(lambda: None)
+            elif not verdict.refused:
+                self.loader.start(lambda: load_pair(values['config'], values['policy'], method))
         self.selector.set_method(values['selector'])   # qmdp's Q table is built here
         self.gate.input_timeout_ns, self.gate.stale_timeout_ns = timeouts_ns(values)
         self.stale_timeout = values['stale_timeout']
@@ -303,28 +317,30 @@ class DecisionNode(Node):
         return (self.epoch_pub.get_subscription_count() >= self.min_epoch_subscribers
                 and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions))
 
-    def _other_sources(self) -> list[str]:
-        """Other publishers of hrc/epoch or hrc/action: a second decision node, say (also one
-        with this node's name: one publisher per topic of this name is this node's own)."""
-        me = (self.get_namespace(), self.get_name())
-        found = []
-        for topic in (self.epoch_pub.topic_name, self.action_pub.topic_name):
-            own = 1
-            for info in self.get_publishers_info_by_topic(topic):
-                if own and (info.node_namespace, info.node_name) == me:
-                    own = 0
-                    continue
-                name = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
-                gid = '.'.join(f'{b:02x}' for b in list(info.endpoint_gid)[:12])
-                found.append(f'{name} on {topic} (gid {gid})')
-        return found
+    def _other_sources(self) -> list:
+        """Other publishers of hrc/epoch or hrc/action (`Endpoint`s): a second decision node,
+        say (also one with this node's name: one publisher per topic of this name is this
+        node's own)."""
+        return (endpoints(self, 'hrc/epoch', skip_own=self.epoch_pub is not None)
+                + endpoints(self, 'hrc/action'))
 
-    def _on_tick(self) -> None:
-        tick = self.clock_start.tick(self._now(), self._graph_ready, self._graph,
-                                     self._other_sources, self.get_fully_qualified_name())
+    def _publish_claim(self) -> None:
+        self.claim_pub.publish(conv.claim_to_msg(self.claim))
+
+    def _on_claim(self, claim: Claim) -> None:
+        self.owner.heard(claim, self.steady.now().nanoseconds)
+
+    def _tick(self, graph_ready) -> bool:
+        """The clock's, or (topic mode) the follower's, say in this epoch (`ClockStart`)."""
+        tick = self.clock_start.tick(self.steady.now().nanoseconds, graph_ready, self._graph,
+                                     self._other_sources, self.get_fully_qualified_name(),
+                                     self.claim_sub.get_publisher_count)
         if tick.report is not None:
             self.inputs.report(tick.report)
-        if tick.start_epoch:
+        return tick.start_epoch
+
+    def _on_tick(self) -> None:
+        if self._tick(self._graph_ready):
             k = self.epoch + 1
             self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
             self.epoch_pub.publish(conv.epoch_to_msg(k))
@@ -334,7 +350,8 @@ class DecisionNode(Node):
         if restart is not None:
             self.inputs.report(restart)
         self.epochs.take(k, stamp)
-        self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
+        if self._tick(lambda: True):            # not the cell's decider: no action
+            self._act(self.gate.begin(k, self._now(), select=self._swap(k)))
 
     def _swap(self, k: int):
         """At the boundary of epoch k: a pair loaded meanwhile takes over (its `select`)."""
@@ -343,6 +360,8 @@ class DecisionNode(Node):
             return None
         loaded, error = done
         old = self.running
+        if loaded is None and error is None:      # the parameters went back to the pair in use
+            return None
         if isinstance(loaded, Running):
             if loaded.selector.method != self.params.value('selector'):
                 loaded.selector.set_method(self.params.value('selector'))

@@ -5,28 +5,26 @@ Contract (docs/DESIGN.md, "ROS epoch protocol"): on `hrc/epoch` k it finalises a
 publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). Tasks come from the
 `initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``. The rules
 (holds, timeouts, late answers, restarts) are `core.protocol.TaskEpochs`; this node owns the
-topics, the parameters and the timer.
+topics, the parameters and the timer. Every task request is counted once, as accepted, refused
+(malformed, out of its domain, the queue full) or lost (`core.protocol.RequestCounts`).
 """
 
 from __future__ import annotations
 
-from collections import Counter
-
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
+from std_msgs.msg import Bool, String, UInt8MultiArray
 
-from ...core.protocol import (ERROR, InputError, Report, SequenceGaps, Stamp, TaskEpochs,
-                              timeout_ns)
+from ...core.protocol import (ERROR, TASK_HOLD, WARN, InputError, Report, RequestCounts, Stamp,
+                              TaskEpochs, check_timeout_order)
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, DeadlineTimer, Inputs, ParamSpec,
                             StartupError, check_array, control_clock, node_setup, run)
+from ..sources import subscribe_epochs
 
 T = Parameter.Type
-HOLD_FRACTION = 0.25   # input_timeout 0: this fraction of the observed epoch period
-HOLD_FALLBACK = 0.25   # ... and these seconds until the period is known
 PARAMETERS = (
     CONFIG,
     ParamSpec('initial_task', T.INTEGER_ARRAY, [], '(tp, tc, tx) of the task present at epoch '
@@ -39,8 +37,9 @@ PARAMETERS = (
               range=(1, 1000000)),
     ParamSpec('input_timeout', T.DOUBLE, 0.0, 'seconds after hrc/epoch k to wait for a_{k-1} '
               'and, for an eligible request, the human response; then dn / refused. 0 = '
-              f'{HOLD_FRACTION:g} x the epoch period seen on hrc/epoch ({HOLD_FALLBACK:g} s '
-              "before two epochs); keep an explicit value below the decision node's "
+              f'{TASK_HOLD.fraction:g} x the epoch period seen on hrc/epoch '
+              f'({TASK_HOLD.fallback_s:g} s before two epochs); an explicit value must be '
+              "shorter than the belief estimator's task_state_timeout and the decision node's "
               'input_timeout', range=(0.0, 3600.0)),
 )
 
@@ -63,8 +62,9 @@ class TaskManagerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
+        self.tasks: TaskEpochs | None = None
         self.params, values, self.config, self.model = node_setup(
-            self, PARAMETERS, check_parameters, self._apply_parameters)
+            self, PARAMETERS, self._check_parameters, self._apply_parameters)
         initial = tuple(int(v) for v in values['initial_task']) or None
         try:
             book = TaskBook(self.model, initial_task=initial, schedule=list(values['schedule']),
@@ -73,14 +73,14 @@ class TaskManagerNode(Node):
             raise StartupError(f'task parameters: {exc}') from None
         self.clock = control_clock(self)
         self.input_timeout = values['input_timeout']
-        self.tasks = TaskEpochs(book, timeout_ns(self.input_timeout, HOLD_FRACTION, None,
-                                                 HOLD_FALLBACK))
+        self.tasks = TaskEpochs(book, TASK_HOLD.ns(self.input_timeout, None))
+        self._order_reported: str | None = None
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
         self.inputs = Inputs(self)
-        self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
-                              self._on_epoch, with_stamp=True)
+        self.epoch_publishers = subscribe_epochs(self.inputs, lambda: self.tasks.epochs,
+                                                 self._on_epoch)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda a, t: self._step(self.tasks.action(a, t, self._now())),
                               with_published=True)
@@ -89,10 +89,8 @@ class TaskManagerNode(Node):
                               lambda yes, t: self._step(self.tasks.answer(yes, t, self._now())),
                               with_published=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.ORDERS,
-                              self._task_request_from_msg, self._on_task_request,
-                              with_stamp=True)
-        self.requests = Counter()            # task requests: accepted, refused, lost
-        self.request_gaps = SequenceGaps()
+                              lambda msg: msg, self._on_task_request, with_stamp=True)
+        self.requests = RequestCounts()
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self.hold = DeadlineTimer(self, lambda now: self._step(self.tasks.expire(now)))
 
@@ -103,46 +101,65 @@ class TaskManagerNode(Node):
     def _now(self) -> int:
         return self.clock.now().nanoseconds
 
+    def _period_s(self) -> float | None:
+        period = None if self.tasks is None else self.tasks.epochs.period.period_ns
+        return None if period is None else period * 1e-9
+
     def _hold_ns(self) -> int:
         """input_timeout, or a fraction of the epoch period the follower sees."""
-        return timeout_ns(self.input_timeout, HOLD_FRACTION, self.tasks.epochs.period.period_ns,
-                          HOLD_FALLBACK)
+        return TASK_HOLD.ns(self.input_timeout, self.tasks.epochs.period.period_ns)
+
+    def _check_parameters(self, values) -> str | None:
+        return check_parameters(values) or check_timeout_order(
+            self._period_s(), {TASK_HOLD: values.get('input_timeout', 0.0)})
 
     def _apply_parameters(self, values) -> None:
         self.input_timeout = values['input_timeout']
         self.tasks.input_timeout_ns = self._hold_ns()
 
+    def _check_timeout_order(self) -> None:
+        """An explicit input_timeout that the period learnt since makes too long: WARN once
+        (the value was accepted before the period was known)."""
+        reason = check_timeout_order(self._period_s(), {TASK_HOLD: self.input_timeout}) \
+            if self.input_timeout > 0 else None
+        if reason and reason != self._order_reported:
+            self.inputs.report(Report(WARN, 'timeouts', f'{reason} (epoch period seen on '
+                                      f'hrc/epoch: {self._period_s():g} s)',
+                                      {'input_timeout': self.input_timeout}, kind='order'))
+        self._order_reported = reason
+
     def _on_epoch(self, k: int, stamp: Stamp) -> None:
         step = self.tasks.epoch(k, stamp, self._now())   # InputError: another epoch source
         self.tasks.input_timeout_ns = self._hold_ns()
+        self._check_timeout_order()
         self._step(step)
 
-    def _task_request_from_msg(self, msg):
-        return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
-
-    def _on_task_request(self, task: tuple, stamp: Stamp) -> None:
-        self._check_lost_requests(stamp)
+    def _on_task_request(self, msg, stamp: Stamp) -> None:
+        """Every request in one count: lost before it (its writer's numbers skip), then this
+        one accepted or refused, for whatever reason (the conversion or the task book)."""
+        self._report_lost_requests(stamp)
         try:
+            task = conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
             self.tasks.request(*task)
         except InputError:
-            self.requests['refused'] += 1
+            self.requests.refuse()
             raise
-        self.requests['accepted'] += 1
+        self.requests.accept()
         self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
 
-    def _check_lost_requests(self, stamp: Stamp) -> None:
+    def _report_lost_requests(self, stamp: Stamp) -> None:
         """Report requests a writer sent that never arrived (a writer's own keep-last history
         can overwrite a burst before it is sent): with one publisher on the topic, its
         sequence numbers must not skip."""
-        last = self.request_gaps.last
-        lost = self.request_gaps.observe(stamp.sequence)
-        if lost and self.count_publishers('hrc/task_request') == 1:
-            self.requests['lost'] += lost
+        last = self.requests.gaps.last
+        lost = self.requests.arrived(stamp.sequence,
+                                     self.count_publishers('hrc/task_request') == 1)
+        if lost:
             self.inputs.report(Report(
                 ERROR, 'task_request input', f'{lost} task request(s) sent on hrc/task_request '
                 "never arrived (the publisher's sequence numbers skip from "
                 f'{last} to {stamp.sequence}): publish orders with a deeper history or '
-                'KEEP_ALL', {'lost': lost, 'lost_total': self.requests['lost']},
+                'KEEP_ALL', {'lost': lost, 'lost_total': self.requests.lost},
                 kind='lost_requests'))
 
     def _step(self, step) -> None:
@@ -156,9 +173,7 @@ class TaskManagerNode(Node):
     def _publish_status(self) -> None:
         timeout_s = self.tasks.input_timeout_ns * 1e-9
         self.inputs.publish_health('tasks', {
-            **self.tasks.status(), 'input_timeout_s': timeout_s,
-            **{f'requests_{fate}': self.requests[fate]
-               for fate in ('accepted', 'refused', 'lost')}})
+            **self.tasks.status(), 'input_timeout_s': timeout_s, **self.requests.counts()})
 
 
 def main(args=None):

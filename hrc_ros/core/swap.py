@@ -1,0 +1,102 @@
+"""The live swap: which new configuration (and policy) a running node takes, one rule for both.
+
+The decision node and the belief estimator take a new `config` while they run (and the
+decision node a new `policy`; docs/LEARNING.md). The running cell's state space is fixed by
+rho (priorities) and sigma (durations): every node holds task states, queues and a policy of
+that size, and the task manager and the simulated cell read their configuration once. So the
+rule, for both nodes alike (`check_swap`):
+
+- the values in use: nothing to do (`SAME`);
+- a configuration that does not load, or describes another cell size (other rho or sigma):
+  `REFUSED`, with the reason (restart the nodes to change the state space);
+- for the decision node, a policy that does not exist, is not a policy, or was not solved for
+  the configuration set with it: `REFUSED`; a configuration set alone while the policy in use
+  was not solved for it: `STAGED` (the old pair keeps deciding until a policy for it is set,
+  so one-at-a-time `ros2 param set` can change both);
+- otherwise `ACCEPTED`: the node loads the new pair off its executor and swaps it in at the
+  next epoch boundary.
+
+The policy a `policy` value names is `policy_path` (the default-policy rule: '' is the shipped
+policy solved for the configuration, else `policies/default.npz`), here only. Only file metas
+are read (milliseconds): the full check of the arrays is the background load's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from .config import Config, ConfigError, load_config
+from .mdp.policy import PolicyError, default_policy_path, peek_policy
+from .paths import default_config_path
+
+SAME, REFUSED, STAGED, ACCEPTED = 'same', 'refused', 'staged', 'accepted'
+REASON_LIMIT = 800      # characters of a reason (it goes back through the parameter service)
+
+
+def _cap(text: str) -> str:
+    return text if len(text) <= REASON_LIMIT else \
+        f'{text[:REASON_LIMIT]}... ({len(text)} characters)'
+
+
+def config_path(value: str) -> str:
+    """The file a `config` parameter names ('' = the shipped default.yaml)."""
+    return value if value else str(default_config_path())
+
+
+def policy_path(value: str, config: Config) -> str:
+    """The file a `policy` parameter names for `config` (the default-policy rule)."""
+    return value if value else str(default_policy_path(config))
+
+
+def load_node_config(value: str) -> Config:
+    """The configuration a `config` parameter names; ConfigError says why it does not load."""
+    return load_config(config_path(value))
+
+
+@dataclass(frozen=True)
+class SwapCheck:
+    """The verdict on a proposed (config, policy): one of SAME, REFUSED, STAGED, ACCEPTED, the
+    reason (REFUSED, STAGED) and the configuration it loaded."""
+
+    verdict: str
+    reason: str = ''
+    config: Config | None = None
+
+    @property
+    def refused(self) -> bool:
+        return self.verdict == REFUSED
+
+
+def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
+               running_policy: str | None = None, policy_value: str | None = None,
+               load: Callable[[str], Config] = load_node_config) -> SwapCheck:
+    """The swap rule (module docstring) for a running cell of size (rho, sigma) whose node runs
+    the parameter values `running_config` (and `running_policy`: the decision node; None for a
+    node without a policy) and is asked for `config_value` (and `policy_value`)."""
+    with_policy = running_policy is not None
+    if config_value == running_config and (not with_policy or policy_value == running_policy):
+        return SwapCheck(SAME)
+    try:
+        config = load(config_value)
+    except Exception as exc:  # noqa: BLE001 - whatever a file does, the old pair keeps running
+        reason = str(exc) if isinstance(exc, ConfigError) else f'{type(exc).__name__}: {exc}'
+        return SwapCheck(REFUSED, _cap(f'config refused: bad model configuration: {reason}'))
+    if (config.rho, config.sigma) != (rho, sigma):
+        return SwapCheck(REFUSED, f'config refused: {config.source} has rho {config.rho}, '
+                         f'sigma {config.sigma}; the running cell {rho}, {sigma}: restart the '
+                         'nodes to change the state space', config)
+    if not with_policy:
+        return SwapCheck(ACCEPTED, config=config)
+    try:
+        peek_policy(Path(policy_path(policy_value, config)), config)
+    except Exception as exc:  # noqa: BLE001 - PolicyError, or whatever a damaged file raises
+        if not isinstance(exc, PolicyError):
+            exc = f'{type(exc).__name__}: {exc}'
+        elif policy_value == running_policy:
+            return SwapCheck(STAGED, _cap(str(exc)), config)
+        return SwapCheck(REFUSED, _cap(f'policy refused: {exc} (the configuration set is '
+                                       f'{config.source}; to change both, set config first, '
+                                       'then policy)'), config)
+    return SwapCheck(ACCEPTED, config=config)

@@ -1,0 +1,179 @@
+"""Who publishes on an input: the graph's publishers of a topic, named, and the epoch input.
+
+rclpy (Jazzy) gives a message's writer sequence number and source timestamp, but no publisher
+id, so the protocol machines tell writers apart by their sequence numbers
+(`core.protocol.EpochFollower`, `StreamLock`); naming the writer is the graph's part, here.
+
+`TopicPublishers` remembers the publishers of one topic by GID, as the graph shows them: a
+publisher's endpoint is discovered before its node's name (the graph says
+``_NODE_NAMESPACE_UNKNOWN_/_NODE_NAME_UNKNOWN_`` meanwhile), so a publisher is named by its node
+only once the graph knows it, and by its GID until then. It is refreshed whenever a publisher
+matches or leaves the node's subscription (the `matched` event) and before it names anyone, so
+a short-lived publisher (`ros2 topic pub --once`, gone a fraction of a second after its
+message) is still named: by its node while the graph knows it, afterwards by its GID and the
+name last known. `followed` narrows down which publisher the follower follows: one of those
+present each time it takes a message.
+
+`subscribe_epochs` is every follower's `hrc/epoch` input: the conversion's refusals (an epoch
+of 0) are noted by the `EpochFollower` too (`refused`: they can show a second writer), and
+an epoch refused as another source's names the publishers other than the one followed, on
+/diagnostics (WARN `<node>: epoch source`), at once for a publisher not named before and at
+most once per `WARNING_THROTTLE_SEC` otherwise.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from std_msgs.msg import UInt32
+
+from ..core.protocol import WARN, Endpoint, EpochFollower, InputError, Report, Stamp
+from . import conversions as conv
+from . import qos
+
+UNKNOWN_NODE_NAME = '_NODE_NAME_UNKNOWN_'
+UNKNOWN_NODE_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'
+GID_BYTES = 16           # a Fast DDS GUID: 12 bytes of participant prefix, 4 of entity id
+PUBLISHERS_KEPT = 32     # publishers remembered per topic, present or gone
+NAMING_THROTTLE_SEC = 5.0
+
+
+def gid_text(gid) -> str:
+    """An endpoint GID as hex (the GUID part: prefix and entity id)."""
+    return ''.join(f'{b:02x}' for b in list(gid)[:GID_BYTES])
+
+
+def endpoint_node(info) -> str | None:
+    """The fully qualified node name of a graph endpoint; None while the graph does not know it
+    (its endpoint discovered before its node's name)."""
+    if not info.node_name or info.node_name == UNKNOWN_NODE_NAME \
+            or info.node_namespace == UNKNOWN_NODE_NAMESPACE:
+        return None
+    return f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+
+
+def endpoints(node, topic: str, skip_own: bool = True) -> list[Endpoint]:
+    """The publishers of `topic` as `Endpoint`s; with `skip_own`, one publisher of `node`'s own
+    name is left out (its own: two nodes of one name are still told apart by count)."""
+    me = node.get_fully_qualified_name()
+    found, own = [], skip_own
+    resolved = node.resolve_topic_name(topic)
+    for info in node.get_publishers_info_by_topic(resolved):
+        name = endpoint_node(info)
+        if own and name == me:
+            own = False
+            continue
+        found.append(Endpoint(resolved, name, gid_text(info.endpoint_gid)))
+    return found
+
+
+class TopicPublishers:
+    """The publishers of one topic the graph has shown, by GID (module docstring)."""
+
+    def __init__(self, node, topic: str):
+        self.node = node
+        self.topic = node.resolve_topic_name(topic)
+        self.known: dict[str, dict] = {}        # gid -> {'node': name | None, 'present': bool}
+        self.followed: set[str] | None = None   # the GIDs the followed writer may have
+
+    def refresh(self, *_event) -> set[str]:
+        """Read the graph; the GIDs present now."""
+        present = set()
+        for info in self.node.get_publishers_info_by_topic(self.topic):
+            gid = gid_text(info.endpoint_gid)
+            present.add(gid)
+            entry = self.known.pop(gid, {'node': None})
+            entry['node'] = endpoint_node(info) or entry['node']
+            entry['present'] = True
+            self.known[gid] = entry
+        for gid, entry in self.known.items():
+            entry['present'] = gid in present
+        while len(self.known) > PUBLISHERS_KEPT:
+            gone = next((g for g, e in self.known.items() if not e['present']),
+                        next(iter(self.known)))
+            del self.known[gone]
+        return present
+
+    def taken(self) -> None:
+        """A message of the followed writer was taken: it is one of the publishers present."""
+        present = self.refresh()
+        narrowed = present if self.followed is None else self.followed & present
+        self.followed = narrowed or present
+
+    def new_line(self) -> None:
+        """The follower follows a new writer: any present publisher may be it."""
+        self.followed = None
+
+    def names(self, others_only: bool = True) -> list[str]:
+        """Each publisher known (refreshed first): its node once the graph names it, its GID,
+        and whether it has left the graph; with `others_only`, not the followed writer (when
+        it is known to be one publisher)."""
+        self.refresh()
+        followed = self.followed if self.followed is not None and len(self.followed) == 1 \
+            else set()
+        out = []
+        for gid, entry in self.known.items():
+            if others_only and gid in followed:
+                continue
+            who = entry['node'] or 'a node the graph does not name'
+            gone = '' if entry['present'] else '; no longer on the graph'
+            out.append(f'{who} (gid {gid}{gone})')
+        return out
+
+
+class _Naming:
+    """When to name the other publishers: at once for a new set, else throttled."""
+
+    def __init__(self):
+        self.last: tuple[float, tuple] | None = None
+
+    def due(self, names: list[str]) -> bool:
+        now = time.monotonic()
+        key = tuple(sorted(names))
+        if self.last is not None and self.last[1] == key \
+                and now - self.last[0] < NAMING_THROTTLE_SEC:
+            return False
+        self.last = (now, key)
+        return True
+
+
+def subscribe_epochs(inputs, follower: Callable[[], EpochFollower],
+                     handle: Callable[[int, Stamp], None]) -> TopicPublishers:
+    """Subscribe `hrc/epoch` for a follower (module docstring): `handle(k, stamp)` feeds the
+    follower's machine (which raises `InputError` for another source's epoch)."""
+    node = inputs.node
+    publishers = TopicPublishers(node, 'hrc/epoch')
+    naming = _Naming()
+
+    def name_others(what: str) -> None:
+        names = publishers.names()
+        if names and naming.due(names):
+            inputs.report(Report(
+                WARN, 'epoch source', f'{what} came from another publisher than the epoch '
+                f'source followed: hrc/epoch publishers {", ".join(names)}',
+                {'publishers': ', '.join(names)}, kind='stray_epoch'))
+
+    def on_epoch(msg, stamp: Stamp) -> None:
+        epochs = follower()
+        try:
+            k = conv.epoch_from_msg(msg)
+        except conv.MessageError:
+            epochs.refused(stamp)
+            if epochs.foreign_in_evidence(stamp.published_ns):
+                name_others(f'a refused hrc/epoch {int(msg.data)}')
+            raise
+        ignored, lines = epochs.ignored, epochs.lines
+        try:
+            handle(k, stamp)
+        except InputError:
+            if epochs.ignored > ignored:
+                name_others(f'hrc/epoch {k}')
+            raise
+        if epochs.lines != lines:
+            publishers.new_line()
+        publishers.taken()
+
+    inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, lambda msg: msg, on_epoch,
+                     with_stamp=True, on_matched=publishers.refresh)
+    return publishers
