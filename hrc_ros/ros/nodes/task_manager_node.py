@@ -3,15 +3,19 @@
 Contract (docs/DESIGN.md, "ROS epoch protocol"): on `hrc/epoch` k it finalises a_{k-1}
 (`hrc/action`, and the `hrc/human_response` to an eligible request), begins epoch k and
 publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). Tasks come from the
-`initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``. The rules
-(holds, timeouts, late answers, restarts) are `core.protocol.TaskEpochs`; this node owns the
-topics, the parameters and the timer.
+`initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``; every request
+it handles, valid or not, gets one report on `hrc/task_request_result` (accepted and queued, or
+refused and why: docs/INTERFACES.md), so whoever ordered it (the HMI's operator page, a MES)
+learns its fate. The rules (holds, timeouts, late answers, restarts) are
+`core.protocol.TaskEpochs`; this node owns the topics, the parameters and the timer.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray, UInt32
@@ -78,6 +82,8 @@ class TaskManagerNode(Node):
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
+        self.request_result_pub = self.create_publisher(DiagnosticStatus,
+                                                        'hrc/task_request_result', qos.REPORTS)
         self.inputs = Inputs(self)
         self.inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, conv.epoch_from_msg,
                               self._on_epoch, with_stamp=True)
@@ -118,16 +124,31 @@ class TaskManagerNode(Node):
         self._step(step)
 
     def _task_request_from_msg(self, msg):
-        return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
-
-    def _on_task_request(self, task: tuple, stamp: Stamp) -> None:
-        self._check_lost_requests(stamp)
+        """(the task, None, data) of a request, or (its three values or None, the reason,
+        data) for one that cannot be queued: the handler reports either on
+        hrc/task_request_result."""
         try:
-            self.tasks.request(*task)
-        except InputError:
-            self.requests['refused'] += 1
-            raise
-        self.requests['accepted'] += 1
+            return conv.task_request_from_msg(msg, self.model.rho, self.model.sigma), None, \
+                msg.data
+        except conv.MessageError as exc:     # reported with its content when it has three
+            return (tuple(int(v) for v in msg.data) if len(msg.data) == 3 else None), exc, \
+                msg.data
+
+    def _on_task_request(self, request: tuple, stamp: Stamp) -> None:
+        task, error, data = request
+        self._check_lost_requests(stamp)
+        if error is None:
+            try:
+                self.tasks.request(*task)
+            except InputError as exc:
+                error = exc
+        self.requests['refused' if error else 'accepted'] += 1
+        node = self.get_fully_qualified_name()
+        self.request_result_pub.publish(conv.task_request_result_to_msg(
+            f'{node.lstrip("/")}: task_request', node, error is None, str(error or ''), task,
+            np.asarray(data), stamp.published_ns, stamp.sequence, len(self.book.queue)))
+        if error is not None:
+            raise error          # dropped with a warning and a diagnostic, as any bad input
         self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
 
     def _check_lost_requests(self, stamp: Stamp) -> None:
