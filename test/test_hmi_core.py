@@ -188,6 +188,85 @@ def test_a_stray_epoch_is_ignored(hmi, cell):
     assert hmi.counts['epochs_ignored'] == 1
 
 
+def test_an_action_that_overtakes_its_task_state_waits_for_it(hmi):
+    """DDS orders messages only per writer: a_k (the decision node's) may reach the HMI before
+    x_k (the task manager's), and x_{k+1} before the signal of epoch k+1."""
+    hmi.epoch_signal(1, 100, 100)
+    hmi.action_message(RH2, 300, 101)
+    assert hmi.request is None and hmi._pending == (RH2, 300)
+    hmi.task_state_message(JOINT, 200, 102)
+    assert hmi.request is not None and hmi.request.task_ns == 200
+    committed = task(1, 1, 3, 3, 1, 1, 1, 1)
+    hmi.task_state_message(committed, 500, 103)         # before epoch 2's signal
+    assert hmi.request is None and hmi.last_closed.outcome == m.ACCEPTED
+    hmi.epoch_signal(2, 400, 104)
+    assert hmi.epoch == 2 and hmi.request is None
+
+
+def test_the_next_action_before_the_next_task_state_closes_then_tells_the_outcome(hmi):
+    hmi.epoch_signal(1, 100, 100)
+    hmi.task_state_message(JOINT, 200, 100)
+    hmi.action_message(RH2, 300, 100)
+    first = hmi.request
+    hmi.epoch_signal(2, 400, 101)
+    hmi.action_message(RH2, 600, 101)                    # a_2 before x_2
+    assert hmi.request is None and first.outcome == m.MOVED_ON
+    assert hmi.answer(first.id, True, 'p', 102).code == m.CLOSED     # no answer any more
+    hmi.task_state_message(JOINT, 500, 102)              # x_2: refused, a_2 asks again
+    assert first.outcome == m.UNANSWERED
+    assert hmi.request is not None and hmi.request.id != first.id
+
+
+def test_a_lost_task_state_opens_no_request(hmi):
+    hmi.epoch_signal(1, 100, 100)
+    hmi.task_state_message(JOINT, 50, 100)               # the previous epoch's x
+    hmi.action_message(NW, 60, 100)
+    hmi.action_message(RH2, 300, 100)                    # x_1 (published at 200) is lost
+    assert hmi.request is None and hmi._pending == (RH2, 300)
+    hmi.task_state_message(JOINT, 500, 101)              # x_2: a_1's x will not come
+    assert hmi.request is None and hmi._pending is None
+
+
+def _orders(chains):
+    """Every interleaving of the chains that keeps each chain's own order (one writer each)."""
+    if not any(chains):
+        yield []
+        return
+    for i, chain in enumerate(chains):
+        if chain:
+            rest = chains[:i] + [chain[1:]] + chains[i + 1:]
+            for tail in _orders(rest):
+                yield [chain[0]] + tail
+
+
+def test_every_arrival_order_of_two_epochs_gives_the_same_story():
+    """The signals, the task states, the actions and another source's answer of epochs 1 and
+    2 in every order DDS may deliver them (each writer's own order kept: 630 orders): the
+    request of epoch 1 is shown exactly when x_1 and a_1 both came before x_2 and a_2, and
+    then it ends accepted (x_2 shows the task committed); the last state is epoch 2's."""
+    committed = task(1, 1, 3, 3, 1, 1, 1, 1)
+    signals = [('epoch', 1, 100), ('epoch', 2, 500)]
+    states = [('task', JOINT, 200), ('task', committed, 600)]
+    actions = [('action', RH2, 300), ('action', NW, 700)]
+    answer = [('response', True, 400)]
+    seen = 0
+    for order in _orders([signals, states, actions, answer]):
+        hmi = HmiMachine(2, 2, instance='x')
+        for now, (kind, value, stamp) in enumerate(order):
+            {'epoch': hmi.epoch_signal, 'task': hmi.task_state_message,
+             'action': hmi.action_message, 'response': hmi.response_message}[kind](
+                value, stamp, now)
+        at = {event[2]: i for i, event in enumerate(order)}
+        shown = max(at[200], at[300]) < min(at[600], at[700])
+        assert (hmi.counts['requests_opened'] == 1) == shown, order
+        if shown:
+            assert hmi.last_closed.outcome == m.ACCEPTED, order
+        assert hmi.request is None and hmi.epoch == 2 and hmi.task_state == committed, order
+        assert hmi.action == NW, order
+        seen += 1
+    assert seen == 630
+
+
 # -- one answer per request --------------------------------------------------------------------
 def test_one_answer_per_request(hmi, cell):
     cell.epoch(JOINT, RH2)
@@ -509,3 +588,21 @@ def test_the_operator_view(hmi, cell):
     assert hmi.operator_view(cell.t)['robot'] == {'speed_override': 0.5,
                                                   'separation': 0.8123}
     assert hmi.operator_view(cell.t + 3 * S)['robot'] is None     # the robot side stopped
+
+
+def test_the_hmi_core_imports_neither_ros_nor_a_web_framework():
+    """The rules are the core's: every core.hmi module imports with rclpy, the ROS messages and
+    aiohttp made unimportable (test_layout's guard, with aiohttp added)."""
+    import pkgutil
+    import subprocess
+    import sys
+
+    import hrc_ros.core.hmi as package
+    from test_layout import IMPORT_WITHOUT_ROS, ROS_MODULES
+    modules = ['hrc_ros.core.hmi'] + [f'hrc_ros.core.hmi.{m.name}'
+                                      for m in pkgutil.iter_modules(package.__path__)]
+    assert {'hrc_ros.core.hmi.machine', 'hrc_ros.core.hmi.access'} <= set(modules)
+    blocked = ','.join(ROS_MODULES + ('aiohttp', 'fastapi', 'starlette', 'playwright'))
+    result = subprocess.run([sys.executable, '-c', IMPORT_WITHOUT_ROS, blocked, *modules],
+                            capture_output=True, text=True, timeout=120, cwd='/')
+    assert result.returncode == 0, result.stderr[-3000:]

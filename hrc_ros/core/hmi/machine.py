@@ -51,6 +51,7 @@ CELL_TIMEOUT_MIN_S = 3.0       # ... and at least this (also before the period i
 ROBOT_TIMEOUT_S = 2.0          # the robot side's topics count as running this long
 CLOSED_KEPT = 32               # closed requests remembered to tell a late tap what happened
 TASKS_KEPT = 20                # tasks in the operator's history
+RECENT = 8                     # task states and actions kept to pair a_k with x_k
 
 # AnswerResult codes
 SENT, ALREADY, CLOSED, STALE, NO_REQUEST, NO_CELL, SHOW_ONLY, BAD = (
@@ -72,10 +73,12 @@ class Request:
     task_number: int | None
     published_ns: int           # a_k's source timestamp
     opened_ns: int
+    task_ns: int = 0            # x_k's source timestamp
     answer: bool | None = None
     answered_by: str | None = None    # the page client that answered, or OTHER
     outcome: str | None = None
     outcome_text: str = ''
+    refine_until: int | None = None   # closed by a_{k+1}: x_{k+1} may still say how it ended
 
     @property
     def text(self) -> str:
@@ -122,10 +125,14 @@ class HmiMachine:
         self.instance = instance or secrets.token_hex(4)
         self.epochs = EpochFollower()
         self.last_cell_ns: int | None = None       # control clock: the last epoch or action
-        self.task_state: dict | None = None
-        self.task_epoch = 0                         # the epoch the task state belongs to
+        self.task_state: dict | None = None         # the newest, by publication time
+        self.task_ns: int | None = None
         self.action: int | None = None
+        self.action_ns: int | None = None
         self.action_epoch = 0
+        self._task_states: deque = deque(maxlen=RECENT)    # (published_ns, x)
+        self._actions: deque = deque(maxlen=RECENT)        # published_ns
+        self._pending: tuple | None = None                 # (a_k, published_ns) awaiting x_k
         self.request: Request | None = None
         self.closed: OrderedDict[str, Request] = OrderedDict()
         self.last_closed: Request | None = None
@@ -160,27 +167,57 @@ class HmiMachine:
             self._close(RESTARTED, 'closed: the cell restarted its epochs')
 
     def task_state_message(self, state: dict, published_ns: int, now: int) -> None:
-        """A task state x (the task manager publishes x_k after the signal of epoch k)."""
+        """A task state (the task manager publishes x_k after the signal of epoch k)."""
         state = {n: int(state[n]) for n in TASK_VARIABLES}
-        request = self.request
-        if request is not None and self.epoch > request.epoch:
-            self._close_on(state)
+        if self.task_ns is not None and published_ns <= self.task_ns:
+            return                  # older than the newest one: it overtook nothing
+        self._task_states.append((published_ns, state))
+        request, last = self.request, self.last_closed
+        if request is not None and published_ns > request.task_ns:
+            self._close_on(state)                       # x_{k+1}
+        elif last is not None and last.outcome == MOVED_ON and last.refine_until is not None \
+                and last.task_ns < published_ns < last.refine_until:
+            self.request, last.refine_until = last, None    # x_{k+1} came after a_{k+1}:
+            self._close_on(state)                           # it says how it ended
         self._see_task(state)
-        self.task_state, self.task_epoch = state, self.epoch
+        self.task_state, self.task_ns = state, published_ns
+        if self._pending is not None:
+            self._pair(*self._pending, now)
 
     def action_message(self, action: int, published_ns: int, now: int) -> None:
         self.last_cell_ns = now
-        if self.request is not None and self.epoch > self.request.epoch:
+        if self.action_ns is not None and published_ns <= self.action_ns:
+            return
+        request = self.request
+        if request is not None and published_ns > request.published_ns:
             self._close(MOVED_ON, 'closed: the robot moved on')
-        self.action, self.action_epoch = action, self.epoch
-        if action not in (RH1, RH2) or self.request is not None:
+            request.refine_until = published_ns
+        self._actions.append(published_ns)
+        self.action, self.action_ns, self.action_epoch = action, published_ns, self.epoch
+        self._pending = None
+        if action in (RH1, RH2):
+            self._pair(action, published_ns, now)
+
+    def _pair(self, action: int, published_ns: int, now: int) -> None:
+        """Open a request for a_k once x_k is known: the newest task state published before
+        a_k with no other action published between them (each epoch has one of each). Either
+        may arrive first: DDS orders messages only per writer, so a_k waits for x_k
+        (`_pending`) until a later task state or action shows x_k will not come."""
+        before = [(t, x) for t, x in self._task_states if t < published_ns]
+        task = max(before, key=lambda e: e[0]) if before else None
+        if task is not None and any(task[0] < t < published_ns for t in self._actions):
+            task = None                                 # that one was an earlier action's
+        later = self.task_ns is not None and self.task_ns > published_ns
+        if task is None:
+            self._pending = None if later else (action, published_ns)
             return
-        task = self.task_state if self.task_epoch == self.epoch else None
-        if task is None or not request_eligible(action, task['tp'], task['tx'], task['ty']):
-            return
+        self._pending = None
+        if later or not request_eligible(action, task[1]['tp'], task[1]['tx'], task[1]['ty']):
+            return                  # x_{k+1} is here already: the request is over
         self._requests += 1
         self.request = Request(f'{self.instance}-{self._requests}', self.epoch, action,
-                               dict(task), self._current_task_number(), published_ns, now)
+                               dict(task[1]), self._current_task_number(), published_ns, now,
+                               task[0])
         self.counts['requests_opened'] += 1
 
     def response_message(self, accepted: bool, published_ns: int, now: int) -> None:
