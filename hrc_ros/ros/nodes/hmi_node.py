@@ -12,12 +12,15 @@ request, the task form, what the pages say) are `core.hmi.HmiMachine`; the web s
 `ros.hmi.server` (aiohttp, on a loop in its own thread); this node owns the topics, the
 parameters, the timers and the bridge between the two threads.
 
-It only listens at its own pace: its inputs are `SampledInputs`, taken `refresh_rate` times a
-second in publication order, so it never wakes for a message and its share of the CPU does not
-grow with the cell's rates. A page's command wakes it at once through a guard condition (the
-web thread never waits for the executor, nor the executor for the web thread: a bounded queue
-between them); it takes its inputs first, so the machine decides on the latest state, then
-publishes and replies.
+The four inputs that decide a request (`hrc/epoch`, `hrc/action`, `hrc/task_state`,
+`hrc/human_response`, a few messages an epoch) are ordinary subscriptions: the machine takes
+each at once, in whatever order DDS delivers them (it pairs them by source timestamp), and the
+pages follow. Everything else (the belief, the distance, /diagnostics, the reports, the robot
+side) is `SampledInputs`, taken `refresh_rate` times a second, so the node never wakes for
+those and its share of the CPU does not grow with their rates. A page's command wakes it at
+once through a guard condition (the web thread never waits for the executor, nor the executor
+for the web thread: a bounded queue between them); the executor runs the control messages
+ready with it first, so the machine decides on the latest state, then publishes and replies.
 """
 
 from __future__ import annotations
@@ -143,12 +146,16 @@ class HmiNode(Node):
         prefix = f'{namespace}/' if namespace else ''
         self.decision_status = f'{prefix}{values["decision_node"]}: decision'
         self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
+        for msg_type, topic, convert, feed in (
+                (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
+                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
+                (UInt8MultiArray, 'hrc/task_state', self._task_state_from_msg,
+                 self.machine.task_state_message),
+                (Bool, 'hrc/human_response', conv.human_response_from_msg,
+                 self.machine.response_message)):
+            self.inputs.subscribe(msg_type, topic, SAMPLED, convert, self._control(feed),
+                                  with_published=True)
         subscribe = self.sampled.subscribe
-        subscribe(UInt32, 'hrc/epoch', SAMPLED, conv.epoch_from_msg)
-        subscribe(String, 'hrc/action', SAMPLED, conv.action_from_msg)
-        subscribe(UInt8MultiArray, 'hrc/task_state', SAMPLED,
-                  lambda msg: conv.task_state_from_msg(msg, self.model.rho, self.model.sigma))
-        subscribe(Bool, 'hrc/human_response', SAMPLED, conv.human_response_from_msg)
         subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg,
                   latest_only=True)
         subscribe(UInt8, 'hrc/distance_level', SAMPLED, conv.distance_level_from_msg,
@@ -224,18 +231,21 @@ class HmiNode(Node):
                 found.append(('task_manager', conv.diagnostic_values(status)))
         return found or None
 
+    def _task_state_from_msg(self, msg):
+        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
+
+    def _control(self, feed):
+        """A handler of a control input: the machine takes it at once and the pages follow."""
+        def handle(value, published_ns: int) -> None:
+            now = self._now()
+            feed(value, published_ns, now)
+            self._push(now)
+        return handle
+
     def _take(self, now: int) -> None:
         machine = self.machine
-        for published, name, value in self.sampled.take():
-            if name == 'epoch':
-                machine.epoch_signal(value, published, now)
-            elif name == 'action':
-                machine.action_message(value, published, now)
-            elif name == 'task_state':
-                machine.task_state_message(value, published, now)
-            elif name == 'human_response':
-                machine.response_message(value, published, now)
-            elif name == 'belief':
+        for _, name, value in self.sampled.take():
+            if name == 'belief':
                 machine.belief_message(value)
             elif name == 'distance_level':
                 machine.distance_message(value)
@@ -279,7 +289,6 @@ class HmiNode(Node):
 
     def _on_commands(self) -> None:
         now = self._now()
-        self._take(now)
         for _ in range(COMMAND_QUEUE):
             try:
                 command = self.commands.get_nowait()
