@@ -19,6 +19,8 @@ does. In order, on one running cell:
 5. the HMI process is stopped: the page says "no connection to the cell"; started again on the
    same port, the page reconnects by itself.
 
+Before them, `hrc-hmi-shots`' screenshots of its scripted cell at the three sizes.
+
 Waits are on conditions with bounded timeouts (Playwright's expect, the listener's
 predicates), never fixed sleeps.
 """
@@ -171,6 +173,29 @@ def wait_for_request(page, timeout=REQUEST_TIMEOUT) -> str:
     text = page.locator('#request').text_content()
     assert re.fullmatch(r"Let's do task \d+ together|Please do task \d+ alone", text), text
     return text
+
+
+def test_hrc_hmi_shots_saves_both_pages(browser, tmp_path):
+    """hrc-hmi-shots' scripted cell (a request open), its pages at the phone's size (the
+    others differ by the viewport only)."""
+    from hrc_ros.ros.hmi import shots
+    from hrc_ros.ros.hmi.browser import SIZES
+    server, url = shots._serve_scene('request')
+    try:
+        page = browser.new_page()
+        page.goto(url)
+        expect(page.locator('#request')).to_have_text("Let's do task 2 together")
+        expect(page.locator('#accept')).to_be_enabled()
+        page.close()
+        written = shots.shoot(browser, url, tmp_path, 'request', sizes=('phone',))
+    finally:
+        server.stop()
+    expected = {f'{view}_request_phone.png': SIZES['phone'][0] for view in ('worker', 'operator')}
+    assert sorted(p.name for p in written) == sorted(expected)
+    for path in written:
+        data = path.read_bytes()
+        assert data[:8] == b'\x89PNG\r\n\x1a\n'
+        assert int.from_bytes(data[16:20], 'big') == expected[path.name], path.name
 
 
 def test_the_page_says_no_connection_until_the_cell_runs_then_connects(cell, pages):

@@ -85,11 +85,13 @@ def _json(view: dict) -> str:
     return json.dumps({'type': 'view', **view}, default=str)
 
 
-def shoot(browser, url: str, out: Path, state: str, token: str = '') -> list[Path]:
-    """The worker and operator pages at every size in SIZES; the files written."""
+def shoot(browser, url: str, out: Path, state: str, token: str = '',
+          sizes=tuple(SIZES)) -> list[Path]:
+    """The worker and operator pages at each of `sizes` (SIZES' names); the files written."""
     written = []
     for page_name, path in (('worker', ''), ('operator', 'operator')):
-        for size, (width, height) in SIZES.items():
+        for size in sizes:
+            width, height = SIZES[size]
             context = browser.new_context(viewport={'width': width, 'height': height},
                                           device_scale_factor=1)
             page = context.new_page()

@@ -69,6 +69,7 @@
         const button = message.accept === false ? decline : accept;
         notes.set(message.request, {button, text: message.text,
                                     label: message.ok ? button.textContent : (SHORT[message.code] || 'Not sent')});
+        if (notes.size > 64) notes.delete(notes.keys().next().value);
         if (message.ok) {
           notes.delete(message.request);
           answered.add(message.request);
