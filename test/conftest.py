@@ -165,8 +165,9 @@ def chromium() -> str:
     try:
         return chromium_path()
     except BrowserError as exc:
-        pytest.fail(f'the HMI browser tests need Chromium: {exc}; installing it failed: '
-                    f'{reason}')
+        pytest.fail(f'the HMI browser tests need Chromium: {exc}; '
+                    + (f'installing it failed: {reason}' if reason else
+                       f'apt-get installed {" ".join(CHROMIUM_PACKAGES)}, yet it is not there'))
 
 
 @pytest.fixture(scope='session')
