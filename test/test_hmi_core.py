@@ -217,6 +217,23 @@ def test_the_next_action_before_the_next_task_state_closes_then_tells_the_outcom
     assert hmi.request is not None and hmi.request.id != first.id
 
 
+def test_a_task_state_published_after_a_timed_out_action_still_tells_the_outcome(hmi):
+    """The task manager held epoch 2 for the answer longer than the decision node waited: dn
+    (a_2) is published before x_2, which still finalises a_1 with the answer."""
+    hmi.epoch_signal(1, 100, 100)
+    hmi.task_state_message(JOINT, 200, 100)
+    hmi.action_message(RH2, 300, 100)
+    first = hmi.request
+    hmi.answer(first.id, False, 'page', 101)
+    hmi.epoch_signal(2, 400, 101)
+    hmi.action_message(DN, 500, 102)                     # the decision node timed out
+    assert first.outcome == m.MOVED_ON
+    hmi.task_state_message(JOINT, 600, 103)              # x_2, published after a_2
+    assert first.outcome == m.DECLINED
+    hmi.task_state_message(JOINT, 900, 104)              # x_3 changes nothing of it
+    assert first.outcome == m.DECLINED and hmi.counts['requests_opened'] == 1
+
+
 def test_a_lost_task_state_opens_no_request(hmi):
     hmi.epoch_signal(1, 100, 100)
     hmi.task_state_message(JOINT, 50, 100)               # the previous epoch's x

@@ -393,8 +393,8 @@ def test_the_hmi_on_loopback_answers_only_this_machines_names(graph):
             async with session.get(url, headers={'Host': host}) as response:
                 return response.status, await response.text()
 
-    assert asyncio.run(get(f'localhost:{hmi.server.port}'))[0] == 200
-    status, text = asyncio.run(get('rebound.example.com'))
+    assert run_async(get(f'localhost:{hmi.server.port}'))[0] == 200
+    status, text = run_async(get('rebound.example.com'))
     assert status == 403 and "Host 'rebound.example.com' is not this machine" in text
 
 
@@ -453,6 +453,27 @@ def served(tmp_path_factory, ros_domain_id):
         process.wait(10)
 
 
+def run_async(coroutine):
+    """asyncio.run in a thread of its own: the session's Playwright (the browser tests) keeps
+    an event loop running in this one."""
+    outcome = []
+
+    def target():
+        try:
+            outcome.append((asyncio.run(coroutine), None))
+        except BaseException as exc:  # noqa: BLE001 - raised again in the test's thread
+            outcome.append((None, exc))
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join(120)
+    assert outcome, 'the check did not finish within 120 s'
+    value, error = outcome[0]
+    if error is not None:
+        raise error
+    return value
+
+
 @asynccontextmanager
 async def session(**kwargs):
     async with aiohttp.ClientSession(**kwargs) as s:
@@ -495,7 +516,7 @@ def test_off_loopback_every_request_needs_the_token(served):
             assert json.loads((await ws.receive()).data)['view'] == 'operator'
             await ws.close()
 
-    asyncio.run(check())
+    run_async(check())
 
 
 def test_a_foreign_origin_is_refused(served):
@@ -512,7 +533,7 @@ def test_a_foreign_origin_is_refused(served):
             assert json.loads((await ws.receive()).data)['type'] == 'hello'
             await ws.close()
 
-    asyncio.run(check())
+    run_async(check())
 
 
 def hmi_status(statuses: list) -> dict | None:
@@ -562,7 +583,7 @@ def test_bad_frames_and_floods_are_refused_and_the_node_carries_on(served, graph
             assert reply['code'] == 'no_request'
             await ws.close()
 
-    asyncio.run(check())
+    run_async(check())
     assert process.poll() is None
     statuses.clear()
     wait_for(graph, lambda: hmi_status(statuses) is not None, 'the HMI status', 5)
@@ -594,13 +615,13 @@ def test_500_pages_are_served_and_leave_nothing_behind(served, graph):
 
     statuses = graph.collect(DiagnosticArray, '/diagnostics', qos.RELIABLE)
 
-    first = asyncio.run(round_of(500))
-    second = asyncio.run(round_of(500))
+    first = run_async(round_of(500))
+    second = run_async(round_of(500))
     assert process.poll() is None
     statuses.clear()
     wait_for(graph, lambda: (hmi_status(statuses) or {}).get('pages_open') == '0',
              'the node to hold no page', 5)
     assert hmi_status(statuses)['opened'] == hmi_status(statuses)['closed']
-    assert first - baseline < 150 * 1024, f'500 pages took {(first - baseline) // 1024} MiB'
-    assert second - first < 16 * 1024, (
+    assert first - baseline < 64 * 1024, f'500 pages took {(first - baseline) // 1024} MiB'
+    assert second - first < 8 * 1024, (
         f'the second round of 500 pages grew the node by {(second - first) // 1024} MiB')

@@ -78,7 +78,7 @@ class Request:
     answered_by: str | None = None    # the page client that answered, or OTHER
     outcome: str | None = None
     outcome_text: str = ''
-    refine_until: int | None = None   # closed by a_{k+1}: x_{k+1} may still say how it ended
+    refine: bool = False        # closed by a_{k+1}: the next task state says how it ended
 
     @property
     def text(self) -> str:
@@ -175,10 +175,11 @@ class HmiMachine:
         request, last = self.request, self.last_closed
         if request is not None and published_ns > request.task_ns:
             self._close_on(state)                       # x_{k+1}
-        elif last is not None and last.outcome == MOVED_ON and last.refine_until is not None \
-                and last.task_ns < published_ns < last.refine_until:
-            self.request, last.refine_until = last, None    # x_{k+1} came after a_{k+1}:
-            self._close_on(state)                           # it says how it ended
+        elif last is not None and last.outcome == MOVED_ON and last.refine \
+                and published_ns > last.task_ns:
+            self.request, last.refine = last, False     # x_{k+1} came after a_{k+1} (which
+            self._close_on(state)                       # may even be published first: a
+            #                                             decision node that timed out)
         self._see_task(state)
         self.task_state, self.task_ns = state, published_ns
         if self._pending is not None:
@@ -191,7 +192,7 @@ class HmiMachine:
         request = self.request
         if request is not None and published_ns > request.published_ns:
             self._close(MOVED_ON, 'closed: the robot moved on')
-            request.refine_until = published_ns
+            request.refine = True
         self._actions.append(published_ns)
         self.action, self.action_ns, self.action_epoch = action, published_ns, self.epoch
         self._pending = None

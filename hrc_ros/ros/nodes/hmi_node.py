@@ -146,11 +146,12 @@ class HmiNode(Node):
         prefix = f'{namespace}/' if namespace else ''
         self.decision_status = f'{prefix}{values["decision_node"]}: decision'
         self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
+        # In causal order: rclpy runs the messages ready in one wait in subscription order
         for msg_type, topic, convert, feed in (
                 (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
-                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
                 (UInt8MultiArray, 'hrc/task_state', self._task_state_from_msg,
                  self.machine.task_state_message),
+                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
                 (Bool, 'hrc/human_response', conv.human_response_from_msg,
                  self.machine.response_message)):
             self.inputs.subscribe(msg_type, topic, SAMPLED, convert, self._control(feed),
