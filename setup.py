@@ -7,7 +7,7 @@ from setuptools import find_packages, setup
 PACKAGE = 'hrc_ros'
 
 NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node',
-         'cell_view_node', 'body_tracking_node', 'tracker_sim_node']
+         'cell_view_node', 'body_tracking_node', 'tracker_sim_node', 'hmi_node']
 TOOLS = {
     'hrc-solve': 'hrc_ros.tools.solve:main',
     'hrc-simulate': 'hrc_ros.tools.simulate:main',
@@ -15,12 +15,15 @@ TOOLS = {
     'hrc-fit': 'hrc_ros.tools.fit:main',
     'hrc-bag': 'hrc_ros.ros.bag:main',
     'hrc-case-study': 'hrc_ros.ros.case_study:main',
+    'hrc-hmi-shots': 'hrc_ros.ros.hmi.shots:main',
 }
 
 setup(
     name=PACKAGE,
     version='0.2.0',
     packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    # The HMI's pages: static HTML, CSS and JavaScript, served from the package itself.
+    package_data={'hrc_ros.ros.hmi': ['static/*']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml', 'README.md']),
@@ -32,7 +35,7 @@ setup(
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'numba'],
+                      'matplotlib', 'numba', 'aiohttp'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',

@@ -118,3 +118,73 @@ def graph():
         yield g
     finally:
         g.close()
+
+
+# -- the HMI's browser tests -------------------------------------------------------------------
+CHROMIUM_PACKAGES = ('chromium', 'fonts-liberation')
+APT_TIMEOUT = 900
+
+
+def _apt(*args: str) -> tuple[int, str]:
+    import subprocess
+    env = {**os.environ, 'DEBIAN_FRONTEND': 'noninteractive'}
+    try:
+        result = subprocess.run(['apt-get', '-o', 'DPkg::Lock::Timeout=300', *args],
+                                stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                                env=env, timeout=APT_TIMEOUT)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return 1, str(exc)
+    return result.returncode, (result.stdout + result.stderr)[-2000:]
+
+
+def install_chromium() -> str:
+    """Install Debian's Chromium (these machines run as root); '' or why it failed."""
+    import shutil
+    if not shutil.which('apt-get'):
+        return 'no apt-get on this machine'
+    if hasattr(os, 'geteuid') and os.geteuid() != 0:
+        return 'not root: run apt-get install chromium as root'
+    install = ('install', '-y', '-q', '--no-install-recommends', *CHROMIUM_PACKAGES)
+    code, output = _apt(*install)
+    if code != 0:                       # stale package lists: update them once, then retry
+        _apt('update', '-q')
+        code, output = _apt(*install)
+    return '' if code == 0 else f'apt-get {" ".join(install)} exited {code}:\n{output}'
+
+
+@pytest.fixture(scope='session')
+def chromium() -> str:
+    """Debian's Chromium, installed when it is missing. The HMI's browser tests fail (never
+    skip) without it: they are part of the suite, in CI too."""
+    from hrc_ros.ros.hmi.browser import BrowserError, chromium_path
+    try:
+        return chromium_path()
+    except BrowserError:
+        pass
+    reason = install_chromium()
+    try:
+        return chromium_path()
+    except BrowserError as exc:
+        pytest.fail(f'the HMI browser tests need Chromium: {exc}; '
+                    + (f'installing it failed: {reason}' if reason else
+                       f'apt-get installed {" ".join(CHROMIUM_PACKAGES)}, yet it is not there'))
+
+
+@pytest.fixture(scope='session')
+def browser(chromium):
+    """One headless Chromium for the session (Playwright, Debian's browser), shared by the
+    browser tests; every test opens its own context (cookies, pages) in it."""
+    from playwright.sync_api import sync_playwright
+
+    from hrc_ros.ros.hmi.browser import launch
+    playwright = sync_playwright().start()
+    try:
+        instance = launch(playwright, chromium)
+    except Exception:
+        playwright.stop()
+        raise
+    try:
+        yield instance
+    finally:
+        instance.close()
+        playwright.stop()

@@ -49,10 +49,13 @@ NODE_NAMES = {  # executable -> node name (DESIGN.md, config/hrc_params.yaml)
     'cell_view_node': 'cell_view',
     'body_tracking_node': 'body_tracking',
     'tracker_sim_node': 'tracker_sim',
+    'hmi_node': 'hmi',
 }
 # Nodes that cannot start on hrc_params.yaml alone (no camera pose): the params they also need.
 EXTRA_PARAMS = {'body_tracking_node': 'body_tracking_sim_params.yaml',
                 'tracker_sim_node': 'body_tracking_sim_params.yaml'}
+# ... and the arguments: the HMI on a free port, not 8080 that another run may hold.
+EXTRA_ARGS = {'hmi_node': ['-p', 'port:=0']}
 DOMAIN_ID = random.Random().randint(215, 230)
 BUILD_TIMEOUT = 120
 GRAPH_TIMEOUT = 30.0
@@ -290,6 +293,7 @@ def test_installed_node_joins_graph_and_stops_on_sigint(executable, prefix, ros_
     params = ['--params-file', str(config / 'hrc_params.yaml')]
     if executable in EXTRA_PARAMS:
         params += ['--params-file', str(config / EXTRA_PARAMS[executable])]
+    params += EXTRA_ARGS.get(executable, [])
     log = tmp_path / f'{executable}.log'
     with open(log, 'w') as output:
         process = subprocess.Popen([path, '--ros-args', *params],
@@ -360,6 +364,11 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
     for relative in ('package.xml', 'config/default.yaml', 'config/paper.yaml',
                      'config/hrc_params.yaml', 'launch/hrc.launch.py'):
         assert (share / relative).is_file(), f'share/hrc_ros/{relative} missing'
+    static = next((venv / 'lib').glob('python3*/site-packages')) / PACKAGE / 'ros' / 'hmi' \
+        / 'static'
+    from hrc_ros.ros.hmi.server import PAGES
+    for name, _ in PAGES.values():            # the HMI's pages are package data
+        assert (static / name).is_file(), f'{static / name} missing'
     assert (venv / MARKER).is_file()
 
     result = run([str(venv / 'bin' / 'hrc-solve'), '--help'], env=clean_env(), timeout=60)
@@ -379,7 +388,7 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
 
 LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
 LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'belief_mode', 'namespace',
-                    'use_sim', 'view', 'body_tracking'}
+                    'use_sim', 'view', 'body_tracking', 'hmi'}
 
 
 def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
@@ -417,7 +426,7 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert cell_nodes(share, params_file=base)[0].parameters == [base, {}]
     for name, bad in (('selector', 'greedy'), ('belief_mode', 'kalman'), ('use_sim', 'maybe'),
                       ('view', 'yes'),
-                      ('body_tracking', 'on')):
+                      ('body_tracking', 'on'), ('hmi', 'yes')):
         with pytest.raises(ValueError, match=name):
             cell_nodes(share, **{name: bad})
 
@@ -440,6 +449,22 @@ def test_launch_plan_reads_human_motion_from_a_body_tracker(tmp_path):
                                            params_file='camera.yaml')}
     assert set(real) == {'belief_estimator', 'decision', 'task_manager', 'body_tracking'}
     assert real['body_tracking'].parameters == [base, 'camera.yaml', {}]
+
+
+def test_launch_plan_starts_the_hmi(tmp_path):
+    """hmi:=true starts hmi_node; with the simulated cell the simulated person keeps
+    answering and the page only shows it, hmi:=answers hands the answers to the page."""
+    from hrc_ros.ros.launch_plan import cell_nodes
+    share = tmp_path / 'share'
+    assert 'hmi' not in {n.name for n in cell_nodes(share)}
+    shown = {n.name: n.parameters[-1] for n in cell_nodes(share, hmi='true', config='c.yaml')}
+    assert shown['hmi'] == {'config': 'c.yaml', 'worker_answers': False}
+    assert shown['cell_sim'] == {'config': 'c.yaml'}
+    answered = {n.name: n.parameters[-1] for n in cell_nodes(share, hmi='answers')}
+    assert answered['hmi'] == {} and answered['cell_sim'] == {'answer_requests': False}
+    real = {n.name: n.parameters[-1] for n in cell_nodes(share, hmi='true', use_sim='false')}
+    assert set(real) == {'belief_estimator', 'decision', 'task_manager', 'hmi'}
+    assert real['hmi'] == {}                     # on a real cell the worker answers
 
 
 def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):

@@ -16,4 +16,6 @@ Packages:
 - `learning/`: recordings as per-epoch records, the model fitted by EM;
 - `cell/`: the simulated human, injected faults, body-tracking input, the cell as markers;
 - `study/`: closed loops without ROS (one trajectory, many paired episodes) and their plots.
+- `hmi/`: the person's side: when a request is open, one answer per request, the task form,
+  the pages' words and the web server's access rules (no ROS, no web framework).
 """

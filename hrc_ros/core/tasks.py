@@ -83,6 +83,25 @@ def _is_int(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
+TASK_FIELDS = {'tp': 'priority', 'tc': 'duration in epochs',
+               'tx': 'nature (0 robot, 1 human, 2 either, 3 both)'}
+
+
+def check_task(task, rho: int, sigma: int) -> tuple[int, int, int]:
+    """A new task (tp, tc, tx) as integers, or `ValueError` naming the field: tp in 1..rho,
+    tc in 1..sigma, tx in 0..3 (the one home of the rule: the task book, and the HMI's task
+    form, check with it)."""
+    try:
+        tp, tc, tx = task
+    except (TypeError, ValueError):
+        raise ValueError(f'a task is (tp, tc, tx), got {task!r}') from None
+    for name, v, lo, hi in (('tp', tp, 1, rho), ('tc', tc, 1, sigma), ('tx', tx, 0, 3)):
+        if not _is_int(v) or not lo <= v <= hi:
+            raise ValueError(f'bad task {tuple(task)!r}: {name} (task {TASK_FIELDS[name]}) '
+                             f'must be an integer in {lo}..{hi}, got {v!r}')
+    return int(tp), int(tc), int(tx)
+
+
 class TaskBook:
     """The cell's task/activity variables, a FIFO queue of pending tasks and a schedule.
 
@@ -125,18 +144,7 @@ class TaskBook:
 
     # -- inputs ----------------------------------------------------------------------------
     def _checked_task(self, task) -> tuple[int, int, int]:
-        try:
-            tp, tc, tx = task
-        except (TypeError, ValueError):
-            raise ValueError(f'a task is (tp, tc, tx), got {task!r}') from None
-        for name, v, lo, hi in (('tp', tp, 1, self.rho), ('tc', tc, 1, self.sigma),
-                                ('tx', tx, 0, 3)):
-            if not _is_int(v) or not lo <= v <= hi:
-                what = {'tp': 'priority', 'tc': 'duration in epochs',
-                        'tx': 'nature (0 robot, 1 human, 2 either, 3 both)'}[name]
-                raise ValueError(f'bad task {tuple(task)!r}: {name} (task {what}) must be an '
-                                 f'integer in {lo}..{hi}, got {v!r}')
-        return int(tp), int(tc), int(tx)
+        return check_task(task, self.rho, self.sigma)
 
     def _set_initial(self, initial_task) -> None:
         if isinstance(initial_task, Mapping):

@@ -8,4 +8,6 @@
 - `bag`: recording and playing rosbag2-compatible bags on the graph (`hrc-bag`);
 - `processes`: node processes started as a user would; `case_study`: `hrc-case-study`;
 - `launch_plan`: what `launch/hrc.launch.py` starts, as plain data the tests can check.
+- `hmi`: the HMI's web server (aiohttp, in a thread of its own) and pages; its node is
+  `nodes/hmi_node.py`.
 """

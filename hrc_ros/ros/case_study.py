@@ -1,7 +1,7 @@
 """hrc-case-study: the paper's case study end to end through the ROS 2 nodes.
 
     hrc-case-study --out out/case_study [--epochs 20] [--epoch-period 0.5] [--seed 0]
-        [--input joint_states|body_tracking] [--no-view]
+        [--input joint_states|body_tracking] [--no-view] [--hmi [show|answers]]
 
 What it does, as a user would by hand:
 
@@ -23,6 +23,12 @@ What it does, as a user would by hand:
    the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
 
 The trajectory is assembled by publication time around the epoch signals (`assemble`).
+
+`--hmi` also starts `hmi_node` (docs/HMI.md) on ``http://127.0.0.1:<--hmi-port>/``: with `show`
+(the default) the simulated person keeps answering the robot's requests and the page only shows
+them, so the run stays the seeded, reproducible one; with `answers` the simulated person stops
+answering (`cell_sim` `answer_requests: false`) and a person answers on the page (give them
+time: `--epoch-period 5`).
 """
 
 from __future__ import annotations
@@ -54,7 +60,7 @@ from .processes import NodeProcessError, NodeProcesses
 NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
               'belief_estimator_node': 'belief_estimator', 'decision_node': 'decision',
               'cell_view_node': 'cell_view', 'tracker_sim_node': 'tracker_sim',
-              'body_tracking_node': 'body_tracking'}
+              'body_tracking_node': 'body_tracking', 'hmi_node': 'hmi'}
 INPUTS = ('joint_states', 'body_tracking')
 TOPICS = {
     'human/joint_states': 'sensor_msgs/msg/JointState',
@@ -69,6 +75,7 @@ TOPICS = {
     'hrc/epoch': 'std_msgs/msg/UInt32',
     'hrc/sim/true_state': 'std_msgs/msg/UInt8MultiArray',
     '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+    'hrc/task_request_result': 'diagnostic_msgs/msg/DiagnosticStatus',
 }
 VIEW_TOPICS = {'hrc/markers': 'visualization_msgs/msg/MarkerArray'}
 BODY_TRACKING_TOPICS = {'body_tracking_data': 'visualization_msgs/msg/MarkerArray'}
@@ -89,6 +96,7 @@ def cell_nodes(args) -> list[str]:
     return (['cell_sim_node', 'task_manager_node', 'belief_estimator_node']
             + ['cell_view_node'] * args.view
             + ['tracker_sim_node', 'body_tracking_node'] * (args.input == 'body_tracking')
+            + ['hmi_node'] * bool(args.hmi)
             + ['decision_node'])
 
 
@@ -114,6 +122,10 @@ def write_run_params(path: Path, args) -> Path:
     }
     if args.faults:   # rcl cannot type an empty list: leave the node's default then
         params['/**/cell_sim']['ros__parameters']['faults'] = list(args.faults)
+    if args.hmi:      # show: the page shows the simulated answers; answers: the page gives them
+        params['/**/hmi'] = {'ros__parameters': {'port': args.hmi_port,
+                                                 'worker_answers': args.hmi == 'answers'}}
+        params['/**/cell_sim']['ros__parameters']['answer_requests'] = args.hmi != 'answers'
     path.write_text(yaml.safe_dump(params, sort_keys=False))
     return path
 
@@ -299,6 +311,12 @@ def main(argv: list[str] | None = None) -> int:
                         'Azure Kinect stream and body_tracking_node)')
     parser.add_argument('--no-view', dest='view', action='store_false',
                         help='do not start cell_view_node (hrc/markers)')
+    parser.add_argument('--hmi', nargs='?', const='show', default='',
+                        choices=('show', 'answers'), help='start hmi_node, the web pages: show '
+                        "(default) the simulated person's answers, or let a person give the "
+                        'answers on the page (the simulated one stops answering)')
+    parser.add_argument('--hmi-port', type=bounded_int(1, 65535), default=8080,
+                        help="the HMI's port on 127.0.0.1 (default 8080)")
     args = parser.parse_args(argv)
     if args.timeout is None:
         args.timeout = args.epochs * args.epoch_period + 60.0
@@ -332,6 +350,10 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(shipped / 'fastdds_fast_discovery.xml')
+    if args.hmi:
+        print(f'hrc-case-study: the HMI at http://127.0.0.1:{args.hmi_port}/ (operator: '
+              f'/operator); ' + ('a person answers the requests there' if args.hmi == 'answers'
+                                 else "it shows the simulated person's answers"), flush=True)
     run = NodeProcesses(out / 'logs', params)
     started = time.monotonic()
     try:

@@ -23,6 +23,9 @@ Wire formats (INTERFACES.md, plus the decisions below):
   not a tensor. An empty layout is accepted (a hand-typed message); a layout with other labels
   is refused. `hrc/sim/true_state` is the same with the 11 state variables ``em .. d``.
 - `hrc/task_request` (std_msgs/UInt8MultiArray): ``[tp, tc, tx]``; the layout is not read.
+- `hrc/task_request_result` (diagnostic_msgs/DiagnosticStatus): the task manager's report on
+  each request, key-values `accepted`, `tp`, `tc`, `tx`, `request`, `reason`, `published_ns`
+  (the request's source timestamp), `sequence`, `queued` (docs/INTERFACES.md).
 - `hrc/belief` (std_msgs/Float64MultiArray): 9 probabilities over h = 3*em + ea (row-major
   em, ea), layout dims ``motivation`` (size 3, stride 9) and ``aggression`` (size 3, stride 3).
   Non-negative, finite, summing to 1 within `BELIEF_TOLERANCE`.
@@ -353,6 +356,49 @@ def task_request_from_msg(msg: UInt8MultiArray, rho: int | None = None,
 
 def task_request_to_msg(tp: int, tc: int, tx: int) -> UInt8MultiArray:
     return _labelled_record((tp, tc, tx), ('tp', 'tc', 'tx'))
+
+
+def task_request_result_to_msg(name: str, hardware_id: str, accepted: bool, reason: str,
+                               task: tuple | None, request, published_ns: int,
+                               sequence: int | None, queued: int) -> DiagnosticStatus:
+    """The task manager's report on one `hrc/task_request` (`hrc/task_request_result`): OK and
+    'accepted: ...' when queued, WARN and 'refused: <reason>' otherwise; the request's content
+    (tp, tc, tx when it had three values, refused or not; the data quoted), its writer's source
+    timestamp and sequence number, and the tasks waiting after it."""
+    tp, tc, tx = task if task is not None else (None, None, None)
+    message = (f'accepted: task ({tp}, {tc}, {tx}) queued; {queued} waiting' if accepted
+               else f'refused: {reason}')
+    return diagnostic_status(
+        name, DiagnosticStatus.OK if accepted else DiagnosticStatus.WARN, cap(message),
+        {'accepted': accepted, 'tp': tp, 'tc': tc, 'tx': tx, 'request': quote(request),
+         'reason': cap(reason), 'published_ns': int(published_ns), 'sequence': sequence,
+         'queued': queued}, hardware_id=hardware_id)
+
+
+def task_request_result_from_msg(msg: DiagnosticStatus) -> dict:
+    """``{accepted, task, reason, published_ns, sequence, queued, source}`` of a report on
+    `hrc/task_request_result` (task: the request's (tp, tc, tx), None when it had not three
+    values)."""
+    values = diagnostic_values(msg)
+
+    def number(key: str, required: bool = False) -> int | None:
+        text = values.get(key, 'none')
+        if text == 'none' and not required:
+            return None
+        if not text.isdigit():
+            raise MessageError(f'task request result: {key} must be a whole number, got '
+                               f'{quote(text)}')
+        return int(text)
+
+    accepted = values.get('accepted')
+    if accepted not in ('true', 'false'):
+        raise MessageError(f'task request result: accepted must be true or false, got '
+                           f'{quote(accepted)}')
+    task = tuple(number(key) for key in ('tp', 'tc', 'tx'))
+    return {'accepted': accepted == 'true', 'task': None if None in task else task,
+            'reason': values.get('reason', ''), 'published_ns': number('published_ns', True),
+            'sequence': number('sequence'), 'queued': number('queued'),
+            'source': msg.hardware_id}
 
 
 # -- belief -----------------------------------------------------------------------------------

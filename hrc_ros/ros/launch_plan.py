@@ -12,6 +12,11 @@ body tracker's MarkerArray stream into `human/*`; with the simulated cell it als
 `tracker_sim_node`, fed by the cell's motion (remapped to `sim/human/*`), and loads
 `config/body_tracking_sim_params.yaml` (the synthetic camera's pose) before `params_file`. On a
 real cell the camera's pose comes from `params_file` (`camera_translation`, `camera_rotation`).
+`hmi` starts `hmi_node` (the worker's and the operator's web pages, docs/HMI.md): on a real cell
+the worker answers the robot's requests on the page; with the simulated cell `hmi:=true` keeps
+the simulated person's answers and the page only shows them (`worker_answers: false`, so the
+run stays the seeded one), and `hmi:=answers` stops the simulated person's answers
+(`answer_requests: false`) so that the worker answers on the page.
 """
 
 from __future__ import annotations
@@ -52,6 +57,11 @@ ARGUMENTS = (
     LaunchArgument('body_tracking', 'false', 'start body_tracking_node: human motion from a body '
                    "tracker's MarkerArray stream (with use_sim: tracker_sim_node's)",
                    ('true', 'false')),
+    LaunchArgument('hmi', 'false', "start hmi_node, the worker's and the operator's web pages "
+                   "(docs/HMI.md). With use_sim, 'true': the simulated person answers the "
+                   "robot's requests and the page shows the answers; 'answers': the simulated "
+                   'person stops answering and the worker answers on the page',
+                   ('false', 'true', 'answers')),
 )
 
 # (executable, node name) of the cell's nodes; the simulated cell is the last.
@@ -64,6 +74,7 @@ SIMULATION_NODE = ('cell_sim_node', 'cell_sim')
 VIEW_NODE = ('cell_view_node', 'cell_view')
 BODY_TRACKING_NODE = ('body_tracking_node', 'body_tracking')
 TRACKER_SIM_NODE = ('tracker_sim_node', 'tracker_sim')
+HMI_NODE = ('hmi_node', 'hmi')
 BODY_TRACKING_SIM_PARAMS = 'body_tracking_sim_params.yaml'
 # cell_sim's motion goes to tracker_sim instead of the estimator when a tracker is simulated.
 SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
@@ -91,7 +102,8 @@ def _flag(name: str, value, choices=('true', 'false')) -> str:
 def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = '',
                config: str = '', policy: str = '', selector: str = '', belief_mode: str = '',
                use_sim: str | bool = 'true', view: str | bool = 'auto',
-               body_tracking: str | bool = 'false') -> list[NodeLaunch]:
+               body_tracking: str | bool = 'false',
+               hmi: str | bool = 'false') -> list[NodeLaunch]:
     """The nodes of one cell for the launch arguments' values (strings, as launch gives them)."""
     if selector not in ('',) + SELECTORS:
         raise ValueError(f'selector must be one of {", ".join(SELECTORS)} or empty, got '
@@ -103,6 +115,8 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     view = _flag('view', view, ('auto', 'true', 'false'))
     view = use_sim if view == 'auto' else view == 'true'
     body_tracking = _flag('body_tracking', body_tracking) == 'true'
+    page_answers = _flag('hmi', hmi, ('false', 'true', 'answers')) == 'answers'
+    hmi = page_answers or _flag('hmi', hmi, ('false', 'true', 'answers')) == 'true'
     config_dir = os.path.join(str(share_dir), 'config')
     base_params = os.path.join(config_dir, 'hrc_params.yaml')
     params_files = [base_params]
@@ -119,8 +133,13 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     overrides = {'decision': decision}
     if belief_mode:
         overrides['belief_estimator'] = {**common, 'belief_mode': belief_mode}
+    if use_sim and page_answers:         # the worker answers on the page, the sim stops
+        overrides['cell_sim'] = {**common, 'answer_requests': False}
+    elif use_sim and hmi:                # the simulated person answers, the page shows it
+        overrides['hmi'] = {**common, 'worker_answers': False}
     nodes = list(DECISION_NODES) + [VIEW_NODE] * view + [BODY_TRACKING_NODE] * body_tracking \
-        + [TRACKER_SIM_NODE] * (body_tracking and use_sim) + [SIMULATION_NODE] * use_sim
+        + [TRACKER_SIM_NODE] * (body_tracking and use_sim) + [HMI_NODE] * hmi \
+        + [SIMULATION_NODE] * use_sim
     remaps = {'cell_sim': SIM_MOTION_REMAPS} if body_tracking else {}
     return [NodeLaunch(executable, name, namespace,
                        params_files + [overrides.get(name, common)], list(remaps.get(name, [])))

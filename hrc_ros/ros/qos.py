@@ -14,6 +14,7 @@
   refuse the volatile publisher ("offering incompatible QoS ... DURABILITY"). The nodes do not
   need the stored sample: every state is published again each epoch.
 - `ORDERS`: `hrc/task_request`, reliable and keep-all: an order is never overwritten unseen.
+- `REPORTS`: the task manager's per-request reports, reliable, transient local, last 100.
 - `RELIABLE`: events (`hrc/action`, `hrc/epoch`, `hrc/observation`,
   `hrc/human_response`, `/diagnostics`). Reliable, volatile, keep last 10.
 """
@@ -50,3 +51,12 @@ CLAIMS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 # reliable writer blocks and its publish fails, so the sender learns of it.
 ORDERS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.VOLATILE)
+
+# Reports a late joiner should see the recent past of (`hrc/task_request_result`, one per order):
+# reliable and transient local, the last `REPORT_DEPTH` kept, so a burst of orders is reported
+# whole and an operator page that opens later still lists the recent outcomes.
+REPORT_DEPTH = 100
+REPORTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=REPORT_DEPTH,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+

@@ -7,7 +7,8 @@ O and the distance band of the current d, so the belief estimator recovers both;
 `hrc/action` a_k with the epoch's `hrc/task_state` x_k (`core.protocol.ActionPairing`) through a
 seeded `core.cell.human.SimulatedHuman` (the same draws as `hrc-simulate` for the same seed),
 answers
-requests on `hrc/human_response` (false for an ineligible one), and publishes the debug topic
+requests on `hrc/human_response` (false for an ineligible one; with `answer_requests` false it
+leaves the answers to the HMI page), and publishes the debug topic
 `hrc/sim/true_state` (latched: the 11 state variables after each reaction). `faults` injects
 `core.cell.faults` (dropout, nan_velocity, decline, collision) without changing the random draws.
 """
@@ -54,6 +55,10 @@ PARAMETERS = (
               'before two actions)', range=(0.0, 60.0)),
     ParamSpec('faults', T.STRING_ARRAY, [], 'injected faults "KIND:EPOCHS" with KIND one of '
               + ', '.join(faults.FAULT_KINDS) + ' and EPOCHS "7" or "7-9"', read_only=True),
+    ParamSpec('answer_requests', T.BOOL, True, "the simulated person answers the robot's "
+              'requests on hrc/human_response; false: a person answers them on the HMI page '
+              '(hmi_node) and the simulated one only reacts (its emotions and distance move '
+              'as before, with the same random draws)'),
 )
 
 
@@ -85,6 +90,7 @@ class CellSimNode(Node):
         self.clock = control_clock(self)
         self.period = PeriodEstimate()
         self.task_state_timeout = values['task_state_timeout']
+        self.answer_requests = values['answer_requests']
         self.pairing = ActionPairing(self._hold_ns())
         self.reactions = 0
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
@@ -135,6 +141,7 @@ class CellSimNode(Node):
         self._apply_motion(values)
         self.sensor_timer.timer_period_ns = int(1e9 / values['sensor_rate'])
         self.task_state_timeout = values['task_state_timeout']
+        self.answer_requests = values['answer_requests']
         self.pairing.timeout_ns = self._hold_ns()
 
     def _task_state_from_msg(self, msg):
@@ -169,7 +176,7 @@ class CellSimNode(Node):
                                       'cell', throttle_duration_sec=WARNING_THROTTLE_SEC)
         reaction = self.human.react(action, task_state)
         accepted = reaction.accepted is True and not self._fault('decline')
-        if action in (RH1, RH2):
+        if action in (RH1, RH2) and self.answer_requests:
             if reaction.accepted and not accepted:
                 self.get_logger().warning(f'fault injected: request declined in epoch '
                                           f'{self.epoch}')

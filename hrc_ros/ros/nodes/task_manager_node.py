@@ -6,11 +6,16 @@ publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). Tasks
 `initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``. The rules
 (holds, timeouts, late answers, restarts) are `core.protocol.TaskEpochs`; this node owns the
 topics, the parameters and the timer. Every task request is counted once, as accepted, refused
-(malformed, out of its domain, the queue full) or lost (`core.protocol.RequestCounts`).
+(malformed, out of its domain, the queue full) or lost (`core.protocol.RequestCounts`), and
+every request it handles, valid or not, gets one report on `hrc/task_request_result`
+(accepted and queued, or refused and why: docs/INTERFACES.md), so whoever ordered it (the HMI's
+operator page, a MES) learns its fate.
 """
 
 from __future__ import annotations
 
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, String, UInt8MultiArray
@@ -78,6 +83,8 @@ class TaskManagerNode(Node):
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
                                                     qos.LATCHED)
+        self.request_result_pub = self.create_publisher(DiagnosticStatus,
+                                                        'hrc/task_request_result', qos.REPORTS)
         self.inputs = Inputs(self)
         self.epoch_publishers = subscribe_epochs(self.inputs, lambda: self.tasks.epochs,
                                                  self._on_epoch)
@@ -136,15 +143,27 @@ class TaskManagerNode(Node):
 
     def _on_task_request(self, msg, stamp: Stamp) -> None:
         """Every request in one count: lost before it (its writer's numbers skip), then this
-        one accepted or refused, for whatever reason (the conversion or the task book)."""
+        one accepted or refused, for whatever reason (the conversion or the task book), and
+        one report of its fate on hrc/task_request_result."""
         self._report_lost_requests(stamp)
+        task, error = None, None
         try:
             task = conv.task_request_from_msg(msg, self.model.rho, self.model.sigma)
             self.tasks.request(*task)
-        except InputError:
+        except InputError as exc:
+            error = exc
+            if task is None and len(msg.data) == 3:     # reported with its content
+                task = tuple(int(v) for v in msg.data)
+        if error is None:
+            self.requests.accept()
+        else:
             self.requests.refuse()
-            raise
-        self.requests.accept()
+        node = self.get_fully_qualified_name()
+        self.request_result_pub.publish(conv.task_request_result_to_msg(
+            f'{node.lstrip("/")}: task_request', node, error is None, str(error or ''), task,
+            np.asarray(msg.data), stamp.published_ns, stamp.sequence, len(self.book.queue)))
+        if error is not None:
+            raise error          # dropped with a warning and a diagnostic, as any bad input
         self.get_logger().info(f'task {task} queued; {len(self.book.queue)} waiting')
 
     def _report_lost_requests(self, stamp: Stamp) -> None:

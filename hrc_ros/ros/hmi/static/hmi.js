@@ -1,0 +1,73 @@
+// The pages' connection to the HMI node: one WebSocket, reconnected by itself.
+// No framework, no build step: this file, worker.js and operator.js are all the code.
+'use strict';
+const HMI = (() => {
+  const NO_CELL = 'no connection to the cell';
+  const WATCHDOG_MS = 15000;   // the server sends something at least every 5 s
+
+  function text(id, value) {
+    const element = document.getElementById(id);
+    if (element && element.textContent !== value) element.textContent = value;
+  }
+
+  // connect(view, {view(message, client), reply(message, client), down()})
+  function connect(view, handlers) {
+    const connection = document.getElementById('connection');
+    let socket = null, client = null, backoff = 250, watchdog = null;
+
+    function show(state, words) {
+      connection.dataset.state = state;
+      text('connection', words);
+    }
+    function arm() {
+      clearTimeout(watchdog);
+      watchdog = setTimeout(() => { if (socket) socket.close(); }, WATCHDOG_MS);
+    }
+    function open() {
+      const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
+      socket = new WebSocket(`${scheme}://${location.host}/ws?view=${view}`);
+      socket.onopen = () => { backoff = 250; arm(); };
+      socket.onmessage = (event) => {
+        arm();
+        let message;
+        try { message = JSON.parse(event.data); } catch (error) { return; }
+        if (message.type === 'hello') {
+          client = message.client;
+        } else if (message.type === 'view') {
+          show(message.cell ? 'connected' : 'no-cell', message.connection || NO_CELL);
+          handlers.view(message, client);
+        } else if (message.type !== 'tick' && handlers.reply) {
+          handlers.reply(message, client);
+        }
+      };
+      socket.onclose = () => {
+        clearTimeout(watchdog);
+        socket = null;
+        client = null;
+        show('disconnected', NO_CELL);
+        if (handlers.down) handlers.down();
+        setTimeout(open, backoff + Math.random() * 250);
+        backoff = Math.min(backoff * 2, 4000);
+      };
+    }
+    open();
+    return {
+      send(message) {
+        if (!socket || socket.readyState !== WebSocket.OPEN) return false;
+        socket.send(JSON.stringify(message));
+        return true;
+      },
+    };
+  }
+
+  function band(distance) {
+    const element = document.getElementById('distance-band');
+    if (!element) return;
+    const d = distance || {level: null, text: 'distance unknown', colour: '#888888'};
+    element.dataset.level = d.level === null ? 'none' : String(d.level);
+    element.style.background = d.colour;
+    text('distance', d.text);
+  }
+
+  return {connect, text, band, NO_CELL};
+})();

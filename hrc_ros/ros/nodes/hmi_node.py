@@ -1,0 +1,369 @@
+"""hmi: the person's side of the cell, a web page for the worker and one for the operator.
+
+Contract (docs/HMI.md): serves ``http://<host>:<port>/`` (the worker's page) and ``/operator``
+and keeps them live over a WebSocket. It listens to `hrc/epoch`, `hrc/action`,
+`hrc/task_state`, `hrc/belief`, `hrc/distance_level`, `hrc/human_response`,
+`hrc/task_request_result`, the decision node's and the task manager's statuses on
+/diagnostics, and the robot side's speed override and separation when they are published; it
+publishes the worker's answers on `hrc/human_response` (std_msgs/Bool, reliable) and the
+operator's orders on `hrc/task_request` (std_msgs/UInt8MultiArray, `qos.ORDERS`, the path every
+order takes), and its health on /diagnostics. The rules (when a request is open, one answer per
+request, the task form, what the pages say) are `core.hmi.HmiMachine`; the web server is
+`ros.hmi.server` (aiohttp, on a loop in its own thread); this node owns the topics, the
+parameters, the timers and the bridge between the two threads.
+
+The four inputs that decide a request (`hrc/epoch`, `hrc/action`, `hrc/task_state`,
+`hrc/human_response`, a few messages an epoch) are ordinary subscriptions: the machine takes
+each at once, in whatever order DDS delivers them (it pairs them by source timestamp), and the
+pages follow. Everything else (the belief, the distance, /diagnostics, the reports, the robot
+side) is `SampledInputs`, taken `refresh_rate` times a second, so the node never wakes for
+those and its share of the CPU does not grow with their rates. A page's command wakes it at
+once through a guard condition (the web thread never waits for the executor, nor the executor
+for the web thread: a bounded queue between them); the executor runs the control messages
+ready with it first, so the machine decides on the latest state, then publishes and replies.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import resource
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
+
+from ...core.hmi import AccessError, AccessPolicy, HmiMachine, is_loopback
+from .. import conversions as conv
+from .. import qos
+from ..hmi.server import Command, HmiServer, ServerSettings
+from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, SampledInputs,
+                            StartupError, control_clock, node_setup, run)
+from .cell_view_node import SAMPLED
+
+T = Parameter.Type
+TOKEN_ENV = 'HRC_HMI_TOKEN'
+COMMAND_QUEUE = 256        # page commands waiting for the executor; beyond: "busy"
+ORDER_REFS_KEPT = 256
+PARAMETERS = (
+    CONFIG,
+    ParamSpec('host', T.STRING, '127.0.0.1', 'address the web server binds (loopback by '
+              'default: this machine only); any other address needs an access token',
+              read_only=True),
+    ParamSpec('port', T.INTEGER, 8080, 'TCP port of the pages; 0 = a free port (logged and on '
+              '/diagnostics)', read_only=True, range=(0, 65535)),
+    ParamSpec('token', T.STRING, '', f"access token ('' = the {TOKEN_ENV} environment "
+              'variable, else none), at least 16 characters; required off loopback, and then '
+              'every HTTP and WebSocket request needs it. Prefer the environment variable: '
+              'a parameter can be read with ros2 param get', read_only=True),
+    ParamSpec('allowed_origins', T.STRING_ARRAY, [], 'origins besides the page itself whose '
+              'pages may open the WebSocket (a reverse proxy\'s public origin, e.g. '
+              'https://hmi.plant.example)', read_only=True),
+    ParamSpec('allowed_hosts', T.STRING_ARRAY, [], 'Host names the pages may be asked by on '
+              'loopback without a token, besides localhost and 127.0.0.1 (a reverse proxy that '
+              'passes its Host on)', read_only=True),
+    ParamSpec('worker_answers', T.BOOL, True, "Accept and Decline answer the robot's requests "
+              'on hrc/human_response; false: the page only shows the answers another source '
+              'gives (the simulated person of cell_sim)'),
+    ParamSpec('cell_timeout', T.DOUBLE, 0.0, 'seconds without hrc/epoch or hrc/action after '
+              'which the pages say "no connection to the cell" and an open request lapses; '
+              '0 = 3 x the epoch period seen, at least 3 s', range=(0.0, 3600.0)),
+    ParamSpec('refresh_rate', T.DOUBLE, 20.0, 'Hz: how often the inputs are read and the pages '
+              'updated (only when something changed)', range=(1.0, 100.0)),
+    ParamSpec('order_timeout', T.DOUBLE, 3.0, "seconds an order waits for the task manager's "
+              'report on hrc/task_request_result before the operator is told it is unknown',
+              range=(0.1, 60.0)),
+    ParamSpec('max_connections', T.INTEGER, 1000, 'pages served at once; more get 503',
+              read_only=True, range=(1, 100000)),
+    ParamSpec('max_frame_bytes', T.INTEGER, 4096, 'largest WebSocket message a page may send; '
+              'a larger frame closes its connection (1009)', read_only=True,
+              range=(256, 1048576)),
+    ParamSpec('message_rate', T.DOUBLE, 10.0, 'messages a second a page may send after '
+              'message_burst (more are refused; a page that keeps flooding is closed)',
+              read_only=True, range=(0.1, 10000.0)),
+    ParamSpec('message_burst', T.INTEGER, 20, 'messages a page may send at once',
+              read_only=True, range=(1, 100000)),
+    ParamSpec('decision_node', T.STRING, 'decision', 'the decision node whose /diagnostics '
+              'status gives the fail-safe reasons', read_only=True),
+    ParamSpec('task_manager_node', T.STRING, 'task_manager', 'the task manager whose '
+              '/diagnostics status gives the queue', read_only=True),
+    ParamSpec('speed_override_topic', T.STRING, 'hrc/speed_override', "the robot side's speed "
+              'override (std_msgs/Float64, 0..1), shown on /operator while published',
+              read_only=True),
+    ParamSpec('separation_topic', T.STRING, 'hrc/separation', "the robot side's separation of "
+              'the person from the arm (std_msgs/Float64, metres), shown on /operator while '
+              'published', read_only=True),
+)
+
+
+def check_parameters(values) -> str | None:
+    if 'host' in values and not values['host'].strip():
+        return "host must be an address to bind, e.g. 127.0.0.1 (loopback) or 0.0.0.0"
+    return None
+
+
+def _unit_interval(msg: Float64) -> float:
+    value = float(msg.data)
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise conv.MessageError(f'speed override must be in 0..1, got {conv.quote(value)}')
+    return value
+
+
+def _metres(msg: Float64) -> float:
+    value = float(msg.data)
+    if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
+        raise conv.MessageError(f'separation must be metres in 0..1000, got {conv.quote(value)}')
+    return value
+
+
+class HmiNode(Node):
+    NODE_NAME = 'hmi'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params, values, self.config, self.model = node_setup(
+            self, PARAMETERS, check_parameters, self._apply)
+        token = values['token'] or os.environ.get(TOKEN_ENV, '')
+        self.policy = AccessPolicy(values['host'], token, values['allowed_origins'],
+                                   values['allowed_hosts'])
+        try:
+            self.policy.check_start()
+        except AccessError as exc:
+            raise StartupError(str(exc)) from None
+        self.clock = control_clock(self)
+        self.machine = HmiMachine(self.model.rho, self.model.sigma, values['worker_answers'],
+                                  values['cell_timeout'], values['order_timeout'])
+        self.response_pub = self.create_publisher(Bool, 'hrc/human_response', qos.RELIABLE)
+        self.request_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_request',
+                                                 qos.ORDERS)
+        self.inputs = Inputs(self)
+        self.sampled = SampledInputs(self, self.inputs)
+        namespace = self.get_namespace().strip('/')
+        prefix = f'{namespace}/' if namespace else ''
+        self.decision_status = f'{prefix}{values["decision_node"]}: decision'
+        self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
+        # In causal order: rclpy runs the messages ready in one wait in subscription order
+        for msg_type, topic, convert, feed in (
+                (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
+                (UInt8MultiArray, 'hrc/task_state', self._task_state_from_msg,
+                 self.machine.task_state_message),
+                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
+                (Bool, 'hrc/human_response', conv.human_response_from_msg,
+                 self.machine.response_message)):
+            self.inputs.subscribe(msg_type, topic, SAMPLED, convert, self._control(feed),
+                                  with_published=True)
+        subscribe = self.sampled.subscribe
+        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg,
+                  latest_only=True)
+        subscribe(UInt8, 'hrc/distance_level', SAMPLED, conv.distance_level_from_msg,
+                  latest_only=True)
+        subscribe(DiagnosticStatus, 'hrc/task_request_result', qos.REPORTS,
+                  conv.task_request_result_from_msg)
+        subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._statuses,
+                  name='diagnostics')
+        subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA, _unit_interval,
+                  name='speed_override', latest_only=True)
+        subscribe(Float64, values['separation_topic'], qos.SENSOR_DATA, _metres,
+                  name='separation', latest_only=True)
+        self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
+        self.order_refs: dict[int, tuple] = {}
+        self.published = {'answers': 0, 'orders': 0}
+        self._views: tuple | None = None
+        self.wake = self.create_guard_condition(self._on_commands)
+        self.refresh = self.create_timer(1.0 / values['refresh_rate'], self._refresh)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        settings = ServerSettings(values['host'], values['port'], values['max_connections'],
+                                  values['max_frame_bytes'], values['message_rate'],
+                                  values['message_burst'])
+        self._raise_file_limit(settings.max_connections)
+        self.server = HmiServer(settings, self.policy, self._submit)
+        try:
+            port = self.server.start()
+        except OSError as exc:
+            raise StartupError(f'cannot serve the pages on {values["host"]}:{values["port"]}: '
+                               f'{exc}') from None
+        host = values['host']
+        shown = f'[{host}]' if ':' in host else host
+        self.url = f'http://{shown}:{port}/'
+        self.get_logger().info(
+            f'worker page {self.url}, operator page {self.url}operator'
+            + ('' if is_loopback(host) else ' (access token required)')
+            + ('' if values['worker_answers'] else '; the page only shows the answers'))
+
+    def _apply(self, values) -> None:
+        if hasattr(self, 'machine'):
+            self.machine.worker_answers = values['worker_answers']
+            self.machine.cell_timeout_s = values['cell_timeout']
+            self.machine.orders.timeout_ns = int(values['order_timeout'] * 1e9)
+            self.refresh.timer_period_ns = int(1e9 / values['refresh_rate'])
+
+    def _raise_file_limit(self, connections: int) -> None:
+        """Each page is a socket: raise the soft open-files limit towards the hard one."""
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        wanted = connections + 256
+        if soft != resource.RLIM_INFINITY and soft < wanted:
+            target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            if target < wanted:
+                self.get_logger().warning(
+                    f'open files limited to {target}: fewer than max_connections '
+                    f'({connections}) pages can be served (raise ulimit -n)')
+
+    def _now(self) -> int:
+        return self.clock.now().nanoseconds
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _statuses(self, msg: DiagnosticArray):
+        """The decision node's and the task manager's statuses in `msg` (None: neither)."""
+        found = []
+        for status in msg.status:
+            if status.name == self.decision_status:
+                values = conv.diagnostic_values(status)
+                epoch = values.get('epoch', '')
+                if epoch.isdigit() and int(epoch) > 0:
+                    found.append(('decision', int(epoch), values.get('action', ''),
+                                  values.get('faults', ''),
+                                  conv.LEVEL_NAMES.get(status.level, '?')))
+            elif status.name == self.task_manager_status:
+                found.append(('task_manager', conv.diagnostic_values(status)))
+        return found or None
+
+    def _task_state_from_msg(self, msg):
+        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
+
+    def _control(self, feed):
+        """A handler of a control input: the machine takes it at once and the pages follow."""
+        def handle(value, published_ns: int) -> None:
+            now = self._now()
+            feed(value, published_ns, now)
+            self._push(now)
+        return handle
+
+    def _take(self, now: int) -> None:
+        machine = self.machine
+        for _, name, value in self.sampled.take():
+            if name == 'belief':
+                machine.belief_message(value)
+            elif name == 'distance_level':
+                machine.distance_message(value)
+            elif name == 'task_request_result':
+                self._order_done(machine.task_request_result(value))
+            elif name == 'diagnostics' and value is not None:
+                for status in value:
+                    if status[0] == 'decision':
+                        machine.decision_report(*status[1:])
+                    else:
+                        machine.task_manager_report(status[1])
+            elif name == 'speed_override':
+                machine.speed_override_message(value, now)
+            elif name == 'separation':
+                machine.separation_message(value, now)
+
+    def _refresh(self) -> None:
+        now = self._now()
+        self._take(now)
+        for order in self.machine.expire(now):
+            self._order_done(order)
+        self._push(now)
+
+    def _push(self, now: int) -> None:
+        views = tuple(json.dumps({'type': 'view', **view}, separators=(',', ':'), default=str)
+                      for view in (self.machine.worker_view(now),
+                                   self.machine.operator_view(now)))
+        if views != self._views:
+            self._views = views
+            self.server.publish_views({'worker': views[0], 'operator': views[1]})
+
+    # -- the pages' commands (web thread -> executor) --------------------------------------
+    def _submit(self, command: Command) -> bool:
+        """From the web thread: queue a command and wake the executor; False when full."""
+        try:
+            self.commands.put_nowait(command)
+        except queue.Full:
+            return False
+        self.wake.trigger()
+        return True
+
+    def _on_commands(self) -> None:
+        now = self._now()
+        for _ in range(COMMAND_QUEUE):
+            try:
+                command = self.commands.get_nowait()
+            except queue.Empty:
+                break
+            if command.kind == 'answer':
+                self._answer(command, now)
+            elif command.kind == 'order':
+                self._order(command, now)
+            else:
+                self.machine.forget_client(command.client)
+        self._push(now)
+
+    def _answer(self, command: Command, now: int) -> None:
+        request, accept = command.payload['request'], command.payload['accept']
+        result = self.machine.answer(request, accept, command.client, now)
+        if result.publish is not None:
+            self.response_pub.publish(conv.human_response_to_msg(result.publish))
+            self.published['answers'] += 1
+        self.server.reply(command.client, {
+            'type': 'answer_result', 'request': request if isinstance(request, str) else None,
+            'accept': accept if isinstance(accept, bool) else None,
+            'ok': result.publish is not None, 'code': result.code, 'text': result.text})
+
+    def _order(self, command: Command, now: int) -> None:
+        listening = self.request_pub.get_subscription_count() > 0
+        step = self.machine.order(command.payload['fields'], command.client, now, listening)
+        ref = command.payload.get('ref')
+        if step.publish is not None:
+            before = time.time_ns()
+            self.request_pub.publish(conv.task_request_to_msg(*step.publish))
+            self.machine.order_sent(step.order, before, time.time_ns())
+            self.published['orders'] += 1
+            self.order_refs[step.order.number] = (command.client, ref)
+            while len(self.order_refs) > ORDER_REFS_KEPT:
+                self.order_refs.pop(next(iter(self.order_refs)))
+        order = step.order
+        self.server.reply(command.client, {
+            'type': 'order_result', 'ref': ref, 'order': None if order is None else order.number,
+            'status': order.status if order is not None else step.status,
+            'text': order.text if order is not None else step.text})
+
+    def _order_done(self, order) -> None:
+        """An order's outcome: tell the page that sent it (if it is still open)."""
+        if order is None or order.number not in self.order_refs:
+            return
+        client, ref = self.order_refs.pop(order.number)
+        self.server.reply(client, {'type': 'order_result', 'ref': ref, 'order': order.number,
+                                   'status': order.status, 'text': order.text})
+
+    # -- health ----------------------------------------------------------------------------
+    def _publish_status(self) -> None:
+        machine = self.machine
+        request = machine.request
+        self.inputs.publish_health('hmi', {
+            'url': self.url, 'epoch': machine.epoch,
+            'cell_connected': machine.cell_alive(self._now()),
+            'worker_answers': machine.worker_answers,
+            'request_open': None if request is None else request.text,
+            'answers_published': self.published['answers'],
+            'orders_published': self.published['orders'],
+            **machine.counts,
+            **{f'orders_{k}': v for k, v in machine.orders.counts.items()},
+            **self.server.stats()})
+
+    def destroy_node(self):
+        self.server.stop()
+        self.sampled.destroy()
+        return super().destroy_node()
+
+
+def main(args=None):
+    return run(HmiNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
