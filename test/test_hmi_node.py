@@ -303,7 +303,7 @@ def test_orders_reach_the_task_manager_and_its_report_comes_back(graph, pages):
     bad = order(3, priority=1, duration=9, nature=0)
     assert [r['status'] for r in bad] == ['refused']
     assert 'tc (task duration in epochs) must be an integer in 1..2, got 9' in bad[0]['text']
-    assert tasks.requests['accepted'] == 1 and tasks.requests['refused'] == 1
+    assert tasks.requests.accepted == 1 and tasks.requests.refused == 1
     worker.send({'type': 'order', 'priority': 1, 'duration': 1, 'nature': 0})
     wait_for(graph, lambda: worker.replies('error'), 'the worker page to be refused')
     assert worker.replies('error')[0]['text'] == \
@@ -356,7 +356,8 @@ def test_the_task_manager_reports_every_request_and_counts_bad_ones_refused_not_
     assert [r['sequence'] for r in reports] == [1, 2, 3, 4]
     assert results[0].level == DiagnosticStatus.OK and results[1].level == DiagnosticStatus.WARN
     assert results[0].name == 'task_manager: task_request'
-    assert dict(tasks.requests) == {'accepted': 2, 'refused': 2}
+    assert tasks.requests.counts() == {'requests_accepted': 2, 'requests_refused': 2,
+                                       'requests_lost': 0}
     assert not graph.diagnostics('task_manager: task_request input', DiagnosticStatus.ERROR)
     assert tasks.inputs.dropped['task_request'] == 2
 
