@@ -15,6 +15,7 @@ TOOLS = {
     'hrc-fit': 'hrc_ros.tools.fit:main',
     'hrc-bag': 'hrc_ros.ros.bag:main',
     'hrc-case-study': 'hrc_ros.ros.case_study:main',
+    'hrc-fleet': 'hrc_ros.tools.fleet:main',
 }
 
 setup(
@@ -32,7 +33,7 @@ setup(
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'numba'],
+                      'matplotlib', 'numba', 'ray>=2.58'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',
