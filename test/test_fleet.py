@@ -309,10 +309,11 @@ def descendants(pid: int) -> set[int]:
     return out
 
 
-@pytest.fixture(scope='session')
+@pytest.fixture(scope='module')
 def ray_session():
-    """One embedded Ray for the session: 2 CPUs, a 150 MB object store, no dashboard; shut
-    down at the end, and none of its processes left behind."""
+    """The one embedded Ray of the test session (only this module uses Ray): 2 CPUs, a
+    150 MB object store, no dashboard; shut down as soon as this module is done, so the rest
+    of the suite never shares the machine with it, and none of its processes left behind."""
     ray = pytest.importorskip('ray')
     before = descendants(os.getpid())
     ray.init(num_cpus=2, object_store_memory=150 * 2 ** 20, include_dashboard=False,

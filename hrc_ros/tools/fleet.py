@@ -140,11 +140,23 @@ def _remote_stage():
 
         @ray.remote(num_returns=2)
         def stage_task(stage, hook, cell, *args):
+            _threads_as_assigned(ray)
             if hook is not None:
                 hook(stage, cell)
             return run_stage(stage, *args)
         _REMOTE = stage_task
     return _REMOTE
+
+
+def _threads_as_assigned(ray) -> None:
+    """numba's parallel kernels (the solves) on the CPUs Ray gave the task, not on every core
+    of the node: two tasks on two CPUs must not run four threads."""
+    cpus = ray.get_runtime_context().get_assigned_resources().get('CPU', 1)
+    try:
+        import numba
+        numba.set_num_threads(max(1, min(int(cpus), numba.config.NUMBA_NUM_THREADS)))
+    except (ImportError, ValueError):
+        pass
 
 
 def _died(exc: Exception, stage: str, retries: int) -> str:
