@@ -512,3 +512,35 @@ def test_a_worker_killed_mid_task_is_retried_and_the_report_is_right(ray_session
     assert entry['decision'] == KEEP, entry['reason']
     assert entry['drift_p'] == reference['drift_p']
     assert entry['drift']['statistic'] == reference['drift']['statistic']
+
+
+class Stream:
+    def __init__(self, tty: bool):
+        self.tty, self.text = tty, ''
+
+    def isatty(self):
+        return self.tty
+
+    def write(self, text):
+        self.text += text
+
+    def flush(self):
+        pass
+
+
+def test_progress_redraws_one_line_on_a_terminal_and_logs_changes_otherwise(tmp_path):
+    from hrc_ros.tools.fleet import Progress
+    p = pipeline_of(tmp_path)
+    p.start()
+    terminal, log = Stream(True), Stream(False)
+    for stream in (terminal, log):
+        bar = Progress(stream)
+        bar([p])
+        bar([p])                       # no change: the log gets no second line
+        p.stage = 'drift'
+        bar([p])
+        bar.close()
+        p.stage = 'read'
+    assert terminal.text.count('\r') == 3 and terminal.text.endswith('\n')
+    assert '0/1 cells' in terminal.text and 'a: drift' in terminal.text
+    assert log.text.splitlines() == ['hrc-fleet: [0/1] a: read', 'hrc-fleet: [0/1] a: drift']

@@ -215,7 +215,9 @@ def run_on_ray(pipelines: list[CellPipeline], objects: dict, progress=None, hook
                 progress(pipelines)
         if not pending:
             continue
-        ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+        ready, waiting = ray.wait(list(pending), num_returns=1, timeout=0.5)
+        if ready and waiting:         # and whatever else finished meanwhile
+            ready += ray.wait(waiting, num_returns=len(waiting), timeout=0)[0]
         for status in ready:
             pipeline, job = pending.pop(status)
             try:
@@ -234,9 +236,12 @@ def start_ray(address: str | None, num_cpus: int | None, object_store_mb: int | 
     if ray.is_initialized():
         return False, False
     os.environ.setdefault('RAY_DEDUP_LOGS', '0')
-    if address:
-        ray.init(address=address, include_dashboard=False, log_to_driver=True,
-                 logging_level='warning')
+    if address:     # an existing cluster keeps its own resources and dashboard
+        try:
+            ray.init(address=address, logging_level='warning')
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise ToolError(f'cannot join the Ray cluster at {address}: '
+                            f'{" ".join(str(exc).split())[:300]}') from None
         return True, address.startswith('ray://')
     ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level='warning',
              object_store_memory=None if object_store_mb is None else object_store_mb * 2 ** 20)
@@ -328,9 +333,12 @@ def main(argv=None) -> int:
         out = output_folder(args.out)
     except (PlantError, ToolError) as exc:
         return fail('hrc-fleet', exc)
-    report = run_plant(plant, out, args.address, args.serial, args.apply, args.num_cpus,
-                       args.object_store_mb, progress=Progress(quiet=args.quiet),
-                       apply_timeout=float(args.apply_timeout))
+    try:
+        report = run_plant(plant, out, args.address, args.serial, args.apply, args.num_cpus,
+                           args.object_store_mb, progress=Progress(quiet=args.quiet),
+                           apply_timeout=float(args.apply_timeout))
+    except ToolError as exc:
+        return fail('hrc-fleet', exc)
     for entry in report['cells']:
         applied = entry.get('applied')
         print(f'{entry["cell"]}: {entry["decision"]}: {entry["reason"]}'
