@@ -315,6 +315,10 @@ def ray_session():
     150 MB object store, no dashboard; shut down as soon as this module is done, so the rest
     of the suite never shares the machine with it, and none of its processes left behind."""
     ray = pytest.importorskip('ray')
+    # Ray's workers run at nice 15 by default: on a loaded machine (CI beside nothing, a
+    # developer's beside other work) they would wait for everyone else; here they compete
+    # as the suite's other processes do
+    os.environ.setdefault('RAY_worker_niceness', '0')
     before = descendants(os.getpid())
     ray.init(num_cpus=2, object_store_memory=150 * 2 ** 20, include_dashboard=False,
              logging_level='warning')
