@@ -320,8 +320,8 @@ def ray_session():
     # as the suite's other processes do
     os.environ.setdefault('RAY_worker_niceness', '0')
     before = descendants(os.getpid())
-    ray.init(num_cpus=2, object_store_memory=150 * 2 ** 20, include_dashboard=False,
-             logging_level='warning')
+    from hrc_ros.tools.fleet import start_ray
+    assert start_ray(None, num_cpus=2, object_store_mb=150) == (True, False)
     started = descendants(os.getpid()) - before
     try:
         yield ray

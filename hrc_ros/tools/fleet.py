@@ -42,6 +42,7 @@ from ..core.plant.spec import Plant, PlantError, load_plant
 from .common import Parser, ToolError, bounded_int, fail, output_folder
 
 PROGRESS_WIDTH = 110
+STARTS = 3          # attempts at starting the embedded Ray (its raylet's start-up can time out)
 
 
 # -- preparing the cells ----------------------------------------------------------------------
@@ -243,9 +244,19 @@ def start_ray(address: str | None, num_cpus: int | None, object_store_mb: int | 
             raise ToolError(f'cannot join the Ray cluster at {address}: '
                             f'{" ".join(str(exc).split())[:300]}') from None
         return True, address.startswith('ray://')
-    ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level='warning',
-             object_store_memory=None if object_store_mb is None else object_store_mb * 2 ** 20)
-    return True, False
+    for attempt in range(STARTS):
+        try:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level='warning',
+                     object_store_memory=None if object_store_mb is None
+                     else object_store_mb * 2 ** 20)
+            return True, False
+        except Exception as exc:   # noqa: BLE001 - Ray raises a bare Exception for this
+            # Ray gives its raylet 30 s to come up; a machine loaded enough can take longer
+            ray.shutdown()
+            if 'timed out during startup' not in str(exc) or attempt == STARTS - 1:
+                raise ToolError(f'cannot start Ray on this machine: '
+                                f'{" ".join(str(exc).split())[:300]}') from None
+    raise AssertionError('unreachable')
 
 
 # -- the plant report -------------------------------------------------------------------------
