@@ -16,6 +16,7 @@ TOOLS = {
     'hrc-bag': 'hrc_ros.ros.bag:main',
     'hrc-case-study': 'hrc_ros.ros.case_study:main',
     'hrc-hmi-shots': 'hrc_ros.ros.hmi.shots:main',
+    'hrc-fleet': 'hrc_ros.tools.fleet:main',
 }
 
 setup(
@@ -35,7 +36,7 @@ setup(
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'numba', 'aiohttp'],
+                      'matplotlib', 'numba', 'aiohttp', 'ray>=2.58'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',

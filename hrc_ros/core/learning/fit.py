@@ -69,6 +69,7 @@ together.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import datetime as _dt
 import math
 import time
@@ -765,6 +766,20 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
                      data.issues, seconds, min_support)
+
+
+def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:
+    """`result` (a fit without the bootstrap) with the intervals, effective support and
+    warnings of bootstrap estimates `samples` (B, 57) made elsewhere, by `fit`'s rules: for
+    a scheduler that runs the resamples as separate tasks (core.plant)."""
+    samples = np.asarray(samples, dtype=float)
+    interval = np.percentile(samples, [2.5, 97.5], axis=0)
+    effective = effective_support(result.params.vector(), samples)
+    unseen = [w for w in result.warnings if w.startswith('no epoch observed O=')]
+    warnings = _warnings(result.support, effective, result.hold, result.min_support,
+                         result.episodes, len(samples)) + unseen
+    return dataclasses.replace(result, interval=interval, samples=samples, effective=effective,
+                               warnings=warnings)
 
 
 # -- outputs ----------------------------------------------------------------------------------

@@ -1,0 +1,353 @@
+"""The plant file: which cells a plant has and how each one is learned (docs/FLEET.md).
+
+    plant: example                 # a name for the report
+    defaults:                      # optional: any cell setting below, for every cell
+      drift: {window: 1000}
+    cells:
+      - name: line1                # letters, digits, '_' and '-'; unique; the output folder
+        namespace: /line1          # the cell's ROS namespace (default: /<name>)
+        recordings: bags/line1     # a bag folder, .mcap or .csv file, or a folder of them,
+                                   # or a list of those; relative to the plant file
+        base: default              # the configuration the cell runs now: a shipped name or
+                                   # a path (the fit's start, the drift test's null model,
+                                   # the running side of the shadow check)
+        policy: null               # the policy it runs now (default: the shipped one solved
+                                   # for base, else solved by the plant)
+        solver: mdp                # mdp, pomdp or both: which policies are solved
+        selector: paper            # the cell's selector (pomdp, fib need solver pomdp/both)
+        run: on_drift              # on_drift: fit, solve and check only when drift is found;
+                                   # always: every run
+        drift: {window: 1000, alpha: 0.05, simulations: 199}
+        fit: {bootstrap: 50, starts: 2, tol: 1.0e-7, max_iter: 1000, hold: [], window: null}
+        evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2}
+        pomdp: {episodes: 2000, rounds: 1}
+        max_memory_mb: null        # a solve whose memory estimate is above this fails
+        retries: 3                 # Ray's retries of a task whose worker died
+        seed: 0
+
+A generated cell has `generate:` instead of `recordings:`: the batch simulator records
+`episodes` x `epochs` of the running policy in a world whose people differ from the base
+(`world`: overrides of the base configuration, or a configuration path), with `explore` of
+uniformly drawn actions, from `seed`; the recordings go to the output folder's cache.
+
+The file is read with `yaml.safe_load` after a size check (`MAX_PLANT_BYTES`); a schema
+error is one line naming the cell and the key (`PlantError`) and refuses the whole plant
+before any work. What a cell's files hold (a base configuration that does not load, a missing
+recording) is that cell's failure, reported with the others' results.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from ..paths import read_text, shipped_config_path
+
+MAX_PLANT_BYTES = 1_000_000
+MAX_CELLS = 10_000
+SOLVERS = ('mdp', 'pomdp', 'both')
+RUNS = ('on_drift', 'always')
+MDP_SELECTORS = ('paper', 'qmdp', 'mls')
+POMDP_SELECTORS = ('pomdp', 'fib')
+NAME = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$')
+NAMESPACE = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*/?$')
+
+# section -> key -> (kind, default); kinds are checked by _value below
+SECTIONS = {
+    'drift': {'window': ('int:20:10000000', 1000), 'alpha': ('prob_open', 0.05),
+              'simulations': ('int:9:100000', 199), 'tol': ('float:1e-12:1', 1e-6),
+              'max_iter': ('int:1:100000', 200)},
+    'fit': {'bootstrap': ('int:0:10000', 50), 'starts': ('int:1:100', 2),
+            'tol': ('float:1e-15:1', 1e-7), 'max_iter': ('int:1:100000', 1000),
+            'hold': ('families', ()), 'window': ('int_or_null:20:1000000000', None)},
+    'evaluate': {'episodes': ('int:10:1000000', 1000), 'epochs': ('int:1:100000', 50),
+                 'task_rate': ('prob', 0.2)},
+    'pomdp': {'episodes': ('int:1:100000', 2000), 'rounds': ('int:0:20', 1)},
+    'generate': {'world': ('world', None), 'episodes': ('int:1:1000000', 40),
+                 'epochs': ('int:1:100000', 50), 'explore': ('prob', 0.2),
+                 'seed': ('int:0:2147483647', 0)},
+}
+SCALARS = {'base': ('text', 'default'), 'policy': ('text_or_null', None),
+           'solver': (SOLVERS, 'mdp'), 'selector': ('selector', None), 'run': (RUNS, 'on_drift'),
+           'max_memory_mb': ('int_or_null:1:100000000', None), 'retries': ('int:0:100', 3),
+           'seed': ('int:0:2147483647', 0)}
+CELL_ONLY = ('name', 'namespace', 'recordings', 'generate')
+CHUNK = 10     # bootstrap resamples and drift simulations per task
+
+
+class PlantError(ValueError):
+    """The plant file cannot be used; the one-line message names the cell and the key."""
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    """One cell as the plant file gives it, defaults applied and paths resolved."""
+
+    name: str
+    namespace: str
+    recordings: tuple          # resolved paths (empty for a generated cell)
+    generate: dict | None      # the generate section, with `world` as given
+    base: str                  # resolved configuration path
+    policy: str | None
+    solver: str
+    selector: str
+    run: str
+    drift: dict
+    fit: dict
+    evaluate: dict
+    pomdp: dict
+    max_memory_mb: int | None
+    retries: int
+    seed: int
+    index: int = 0
+
+    @property
+    def solves_pomdp(self) -> bool:
+        return self.solver in ('pomdp', 'both')
+
+    def generate_key(self) -> str:
+        """A hash of what the generated recordings depend on (the cache's name)."""
+        blob = json.dumps({'generate': self.generate, 'base': self.base, 'policy': self.policy},
+                          sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class Plant:
+    name: str
+    source: str
+    cells: tuple = field(default_factory=tuple)
+
+
+def _where(index: int | None, name: str | None) -> str:
+    if index is None:
+        return 'defaults'
+    return f'cells[{index}]' + (f' ({name})' if name else '')
+
+
+def _value(where: str, key: str, kind, value):
+    """`value` checked against `kind`; PlantError naming `where` and `key` otherwise."""
+    def bad(expected: str):
+        return PlantError(f'{where}: {key} must be {expected}, got {value!r}')
+    if isinstance(kind, tuple):
+        if value not in kind:
+            raise bad(' or '.join(kind))
+        return value
+    if kind == 'text':
+        if not isinstance(value, str) or not value.strip():
+            raise bad('a non-empty text')
+        return value
+    if kind == 'text_or_null':
+        return None if value is None else _value(where, key, 'text', value)
+    if kind == 'selector':
+        if value not in MDP_SELECTORS + POMDP_SELECTORS:
+            raise bad(' or '.join(MDP_SELECTORS + POMDP_SELECTORS))
+        return value
+    if kind.startswith('int_or_null:'):
+        return None if value is None else _value(where, key, 'int:' + kind.split(':', 1)[1],
+                                                 value)
+    if kind.startswith('int:'):
+        low, high = (int(float(v)) for v in kind.split(':')[1:])
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise bad(f'an integer in {low}..{high}')
+        return value
+    if kind.startswith('float:'):
+        low, high = (float(v) for v in kind.split(':')[1:])
+        if (isinstance(value, bool) or not isinstance(value, (int, float))
+                or not math.isfinite(value) or not low <= value <= high):
+            raise bad(f'a number in [{low:g}, {high:g}]')
+        return float(value)
+    if kind in ('prob', 'prob_open'):
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+              and (0 <= value <= 1 if kind == 'prob' else 0 < value < 1))
+        if not ok:
+            raise bad('a probability in [0, 1]' if kind == 'prob' else 'a number in (0, 1)')
+        return float(value)
+    if kind == 'families':
+        from ..learning.fit import FitError, expand_hold
+        if isinstance(value, str):
+            value = [v for v in value.split(',') if v.strip()]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise bad('a list of parameter families')
+        try:
+            return expand_hold(value)
+        except FitError as exc:
+            raise PlantError(f'{where}: {key}: {exc}') from None
+    if kind == 'world':
+        if not isinstance(value, (dict, str)):
+            raise bad('overrides of the base configuration (a mapping) or a configuration '
+                      'path')
+        return copy.deepcopy(value)
+    raise AssertionError(kind)
+
+
+def _settings(where: str, given: dict, into: dict, allowed=None) -> dict:
+    """Cell settings of `given` merged over `into` (a copy), each checked."""
+    out = copy.deepcopy(into)
+    for key, value in given.items():
+        if allowed is not None and key not in allowed:
+            raise PlantError(f'{where}: unknown key {key!r} (known: {", ".join(allowed)})')
+        if key in SECTIONS:
+            if not isinstance(value, dict):
+                raise PlantError(f'{where}: {key} must be a mapping of '
+                                 f'{", ".join(SECTIONS[key])}')
+            section = dict(out.get(key) or {})
+            for sub, v in value.items():
+                if sub not in SECTIONS[key]:
+                    raise PlantError(f'{where}: unknown key {key}.{sub!s} (known: '
+                                     f'{", ".join(SECTIONS[key])})')
+                section[sub] = _value(where, f'{key}.{sub}', SECTIONS[key][sub][0], v)
+            out[key] = section
+        elif key in SCALARS:
+            out[key] = _value(where, key, SCALARS[key][0], value)
+    return out
+
+
+def _section(settings: dict, name: str) -> dict:
+    values = {k: default for k, (_, default) in SECTIONS[name].items()}
+    values.update(settings.get(name) or {})
+    return values
+
+
+def _resolve(folder: Path, text: str) -> str:
+    path = Path(text).expanduser()
+    return str(path if path.is_absolute() else (folder / path))
+
+
+def _base_path(folder: Path, text: str) -> str:
+    """A shipped configuration by name (`default`, `paper`), else a path."""
+    if '/' not in text and not text.endswith(('.yaml', '.yml')):
+        return str(shipped_config_path(text))
+    return _resolve(folder, text)
+
+
+def load_plant(path: str | Path) -> Plant:
+    """The plant file, checked (module docstring); PlantError with one line otherwise."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise PlantError(f'{path}: cannot read: {exc.strerror}') from None
+    if size > MAX_PLANT_BYTES:
+        raise PlantError(f'{path}: {size:,} bytes is more than a plant file may hold '
+                         f'({MAX_PLANT_BYTES:,}); list fewer cells per file')
+    text = read_text(path, PlantError, 'YAML plant')
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise PlantError(f'{path} is not valid YAML: {" ".join(str(exc).split())}') from None
+    if not isinstance(data, dict):
+        raise PlantError(f'{path}: the top level must be a mapping with plant, defaults, cells')
+    unknown = set(data) - {'plant', 'defaults', 'cells'}
+    if unknown:
+        raise PlantError(f'{path}: unknown top-level key {sorted(map(str, unknown))[0]!r} '
+                         '(known: plant, defaults, cells)')
+    name = data.get('plant', path.stem)
+    if not isinstance(name, str) or not name.strip():
+        raise PlantError(f'{path}: plant must be a name, got {name!r}')
+    defaults = data.get('defaults') or {}
+    if not isinstance(defaults, dict):
+        raise PlantError(f'{path}: defaults must be a mapping of cell settings')
+    for key in defaults:
+        if key in CELL_ONLY:
+            raise PlantError(f'{path}: defaults: {key} is set per cell, not in defaults')
+    shared = _settings(f'{path}: defaults', defaults, {},
+                       allowed=tuple(SCALARS) + tuple(s for s in SECTIONS if s != 'generate'))
+    cells = data.get('cells')
+    if not isinstance(cells, list) or not cells:
+        raise PlantError(f'{path}: cells must be a non-empty list of cells')
+    if len(cells) > MAX_CELLS:
+        raise PlantError(f'{path}: {len(cells)} cells; a plant file holds at most {MAX_CELLS}')
+    folder = path.resolve().parent
+    out, names, namespaces = [], set(), {}
+    for i, cell in enumerate(cells):
+        label = cell.get('name') if isinstance(cell, dict) else None
+        where = f'{path}: {_where(i, label if isinstance(label, str) else None)}'
+        if not isinstance(cell, dict):
+            raise PlantError(f'{where}: a cell must be a mapping with name, recordings, ...')
+        if not isinstance(label, str) or not NAME.match(label):
+            raise PlantError(f'{where}: name must be letters, digits, _ or - (at most 64, '
+                             f'starting with a letter or digit), got {label!r}')
+        if label in names:
+            raise PlantError(f'{where}: the name {label!r} is used by another cell')
+        names.add(label)
+        settings = _settings(where, cell, shared,
+                             allowed=CELL_ONLY + tuple(SCALARS) + tuple(SECTIONS))
+        namespace = cell.get('namespace', f'/{label}')
+        if not isinstance(namespace, str) or not NAMESPACE.match(namespace):
+            raise PlantError(f'{where}: namespace must be a ROS namespace such as /line1, got '
+                             f'{namespace!r}')
+        namespace = '/' + namespace.strip('/') if namespace.strip('/') else '/'
+        if namespace in namespaces:
+            raise PlantError(f'{where}: namespace {namespace} is also the namespace of cell '
+                             f'{namespaces[namespace]}')
+        namespaces[namespace] = label
+        has_recordings, has_generate = 'recordings' in cell, 'generate' in cell
+        if has_recordings == has_generate:
+            raise PlantError(f'{where}: give either recordings (where its bags are) or '
+                             'generate (recordings made by the batch simulator)')
+        recordings: tuple = ()
+        generate = None
+        if has_recordings:
+            given = cell['recordings']
+            given = [given] if isinstance(given, str) else given
+            if (not isinstance(given, list) or not given
+                    or not all(isinstance(g, str) and g.strip() for g in given)):
+                raise PlantError(f'{where}: recordings must be a path or a list of paths, got '
+                                 f'{cell["recordings"]!r}')
+            recordings = tuple(_resolve(folder, g) for g in given)
+        else:
+            generate = _section(settings, 'generate')
+            if generate['world'] is None:
+                raise PlantError(f'{where}: generate.world is needed: overrides of the base '
+                                 'configuration, or a configuration path')
+            if isinstance(generate['world'], str):
+                generate['world'] = _base_path(folder, generate['world'])
+        solver = settings.get('solver', SCALARS['solver'][1])
+        selector = settings.get('selector') or ('pomdp' if solver == 'pomdp' else 'paper')
+        if selector in POMDP_SELECTORS and solver == 'mdp':
+            raise PlantError(f'{where}: selector {selector} plans with a POMDP policy: set '
+                             'solver: pomdp or both')
+        if selector in MDP_SELECTORS and solver == 'pomdp':
+            raise PlantError(f'{where}: selector {selector} reads the MDP policy; with solver: '
+                             'pomdp the cell runs pomdp or fib (or set solver: both)')
+        policy = settings.get('policy')
+        out.append(CellSpec(
+            name=label, namespace=namespace, recordings=recordings, generate=generate,
+            base=_base_path(folder, settings.get('base', SCALARS['base'][1])),
+            policy=None if policy is None else _resolve(folder, policy),
+            solver=solver, selector=selector, run=settings.get('run', SCALARS['run'][1]),
+            drift=_section(settings, 'drift'), fit=_section(settings, 'fit'),
+            evaluate=_section(settings, 'evaluate'), pomdp=_section(settings, 'pomdp'),
+            max_memory_mb=settings.get('max_memory_mb'),
+            retries=settings.get('retries', SCALARS['retries'][1]),
+            seed=settings.get('seed', SCALARS['seed'][1]), index=i))
+    return Plant(name.strip(), str(path), tuple(out))
+
+
+RECORDING_SUFFIXES = ('.csv', '.mcap')
+
+
+def recording_files(paths) -> list[Path]:
+    """The recordings a cell's `recordings` name, oldest first: a bag folder (one holding
+    metadata.yaml or .mcap files directly) is one recording; any other folder contributes
+    its .csv files, .mcap files and bag folders, in name order (name them by date)."""
+    out: list[Path] = []
+    for path in map(Path, paths):
+        if path.is_dir() and not (path / 'metadata.yaml').is_file() and not any(
+                path.glob('*.mcap')):
+            for entry in sorted(path.iterdir()):
+                if entry.suffix.lower() in RECORDING_SUFFIXES or (
+                        entry.is_dir() and ((entry / 'metadata.yaml').is_file()
+                                            or any(entry.glob('*.mcap')))):
+                    out.append(entry)
+        else:
+            out.append(path)
+    return out

@@ -1,0 +1,550 @@
+"""The plant of cells (hrc-fleet, docs/FLEET.md): the plant file, the promotion rule, the
+pipeline's state machine and the drift test's pieces without Ray; then `hrc-fleet run` on the
+session's embedded Ray (one per test session, 2 CPUs, a small object store, no dashboard):
+
+- a plant of three small cells (generated recordings at full model size: one whose people
+  decline most requests and drift closer, one unchanged; one whose bag is corrupt), with
+  `--apply` against a real decision node running in the drifted cell's namespace: the drifted
+  cell is detected and promoted, the unchanged one kept, the corrupt one reported, every
+  output there and loadable, and the node reports the new policy;
+- a worker SIGKILLed in the middle of a drift simulation (its pid recorded from inside the
+  task): Ray retries it on another worker and the report is the one of the run without kill.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import replace
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hrc_ros.core.config import load_config
+from hrc_ros.core.learning import fit as fitting
+from hrc_ros.core.plant import drift
+from hrc_ros.core.plant.pipeline import (FAILED, KEEP, PROMOTE, CellPipeline, Ref, decide,
+                                         run_stage)
+from hrc_ros.core.plant.spec import PlantError, load_plant
+from hrc_ros.core.plant.stages import CellError, check_memory
+from hrc_ros.core.model import HRCModel
+
+REPO = Path(__file__).resolve().parents[1]
+DRIFTED_WORLD = {'model': {'p_accept': [0.05, 0.35, 0.7],
+                           'p_delta': [[0.05, 0.65, 0.30], [0.05, 0.55, 0.40],
+                                       [0.02, 0.38, 0.60]]}}
+PLANT = """\
+plant: test
+defaults:
+  policy: {policy}
+  drift: {{window: 1000, simulations: 39}}
+  fit: {{bootstrap: 20}}
+  evaluate: {{episodes: 300}}
+cells:
+  - name: drifted
+    namespace: /fleet_drifted
+    generate: {{world: {world}, episodes: 20, epochs: 50, seed: 1}}
+  - name: unchanged
+    namespace: /fleet_unchanged
+    generate: {{world: {{}}, episodes: 20, epochs: 50, seed: 2}}
+  - name: corrupt
+    namespace: /fleet_corrupt
+    recordings: corrupt
+"""
+
+
+# -- the plant file ---------------------------------------------------------------------------
+def write_plant(tmp_path, text: str) -> Path:
+    path = tmp_path / 'plant.yaml'
+    path.write_text(text)
+    return path
+
+
+CELL = '  - name: a\n    recordings: x.csv\n'
+
+
+@pytest.mark.parametrize('text, message', [
+    ('cells: []\n', 'cells must be a non-empty list'),
+    ('cells:\n' + CELL + CELL, "the name 'a' is used by another cell"),
+    ('cells:\n  - name: a b\n    recordings: x.csv\n', 'name must be letters'),
+    ('cells:\n  - name: a\n', 'give either recordings'),
+    ('cells:\n' + CELL + '    drift: {window: 5}\n', 'drift.window must be an integer in'),
+    ('cells:\n' + CELL + '    drift: {windw: 500}\n', "unknown key drift.windw"),
+    ('cells:\n' + CELL + '    solver: sarsop\n', 'solver must be mdp or pomdp or both'),
+    ('cells:\n' + CELL + '    selector: pomdp\n', 'set solver: pomdp or both'),
+    ('cells:\n' + CELL + '    namespace: bad ns\n', 'namespace must be a ROS namespace'),
+    ('cells:\n' + CELL + '    fit: {hold: [p_acept]}\n', "unknown parameter family 'p_acept'"),
+    ('defaults:\n  recordings: x\ncells:\n' + CELL, 'recordings is set per cell'),
+    ('cells:\n' + CELL + '  - name: b\n    namespace: /a\n    recordings: y.csv\n',
+     'namespace /a is also the namespace of cell a'),
+    ('cells: [\n', 'is not valid YAML'),
+    ('celss: []\n', "unknown top-level key 'celss'"),
+])
+def test_a_bad_plant_file_is_refused_in_one_line(tmp_path, text, message):
+    with pytest.raises(PlantError) as error:
+        load_plant(write_plant(tmp_path, text))
+    assert message in str(error.value) and '\n' not in str(error.value)
+
+
+def test_a_plant_file_too_large_is_refused_before_it_is_parsed(tmp_path):
+    path = write_plant(tmp_path, 'cells:\n' + CELL + '#' * 1_100_000 + '\n')
+    with pytest.raises(PlantError, match='more than a plant file may hold'):
+        load_plant(path)
+
+
+def test_the_command_refuses_a_bad_plant_with_exit_2_before_any_work(tmp_path, capsys):
+    from hrc_ros.tools.fleet import main
+    path = write_plant(tmp_path, 'cells:\n' + CELL + '    run: sometimes\n')
+    assert main(['run', str(path), '--out', str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('hrc-fleet: error: ') and 'run must be on_drift or always' in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / 'out').exists()
+
+
+def test_defaults_and_paths_resolve_against_the_plant_file(tmp_path):
+    path = write_plant(tmp_path, 'defaults:\n  drift: {window: 300}\n  run: always\n'
+                       'cells:\n' + CELL + '    drift: {alpha: 0.01}\n'
+                       '  - name: b\n    base: paper\n    recordings: [one.csv, /abs/two]\n')
+    a, b = load_plant(path).cells
+    assert a.drift['window'] == 300 and a.drift['alpha'] == 0.01 and a.run == 'always'
+    assert b.drift['alpha'] == 0.05 and b.namespace == '/b' and b.selector == 'paper'
+    assert a.recordings == (str(tmp_path / 'x.csv'),)
+    assert b.recordings == (str(tmp_path / 'one.csv'), '/abs/two')
+    assert b.base.endswith('config/paper.yaml')
+
+
+# -- the promotion rule -----------------------------------------------------------------------
+def figures(cost, collisions=0.0, refused=0.0):
+    def m(mean, low, high, new=1.0, running=1.0):
+        return {'mean': mean, 'low': low, 'high': high, 'half_width': (high - low) / 2,
+                'new': new, 'running': running}
+    return {'episodes': 100, 'discounted_cost': m(*cost),
+            'collision_epochs': m(collisions, collisions - 0.1, collisions + 0.1),
+            'refused_requests': m(refused, refused - 0.1, refused + 0.1)}
+
+
+@pytest.mark.parametrize('shadow, decision, why', [
+    (figures((-2.0, -3.0, -1.0)), PROMOTE, 'cheaper'),
+    (figures((-2.0, -3.0, 0.1)), KEEP, 'not cheaper with 95% confidence'),
+    (figures((-2.0, -3.0, 0.0)), KEEP, 'not cheaper with 95% confidence'),
+    (figures((-2.0, -3.0, float('nan'))), KEEP, 'not cheaper'),
+    (figures((-2.0, -3.0, -1.0), collisions=0.01), KEEP, 'more collision epochs'),
+    (figures((-2.0, -3.0, -1.0), refused=0.01), KEEP, 'more refused requests'),
+    (figures((-2.0, -3.0, -1.0), collisions=-0.5, refused=-1.0), PROMOTE, 'cheaper'),
+])
+def test_the_promotion_rule(shadow, decision, why):
+    got, reason = decide(shadow)
+    assert got == decision and why in reason
+
+
+# -- the pipeline as a state machine ----------------------------------------------------------
+def pipeline_of(tmp_path, run='on_drift', bootstrap=25, simulations=39):
+    path = write_plant(tmp_path, f'cells:\n{CELL}    run: {run}\n    fit: {{bootstrap: '
+                       f'{bootstrap}}}\n    drift: {{simulations: {simulations}}}\n')
+    spec = load_plant(path).cells[0]
+    return CellPipeline(spec, str(tmp_path / 'cells' / 'a'), rho=3, sigma=3)
+
+
+READ = {'epochs': 1000, 'episodes': 20, 'window_epochs': 1000, 'issues': 0,
+        'first_issues': [], 'files': ['x.csv']}
+DRIFT = {'statistic': 50.0, 'loglik_running': -10.0, 'loglik_refit': 15.0, 'impossible': ''}
+
+
+def keys(jobs):
+    return [j.key for j in jobs]
+
+
+def test_no_drift_keeps_the_cell_without_fitting(tmp_path):
+    p = pipeline_of(tmp_path)
+    assert keys(p.start()) == ['read'] and p.start()[0].where == 'driver_node'
+    assert keys(p.done('read', READ)) == ['drift']
+    nulls = p.done('drift', DRIFT)
+    assert keys(nulls) == ['null.0', 'null.1', 'null.2', 'null.3']     # 39 in chunks of 10
+    assert sum(len(j.args[-1]) for j in nulls) == 39
+    assert p.done('null.0', {'statistics': [60.0] * 10}) == []
+    p.done('null.1', {'statistics': [40.0] * 10})
+    p.done('null.2', {'statistics': [40.0] * 10})
+    out = p.done('null.3', {'statistics': [40.0] * 9})
+    assert keys(out) == ['outputs'] and out[0].args[1:] == (None, None, None, None)
+    assert p.entry['decision'] == KEEP and p.entry['drift_p'] == pytest.approx(11 / 40)
+    assert 'no drift' in p.entry['reason']
+    write = p.done('outputs', {'files': ['cell_report.json']})
+    assert keys(write) == ['write'] and write[0].where == 'driver'
+    assert p.done('write', {'files': ['cell_report.json']}) == [] and p.finished
+
+
+def test_drift_starts_the_fit_and_a_failure_fails_only_that_cell(tmp_path):
+    p = pipeline_of(tmp_path)
+    p.start()
+    p.done('read', READ)
+    p.done('drift', DRIFT)
+    for i in range(3):
+        p.done(f'null.{i}', {'statistics': [10.0] * 10})
+    fit = p.done('null.3', {'statistics': [10.0] * 9})
+    assert keys(fit) == ['fit'] and p.entry['drift_p'] == 0.025
+    boots = p.done('fit', {'iterations': 12, 'loglik': -5.0})
+    assert keys(boots) == ['boot.0', 'boot.1', 'boot.2']
+    assert [len(j.args[-1]) for j in boots] == [10, 10, 5]
+    assert p.done('boot.1', {'resamples': 10}) == []
+    failed = p.done('boot.0', {'error': 'bootstrap: out of memory'})
+    assert keys(failed) == ['write'] and p.entry['decision'] == FAILED
+    assert p.entry['reason'] == 'bootstrap: out of memory'
+    report = json.loads(failed[0].args[1]['cell_report.json'])
+    assert report['decision'] == FAILED and report['drift_p'] == 0.025
+    assert p.done('boot.2', {'resamples': 5}) == []        # late results change nothing
+    p.done('write', {'files': ['cell_report.json']})
+    assert p.finished
+
+
+def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
+    p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9)
+    p.start()
+    assert keys(p.done('read', READ)) == ['drift', 'fit']
+    summary = p.done('fit', {'iterations': 3, 'loglik': -1.0})
+    assert keys(summary) == ['summary'] and summary[0].args[:2] == (Ref('fit'),
+                                                                    Ref('@base:a'))
+    solve = p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0,
+                               'config_sha256': 'abc'})
+    assert keys(solve) == ['mdp']
+    assert keys(p.done('drift', DRIFT)) == ['null.0']
+    assert p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0}) == []
+    shadow = p.done('null.0', {'statistics': [100.0] * 9})     # no drift, but run: always
+    assert keys(shadow) == ['shadow'] and p.entry['drift_p'] == 1.0
+    outputs = p.done('shadow', figures((-1.0, -2.0, -0.5)) | {'epochs': 50, 'seed': 0,
+                                                                'selector': 'paper'})
+    assert keys(outputs) == ['outputs'] and p.entry['decision'] == PROMOTE
+
+
+def test_a_stage_error_or_bug_becomes_the_cells_reason():
+    facts, payload = run_stage('drift_null', None, None, None, None, [])
+    assert payload is None and facts['error'].startswith('drift_null: TypeError')
+    facts, _ = run_stage('read', ['/nonexistent/recordings.csv'], 3, 3, '/a', 100)
+    assert facts['error'].startswith('recordings: /nonexistent/recordings.csv')
+
+
+# -- the stages' refusals ---------------------------------------------------------------------
+def recorded(config, episodes=10, epochs=50, seed=0):
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of
+    model = HRCModel(config)
+    policy = load_policy(default_policy_path(config), config)
+    scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed)
+    result = BatchSimulator(model, policy).run(scenarios, seeds, 'paper', explore=0.2,
+                                               record=True)
+    return fitting.prepare(result.recordings(model))
+
+
+def test_a_solve_over_its_memory_limit_and_a_fit_that_does_not_converge_fail_the_cell(
+        default_config, model):
+    with pytest.raises(CellError, match='more than the cell.s max_memory_mb'):
+        check_memory(model, 1, 'the MDP solve')
+    data = recorded(default_config, episodes=4)
+    with pytest.raises(CellError, match='EM did not converge in 1 iterations'):
+        from hrc_ros.core.plant.stages import fit_point
+        fit_point({'all': data}, default_config, {'hold': (), 'starts': 1, 'tol': 1e-12,
+                                                  'max_iter': 1}, 0)
+
+
+def test_bootstrap_summary_applies_fits_rules_to_resamples_made_elsewhere(default_config):
+    data = recorded(default_config, episodes=12)
+    whole = fitting.fit(data, default_config, n_init=1, bootstrap=6, max_iter=200)
+    point = replace(whole, interval=None, samples=None, effective=None,
+                    warnings=fitting.fit(data, default_config, n_init=1, bootstrap=0,
+                                         max_iter=200).warnings)
+    again = fitting.with_bootstrap(point, whole.samples)
+    np.testing.assert_array_equal(again.interval, whole.interval)
+    np.testing.assert_array_equal(again.effective, whole.effective)
+    assert again.warnings == whole.warnings
+
+
+# -- the drift test's pieces ------------------------------------------------------------------
+def test_simulated_recordings_keep_the_design_and_draw_moves_the_model_allows(default_config):
+    data = recorded(default_config, episodes=10)
+    params = fitting.Params.from_config(default_config)
+    simulated = drift.simulate(data, params, np.full(9, 1 / 9), np.random.default_rng(3))
+    assert np.array_equal(simulated.observation < 3, data.observation < 3)
+    assert np.array_equal(simulated.answer > 0, data.answer > 0)
+    moves = simulated.move[data.has_move].astype(bool)
+    unique = data.unique_delta[data.has_move]
+    # each row is one class of the split the recorded (d, action) makes of the three Deltas
+    for row, u in zip(moves, unique):
+        assert (row.sum() == 1 and u[row].all()) or np.array_equal(row, ~u)
+    assert not np.array_equal(simulated.observation, data.observation)
+    fitting.e_step(params, simulated)        # possible under the model it was drawn from
+
+
+def test_recordings_impossible_under_the_running_model_have_p_zero(default_config):
+    data = recorded(default_config, episodes=4)
+    never_refuses = default_config.with_overrides({'model': {'p_accept': [1.0, 1.0, 1.0]}})
+    refused = np.flatnonzero(data.answer == drift.REFUSED)
+    assert refused.size
+    s = drift.statistic(data, never_refuses)
+    assert s.lr == np.inf and 'impossible' in s.impossible
+    assert drift.p_value(s.lr, [1.0, 2.0]) == 0.0
+    assert drift.p_value(3.0, [1.0, 2.0, 3.0, 4.0]) == pytest.approx(3 / 5)
+
+
+# -- hrc-fleet run on Ray ---------------------------------------------------------------------
+def descendants(pid: int) -> set[int]:
+    children: dict = {}
+    for entry in Path('/proc').iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, set()).add(int(entry.name))
+    out, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), ()):
+            if child not in out:
+                out.add(child)
+                todo.append(child)
+    return out
+
+
+@pytest.fixture(scope='module')
+def ray_session():
+    """The one embedded Ray of the test session (only this module uses Ray): 2 CPUs, a
+    150 MB object store, no dashboard; shut down as soon as this module is done, so the rest
+    of the suite never shares the machine with it, and none of its processes left behind."""
+    ray = pytest.importorskip('ray')
+    # Ray's workers run at nice 15 by default: on a loaded machine (CI beside nothing, a
+    # developer's beside other work) they would wait for everyone else; here they compete
+    # as the suite's other processes do
+    os.environ.setdefault('RAY_worker_niceness', '0')
+    before = descendants(os.getpid())
+    from hrc_ros.tools.fleet import start_ray
+    assert start_ray(None, num_cpus=2, object_store_mb=150) == (True, False)
+    started = descendants(os.getpid()) - before
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and any(Path(f'/proc/{p}').exists() for p in started):
+            time.sleep(0.1)
+        left = [p for p in started if Path(f'/proc/{p}').exists()
+                and (Path(f'/proc/{p}') / 'stat').read_text().split()[2] != 'Z']
+        assert not left, f'Ray processes left after shutdown: {left}'
+
+
+@pytest.fixture(scope='module')
+def plant_dir(tmp_path_factory, policy_path):
+    folder = tmp_path_factory.mktemp('plant')
+    (folder / 'corrupt').mkdir()
+    shipped = (REPO / 'bags' / 'case_study' / 'case_study_0.mcap').read_bytes()
+    (folder / 'corrupt' / 'shift1.mcap').write_bytes(shipped[:len(shipped) // 2])
+    (folder / 'plant.yaml').write_text(PLANT.format(policy=policy_path,
+                                                    world=json.dumps(DRIFTED_WORLD)))
+    return folder
+
+
+DECISION_PARAMS = """\
+/fleet_drifted/decision:
+  ros__parameters:
+    policy: '{policy}'
+    selector: paper
+    epoch_period: 0.5
+    stale_timeout: 1.0
+"""
+
+
+@pytest.fixture(scope='module')
+def plant_run(ray_session, plant_dir, policy_path, ros_domain_id):
+    """`hrc-fleet run plant.yaml --apply` with a decision node running in the drifted cell's
+    namespace; then a listener of our own waits for that node to report the new policy."""
+    from test_suite_multiprocess import Listener
+    from hrc_ros.ros import conversions as conv
+    from hrc_ros.ros.processes import NodeProcesses
+    from hrc_ros.tools.fleet import main
+    params = plant_dir / 'decision.yaml'
+    params.write_text(DECISION_PARAMS.format(policy=policy_path))
+    (plant_dir / 'logs').mkdir()
+    suite = NodeProcesses(plant_dir / 'logs', [params])
+    suite.start('decision_node', remappings=[('__ns', '/fleet_drifted')])
+    out = plant_dir / 'out'
+    try:
+        code = main(['run', str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
+                     '--apply-timeout', '30', '-q'])
+        new_policy = str(out / 'cells' / 'drifted' / 'policy.npz')
+        listener = Listener()
+        seen: list = []
+
+        def reported():
+            return any(v.get('policy_file') == new_policy for v in seen)
+        from diagnostic_msgs.msg import DiagnosticArray
+        from hrc_ros.ros import qos
+        listener.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: seen.extend(conv.diagnostic_values(s) for s in msg.status
+                                    if s.name == 'fleet_drifted/decision: decision'),
+            qos.RELIABLE)
+        listener.spin_until(lambda: reported() or suite.dead(), 15.0)
+        listener.close()
+        alive = not suite.dead()
+    finally:
+        suite.stop(10.0)
+    report = json.loads((out / 'plant_report.json').read_text())
+    return {'code': code, 'out': out, 'report': report, 'seen': seen,
+            'new_policy': new_policy, 'alive': alive, 'logs': suite.logs()}
+
+
+def entry_of(report, cell):
+    return next(e for e in report['cells'] if e['cell'] == cell)
+
+
+def test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the_corrupt(
+        plant_run):
+    report, out = plant_run['report'], plant_run['out']
+    assert plant_run['code'] == 1                    # a cell failed: the exit status says so
+    assert [e['cell'] for e in report['cells']] == ['drifted', 'unchanged', 'corrupt']
+    assert report['decisions'] == {'promote': 1, 'keep': 1, 'failed': 1}
+    for e in report['cells']:
+        assert {'cell', 'decision', 'reason', 'drift_p', 'cost_difference'} <= set(e)
+
+    drifted = entry_of(report, 'drifted')
+    assert drifted['decision'] == PROMOTE and drifted['drift']['drifted']
+    assert drifted['drift_p'] == pytest.approx(1 / 40)       # above every simulation
+    cost = drifted['cost_difference']
+    assert cost['high'] < 0 and cost['low'] <= cost['mean'] <= cost['high']
+    assert decide({**{m: drifted[m] for m in ('collision_epochs', 'refused_requests')},
+                   'discounted_cost': cost, 'episodes': 300})[0] == PROMOTE
+    moved = {m['name']: m for m in drifted['moved']}
+    assert 'p_accept[em=1]' in moved            # the world's 0.35 against the base's 0.8
+    low, high = moved['p_accept[em=1]']['ci95']
+    assert high < 0.8 and low <= moved['p_accept[em=1]']['fitted'] <= high
+
+    unchanged = entry_of(report, 'unchanged')
+    assert unchanged['decision'] == KEEP and unchanged['drift_p'] >= 0.05
+    assert 'no drift' in unchanged['reason'] and unchanged['cost_difference'] is None
+
+    corrupt = entry_of(report, 'corrupt')
+    assert corrupt['decision'] == FAILED and corrupt['failed_stage'] == 'read'
+    assert 'shift1.mcap' in corrupt['reason']
+
+    # outputs complete, whole and loadable; nothing half-written left anywhere
+    cells = out / 'cells'
+    assert sorted(p.name for p in (cells / 'drifted').iterdir()) == sorted(
+        ['cell_report.json', 'fitted.png', 'fitted.report.json', 'fitted.yaml', 'policy.npz',
+         'shadow.png'])
+    from hrc_ros.core.mdp.policy import load_policy
+    fitted = load_config(cells / 'drifted' / 'fitted.yaml')
+    assert fitted.policy_hash == drifted['fit']['config_sha256']
+    load_policy(cells / 'drifted' / 'policy.npz', fitted)
+    for cell, decision in (('drifted', PROMOTE), ('unchanged', KEEP), ('corrupt', FAILED)):
+        written = json.loads((cells / cell / 'cell_report.json').read_text())
+        assert written['decision'] == decision and written['cell'] == cell
+    assert not list(out.rglob('*.tmp*'))
+    markdown = (out / 'plant_report.md').read_text()
+    for cell in ('drifted', 'unchanged', 'corrupt'):
+        assert f'| {cell} |' in markdown
+    assert (out / 'plant_costs.png').stat().st_size > 1000
+
+
+def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(plant_run):
+    drifted = entry_of(plant_run['report'], 'drifted')
+    assert plant_run['alive'], plant_run['logs']
+    assert drifted['applied']['status'] == 'swapped', drifted['applied']
+    assert 'applied' not in entry_of(plant_run['report'], 'unchanged')
+    # independently of the applier: the node itself reports deciding with the new policy
+    fitted_sha = drifted['fit']['config_sha256']
+    assert any(v.get('policy_file') == plant_run['new_policy']
+               and v.get('config_sha256') == fitted_sha for v in plant_run['seen']), (
+        plant_run['seen'][-3:], plant_run['logs'])
+    from hrc_ros.ros.fleet_apply import apply_promoted
+    elsewhere = {**drifted, 'cell': 'elsewhere', 'namespace': '/fleet_nobody_here'}
+    result = apply_promoted([elsewhere], timeout=5.0)['elsewhere']
+    assert result['status'] == 'not running' and '/fleet_nobody_here/decision' in \
+        result['detail']
+
+
+def kill_me_once(marker: str, stage: str, cell: str) -> None:
+    """In the worker: the first drift simulation task records its pid and waits to be
+    killed; later calls (the retry) record theirs and go on."""
+    if stage != 'drift_null':
+        return
+    with open(marker + '.calls', 'a') as calls:
+        calls.write(f'{os.getpid()}\n')
+    if os.path.exists(marker):
+        return
+    mine = f'{marker}.{os.getpid()}'
+    with open(mine, 'w') as f:
+        f.write(str(os.getpid()))
+    try:
+        os.link(mine, marker)       # the first of the tasks running side by side wins
+    except FileExistsError:
+        return
+    time.sleep(60.0)                # the test kills this process before it wakes
+
+
+def test_a_worker_killed_mid_task_is_retried_and_the_report_is_right(ray_session, plant_dir,
+                                                                      plant_run, tmp_path):
+    from ray import cloudpickle
+    from hrc_ros.tools.fleet import Progress, run_plant
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    plant = load_plant(plant_dir / 'plant.yaml')
+    plant = replace(plant, cells=tuple(c for c in plant.cells if c.name == 'unchanged'))
+    marker = str(tmp_path / 'victim.pid')
+    killed = []
+
+    def killer():
+        deadline = time.monotonic() + 60
+        while not os.path.exists(marker) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pid = int(Path(marker).read_text())
+        os.kill(pid, signal.SIGKILL)
+        killed.append(pid)
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    report = run_plant(plant, tmp_path / 'out', hook=partial(kill_me_once, marker),
+                       progress=Progress(quiet=True))
+    thread.join(5.0)
+    calls = [int(line) for line in Path(marker + '.calls').read_text().split()]
+    assert killed and killed[0] in calls
+    assert not Path(f'/proc/{killed[0]}').exists() or \
+        Path(f'/proc/{killed[0]}/stat').read_text().split()[2] == 'Z'
+    assert calls.count(killed[0]) == 1 and len(calls) == 5      # 4 chunks, one run twice
+    (entry,) = report['cells']
+    reference = entry_of(plant_run['report'], 'unchanged')
+    assert entry['decision'] == KEEP, entry['reason']
+    assert entry['drift_p'] == reference['drift_p']
+    assert entry['drift']['statistic'] == reference['drift']['statistic']
+
+
+class Stream:
+    def __init__(self, tty: bool):
+        self.tty, self.text = tty, ''
+
+    def isatty(self):
+        return self.tty
+
+    def write(self, text):
+        self.text += text
+
+    def flush(self):
+        pass
+
+
+def test_progress_redraws_one_line_on_a_terminal_and_logs_changes_otherwise(tmp_path):
+    from hrc_ros.tools.fleet import Progress
+    p = pipeline_of(tmp_path)
+    p.start()
+    terminal, log = Stream(True), Stream(False)
+    for stream in (terminal, log):
+        bar = Progress(stream)
+        bar([p])
+        bar([p])                       # no change: the log gets no second line
+        p.stage = 'drift'
+        bar([p])
+        bar.close()
+        p.stage = 'read'
+    assert terminal.text.count('\r') == 3 and terminal.text.endswith('\n')
+    assert '0/1 cells' in terminal.text and 'a: drift' in terminal.text
+    assert log.text.splitlines() == ['hrc-fleet: [0/1] a: read', 'hrc-fleet: [0/1] a: drift']
