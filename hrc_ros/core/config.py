@@ -62,6 +62,10 @@ _OPTIONAL = {('observation', 'likelihood')}
 
 PROBABILITY_TOLERANCE = 1e-9
 MAX_SWEEPS = 100_000   # value iteration's bound: a fixed count, or the cap of a run to eta
+# YAML values a configuration file may hold (the schema has about 150): a node parses a live
+# `config` in its parameter callback, and 5,000 values parse in well under a second, where the
+# 64 KiB the file may have (paths.FILE_LIMITS) could hold 30,000
+MAX_VALUES = 5_000
 
 
 class ConfigError(ValueError):
@@ -198,7 +202,7 @@ def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) ->
     """Load and validate a configuration YAML file (complete; see module docstring)."""
     path = Path(path)
     data = parse_yaml(read_text(path, ConfigError, 'YAML configuration', kind='config'),
-                      ConfigError, str(path))
+                      ConfigError, str(path), max_nodes=MAX_VALUES)
     if overrides:
         if not isinstance(data, dict):
             raise ConfigError(f'{path}: the top level must be a mapping of sections')
