@@ -106,8 +106,6 @@ def test_results_are_reproducible_for_a_seed(model, policy, small_run):
 
 
 def test_cli_table_and_files(tmp_path, capsys):
-    if not default_policy_path().is_file():
-        pytest.skip('no shipped policy')
     assert main(['--episodes', '40', '--epochs', '20', '--out', str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert '40 episodes x 20 epochs' in out and 'paper: 40/40 episodes' in out
@@ -132,10 +130,9 @@ def test_cli_refuses_bad_inputs(tmp_path, capsys):
                  ['--task-rate', '1.5']):
         with pytest.raises(SystemExit):
             main(argv + ['--out', str(tmp_path)])
-    paper_policy = default_policy_path().with_name('paper.npz')
-    if paper_policy.is_file():
-        assert main(['--policy', str(paper_policy), '--out', str(tmp_path)]) == 2
-        assert 'was solved for configuration' in capsys.readouterr().err
+    paper_policy = default_policy_path().with_name('paper.npz')    # shipped: it is tracked
+    assert main(['--policy', str(paper_policy), '--out', str(tmp_path)]) == 2
+    assert 'was solved for configuration' in capsys.readouterr().err
 
 
 def test_bad_api_inputs_raise(model, policy):

@@ -216,17 +216,14 @@ def test_table_csv_and_plots(model, policy, tmp_path):
 
 
 def test_cli_writes_outputs_and_refuses_a_mismatched_policy(tmp_path, capsys):
-    shipped = default_policy_path()
-    if not shipped.is_file():
-        pytest.skip('no shipped policy')
+    shipped = default_policy_path()       # tracked files: a missing one fails the test
     assert main(['--seed', '8', '--out', str(tmp_path), '--epochs', '12']) == 0
     out = capsys.readouterr().out
     assert 'case study: selector paper' in out and 'wrote' in out
     assert (tmp_path / 'trajectory.csv').is_file() and (tmp_path / 'belief.png').is_file()
     paper_policy = shipped.with_name('paper.npz')
-    if paper_policy.is_file():
-        assert main(['--policy', str(paper_policy), '--out', str(tmp_path)]) == 2
-        assert 'was solved for configuration' in capsys.readouterr().err
+    assert main(['--policy', str(paper_policy), '--out', str(tmp_path)]) == 2
+    assert 'was solved for configuration' in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(['--selector', 'best'])
 

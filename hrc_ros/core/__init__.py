@@ -3,7 +3,8 @@ numba; no rclpy, no ROS message package, no ament), grouped by what each part se
 
 Modules every part uses:
 - `config`: configuration YAML, validation, hash; `paths`: where config/ and policies/ live,
-  and reading and writing users' files safely;
+  and reading and writing users' files safely (types, size caps, the one YAML loader);
+  `quoting`: capped quotes of user data in errors;
 - `model`: MODEL.md's state space, rules and cost; `tasks`: the task book (MODEL.md 3.2);
 - `protocol`: the ROS epoch protocol as pure state machines (the nodes call it); `swap`: the
   live-swap rule of the decision node and the belief estimator;

@@ -40,6 +40,18 @@ Reading refuses, with `BagError`, a missing file, a file that is not MCAP, a tru
 footer: a recorder killed before it closed the file), one without a summary or Statistics, a
 summary or chunk whose CRC does not match, a profile other than ``ros2`` and non-``cdr``
 channels. Times are integer nanoseconds: log time = receive time, as rosbag2 records it.
+
+A bag is untrusted input (`paths`): the file must be a regular file within the 'bag' cap, its
+summary section within 'bag_metadata', and before any chunk is inflated (`_check_chunks`) each
+chunk's record is read from the file and compared with its index, and what it can inflate to
+is bounded by its compression's own frame header: the content size a zstd or lz4 frame
+declares must be the chunk's declared uncompressed size (the `mcap` reader hands that size to
+zstandard as the output bound, but zstandard allocates what the frame says, so an 88 KB file
+would inflate to 1 GiB), an lz4 frame without one is bounded by its block count times its
+block size. Each chunk may inflate to at most the 'bag_chunk' cap and all of them together to
+'bag_inflated'. A bag without a chunk index, which the `mcap` reader reads linearly, has every
+record checked the same way. What the errors quote of a bag (topic names, encodings, the
+parser's messages) is capped.
 """
 
 from __future__ import annotations
@@ -58,7 +70,9 @@ import yaml
 from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
 
-from .paths import ament_share_dir
+from .paths import (MIB, ament_share_dir, file_limit, input_stat, open_input, output_target,
+                    parse_yaml, read_yaml)
+from .quoting import QUOTE_LIMIT, cap, quote
 
 PROFILE = 'ros2'
 SCHEMA_ENCODING = 'ros2msg'
@@ -95,6 +109,12 @@ _LEGACY_POLICY_NAMES = {
 _MAGIC = b'\x89MCAP0\r\n'
 _FOOTER_OPCODE = 0x02
 _FOOTER_RECORD = 1 + 8 + 8 + 8 + 4   # opcode, length, summary_start, summary_offset_start, crc
+_CHUNK_OPCODE = 0x06
+_DATA_END_OPCODE = 0x0F
+_CHUNK_HEAD = 1 + 8 + 8 + 8 + 8 + 4 + 4   # opcode, length, start, end, size, crc, name length
+_ZSTD_MAGIC = 0xFD2FB528
+_LZ4_MAGIC = 0x184D2204
+_LZ4_BLOCK_BYTES = {4: 64 << 10, 5: 256 << 10, 6: 1 << 20, 7: 4 << 20}   # by BD's block id
 
 
 class BagError(RuntimeError):
@@ -259,10 +279,10 @@ def parse_qos_profiles(text: str | None) -> list[dict]:
     """The profiles of an ``offered_qos_profiles`` string (metadata version 9 or older)."""
     if not text:
         return []
-    try:
-        loaded = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise BagError(f'offered_qos_profiles is not YAML: {exc}') from None
+    if len(text) > file_limit('bag_metadata', BagError):
+        raise BagError(f'offered_qos_profiles holds {len(text):,} characters, more than a '
+                       'bag\'s metadata may have here (HRC_ROS_LIMIT_BAG_METADATA)')
+    loaded = parse_yaml(text, BagError, 'offered_qos_profiles')
     if loaded is None:
         return []
     if not isinstance(loaded, list) or not all(isinstance(p, Mapping) for p in loaded):
@@ -308,6 +328,10 @@ class BagWriter:
             self.path = target
             if not target.parent.is_dir():
                 raise BagError(f'cannot write {target}: folder {target.parent} does not exist')
+            try:
+                self.path = output_target(target)   # a link only to a regular file
+            except OSError as exc:
+                raise BagError(f'cannot write {target}: {exc.strerror}') from None
         else:
             if target.exists() and (not target.is_dir() or any(target.iterdir())):
                 raise BagError(f'cannot record into {target}: it already exists '
@@ -544,7 +568,7 @@ def resolve_bag_file(path: str | os.PathLike) -> Path:
         metadata = target / METADATA_FILE
         if metadata.is_file():
             try:
-                info = yaml.safe_load(metadata.read_text(encoding='utf-8'))
+                info = read_yaml(metadata, BagError, 'bag metadata', kind='bag_metadata')
                 listed = list(info['rosbag2_bagfile_information']['relative_file_paths'])
             except Exception:  # noqa: BLE001 - fall back to looking at the folder
                 listed = []
@@ -556,14 +580,21 @@ def resolve_bag_file(path: str | os.PathLike) -> Path:
             raise BagError(f'{target} holds {len(candidates)} .mcap files (split bags are not '
                            'supported): name one of them')
         return candidates[0]
-    raise BagError(f'{target}: no such file or directory')
+    if os.path.lexists(target):   # a loop of links, a FIFO, a device: say which
+        input_stat(target, BagError, 'bag')
+    raise BagError(f'{cap(target, 300)}: no such file or directory')
+
+
+def _open_bag(path: Path):
+    """The bag file opened for reading (`paths.open_input`, the 'bag' cap)."""
+    return open_input(path, BagError, 'bag', 'MCAP bag')
 
 
 def _check_container(path: Path) -> None:
-    """Magic bytes at both ends, a footer with a summary, and the summary's CRC."""
+    """Magic bytes at both ends, a footer with a summary, and the summary's size and CRC."""
     try:
-        size = path.stat().st_size
-        with open(path, 'rb') as stream:
+        with _open_bag(path) as stream:
+            size = os.fstat(stream.fileno()).st_size
             head = stream.read(len(_MAGIC))
             if head != _MAGIC:
                 raise BagError(f'{path}: not an MCAP file (no MCAP magic bytes at the start)')
@@ -582,6 +613,11 @@ def _check_container(path: Path) -> None:
             if not len(_MAGIC) <= summary_start < crc_end:
                 raise BagError(f'{path}: corrupt MCAP footer (summary offset {summary_start} '
                                f'outside the file)')
+            summary_limit = file_limit('bag_metadata', BagError)
+            if crc_end - summary_start > summary_limit:
+                raise BagError(f'{path}: its summary section holds {crc_end - summary_start:,} '
+                               f'bytes, more than the {summary_limit:,} a bag\'s metadata may '
+                               'have here (HRC_ROS_LIMIT_BAG_METADATA)')
             if summary_crc:
                 stream.seek(summary_start)
                 if zlib.crc32(stream.read(crc_end - summary_start)) != summary_crc:
@@ -600,34 +636,175 @@ class _Contents:
 
 def _open_contents(path: Path, stream) -> _Contents:
     """Check the header, summary and channels; BagError for anything rosbag2 would not play."""
+    record_limit = max(file_limit('bag_chunk', BagError), file_limit('bag_metadata', BagError))
     try:
-        reader = SeekingReader(stream, validate_crcs=True)
+        reader = SeekingReader(stream, validate_crcs=True, record_size_limit=record_limit + MIB)
         header = reader.get_header()
         summary = reader.get_summary()
     except BagError:
         raise
     except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes
-        raise BagError(f'{path}: corrupt MCAP file ({type(exc).__name__}: {exc})') from None
+        raise BagError(f'{path}: corrupt MCAP file ({type(exc).__name__}: {cap(exc)})') from None
     if header.profile != PROFILE:
-        raise BagError(f'{path}: MCAP profile is {header.profile!r}, not {PROFILE!r} '
+        raise BagError(f'{path}: MCAP profile is {quote(header.profile)}, not {PROFILE!r} '
                        '(not a ROS 2 bag)')
     if summary is None or summary.statistics is None:
         raise BagError(f'{path}: the MCAP file has no Statistics record')
     topic_types: dict[int, str] = {}
     qos: dict[int, list] = {}
     for channel_id, channel in summary.channels.items():
+        topic = quote(channel.topic)
         if channel.message_encoding != MESSAGE_ENCODING:
-            raise BagError(f'{path}: topic {channel.topic} is encoded as '
-                           f'{channel.message_encoding!r}, not {MESSAGE_ENCODING!r}')
+            raise BagError(f'{path}: topic {topic} is encoded as '
+                           f'{quote(channel.message_encoding)}, not {MESSAGE_ENCODING!r}')
         schema = summary.schemas.get(channel.schema_id)
         if schema is None:
-            raise BagError(f'{path}: topic {channel.topic} has no schema (message type)')
+            raise BagError(f'{path}: topic {topic} has no schema (message type)')
         if schema.encoding not in (SCHEMA_ENCODING, 'ros2idl'):
-            raise BagError(f'{path}: topic {channel.topic} has a {schema.encoding!r} schema, '
+            raise BagError(f'{path}: topic {topic} has a {quote(schema.encoding)} schema, '
                            f'not {SCHEMA_ENCODING!r}')
-        topic_types[channel_id] = full_type_name(schema.name)
-        qos[channel_id] = parse_qos_profiles(channel.metadata.get('offered_qos_profiles'))
+        try:
+            topic_types[channel_id] = full_type_name(schema.name)
+            qos[channel_id] = parse_qos_profiles(channel.metadata.get('offered_qos_profiles'))
+        except BagError as exc:
+            raise BagError(f'{path}: topic {topic}: {exc}') from None
+    _check_chunks(path, stream, summary)
     return _Contents(reader, summary, topic_types, qos)
+
+
+def _check_chunks(path: Path, stream, summary) -> None:
+    """Bound what inflating the chunks can cost, before any is inflated (module docstring):
+    each chunk record against its index and its frame header, at most the 'bag_chunk' cap
+    each and 'bag_inflated' together; without a chunk index, every record of the data
+    section, as the `mcap` reader will then read them all."""
+    per_chunk = file_limit('bag_chunk', BagError)
+    total_limit = file_limit('bag_inflated', BagError)
+    size = os.fstat(stream.fileno()).st_size
+    if summary.chunk_indexes:
+        chunks = ((index.chunk_start_offset, index) for index in summary.chunk_indexes)
+    else:
+        chunks = ((offset, None) for offset in _chunk_offsets(path, stream, size, per_chunk))
+    total = 0
+    try:
+        for offset, index in chunks:
+            total += _chunk_inflated(path, stream, size, offset, index, per_chunk)
+            if total > total_limit:
+                raise BagError(f'{path}: its chunks inflate to more than {total_limit:,} bytes '
+                               'together, the most a bag may hold here (a site that needs more '
+                               'sets HRC_ROS_LIMIT_BAG_INFLATED)')
+    except (OSError, struct.error) as exc:
+        raise BagError(f'{path}: corrupt MCAP file ({type(exc).__name__}: {cap(exc)})') from None
+
+
+def _chunk_offsets(path: Path, stream, size: int, per_record: int):
+    """The offsets of the Chunk records of a file without a chunk index: its records walked
+    from the magic to the Data End record, each bounded like a chunk."""
+    offset = len(_MAGIC)
+    while offset + 9 <= size:
+        stream.seek(offset)
+        opcode, length = struct.unpack('<BQ', stream.read(9))
+        if opcode == _DATA_END_OPCODE or opcode == _FOOTER_OPCODE:
+            return
+        if length > per_record + per_record // 64 + 4096:
+            raise BagError(f'{path}: a record at byte {offset:,} holds {length:,} bytes, more '
+                           f'than the {per_record:,} a bag chunk may have here '
+                           '(HRC_ROS_LIMIT_BAG_CHUNK)')
+        if opcode == _CHUNK_OPCODE:
+            yield offset
+        offset += 9 + length
+
+
+def _corrupt_chunk(path: Path, offset: int, what: str) -> BagError:
+    return BagError(f'{path}: corrupt MCAP file (the chunk at byte {offset:,} {what})')
+
+
+def _chunk_inflated(path: Path, stream, size: int, offset: int, index, per_chunk: int) -> int:
+    """The most bytes the chunk record at `offset` can inflate to, read from its record and
+    its frame header (its index, if any, must agree); BagError past `per_chunk`."""
+    stream.seek(offset)
+    head = stream.read(_CHUNK_HEAD)
+    if len(head) < _CHUNK_HEAD or head[0] != _CHUNK_OPCODE:
+        raise _corrupt_chunk(path, offset, 'is not a chunk record')
+    _, _, _, declared, _, name_length = struct.unpack('<QQQQII', head[1:])
+    if name_length > 16:
+        raise _corrupt_chunk(path, offset, f'names a compression of {name_length:,} bytes')
+    compression = stream.read(name_length).decode('utf-8', 'replace')
+    (data_length,) = struct.unpack('<Q', stream.read(8))
+    data_start = stream.tell()
+    if data_start + data_length > size:
+        raise _corrupt_chunk(path, offset, 'runs past the end of the file')
+    if index is not None and (index.compression, index.uncompressed_size,
+                              index.compressed_size) != (compression, declared, data_length):
+        raise _corrupt_chunk(path, offset, 'is not what its index says')
+    if compression == '':
+        inflated = data_length
+    elif compression == 'zstd':
+        framed = _zstd_content_size(stream.read(18))
+        if framed is False:
+            raise _corrupt_chunk(path, offset, 'does not begin with a zstd frame')
+        if framed is not None and framed != declared:
+            raise _corrupt_chunk(path, offset, f'declares {declared:,} bytes, its zstd frame '
+                                 f'{framed:,}')
+        inflated = declared      # mcap hands it to zstandard as the bound without a frame size
+    elif compression == 'lz4':
+        inflated = _lz4_inflated(path, stream, offset, data_start, data_length, declared,
+                                 per_chunk)
+    else:
+        inflated = declared      # the mcap reader refuses an unknown compression itself
+    if inflated > per_chunk or data_length > per_chunk + per_chunk // 64 + 4096:
+        raise BagError(f'{path}: the chunk at byte {offset:,} inflates to {inflated:,} bytes, '
+                       f'more than the {per_chunk:,} a bag chunk may have here (a site that '
+                       'needs more sets HRC_ROS_LIMIT_BAG_CHUNK)')
+    return inflated
+
+
+def _zstd_content_size(head: bytes):
+    """The content size a zstd frame header declares (RFC 8878 3.1.1.1), None when it declares
+    none, False when `head` is not the start of a zstd frame."""
+    if len(head) < 6 or int.from_bytes(head[:4], 'little') != _ZSTD_MAGIC:
+        return False
+    descriptor = head[4]
+    size_flag, single_segment, dictionary_flag = descriptor >> 6, descriptor >> 5 & 1, \
+        descriptor & 3
+    at = 5 + (0 if single_segment else 1) + (0, 1, 2, 4)[dictionary_flag]
+    width = (single_segment, 2, 4, 8)[size_flag]
+    if width == 0:
+        return None
+    if len(head) < at + width:
+        return False
+    value = int.from_bytes(head[at:at + width], 'little')
+    return value + 256 if width == 2 else value
+
+
+def _lz4_inflated(path: Path, stream, offset: int, start: int, length: int, declared: int,
+                  limit: int) -> int:
+    """The most bytes the lz4 frame of a chunk inflates to (the lz4 frame format): the content
+    size its header declares (which must be `declared`; lz4 stops there), else its blocks
+    times their maximum size, counted until past `limit`."""
+    stream.seek(start)
+    head = stream.read(min(length, 15))
+    if len(head) < 7 or int.from_bytes(head[:4], 'little') != _LZ4_MAGIC or head[4] >> 6 != 1:
+        raise _corrupt_chunk(path, offset, 'does not begin with an lz4 frame')
+    flags, block_id = head[4], head[5] >> 4 & 7
+    if flags & 0x08:
+        framed = int.from_bytes(head[6:14], 'little')
+        if framed != declared:
+            raise _corrupt_chunk(path, offset, f'declares {declared:,} bytes, its lz4 frame '
+                                 f'{framed:,}')
+        return framed
+    if block_id not in _LZ4_BLOCK_BYTES:
+        raise _corrupt_chunk(path, offset, 'has an lz4 frame of an unknown block size')
+    block_bytes = _LZ4_BLOCK_BYTES[block_id]
+    checksum = 4 if flags & 0x10 else 0
+    at, end, inflated = start + 7 + (4 if flags & 0x01 else 0), start + length, 0
+    while at + 4 <= end and inflated <= limit:
+        stream.seek(at)
+        (block,) = struct.unpack('<I', stream.read(4))
+        if block == 0:           # the end mark: mcap's lz4 reads this one frame only
+            break
+        inflated += block_bytes
+        at += 4 + (block & 0x7FFFFFFF) + checksum
+    return inflated
 
 
 def _decoder_factory():
@@ -657,7 +834,7 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
     _check_container(bag_file)
     wanted = None if topics is None else set(topics)
     factory = _decoder_factory() if decode else None
-    with open(bag_file, 'rb') as stream:
+    with _open_bag(bag_file) as stream:
         contents = _open_contents(bag_file, stream)
         try:
             for schema, channel, message in contents.reader.iter_messages(
@@ -666,13 +843,14 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
                 if factory is not None:
                     decoder = factory.decoder_for(channel.message_encoding, schema)
                     if decoder is None:
-                        raise BagError(f'{bag_file}: topic {channel.topic} has no ros2msg '
-                                       'schema to decode it with')
+                        raise BagError(f'{bag_file}: topic {quote(channel.topic)} has no '
+                                       'ros2msg schema to decode it with')
                     try:
                         decoded = decoder(message.data)
                     except Exception as exc:  # noqa: BLE001 - bad CDR: struct.error, ValueError..
                         decode_error = (f'its {len(message.data)} CDR bytes do not decode as '
-                                        f'{schema.name}: {type(exc).__name__}: {exc}')
+                                        f'{cap(schema.name, QUOTE_LIMIT)}: '
+                                        f'{type(exc).__name__}: {cap(exc)}')
                 yield BagMessage(channel.topic, contents.topic_types[channel.id],
                                  message.log_time, message.publish_time, bytes(message.data),
                                  contents.qos[channel.id], decoded, decode_error)
@@ -680,7 +858,7 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None,
             raise
         except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes
             raise BagError(f'{bag_file}: corrupt MCAP data ({type(exc).__name__}: '
-                           f'{exc})') from None
+                           f'{cap(exc)})') from None
 
 
 def bag_info(path: str | os.PathLike, verify: bool = True) -> BagInfo:
@@ -691,7 +869,7 @@ def bag_info(path: str | os.PathLike, verify: bool = True) -> BagInfo:
     """
     bag_file = resolve_bag_file(path)
     _check_container(bag_file)
-    with open(bag_file, 'rb') as stream:
+    with _open_bag(bag_file) as stream:
         contents = _open_contents(bag_file, stream)
         metadata = _rosbag2_metadata(bag_file, contents.reader)
     statistics = contents.summary.statistics
@@ -702,7 +880,7 @@ def bag_info(path: str | os.PathLike, verify: bool = True) -> BagInfo:
             seen[bag_message.topic] = seen.get(bag_message.topic, 0) + 1
         for channel_id, channel in contents.summary.channels.items():
             if seen.get(channel.topic, 0) != counts.get(channel_id, 0):
-                raise BagError(f'{bag_file}: corrupt MCAP file ({channel.topic}: '
+                raise BagError(f'{bag_file}: corrupt MCAP file ({quote(channel.topic)}: '
                                f'{seen.get(channel.topic, 0)} messages, the summary says '
                                f'{counts.get(channel_id, 0)})')
     topics = [TopicInfo(channel.topic, contents.topic_types[channel_id],
@@ -721,9 +899,15 @@ def _rosbag2_metadata(bag_file: Path, reader) -> dict:
     try:
         for record in reader.iter_metadata():
             if record.name == ROSBAG2_METADATA:
-                found = yaml.safe_load(record.metadata.get('serialized_metadata', '')) or {}
-    except yaml.YAMLError as exc:
-        raise BagError(f'{bag_file}: its rosbag2 metadata record is not YAML ({exc})') from None
+                text = record.metadata.get('serialized_metadata', '')
+                if len(text) > file_limit('bag_metadata', BagError):
+                    raise BagError(f'{bag_file}: its rosbag2 metadata record holds '
+                                   f'{len(text):,} characters, more than a bag\'s metadata may '
+                                   'have here (HRC_ROS_LIMIT_BAG_METADATA)')
+                found = parse_yaml(text, BagError,
+                                   f'{bag_file}: its rosbag2 metadata record') or {}
+    except BagError:
+        raise
     except Exception as exc:  # noqa: BLE001 - the mcap parser raises many types on bad bytes
         raise BagError(f'{bag_file}: corrupt MCAP metadata ({type(exc).__name__})') from None
     if not isinstance(found, dict):

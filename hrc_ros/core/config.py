@@ -38,9 +38,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import yaml
 
-from .paths import read_text
+from .paths import parse_yaml, read_text
+from .quoting import QUOTE_LIMIT, cap, quote
 
 EMOTION_GROUPS = ('base', 'motivate', 'request')
 ALPHAS = tuple(f'alpha{i}' for i in range(1, 14))
@@ -62,6 +62,10 @@ _OPTIONAL = {('observation', 'likelihood')}
 
 PROBABILITY_TOLERANCE = 1e-9
 MAX_SWEEPS = 100_000   # value iteration's bound: a fixed count, or the cap of a run to eta
+# YAML values a configuration file may hold (the schema has about 150): a node parses a live
+# `config` in its parameter callback, and 5,000 values parse in well under a second, where the
+# 64 KiB the file may have (paths.FILE_LIMITS) could hold 30,000
+MAX_VALUES = 5_000
 
 
 class ConfigError(ValueError):
@@ -185,7 +189,7 @@ def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
     for key, value in overrides.items():
         name = f'{prefix}{key}'
         if key not in base and tuple(name.split('.')) not in _OPTIONAL:
-            raise ConfigError(f'unknown configuration key {name!r}')
+            raise ConfigError(f'unknown configuration key {quote(name)}')
         if key not in base:
             base[key] = None
         if isinstance(value, Mapping) and isinstance(base[key], dict):
@@ -197,11 +201,8 @@ def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
 def load_config(path: str | Path, overrides: Mapping[str, Any] | None = None) -> Config:
     """Load and validate a configuration YAML file (complete; see module docstring)."""
     path = Path(path)
-    text = read_text(path, ConfigError, 'YAML configuration')
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f'{path} is not valid YAML: {exc}') from None
+    data = parse_yaml(read_text(path, ConfigError, 'YAML configuration', kind='config'),
+                      ConfigError, str(path), max_nodes=MAX_VALUES)
     if overrides:
         if not isinstance(data, dict):
             raise ConfigError(f'{path}: the top level must be a mapping of sections')
@@ -219,7 +220,8 @@ def validate(data: Any) -> dict:
                           + ', '.join(_SCHEMA))
     for section in data:
         if section not in _SCHEMA:
-            raise ConfigError(f'unknown section {section!r} (known: {", ".join(_SCHEMA)})')
+            raise ConfigError(f'unknown section {quote(section)} (known: '
+                              f'{", ".join(_SCHEMA)})')
     out: dict = {}
     for section, keys in _SCHEMA.items():
         body = data.get(section)
@@ -227,7 +229,7 @@ def validate(data: Any) -> dict:
             raise ConfigError(f'missing section {section!r}')
         for key in body:
             if key not in keys:
-                raise ConfigError(f'unknown key {section}.{key}')
+                raise ConfigError(f'unknown key {section}.{cap(key, QUOTE_LIMIT)}')
         out[section] = {}
         for key, kind in keys.items():
             name = f'{section}.{key}'
@@ -241,15 +243,16 @@ def validate(data: Any) -> dict:
 
 def _number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f'{name} must be a number, got {value!r}')
+        raise ConfigError(f'{name} must be a number, got {quote(value)}')
     if not math.isfinite(value):
-        raise ConfigError(f'{name} must be finite, got {value!r}')
+        raise ConfigError(f'{name} must be finite, got {quote(value)}')
     return float(value)
 
 
 def _prob_vector(name: str, value: Any, length: int) -> list[float]:
     if not isinstance(value, (list, tuple)) or len(value) != length:
-        raise ConfigError(f'{name} must be a list of {length} probabilities, got {value!r}')
+        raise ConfigError(f'{name} must be a list of {length} probabilities, got '
+                          f'{quote(value)}')
     row = [_number(f'{name}[{i}]', v) for i, v in enumerate(value)]
     for i, p in enumerate(row):
         if not 0.0 <= p <= 1.0:
@@ -273,18 +276,18 @@ def _prob_rows(name: str, value: Any, rows: int, cols: int) -> list[list[float]]
 def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'int>=1':
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ConfigError(f'{name} must be an integer >= 1, got {value!r}')
+            raise ConfigError(f'{name} must be an integer >= 1, got {quote(value)}')
         return int(value)
     if kind == 'sweeps':
         if value is None:
             return None
         if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SWEEPS:
             raise ConfigError(f'{name} must be null (run to eta) or an integer in '
-                              f'1..{MAX_SWEEPS}, got {value!r}')
+                              f'1..{MAX_SWEEPS}, got {quote(value)}')
         return int(value)
     if kind == 'bool':
         if not isinstance(value, bool):
-            raise ConfigError(f'{name} must be true or false, got {value!r}')
+            raise ConfigError(f'{name} must be true or false, got {quote(value)}')
         return value
     if kind == 'weight':
         v = _number(name, value)
@@ -340,7 +343,7 @@ def _check(name: str, kind: str, value: Any) -> Any:
             raise ConfigError(f'{name} must map the groups {", ".join(EMOTION_GROUPS)}')
         for group in value:
             if group not in EMOTION_GROUPS:
-                raise ConfigError(f'unknown key {name}.{group}')
+                raise ConfigError(f'unknown key {name}.{cap(group, QUOTE_LIMIT)}')
         out = {}
         for group in EMOTION_GROUPS:
             body = value.get(group)
@@ -348,7 +351,7 @@ def _check(name: str, kind: str, value: Any) -> Any:
                 raise ConfigError(f'missing key {name}.{group}')
             for var in body:
                 if var not in ('em', 'ea'):
-                    raise ConfigError(f'unknown key {name}.{group}.{var}')
+                    raise ConfigError(f'unknown key {name}.{group}.{cap(var, QUOTE_LIMIT)}')
             out[group] = {}
             for var in ('em', 'ea'):
                 if var not in body:
@@ -358,6 +361,6 @@ def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'belief_mode':
         if value not in BELIEF_MODES:
             raise ConfigError(f'{name} must be one of {", ".join(BELIEF_MODES)}, '
-                              f'got {value!r}')
+                              f'got {quote(value)}')
         return value
     raise AssertionError(f'unknown schema kind {kind}')

@@ -67,6 +67,7 @@ from ..core.decision.observation import HUMAN_JOINTS  # noqa: F401 - the joint n
 from ..core.decision.observation import (MAX_JOINTS, MAX_KEYPOINTS, check_joint_speeds,
                                          check_keypoint_range)
 from ..core.protocol import Claim, InputError
+from ..core.quoting import QUOTE_LIMIT, cap, quote  # noqa: F401 - the one home, re-exported
 from ..core.cell.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
                                   split_marker_id)
 from ..core.cell.view import Shape
@@ -83,33 +84,6 @@ LEVEL_NAMES = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
 class MessageError(InputError):
     """A received message cannot be used; the text says why (the core's `InputError`, raised
     by a conversion)."""
-
-
-QUOTE_LIMIT = 200   # characters of a message's content quoted in an error (logs, diagnostics)
-
-
-def quote(value, limit: int = QUOTE_LIMIT) -> str:
-    """A message's content for an error text: its repr, cut to `limit` characters with the
-    original size, so a 10 MB string or 20,000 NaNs never become a 10 MB log line."""
-    shown = limit // 4                     # values shown of a sequence (each >= 3 characters)
-    if isinstance(value, np.ndarray):
-        size, cut = f'{value.size} values', value.size > shown
-        text = repr(value.reshape(-1)[:shown].tolist())
-    elif isinstance(value, (list, tuple)):
-        size, cut, text = f'{len(value)} values', len(value) > shown, repr(list(value[:shown]))
-    elif isinstance(value, (str, bytes)):
-        size, cut, text = f'{len(value)} characters', len(value) > limit, repr(value[:limit])
-    else:
-        text = repr(value)
-        size, cut = f'{len(text)} characters', False
-    if len(text) <= limit and not cut:
-        return text
-    return f'{text[:limit]}... ({size})'
-
-
-def cap(text: str, limit: int = 4 * QUOTE_LIMIT) -> str:
-    """An error text cut to `limit` characters, with its original length."""
-    return text if len(text) <= limit else f'{text[:limit]}... ({len(text)} characters)'
 
 
 # -- time -------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from typing import NoReturn
 
 from ..core.config import Config, ConfigError, load_config
 from ..core.model import HRCModel
-from ..core.paths import default_config_path
+from ..core.paths import default_config_path, output_target
 from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 
 MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
@@ -76,12 +76,19 @@ def output_folder(path: str | Path) -> Path:
     return folder
 
 
-def output_file(path: str | Path) -> Path:
-    """An output file path whose folder exists (or is created) and is writable, and which is
-    not a folder itself; ToolError otherwise."""
+def output_file(path: str | Path, suffix: str | None = None) -> Path:
+    """An output file path whose folder exists (or is created) and is writable, which is a
+    new name, a regular file or a link to one (`paths.output_target`: never a folder, a
+    device, a FIFO) and, given `suffix`, ends in it; ToolError otherwise."""
     target = Path(path)
     if target.is_dir():
         raise ToolError(f'output {target} is a folder; name a file')
+    if suffix is not None and target.suffix != suffix:
+        raise ToolError(f'output {target} must end in {suffix}; name it {target}{suffix}')
+    try:
+        output_target(target)
+    except OSError as exc:
+        raise ToolError(f'cannot write {target}: {exc.strerror}') from None
     output_folder(target.parent if str(target.parent) else '.')
     return target
 

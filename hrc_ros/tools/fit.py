@@ -18,6 +18,7 @@ half-written or invalid OUT.yaml (an older one stays as it was).
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -117,16 +118,19 @@ def main(argv=None) -> int:
 def check_outputs(outputs: dict, inputs, base) -> None:
     """ToolError, before any work, when an output would overwrite what the run reads (an input,
     a file in an input bag folder, the base configuration) or another output: the same file
-    after resolving symbolic links and relative parts. `outputs`: option -> path or None."""
-    read = [(Path(p).resolve(), f'input {p}') for p in inputs]
-    read.append((Path(base).resolve(), f'the base configuration {base}'))
+    after resolving symbolic links and relative parts (os.path.realpath, which takes a loop of
+    links as it is: reading it is refused later). `outputs`: option -> path or None."""
+    def resolve(path) -> Path:
+        return Path(os.path.realpath(path))
+    read = [(resolve(p), f'input {p}') for p in inputs]
+    read.append((resolve(base), f'the base configuration {base}'))
     taken: dict = {}
     for option, path in outputs.items():
         if path is None:
             continue
         if path.is_dir():
             raise ToolError(f'output {path} ({option}) is a folder; name a file')
-        where = path.resolve()
+        where = resolve(path)
         for source, what in read:
             if where == source or source in where.parents:
                 inside = '' if where == source else 'inside '

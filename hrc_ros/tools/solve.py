@@ -27,7 +27,8 @@ MAX_POMDP_EPISODES = 100_000   # x 50 epochs of 9 floats: under 2 GB of gathered
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-solve', description=__doc__.split('\n')[1])
     add_model_arguments(parser, policy=False)
-    parser.add_argument('-o', '--output', required=True, help='policy file to write (.npz)')
+    parser.add_argument('-o', '--output', required=True,
+                        help='policy file to write (a name ending in .npz)')
     parser.add_argument('--method', default='value_iteration', choices=('value_iteration', POMDP),
                         help='value_iteration (the MDP, default) or pomdp '
                              '(alpha vectors over the belief; see docs/POMDP.md)')
@@ -46,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         config, model, _ = load_model(args)
-        output = output_file(args.output)
+        output = output_file(args.output, suffix='.npz')   # checked before the solve
         check_memory(memory_estimate(model), f'solving {model.n_states:,} states')
     except ToolError as exc:
         return fail('hrc-solve', exc)
@@ -63,7 +64,10 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
 
     result = solve(model, sweeps=args.sweeps, progress=progress)
-    path = save_policy(output, result, config)
+    try:
+        path = save_policy(output, result, config)
+    except OSError as exc:
+        return fail('hrc-solve', f'cannot write {output}: {exc.strerror or exc}')
     counts = ' '.join(f'{a}={int((result.policy == i).sum())}' for i, a in enumerate(ACTIONS))
     print(f'hrc-solve: {"converged" if result.converged else "stopped"} after '
           f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '
@@ -83,7 +87,10 @@ def _solve_pomdp(args, config, model, output) -> int:
     quiet = args.quiet
     result = solve_pomdp(model, episodes=args.episodes, rounds=args.rounds, seed=args.seed,
                          progress=None if quiet else (lambda m: print(f'  {m}', flush=True)))
-    path = save_pomdp_policy(output, result, config)
+    try:
+        path = save_pomdp_policy(output, result, config)
+    except OSError as exc:
+        return fail('hrc-solve', f'cannot write {output}: {exc.strerror or exc}')
     for line in report_lines(result.report):
         print(f'hrc-solve: {line}')
     print(f'hrc-solve: wrote {path} ({path.stat().st_size / 1e6:.2f} MB, config sha256 '

@@ -46,8 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from ..model import ACTIONS, DISTANCE_LEVELS, OBSERVATION_LEVELS, TASK_VARIABLES, action_index
-from ..paths import read_text
+from ..paths import input_stat, read_text
 from ..protocol import EpochFollower, InputError, Stamp
+from ..quoting import QUOTE_LIMIT, cap, quote
 
 COLUMNS = ('epoch',) + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
 OPTIONAL_COLUMNS = ('episode',)
@@ -106,7 +107,7 @@ def _integer(path, line: int, column: str, text: str, low: int, high: int) -> in
         value = int(text.strip())
     except ValueError:
         raise RecordingError(f'{path}:{line}: column {column} must be an integer in '
-                             f'{low}..{high}, got {text!r}') from None
+                             f'{low}..{high}, got {quote(text)}') from None
     if not low <= value <= high:
         raise RecordingError(f'{path}:{line}: column {column} = {value} is out of range '
                              f'{low}..{high}')
@@ -125,7 +126,7 @@ def _records(path, text: str):
         except StopIteration:
             return
         except csv.Error as exc:
-            raise RecordingError(f'{path}:{line}: not a CSV record ({exc})') from None
+            raise RecordingError(f'{path}:{line}: not a CSV record ({cap(exc)})') from None
         if fields:
             yield line, fields
 
@@ -133,7 +134,7 @@ def _records(path, text: str):
 def read_csv(path, rho: int, sigma: int) -> list[Recording]:
     """The episodes of a trajectory CSV file (format in the module docstring)."""
     path = Path(path)
-    records = _records(path, read_text(path, RecordingError, 'CSV'))
+    records = _records(path, read_text(path, RecordingError, 'CSV', kind='csv'))
     _, header = next(records, (None, []))
     missing = [c for c in COLUMNS if c not in header]
     if missing:
@@ -158,7 +159,7 @@ def read_csv(path, rho: int, sigma: int) -> list[Recording]:
                                 OBSERVATION_LEVELS[-1]))
         name = row['action'].strip()
         if name not in ACTIONS:
-            raise RecordingError(f'{path}:{line}: column action = {name!r} is not one of '
+            raise RecordingError(f'{path}:{line}: column action = {quote(name)} is not one of '
                                  f'{" ".join(ACTIONS)}')
         answer = row['accepted'].strip()
         if answer == '':
@@ -167,11 +168,12 @@ def read_csv(path, rho: int, sigma: int) -> list[Recording]:
             accepted = int(answer in _TRUE)
         else:
             raise RecordingError(f'{path}:{line}: column accepted must be 1, 0 or empty, got '
-                                 f'{answer!r}')
+                                 f'{quote(answer)}')
         rows = episodes.setdefault(episode, [])
         if rows and epoch <= rows[-1][0]:
-            raise RecordingError(f'{path}:{line}: epochs out of order in episode {episode}: '
-                                 f'epoch {epoch} after epoch {rows[-1][0]}')
+            raise RecordingError(f'{path}:{line}: epochs out of order in episode '
+                                 f'{cap(episode, QUOTE_LIMIT)}: epoch {epoch} after epoch '
+                                 f'{rows[-1][0]}')
         rows.append((epoch, task, d, observation, action_index(name), accepted, line))
     if not episodes:
         raise RecordingError(f'{path}: no rows (a trajectory CSV has one row per epoch)')
@@ -206,14 +208,14 @@ def _bag_topics(path, topic_names, namespace: str | None) -> str:
     if namespace is not None:
         wanted = '/' + namespace.strip('/') if namespace.strip('/') else ''
         if wanted not in prefixes:
-            raise RecordingError(f'{path}: no hrc/epoch topic in namespace {namespace!r} (the '
-                                 f'bag has {", ".join(sorted(topic_names)) or "no topics"})')
+            raise RecordingError(f'{path}: no hrc/epoch topic in namespace {quote(namespace)} '
+                                 f'(the bag has {_topic_list(topic_names)})')
         prefixes = {wanted}
     if not prefixes:
         raise RecordingError(f'{path}: the bag has no hrc/epoch topic (needed: '
                              f'{", ".join(BAG_TOPICS)})')
     if len(prefixes) > 1:
-        raise RecordingError(f'{path}: the bag holds several cells ({", ".join(sorted(prefixes))})'
+        raise RecordingError(f'{path}: the bag holds several cells ({_topic_list(prefixes)})'
                              ': name one with --namespace')
     prefix = prefixes.pop()
     missing = [s for s in BAG_TOPICS if f'{prefix}/{s}' not in topic_names
@@ -222,6 +224,11 @@ def _bag_topics(path, topic_names, namespace: str | None) -> str:
         raise RecordingError(f'{path}: the bag has no {", ".join(missing)} topic (needed: '
                              f'{", ".join(BAG_TOPICS)})')
     return prefix
+
+
+def _topic_list(names) -> str:
+    """Topic names (or namespaces) of a bag for an error: capped, however many and long."""
+    return cap(', '.join(sorted(names)), 4 * QUOTE_LIMIT) or 'no topics'
 
 
 def _decoders(rho: int, sigma: int) -> dict:
@@ -283,7 +290,8 @@ def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
                 value = decoders[suffix](message.decoded)
             except (ValueError, TypeError, AttributeError) as exc:
                 issues.append(f'{source}: a {suffix} message published at '
-                              f'{message.publish_time_ns} ns cannot be read ({exc}); left out')
+                              f'{message.publish_time_ns} ns cannot be read ({cap(exc)}); left '
+                              'out')
                 continue
             if suffix == 'hrc/epoch':
                 signals.append((message.publish_time_ns, value))
@@ -304,7 +312,7 @@ def read_bag_recording(path, rho: int, sigma: int, namespace: str | None = None
         try:
             restart = follower.check(k, stamp)
         except InputError as exc:
-            issues.append(f'{source}: {exc}; that hrc/epoch signal is left out')
+            issues.append(f'{source}: {cap(exc)}; that hrc/epoch signal is left out')
             continue
         follower.take(k, stamp)
         if restart is not None or not episodes:
@@ -351,12 +359,11 @@ def read_recordings(paths, rho: int, sigma: int, namespace: str | None = None
         path = Path(path)
         if path.suffix.lower() == '.csv':
             out += read_csv(path, rho, sigma)
-        elif path.is_dir() or path.suffix.lower() == '.mcap':
-            if not path.exists():
-                raise RecordingError(f'{path}: no such bag')
+        elif path.is_dir():
             out += read_bag_recording(path, rho, sigma, namespace)
-        elif not path.exists():
-            raise RecordingError(f'{path}: no such file')
-        else:
-            raise RecordingError(f'{path}: not a .csv file, a .mcap file or a bag folder')
+        else:   # missing, a loop of links, a FIFO or a device: refused before it is opened
+            input_stat(path, RecordingError, 'recording')
+            if path.suffix.lower() != '.mcap':
+                raise RecordingError(f'{path}: not a .csv file, a .mcap file or a bag folder')
+            out += read_bag_recording(path, rho, sigma, namespace)
     return out

@@ -26,7 +26,6 @@ meets them); `default_pomdp_policy_path(config)` finds the one solved for a conf
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,14 +33,21 @@ import numpy as np
 
 from ..config import Config, config_hash
 from ..model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
-from ..paths import replace_file, share_dir
+from ..paths import PATH_QUOTE, replace_file, share_dir
+from ..quoting import cap
 from ..mdp.policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
-                          _parse_meta, check_config_hash, policy_meta)
+                          _parse_meta, _read_members, check_config_hash, open_policy,
+                          policy_meta, write_npz)
 from .solver import AlphaPolicy, PomdpResult
 
 KIND = 'pomdp'
 ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')
-MAX_VECTORS = 10_000_000    # 720 MB of vectors; a solved full-size policy holds about 12,000
+# Alpha vectors a file may hold, checked on the headers before anything is allocated: at most
+# MAX_VECTORS_PER_STATE per observable state it solves (the solver keeps one per belief point,
+# at most 100 a round per state and 21 rounds; the shipped files hold at most 107) and at most
+# MAX_VECTORS in all (144 MB; the shipped files hold about 11,000).
+MAX_VECTORS_PER_STATE = 4096
+MAX_VECTORS = 2_000_000
 
 
 def observation_hash(config: Config) -> str:
@@ -94,7 +100,7 @@ def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> 
                        observable_states=int(len(hrc.columns)), vectors=int(len(alphas)),
                        n_states=int(hrc.model.n_states), report=result.report)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return replace_file(path, lambda tmp: np.savez_compressed(
+    return replace_file(path, lambda tmp: write_npz(
         tmp, columns=hrc.columns.astype(np.int64), alpha=alphas.alpha.astype(np.float64),
         alpha_action=alphas.action.astype(np.int8),
         alpha_offsets=alphas.offsets.astype(np.int64),
@@ -105,20 +111,15 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
     """Load and check a POMDP policy file; with `config`, also check it was solved for it."""
     path = Path(path)
     how = ('Solve it: hrc-solve --method pomdp --config <your config.yaml> -o '
-           f'{path}')
-    if not path.is_file():
-        raise PolicyError(f'POMDP policy file {path} does not exist. {how}')
+           f'{cap(path, PATH_QUOTE)}')
     n_columns = None
     if config is not None:
         model = HRCModel(config)
         n_columns = model.n_task * N_DISTANCE
-    _check_headers(path, _headers(path, how), n_columns, how)   # before reading any array
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in ARRAYS}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
-        raise PolicyError(f'{path} is corrupt or not a POMDP policy file '
-                          f'({type(exc).__name__}: {str(exc)[:200]}). {how}') from None
+    with open_policy(path, how, 'POMDP policy file') as stream:
+        headers = _headers(stream, path, how)
+        _check_headers(path, headers, n_columns, how)   # before any array is read
+        arrays = _read_members(stream, path, headers, ARRAYS, how, 'a POMDP policy file')
     meta = _parse_meta(path, str(arrays.pop('meta')), how)
     if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
         raise PolicyError(f'{path} has no POMDP meta (kind, configuration and observation '
@@ -153,20 +154,23 @@ def _check_headers(path: Path, headers: dict, n_columns: int | None, how: str) -
     n_x = headers['columns'][0][:1]
     n_alpha = headers['alpha'][0][:1]
     limit_x = MAX_STATES if n_columns is None else n_columns
+    limit_alpha = min(MAX_VECTORS, MAX_VECTORS_PER_STATE * (n_x[0] if n_x else 0))
     expected = {
         'columns': (np.int64, n_x, n_x and n_x[0] <= limit_x),
-        'alpha': (np.float64, n_alpha + (N_HIDDEN,), n_alpha and n_alpha[0] <= MAX_VECTORS),
+        'alpha': (np.float64, n_alpha + (N_HIDDEN,), n_alpha and n_alpha[0] <= limit_alpha),
         'alpha_action': (np.int8, n_alpha, True),
         'alpha_offsets': (np.int64, tuple(n + 1 for n in n_x), True),
         'q_fib': (np.float64, n_x + (len(ACTIONS), N_HIDDEN), True),
     }
     for name, (dtype, shape, bounded) in expected.items():
-        got_shape, got_dtype, _ = headers[name]
+        got_shape, got_dtype = headers[name][:2]
         if got_dtype != np.dtype(dtype) or got_shape != shape or not bounded:
-            raise PolicyError(f'{path}: {name} must be {np.dtype(dtype)} of shape {shape} '
-                              f'(at most {limit_x} states, {MAX_VECTORS} vectors), got '
-                              f'{got_dtype} {got_shape}. {how}')
-    shape, dtype, _ = headers['meta']
+            raise PolicyError(f'{path}: {name} must be {np.dtype(dtype)} of shape '
+                              f'{cap(shape, 80)} (at most {limit_x:,} states and '
+                              f'{MAX_VECTORS_PER_STATE:,} vectors a state, {MAX_VECTORS:,} in '
+                              f'all: {limit_alpha:,} here), got {got_dtype} '
+                              f'{cap(got_shape, 80)}. {how}')
+    shape, dtype = headers['meta'][:2]
     if shape != () or dtype.kind != 'U' or dtype.itemsize // 4 > MAX_META_CHARS:
         raise PolicyError(f'{path}: meta must be one JSON string of at most {MAX_META_CHARS} '
                           f'characters. {how}')
