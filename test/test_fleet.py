@@ -94,7 +94,7 @@ def test_a_bad_plant_file_is_refused_in_one_line(tmp_path, text, message):
 
 def test_a_plant_file_too_large_is_refused_before_it_is_parsed(tmp_path):
     path = write_plant(tmp_path, 'cells:\n' + CELL + '#' * 1_100_000 + '\n')
-    with pytest.raises(PlantError, match='more than a plant file may hold'):
+    with pytest.raises(PlantError, match='more than the 1,048,576 a YAML plant file may have'):
         load_plant(path)
 
 

@@ -30,7 +30,8 @@ A generated cell has `generate:` instead of `recordings:`: the batch simulator r
 (`world`: overrides of the base configuration, or a configuration path), with `explore` of
 uniformly drawn actions, from `seed`; the recordings go to the output folder's cache.
 
-The file is read with `yaml.safe_load` after a size check (`MAX_PLANT_BYTES`); a schema
+The file is read with the project's safe YAML loader (`paths.read_yaml`: a regular file of at
+most 1 MiB, nesting and expansion bounded, one line for any loader error); a schema
 error is one line naming the cell and the key (`PlantError`) and refuses the whole plant
 before any work. What a cell's files hold (a base configuration that does not load, a missing
 recording) is that cell's failure, reported with the others' results.
@@ -46,11 +47,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
 
-from ..paths import read_text, shipped_config_path
+from ..paths import read_yaml, shipped_config_path
 
-MAX_PLANT_BYTES = 1_000_000
 MAX_CELLS = 10_000
 SOLVERS = ('mdp', 'pomdp', 'both')
 RUNS = ('on_drift', 'always')
@@ -231,18 +230,7 @@ def _base_path(folder: Path, text: str) -> str:
 def load_plant(path: str | Path) -> Plant:
     """The plant file, checked (module docstring); PlantError with one line otherwise."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as exc:
-        raise PlantError(f'{path}: cannot read: {exc.strerror}') from None
-    if size > MAX_PLANT_BYTES:
-        raise PlantError(f'{path}: {size:,} bytes is more than a plant file may hold '
-                         f'({MAX_PLANT_BYTES:,}); list fewer cells per file')
-    text = read_text(path, PlantError, 'YAML plant')
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise PlantError(f'{path} is not valid YAML: {" ".join(str(exc).split())}') from None
+    data = read_yaml(path, PlantError, 'YAML plant')
     if not isinstance(data, dict):
         raise PlantError(f'{path}: the top level must be a mapping with plant, defaults, cells')
     unknown = set(data) - {'plant', 'defaults', 'cells'}
