@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import numba
 
+from ..parallel import parallel_kernel
+
 
 def _mix(c, x0, x1, x2, x3):
     """The distance step of one row: out_d = sum_k c[4k + d] x_k (c = P(d' = k | d))."""
@@ -148,4 +150,4 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
 
 
 _mix_inline = numba.njit(inline='always')(_mix)
-sweep = numba.njit(parallel=True, cache=True, nogil=True)(_sweep)
+sweep = parallel_kernel(_sweep, cache=True, nogil=True)

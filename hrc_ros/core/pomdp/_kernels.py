@@ -32,6 +32,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..parallel import parallel_kernel
+
 TIE = 1e-9
 
 
@@ -121,7 +123,7 @@ def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
         out_val[p] = best_val
 
 
-lb_backup = numba.njit(parallel=True, cache=True, nogil=True)(_lb_backup)
+lb_backup = parallel_kernel(_lb_backup, cache=True, nogil=True)
 
 
 def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order, kernel,
@@ -169,7 +171,7 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
         out_val[p] = best_val
 
 
-ub_backup = numba.njit(parallel=True, cache=True, nogil=True)(_ub_backup)
+ub_backup = parallel_kernel(_ub_backup, cache=True, nogil=True)
 
 
 def _lb_values(points, point_x, alpha, offsets, out_val, out_index):
@@ -190,7 +192,7 @@ def _lb_values(points, point_x, alpha, offsets, out_val, out_index):
         out_index[p] = best_i
 
 
-lb_values = numba.njit(parallel=True, cache=True, nogil=True)(_lb_values)
+lb_values = parallel_kernel(_lb_values, cache=True, nogil=True)
 
 
 def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets,
@@ -200,4 +202,4 @@ def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, 
                                       ub_inverse, ub_slope, ub_offsets)
 
 
-ub_values = numba.njit(parallel=True, cache=True, nogil=True)(_ub_values)
+ub_values = parallel_kernel(_ub_values, cache=True, nogil=True)

@@ -507,7 +507,8 @@ class UpperBound:
         x = np.ascontiguousarray(x, dtype=np.intp)
         b = np.ascontiguousarray(b, dtype=float)
         out = np.empty(len(x))
-        kernels.ub_values(b, x, self.q_fib, self.available, self.corner, *self.sawtooth(), out)
+        kernels.ub_values(b, x, self.q_fib, self.available, self.corner, *self.sawtooth(), out,
+                          work=len(x))
         return out
 
 
@@ -556,8 +557,9 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
         proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
         kernels.lb_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
                           pomdp.available, group, order, proj, alphas.offsets, pomdp.gamma,
-                          vec, act, val)
-        kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx)
+                          vec, act, val, work=n_p)
+        kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx,
+                          work=n_p)
         better = val > old_val
         keep_vec = np.where(better[:, None], vec, alphas.alpha[old_idx])
         keep_act = np.where(better, act, alphas.action[old_idx])
@@ -575,7 +577,8 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
         if sweep == 1 or sweep % ub_every == 0 or last:
             kernels.ub_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
                               pomdp.available, group, order, pomdp.kernel, pomdp.gamma,
-                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act)
+                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act,
+                              work=n_p)
             ub_change = float(np.max(np.maximum(upper.values - ub_new, 0.0)))
             upper.values = np.minimum(upper.values, ub_new)
             c = upper.corner.copy()
