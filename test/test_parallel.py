@@ -48,7 +48,7 @@ def test_auto_runs_the_faster_variant_and_probes_the_other_within_its_budget():
     kernel, ran, costs = fake({'parallel': 0.050, 'serial': 0.005})  # a busy machine
     for _ in range(1000):
         assert kernel(3) == 6
-    assert ran[:4] == ['serial', 'serial', 'parallel', 'parallel']   # load, then time, each
+    assert ran[:2] == ['serial', 'parallel']       # each timed once, serial first
     slow = ran[4:].count('parallel')
     # probing costs at most about 1 / PROBE_RATIO of the run time
     assert 0 < slow * costs['parallel'] <= 1.5 * sum(costs[v] for v in ran) / parallel.PROBE_RATIO
@@ -70,7 +70,7 @@ def test_auto_follows_a_load_that_goes_and_comes():
     n = len(ran)
     for _ in range(200):
         kernel(1)
-    assert ran[n:].count('parallel') <= parallel.WINDOW + 2
+    assert ran[n:].count('parallel') <= parallel.WINDOW
     assert ran[-20:].count('serial') >= 19
 
 

@@ -19,7 +19,8 @@ the seconds per unit of `work` (the caller's size of the call, e.g. points backe
 last `WINDOW` calls of each variant; it runs the variant whose median is lower. The other is
 re-probed once the calls since its last run took `PROBE_RATIO` times its own expected cost, so
 probing costs at most about 1 / PROBE_RATIO of the run time and a load that comes or goes is
-seen within that. The first call of each variant loads it (numba's cache) and is not timed.
+seen within that. Before its first call each variant is compiled for the call's types (or
+loaded from numba's cache) without running, so that loading is not counted as its cost.
 A machine (or an affinity mask, or ``NUMBA_NUM_THREADS``) with one core runs serial only.
 Both variants compute each output element with the same operations in the same order (the
 kernels' loops are independent per element and every reduction is in a fixed order), so the
@@ -131,8 +132,8 @@ class ParallelKernel:
             return SERIAL
         if wanted != AUTO:
             return 'parallel'
-        for variant in (SERIAL, 'parallel'):        # load each once, then time each once
-            if not self._warm[variant] or not self._seconds[variant]:
+        for variant in (SERIAL, 'parallel'):        # time each once, serial first
+            if not self._seconds[variant]:
                 return variant
         best, other = sorted((SERIAL, 'parallel'), key=self._expected)
         if self._since[other] >= PROBE_RATIO * self._expected(other) * work:
@@ -150,14 +151,15 @@ class ParallelKernel:
             kernel = self.parallel
         else:
             kernel = self.serial
+        if not self._warm[variant]:
+            _load(kernel, args)
+            self._warm[variant] = True
         start = self.clock()
         out = kernel(*args)
         seconds = self.clock() - start
         with _lock:
             self.calls[variant] += 1
-            if self._warm[variant]:
-                self._seconds[variant].append(seconds / work)
-            self._warm[variant] = True
+            self._seconds[variant].append(seconds / work)
             self._since[variant] = 0.0
             for other in self._since:
                 if other != variant:
@@ -169,6 +171,18 @@ class ParallelKernel:
         return {'calls': dict(self.calls),
                 'seconds_per_work': {v: (self._expected(v) if s else None)
                                      for v, s in self._seconds.items()}}
+
+
+def _load(kernel, args) -> None:
+    """Compile `kernel` for the types of `args`, or load it from numba's cache, without
+    running it, so that its first timed call is a call like the others."""
+    compile_ = getattr(kernel, 'compile', None)
+    if compile_ is None:        # not a numba dispatcher (the tests' stand-ins)
+        return
+    try:
+        compile_(tuple(numba.typeof(a) for a in args))
+    except Exception:           # a type numba.typeof reads otherwise: the call compiles it
+        pass
 
 
 def _renamed(fn, suffix: str):
