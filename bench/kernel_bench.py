@@ -18,8 +18,9 @@ serial variant is the same function compiled without ``parallel``):
   `pomdp.ub_values` (100): at the full-size POMDP's fixed points (corners, first beliefs,
   Table 5 rows at every observable state, 8,940 points) with the shipped POMDP policy's
   vectors and its fast informed bound;
-- `fit.e_step`: 20 batched E-steps of 16 bootstrap resamples of 100,000 simulated epochs
-  (`fit.e_step_batch`; the data as bench/fit_bench.py records them).
+- `fit.e_step`: 5 batched E-steps of 16 bootstrap resamples of 100,000 simulated epochs
+  (`fit.e_step_batch`, parallel over the resamples; the data as bench/fit_bench.py records
+  them).
 
 Modes: `serial` (``HRC_KERNEL_THREADS=serial``), `parallel` (always parallel on 2 threads:
 what every kernel did before) and `auto` (the default now; its timings are reset before every
@@ -181,11 +182,11 @@ def fit_units():
     n = len(data.episodes)
     weights = np.stack([rng.multinomial(n, np.full(n, 1.0 / n))[data.seg_episode]
                         for _ in range(16)]).astype(float)
-    params = [fit.Params.from_config(base)] * len(weights)
+    x = np.repeat(fit._pack(fit.Params.from_config(base))[None], len(weights), axis=0)
 
     def unit():
-        for _ in range(20):
-            fit.e_step_batch(params, data, weights)
+        for _ in range(5):
+            fit.e_step_batch(x, data, weights)
     return {'fit.e_step': (unit, [_kernels.e_step_batch])}
 
 
@@ -262,7 +263,7 @@ def main(argv=None) -> int:
     units = {}
     for k in kernels:
         units.update(UNIT_MAKERS[k]())
-    for name, (unit, ks) in units.items():      # compile or load every variant once
+    for unit, ks in units.values():      # compile or load every variant once
         for mode in MODES:
             run_unit(unit, ks, mode)
     import numba

@@ -28,7 +28,7 @@ def tricky_scores(n: int, seed: int = 0) -> np.ndarray:
     small magnitudes, unavailable actions (-inf)."""
     rng = np.random.default_rng(seed)
     rows = []
-    for i in range(n):
+    for _ in range(n):
         scale = rng.choice([1e-3, 1.0, 37.0, 1e4])
         base = rng.normal() * scale
         unit = TIE_TOLERANCE * max(1.0, abs(base))
