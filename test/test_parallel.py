@@ -190,3 +190,32 @@ def test_the_pomdp_backups_are_the_same_serial_and_parallel(real_threads):
     np.testing.assert_array_equal(u_s.values, u_p.values)
     np.testing.assert_array_equal(u_s.corner, u_p.corner)
     np.testing.assert_array_equal(e_s, e_p)
+
+
+def test_the_fit_e_step_is_the_same_serial_and_parallel(real_threads):
+    from test_fit import random_data, random_params
+
+    from hrc_ros.core.learning import fit
+    rng = np.random.default_rng(11)
+    data = random_data(rng, [30, 25, 40, 12, 33])
+    x = np.stack([fit._pack(random_params(rng)) for _ in range(5)])
+    weights = rng.integers(0, 3, size=(5, data.segments)).astype(float)
+    name = 'hrc_ros.core.learning._kernels.e_step_batch'
+
+    def run():
+        single = fit.e_step(fit._unpack(x[0], random_params(rng)), data)   # split in halves
+        return fit.e_step_batch(x, data, weights), single
+    results = _variants(run)
+    ((batch_s, impossible_s), single_s), ran_serial = results['serial']
+    ((batch_p, impossible_p), single_p), ran_par = results['2']
+    assert ran_serial[name] == {'serial': 2, 'parallel': 0}
+    assert ran_par[name] == {'serial': 0, 'parallel': 2}
+    np.testing.assert_array_equal(impossible_s, impossible_p)
+    for f in ('loglik', 'first', 'accept', 'delta', 'transitions', 'observed', 'unique_moves'):
+        np.testing.assert_array_equal(getattr(batch_s, f), getattr(batch_p, f), err_msg=f)
+        np.testing.assert_array_equal(getattr(single_s, f), getattr(single_p, f), err_msg=f)
+    # each lane of the batch is that lane's E-step alone
+    for lane in range(5):
+        alone = fit.e_step(fit._unpack(x[lane], random_params(rng)), data, weights[lane])
+        assert alone.loglik == pytest.approx(float(batch_s.loglik[lane]), rel=1e-12)
+        np.testing.assert_allclose(alone.transitions, batch_s.transitions[lane], rtol=1e-12)

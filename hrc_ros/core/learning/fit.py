@@ -374,6 +374,7 @@ for _f in ('pi', 'p_accept', 'p_delta', 'chains', 'likelihood'):
     _SLICES[_f] = slice(_at, _at + _n)
     _at += _n
 N_PACKED = _at
+SPLIT = 2    # a batch of fewer lanes runs each lane as this many halves of the segments
 
 
 def _field(x: np.ndarray, name: str) -> np.ndarray:
@@ -409,10 +410,20 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     segment whose evidence is impossible under its parameters (-1 for none; that lane's
     counts and log likelihood are then not to be used)."""
     x = np.atleast_2d(x)
+    used = len(x)
+    weight = np.broadcast_to(1.0 if seg_weight is None else np.asarray(seg_weight, dtype=float),
+                             (used, data.segments))
+    # Fewer lanes than SPLIT (a single fit): each lane is run as SPLIT lanes over disjoint
+    # halves of the segments (weight 0 elsewhere, which the kernel skips) and summed, so the
+    # parallel loop over lanes has work for both cores. Always split the same way, serial or
+    # parallel, so the result does not depend on the variant.
+    split = SPLIT if used < SPLIT and data.segments >= SPLIT else 1
+    if split > 1:
+        part = np.minimum(np.arange(data.segments) * split // data.segments, split - 1)
+        weight = np.concatenate([np.where(part == k, weight, 0.0) for k in range(split)])
+        x = np.concatenate([x] * split)
+    weight = np.ascontiguousarray(weight)
     n_lanes = len(x)
-    weight = np.ascontiguousarray(np.broadcast_to(
-        1.0 if seg_weight is None else np.asarray(seg_weight, dtype=float),
-        (n_lanes, data.segments)))
     loglik = np.empty((n_lanes, data.segments))
     first = np.empty((n_lanes, N_HIDDEN))
     accept = np.empty((n_lanes, 2, 3))
@@ -428,9 +439,15 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
         data.observation, data.answer, data.move, data.has_move, data.unique_delta,
         data.seg_start, weight, loglik, first, accept, delta, xi, observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
+    if split > 1:
+        def joined(a):
+            return a.reshape((split, used) + a.shape[1:]).sum(axis=0)
+        loglik, weight = joined(loglik), joined(weight)
+        first, accept, delta, xi, observed, unique = (
+            joined(a) for a in (first, accept, delta, xi, observed, unique))
     finite = np.isfinite(loglik)
     impossible = np.where(finite.all(axis=1), -1, np.argmax(~finite, axis=1))
-    x5 = xi.reshape(n_lanes, len(EMOTION_GROUPS), 3, 3, 3, 3)     # [l, g, em, ea, em', ea']
+    x5 = xi.reshape(used, len(EMOTION_GROUPS), 3, 3, 3, 3)        # [l, g, em, ea, em', ea']
     transitions = np.stack([x5.sum(axis=(3, 5)), x5.sum(axis=(2, 4))], axis=2)
     ll = np.einsum('ls,ls->l', np.where(finite, loglik, 0.0), weight)
     return Expected(np.where(impossible < 0, ll, -np.inf), first, accept, delta, transitions,
