@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import statistics
 import threading
 import time
 import types
@@ -79,11 +78,17 @@ def parse_mode(value) -> str | int:
                      f'threads >= 1, got {value!r}')
 
 
+_parsed: dict = {}
+
+
 def current_mode() -> str | int:
     """The mode in force: `set_mode`'s, else ``HRC_KERNEL_THREADS``'s, else auto."""
     if _override is not None:
         return _override
-    return parse_mode(os.environ.get(ENV, AUTO))
+    text = os.environ.get(ENV, AUTO)
+    if text not in _parsed:
+        _parsed[text] = parse_mode(text)
+    return _parsed[text]
 
 
 def set_mode(value) -> None:
@@ -123,7 +128,9 @@ class ParallelKernel:
         self.calls = {SERIAL: 0, 'parallel': 0}
 
     def _expected(self, variant: str) -> float:
-        return statistics.median(self._seconds[variant])
+        """The median of the variant's last WINDOW timings (the upper one of an even count)."""
+        values = sorted(self._seconds[variant])
+        return values[len(values) // 2]
 
     def choose(self, work: float) -> str:
         """The variant the next call of size `work` runs under the current mode."""

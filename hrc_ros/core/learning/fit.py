@@ -375,6 +375,7 @@ for _f in ('pi', 'p_accept', 'p_delta', 'chains', 'likelihood'):
     _at += _n
 N_PACKED = _at
 SPLIT = 2    # a batch of fewer lanes runs each lane as this many halves of the segments
+SPLIT_EPOCHS = 10_000   # ... when the data have at least this many epochs (else the overhead wins)
 
 
 def _field(x: np.ndarray, name: str) -> np.ndarray:
@@ -413,11 +414,12 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     used = len(x)
     weight = np.broadcast_to(1.0 if seg_weight is None else np.asarray(seg_weight, dtype=float),
                              (used, data.segments))
-    # Fewer lanes than SPLIT (a single fit): each lane is run as SPLIT lanes over disjoint
+    # Fewer lanes than SPLIT (a single fit of SPLIT_EPOCHS epochs or more): each lane is run
+    # as SPLIT lanes over disjoint
     # halves of the segments (weight 0 elsewhere, which the kernel skips) and summed, so the
     # parallel loop over lanes has work for both cores. Always split the same way, serial or
     # parallel, so the result does not depend on the variant.
-    split = SPLIT if used < SPLIT and data.segments >= SPLIT else 1
+    split = SPLIT if used < SPLIT and data.epochs >= SPLIT_EPOCHS else 1
     if split > 1:
         part = np.minimum(np.arange(data.segments) * split // data.segments, split - 1)
         weight = np.concatenate([np.where(part == k, weight, 0.0) for k in range(split)])
@@ -479,21 +481,20 @@ def emission(params: Params, data: FitData) -> np.ndarray:
     return observation * (answer[:, :, None] * distance[:, None, :]).reshape(-1, N_HIDDEN)
 
 
+_TARGET = np.array([[max(i + m - 1, 0) if m < 2 else min(i + 1, 2) for m in range(3)]
+                    for i in range(3)])                   # [level i, move m] -> level j
+_SAME_TARGET = (_TARGET[:, :, None] == _TARGET[:, None, :]).astype(float)   # [i, m, m']
+
+
 def _chain_moves(counts: np.ndarray, chain: np.ndarray) -> np.ndarray:
     """Expected (down, stay, up) moves (..., 3) from the level counts C[..., i, j] of a
     bounded chain (..., 3): each count split over the moves that lead i -> j in proportion to
     the chain's current moves."""
-    moves = np.zeros(chain.shape)
-    zero = np.zeros(chain.shape[:-1])
-    for i in range(3):
-        targets = (max(i - 1, 0), i, min(i + 1, 2))
-        for j in sorted(set(targets)):
-            share = np.stack([chain[..., m] if targets[m] == j else zero for m in range(3)],
-                             axis=-1)
-            total = share.sum(axis=-1, keepdims=True)
-            moves += np.where(total > 0, counts[..., i, j, None] * share
-                              / np.where(total > 0, total, 1.0), 0.0)
-    return moves
+    share = np.einsum('imn,...n->...im', _SAME_TARGET, chain)    # moves ending where m does
+    counted = counts[..., np.arange(3)[:, None], _TARGET]        # C[i, target(i, m)]
+    split = np.where(share > 0, counted * chain[..., None, :] / np.where(share > 0, share, 1.0),
+                     0.0)
+    return split.sum(axis=-2)
 
 
 def _normalised(counts: np.ndarray, old: np.ndarray) -> np.ndarray:
