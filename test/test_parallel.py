@@ -170,8 +170,11 @@ def test_the_pomdp_backups_are_the_same_serial_and_parallel(real_threads):
     hrc = pomdp_solver.hrc_pomdp(model)
     points_x, points = pomdp_solver._fixed_points(hrc)
 
+    import copy
+    start = pomdp_solver.initial_bounds(hrc.pomdp, points_x, points)
+
     def run():
-        alphas, upper = pomdp_solver.initial_bounds(hrc.pomdp, points_x, points)
+        alphas, upper = copy.deepcopy(start)        # backup_sweeps updates the bound in place
         alphas, upper, history = pomdp_solver.backup_sweeps(
             hrc.pomdp, points_x, points, alphas, upper, max_sweeps=6, tol=0.0, ub_every=3)
         return alphas, upper, upper.evaluate(points_x, points)
