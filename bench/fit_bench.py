@@ -33,6 +33,17 @@ and each size:
    `hrc-evaluate --true-config`'s machinery). Regret = the paired mean cost difference to the
    true configuration's policy, with its 95% interval.
 
+`--timing` (issue 21, "faster single-cell learning"): `hrc-fit`'s defaults on 100k epochs of
+one world (200 resamples unless --bootstrap says otherwise): the fit's and the bootstrap's
+wall and CPU times, and a paired check of the intervals against today's bootstrap, the same
+resamples (the same seed, so the same multiplicities) fitted one after the other by
+`run_em` as the code before the batched bootstrap did: per parameter, the two 2.5% and 97.5%
+endpoints and their difference in units of the Monte Carlo standard error of a bootstrap
+percentile, se(q_p) = sqrt(p (1 - p) / B) * sd / phi(z_p) (the normal approximation with the
+bootstrap sd; about 0.19 sd for p = 0.025 and B = 200). "Within Monte Carlo error" is taken
+as every endpoint within 1 se; the script prints the largest difference in se and in
+absolute terms, and how many resamples differ at all. Target: fit + bootstrap < 30 s.
+
 Targets (issue 10), at 100k epochs: every well-supported parameter within 0.03 of the truth,
 at least 90% interval coverage, fitted regret at most a tenth of the default's, the fit (not
 the bootstrap) under 10 s. The script prints the table and the targets met or missed; the
@@ -140,7 +151,12 @@ def main(argv=None) -> int:
     parser.add_argument('--bootstrap', type=int, default=BOOTSTRAP)
     parser.add_argument('--eval-episodes', type=int, default=EVAL_EPISODES)
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--timing', action='store_true',
+                        help='time fit and bootstrap on 100k epochs of the first world and '
+                        'compare the intervals with the sequential bootstrap (see above)')
     args = parser.parse_args(argv)
+    if args.timing:
+        return timing(args)
     sizes = [int(s) for s in args.sizes.split(',')]
     worlds = [w for w in args.worlds.split(',') if w]
     for w in worlds:
@@ -205,6 +221,67 @@ def main(argv=None) -> int:
     print(f'\nreproduce: .venv/bin/python bench/fit_bench.py --sizes {args.sizes} --worlds '
           f'{",".join(worlds)} --bootstrap {args.bootstrap} --eval-episodes '
           f'{args.eval_episodes} --seed {args.seed}')
+    return 0
+
+
+def timing(args) -> int:
+    """`--timing`: see the module docstring."""
+    import os
+    from statistics import NormalDist
+
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    bootstrap = args.bootstrap if args.bootstrap != BOOTSTRAP else fitting.BOOTSTRAP
+    name = args.worlds.split(',')[0]
+    size = int(args.sizes.split(',')[-1]) if args.sizes != ','.join(str(s) for s in SIZES) \
+        else 100_000
+    base = load_config(ROOT / 'config' / 'default.yaml')
+    default = HRCModel(base)
+    world = HRCModel(true_config(base, name))
+    data = fitting.prepare(record(world, default, load_policy(default_policy_path(base), base),
+                                  size, seed=10_000 + size + args.seed))
+    print(f'{name}: {data.epochs} epochs, {len(data.episodes)} episodes; load average '
+          f'{os.getloadavg()[0]:.2f}', flush=True)
+    fitting.fit(data, base, bootstrap=2, seed=args.seed, max_iter=2)   # compile or load
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = fitting.fit(data, base, bootstrap=bootstrap, seed=args.seed)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    fit_s, boot_s = result.seconds['fit'], result.seconds['bootstrap']
+    print(f'hrc-fit defaults, {bootstrap} resamples: fit {fit_s:.1f} s, bootstrap '
+          f'{boot_s:.1f} s, total {wall:.1f} s wall, {cpu:.1f} s CPU; load average '
+          f'{os.getloadavg()[0]:.2f}', flush=True)
+    # today's bootstrap: the same multiplicities, one resample after the other
+    rng = np.random.default_rng(args.seed)
+    for _ in range(4 - 1):                     # the random starts drew these first
+        fitting._random_start(result.base, result.hold, rng)
+    n = len(data.episodes)
+    t1 = time.perf_counter()
+    old = np.stack([fitting.run_em(data, result.params, result.hold,
+                                   seg_weight=rng.multinomial(n, np.full(n, 1.0 / n))
+                                   [data.seg_episode].astype(float)).params.vector()
+                    for _ in range(bootstrap)])
+    seq_s = time.perf_counter() - t1
+    new = result.samples
+    differ = int(np.sum(np.any(old != new, axis=1)))
+    per_resample = float(np.max(np.abs(old - new)))
+    ends_old = np.percentile(old, [2.5, 97.5], axis=0)
+    ends_new = result.interval
+    sd = old.std(axis=0, ddof=1)
+    z = NormalDist().inv_cdf(0.975)
+    se = np.sqrt(0.025 * 0.975 / bootstrap) * sd / NormalDist().pdf(z)
+    spread = sd > 1e-9
+    diff = np.abs(ends_new - ends_old)
+    in_se = np.where(spread, diff / np.where(spread, se, 1.0), 0.0)
+    worst = np.unravel_index(np.argmax(in_se), in_se.shape)
+    print(f'sequential bootstrap (as before), same resamples: {seq_s:.1f} s '
+          f'(x{seq_s / boot_s:.1f} the batched one)')
+    print(f'paired check: {differ}/{bootstrap} resamples differ at all, largest |difference| '
+          f'{per_resample:.2e}; interval endpoints: largest |difference| {diff.max():.2e}, '
+          f'{in_se.max():.3f} Monte Carlo se ({fitting.PARAMETER_NAMES[worst[1]]}); '
+          f'{"WITHIN" if in_se.max() <= 1.0 else "OUTSIDE"} Monte Carlo error')
+    print(f'target fit + bootstrap < 30 s: {fit_s + boot_s:.1f} s '
+          f'{"MET" if fit_s + boot_s < 30 else "MISSED"}')
+    print(f'\nreproduce: .venv/bin/python bench/fit_bench.py --timing --worlds {name} '
+          f'--bootstrap {bootstrap} --seed {args.seed}')
     return 0
 
 

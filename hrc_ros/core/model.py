@@ -47,6 +47,11 @@ ACTION_INDEX = {name: i for i, name in enumerate(ACTIONS)}
 NW, RH1, RH2, CT, DP, DM, MH, DN = range(8)
 # Ties go to the first action of this order: an idle robot stops rather than "works".
 SAFETY_ORDER = (DN, DP, NW, CT, RH1, RH2, MH, DM)
+# Two action values are tied when within TIE_TOLERANCE * max(1, |best|) of the best (MODEL.md
+# 5): `tie_floor`, `safest_best` and `first_in_safety_order` below are the one home of that
+# rule (the solver's greedy policy and policy iteration, the qmdp, pomdp and fib selectors,
+# the POMDP backups).
+TIE_TOLERANCE = 1e-9
 # Which emotion chain each action uses (MODEL.md 3.4).
 ACTION_EMOTION_GROUP = {NW: 'base', CT: 'base', DP: 'base', DM: 'base', DN: 'base',
                         MH: 'motivate', RH1: 'request', RH2: 'request'}
@@ -60,6 +65,43 @@ DISTANCE_LEVELS = tuple(range(N_DISTANCE))   # d: 0 collision, 1 inner, 2 middle
 OBSERVATION_LEVELS = (1, 2, 3)    # O: the human velocity level (MODEL.md 6)
 N_OBSERVATIONS = len(OBSERVATION_LEVELS)
 DELTAS = (-1, 0, 1)
+
+
+def tie_floor(best):
+    """Scores at or above ``tie_floor(best)`` are tied with the best score `best` (a float or
+    an array of them): ``best - TIE_TOLERANCE * max(1, |best|)``."""
+    return best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+
+
+def first_in_safety_order(tied, order=SAFETY_ORDER, axis: int = -1):
+    """Per row of the bool mask `tied` (actions along `axis`, at least one True per row), the
+    first action of `order` that is tied; an int array of the other axes' shape."""
+    order = np.asarray(order)
+    tied = np.moveaxis(np.asarray(tied, dtype=bool), axis, -1)
+    return order[np.argmax(tied[..., order], axis=-1)]
+
+
+def safest_best(scores, order=SAFETY_ORDER, axis: int = -1):
+    """The tie rule on arrays: per row of `scores` (actions along `axis`, -inf for an action
+    that is not available), the first action of `order` tied with the row's best."""
+    scores = np.asarray(scores, dtype=float)
+    best = np.max(scores, axis=axis, keepdims=True)
+    return first_in_safety_order(scores >= tie_floor(best), order, axis)
+
+
+def safest_best_one(scores, order) -> int:
+    """The tie rule for one row of scores (a sequence over the actions, -inf where one is not
+    available), in plain loops: the numba kernels compile this same function, the decision's
+    scalar paths call it as it is. Equal to `safest_best` (the tests hold it so)."""
+    best = -np.inf
+    for a in order:
+        if scores[a] > best:
+            best = scores[a]
+    floor = best - TIE_TOLERANCE * max(1.0, abs(best))
+    for a in order:
+        if scores[a] >= floor:
+            return a
+    return order[0]
 
 
 def action_index(action: str | int) -> int:

@@ -17,12 +17,13 @@ Selectors (`SELECTORS`):
   scores = V (8,).
 - ``qmdp``: a* = argmax_a sum_h b(h) Q(s_h, a), with Q(s, a) = -J(s, a) + gamma E[V(s')] of the
   solved value V (one factored Bellman step, `FactoredBellman.q`, formed once). Ties within
-  1e-9 * max(1, |best|) (the solver's own tolerance) go to the safety order. scores = the
+  model.TIE_TOLERANCE * max(1, |best|) (the solver's own rule, `model.safest_best`) go to
+  the safety order. scores = the
   expected Q (8,). Needs `value`.
 - ``mls`` (most likely state): the policy action of h* = argmax_h b(h); ties in h (within 1e-12)
   go to the lowest h, i.e. the calmer, less motivated human. scores = one-hot of the action.
 - ``pomdp``: the action of the best alpha vector of the solved POMDP (`pomdp`,
-  docs/POMDP.md) for (x, b); vectors within 1e-9 * max(1, |best|) of the best go to the first
+  docs/POMDP.md) for (x, b); vectors within the tie tolerance of the best go to the first
   action of the safety order. scores[a] = the best value of a's vectors (-inf where a has
   none). Needs a POMDP policy (`pomdp=`, else the shipped one solved for the configuration).
 - ``fib``: a* = argmax_a sum_h b(h) Q_fib(s_h, a), the fast informed bound's Q (a step past
@@ -40,13 +41,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..pomdp.belief import validate_belief
-from ..model import ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, SAFETY_ORDER
+from ..model import (ACTIONS, N_DISTANCE, N_HIDDEN, OBSERVABLE_VARIABLES, first_in_safety_order,
+                     safest_best)
 from ..mdp.policy import policy_arrays
 
 SELECTORS = ('paper', 'qmdp', 'mls', 'pomdp', 'fib')
 POMDP_SELECTORS = ('pomdp', 'fib')   # read the POMDP policy file
 VOTE_TOLERANCE = 1e-12
-Q_TOLERANCE = 1e-9
 N_ACTIONS = len(ACTIONS)
 
 
@@ -59,13 +60,6 @@ class Selection:
     @property
     def name(self) -> str:
         return ACTIONS[self.action]
-
-
-def _first_in_safety_order(candidates) -> int:
-    for a in SAFETY_ORDER:
-        if candidates[a]:
-            return a
-    raise AssertionError('no candidate action')
 
 
 class ActionSelector:
@@ -188,7 +182,7 @@ class ActionSelector:
                 single[a] = w
         top = max(single[a] for a in range(N_ACTIONS) if tied[a])
         tied = [tied[a] and single[a] >= top - VOTE_TOLERANCE for a in range(N_ACTIONS)]
-        return Selection(_first_in_safety_order(tied), scores, 'paper')
+        return Selection(int(first_in_safety_order(tied)), scores, 'paper')
 
     def _q_table(self) -> np.ndarray:
         """Q(s, a) for every state, from one factored Bellman step on `value` (~50 ms)."""
@@ -201,9 +195,7 @@ class ActionSelector:
         support = np.flatnonzero(b > 0.0)   # terms with b(h) = 0 add exactly nothing
         q = self._q_table()[:, indices[support]].T
         scores = b[support] @ q
-        best = scores.max()
-        tied = scores >= best - Q_TOLERANCE * max(1.0, abs(best))
-        return Selection(_first_in_safety_order(tied), scores, 'qmdp')
+        return Selection(int(safest_best(scores)), scores, 'qmdp')
 
     def _mls(self, b: np.ndarray, actions: np.ndarray) -> Selection:
         h = int(np.flatnonzero(b >= b.max() - VOTE_TOLERANCE)[0])

@@ -1,4 +1,5 @@
-"""The E-step of `fit` (numba): evidence, scaled forward-backward and expected counts, fused.
+"""The E-step of `fit` (numba): evidence, scaled forward-backward and expected counts, fused,
+for a batch of parameter sets (lanes: the EM starts, the bootstrap resamples) at once.
 
 One pass per segment (a run of epochs whose transitions are all usable), t = a .. b-1, with
 h = 3*em + ea:
@@ -20,13 +21,20 @@ and the counts the M-step needs, each weighted by the segment's multiplicity `se
     observed[O, h]    sum of gamma_t(h) over epochs that observed O
     unique[ea, D]     sum of gamma_t(ea) over moves that tell D apart from both others
 
-Arguments (T epochs, S segments): `likelihood` (3, 9), `p_accept` (3,), `p_delta` (3, 3),
-`pi` (9,), `transition` (3, 9, 9); per epoch `group` (T,) the emotion group of a_t,
-`observation` (T,) O_t - 1 or 3 for none, `answer` (T,) 0 none, 1 accepted, 2 refused,
-`move` (T, 3) 1 where Delta fits the move (all 1 when it is unknown), `has_move` (T,),
-`unique_move` (T, 3); `seg_start` (S + 1,), `seg_weight` (S,); work arrays `alpha`, `emission`
-(T, 9); outputs `loglik` (S,) (unweighted, -inf for evidence impossible under the parameters)
-and the counts above (overwritten).
+`e_step_batch` runs the lanes as a parallel loop (`core.parallel`: serial or parallel,
+whichever the machine gives); each lane is computed by the same sequential code whatever the
+variant, so its counts do not depend on it. (A layout with the lanes innermost, vectorised
+across lanes, was tried: numba's code for it was no faster per lane on this machine and took
+several times longer to compile.)
+
+Arguments (T epochs, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane `likelihood`
+(B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `transition` (B, 3, 9, 9);
+per epoch `group` (T,) the emotion group of a_t, `observation` (T,) O_t - 1 or 3 for none,
+`answer` (T,) 0 none, 1 accepted, 2 refused, `move` (T, 3) 1 where Delta fits the move (all 1
+when it is unknown), `has_move` (T,), `unique_move` (T, 3); `seg_start` (S + 1,),
+`seg_weight` (B, S); outputs
+(overwritten) `loglik` (B, S) (unweighted, -inf for evidence impossible under the
+parameters, 0 where the weight is 0) and the counts above with a leading lane axis.
 """
 
 from __future__ import annotations
@@ -36,12 +44,15 @@ import math
 import numba
 import numpy as np
 
+from ..model import N_HIDDEN
+from ..parallel import parallel_kernel
+
 
 def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, transition,
               group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
               alpha, emission, scale, loglik, first, accept, delta, xi, observed, unique):
     """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
-    n_h = 9
+    n_h = N_HIDDEN
     nxt = np.empty(n_h)
     beta = np.empty(n_h)
     gamma = np.empty(n_h)
@@ -70,7 +81,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                     v = acc * dist[ea]
                     if o < 3:
                         v *= likelihood[o, h]
-                    emission[t, h] = v
+                    emission[t - a, h] = v
         # forward
         total = 0.0
         possible = True
@@ -78,25 +89,25 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
             c = 0.0
             if t == a:
                 for j in range(n_h):
-                    v = pi[j] * emission[t, j]
-                    alpha[t, j] = v
+                    v = pi[j] * emission[t - a, j]
+                    alpha[t - a, j] = v
                     c += v
             else:
                 m = transition[group[t - 1]]
                 for j in range(n_h):
                     v = 0.0
                     for i in range(n_h):
-                        v += alpha[t - 1, i] * m[i, j]
-                    v *= emission[t, j]
-                    alpha[t, j] = v
+                        v += alpha[t - 1 - a, i] * m[i, j]
+                    v *= emission[t - a, j]
+                    alpha[t - a, j] = v
                     c += v
             if not c > 0.0:
                 possible = False
                 break
             inverse = 1.0 / c
             for j in range(n_h):
-                alpha[t, j] *= inverse
-            scale[t] = c
+                alpha[t - a, j] *= inverse
+            scale[t - a] = c
             total += math.log(c)
         if not possible:
             loglik[s] = -math.inf
@@ -109,11 +120,11 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
             if t < b - 1:
                 m = transition[group[t]]
                 xs = xi[group[t]]
-                inverse = 1.0 / scale[t + 1]
+                inverse = 1.0 / scale[t + 1 - a]
                 for j in range(n_h):
-                    nxt[j] = emission[t + 1, j] * beta[j] * inverse
+                    nxt[j] = emission[t + 1 - a, j] * beta[j] * inverse
                 for i in range(n_h):
-                    ai = alpha[t, i] * w
+                    ai = alpha[t - a, i] * w
                     v = 0.0
                     for j in range(n_h):
                         p = m[i, j] * nxt[j]
@@ -122,7 +133,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                     beta[i] = v
             z = 0.0
             for h in range(n_h):
-                gamma[h] = alpha[t, h] * beta[h]
+                gamma[h] = alpha[t - a, h] * beta[h]
                 z += gamma[h]
             z = w / z
             for h in range(n_h):
@@ -151,23 +162,30 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                             unique[ea, k] += g_ea
 
 
-def _e_step(likelihood, p_accept, p_delta, pi, transition, group, observation, answer, move,
-            has_move, unique_move, seg_start, seg_weight, alpha, emission, loglik, first,
-            accept, delta, xi, observed, unique):
-    first[:] = 0.0
-    accept[:] = 0.0
-    delta[:] = 0.0
-    xi[:] = 0.0
-    observed[:] = 0.0
-    unique[:] = 0.0
-    _segments_jit(0, seg_start.shape[0] - 1, likelihood, p_accept, p_delta, pi, transition,
-                  group, observation, answer, move, has_move, unique_move, seg_start,
-                  seg_weight, alpha, emission, np.empty(emission.shape[0]), loglik, first,
-                  accept, delta, xi, observed, unique)
+def _e_step_batch(likelihood, p_accept, p_delta, pi, transition, group, observation, answer,
+                  move, has_move, unique_move, seg_start, seg_weight, loglik, first, accept,
+                  delta, xi, observed, unique):
+    longest = 1
+    for s in range(seg_start.shape[0] - 1):
+        longest = max(longest, seg_start[s + 1] - seg_start[s])
+    for lane in numba.prange(pi.shape[0]):
+        alpha = np.empty((longest, N_HIDDEN))
+        emission = np.empty((longest, N_HIDDEN))
+        scale = np.empty(longest)
+        first[lane] = 0.0
+        accept[lane] = 0.0
+        delta[lane] = 0.0
+        xi[lane] = 0.0
+        observed[lane] = 0.0
+        unique[lane] = 0.0
+        _segments_jit(0, seg_start.shape[0] - 1, likelihood[lane], p_accept[lane],
+                      p_delta[lane], pi[lane], transition[lane], group, observation, answer,
+                      move, has_move, unique_move, seg_start, seg_weight[lane], alpha,
+                      emission, scale, loglik[lane], first[lane], accept[lane], delta[lane],
+                      xi[lane], observed[lane], unique[lane])
 
 
-# fastmath without assuming finite values (an impossible segment's -inf must survive). One
-# thread: on two shared cores numba's parallel pass over the segments measured slower.
+# fastmath without assuming finite values (an impossible segment's -inf must survive).
 _FLAGS = {'reassoc', 'contract', 'arcp', 'nsz'}
 _segments_jit = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_segments)
-e_step = numba.njit(cache=True, nogil=True, fastmath=_FLAGS)(_e_step)
+e_step_batch = parallel_kernel(_e_step_batch, cache=True, nogil=True, fastmath=_FLAGS)

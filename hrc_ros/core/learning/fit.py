@@ -47,7 +47,9 @@ keeps the one nearest the base configuration: the base's labels say which end is
 
 Uncertainty. A nonparametric bootstrap over episodes: `bootstrap` resamples of the episodes
 with replacement (as multiplicities, so the data are not copied), each fitted by EM from the
-estimate; the 95% interval of a parameter is the 2.5 and 97.5 percentiles of its resampled
+estimate (all of them side by side, `run_em_batch`: one E-step kernel call and one numpy
+M-step per iteration for every resample still running, each resample following exactly its
+own EM); the 95% interval of a parameter is the 2.5 and 97.5 percentiles of its resampled
 values. Support: the posterior-expected number of epochs that inform a parameter (answered
 requests by em; moves that tell this Delta apart from both others, by ea; chain moves whose
 outcome is unique, from the level they start at; epochs with an observation, by h). Effective
@@ -73,7 +75,7 @@ import dataclasses
 import datetime as _dt
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import yaml
@@ -223,6 +225,7 @@ class FitData:
         return np.repeat(np.arange(self.segments), np.diff(self.seg_start))
 
 
+
 def _task_dict(task: np.ndarray) -> dict:
     return {n: task[:, i] for i, n in enumerate(TASK_VARIABLES)}
 
@@ -341,9 +344,14 @@ def prepare(recordings: list[Recording]) -> FitData:
 
 
 # -- E-step and M-step ------------------------------------------------------------------------
+# Both work on a batch of parameter sets at once (the lanes: EM starts, bootstrap resamples),
+# the parameters packed as rows of X (B, 66) in `_PARAM_FIELDS` order; a single fit is a batch
+# of one. The E-step is one numba kernel over all lanes (`_fit_kernels`), the M-step numpy
+# over the lane axis, so an EM iteration of 200 resamples costs one Python step, not 200.
 @dataclass
 class Expected:
-    """Expected complete-data counts of one E-step (weighted by segment multiplicity)."""
+    """Expected complete-data counts of one E-step (weighted by segment multiplicity); with
+    a leading lane axis on every field in a batch (`e_step_batch`)."""
 
     loglik: float
     first: np.ndarray          # (9,) posterior of each segment's first hidden state, summed
@@ -353,33 +361,115 @@ class Expected:
     observed: np.ndarray       # (3, 9) [O - 1, h]
     unique_moves: np.ndarray   # (3, 3) [ea, Delta]: moves telling Delta apart from the others
 
+    def lane(self, i) -> 'Expected':
+        """Lane(s) `i` of a batch (an int: one lane's counts; an index array: a batch)."""
+        return Expected(*(getattr(self, f.name)[i] for f in fields(self)))
+
+
+_SIZES = {'pi': (N_HIDDEN,), 'p_accept': (3,), 'p_delta': (3, 3),
+          'chains': (len(EMOTION_GROUPS), len(EMOTION_VARIABLES), 3),
+          'likelihood': (N_OBSERVATIONS, N_HIDDEN)}
+_SLICES, _at = {}, 0
+for _f in ('pi', 'p_accept', 'p_delta', 'chains', 'likelihood'):
+    _n = int(np.prod(_SIZES[_f]))
+    _SLICES[_f] = slice(_at, _at + _n)
+    _at += _n
+N_PACKED = _at
+SPLIT = 2    # a batch of fewer lanes runs each lane as this many halves of the segments
+SPLIT_EPOCHS = 10_000   # ... when the data have at least this many epochs (else the overhead wins)
+
+
+def _field(x: np.ndarray, name: str) -> np.ndarray:
+    """The view of one field in packed rows x (B, N_PACKED): (B,) + its shape."""
+    return x[:, _SLICES[name]].reshape((len(x),) + _SIZES[name])
+
+
+def _chain_matrices(chains: np.ndarray) -> np.ndarray:
+    """(B, G, V, 3, 3) bounded chain matrices (`model.chain_matrix`) of chains (B, G, V, 3)."""
+    m = np.zeros(chains.shape[:-1] + (3, 3))
+    for i in range(3):
+        m[..., i, max(i - 1, 0)] += chains[..., 0]
+        m[..., i, i] += chains[..., 1]
+        m[..., i, min(i + 1, 2)] += chains[..., 2]
+    return m
+
+
+def _emotion_matrices(chains: np.ndarray) -> np.ndarray:
+    """(B, G, 9, 9): kron(em chain, ea chain) per lane and group."""
+    m = _chain_matrices(chains)
+    e = np.einsum('bgik,bgjl->bgijkl', m[:, :, 0], m[:, :, 1])
+    return e.reshape(chains.shape[:2] + (N_HIDDEN, N_HIDDEN))
+
+
+def _lane_last(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.moveaxis(a, 0, -1))
+
+
+def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = None
+                 ) -> tuple[Expected, np.ndarray]:
+    """The E-step (`_fit_kernels.e_step_batch`) at each packed row of `x` (B, N_PACKED), with
+    segment weights (B, S) (None: all 1). Returns the batch's counts and, per lane, the first
+    segment whose evidence is impossible under its parameters (-1 for none; that lane's
+    counts and log likelihood are then not to be used)."""
+    x = np.atleast_2d(x)
+    used = len(x)
+    weight = np.broadcast_to(1.0 if seg_weight is None else np.asarray(seg_weight, dtype=float),
+                             (used, data.segments))
+    # Fewer lanes than SPLIT (a single fit of SPLIT_EPOCHS epochs or more): each lane is run
+    # as SPLIT lanes over disjoint
+    # halves of the segments (weight 0 elsewhere, which the kernel skips) and summed, so the
+    # parallel loop over lanes has work for both cores. Always split the same way, serial or
+    # parallel, so the result does not depend on the variant.
+    split = SPLIT if used < SPLIT and data.epochs >= SPLIT_EPOCHS else 1
+    if split > 1:
+        part = np.minimum(np.arange(data.segments) * split // data.segments, split - 1)
+        weight = np.concatenate([np.where(part == k, weight, 0.0) for k in range(split)])
+        x = np.concatenate([x] * split)
+    weight = np.ascontiguousarray(weight)
+    n_lanes = len(x)
+    loglik = np.empty((n_lanes, data.segments))
+    first = np.empty((n_lanes, N_HIDDEN))
+    accept = np.empty((n_lanes, 2, 3))
+    delta = np.empty((n_lanes, 3, 3))
+    xi = np.empty((n_lanes, len(EMOTION_GROUPS), N_HIDDEN, N_HIDDEN))
+    observed = np.empty((n_lanes, N_OBSERVATIONS, N_HIDDEN))
+    unique = np.empty((n_lanes, 3, 3))
+    _fit_kernels.e_step_batch(
+        np.ascontiguousarray(_field(x, 'likelihood')),
+        np.ascontiguousarray(_field(x, 'p_accept')),
+        np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(_field(x, 'pi')),
+        np.ascontiguousarray(_emotion_matrices(_field(x, 'chains'))), data.group,
+        data.observation, data.answer, data.move, data.has_move, data.unique_delta,
+        data.seg_start, weight, loglik, first, accept, delta, xi, observed, unique,
+        work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
+    if split > 1:
+        def joined(a):
+            return a.reshape((split, used) + a.shape[1:]).sum(axis=0)
+        loglik, weight = joined(loglik), joined(weight)
+        first, accept, delta, xi, observed, unique = (
+            joined(a) for a in (first, accept, delta, xi, observed, unique))
+    finite = np.isfinite(loglik)
+    impossible = np.where(finite.all(axis=1), -1, np.argmax(~finite, axis=1))
+    x5 = xi.reshape(used, len(EMOTION_GROUPS), 3, 3, 3, 3)        # [l, g, em, ea, em', ea']
+    transitions = np.stack([x5.sum(axis=(3, 5)), x5.sum(axis=(2, 4))], axis=2)
+    ll = np.einsum('ls,ls->l', np.where(finite, loglik, 0.0), weight)
+    return Expected(np.where(impossible < 0, ll, -np.inf), first, accept, delta, transitions,
+                    observed, unique), impossible
+
+
+def _impossible(data: FitData, segment: int) -> FitError:
+    return FitError(f'{data.episodes[data.seg_episode[segment]]} is impossible under the '
+                    'parameters held fixed: hold fewer families')
+
 
 def e_step(params: Params, data: FitData, seg_weight: np.ndarray | None = None) -> Expected:
-    """The E-step (`_fit_kernels.e_step`) at `params`; FitError if the data are impossible."""
-    seg_weight = (np.ones(data.segments) if seg_weight is None
-                  else np.ascontiguousarray(seg_weight, dtype=float))
-    work = np.empty((2, data.epochs, N_HIDDEN))
-    loglik = np.zeros(data.segments)
-    first = np.zeros(N_HIDDEN)
-    accept = np.zeros((2, 3))
-    delta = np.zeros((3, 3))
-    xi = np.zeros((len(EMOTION_GROUPS), N_HIDDEN, N_HIDDEN))
-    observed = np.zeros((N_OBSERVATIONS, N_HIDDEN))
-    unique = np.zeros((3, 3))
-    _fit_kernels.e_step(
-        np.ascontiguousarray(params.likelihood), np.ascontiguousarray(params.p_accept),
-        np.ascontiguousarray(params.p_delta), np.ascontiguousarray(params.pi),
-        np.ascontiguousarray(params.emotion_matrices()), data.group, data.observation,
-        data.answer, data.move, data.has_move, data.unique_delta, data.seg_start, seg_weight,
-        work[0], work[1], loglik, first, accept, delta, xi, observed, unique)
-    if not np.all(np.isfinite(loglik)):
-        s = int(np.flatnonzero(~np.isfinite(loglik))[0])
-        raise FitError(f'{data.episodes[data.seg_episode[s]]} is impossible under the '
-                       'parameters held fixed: hold fewer families')
-    x = xi.reshape(len(EMOTION_GROUPS), 3, 3, 3, 3)                # [g, em, ea, em', ea']
-    transitions = np.stack([x.sum(axis=(2, 4)), x.sum(axis=(1, 3))], axis=1)
-    return Expected(float(np.dot(loglik, seg_weight)), first, accept, delta, transitions,
-                    observed, unique)
+    """The E-step at `params` (a batch of one); FitError if the data are impossible."""
+    stats, impossible = e_step_batch(_pack(params)[None], data, seg_weight)
+    if impossible[0] >= 0:
+        raise _impossible(data, int(impossible[0]))
+    out = stats.lane(0)
+    out.loglik = float(out.loglik)
+    return out
 
 
 def emission(params: Params, data: FitData) -> np.ndarray:
@@ -392,16 +482,20 @@ def emission(params: Params, data: FitData) -> np.ndarray:
     return observation * (answer[:, :, None] * distance[:, None, :]).reshape(-1, N_HIDDEN)
 
 
+_TARGET = np.array([[max(i + m - 1, 0) if m < 2 else min(i + 1, 2) for m in range(3)]
+                    for i in range(3)])                   # [level i, move m] -> level j
+_SAME_TARGET = (_TARGET[:, :, None] == _TARGET[:, None, :]).astype(float)   # [i, m, m']
+
+
 def _chain_moves(counts: np.ndarray, chain: np.ndarray) -> np.ndarray:
-    """Expected (down, stay, up) moves from the level counts C[i, j] of a bounded chain."""
-    moves = np.zeros(3)
-    for i in range(3):
-        targets = (max(i - 1, 0), i, min(i + 1, 2))
-        for j in set(targets):
-            share = np.array([chain[m] if targets[m] == j else 0.0 for m in range(3)])
-            if share.sum() > 0:
-                moves += counts[i, j] * share / share.sum()
-    return moves
+    """Expected (down, stay, up) moves (..., 3) from the level counts C[..., i, j] of a
+    bounded chain (..., 3): each count split over the moves that lead i -> j in proportion to
+    the chain's current moves."""
+    share = np.einsum('imn,...n->...im', _SAME_TARGET, chain)    # moves ending where m does
+    counted = counts[..., np.arange(3)[:, None], _TARGET]        # C[i, target(i, m)]
+    split = np.where(share > 0, counted * chain[..., None, :] / np.where(share > 0, share, 1.0),
+                     0.0)
+    return split.sum(axis=-2)
 
 
 def _normalised(counts: np.ndarray, old: np.ndarray) -> np.ndarray:
@@ -410,24 +504,35 @@ def _normalised(counts: np.ndarray, old: np.ndarray) -> np.ndarray:
     return np.where(total > 0, counts / np.where(total > 0, total, 1.0), old)
 
 
-def m_step(stats: Expected, params: Params, hold: tuple = ()) -> Params:
-    new = params.copy()
-    new.pi = _normalised(stats.first, params.pi)
+def m_step_batch(stats: Expected, x: np.ndarray, hold: tuple = ()) -> np.ndarray:
+    """The closed-form M-step (module docstring) of every lane: packed rows (B, N_PACKED)."""
+    new = x.copy()
+    _field(new, 'pi')[:] = _normalised(stats.first, _field(x, 'pi'))
     if 'p_accept' not in hold:
-        answered = stats.accept.sum(axis=0)
-        new.p_accept = np.where(answered > 0, stats.accept[0] / np.where(answered > 0, answered,
-                                                                          1.0), params.p_accept)
+        answered = stats.accept.sum(axis=1)
+        _field(new, 'p_accept')[:] = np.where(
+            answered > 0, stats.accept[:, 0] / np.where(answered > 0, answered, 1.0),
+            _field(x, 'p_accept'))
     if 'p_delta' not in hold:
-        new.p_delta = _normalised(stats.delta, params.p_delta)
+        _field(new, 'p_delta')[:] = _normalised(stats.delta, _field(x, 'p_delta'))
+    chains, new_chains = _field(x, 'chains'), _field(new, 'chains')
     for g in range(len(EMOTION_GROUPS)):
         for v in range(len(EMOTION_VARIABLES)):
             if f'emotion.{EMOTION_GROUPS[g]}.{EMOTION_VARIABLES[v]}' in hold:
                 continue
-            moves = _chain_moves(stats.transitions[g, v], params.chains[g, v])
-            new.chains[g, v] = _normalised(moves, params.chains[g, v])
+            moves = _chain_moves(stats.transitions[:, g, v], chains[:, g, v])
+            new_chains[:, g, v] = _normalised(moves, chains[:, g, v])
     if 'likelihood' not in hold:
-        new.likelihood = _normalised(stats.observed.T, params.likelihood.T).T
+        likelihood = _field(x, 'likelihood').swapaxes(1, 2)
+        _field(new, 'likelihood')[:] = _normalised(stats.observed.swapaxes(1, 2),
+                                                   likelihood).swapaxes(1, 2)
     return new
+
+
+def m_step(stats: Expected, params: Params, hold: tuple = ()) -> Params:
+    """The M-step of one lane (`m_step_batch` on a batch of one)."""
+    batch = Expected(*(np.asarray(getattr(stats, f.name))[None] for f in fields(stats)))
+    return _unpack(m_step_batch(batch, _pack(params)[None], hold)[0], params)
 
 
 @dataclass
@@ -461,7 +566,22 @@ def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
            max_iter: int = MAX_ITER, seg_weight=None, run: EMRun | None = None,
            accelerate: bool = True) -> EMRun:
     """EM from `start` (or continuing `run`) until the log likelihood rises by less than
-    `tol` per epoch in an iteration, or after `max_iter` iterations in all.
+    `tol` per epoch in an iteration, or after `max_iter` iterations in all: `run_em_batch`
+    with one lane."""
+    weights = None if seg_weight is None else np.asarray(seg_weight, dtype=float)[None]
+    return run_em_batch(data, [start], hold, tol, max_iter, weights,
+                        None if run is None else [run], accelerate)[0]
+
+
+def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL,
+                 max_iter: int = MAX_ITER, seg_weight=None, runs: list | None = None,
+                 accelerate: bool = True, progress=None) -> list:
+    """EM for each lane: from `starts[l]` (or continuing `runs[l]`) with segment weights
+    `seg_weight[l]` (None: all 1), until its log likelihood rises by less than `tol` per
+    epoch in an iteration, or after `max_iter` iterations in all. Returns an `EMRun` per lane.
+
+    The lanes are independent: each follows exactly the steps it would alone; they only share
+    the E-step calls (the lanes still running, in one batch).
 
     With `accelerate` an iteration is one SQUAREM cycle (Varadhan and Roland 2008, scheme
     S3, with the step control of their SQUAREM package): two EM steps theta1 = M(theta0),
@@ -473,59 +593,109 @@ def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
     refused. So the likelihood never decreases from cycle to cycle, and EM's crawl along flat
     directions (its rate is the share of missing information) is cut several times over.
     Without it an iteration is one EM step. The returned parameters' E-step is `stats` (the
-    trace's last entry)."""
-    n = max(1.0, data.epochs if seg_weight is None else float(np.dot(
-        np.asarray(seg_weight, dtype=float), np.diff(data.seg_start))))
-    params = start if run is None else run.params
-    trace = [] if run is None else list(run.trace)
-    e_steps = 0 if run is None else run.e_steps
+    trace's last entry). `progress(lanes done)` is called after every iteration."""
+    n_lanes = len(starts) if runs is None else len(runs)
+    weights = None if seg_weight is None else np.asarray(seg_weight, dtype=float)
+    lengths = np.diff(data.seg_start)
+    n = (np.full(n_lanes, max(1.0, data.epochs)) if weights is None
+         else np.maximum(1.0, weights @ lengths))
+    like = starts[0] if runs is None else runs[0].params
+    x = np.stack([_pack(s) for s in starts] if runs is None
+                 else [_pack(r.params) for r in runs])
+    traces = [[] for _ in range(n_lanes)] if runs is None else [list(r.trace) for r in runs]
+    e_steps = np.zeros(n_lanes, dtype=int) if runs is None else np.array(
+        [r.e_steps for r in runs])
 
-    def expect(p):
-        nonlocal e_steps
-        e_steps += 1
-        return e_step(p, data, seg_weight)
+    def expect(rows, lanes, guarded=False):
+        """The E-step of packed `rows` for `lanes`; impossible evidence is a FitError unless
+        `guarded` (then those lanes' log likelihoods are -inf)."""
+        e_steps[lanes] += 1
+        w = None if weights is None else weights[lanes]
+        stats, impossible = e_step_batch(rows, data, w)
+        if not guarded and np.any(impossible >= 0):
+            raise _impossible(data, int(impossible[impossible >= 0][0]))
+        return stats
 
-    stats = run.stats if run is not None else expect(params)
-    if run is None:
-        trace.append(stats.loglik)
-    converged = False
-    step_max = 1.0
-    while len(trace) <= max_iter:
-        p1 = m_step(stats, params, hold)
-        if not accelerate:
-            params, stats = p1, expect(p1)
-        else:
-            s1 = expect(p1)
-            p2 = m_step(s1, p1, hold)
-            s2 = expect(p2)
-            x0, x1, x2 = _pack(params), _pack(p1), _pack(p2)
-            r, v = x1 - x0, x2 - 2 * x1 + x0
-            start_loglik = stats.loglik
-            params, stats = p2, s2
-            if np.linalg.norm(v) > 0:
-                alpha = max(-step_max, min(-1.0, -np.linalg.norm(r) / np.linalg.norm(v)))
-                if alpha == -step_max:
-                    step_max *= 4.0
-                x = x0 - 2 * alpha * r + alpha ** 2 * v
-                while alpha < -1.0 and not (np.all(x >= 0) and np.all(x <= 1)):
-                    alpha = min(-1.0, (alpha - 1.0) / 2 + 1e-12) if alpha < -1.01 else -1.0
-                    x = x0 - 2 * alpha * r + alpha ** 2 * v
-                if alpha < -1.0:
-                    try:
-                        px = _unpack(x, params)
-                        p3 = m_step(expect(px), px, hold)     # the M-step of x's E-step
-                        s3 = expect(p3)
-                    except FitError:      # the extrapolation made some evidence impossible
-                        s3 = None
-                    if s3 is not None and s3.loglik >= start_loglik:
-                        params, stats = p3, s3
-                    else:
-                        step_max = max(1.0, step_max / 4.0)
-        trace.append(stats.loglik)
-        if abs(trace[-1] - trace[-2]) < tol * n:
-            converged = True
+    if runs is None:
+        stats = expect(x, np.arange(n_lanes))
+        for lane in range(n_lanes):
+            traces[lane].append(float(stats.loglik[lane]))
+    else:
+        stats = Expected(*(np.stack([np.asarray(getattr(r.stats, f.name)) for r in runs])
+                           for f in fields(Expected)))
+    converged = np.zeros(n_lanes, dtype=bool)
+    step_max = np.ones(n_lanes)
+    while True:
+        lanes = np.flatnonzero(~converged & (np.array([len(t) for t in traces]) <= max_iter))
+        if lanes.size == 0:
             break
-    return EMRun(params, trace, converged, stats, e_steps)
+        x0, s0 = x[lanes], stats.lane(lanes)
+        x1 = m_step_batch(s0, x0, hold)
+        s1 = expect(x1, lanes)
+        if not accelerate:
+            x_new, s_new = x1, s1
+        else:
+            x2 = m_step_batch(s1, x1, hold)
+            s2 = expect(x2, lanes)
+            r, v = x1 - x0, x2 - 2 * x1 + x0
+            x_new, s_new = x2, s2
+            norm_r, norm_v = np.linalg.norm(r, axis=1), np.linalg.norm(v, axis=1)
+            moving = norm_v > 0
+            alpha = np.full(len(lanes), -1.0)
+            ratio = -norm_r[moving] / norm_v[moving]
+            alpha[moving] = np.maximum(-step_max[lanes][moving], np.minimum(-1.0, ratio))
+            grow = moving & (alpha == -step_max[lanes])
+            step_max[lanes[grow]] *= 4.0
+            xe = x0 - 2 * alpha[:, None] * r + alpha[:, None] ** 2 * v
+            while True:
+                out = (alpha < -1.0) & ~(np.all(xe >= 0, axis=1) & np.all(xe <= 1, axis=1))
+                if not out.any():
+                    break
+                alpha[out] = np.where(alpha[out] < -1.01,
+                                      np.minimum(-1.0, (alpha[out] - 1.0) / 2 + 1e-12), -1.0)
+                xe[out] = (x0[out] - 2 * alpha[out, None] * r[out]
+                           + alpha[out, None] ** 2 * v[out])
+            tried = np.flatnonzero(alpha < -1.0)
+            if tried.size:
+                se = expect(xe[tried], lanes[tried], guarded=True)
+                ok = np.isfinite(se.loglik)
+                accepted = np.zeros(tried.size, dtype=bool)
+                if ok.any():
+                    x3 = m_step_batch(se.lane(np.flatnonzero(ok)), xe[tried[ok]], hold)
+                    s3 = expect(x3, lanes[tried[ok]], guarded=True)
+                    better = np.isfinite(s3.loglik) & (s3.loglik >= s0.loglik[tried[ok]])
+                    accepted[np.flatnonzero(ok)[better]] = True
+                    keep = tried[ok][better]
+                    x_new = x_new.copy()
+                    x_new[keep] = x3[better]
+                    s_new = _merged(s_new, keep, s3.lane(np.flatnonzero(better)))
+                refused = lanes[tried[~accepted]]
+                step_max[refused] = np.maximum(1.0, step_max[refused] / 4.0)
+        x[lanes] = x_new
+        stats = _merged(stats, lanes, s_new)
+        for i, lane in enumerate(lanes):
+            traces[lane].append(float(s_new.loglik[i]))
+            if abs(traces[lane][-1] - traces[lane][-2]) < tol * n[lane]:
+                converged[lane] = True
+        if progress is not None:
+            progress(int(np.sum(converged | (np.array([len(t) for t in traces]) > max_iter))))
+    return [EMRun(_unpack(x[lane], like), traces[lane], bool(converged[lane]),
+                  _single(stats.lane(lane)), int(e_steps[lane])) for lane in range(n_lanes)]
+
+
+def _merged(stats: Expected, lanes: np.ndarray, new: Expected) -> Expected:
+    """`stats` with the rows `lanes` replaced by `new`'s."""
+    out = []
+    for f in fields(Expected):
+        values = np.array(getattr(stats, f.name), copy=True)
+        values[lanes] = getattr(new, f.name)
+        out.append(values)
+    return Expected(*out)
+
+
+def _single(stats: Expected) -> Expected:
+    stats.loglik = float(stats.loglik)
+    return stats
 
 
 # -- starts and labels ------------------------------------------------------------------------
@@ -725,8 +895,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     rng = np.random.default_rng(seed)
     starts = [_smoothed(base_params, hold)]
     starts += [_random_start(base_params, hold, rng) for _ in range(n_init - 1)]
-    runs = [run_em(data, s, hold, tol, min(SHORT_RUN, max_iter), accelerate=False)
-            for s in starts]
+    runs = run_em_batch(data, starts, hold, tol, min(SHORT_RUN, max_iter), accelerate=False)
     start_logliks = [r.trace[-1] for r in runs]
     chosen = int(np.argmax(start_logliks))
     say(f'{n_init} start{"s" if n_init > 1 else ""}, log likelihood after {SHORT_RUN} '
@@ -745,14 +914,18 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
-        samples = np.empty((bootstrap, len(PARAMETER_NAMES)))
-        for b in range(bootstrap):
-            counts = rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
-            run = run_em(data, params, hold, tol, max_iter,
-                         seg_weight=counts[data.seg_episode].astype(float))
-            samples[b] = run.params.vector()
-            if (b + 1) % max(1, bootstrap // 10) == 0:
-                say(f'bootstrap {b + 1}/{bootstrap} ({time.perf_counter() - t1:.1f} s)')
+        weights = np.stack([rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
+                            [data.seg_episode] for _ in range(bootstrap)]).astype(float)
+        step = max(1, bootstrap // 10)
+        shown = [0]
+
+        def show(done):
+            if done // step > shown[0] // step:
+                shown[0] = done
+                say(f'bootstrap {done}/{bootstrap} ({time.perf_counter() - t1:.1f} s)')
+        runs = run_em_batch(data, [params] * bootstrap, hold, tol, max_iter, weights,
+                            progress=show)
+        samples = np.stack([run.params.vector() for run in runs])
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
         effective = effective_support(params.vector(), samples)
         seconds['bootstrap'] = time.perf_counter() - t1

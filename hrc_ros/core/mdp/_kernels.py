@@ -13,10 +13,13 @@ task part y, so a sweep reads and writes each array once:
 
 The four distance values of a row are contiguous and handled as one 4-wide vector (the loops
 over d are unrolled by hand so LLVM vectorises them); h is the outer loop so the distance
-coefficients of its ea are loop invariants. Both passes are numba-parallel over y. numba is a
-dependency of the package; there is no slower fallback.
+coefficients of its ea are loop invariants. Both passes are numba-parallel over y; the kernel is
+compiled parallel and serial (`core.parallel`), and each sweep runs the variant that is faster
+on the machine as it is, with the same result bit for bit (each output element is computed
+the same way by either). numba is a dependency of the package.
 
-Arguments of `sweep` (N = 9 * n_y * 4): `gamma_e` (3, 9, 9) the gamma-scaled emotion matrices;
+Arguments of `sweep` (N = 9 * n_y * 4, 9 = `model.N_HIDDEN`, 4 = `model.N_DISTANCE`, the
+width the distance loops are unrolled to): `gamma_e` (3, 9, 9) the gamma-scaled emotion matrices;
 task maps
 `t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
@@ -29,6 +32,9 @@ of |T V - V| per y.
 from __future__ import annotations
 
 import numba
+
+from ..model import N_HIDDEN
+from ..parallel import parallel_kernel
 
 
 def _mix(c, x0, x1, x2, x3):
@@ -45,12 +51,12 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
     # 1. emotion step for the three groups (one parallel region)
     for y in numba.prange(n_y):
         for grp in range(3):
-            for h in range(9):
+            for h in range(N_HIDDEN):
                 a0 = 0.0
                 a1 = 0.0
                 a2 = 0.0
                 a3 = 0.0
-                for k in range(9):
+                for k in range(N_HIDDEN):
                     e = gamma_e[grp, h, k]
                     a0 += e * value[k, y, 0]
                     a1 += e * value[k, y, 1]
@@ -66,7 +72,7 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
     g_dm = g[5]
     g_mh = g[6]
     residual[:] = 0.0
-    for h in range(9):
+    for h in range(N_HIDDEN):
         ea = h % 3
         pa = p_accept_h[h]
         cn = mix[0, ea]  # nw, dn, ct, mh, requests
@@ -148,4 +154,4 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
 
 
 _mix_inline = numba.njit(inline='always')(_mix)
-sweep = numba.njit(parallel=True, cache=True, nogil=True)(_sweep)
+sweep = parallel_kernel(_sweep, cache=True, nogil=True)

@@ -32,8 +32,9 @@ until ``max|V_{t+1} - V_t| < eta``, or a fixed number of sweeps) and `policy_ite
 (Howard's: exact evaluation by a sparse linear solve, greedy improvement, until the policy is
 stable; an independent check, slower here than the fused sweeps). `solve(model, method=...)`
 dispatches to them. Each returns a `SolveResult` whose fields mean the same for every method.
-The policy is greedy with the safety tie order (MODEL.md 5): actions within
-``1e-9 * max(1, |V|)`` of the best go to the first of ``dn, dp, nw, ct, rh1, rh2, mh, dm``.
+The policy is greedy with the safety tie order (MODEL.md 5, `model.safest_best`): actions
+within ``TIE_TOLERANCE * max(1, |V|)`` of the best go to the first of ``dn, dp, nw, ct, rh1,
+rh2, mh, dm``.
 """
 
 from __future__ import annotations
@@ -46,11 +47,10 @@ import numpy as np
 
 from . import _kernels
 from ..config import MAX_SWEEPS
-from ..model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, SAFETY_ORDER,
-                     HRCModel, commit_effective, request_eligible, step_task)
+from ..model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, HRCModel,
+                     commit_effective, request_eligible, safest_best, step_task, tie_floor)
 
 SOLVER_VERSION = '2.0'
-TIE_TOLERANCE = 1e-9
 METHODS = ('value_iteration', 'policy_iteration')
 
 
@@ -206,12 +206,7 @@ def memory_estimate(model: HRCModel) -> int:
 
 def greedy_policy(q: np.ndarray) -> np.ndarray:
     """Argmax over actions (axis 0) with the safety tie order of MODEL.md 5."""
-    best = q.max(axis=0)
-    tol = TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
-    policy = np.full(q.shape[1:], -1, dtype=np.int8)
-    for a in reversed(SAFETY_ORDER):
-        policy[q[a] >= best - tol] = a
-    return policy
+    return safest_best(q, axis=0).astype(np.int8)
 
 
 def policy_matrix(model: HRCModel, policy: np.ndarray):
@@ -317,7 +312,7 @@ def policy_iteration(model: HRCModel, max_iterations: int = 100,
             progress(rounds, residual, time.perf_counter() - t0)
         improved = greedy_policy(q)
         current = q[policy.astype(np.intp), np.arange(model.n_states)]
-        keep = current >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+        keep = current >= tie_floor(best)
         improved[keep] = policy[keep]
         if np.array_equal(improved, policy):
             stable = True

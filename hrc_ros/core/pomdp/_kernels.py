@@ -13,9 +13,9 @@ Lower bound (alpha vectors, `lb_backup`): the point-based backup
     alpha_a(h) = r(x, a, h) + gamma sum_{k, o} l_k(h) [Z_g[o] alpha*_{k,o}](h),
     alpha*_{k,o} = argmax_{alpha in Gamma(x'_k)} sum_h b(h) l_k(h) [Z_g[o] alpha](h),
 
-with the projections ``proj[g, o, i] = Z_g[o] @ alpha_i`` formed once per sweep; the best
-action's vector is kept (ties within 1e-9 relative go to the first action of `order`, the
-safety order).
+with the projections ``proj[g, o, i] = Z_g[o] @ alpha_i`` formed once per sweep; the vector
+of the action the model's tie rule picks is kept (`model.safest_best_one`, compiled here:
+actions within the tie tolerance of the best go to the first of `order`, the safety order).
 
 Upper bound (`ub_backup`): the same one-step lookahead on the upper bound U(x', b') =
 min(FIB(x', b'), sawtooth(x', b')), where FIB(x, b) = max_a sum_h b(h) Q_fib(x, a, h) and the
@@ -24,7 +24,10 @@ sawtooth interpolates the corner values c(x, h) and the point values (b_i, v_i) 
     sawtooth(x, b) = min( c.b,  min_i c.b + kappa_i (v_i - c.b_i) ),
     kappa_i = min_{h : b_i(h) > 0} b(h) / b_i(h).
 
-Both are parallel over the points (numba prange) and never allocate per successor.
+Both are parallel over the points (numba prange, through `core.parallel`, which runs each
+call serial or parallel by what the machine gives) and never allocate per successor. The
+upper bound's value at a point is the largest action's (a valid bound); its action is the one
+the tie rule picks.
 """
 
 from __future__ import annotations
@@ -32,7 +35,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-TIE = 1e-9
+from ..model import safest_best_one
+from ..parallel import parallel_kernel
+
+_safest_best = numba.njit(inline='always')(safest_best_one)
 
 
 def _ub_value(x, b, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets):
@@ -75,21 +81,21 @@ ub_value = numba.njit(cache=True)(_ub_value)
 def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order, proj,
                offsets, gamma, out_vec, out_act, out_val):
     n_points, n_h = points.shape
+    n_a = reward.shape[1]
     n_k = succ_x.shape[2]
     n_o = proj.shape[1]
     for p in numba.prange(n_points):
         x = point_x[p]
         b = points[p]
-        vec = np.empty(n_h)
+        vec = np.empty((n_a, n_h))
+        val = np.full(n_a, -np.inf)
         bl = np.empty(n_h)
-        best_val = -np.inf
-        for ai in range(order.shape[0]):
-            a = order[ai]
+        for a in range(n_a):
             if not available[x, a]:
                 continue
             g = group[a]
             for h in range(n_h):
-                vec[h] = reward[x, a, h]
+                vec[a, h] = reward[x, a, h]
             for k in range(n_k):
                 xn = succ_x[x, a, k]
                 if xn < 0:
@@ -109,24 +115,25 @@ def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
                             best_s = s
                             best_i = i
                     for h in range(n_h):
-                        vec[h] += gamma * succ_l[x, a, k, h] * proj[g, o, best_i, h]
-            val = 0.0
+                        vec[a, h] += gamma * succ_l[x, a, k, h] * proj[g, o, best_i, h]
+            v = 0.0
             for h in range(n_h):
-                val += vec[h] * b[h]
-            if best_val == -np.inf or val > best_val + TIE * max(1.0, abs(best_val)):
-                best_val = val
-                out_act[p] = a
-                for h in range(n_h):
-                    out_vec[p, h] = vec[h]
-        out_val[p] = best_val
+                v += vec[a, h] * b[h]
+            val[a] = v
+        a = _safest_best(val, order)
+        out_act[p] = a
+        out_val[p] = val[a]
+        for h in range(n_h):
+            out_vec[p, h] = vec[a, h]
 
 
-lb_backup = numba.njit(parallel=True, cache=True, nogil=True)(_lb_backup)
+lb_backup = parallel_kernel(_lb_backup, cache=True, nogil=True)
 
 
 def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order, kernel,
                gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, out_val, out_act):
     n_points, n_h = points.shape
+    n_a = reward.shape[1]
     n_k = succ_x.shape[2]
     n_o = kernel.shape[1]
     for p in numba.prange(n_points):
@@ -134,9 +141,8 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
         b = points[p]
         bl = np.empty(n_h)
         nb = np.empty(n_h)
-        best_val = -np.inf
-        for ai in range(order.shape[0]):
-            a = order[ai]
+        val = np.full(n_a, -np.inf)
+        for a in range(n_a):
             if not available[x, a]:
                 continue
             g = group[a]
@@ -163,13 +169,12 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
                         nb[h2] /= total
                     q += gamma * total * _ub_value_inline(
                         xn, nb, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets)
-            if best_val == -np.inf or q > best_val + TIE * max(1.0, abs(best_val)):
-                best_val = q
-                out_act[p] = a
-        out_val[p] = best_val
+            val[a] = q
+        out_act[p] = _safest_best(val, order)
+        out_val[p] = val.max()
 
 
-ub_backup = numba.njit(parallel=True, cache=True, nogil=True)(_ub_backup)
+ub_backup = parallel_kernel(_ub_backup, cache=True, nogil=True)
 
 
 def _lb_values(points, point_x, alpha, offsets, out_val, out_index):
@@ -190,7 +195,7 @@ def _lb_values(points, point_x, alpha, offsets, out_val, out_index):
         out_index[p] = best_i
 
 
-lb_values = numba.njit(parallel=True, cache=True, nogil=True)(_lb_values)
+lb_values = parallel_kernel(_lb_values, cache=True, nogil=True)
 
 
 def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets,
@@ -200,4 +205,4 @@ def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, 
                                       ub_inverse, ub_slope, ub_offsets)
 
 
-ub_values = numba.njit(parallel=True, cache=True, nogil=True)(_ub_values)
+ub_values = parallel_kernel(_ub_values, cache=True, nogil=True)

@@ -65,10 +65,9 @@ from . import _kernels as kernels
 from .belief import BeliefFilter
 from ..config import EMOTION_GROUPS
 from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
-                     SAFETY_ORDER, TASK_VARIABLES, HRCModel)
+                     SAFETY_ORDER, TASK_VARIABLES, HRCModel, safest_best, safest_best_one,
+                     tie_floor)
 from ..mdp.solver import FactoredBellman
-
-TIE_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -357,12 +356,9 @@ def q_policy(pomdp: MixedPOMDP, q: np.ndarray):
 
 
 def first_of_best(scores: np.ndarray, order=SAFETY_ORDER) -> np.ndarray:
-    """Per row of scores (E, A), the first action of `order` within the tie tolerance
-    (1e-9 * max(1, |best|)) of the row's best."""
-    best = scores.max(axis=1, keepdims=True)
-    tied = scores >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
-    order = np.asarray(order)
-    return order[np.argmax(tied[:, order], axis=1)]
+    """Per row of scores (E, A), the first action of `order` tied with the row's best (the
+    model's tie rule, `model.safest_best`)."""
+    return safest_best(scores, order)
 
 
 @dataclass
@@ -507,7 +503,8 @@ class UpperBound:
         x = np.ascontiguousarray(x, dtype=np.intp)
         b = np.ascontiguousarray(b, dtype=float)
         out = np.empty(len(x))
-        kernels.ub_values(b, x, self.q_fib, self.available, self.corner, *self.sawtooth(), out)
+        kernels.ub_values(b, x, self.q_fib, self.available, self.corner, *self.sawtooth(), out,
+                          work=len(x))
         return out
 
 
@@ -556,8 +553,9 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
         proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
         kernels.lb_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
                           pomdp.available, group, order, proj, alphas.offsets, pomdp.gamma,
-                          vec, act, val)
-        kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx)
+                          vec, act, val, work=n_p)
+        kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx,
+                          work=n_p)
         better = val > old_val
         keep_vec = np.where(better[:, None], vec, alphas.alpha[old_idx])
         keep_act = np.where(better, act, alphas.action[old_idx])
@@ -575,7 +573,8 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
         if sweep == 1 or sweep % ub_every == 0 or last:
             kernels.ub_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
                               pomdp.available, group, order, pomdp.kernel, pomdp.gamma,
-                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act)
+                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act,
+                              work=n_p)
             ub_change = float(np.max(np.maximum(upper.values - ub_new, 0.0)))
             upper.values = np.minimum(upper.values, ub_new)
             c = upper.corner.copy()
@@ -835,10 +834,7 @@ class AlphaPolicy:
         for v, a in zip((self.alpha[lo:hi] @ b).tolist(), self._actions[lo:hi]):
             if v > scores[a]:
                 scores[a] = v
-        best = max(scores)
-        floor = best - TIE_TOLERANCE * max(1.0, abs(best))
-        action = next(a for a in SAFETY_ORDER if scores[a] >= floor)
-        return action, np.array(scores)
+        return safest_best_one(scores, SAFETY_ORDER), np.array(scores)
 
     def fib(self, b: np.ndarray, column: int) -> tuple[int, np.ndarray]:
         i = self.state(column)
@@ -851,7 +847,7 @@ class AlphaPolicy:
         values = np.einsum('emh,eh->em', self.dense[i], b)
         values = np.where(self.dense_valid[i], values, -np.inf)
         best = values.max(axis=1, keepdims=True)
-        tied = values >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+        tied = values >= tie_floor(best)
         rank = np.where(tied, self.dense_rank[i], len(SAFETY_ORDER))
         return np.array(SAFETY_ORDER)[rank.min(axis=1)]
 

@@ -38,10 +38,11 @@ import numpy as np
 
 from ..pomdp.belief import BeliefFilter
 from ..cell.human import UNIFORMS_PER_EPOCH, sample_index
-from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN, SAFETY_ORDER,
-                     TASK_VARIABLES, HRCModel, next_distance, request_eligible, step_task)
+from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN,
+                     TASK_VARIABLES, HRCModel, first_in_safety_order, next_distance,
+                     request_eligible, safest_best, step_task)
 from ..mdp.policy import policy_arrays
-from ..decision.selection import POMDP_SELECTORS, Q_TOLERANCE, VOTE_TOLERANCE
+from ..decision.selection import POMDP_SELECTORS, VOTE_TOLERANCE
 from .simulation import SIMULATION_SELECTORS, Scenario, case_study
 
 METRICS = (
@@ -188,7 +189,6 @@ class BatchSimulator:
                                 for a in range(len(ACTIONS))])
         likelihood = (self.filter if world is model else BeliefFilter(world)).likelihood
         self.observation_cdf = np.cumsum(likelihood, axis=0).T
-        self.safety = np.array(SAFETY_ORDER)
         self._q = None
         self.pomdp = pomdp
 
@@ -212,9 +212,6 @@ class BatchSimulator:
         return getattr(self.pomdp, 'policy', self.pomdp)
 
     # -- selection, vectorised with ActionSelector's tie rules ---------------------------
-    def _first_safe(self, tied: np.ndarray) -> np.ndarray:
-        return self.safety[np.argmax(tied[:, self.safety], axis=1)]
-
     def _paper(self, belief, column):
         actions = self.by_h[:, column].T                              # (E, 9)
         weights = belief[:, :, None] * (actions[:, :, None] == np.arange(len(ACTIONS)))
@@ -224,7 +221,7 @@ class BatchSimulator:
         top = np.where(tied, single, -np.inf).max(axis=1, keepdims=True)
         several = tied.sum(axis=1) > 1
         tied[several] &= single[several] >= top[several] - VOTE_TOLERANCE
-        return self._first_safe(tied)
+        return first_in_safety_order(tied)
 
     def _mls(self, belief, column):
         h = np.argmax(belief >= belief.max(axis=1, keepdims=True) - VOTE_TOLERANCE, axis=1)
@@ -233,9 +230,7 @@ class BatchSimulator:
     def _qmdp(self, belief, column):
         candidates = np.arange(N_HIDDEN)[None, :] * self.columns + column[:, None]
         scores = np.einsum('eh,eha->ea', belief, self.q_table[candidates])
-        best = scores.max(axis=1, keepdims=True)
-        tied = scores >= best - Q_TOLERANCE * np.maximum(1.0, np.abs(best))
-        return self._first_safe(tied)
+        return safest_best(scores)
 
     # -- the episodes --------------------------------------------------------------------
     def run(self, scenarios, seeds, selector: str = 'paper', keep_actions: bool = False,
