@@ -2,9 +2,16 @@
 
 - `conversions`: every message <-> numpy conversion and its validation; `qos`: the profiles;
 - `node_support`: parameters, guarded inputs, diagnostics, deadlines, the nodes' `main()`;
-- `nodes/`: the four nodes (console scripts `belief_estimator_node`, `decision_node`,
-  `task_manager_node`, `cell_sim_node`), thin around `hrc_ros.core.protocol`;
+- `stop`: how every process stops (signals as requests, a second one forces the exit);
+  `entry`: the console scripts, which install it before the heavy imports;
+- `nodes/`: the seven nodes (console scripts `belief_estimator_node`, `decision_node`,
+  `task_manager_node`, `cell_sim_node`: the cell's loop, thin around `hrc_ros.core.protocol`;
+  `cell_view_node`: the cell as markers; `body_tracking_node`, `tracker_sim_node`: a body
+  tracker's stream as the human's input, and a synthetic one);
 - `bag`: recording and playing rosbag2-compatible bags on the graph (`hrc-bag`);
 - `processes`: node processes started as a user would; `case_study`: `hrc-case-study`;
-- `launch_plan`: what `launch/hrc.launch.py` starts, as plain data the tests can check.
+- `launch_plan`: what `launch/hrc.launch.py` starts, as plain data the tests can check, and
+  the scenario's node parameters.
+
+This package's `__init__` imports nothing: `entry` must load before rclpy does.
 """
