@@ -153,7 +153,7 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
                     stopped[name] = time.monotonic() - sent
             time.sleep(0.005)
     finally:
-        codes = nodes.stop(timeout=0.1)       # the hung ones: stacks into their logs, killed
+        codes = nodes.stop(timeout=0.1, signum=None)   # hung ones: stacks into the log, killed
     result = {'phase': phase, 'moment': moment, 'nodes': {}}
     for name in nodes.processes:
         log = nodes.log(name, tail=10 ** 6)
@@ -202,7 +202,8 @@ def report(results: list[dict], args, elapsed: float) -> str:
                              f'exit {row["code"]}{" HANG" if row["hang"] else ""} '
                              f'{row["bad"][:2]}')
     lines.append('reproduce: python bench/stop_bench.py '
-                 f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}')
+                 f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}'
+                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else ''))
     return '\n'.join(lines)
 
 
@@ -213,11 +214,16 @@ def main(argv=None) -> int:
     parser.add_argument('--timeout', type=float, default=10.0,
                         help='seconds after SIGINT before a node counts as hung')
     parser.add_argument('--out', default='out/stop_bench')
+    parser.add_argument('--phases', default=','.join(PHASES),
+                        help=f'the phases to cycle through (default {",".join(PHASES)})')
     args = parser.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
             share_dir() / 'config' / 'fastdds_fast_discovery.xml')
+    phases = [p for p in args.phases.split(',') if p]
+    if not phases or set(phases) - set(PHASES):
+        parser.error(f'--phases takes some of {",".join(PHASES)}')
     out = Path(args.out)
     failures = out / 'failures'
     shutil.rmtree(failures, ignore_errors=True)
@@ -228,7 +234,7 @@ def main(argv=None) -> int:
         observer = Observer()
         try:
             for index in range(args.rounds):
-                phase = PHASES[index % len(PHASES)]
+                phase = phases[index % len(phases)]
                 result = one_round(index, phase, rng, out / 'round', observer, args.timeout)
                 result['round'] = index
                 results.append(result)

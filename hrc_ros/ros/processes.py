@@ -9,9 +9,9 @@ Stopping (stop.py has the nodes' side). `stop()` sends SIGINT and waits. A node 
 SIGINT and SIGTERM blocked, which survives exec: a signal sent before the interpreter has run
 the first line of the console script stays pending until `stop.install()` unblocks it, and is
 then a clean stop like any other. A node still running after the timeout is stuck somewhere:
-before it is killed its native and Python stacks go into its log (`py-spy dump --native`, else
-gdb, else the SIGABRT that Python's faulthandler answers with the Python stacks), then SIGABRT,
-then SIGKILL.
+before it is killed its native and Python stacks go into its log (`py-spy dump --native`, and
+gdb's backtraces when gdb is installed; without either, the SIGABRT that Python's
+faulthandler answers with the Python stacks), then SIGABRT, then SIGKILL.
 """
 
 from __future__ import annotations
@@ -46,34 +46,39 @@ def node_command(executable: str) -> list[str]:
     return [sys.executable, '-m', 'hrc_ros.ros.entry', executable]
 
 
-def stack_dumper() -> list[str] | None:
-    """The command prefix that writes a process's native stacks (pid appended), or None."""
+def stack_dumpers() -> list[list[str]]:
+    """Commands (pid appended) that write a process's stacks: py-spy for the Python frames with
+    the native ones, and gdb, whose unwinder also walks stripped C++ libraries (the ROS
+    wheels'), when they are installed."""
+    dumpers = []
     for candidate in (Path(sys.executable).parent / 'py-spy', shutil.which('py-spy')):
         if candidate and Path(candidate).is_file() and os.access(candidate, os.X_OK):
-            return [str(candidate), 'dump', '--native', '--pid']
+            dumpers.append([str(candidate), 'dump', '--native', '--pid'])
+            break
     gdb = shutil.which('gdb')
     if gdb:
-        return [gdb, '-batch', '-nx', '-ex', 'thread apply all bt', '-p']
-    return None
+        dumpers.append([gdb, '-batch', '-nx', '-ex', 'thread apply all bt', '-p'])
+    return dumpers
 
 
 def dump_stacks(pid: int, log_path: Path) -> bool:
-    """Append the native stacks of process `pid` to `log_path`; False if no tool could."""
-    dumper = stack_dumper()
-    if dumper is None:
-        return False
-    with open(log_path, 'a') as log:
-        log.write(f'\n--- {os.path.basename(dumper[0])}: stacks of pid {pid}, still running '
-                  'after the stop timeout ---\n')
-        log.flush()
-        try:
-            result = subprocess.run(dumper + [str(pid)], stdout=log, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, timeout=STACK_DUMP_TIMEOUT)
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            log.write(f'--- the stack dump failed: {exc} ---\n')
-            return False
-        log.write(f'--- end of stacks (exit {result.returncode}) ---\n')
-    return result.returncode == 0
+    """Append the stacks of process `pid` to `log_path`; False if no tool could."""
+    written = False
+    for dumper in stack_dumpers():
+        with open(log_path, 'a') as log:
+            log.write(f'\n--- {os.path.basename(dumper[0])}: stacks of pid {pid}, still '
+                      'running after the stop timeout ---\n')
+            log.flush()
+            try:
+                result = subprocess.run(dumper + [str(pid)], stdout=log,
+                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                        timeout=STACK_DUMP_TIMEOUT)
+            except (OSError, subprocess.TimeoutExpired) as exc:
+                log.write(f'--- the stack dump failed: {exc} ---\n')
+                continue
+            log.write(f'--- end of stacks (exit {result.returncode}) ---\n')
+            written = written or result.returncode == 0
+    return written
 
 
 @contextmanager
@@ -114,7 +119,10 @@ class NodeProcesses:
                 cmd += ['-r', f'{old}:={new}']
         else:
             cmd += list(ros_args)
-        with open(self.log_path(name), 'w') as log, _blocked_stop_signals():
+        # appended to (O_APPEND): the node's own writes and the stacks `stop()` adds later
+        # must not overwrite each other
+        self.log_path(name).write_text('')
+        with open(self.log_path(name), 'a') as log, _blocked_stop_signals():
             self.processes[name] = subprocess.Popen(
                 cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 env=self.env, start_new_session=True)
@@ -145,16 +153,16 @@ class NodeProcesses:
         except ProcessLookupError:
             pass
 
-    def stop(self, timeout: float = 10.0) -> dict[str, int]:
-        """SIGINT to every process group, then the exit codes.
+    def stop(self, timeout: float = 10.0, signum: int | None = signal.SIGINT) -> dict[str, int]:
+        """`signum` (SIGINT; None: already sent) to every process group, then the exit codes.
 
         A process still running after `timeout` gets its stacks written to its log
         (`dump_stacks`, named in `stacks_dumped`), then SIGABRT (Python's faulthandler,
         PYTHONFAULTHANDLER=1, adds the Python stacks), then SIGKILL.
         """
         for name, process in self.processes.items():
-            if process.poll() is None:
-                self.send_signal(name, signal.SIGINT)
+            if process.poll() is None and signum is not None:
+                self.send_signal(name, signum)
         codes = {}
         deadline = time.monotonic() + timeout
         for name, process in self.processes.items():
