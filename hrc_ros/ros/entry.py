@@ -1,12 +1,14 @@
 """The console scripts of the nodes, `hrc-bag` and `hrc-case-study`: install the stop regime
 (`stop.install`), then import the command's module and run its `main()`.
 
-A node's module imports rclpy, numpy and the model (about a second); a Ctrl-C during those
-imports used to end the process with a KeyboardInterrupt traceback and exit -2. Entering here,
-the signal is only noted, the imports finish, and `main()` sees the request and returns 0
-before it creates anything. setup.py points every such console script here (`ros2 run` and
-`colcon build` use the same entry points); `python -m hrc_ros.ros.entry NAME [ARGS...]` runs
-one by its script name. This module and `stop` import only the standard library.
+A node's module imports rclpy, numpy and the model (about a second, several on a loaded
+machine); a Ctrl-C during those imports used to end the process with a KeyboardInterrupt
+traceback and exit -2. Entering here, it ends the process at once with exit 0 and no output
+(`stop.importing`: nothing exists yet to tear down); once `main()` runs, a signal is a request
+that `main()` honours (a node built meanwhile is torn down, then exit 0). setup.py points every
+such console script here (`ros2 run` and `colcon build` use the same entry points); `python -m
+hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module and `stop` import
+only the standard library.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ COMMANDS = {
 def run_command(name: str) -> int:
     """Install the stop regime, import the command's module, return its main()'s exit code."""
     stop.install()
-    module = importlib.import_module(COMMANDS[name])
+    with stop.importing():        # a stop signal now ends the process at once, with 0
+        module = importlib.import_module(COMMANDS[name])
     return module.main()
 
 

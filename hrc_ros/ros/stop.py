@@ -9,8 +9,9 @@ was killed, "Exception ignored in Future.__del__"). The regime below removes the
 signal interrupts anything, and nothing but the main thread ever shuts a context down.
 
 1. The console scripts enter through `entry.py`, which calls `install()` before it imports
-   rclpy, numpy or the node's module (about a second of imports), so a Ctrl-C during the
-   imports is already a clean stop.
+   rclpy, numpy or the node's module (about a second of imports, several on a loaded
+   machine): a stop signal during the imports ends the process at once with 0 (`importing`),
+   since nothing exists yet to tear down.
 2. SIGINT and SIGTERM only record the signal (`requested()`). A helper thread reads the
    interpreter's signal wake-up pipe and calls the registered wakers (the node's spin loop
    registers a guard condition), so a loop blocked in `rcl_wait` wakes at once; the Python
@@ -59,6 +60,7 @@ class _Regime:
         self.wakers: list[Callable[[], None]] = []
         self.force_hooks: list[Callable[[], None]] = []
         self.installed = False
+        self.exit_at_once = False       # nothing exists yet to tear down (`importing`)
         self.previous: dict = {}
         self.previous_wakeup_fd = -1
         self.pipe: tuple[int, int] | None = None
@@ -124,6 +126,20 @@ def regime() -> Iterator[None]:
             uninstall()
 
 
+@contextmanager
+def importing() -> Iterator[None]:
+    """While the command's modules import, a stop signal ends the process at once with 0:
+    nothing exists yet to tear down (no context, no file written), and on a loaded machine
+    the imports take seconds, past ros2 launch's 5 s before it escalates to SIGTERM."""
+    _regime.exit_at_once = True
+    try:
+        if requested():
+            os._exit(0)
+        yield
+    finally:
+        _regime.exit_at_once = False
+
+
 def requested() -> bool:
     """A stop signal was received."""
     return bool(_regime.signals)
@@ -165,6 +181,8 @@ def init_options() -> dict:
 
 def _on_signal(signum, frame) -> None:
     _regime.signals.append(signum)
+    if _regime.exit_at_once:
+        os._exit(0)
     if len(_regime.signals) >= 2:
         force()
 
@@ -186,6 +204,8 @@ def _read_wakeups(read_end: int) -> None:
         if not stops:
             continue
         seen += stops
+        if _regime.exit_at_once:        # the imports hold the main thread in C for a while
+            os._exit(0)
         with _regime.lock:
             wakers = list(_regime.wakers)
         for wake in wakers:
