@@ -206,13 +206,12 @@ def _read_wakeups(read_end: int) -> None:
         seen += stops
         if _regime.exit_at_once:        # the imports hold the main thread in C for a while
             os._exit(0)
-        with _regime.lock:
-            wakers = list(_regime.wakers)
-        for wake in wakers:
-            try:
-                wake()
-            except Exception:  # noqa: BLE001 - a waker destroyed meanwhile; the flag is set
-                pass
+        with _regime.lock:      # held while waking: `remove_waker` returns after, never during
+            for wake in _regime.wakers:
+                try:
+                    wake()
+                except Exception:  # noqa: BLE001 - the flag is set whatever a waker does
+                    pass
         if seen >= 2:
             force()
 
