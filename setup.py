@@ -8,13 +8,15 @@ PACKAGE = 'hrc_ros'
 
 NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node',
          'cell_view_node', 'body_tracking_node', 'tracker_sim_node', 'hmi_node']
+# The nodes, hrc-bag and hrc-case-study enter through hrc_ros.ros.entry, which installs the
+# stop regime (hrc_ros/ros/stop.py) before the heavy imports: Ctrl-C during them is a clean stop.
 TOOLS = {
     'hrc-solve': 'hrc_ros.tools.solve:main',
     'hrc-simulate': 'hrc_ros.tools.simulate:main',
     'hrc-evaluate': 'hrc_ros.tools.evaluate:main',
     'hrc-fit': 'hrc_ros.tools.fit:main',
-    'hrc-bag': 'hrc_ros.ros.bag:main',
-    'hrc-case-study': 'hrc_ros.ros.case_study:main',
+    'hrc-bag': 'hrc_ros.ros.entry:hrc_bag',
+    'hrc-case-study': 'hrc_ros.ros.entry:hrc_case_study',
     'hrc-hmi-shots': 'hrc_ros.ros.hmi.shots:main',
     'hrc-fleet': 'hrc_ros.tools.fleet:main',
 }
@@ -42,9 +44,9 @@ setup(
     maintainer_email='maintainers@hrc-ros.invalid',
     description='POMDP decision making for human-robot collaboration (ROS 2 Jazzy nodes)',
     license='Apache-2.0',
-    extras_require={'test': ['pytest']},
+    extras_require={'test': ['pytest', 'py-spy']},
     entry_points={
-        'console_scripts': [f'{n} = hrc_ros.ros.nodes.{n}:main' for n in NODES]
+        'console_scripts': [f'{n} = hrc_ros.ros.entry:{n}' for n in NODES]
         + [f'{name} = {target}' for name, target in TOOLS.items()],
     },
 )

@@ -663,3 +663,76 @@ def test_the_rosbag2_metadata_record_round_trips(project_bag):
     info = bag.bag_info(bag_file)
     assert info.ros_distro == 'jazzy' and info.metadata == record
     assert 'ROS Distro:        jazzy' in info.format()
+
+
+# --------------------------------------------------------------------------------------------
+# issue 17: the first messages of a replay, and refusals before any waiting
+
+
+def test_play_starts_only_once_the_running_subscribers_are_matched(tmp_path, ros_env):
+    """`ros2 bag play` of a bag into fresh nodes lost epoch 1: the player's new publisher was
+    not yet discovered when it sent the first message (volatile: lost for good). The player
+    here is a fresh participant (its own context, as `hrc-bag play` is) and the subscriber
+    runs already, in a participant of its own: every message arrives, the first too."""
+    path = tmp_path / 'three.mcap'
+    with BagWriter(path) as writer:
+        writer.add_topic('/hrc_bag_test/match', 'std_msgs/msg/UInt32', qos=QoSProfile(depth=10))
+        for i in range(3):
+            writer.write('/hrc_bag_test/match', UInt32(data=i), 1_000_000_000 + i * 50_000_000)
+    context = Context()
+    rclpy.init(context=context)
+    listener = rclpy.create_node('match_listener', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+    received: list[int] = []
+    listener.create_subscription(UInt32, '/hrc_bag_test/match', lambda m: received.append(m.data),
+                                 QoSProfile(depth=10))
+    results = []
+    player = threading.Thread(target=lambda: results.append(bag.play(path, match_timeout=15)))
+    try:
+        player.start()
+        deadline = time.monotonic() + 30
+        while (player.is_alive() or len(received) < 3) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+        player.join(timeout=5)
+    finally:
+        executor.shutdown()
+        listener.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert results and results[0].message_count == 3 and results[0].unmatched == {}, results
+    assert received == [0, 1, 2]
+
+
+def test_record_refuses_a_bad_topic_name_at_once(tmp_path, ros_env):
+    """'hrc/ep och!!' ended in an RCLError traceback; now one line, before any waiting."""
+    started = time.monotonic()
+    result = subprocess.run(hrc_bag_command() + ['record', '-o', str(tmp_path / 'out'),
+                                                 '--wait-timeout', '30', 'hrc/ep och!!'],
+                            capture_output=True, text=True, timeout=60, env=ros_env)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "hrc-bag: invalid topic name 'hrc/ep och!!': topic name must not contain characters "
+        "other than alphanumerics, '_', '~', '{', or '}':"], result.stderr
+    assert time.monotonic() - started < 30 and not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('existing', ['bag.mcap', 'folder'])
+def test_record_refuses_an_existing_output_before_waiting(existing, tmp_path, ros_env):
+    """-o to an existing file was refused only after the wait for publishers (10 s by
+    default), and an existing .mcap was overwritten: refused at once, untouched."""
+    target = tmp_path / existing
+    if existing.endswith('.mcap'):
+        target.write_bytes(b'a recording')
+    else:
+        target.mkdir()
+        (target / 'kept.txt').write_text('kept')
+    started = time.monotonic()
+    result = subprocess.run(hrc_bag_command() + ['record', '-o', str(target), '--wait-timeout',
+                                                 '30', '/hrc_bag_test/nobody'],
+                            capture_output=True, text=True, timeout=60, env=ros_env)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'it already exists' in lines[0], result.stderr
+    assert time.monotonic() - started < 30
+    assert (target.read_bytes() == b'a recording' if existing.endswith('.mcap')
+            else (target / 'kept.txt').read_text() == 'kept')

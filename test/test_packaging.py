@@ -620,16 +620,18 @@ def test_hrc_params_give_every_node_the_design_defaults():
 
 
 def test_case_study_params_add_the_schedule():
+    """rcl reads config/case_study_params.yaml into the core's scenario (`case_study()`)."""
+    from hrc_ros.core.study.simulation import case_study
+    from hrc_ros.ros.launch_plan import scenario_parameters
     design = design_parameters()
     effective = effective_parameters(REPO / 'config' / 'hrc_params.yaml',
                                      REPO / 'config' / 'case_study_params.yaml')
-    task_manager = effective['task_manager']
-    for name, expected in (('initial_task', [1, 1, 3]), ('schedule', ['9:2,2,1', '16:2,2,2'])):
-        rcl_type, value = task_manager[name]
-        check_type(design['task_manager'][name][0], rcl_type, value)
-        assert list(value) == expected
-    assert effective['cell_sim']['initial_emotions'][1] == [0, 0]
-    assert effective['cell_sim']['initial_distance'][1] == 1
+    expected = scenario_parameters(case_study())
+    for node, section in (('task_manager', '/**/task_manager'), ('cell_sim', '/**/cell_sim')):
+        for name, value in expected[section]['ros__parameters'].items():
+            rcl_type, got = effective[node][name]
+            check_type(design[node][name][0], rcl_type, got)
+            assert (list(got) if isinstance(got, (list, tuple)) else got) == value, name
 
 
 def test_body_tracking_sim_params_give_both_camera_nodes_one_pose():

@@ -5,7 +5,8 @@ Each bag folder holds the MCAP file of a live run of the suite (`hrc-case-study`
 replay starts `belief_estimator_node`, `task_manager_node` and `decision_node` as processes
 with those parameters (the decision node with `epoch_source: topic`, so it follows the
 recorded `hrc/epoch` instead of its own clock), plays the bag's inputs with `hrc-bag play
---order publish` (joint states, skeletons, human responses, task requests and the epoch
+--order publish`, which starts once every subscriber of the played topics has matched (joint
+states, skeletons, human responses, task requests and the epoch
 signals, in the order their writers sent them, which is the order the live nodes' windows
 were cut by; the recorder may have taken two of them the other way round) and compares
 the actions the fresh nodes publish with the recorded ones, epoch by epoch (DESIGN.md explains
@@ -195,7 +196,10 @@ def test_replay_reproduces_the_recorded_actions(bag, tmp_path, ros_domain_id):
                    'the replay')
         spin_until(decided_last, 10, f'the action of epoch {last} (seen: {events[-12:]}; '
                    f'decision log: {nodes.log("decision_node", 1500)})')
-        assert player.wait(30) == 0, player.stdout.read()
+        code, output = player.wait(30), player.stdout.read()
+        assert code == 0, output
+        # the first message went out once every running subscriber had matched (issue 17)
+        assert 'not matched' not in output, output
     finally:
         if 'player' in locals() and player.poll() is None:
             os.killpg(player.pid, signal.SIGKILL)

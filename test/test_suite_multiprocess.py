@@ -1,9 +1,10 @@
 """The four nodes as four processes, started as a user starts them, talking over real DDS.
 
 Each node runs from its console script with ``--ros-args --params-file <yaml>`` holding the
-paper's case study (MODEL.md 7): task 1 (1, 1, 3) at epoch 1, task 2 (2, 2, 1) released at 9,
-task 3 (2, 2, 2) at 16, a calm unmotivated human (em = ea = 0) at the inner circle, seed 8 (the
-simulator's reference seed), a 0.25 s epoch. The test process only listens: `hrc/action`,
+paper's case study (MODEL.md 7, `core.study.simulation.case_study()` as node parameters): task 1
+(1, 1, 3) at epoch 1, task 2 (2, 2, 1) released at 9, task 3 (2, 2, 2) at 16, a calm unmotivated
+human (em = ea = 0) at the inner circle; seed 8 (the simulator's reference seed), a 0.5 s
+epoch. The test process only listens: `hrc/action`,
 `hrc/task_state`, the decision node's per-epoch /diagnostics (for d and the faults) and the
 simulator's `hrc/sim/true_state` (for the hidden motivation). After 20 epochs it checks the
 behaviours MODEL.md 7 asks for, and that the distributed loop took exactly the decisions of
@@ -20,6 +21,7 @@ import time
 
 import pytest
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -30,6 +32,7 @@ from hrc_ros.core.mdp.policy import load_policy
 from hrc_ros.core.study.simulation import case_study, simulate
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
+from hrc_ros.ros.launch_plan import scenario_parameters
 from hrc_ros.ros.processes import NodeProcesses
 
 EPOCHS = 20
@@ -55,15 +58,9 @@ decision:
     input_timeout: 0.4
     stale_timeout: 3.0
     epoch_source: timer
-task_manager:
-  ros__parameters:
-    initial_task: [1, 1, 3]
-    schedule: ["9:2,2,1", "16:2,2,2"]
 cell_sim:
   ros__parameters:
     seed: {seed}
-    initial_emotions: [0, 0]
-    initial_distance: 1
     sensor_rate: 50.0
 """
 
@@ -125,7 +122,9 @@ def processes(tmp_path, policy_path, ros_domain_id):
     """The (not yet started) node processes and the listener; always stopped at the end."""
     params = tmp_path / 'case_study.yaml'
     params.write_text(PARAMS.format(policy=policy_path, period=EPOCH_PERIOD, seed=SEED))
-    suite = NodeProcesses(tmp_path, [params])
+    scenario = tmp_path / 'scenario.yaml'       # the case study's one definition, the core's
+    scenario.write_text(yaml.safe_dump(scenario_parameters(case_study())))
+    suite = NodeProcesses(tmp_path, [scenario, params])
     listener = Listener()
     try:
         yield suite, listener

@@ -16,6 +16,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
@@ -261,18 +262,76 @@ class Recorder:
 class PlayResult:
     message_count: int
     duration_s: float        # wall time from the first to the last publication
-    interrupted: bool        # the context shut down (Ctrl-C) before the last message
+    interrupted: bool        # a stop signal (Ctrl-C) or a shut-down context ended it early
     skipped: dict = field(default_factory=dict)   # topic -> why it was not played
+    unmatched: dict = field(default_factory=dict)  # topic -> subscribers not matched at start
 
 
 PLAY_ORDERS = ('log', 'publish')
+MATCH_POLL_SEC = 0.02
+
+
+def _stopped(context) -> bool:
+    from . import stop
+    return stop.requested() or not context.ok()
+
+
+def unmatched_subscribers(node: Any, publishers: Mapping[str, Any]) -> dict[str, int]:
+    """topic -> how many subscriptions the graph shows on it (of its type, with a QoS that can
+    match the publisher's) that the publisher has not matched yet; topics with none are left
+    out. The graph and the matches both come from discovery, without spinning."""
+    from rclpy.qos import QoSCompatibility, qos_check_compatible
+    missing = {}
+    for topic, publisher in publishers.items():
+        cls = publisher.msg_type
+        type_name = f'{cls.__module__.split(".")[0]}/msg/{cls.__name__}'
+        wanted = 0
+        for info in node.get_subscriptions_info_by_topic(topic):
+            if full_type_name(info.topic_type) != type_name:
+                continue
+            compatibility, _ = qos_check_compatible(publisher.qos_profile, info.qos_profile)
+            wanted += compatibility != QoSCompatibility.ERROR
+        count = wanted - publisher.get_subscription_count()
+        if count > 0:
+            missing[topic] = count
+    return missing
+
+
+def wait_until_matched(node: Any, publishers: Mapping[str, Any], timeout: float,
+                       every_topic: bool = False,
+                       notice: Callable[[str], None] | None = None) -> dict[str, int]:
+    """Before the first message: wait up to `timeout` s until every subscription the graph
+    shows on the played topics is matched by its publisher and at least one is (with
+    `every_topic`, at least one on every topic). A fresh publisher is discovered by the
+    subscribers already running some milliseconds after it appears, and a volatile message
+    published before that is lost to them: `ros2 bag play` of a bag into fresh nodes lost
+    epoch 1 that way. Returns what is still unmatched (topic -> count; a topic without any
+    subscription counts 1 under `every_topic`); {} when ready. Stops early on a stop signal."""
+    deadline = time.monotonic() + max(0.0, timeout)
+    next_notice = time.monotonic() + 1.0
+    while True:
+        missing = unmatched_subscribers(node, publishers)
+        matched = {t: p.get_subscription_count() for t, p in publishers.items()}
+        if every_topic:
+            missing.update({t: 1 for t, n in matched.items() if n == 0 and t not in missing})
+        if not missing and any(matched.values()):
+            return {}
+        if time.monotonic() >= deadline or _stopped(node.context):
+            if notice is not None and not missing and not any(matched.values()):
+                notice(f'no subscriber of the played topics appeared within {timeout:g} s')
+            return missing
+        if notice is not None and time.monotonic() >= next_notice:
+            waiting = ', '.join(f'{t} ({n})' for t, n in sorted(missing.items()))
+            notice(f'waiting for subscribers to match: {waiting or "none found yet"}')
+            next_notice = time.monotonic() + 2.0
+        time.sleep(MATCH_POLL_SEC)
 
 
 def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
          topics: Iterable[str] | None = None, start_delay: float = 0.0,
-         wait_for_subscribers: float = 0.0, ack_timeout: float = 2.0,
-         on_publish: Callable[[BagMessage], None] | None = None,
-         order: str = 'log') -> PlayResult:
+         wait_for_subscribers: float = 0.0, match_timeout: float = 5.0,
+         ack_timeout: float = 2.0, on_publish: Callable[[BagMessage], None] | None = None,
+         order: str = 'log', notice: Callable[[str], None] | None = None) -> PlayResult:
     """Publish a bag's messages (serialized, as recorded) with the recorded timing / ``rate``.
 
     Message i goes out at t0 + (time_i - time_0) / rate on the monotonic clock (no
@@ -281,12 +340,16 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
     source timestamps) with ``order='publish'``: the order the messages were sent in, which on
     one host is their causal order, while the recorder may have taken two messages of
     different writers in the other order. 'publish' sorts the bag in memory. Each topic's
-    publisher uses
-    `qos_from_offers` of the recorded profiles. ``wait_for_subscribers``: wait up to that many
-    seconds for every publisher to match a subscription first. At the end, reliable
-    publishers wait up to ``ack_timeout`` s for their messages to be acknowledged. Without a
-    ``node`` a private rclpy context and node are made and torn down. Stops early (returning
-    what was played) when the node's context shuts down, e.g. on Ctrl-C.
+    publisher uses `qos_from_offers` of the recorded profiles.
+
+    Before the first message the player waits (`wait_until_matched`) up to ``match_timeout``
+    s until every subscriber the graph shows on the played topics has matched its publisher,
+    or, with ``wait_for_subscribers`` > 0, up to that long until every topic has one; what is
+    still unmatched then is in the result's `unmatched` (and the play goes on). At the end,
+    reliable publishers wait up to ``ack_timeout`` s for their messages to be acknowledged.
+    Without a ``node`` a private rclpy context and node are made and torn down. Stops early
+    (returning what was played) on a stop signal (`stop.requested`) or when the node's context
+    shuts down.
     """
     if not rate > 0:
         raise BagError(f'rate must be positive, not {rate}')
@@ -299,14 +362,15 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
         raise BagError(f'{info.path} has no topic {", ".join(sorted(unknown))} '
                        f'(it has {", ".join(t.topic for t in info.topics) or "none"})')
     import rclpy
-    from .node_support import shutdown
     import rclpy.context
     from rclpy.duration import Duration
     from rclpy.qos import QoSReliabilityPolicy
+
+    from . import stop
     own_context = None
     if node is None:
         own_context = rclpy.context.Context()
-        rclpy.init(context=own_context)
+        rclpy.init(context=own_context, **stop.init_options())
         node = rclpy.create_node('hrc_bag_player', context=own_context)
     context = node.context
     publishers = {}
@@ -323,10 +387,10 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
             publishers[topic.topic] = node.create_publisher(
                 cls, topic.topic, qos_from_offers(topic.qos_profiles))
         wanted = set(publishers)
-        deadline = time.monotonic() + max(0.0, wait_for_subscribers)
-        while (wait_for_subscribers > 0 and context.ok() and time.monotonic() < deadline
-               and any(p.get_subscription_count() < 1 for p in publishers.values())):
-            time.sleep(0.02)
+        every_topic = wait_for_subscribers > 0
+        unmatched = wait_until_matched(
+            node, publishers, wait_for_subscribers if every_topic else match_timeout,
+            every_topic=every_topic, notice=notice) if publishers else {}
         count, first_ns, start, last_wall = 0, None, 0.0, 0.0
         messages = read_bag(info.path, topics=wanted) if wanted else iter(())
         if order == 'publish':
@@ -340,9 +404,9 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                 first_ns = timestamp(bag_message)
                 start = time.monotonic() + max(0.0, start_delay)
             due = start + (timestamp(bag_message) - first_ns) / 1e9 / rate
-            while context.ok() and (remaining := due - time.monotonic()) > 0:
+            while not _stopped(context) and (remaining := due - time.monotonic()) > 0:
                 time.sleep(min(remaining, 0.05))
-            if not context.ok():
+            if _stopped(context):
                 break
             publishers[bag_message.topic].publish(bag_message.data)
             last_wall = time.monotonic()
@@ -350,27 +414,28 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
             if on_publish is not None:
                 on_publish(bag_message)
         for topic in info.topics:
-            if (topic.topic in publishers and context.ok()
+            if (topic.topic in publishers and not _stopped(context)
                     and qos_from_offers(topic.qos_profiles).reliability
                     == QoSReliabilityPolicy.RELIABLE):
                 publishers[topic.topic].wait_for_all_acked(Duration(seconds=ack_timeout))
         return PlayResult(count, max(0.0, last_wall - start) if count else 0.0,
-                          interrupted=not context.ok(), skipped=skipped)
+                          interrupted=_stopped(context), skipped=skipped, unmatched=unmatched)
     finally:
         if context.ok():
             for publisher in publishers.values():
                 node.destroy_publisher(publisher)
         if own_context is not None:
             node.destroy_node()
-            shutdown(context=own_context)
+            rclpy.try_shutdown(context=own_context)
 
 
 # --------------------------------------------------------------------------------------------
 # hrc-bag
 
 
-def _wait_for_topics(node: Any, topics: list[str], timeout: float) -> dict[str, str]:
-    """topic -> type once every topic has a publisher; BagError after ``timeout`` seconds."""
+def _wait_for_topics(node: Any, topics: list[str], timeout: float) -> dict[str, str] | None:
+    """topic -> type once every topic has a publisher; None on a stop signal; BagError after
+    ``timeout`` seconds."""
     import rclpy
     found: dict[str, str] = {}
     deadline = time.monotonic() + timeout
@@ -389,6 +454,8 @@ def _wait_for_topics(node: Any, topics: list[str], timeout: float) -> dict[str, 
         missing = [t for t in topics if t not in found]
         if not missing:
             return found
+        if _stopped(node.context):
+            return None
         now = time.monotonic()
         if now >= deadline:
             raise BagError(f'no publisher appeared within {timeout:g} s on '
@@ -399,49 +466,90 @@ def _wait_for_topics(node: Any, topics: list[str], timeout: float) -> dict[str, 
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
+def check_topic_names(topics: Iterable[str]) -> None:
+    """BagError (one line) for a topic name ROS refuses, before anything waits on it."""
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_topic_name import validate_topic_name
+    for topic in topics:
+        try:
+            validate_topic_name(topic)
+        except InvalidTopicNameException as exc:
+            reason = str(exc).splitlines()[0].removeprefix('Invalid topic name: ')
+            raise BagError(f'invalid topic name {topic!r}: {reason}') from None
+
+
+def check_output(path: str | os.PathLike) -> None:
+    """BagError (one line) if `hrc-bag record -o PATH` cannot write there, before any waiting:
+    an existing .mcap file is never overwritten, a folder must be new or empty."""
+    target = Path(path)
+    if target.suffix == '.mcap':
+        if target.exists() or target.is_symlink():
+            raise BagError(f'cannot record into {target}: it already exists (choose a new name)')
+        if not target.parent.is_dir():
+            raise BagError(f'cannot write {target}: folder {target.parent} does not exist')
+    elif target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise BagError(f'cannot record into {target}: it already exists (choose a new folder)')
+
+
+def _resolved(node: Any, topics: Iterable[str]) -> list[str]:
+    resolved = []
+    for topic in topics:
+        try:
+            resolved.append(node.resolve_topic_name(topic))
+        except Exception as exc:  # noqa: BLE001 - rcl refuses a name the expansion made bad
+            raise BagError(f'invalid topic name {topic!r}: '
+                           f'{str(exc).splitlines()[0]}') from None
+    return resolved
+
+
 def _record_command(args: argparse.Namespace) -> int:
+    """Record until --duration, --max-messages or a stop signal (Ctrl-C: exit 0 with the bag
+    closed). A stop signal while waiting for the publishers records nothing: exit 130."""
     import rclpy
-    from .node_support import shutdown
-    from rclpy.executors import ExternalShutdownException
-    writer = recorder = node = None
-    started = time.monotonic()
+
+    from . import stop
+    check_topic_names(args.topics)
+    check_output(args.output)
+    rclpy.init(**stop.init_options())
     try:
-        rclpy.init()
         node = rclpy.create_node('hrc_bag_recorder')
-        topics = [node.resolve_topic_name(t) for t in args.topics]
-        types = _wait_for_topics(node, topics, args.wait_timeout)
-        writer = BagWriter(args.output)
+        try:
+            return _record(node, args)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def _record(node: Any, args: argparse.Namespace) -> int:
+    import rclpy
+    topics = _resolved(node, args.topics)
+    types = _wait_for_topics(node, topics, args.wait_timeout)
+    if types is None:
+        print('hrc-bag: interrupted before recording; nothing written', flush=True)
+        return 130
+    with BagWriter(args.output) as writer:
         recorder = Recorder(node, types, writer)
         print(f'hrc-bag: recording {", ".join(topics)} to {writer.path}', flush=True)
         started = time.monotonic()
         reported = -1
         next_status = 0.0
-        while True:
-            rclpy.spin_once(node, timeout_sec=0.05)
-            now = time.monotonic()
-            if recorder.message_count != reported and now >= next_status:
-                reported = recorder.message_count
-                print(f'hrc-bag: recorded {reported} messages', flush=True)
-                next_status = now + 1.0
-            if args.duration is not None and now - started >= args.duration:
-                break
-            if args.max_messages is not None and recorder.message_count >= args.max_messages:
-                break
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if recorder is not None:
-            try:
+        try:
+            while not _stopped(node.context):
+                rclpy.spin_once(node, timeout_sec=0.05)
+                now = time.monotonic()
+                if recorder.message_count != reported and now >= next_status:
+                    reported = recorder.message_count
+                    print(f'hrc-bag: recorded {reported} messages', flush=True)
+                    next_status = now + 1.0
+                if args.duration is not None and now - started >= args.duration:
+                    break
+                if args.max_messages is not None and \
+                        recorder.message_count >= args.max_messages:
+                    break
+        finally:
+            if node.context.ok():
                 recorder.close()
-            except Exception:  # noqa: BLE001 - the context may already be shut down
-                pass
-        if writer is not None:
-            writer.close()
-        if node is not None:
-            node.destroy_node()
-        shutdown()
-    if writer is None:
-        return 130
     print(f'hrc-bag: recorded {writer.message_count} messages on {len(writer.topics)} '
           f'topic(s) in {time.monotonic() - started:.1f} s to {writer.path} '
           f'({format_size(writer.path.stat().st_size)})', flush=True)
@@ -449,9 +557,10 @@ def _record_command(args: argparse.Namespace) -> int:
 
 
 def _play_command(args: argparse.Namespace) -> int:
+    """Play the bag; a stop signal ends it early (exit 130)."""
     import rclpy
-    from .node_support import shutdown
-    from rclpy.executors import ExternalShutdownException
+
+    from . import stop
     info = bag_info(args.bag)
     print(f'hrc-bag: playing {info.path}: {info.message_count} messages, '
           f'{info.duration_ns / 1e9:.3f} s at rate {args.rate:g}', flush=True)
@@ -462,21 +571,27 @@ def _play_command(args: argparse.Namespace) -> int:
             except BagError as exc:
                 print(f'hrc-bag: warning: not playing {topic.topic} ({topic.message_count} '
                       f'messages): {exc}', file=sys.stderr, flush=True)
-    rclpy.init()
-    node = rclpy.create_node('hrc_bag_player')
+    rclpy.init(**stop.init_options())
     try:
-        result = play(info.path, node=node, rate=args.rate, topics=args.topics,
-                      start_delay=args.start_delay,
-                      wait_for_subscribers=args.wait_for_subscribers, order=args.order)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        print('hrc-bag: playback interrupted', flush=True)
-        return 130
+        node = rclpy.create_node('hrc_bag_player')
+        try:
+            result = play(info.path, node=node, rate=args.rate, topics=args.topics,
+                          start_delay=args.start_delay,
+                          wait_for_subscribers=args.wait_for_subscribers,
+                          match_timeout=args.match_timeout, order=args.order,
+                          notice=lambda text: print(f'hrc-bag: {text}', flush=True))
+        finally:
+            node.destroy_node()
     finally:
-        node.destroy_node()
-        shutdown()
+        rclpy.try_shutdown()
+    if result.unmatched:
+        print('hrc-bag: warning: started with subscribers not matched yet (they may miss the '
+              'first messages): ' + ', '.join(f'{t} ({n})' for t, n in
+                                              sorted(result.unmatched.items())),
+              file=sys.stderr, flush=True)
     print(f'hrc-bag: {"interrupted after" if result.interrupted else "played"} '
           f'{result.message_count} messages in {result.duration_s:.3f} s', flush=True)
-    return 0
+    return 130 if result.interrupted else 0
 
 
 def _info_command(args: argparse.Namespace) -> int:
@@ -508,7 +623,12 @@ def main(argv: list[str] | None = None) -> int:
                         help='seconds to wait before the first message')
     player.add_argument('--wait-for-subscribers', type=bounded_float(0.0, 86400.0), default=0.0,
                         metavar='S',
-                        help='wait up to S s for every topic to have a subscriber')
+                        help='wait up to S s for every topic to have a subscriber (and every '
+                        'subscriber to match) before the first message')
+    player.add_argument('--match-timeout', type=bounded_float(0.0, 86400.0), default=5.0,
+                        metavar='S',
+                        help='wait up to S s (default 5) for the subscribers the graph shows on '
+                        'the played topics to match before the first message; 0: do not wait')
     player.add_argument('--order', choices=PLAY_ORDERS, default='log',
                         help="timing and order by 'log' (receive) time, as ros2 bag play, or "
                         "by 'publish' time, the order the writers sent them in (default log)")
@@ -516,15 +636,15 @@ def main(argv: list[str] | None = None) -> int:
     info.add_argument('bag', metavar='FILE_OR_DIR')
     info.add_argument('--quick', action='store_true',
                       help='read the summary only (do not check every chunk)')
-    args = parser.parse_args(argv)
-    handlers = {'record': _record_command, 'play': _play_command, 'info': _info_command}
-    try:
-        return handlers[args.command](args)
-    except BagError as exc:
-        print(f'hrc-bag: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    from . import stop
+    with stop.regime():
+        args = parser.parse_args(argv)
+        handlers = {'record': _record_command, 'play': _play_command, 'info': _info_command}
+        try:
+            return handlers[args.command](args)
+        except BagError as exc:
+            print(f'hrc-bag: {" ".join(str(exc).split())}', file=sys.stderr)
+            return 2
 
 
 if __name__ == '__main__':

@@ -5,8 +5,10 @@
 
 What it does, as a user would by hand:
 
-1. writes the run's parameter file (`run_params.yaml`, loaded after the shipped
-   `hrc_params.yaml` and `case_study_params.yaml`) into the output folder;
+1. writes the case study's node parameters (`case_study_params.yaml`, from
+   `core.study.simulation.case_study()`, the scenario's one definition) and the run's own
+   (`run_params.yaml`) into the output folder, loaded in that order after the shipped
+   `hrc_params.yaml`;
 2. starts `cell_sim_node`, `task_manager_node`, `belief_estimator_node`, `cell_view_node`
    (unless --no-view) and then `decision_node` as separate processes (their console scripts),
    each logging to `logs/<node>.log`, and waits until the graph shows them. With
@@ -54,7 +56,8 @@ from ..core.tasks import TaskBook
 from ..core.decision.selection import SELECTORS
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
                             output_folder)
-from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS
+from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS, scenario_parameters
+from . import stop
 from .processes import NodeProcessError, NodeProcesses
 
 NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
@@ -91,6 +94,10 @@ class CaseStudyError(RuntimeError):
     pass
 
 
+class Interrupted(Exception):
+    """A stop signal (Ctrl-C) ended the run before its last epoch."""
+
+
 def cell_nodes(args) -> list[str]:
     """The node processes of the run, in start order, the decision node last."""
     return (['cell_sim_node', 'task_manager_node', 'belief_estimator_node']
@@ -103,6 +110,19 @@ def cell_nodes(args) -> list[str]:
 def recorded_topics(args) -> dict[str, str]:
     return {**TOPICS, **(VIEW_TOPICS if args.view else {}),
             **(BODY_TRACKING_TOPICS if args.input == 'body_tracking' else {})}
+
+
+def write_scenario_params(path: Path, scenario: Scenario) -> Path:
+    """The scenario's node parameters (`launch_plan.scenario_parameters`) as a params file."""
+    path.write_text(SCENARIO_HEADER + yaml.safe_dump(scenario_parameters(scenario),
+                                                     sort_keys=False, default_flow_style=None))
+    return path
+
+
+SCENARIO_HEADER = """\
+# The case study of hrc_ros.core.study.simulation.case_study() as node parameters, written
+# by hrc-case-study (config/case_study_params.yaml holds the same for ros2 launch).
+"""
 
 
 def write_run_params(path: Path, args) -> Path:
@@ -185,14 +205,24 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
 def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     """Record and watch the run until the last epoch's action (or the timeout)."""
     import rclpy
-    from .node_support import shutdown
+
+    if stop.requested():
+        raise Interrupted()
+    rclpy.init(**stop.init_options())
+    try:
+        return _watch(args, out, bag_dir, run)
+    finally:
+        rclpy.try_shutdown()
+
+
+def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
+    import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from . import conversions
     from .bag import BagWriter, Recorder, message_class
 
-    rclpy.init()
     node = rclpy.create_node('case_study_observer')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -239,6 +269,8 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
             def spin_until(predicate, timeout, what):
                 deadline = time.monotonic() + timeout
                 while not predicate():
+                    if stop.requested():
+                        raise Interrupted()
                     if time.monotonic() > deadline:
                         raise CaseStudyError(f'timed out after {timeout:.0f} s waiting for '
                                              f'{what}; node logs are in {out / "logs"}')
@@ -276,19 +308,25 @@ def watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
             spin_until(done, args.timeout, f'{args.epochs} epochs')
             # let the last action's echoes (response, sim state) land in the bag
             end = time.monotonic() + min(0.5, args.epoch_period / 2)
-            while time.monotonic() < end:
+            while time.monotonic() < end and not stop.requested():
                 executor.spin_once(timeout_sec=0.05)
             recorder.close()
     finally:
+        executor.shutdown(timeout_sec=0)
         node.destroy_node()
-        shutdown()
     return events
 
 
 def main(argv: list[str] | None = None) -> int:
+    with stop.regime():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = Parser(prog='hrc-case-study', description=__doc__.split('\n')[0])
     parser.add_argument('--out', default='out/case_study', help='output folder')
-    parser.add_argument('--epochs', type=bounded_int(1, MAX_RUN_EPOCHS), default=20)
+    parser.add_argument('--epochs', type=bounded_int(1, MAX_RUN_EPOCHS),
+                        default=case_study().epochs)
     parser.add_argument('--epoch-period', type=bounded_float(0.05, 60.0), default=0.5,
                         help='seconds per decision epoch (default 0.5)')
     parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
@@ -342,7 +380,9 @@ def main(argv: list[str] | None = None) -> int:
     shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'
-    params = [shipped / 'hrc_params.yaml', shipped / 'case_study_params.yaml'] \
+    scenario = case_study()
+    params = [shipped / 'hrc_params.yaml',
+              write_scenario_params(out / 'case_study_params.yaml', scenario)] \
         + [shipped / BODY_TRACKING_SIM_PARAMS] * (args.input == 'body_tracking') \
         + [write_run_params(out / 'run_params.yaml', args)]
     # Single-host run: keep DDS on this host, and let participants announce themselves every
@@ -361,12 +401,13 @@ def main(argv: list[str] | None = None) -> int:
     except (CaseStudyError, NodeProcessError) as exc:
         print(f'\nhrc-case-study: {exc}', file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print('\nhrc-case-study: interrupted', file=sys.stderr)
+    except Interrupted:
+        codes = run.stop()
+        print(f'\nhrc-case-study: interrupted ({stop.signal_name()}); nodes stopped: '
+              + ', '.join(f'{n} exit {c}' for n, c in codes.items()), file=sys.stderr)
         return 130
     finally:
-        codes = run.stop()
-    scenario = case_study()
+        codes = run.stop()      # again after an interruption: returns the same codes at once
     scenario = Scenario(scenario.initial_state, scenario.schedule, args.epochs,
                         'case study (ROS 2 nodes over DDS)')
     try:

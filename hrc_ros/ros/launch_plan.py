@@ -144,3 +144,46 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     return [NodeLaunch(executable, name, namespace,
                        params_files + [overrides.get(name, common)], list(remaps.get(name, [])))
             for executable, name in nodes]
+
+
+def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:
+    """What launch_ros's `Node` action passes after `--ros-args` for `node` (Jazzy): `-r
+    __node:=NAME`, `-r __ns:=/NS` (made absolute; none for the root namespace), a
+    `--params-file` per parameter file and per dict (written, as launch_ros does, to a file
+    under `/**` in `params_dir`), then `-r FROM:=TO` per remapping. The tests start the plan
+    with these, as `ros2 launch` would, where ROS `launch` is not installed."""
+    import yaml
+    args = ['-r', f'__node:={node.name}']
+    if node.namespace:
+        args += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    for index, parameters in enumerate(node.parameters):
+        if isinstance(parameters, dict):
+            path = Path(params_dir) / f'{node.name}_{index}.yaml'
+            path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+            parameters = str(path)
+        args += ['--params-file', str(parameters)]
+    for old, new in node.remappings:
+        args += ['-r', f'{old}:={new}']
+    return args
+
+
+def scenario_parameters(scenario) -> dict:
+    """The ROS parameters that set a `core.study.simulation.Scenario` up on the graph: the task
+    manager's `initial_task` and `schedule`, the simulated cell's `initial_emotions` and
+    `initial_distance`, as a params-file mapping. `hrc-case-study` passes these for
+    `case_study()`, the one definition of the paper's scenario; config/case_study_params.yaml
+    holds the same for `ros2 launch ... params_file:=` (test_launch_graph holds them equal).
+    ValueError for a scenario the nodes cannot start in (a task already under way, answers or
+    held beliefs in the initial state)."""
+    em, ea, tp, tc, tx, ty, hp, hc, bp, bc, d = (int(v) for v in scenario.initial_state)
+    if any((ty, hp, hc, bp, bc)):
+        raise ValueError(f'the nodes start with ty = hp = hc = bp = bc = 0, not '
+                         f'{scenario.initial_state}')
+    schedule = [f'{epoch}:{",".join(str(int(v)) for v in task)}'
+                for epoch, task in scenario.schedule]
+    return {
+        '/**/task_manager': {'ros__parameters': {'initial_task': [tp, tc, tx],
+                                                 'schedule': schedule}},
+        '/**/cell_sim': {'ros__parameters': {'initial_emotions': [em, ea],
+                                             'initial_distance': d}},
+    }

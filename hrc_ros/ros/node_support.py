@@ -28,7 +28,6 @@ time), so the machines decide what a timeout means and the nodes only keep time.
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 import traceback
@@ -47,13 +46,12 @@ from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
 from ..core.swap import config_path
 from ..core.protocol import InputError, Report, Stamp
-from . import qos
+from . import qos, stop
 from .conversions import cap, diagnostic_array, diagnostic_status
 
 WARNING_THROTTLE_SEC = 5.0   # one warning (and one drop diagnostic) per input per this period
@@ -286,9 +284,6 @@ class Deadline:
         self.timer = node.create_timer(seconds, self._fire, clock=control_clock(node),
                                        autostart=False)
 
-    def set_period(self, seconds: float) -> None:
-        self.set_period_ns(int(seconds * 1e9))
-
     def set_period_ns(self, nanoseconds: int) -> None:
         self.timer.timer_period_ns = int(nanoseconds)
 
@@ -510,12 +505,22 @@ class SampledInputs:
     node (`<node>_inputs`, same namespace and context, no parameter services) that no executor
     spins; messages wait in the DDS reader's history (keep last `depth`) until `take()` drains
     them. Conversion errors are dropped and reported through the owner's `Inputs`, and any other
-exception is reported as an internal error, as `Inputs.subscribe` does."""
+    exception is reported as an internal error, as `Inputs.subscribe` does.
+
+    Names under remapping. The process's ROS arguments are meant for the owner: ros2 launch
+    passes `-r __node:=<name>` to every process, and a helper that took the global arguments
+    would be renamed to the owner's name (two nodes of one fully qualified name, and `ros2
+    node info` or `ros2 param` talking to the wrong one). So the helper ignores the global
+    arguments (`use_global_arguments=False`), is named after the owner's final name and
+    namespace, and subscribes each topic by the name the owner resolves it to, so the owner's
+    topic remappings and namespace still apply to it."""
 
     def __init__(self, node: Node, inputs: Inputs):
         self.inputs = inputs
+        self.node = node
         self.helper = rclpy.create_node(f'{node.get_name()}_inputs',
                                         namespace=node.get_namespace(), context=node.context,
+                                        use_global_arguments=False,
                                         start_parameter_services=False, enable_rosout=False)
         self._topics: list[tuple] = []
 
@@ -524,8 +529,9 @@ exception is reported as an internal error, as `Inputs.subscribe` does."""
         """`convert(msg)` each message; with `latest_only`, only the last one of each `take`
         (the others are taken as bytes and never deserialised)."""
         name = name or topic.rsplit('/', 1)[-1]
-        subscription = self.helper.create_subscription(msg_type, topic, lambda *_: None,
-                                                       profile, raw=latest_only)
+        subscription = self.helper.create_subscription(
+            msg_type, self.node.resolve_topic_name(topic), lambda *_: None, profile,
+            raw=latest_only)
         self._topics.append((name, topic, subscription, convert, latest_only))
         return subscription
 
@@ -567,106 +573,60 @@ exception is reported as an internal error, as `Inputs.subscribe` does."""
 
 # -- main -------------------------------------------------------------------------------------
 STARTUP_ERRORS = (StartupError, ParameterException)
-
-
-STOP_POLL_SEC = 0.1   # how often a node with a last word (`on_stop`) looks for a signal
-
-
-def shutdown(context=None) -> None:
-    """`rclpy.try_shutdown`, safe against Ctrl-C landing at the same moment.
-
-    rclpy's signal handler shuts the context down from its own thread, without the lock
-    that `Context.try_shutdown` holds between asking `ok()` and calling `shutdown()`. When
-    the signal lands in between, rcl refuses the second shutdown ("rcl_shutdown already
-    called") and a node stopping cleanly exits 1 with a traceback. That error is the
-    shutdown we asked for; any error while the context is still up is real and propagates.
-    Without `context`, rclpy's default context is shut down and forgotten (as by
-    `rclpy.try_shutdown()`), so that `rclpy.init` works again in the same process.
-    """
-    try:
-        rclpy.try_shutdown(context=context)
-    except Exception:
-        if rclpy.ok(context=context):
-            raise
-        rclpy.try_shutdown(context=context)     # already down: only forgets the default one
-
-
-_signalled: list[int] = []     # the stop signals this process received (run's handlers)
-
-
-def _interrupt(signum, frame) -> None:
-    _signalled.append(signum)
-    raise KeyboardInterrupt(f'signal {signum}')
+STOP_BACKSTOP_SEC = 1.0   # the longest a spin waits; a stop signal wakes it at once (stop.py)
 
 
 def run(node_class, args=None) -> int:
-    """The `main()` of a node (ros2/demos talker pattern); returns the process exit code.
+    """The `main()` of a node (ros2/demos talker pattern, with the suite's stop regime of
+    `stop.py`); returns the process exit code.
 
-    A node that cannot start (`StartupError`, a rejected parameter) logs why and returns 1,
-    with no traceback. Ctrl-C (SIGINT) stops it cleanly with 0.
-
-    A node class with an `on_stop()` method has a last word (cell_view's DELETEALL). rclpy's
-    signal handler shuts the context down before Python sees the signal, and nothing can be
-    published after that, so such a node runs without it: SIGINT and SIGTERM raise
-    KeyboardInterrupt, the executor spins in slices of STOP_POLL_SEC so that Python notices,
-    and `on_stop()` runs while the context is still up.
+    SIGINT or SIGTERM, at any moment (also while the node is still being built), only notes
+    the request; the spin loop sees it and returns, the node's last word (`on_stop()`, if the
+    class has one: cell_view's DELETEALL) goes out while the context is up, the node and its
+    executor are destroyed while the context is still valid, then the context is shut down:
+    exit 0. A second signal forces the exit (`stop.FORCED_EXIT`). A context shut down from
+    elsewhere (ExternalShutdownException) also ends the loop. A node that cannot start
+    (`StartupError`, a rejected parameter) logs why and returns 1, with no traceback; any
+    other error is a bug and propagates.
     """
-    last_word = hasattr(node_class, 'on_stop')
-    _signalled.clear()
-    if last_word:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        signal.signal(signal.SIGINT, _interrupt)
-        signal.signal(signal.SIGTERM, _interrupt)
-    else:
-        # Python's handler (noted, then KeyboardInterrupt as by default) under rclpy's, which
-        # chains to it: a KeyboardInterrupt that lands inside rclpy's C++ code comes out as a
-        # RuntimeError, possibly before rclpy's thread has shut the context down
-        signal.signal(signal.SIGINT, _interrupt)
-        rclpy.init(args=args)
+    with stop.regime():
+        if stop.requested():
+            return 0
+        rclpy.init(args=args, **stop.init_options())
+        try:
+            return _run_node(node_class)
+        finally:
+            rclpy.try_shutdown()
+
+
+def _run_node(node_class) -> int:
+    if stop.requested():
+        return 0
     try:
         node = node_class()
     except STARTUP_ERRORS as exc:
         rclpy.logging.get_logger(node_class.NODE_NAME).error(f'cannot start: {exc}')
-        shutdown()
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        shutdown()
-        return 0
-    except Exception:
-        # Ctrl-C while the node is being built: rclpy's signal handler shuts the context
-        # down, and the next entity the constructor creates fails with an RCLError ("context
-        # is invalid"). That is still the shutdown; with the context up, the error is real.
-        interrupted = not rclpy.ok() or bool(_signalled)
-        shutdown()
-        if not interrupted:
-            raise
-        return 0
+    executor = SingleThreadedExecutor()
     try:
-        if last_word:
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            while node.context.ok():
-                executor.spin_once(timeout_sec=STOP_POLL_SEC)
-        else:
-            rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RuntimeError:
-        # Ctrl-C while the executor is taking a message: rclpy raises a RuntimeError from
-        # take_message ("context is invalid" once its thread has shut the context down, or
-        # "Unable to convert call argument" when the KeyboardInterrupt lands in the
-        # conversion, maybe before). That is still the shutdown; without a signal and with
-        # the context up, an error is real and propagates.
-        if node.context.ok() and not _signalled:
-            raise
-    finally:
-        if last_word and node.context.ok():
-            signal.signal(signal.SIGINT, signal.SIG_IGN)    # a second Ctrl-C: still the last word
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        executor.add_node(node)
+        wake = node.create_guard_condition(lambda: None)   # a stop signal wakes the spin
+        stop.add_waker(wake.trigger)
+        try:
+            # the context is only ever shut down by this thread (a callback calling
+            # rclpy.shutdown(), as in-process composition may): then the loop ends too
+            while not stop.requested() and node.context.ok():
+                executor.spin_once(timeout_sec=STOP_BACKSTOP_SEC)
+        except ExternalShutdownException:
+            pass
+        finally:
+            stop.remove_waker(wake.trigger)
+        if hasattr(node, 'on_stop') and node.context.ok():
             try:
                 node.on_stop()
             except Exception:  # noqa: BLE001 - the node stops anyway; say why its last word failed
                 node.get_logger().error(f'on_stop failed:\n{traceback.format_exc()}')
+    finally:
+        executor.shutdown(timeout_sec=0)
         node.destroy_node()
-        shutdown()
     return 0

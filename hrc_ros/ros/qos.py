@@ -1,4 +1,4 @@
-"""The three QoS profiles of the hrc_ros graph, named once (INTERFACES.md, QoS column).
+"""The five QoS profiles of the hrc_ros graph, named once (INTERFACES.md, QoS column).
 
 - `SENSOR_DATA`: human motion streams (`human/joint_states`, `human/skeleton`). Best effort,
   keep last 5: a late sample is worth less than the next one, and a slow subscriber must never
@@ -17,6 +17,10 @@
 - `REPORTS`: the task manager's per-request reports, reliable, transient local, last 100.
 - `RELIABLE`: events (`hrc/action`, `hrc/epoch`, `hrc/observation`,
   `hrc/human_response`, `/diagnostics`). Reliable, volatile, keep last 10.
+
+Two more live with the one node that uses each: `cell_view_node.SAMPLED` (`STATE_INPUT` with a
+history of 100, for inputs read a few times a second) and `tracker_sim_node.DRIVER_QOS` (what
+the Azure Kinect driver offers, which the simulated tracker imitates).
 """
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy

@@ -1,0 +1,257 @@
+"""Start and stop the case study's whole graph N times at random moments; count the nodes that
+did not exit 0 and the nodes that hung, per node.
+
+    python bench/stop_bench.py [--rounds 200] [--seed 0] [--timeout 10] [--out out/stop_bench]
+
+Each round starts the node set of `hrc-case-study` as it does (`cell_sim_node`,
+`task_manager_node`, `belief_estimator_node`, `cell_view_node`, then `decision_node`: console
+scripts in their own process groups, `processes.NodeProcesses`, with the shipped
+`hrc_params.yaml`, the case study's and the run's parameters as hrc-case-study writes them), and
+sends SIGINT to every process group at a moment drawn for the round, one of three phases in turn:
+
+- `import`: all five started at once, SIGINT after a uniform 0-1.5 s (interpreter start-up,
+  the imports of rclpy, numpy and the model, and for the fastest the node's construction);
+- `start-up`: the first four on the graph, the decision node started, SIGINT after a uniform
+  0-1.5 s (the decision node importing or building, the others connecting to it);
+- `mid-epoch`: after epoch k (uniform 1-5) was published, plus a uniform fraction of the 0.5 s
+  epoch period (every node in its loop, the 50 Hz motion streaming).
+
+A node that has not exited `--timeout` s after the signal is a hang: `NodeProcesses.stop` then
+writes its stacks into its log and kills it. A log line with a traceback, KeyboardInterrupt,
+"Exception ignored" or "Fatal Python error" is counted too. The logs of a round where anything
+went wrong are kept under `<out>/failures/`. Printed: per node the exits by code, the hangs,
+the bad logs and the stop time (SIGINT to exit), and the command to reproduce the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import shutil
+import signal
+import statistics
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+from hrc_ros.core.paths import share_dir
+from hrc_ros.core.study.simulation import case_study
+from hrc_ros.ros import stop
+from hrc_ros.ros.case_study import cell_nodes, write_run_params, write_scenario_params
+from hrc_ros.ros.processes import NodeProcesses
+
+PHASES = ('import', 'start-up', 'mid-epoch')
+NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
+              'belief_estimator_node': 'belief_estimator', 'cell_view_node': 'cell_view',
+              'decision_node': 'decision'}
+BAD_LOG_LINES = ('Traceback', 'KeyboardInterrupt', 'Exception ignored', 'Fatal Python error')
+EPOCH_PERIOD = 0.5
+GRAPH_TIMEOUT = 60.0
+
+
+class Interrupted(Exception):
+    pass
+
+
+class Observer:
+    """An rclpy node of its own context: the graph's node names and the published epochs."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from std_msgs.msg import UInt32
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, **stop.init_options())
+        self.node = rclpy.create_node('stop_bench_observer', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.epoch = 0
+        self.node.create_subscription(UInt32, 'hrc/epoch', self._on_epoch,
+                                      QoSProfile(depth=10,
+                                                 reliability=ReliabilityPolicy.RELIABLE))
+
+    def _on_epoch(self, msg) -> None:
+        self.epoch = max(self.epoch, int(msg.data))
+
+    def up(self, names) -> bool:
+        present = {n for n, _ in self.node.get_node_names_and_namespaces()}
+        return {NODE_NAMES[n] for n in names} <= present
+
+    def spin_until(self, predicate, timeout: float, nodes: NodeProcesses) -> bool:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if stop.requested():
+                raise Interrupted()
+            if time.monotonic() > deadline or nodes.dead():
+                return False
+            self.executor.spin_once(timeout_sec=0.005)
+        return True
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=0)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def run_args() -> argparse.Namespace:
+    """The parameters hrc-case-study gives a default run."""
+    return argparse.Namespace(config='', epoch_period=EPOCH_PERIOD, view=True, selector='paper',
+                              policy='', seed=0, belief_mode='', faults=[],
+                              input='joint_states')
+
+
+def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: Observer,
+              timeout: float) -> dict:
+    """Start the graph, stop it at the phase's random moment; per node (code, stop seconds,
+    bad log lines, stacks dumped)."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    args = run_args()
+    params = [share_dir() / 'config' / 'hrc_params.yaml',
+              write_scenario_params(work / 'case_study_params.yaml', case_study()),
+              write_run_params(work / 'run_params.yaml', args)]
+    nodes = NodeProcesses(work, params)
+    order = cell_nodes(args)
+    observer.epoch = 0
+    moment = ''
+    try:
+        if phase == 'import':
+            for executable in order:
+                nodes.start(executable)
+            delay = rng.uniform(0.0, 1.5)
+            moment = f'{delay:.3f} s after the start'
+            observer.spin_until(lambda: False, delay, nodes)
+        else:
+            for executable in order[:-1]:
+                nodes.start(executable)
+            if not observer.spin_until(lambda: observer.up(order[:-1]), GRAPH_TIMEOUT, nodes):
+                moment = 'the first nodes did not come up'
+            nodes.start(order[-1])
+            if phase == 'start-up':
+                delay = rng.uniform(0.0, 1.5)
+                moment = moment or f'{delay:.3f} s after the decision node started'
+                observer.spin_until(lambda: False, delay, nodes)
+            else:
+                epoch = rng.randint(1, 5)
+                fraction = rng.uniform(0.0, 1.0)
+                if observer.spin_until(lambda: observer.epoch >= epoch, GRAPH_TIMEOUT, nodes):
+                    observer.spin_until(lambda: False, fraction * EPOCH_PERIOD, nodes)
+                    moment = f'{fraction:.2f} of epoch {epoch}'
+                else:
+                    moment = moment or f'epoch {epoch} never came'
+        sent = time.monotonic()
+        for name in nodes.processes:
+            nodes.send_signal(name, signal.SIGINT)
+        stopped: dict[str, float] = {}
+        while len(stopped) < len(nodes.processes) and time.monotonic() - sent < timeout:
+            for name, process in nodes.processes.items():
+                if name not in stopped and process.poll() is not None:
+                    stopped[name] = time.monotonic() - sent
+            time.sleep(0.005)
+    finally:
+        codes = nodes.stop(timeout=0.1, signum=None)   # hung ones: stacks into the log, killed
+    result = {'phase': phase, 'moment': moment, 'nodes': {}}
+    for name in nodes.processes:
+        log = nodes.log(name, tail=10 ** 6)
+        result['nodes'][name] = {
+            'code': codes.get(name), 'hang': name not in stopped,
+            'seconds': stopped.get(name),
+            'bad': [line for line in log.splitlines() if any(b in line for b in BAD_LOG_LINES)],
+            'stacks': name in nodes.stacks_dumped}
+    return result
+
+
+def report(results: list[dict], args, elapsed: float) -> str:
+    names = list(NODE_NAMES)
+    phases = Counter(r['phase'] for r in results)
+    lines = [f'stop_bench: {len(results)} rounds ('
+             + ', '.join(f'{p} {phases[p]}' for p in PHASES) + f'), seed {args.seed}, '
+             f'stop timeout {args.timeout:g} s, {elapsed / 60:.1f} min',
+             f'{"node":<24}{"exit 0":>8}{"other exits":>14}{"hangs":>7}{"bad logs":>10}'
+             f'{"stop median":>13}{"p99":>8}{"max":>8}']
+    totals = Counter()
+    for name in names:
+        rows = [r['nodes'][name] for r in results if name in r['nodes']]
+        zero = sum(row['code'] == 0 and not row['hang'] for row in rows)
+        hangs = sum(row['hang'] for row in rows)
+        other = Counter(row['code'] for row in rows if row['code'] != 0 and not row['hang'])
+        bad = sum(bool(row['bad']) for row in rows)
+        times = sorted(row['seconds'] for row in rows if row['seconds'] is not None)
+        p99 = times[min(len(times) - 1, int(0.99 * len(times)))] if times else float('nan')
+        lines.append(f'{name:<24}{zero:>8}{sum(other.values()):>14}{hangs:>7}{bad:>10}'
+                     f'{statistics.median(times) if times else float("nan"):>12.2f}s'
+                     f'{p99:>7.2f}s{(times[-1] if times else float("nan")):>7.2f}s'
+                     + (f'   codes {dict(other)}' if other else ''))
+        totals.update(nonzero=sum(other.values()), hangs=hangs, bad=bad)
+    for phase in PHASES:
+        times = sorted(row['seconds'] for r in results if r['phase'] == phase
+                       for row in r['nodes'].values() if row['seconds'] is not None)
+        if times:
+            lines.append(f'stop time in phase {phase}: median {statistics.median(times):.2f} s, '
+                         f'max {times[-1]:.2f} s (every node)')
+    lines.append(f'total: {totals["nonzero"]} non-zero exits, {totals["hangs"]} hangs, '
+                 f'{totals["bad"]} logs with a traceback or "Exception ignored"')
+    for r in results:
+        for name, row in r['nodes'].items():
+            if row['code'] != 0 or row['hang'] or row['bad']:
+                lines.append(f'  round {r["round"]} ({r["phase"]}, {r["moment"]}): {name} '
+                             f'exit {row["code"]}{" HANG" if row["hang"] else ""} '
+                             f'{row["bad"][:2]}')
+    lines.append('reproduce: python bench/stop_bench.py '
+                 f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}'
+                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else ''))
+    return '\n'.join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--rounds', type=int, default=200)
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--timeout', type=float, default=10.0,
+                        help='seconds after SIGINT before a node counts as hung')
+    parser.add_argument('--out', default='out/stop_bench')
+    parser.add_argument('--phases', default=','.join(PHASES),
+                        help=f'the phases to cycle through (default {",".join(PHASES)})')
+    args = parser.parse_args(argv)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
+            share_dir() / 'config' / 'fastdds_fast_discovery.xml')
+    phases = [p for p in args.phases.split(',') if p]
+    if not phases or set(phases) - set(PHASES):
+        parser.error(f'--phases takes some of {",".join(PHASES)}')
+    out = Path(args.out)
+    failures = out / 'failures'
+    shutil.rmtree(failures, ignore_errors=True)
+    rng = random.Random(args.seed)
+    results: list[dict] = []
+    started = time.monotonic()
+    with stop.regime():
+        observer = Observer()
+        try:
+            for index in range(args.rounds):
+                phase = phases[index % len(phases)]
+                result = one_round(index, phase, rng, out / 'round', observer, args.timeout)
+                result['round'] = index
+                results.append(result)
+                bad = [n for n, row in result['nodes'].items()
+                       if row['code'] != 0 or row['hang'] or row['bad']]
+                print(f'round {index:>3} {phase:<9} {result["moment"]:<40} '
+                      + (f'FAILED: {", ".join(bad)}' if bad else 'all exit 0'), flush=True)
+                if bad:
+                    shutil.copytree(out / 'round', failures / f'round_{index}')
+        except Interrupted:
+            print('stop_bench: interrupted', file=sys.stderr)
+        finally:
+            observer.close()
+    print()
+    print(report(results, args, time.monotonic() - started))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""The console scripts of the nodes, `hrc-bag` and `hrc-case-study`: install the stop regime
+(`stop.install`), then import the command's module and run its `main()`.
+
+A node's module imports rclpy, numpy and the model (about a second, several on a loaded
+machine); a Ctrl-C during those imports used to end the process with a KeyboardInterrupt
+traceback and exit -2. Entering here, it ends the process at once with exit 0 and no output
+(`stop.importing`: nothing exists yet to tear down); once `main()` runs, a signal is a request
+that `main()` honours (a node built meanwhile is torn down, then exit 0). setup.py points every
+such console script here (`ros2 run` and `colcon build` use the same entry points); `python -m
+hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module and `stop` import
+only the standard library.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from . import stop
+
+# console script -> module whose main() it runs (every node's main() takes ROS args from argv)
+COMMANDS = {
+    'belief_estimator_node': 'hrc_ros.ros.nodes.belief_estimator_node',
+    'decision_node': 'hrc_ros.ros.nodes.decision_node',
+    'task_manager_node': 'hrc_ros.ros.nodes.task_manager_node',
+    'cell_sim_node': 'hrc_ros.ros.nodes.cell_sim_node',
+    'cell_view_node': 'hrc_ros.ros.nodes.cell_view_node',
+    'body_tracking_node': 'hrc_ros.ros.nodes.body_tracking_node',
+    'tracker_sim_node': 'hrc_ros.ros.nodes.tracker_sim_node',
+    'hmi_node': 'hrc_ros.ros.nodes.hmi_node',
+    'hrc-bag': 'hrc_ros.ros.bag',
+    'hrc-case-study': 'hrc_ros.ros.case_study',
+}
+
+
+def run_command(name: str) -> int:
+    """Install the stop regime, import the command's module, return its main()'s exit code."""
+    stop.install()
+    with stop.importing():        # a stop signal now ends the process at once, with 0
+        module = importlib.import_module(COMMANDS[name])
+    return module.main()
+
+
+def _command(name: str):
+    def main() -> int:
+        return run_command(name)
+    main.__name__ = main.__qualname__ = name.replace('-', '_')
+    main.__doc__ = f'The `{name}` console script ({COMMANDS[name]}.main).'
+    return main
+
+
+belief_estimator_node = _command('belief_estimator_node')
+decision_node = _command('decision_node')
+task_manager_node = _command('task_manager_node')
+cell_sim_node = _command('cell_sim_node')
+cell_view_node = _command('cell_view_node')
+body_tracking_node = _command('body_tracking_node')
+tracker_sim_node = _command('tracker_sim_node')
+hmi_node = _command('hmi_node')
+hrc_bag = _command('hrc-bag')
+hrc_case_study = _command('hrc-case-study')
+
+
+if __name__ == '__main__':
+    if len(sys.argv) < 2 or sys.argv[1] not in COMMANDS:
+        print(f'usage: python -m hrc_ros.ros.entry {{{",".join(COMMANDS)}}} [ARGS...]',
+              file=sys.stderr)
+        sys.exit(2)
+    command = sys.argv.pop(1)
+    sys.argv[0] = command
+    sys.exit(run_command(command))

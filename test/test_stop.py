@@ -1,0 +1,285 @@
+"""Every process of the suite stops the same way (hrc_ros/ros/stop.py): a stop signal at any
+moment is a clean exit 0, a second one forces the exit, a hung node's stacks are saved.
+
+The moments are found from outside, by the process's own state, never by sleeping: "during
+start-up of the interpreter" is right after the fork (the node is started, as
+`processes.NodeProcesses` starts it, with the stop signals blocked); "during the imports" is once
+the stop handler is in (/proc/PID/status shows SIGTERM caught) and before rclpy's extension is
+mapped (/proc/PID/maps); "building the node" is once rclpy is mapped; "running" is once the node
+is on the graph, plus a random delay of up to half a second (seeded, printed in the test id).
+Every stop must end within a bounded time with 0 and leave no traceback, no KeyboardInterrupt,
+no "Exception ignored" in the node's log.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+
+from hrc_ros.core.paths import share_dir
+from hrc_ros.ros import stop
+from hrc_ros.ros.processes import NodeProcesses
+
+REPO = Path(__file__).resolve().parents[1]
+STOP_TIMEOUT = 15.0        # seconds for a stopped node to exit (a loaded machine)
+START_TIMEOUT = 60.0
+BAD_LOG_LINES = ('Traceback', 'KeyboardInterrupt', 'Exception ignored', 'Fatal Python error')
+SEED = 17
+
+
+def params() -> list[Path]:
+    config = share_dir() / 'config'
+    return [config / 'hrc_params.yaml', config / 'case_study_params.yaml']
+
+
+def caught(pid: int, signum: int) -> bool:
+    """The process has a handler for `signum` (/proc/PID/status SigCgt)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return False
+    mask = next(int(line.split()[1], 16) for line in status.splitlines()
+                if line.startswith('SigCgt:'))
+    return bool(mask >> (signum - 1) & 1)
+
+
+def mapped(pid: int, fragment: str) -> bool:
+    try:
+        return fragment in Path(f'/proc/{pid}/maps').read_text()
+    except OSError:
+        return False
+
+
+def wait_for(predicate, timeout: float, what: str, process=None) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert process is None or process.poll() is None, f'exited {process.returncode} ' \
+            f'while waiting for {what}'
+        assert time.monotonic() < deadline, f'timed out waiting for {what}'
+        time.sleep(0.001)
+
+
+def clean_log(text: str) -> list[str]:
+    return [line for line in text.splitlines() if any(bad in line for bad in BAD_LOG_LINES)]
+
+
+@pytest.fixture
+def graph_probe(ros_domain_id):
+    context = rclpy.Context()
+    rclpy.init(context=context, **stop.init_options())
+    node = rclpy.create_node('stop_probe', context=context)
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def in_graph(probe, name: str) -> bool:
+    return name in {n for n, _ in probe.get_node_names_and_namespaces()}
+
+
+NODES = {'cell_sim_node': 'cell_sim', 'decision_node': 'decision'}
+# The start-up moments run the same code in every node (stop.py, node_support.run): cell_sim
+# (50 Hz of motion, the busiest) has them all; the decision node is stopped while it runs.
+CASES = [('cell_sim_node', 'exec', signal.SIGTERM), ('cell_sim_node', 'imports', signal.SIGINT),
+         ('cell_sim_node', 'imports', signal.SIGTERM),
+         ('cell_sim_node', 'building', signal.SIGINT),
+         ('cell_sim_node', 'running', signal.SIGINT), ('cell_sim_node', 'running', signal.SIGTERM),
+         ('decision_node', 'running', signal.SIGINT), ('decision_node', 'running', signal.SIGTERM)]
+
+
+@pytest.mark.parametrize('executable, moment, signum', CASES,
+                         ids=[f'{e}-{m}-{signal.Signals(s).name}' for e, m, s in CASES])
+def test_a_node_stopped_at_any_moment_exits_0_quietly(executable, moment, signum, tmp_path,
+                                                      graph_probe):
+    nodes = NodeProcesses(tmp_path, params())
+    nodes.start(executable)
+    process = nodes.processes[executable]
+    try:
+        if moment == 'imports':
+            wait_for(lambda: caught(process.pid, signal.SIGTERM), START_TIMEOUT,
+                     'the stop handler', process)
+            assert not mapped(process.pid, '_rclpy_pybind11'), 'the imports were over'
+        elif moment == 'building':
+            wait_for(lambda: mapped(process.pid, '_rclpy_pybind11'), START_TIMEOUT,
+                     'rclpy to be imported', process)
+        elif moment == 'running':
+            wait_for(lambda: in_graph(graph_probe, NODES[executable]), START_TIMEOUT,
+                     'the node on the graph', process)
+            # the moment, chosen (seeded) anywhere in the next half second of its running
+            time.sleep(random.Random(f'{SEED}{executable}{signum}').uniform(0.0, 0.5))
+        nodes.send_signal(executable, signum)
+        code = process.wait(timeout=STOP_TIMEOUT)
+    finally:
+        nodes.stop(timeout=5.0)
+    log = nodes.log(executable)
+    assert code == 0, log
+    assert not clean_log(log), log
+
+
+def test_ctrl_c_during_the_imports_of_a_console_script_is_silent(tmp_path):
+    """As a user runs it (no blocked signals): Ctrl-C while the node module imports rclpy,
+    numpy and the model (it used to end with a KeyboardInterrupt traceback and exit -2)."""
+    script = Path(sys.executable).parent / 'task_manager_node'
+    process = subprocess.Popen([str(script), '--ros-args', '--params-file', str(params()[0])],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               start_new_session=True)
+    try:
+        wait_for(lambda: caught(process.pid, signal.SIGTERM), START_TIMEOUT,
+                 'the stop handler', process)
+        assert not mapped(process.pid, '_rclpy_pybind11'), 'the imports were over'
+        os.killpg(process.pid, signal.SIGINT)
+        output, _ = process.communicate(timeout=STOP_TIMEOUT)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == 0, output
+    assert output == ''
+
+
+def test_the_entry_module_installs_the_handlers_before_any_heavy_import():
+    probe = ('import sys, signal; import hrc_ros.ros.entry as e; '
+             'print(sorted({m.split(".")[0] for m in sys.modules} & {"rclpy", "numpy", '
+             '"scipy", "yaml", "numba", "std_msgs"}))')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            timeout=60, cwd='/')
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == '[]'
+
+
+SLOW_TO_STOP = textwrap.dedent('''
+    import ctypes, sys, threading, time
+    from rclpy.node import Node
+    from hrc_ros.ros.node_support import run
+
+    class SlowToStop(Node):
+        NODE_NAME = 'slow_to_stop'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            self.create_timer(0.05, lambda: None)
+            print('running', flush=True)
+
+        def on_stop(self):
+            print('last word: stuck', flush=True)
+            if sys.argv[1] == 'native':   # stuck in C with the interpreter lock released
+                sleeper = threading.Thread(target=time.sleep, args=(120,), daemon=True)
+                sleeper.start()
+                ctypes.CDLL(None).pthread_join(ctypes.c_ulong(sleeper.ident), None)
+            else:
+                time.sleep(120)
+
+    sys.exit(run(SlowToStop))
+''')
+
+
+@pytest.mark.parametrize('stuck_in', ['python', 'native'])
+def test_a_second_stop_signal_forces_the_exit(stuck_in, tmp_path, ros_domain_id):
+    """The first SIGINT starts the stop; the node hangs in its last word; the second SIGINT
+    ends the process at once with stop.FORCED_EXIT, also when the main thread is stuck in C
+    (the helper thread that reads the signal wake-up pipe exits then)."""
+    script = tmp_path / 'slow_to_stop.py'
+    script.write_text(SLOW_TO_STOP)
+    log = tmp_path / 'slow.log'
+    with open(log, 'w') as output:
+        process = subprocess.Popen([sys.executable, str(script), stuck_in], stdout=output,
+                                   stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: 'running' in log.read_text(), START_TIMEOUT, 'the node', process)
+        os.killpg(process.pid, signal.SIGINT)
+        wait_for(lambda: 'last word: stuck' in log.read_text(), STOP_TIMEOUT, 'the last word',
+                 process)
+        os.killpg(process.pid, signal.SIGINT)
+        code = process.wait(timeout=STOP_TIMEOUT)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert code == stop.FORCED_EXIT, log.read_text()
+    assert 'second stop signal: exiting at once (3)' in log.read_text()
+
+
+def test_a_context_shut_down_elsewhere_ends_the_spin():
+    """A callback that shuts the context down (what ros2 launch's in-process composition or
+    a test may do) ends the spin loop like a stop signal: exit 0, the node destroyed."""
+    from rclpy.node import Node
+
+    from hrc_ros.ros.node_support import run
+    built = []
+
+    class ShutDown(Node):
+        NODE_NAME = 'shut_down_from_inside'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            built.append(self)
+            self.create_timer(0.01, rclpy.shutdown)
+
+    assert run(ShutDown, args=[]) == 0
+    assert not rclpy.ok()
+    from rclpy.exceptions import InvalidHandle
+    with pytest.raises(InvalidHandle):   # destroyed
+        built[0].get_fully_qualified_name()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # given back
+
+
+def test_a_bug_still_propagates():
+    """Nothing is taken for a stop any more but a stop: an error in the constructor or in a
+    callback propagates with its traceback."""
+    from rclpy.node import Node
+
+    from hrc_ros.ros.node_support import run
+
+    class BrokenAtStart(Node):
+        NODE_NAME = 'broken_at_start'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            raise KeyError('a bug')
+
+    class BrokenInCallback(Node):
+        NODE_NAME = 'broken_in_callback'
+
+        def __init__(self):
+            super().__init__(self.NODE_NAME)
+            self.create_timer(0.01, self.fail)
+
+        def fail(self):
+            raise RuntimeError('a bug')
+
+    with pytest.raises(KeyError):
+        run(BrokenAtStart, args=[])
+    with pytest.raises(RuntimeError, match='a bug'):
+        run(BrokenInCallback, args=[])
+    assert not rclpy.ok()
+
+
+HANGS = 'import signal, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n' \
+    'print("ignoring SIGINT", flush=True)\n' \
+    'def stuck_in_shutdown():\n    time.sleep(120)\n\nstuck_in_shutdown()\n'
+
+
+def test_a_node_that_does_not_stop_leaves_its_stacks_in_its_log(tmp_path):
+    """processes.stop: past the timeout, the native and Python stacks (py-spy) go into the
+    node's log before it is killed, so a hang says where it was."""
+    nodes = NodeProcesses(tmp_path, [])
+    log = nodes.log_path('hanging')
+    with open(log, 'w') as output:
+        nodes.processes['hanging'] = subprocess.Popen(
+            [sys.executable, '-c', HANGS], stdout=output, stderr=subprocess.STDOUT,
+            start_new_session=True)
+    wait_for(lambda: 'ignoring SIGINT' in log.read_text(), START_TIMEOUT, 'the process')
+    codes = nodes.stop(timeout=1.0)
+    assert codes['hanging'] in (-signal.SIGABRT, -signal.SIGKILL)
+    assert nodes.stacks_dumped == ['hanging']
+    text = log.read_text()
+    assert 'stacks of pid' in text and 'stuck_in_shutdown' in text, text
