@@ -72,18 +72,21 @@ _REACHING = {'elbow': (0.22, 0.22, 1.12), 'wrist': (0.42, 0.19, 0.93),
              'thumb': (0.49, 0.14, 0.91)}
 
 
-def _posture(reach: float) -> np.ndarray:
-    """The 32 joints (forward, left, up) in the body frame with the hands `reach` in [0, 1]
-    of the way from hanging to on the table."""
-    out = np.zeros((len(K4ABT_JOINTS), 3))
+def _postures() -> tuple[np.ndarray, np.ndarray]:
+    """The 32 joints (forward, left, up) in the body frame, hands hanging, and the change to
+    the hands on the table: the posture at reach r is hanging + r * change."""
+    out = np.zeros((2, len(K4ABT_JOINTS), 3))
     for name, p in _BODY.items():
-        out[JOINT_INDEX[name]] = p
+        out[:, JOINT_INDEX[name]] = p
     for part in _HANGING:
-        hang, table = np.array(_HANGING[part]), np.array(_REACHING[part])
-        p = hang + reach * (table - hang)
-        out[JOINT_INDEX[f'{part}_left']] = p
-        out[JOINT_INDEX[f'{part}_right']] = p * (1, -1, 1)
-    return out
+        for k, pose in enumerate((_HANGING, _REACHING)):
+            p = np.array(pose[part], dtype=float)
+            out[k, JOINT_INDEX[f'{part}_left']] = p
+            out[k, JOINT_INDEX[f'{part}_right']] = p * (1, -1, 1)
+    return out[0], out[1] - out[0]
+
+
+_POSTURE, _REACH = _postures()
 
 
 def walking_speed(em: int, ea: int) -> float:
@@ -148,9 +151,8 @@ class SimulatedPerson:
 
     def keypoints(self) -> np.ndarray:
         """The 32 joints (32, 3) in the robot base frame, metres."""
-        forward = np.array([-math.cos(self.theta), -math.sin(self.theta), 0.0])
-        left = np.array([-forward[1], forward[0], 0.0])
-        origin = np.array([self.rho * math.cos(self.theta), self.rho * math.sin(self.theta),
-                           -TABLE_HEIGHT])
-        body = _posture(self.reach)
-        return origin + body[:, :1] * forward + body[:, 1:2] * left + body[:, 2:3] * [0, 0, 1]
+        c, s = math.cos(self.theta), math.sin(self.theta)
+        # Columns of the body frame in the base frame: forward (to the base), left, up.
+        frame = np.array([[-c, s, 0.0], [-s, -c, 0.0], [0.0, 0.0, 1.0]])
+        body = _POSTURE + self.reach * _REACH
+        return body @ frame.T + (self.rho * c, self.rho * s, -TABLE_HEIGHT)

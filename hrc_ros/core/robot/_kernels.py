@@ -64,9 +64,10 @@ def _closest(p0, p1, q0, q1, out1, out2):
 
 
 @numba.njit(cache=True)
-def capsule_separation(arm_segments, arm_radii, body_segments, body_radii, points):
-    """(surface distance, i, j) of the closest arm/body capsule pair; `points` (2, 3)
-    receives the closest points of their axes."""
+def capsule_separation(arm_segments, arm_radii, body_segments, body_radii, points, surface):
+    """(surface distance, i, j) of the closest arm/body capsule pair; with `surface`, `points`
+    (2, 3) receives the closest points on the two capsules' surfaces (on the arm's, on the
+    body's), moved from their axes by the radii along the line between them."""
     c1 = np.empty(3)
     c2 = np.empty(3)
     best = np.inf
@@ -84,6 +85,23 @@ def capsule_separation(arm_segments, arm_radii, body_segments, body_radii, point
                 best_j = j
                 points[0, :] = c1
                 points[1, :] = c2
+    if surface:
+        gx = points[1, 0] - points[0, 0]
+        gy = points[1, 1] - points[0, 1]
+        gz = points[1, 2] - points[0, 2]
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
+        if length > EPS:
+            gx, gy, gz = gx / length, gy / length, gz / length
+        else:
+            gx, gy, gz = 1.0, 0.0, 0.0
+        ra = arm_radii[best_i]
+        rb = body_radii[best_j]
+        points[0, 0] += ra * gx
+        points[0, 1] += ra * gy
+        points[0, 2] += ra * gz
+        points[1, 0] -= rb * gx
+        points[1, 1] -= rb * gy
+        points[1, 2] -= rb * gz
     return best, best_i, best_j
 
 

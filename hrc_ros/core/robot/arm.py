@@ -183,14 +183,14 @@ _BONE_CACHE: dict = {}
 
 
 def _bones(joints: tuple):
-    """(bone start indices, end indices, radii, names) of the BONES a joint list spans."""
+    """(bone end-point indices (m, 2), radii, names) of the BONES a joint list spans."""
     cached = _BONE_CACHE.get(joints)
     if cached is None:
         index = {name: i for i, name in enumerate(joints)}
         bones = [b for b in BONES if b[1] in index and b[2] in index]
         if not bones:
             raise ValueError(f'joints {list(joints)} span no bone of {[b[0] for b in BONES]}')
-        cached = (np.array([index[b[1]] for b in bones]), np.array([index[b[2]] for b in bones]),
+        cached = (np.array([(index[b[1]], index[b[2]]) for b in bones]),
                   np.array([b[3] for b in bones]), tuple(b[0] for b in bones))
         if len(_BONE_CACHE) < 64:
             _BONE_CACHE[joints] = cached
@@ -214,7 +214,7 @@ def body_capsules(points, joints=None, keypoint_radius: float = KEYPOINT_RADIUS)
     pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
         raise ValueError(f'keypoints must have shape (n, 3) with n >= 1, got {pts.shape}')
-    if not np.all(np.isfinite(pts)):
+    if not np.isfinite(pts).all():
         raise ValueError('keypoints must be finite (no NaN or inf)')
     if joints is None:
         if not (math.isfinite(keypoint_radius) and keypoint_radius >= 0):
@@ -225,12 +225,12 @@ def body_capsules(points, joints=None, keypoint_radius: float = KEYPOINT_RADIUS)
     if len(pts) % len(joints) != 0:
         raise ValueError(f'{len(pts)} keypoints are not whole bodies of the {len(joints)} '
                          'joints named')
-    start, end, radii, names = _bones(joints)
+    pairs, radii, names = _bones(joints)
     bodies = len(pts) // len(joints)
     if bodies == 1:
-        return _trusted(np.stack([pts[start], pts[end]], axis=1), radii, names)
-    offsets = (np.arange(bodies) * len(joints))[:, None]
-    segments = np.stack([pts[(start + offsets).ravel()], pts[(end + offsets).ravel()]], axis=1)
+        return _trusted(pts[pairs], radii, names)
+    offsets = (np.arange(bodies) * len(joints))[:, None, None]
+    segments = pts[(pairs[None, :, :] + offsets).reshape(-1, 2)]
     return _trusted(segments, np.tile(radii, bodies),
                     names + tuple(f'{n}_{b}' for b in range(1, bodies) for n in names))
 
@@ -250,14 +250,10 @@ class Separation:
 
 def separation(arm_segments, arm_radii, arm_names, body: BodyCapsules) -> Separation:
     """The `Separation` of arm capsules (n, 2, 3) / (n,) from a person's capsules."""
-    axes = np.empty((2, 3))
+    points = np.empty((2, 3))
     distance, i, j = capsule_separation(arm_segments, arm_radii, body.segments, body.radii,
-                                        axes)
-    gap = axes[1] - axes[0]
-    length = math.sqrt(float(gap @ gap))
-    direction = gap / length if length > 1e-12 else np.array([1.0, 0.0, 0.0])
-    return Separation(float(distance), axes[0] + arm_radii[i] * direction,
-                      axes[1] - body.radii[j] * direction, arm_names[i], body.names[j])
+                                        points, True)
+    return Separation(float(distance), points[0], points[1], arm_names[i], body.names[j])
 
 
 # -- the arm in MuJoCo ------------------------------------------------------------------------
@@ -296,6 +292,7 @@ class Arm:
         self.last_joint = np.array([c[1] for c in capsules], dtype=np.int64) - 1
         self.flange_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, 'flange')
         self._segments = np.empty((len(ids), 2, 3))
+        self._points = np.empty((2, 3))
         self._q = np.full(N_JOINTS, np.nan)
 
     def _kinematics(self, q) -> np.ndarray:
@@ -331,6 +328,11 @@ class Arm:
         """The closest approach of the arm at q to the person's capsules."""
         return separation(self._kinematics(q), self.radii, self.capsule_names, body)
 
+    def distance(self, q, body: BodyCapsules) -> float:
+        """Only S of `separation` (m): the fast path of the batch cell's checks."""
+        return float(capsule_separation(self._kinematics(q), self.radii, body.segments,
+                                        body.radii, self._points, False)[0])
+
 
 # -- motion -----------------------------------------------------------------------------------
 def smoothstep(u):
@@ -360,20 +362,24 @@ class Trajectory:
     marks: tuple = ()
     kind: str = ''
 
+    def __post_init__(self):
+        object.__setattr__(self, '_times', np.cumsum(self.durations))
+        object.__setattr__(self, '_duration', float(np.sum(self.durations)))
+
     @property
     def times(self) -> np.ndarray:
         """time_from_start of each waypoint after the start (s), at override 1."""
-        return np.cumsum(self.durations)
+        return self._times.copy()
 
     @property
     def duration(self) -> float:
-        return float(np.sum(self.durations))
+        return self._duration
 
     def sample(self, tau: float):
         """(q, dq/dtau, segment index) at trajectory time tau (s, clamped to the ends)."""
         if len(self.durations) == 0:
             return self.positions[-1].copy(), np.zeros(N_JOINTS), -1
-        ends = self.times
+        ends = self._times
         i = int(np.searchsorted(ends, tau, side='right'))
         if i >= len(ends):
             return self.positions[-1].copy(), np.zeros(N_JOINTS), len(ends) - 1

@@ -163,6 +163,8 @@ class RobotDescription:
     def outside(self, q) -> str:
         """'' when q lies within the position limits, else which joint is out and by what."""
         q = np.asarray(q, dtype=float)
+        if ((q >= self.lower - LIMIT_SLACK) & (q <= self.upper + LIMIT_SLACK)).all():
+            return ''          # (NaN fails both comparisons, so it is named below)
         for i, name in enumerate(self.joint_names):
             if not math.isfinite(q[i]):
                 return f'{name} is {q[i]}'
@@ -435,30 +437,34 @@ class Bridge:
         self.run: ProgramRun | None = None
         self._stop_reason = ''
         self._peaks: dict = {}
+        self._state_names: tuple | None = None
+        self._state_order = np.arange(len(self.index))
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
         """The arm's joint state; InputError (nothing kept) for a missing joint, NaN or a
         position outside the limits. Joints the description does not name (a gripper) are
         ignored."""
-        names = list(names)
+        names = tuple(names)
         positions = np.asarray(positions, dtype=float).reshape(-1)
         velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
             else np.zeros(len(names))
         if len(positions) != len(names) or len(velocities) != len(names):
             raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
                              f'and {len(velocities)} velocities')
-        where = {n: i for i, n in enumerate(names)}
-        lack = [n for n in self.description.joint_names if n not in where]
-        if lack:
-            raise InputError(f'joint state without {", ".join(lack)} (has '
-                             f'{", ".join(names) or "no joints"})')
-        order = [where[n] for n in self.description.joint_names]
-        q, qd = positions[order], velocities[order]
+        if names != self._state_names:
+            where = {n: i for i, n in enumerate(names)}
+            lack = [n for n in self.description.joint_names if n not in where]
+            if lack:
+                raise InputError(f'joint state without {", ".join(lack)} (has '
+                                 f'{", ".join(names) or "no joints"})')
+            self._state_order = np.array([where[n] for n in self.description.joint_names])
+            self._state_names = names
+        q, qd = positions[self._state_order], velocities[self._state_order]
         why = self.description.outside(q)
         if why:
             raise InputError(f'joint state refused: {why}')
-        if not np.all(np.isfinite(qd)):
+        if not np.isfinite(qd).all():
             raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
         self.q, self.qd, self._joint_stamp = q, qd, int(stamp_ns)
 
@@ -531,7 +537,7 @@ class Bridge:
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
         self._track_progress()
         trajectory = None
-        at_rest = bool(np.all(np.abs(self.qd) <= self.description.rest_speed))
+        at_rest = bool((np.abs(self.qd) <= self.description.rest_speed).all())
         if self.pending is not None and at_rest and not self.paused:
             trajectory = self._plan(self.pending)
             self.motion = self.pending if len(trajectory.durations) else 'idle'

@@ -225,13 +225,13 @@ class ArmCell:
         frames: deque = deque()
         next_capture = frame_interval - latency
         out = EpisodeResult(0, 0, 0.0, 0.0, 0.0, math.inf, 0, 0, 0, 0, 0)
-        true_separation = arm.separation(follower.q, first).distance
+        true_separation = arm.distance(follower.q, first)
         last = None
         step = 0
         for k in range(1, scenario.epochs + 1):
             book.begin_epoch(k)
             t = step * dt
-            boundary = arm.separation(follower.q, held).distance
+            boundary = arm.distance(follower.q, held)
             d = level_of_distance(boundary, cfg.safety_radii)
             x = book.observable(d)
             action = self._decide(selector, belief, x, (human.em, human.ea))
@@ -262,7 +262,7 @@ class ArmCell:
                     stamp, held = frames.popleft()
                     bridge.skeleton(held, _ns(stamp), now)
                 # The truth at t: the person's body now, the arm's speed bound now.
-                true_separation = arm.separation(follower.q, body).distance
+                true_separation = arm.distance(follower.q, body)
                 bound = follower.speed_bound
                 out.min_separation = min(out.min_separation, true_separation)
                 if bound > MOVING_SPEED:

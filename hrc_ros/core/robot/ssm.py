@@ -144,25 +144,34 @@ class SsmParameters:
         return self.intrusion + self.human_uncertainty + self.robot_uncertainty
 
 
+def _is_scalar(*values) -> bool:
+    for v in values:
+        if not isinstance(v, (int, float)):
+            return False
+    return True
+
+
 def human_travel(separation, time, p: SsmParameters):
     """D(S, T): how far the person can come within `time` s from `separation` m (walking at
     v_h, reaching at v_near inside `near_distance`). Broadcasts."""
+    if _is_scalar(separation, time):
+        w = max(separation - p.near_distance, 0.0)
+        walk = p.human_speed * time
+        return walk if walk <= w else w + p.human_speed_near * (time - w / p.human_speed)
     w = np.maximum(np.asarray(separation, dtype=float) - p.near_distance, 0.0)
     walk = p.human_speed * np.asarray(time, dtype=float)
     reach = w + p.human_speed_near * (time - w / p.human_speed)
-    out = np.where(walk <= w, walk, reach)
-    return float(out) if out.ndim == 0 else out
+    return np.where(walk <= w, walk, reach)
 
 
 def protective_distance(speed, separation, p: SsmParameters, age: float = 0.0,
                         period: float = 0.0):
     """S_p (m) for robot speed `speed` (m/s) at separation `separation` (m), with the human
     data `age` s old and the command held for `period` s (module docstring). Broadcasts."""
-    v = np.asarray(speed, dtype=float)
+    v = speed if _is_scalar(speed) else np.asarray(speed, dtype=float)
     stop_time = v / p.deceleration
-    out = (human_travel(separation, p.reaction_time + age + period + stop_time, p)
-           + v * (p.reaction_time + period) + v * v / (2.0 * p.deceleration) + p.margin)
-    return float(out) if np.ndim(out) == 0 else out
+    return (human_travel(separation, p.reaction_time + age + period + stop_time, p)
+            + v * (p.reaction_time + period) + v * v / (2.0 * p.deceleration) + p.margin)
 
 
 def _root(a: float, b: float, k: float) -> float:
@@ -208,6 +217,8 @@ def speed_override(allowed: float | None, nominal: float) -> float:
 def ssm_violated(separation, speed, p: SsmParameters):
     """True where a sample breaks SSM: the arm moves (`speed` > MOVING_SPEED) while the
     separation is below S_p at that speed (ISO/TS 15066's formula, the true separation)."""
+    if _is_scalar(separation, speed):
+        return speed > MOVING_SPEED and separation < protective_distance(speed, separation, p)
     s = np.asarray(separation, dtype=float)
     v = np.asarray(speed, dtype=float)
     return (v > MOVING_SPEED) & (s < protective_distance(v, s, p))
