@@ -697,3 +697,32 @@ def test_a_new_goal_starts_from_rest_so_the_speed_bound_ramps_up_again():
     follower.follow(Trajectory(JOINT_NAMES, np.array([q1, q0]), np.array([1.5]), 0.9, (-1,)))
     assert follower.speed_bound == 0.0
     assert follower.step(0.01, 1.0).speed_bound <= 2.0 * 0.01 + 1e-12
+
+
+def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, capsys):
+    import csv
+    import json
+    from hrc_ros.core.mdp.policy import default_policy_path
+    from hrc_ros.tools.evaluate import main
+    if not default_policy_path().is_file():
+        pytest.skip('no shipped policy')
+    assert main(['--cell', 'arm', '--episodes', '3', '--epochs', '6', '--out',
+                 str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert '3 episodes x 6 epochs of 1 s' in out and 'real time on one core' in out
+    table = out.split('paired differences')[0]
+    rows = [line.split()[0] for line in table.splitlines() if '±' in line]
+    assert rows == ['ssm_only', 'paper', 'qmdp']
+    assert 'paired differences to ssm_only' in out
+    summary = json.loads((tmp_path / 'summary.json').read_text())
+    assert summary['baseline'] == 'ssm_only' and summary['settings']['cell'] == 'arm'
+    assert all(v['ssm_violations']['mean'] == 0 for v in summary['selectors'].values())
+    with (tmp_path / 'episodes.csv').open() as f:
+        assert len(list(csv.DictReader(f))) == 9
+    for argv, message in ((['--true-config', 'x.yaml'], '--true-config is for'),
+                          (['--selectors', 'ssm_only,best'], "unknown selector 'best'"),
+                          (['--scenario', 'case-study'], 'random task streams'),
+                          (['--baseline', 'mdp'], "--baseline 'mdp' must be one of")):
+        with pytest.raises(SystemExit):
+            main(['--cell', 'arm', '--out', str(tmp_path)] + argv)
+        assert message in capsys.readouterr().err
