@@ -11,8 +11,8 @@ SSM violations.
    the 9 arm capsules x 12 body capsules) at random joint angles, 20,000 calls: p50 and p99
    (target < 0.2 ms).
 3. Bridge compute per message: every call the phase-2 node makes into `Bridge` (joint state +
-   tick at 100 Hz, skeleton at 30 Hz, task state and action per epoch) timed over the batch
-   cell's episodes, p50 / p99 / max (target p99 < 1 ms).
+   tick every control period, 50 Hz here, skeleton at 30 Hz, task state and action per epoch)
+   timed over the batch cell's episodes, p50 / p99 / max (target p99 < 1 ms).
 4. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
    (samples where the arm moved while the true separation was below S_p: target 0), with the
    contacts and speed-bound breaches.
