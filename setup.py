@@ -33,12 +33,13 @@ setup(
         ('share/' + PACKAGE + '/config', sorted(
             glob('config/*.yaml') + glob('config/*.xml') + glob('config/*.json')
             + glob('config/*.rviz'))),
+        ('share/' + PACKAGE + '/config/robot', sorted(glob('config/robot/*.yaml'))),
         ('share/' + PACKAGE + '/policies', sorted(glob('policies/*.npz'))),
         ('share/' + PACKAGE + '/policies/pomdp', sorted(glob('policies/pomdp/*.npz'))),
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'numba', 'aiohttp', 'ray>=2.58'],
+                      'matplotlib', 'numba', 'aiohttp', 'ray>=2.58', 'mujoco'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',
     maintainer_email='maintainers@hrc-ros.invalid',

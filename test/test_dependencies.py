@@ -48,6 +48,7 @@ DEPENDENCIES = {
     'mcap_ros2': ('mcap-ros2-support', 'python3-mcap-ros2-support-pip'),
     'aiohttp': ('aiohttp', 'python3-aiohttp-pip'),
     'ray': ('ray', 'python3-ray-pip'),
+    'mujoco': ('mujoco', 'python3-mujoco-pip'),
     'rclpy': ('ros-jazzy-rclpy', ROS),
     'rcl_interfaces': ('ros-jazzy-rclpy', ROS),
     'builtin_interfaces': ('ros-jazzy-rclpy', ROS),

@@ -152,11 +152,14 @@ def commit_effective(tp, tx, ty):
     return (tp > 0) & (ty == 0) & ((tx == 0) | (tx == 2))
 
 
-def step_task(task: dict, action: int, accepted) -> dict:
+def step_task(task: dict, action: int, accepted, robot_runs=None) -> dict:
     """MODEL.md 3.2: the next (tp, tc, tx, ty, hp, hc, bp, bc), vectorised.
 
     `task` maps the variable names to equal-shape integer arrays (the epoch's start values);
     `accepted` is whether the human accepted (ignored unless the request is eligible).
+    `robot_runs`: whether the robot's counter bc runs down this epoch; None is the model's
+    rule (every action but dn). The cell with an arm (`robot.cell`, docs/ROBOT.md) passes
+    whether the arm completed a cycle of its program, so bc follows the physical work.
     """
     tp, tc, tx, ty = task['tp'], task['tc'], task['tx'], task['ty']
     hp, hc, bp, bc = task['hp'], task['hc'], task['bp'], task['bc']
@@ -169,7 +172,8 @@ def step_task(task: dict, action: int, accepted) -> dict:
 
     hc_n = np.where(human_new, tc, np.maximum(0, hc - 1))
     hp_n = np.where(human_new, tp, np.where(hc != 0, hp, 0))
-    bc_run = bc if action == DN else np.maximum(0, bc - 1)
+    runs = (action != DN) if robot_runs is None else np.asarray(robot_runs, dtype=bool)
+    bc_run = np.where(runs, np.maximum(0, bc - 1), bc)
     bc_n = np.where(robot_new, tc, bc_run)
     bp_n = np.where(robot_new, tp, np.where(bc != 0, bp, 0))
     ty_n = np.where(human_takes, 1, np.where(joint, 3, np.where(robot_commits, 2, ty)))

@@ -211,13 +211,15 @@ class TaskBook:
             raise ValueError(f'epochs are integers numbered from 1, got {k!r}')
         self.epoch = int(k) - 1
 
-    def apply(self, action, accepted=None) -> dict:
-        """Apply the epoch's action and the human's answer (None: no eligible request)."""
+    def apply(self, action, accepted=None, robot_runs=None) -> dict:
+        """Apply the epoch's action and the human's answer (None: no eligible request);
+        `robot_runs` as `model.step_task` (None: the model's rule for the robot's counter)."""
         a = action_index(action)
         if accepted is not None and not isinstance(accepted, (bool, np.bool_)):
             raise ValueError(f'accepted must be None, True or False, got {accepted!r}')
         before = self._state
-        after = step_task({n: np.int64(v) for n, v in before.items()}, a, bool(accepted))
+        after = step_task({n: np.int64(v) for n, v in before.items()}, a, bool(accepted),
+                          None if robot_runs is None else bool(robot_runs))
         self._state = {n: int(after[n]) for n in TASK_VARIABLES}
         if self.current is not None:
             if before['ty'] == 0 and self._state['ty'] != 0:

@@ -2,6 +2,13 @@
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
+    hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp]
+                 [--baseline ssm_only]
+
+With `--cell arm` the episodes run in the cell with the arm (core.robot.cell: the bridge, SSM,
+the MuJoCo UR5e, the person walking around it) and the table is in physical units: tasks per
+hour, idle and protective-stop time, the minimum separation, SSM violations, refused requests,
+with every selector's paired differences to the baseline (ssm_only, SSM alone, by default).
 
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
 `episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
@@ -55,6 +62,102 @@ def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
     return world, None
 
 
+def _selectors(parser, text: str, known) -> tuple:
+    selectors = tuple(s.strip() for s in text.split(',') if s.strip())
+    if not selectors:
+        parser.error('--selectors names no selector; choose from ' + ', '.join(known))
+    for s in selectors:
+        if s not in known:
+            parser.error(f'unknown selector {s!r} in --selectors; choose from '
+                         f'{", ".join(known)}')
+    return selectors
+
+
+def evaluate_arm_cell(args, parser) -> int:
+    """--cell arm: the selectors in the cell with the arm (core.robot.cell)."""
+    from ..core.robot.bridge import RobotDescriptionError
+    from ..core.robot.cell import (CELL_SELECTORS, DEFAULT_SELECTORS, METRICS, evaluate_arm,
+                                   format_arm_paired, format_arm_table, paired_arm,
+                                   summarize_arm)
+    for flag, value in (('--true-config', args.true_config), ('--true-policy', args.true_policy),
+                        ('--no-fail-safe', args.no_fail_safe)):
+        if value:
+            parser.error(f'{flag} is for the model\'s cell; --cell arm does not take it')
+    if args.scenario != 'random':
+        parser.error('--cell arm runs random task streams (--scenario random)')
+    episodes = 200 if args.episodes is None else args.episodes
+    task_rate = 0.5 if args.task_rate is None else args.task_rate
+    epochs = 50 if args.epochs is None else args.epochs
+    selectors = _selectors(parser, args.selectors or ','.join(DEFAULT_SELECTORS), CELL_SELECTORS)
+    baseline = args.baseline
+    if baseline is None and 'ssm_only' in selectors:
+        baseline = 'ssm_only'
+    if baseline is not None and baseline not in selectors:
+        parser.error(f'--baseline {baseline!r} must be one of --selectors '
+                     f'({", ".join(selectors)})')
+    if episodes * epochs > MAX_EPISODE_EPOCHS // 1000:
+        parser.error(f'--episodes x --epochs = {episodes * epochs:,} is more than '
+                     f'{MAX_EPISODE_EPOCHS // 1000:,} epochs per selector in the cell with the '
+                     'arm (about an hour)')
+    try:
+        config, model, policy = load_model(args)
+        pomdp = load_pomdp(args, config, selectors)
+        out = output_folder(args.out)
+    except ToolError as exc:
+        return fail('hrc-evaluate', exc)
+    t0 = time.perf_counter()
+    progress = lambda m: print(m, flush=True)   # noqa: E731
+    try:
+        results = evaluate_arm(model, policy, episodes, epochs, args.seed, task_rate, selectors,
+                               args.mode, pomdp, progress=progress)
+    except RobotDescriptionError as exc:
+        return fail('hrc-evaluate', exc)
+    elapsed = time.perf_counter() - t0
+    cpu = sum(r.seconds for r in results.values())
+    simulated = sum(r.simulated for r in results.values())
+    mode = args.mode or config.belief_mode
+    print(f'the cell with the arm (UR5e, SSM, bridge; docs/ROBOT.md), {config.source}, policy '
+          f'{policy.path}')
+    print(f'{episodes} episodes x {epochs} epochs of 1 s, seed {args.seed}, task rate '
+          f'{task_rate}, belief {mode}; {elapsed:.1f} s ({simulated / max(cpu, 1e-9):.0f}x '
+          'real time on one core)')
+    print(format_arm_table(results))
+    paired = {}
+    if baseline is not None:
+        print(format_arm_paired(results, baseline))
+        paired = {s: paired_arm(r, results[baseline]) for s, r in results.items()
+                  if s != baseline}
+    summaries = {s: summarize_arm(r) for s, r in results.items()}
+    with (out / 'summary.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
+        for s, summary in summaries.items():
+            for metric, _ in METRICS:
+                m = summary[metric]
+                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
+                                 f'{m["high"]:.6g}'])
+    names = [m for m, _ in METRICS] + ['contacts', 'speed_breaches', 'tasks_completed']
+    with (out / 'episodes.csv').open('w', newline='') as f:
+        writer = csv.writer(f)
+        writer.writerow(['selector', 'episode'] + names)
+        for s, r in results.items():
+            for e in range(episodes):
+                writer.writerow([s, e] + [f'{getattr(r, n)[e]:.6g}' for n in names])
+    report = {'settings': {'cell': 'arm', 'config': config.source, 'policy': policy.path,
+                           'episodes': episodes, 'epochs': epochs, 'seed': args.seed,
+                           'task_rate': task_rate, 'belief_mode': mode,
+                           'seconds': round(elapsed, 3)},
+              'selectors': summaries,
+              'checks': {s: {'contacts': int(r.contacts.sum()),
+                             'speed_breaches': int(r.speed_breaches.sum())}
+                         for s, r in results.items()},
+              **({'baseline': baseline, 'minus_baseline': paired} if baseline else {})}
+    (out / 'summary.json').write_text(json.dumps(report, indent=2) + '\n')
+    for path in (out / 'summary.csv', out / 'summary.json', out / 'episodes.csv'):
+        print(f'wrote {path}')
+    return 0
+
+
 def main(argv=None) -> int:
     parser = Parser(
         prog='hrc-evaluate',
@@ -62,18 +165,25 @@ def main(argv=None) -> int:
                     'many seeded episodes with random task streams.')
     add_model_arguments(parser)
     add_pomdp_argument(parser)
+    parser.add_argument('--cell', default='model', choices=('model', 'arm'),
+                        help="'model': the decision model's cell (default); 'arm': the cell "
+                             'with the arm, in physical units (docs/ROBOT.md)')
     parser.add_argument('--scenario', default='random', choices=SCENARIOS,
                         help="'random' task streams and humans (default), or the paper's "
                              "'case-study' with human seeds seed, seed+1, ... (as hrc-simulate "
                              '--seed)')
-    parser.add_argument('--episodes', type=bounded_int(1, MAX_EPISODES), default=1000)
+    parser.add_argument('--episodes', type=bounded_int(1, MAX_EPISODES), default=None,
+                        help='episodes per selector (default 1000, with --cell arm 200)')
     parser.add_argument('--epochs', type=bounded_int(1, MAX_EPOCHS), default=None,
                         help='epochs per episode (default: 50, the case study 20)')
     parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0)
-    parser.add_argument('--task-rate', type=bounded_float(0.0, 1.0), default=0.2,
-                        help='probability of a new task per epoch (one always at epoch 1)')
-    parser.add_argument('--selectors', default='paper,qmdp,mls,mdp',
-                        help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS))
+    parser.add_argument('--task-rate', type=bounded_float(0.0, 1.0), default=None,
+                        help='probability of a new task per epoch (one always at epoch 1; '
+                             'default 0.2, with --cell arm 0.5: a queue that keeps the cell busy)')
+    parser.add_argument('--selectors', default=None,
+                        help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS)
+                             + ' (default paper,qmdp,mls,mdp); with --cell arm also ssm_only '
+                             '(default ssm_only,paper,qmdp)')
     parser.add_argument('--baseline', default=None,
                         help='also print every selector\'s paired cost difference to this one '
                              '(one of --selectors), with 95%% intervals')
@@ -90,16 +200,16 @@ def main(argv=None) -> int:
                         'solved here, about 2 s)')
     parser.add_argument('--out', default='out/evaluate', help='output folder')
     args = parser.parse_args(argv)
+    if args.cell == 'arm':
+        return evaluate_arm_cell(args, parser)
+    if args.episodes is None:
+        args.episodes = 1000
+    if args.task_rate is None:
+        args.task_rate = 0.2
     if args.true_policy and not args.true_config:
         parser.error('--true-policy needs --true-config')
-    selectors = tuple(s.strip() for s in args.selectors.split(',') if s.strip())
-    if not selectors:
-        parser.error('--selectors names no selector; choose from '
-                     + ', '.join(SIMULATION_SELECTORS))
-    for s in selectors:
-        if s not in SIMULATION_SELECTORS:
-            parser.error(f'unknown selector {s!r} in --selectors; choose from '
-                         f'{", ".join(SIMULATION_SELECTORS)}')
+    selectors = _selectors(parser, args.selectors or 'paper,qmdp,mls,mdp',
+                           SIMULATION_SELECTORS)
     if args.true_config and {'pomdp', 'fib'} & set(selectors):
         parser.error('--true-config compares the selectors that read a policy file (paper, '
                      'qmdp, mls, mdp); pomdp and fib would need a POMDP policy of the true '

@@ -167,9 +167,17 @@ def closest_distance(keypoints, robot_point) -> float:
 
 def distance_level(keypoints, robot_point=(0.0, 0.0, 0.0), radii=DEFAULT_SAFETY_RADII) -> int:
     """d in {0..3}: closest keypoint < r0 -> 0 (collision), < r1 -> 1, < r2 -> 2, else 3."""
+    return level_of_distance(closest_distance(keypoints, robot_point), radii)
+
+
+def level_of_distance(distance: float, radii=DEFAULT_SAFETY_RADII) -> int:
+    """d in {0..3} of a distance (m; below 0, overlapping bodies, is a collision) against the
+    three safety radii: < r0 -> 0, < r1 -> 1, < r2 -> 2, else 3. The one home of the bands,
+    for the closest keypoint to a reference point and for the separation to an arm's links."""
     r = _increasing_positive('radii', radii, 3)
-    rmin = closest_distance(keypoints, robot_point)
-    return int(np.searchsorted(r, rmin, side='right'))
+    if not np.isfinite(distance):
+        raise ValueError(f'a distance must be finite, got {distance!r}')
+    return int(np.searchsorted(r, distance, side='right'))
 
 
 def distance_band(d: int, radii=DEFAULT_SAFETY_RADII) -> tuple[float, float]:

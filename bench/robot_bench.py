@@ -1,0 +1,160 @@
+"""The robot side's targets (issue 18), measured: batch speed, separation query, bridge compute,
+SSM violations.
+
+    python bench/robot_bench.py [--episodes 20] [--violation-episodes 1000]
+                                [--violation-epochs 20] [--skip-violations]
+
+1. Batch speed: `--episodes` seeded episodes of the cell with the arm (50 epochs of 1 s,
+   ssm_only and paper), pinned to one core; simulated seconds / CPU seconds of the process
+   (target >= 50x real time on one core). Wall time is printed too (the machine may be shared).
+2. Separation query: `Arm.separation` (MuJoCo forward kinematics + the capsule distances of
+   the 9 arm capsules x 12 body capsules) at random joint angles, 20,000 calls: p50 and p99
+   (target < 0.2 ms).
+3. Bridge compute per message: every call the phase-2 node makes into `Bridge` (joint state +
+   tick every control period, 50 Hz here, skeleton at 30 Hz, task state and action per epoch)
+   timed over the batch cell's episodes, p50 / p99 / max (target p99 < 1 ms).
+4. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
+   (samples where the arm moved while the true separation was below S_p: target 0), with the
+   contacts and speed-bound breaches.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+from hrc_ros.core.cell.person import SimulatedPerson
+from hrc_ros.core.cell.tracking import K4ABT_JOINTS
+from hrc_ros.core.config import load_config
+from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+from hrc_ros.core.model import HRCModel
+from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.robot import bridge as bridge_module
+from hrc_ros.core.robot.arm import Arm, body_capsules
+from hrc_ros.core.robot.cell import ArmCell, person_seed
+from hrc_ros.core.study.evaluation import episodes_of
+
+
+def pin_to_one_core() -> str:
+    try:
+        cpu = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+        return f'pinned to CPU {cpu}'
+    except (AttributeError, OSError):
+        return 'not pinned'
+
+
+def percentiles(samples_s) -> str:
+    x = np.asarray(samples_s) * 1e3
+    return (f'p50 {np.percentile(x, 50):.3f} ms, p99 {np.percentile(x, 99):.3f} ms, '
+            f'max {x.max():.3f} ms ({x.size} calls)')
+
+
+class TimedBridge(bridge_module.Bridge):
+    """The bridge with every call the node makes timed (perf_counter)."""
+
+    samples: list = []
+
+    def _timed(self, name, *args):
+        t0 = time.perf_counter()
+        out = getattr(super(), name)(*args)
+        TimedBridge.samples.append(time.perf_counter() - t0)
+        return out
+
+    def joint_state(self, *args):
+        return self._timed('joint_state', *args)
+
+    def skeleton(self, *args):
+        return self._timed('skeleton', *args)
+
+    def task_state(self, *args):
+        return self._timed('task_state', *args)
+
+    def action(self, *args):
+        return self._timed('action', *args)
+
+    def tick(self, *args):
+        return self._timed('tick', *args)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--episodes', type=int, default=20)
+    parser.add_argument('--violation-episodes', type=int, default=1000)
+    parser.add_argument('--violation-epochs', type=int, default=20)
+    parser.add_argument('--skip-violations', action='store_true')
+    args = parser.parse_args(argv)
+    print(f'python bench/robot_bench.py {" ".join(argv or sys.argv[1:])}'.rstrip())
+    print(pin_to_one_core(), f'load average {os.getloadavg()[0]:.1f}')
+    config = load_config(default_config_path())
+    model = HRCModel(config)
+    policy = load_policy(default_policy_path(config), config)
+
+    # 2. separation query
+    arm = Arm()
+    person = SimulatedPerson(1, seed=0)
+    body = body_capsules(person.keypoints(), K4ABT_JOINTS)
+    rng = np.random.default_rng(0)
+    qs = rng.uniform(-np.pi, np.pi, (20_000, 6))
+    arm.separation(qs[0], body)
+    times = []
+    for q in qs:
+        t0 = time.perf_counter()
+        arm.separation(q, body)
+        times.append(time.perf_counter() - t0)
+    print(f'separation query (FK + 9 x 12 capsules): {percentiles(times)}  target < 0.2 ms')
+
+    # 1 and 3. batch speed and bridge compute
+    original = bridge_module.Bridge
+    import hrc_ros.core.robot.cell as cell_module
+    cell_module.Bridge = TimedBridge
+    try:
+        cell = ArmCell(model, policy)
+        scenarios, seeds = episodes_of(model, 'random', args.episodes, 50, 0, 0.5)
+        cell.episode(scenarios[0], seeds[0], person_seed(0, 0), 'paper')   # warm up
+        TimedBridge.samples = []
+        for selector in ('ssm_only', 'paper'):
+            cpu0, wall0 = time.process_time(), time.perf_counter()
+            simulated = 0.0
+            for e, (scenario, seed) in enumerate(zip(scenarios, seeds)):
+                simulated += cell.episode(scenario, seed, person_seed(0, e), selector).seconds
+            cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+            print(f'batch {selector}: {args.episodes} episodes, {simulated:.0f} s simulated in '
+                  f'{cpu:.1f} s CPU ({simulated / cpu:.0f}x real time on one core), {wall:.1f} s '
+                  'wall  target >= 50x')
+        print(f'bridge compute per message: {percentiles(TimedBridge.samples)}  target p99 < 1 ms')
+    finally:
+        cell_module.Bridge = original
+
+    # 4. SSM violations
+    if not args.skip_violations:
+        cell = ArmCell(model, policy)
+        scenarios, seeds = episodes_of(model, 'random', args.violation_episodes,
+                                       args.violation_epochs, 1, 0.5)
+        for selector in ('ssm_only', 'paper'):
+            totals = dict(violations=0, contacts=0, breaches=0, samples=0)
+            minimum = np.inf
+            cpu0 = time.process_time()
+            for e, (scenario, seed) in enumerate(zip(scenarios, seeds)):
+                r = cell.episode(scenario, seed, person_seed(1, e), selector)
+                totals['violations'] += r.ssm_violations
+                totals['contacts'] += r.contacts
+                totals['breaches'] += r.speed_breaches
+                totals['samples'] += int(round(r.seconds / cell.settings.control_period))
+                minimum = min(minimum, r.min_separation)
+                if (e + 1) % 250 == 0:
+                    print(f'  {selector}: {e + 1}/{len(scenarios)} episodes '
+                          f'({time.process_time() - cpu0:.0f} s CPU)', flush=True)
+            print(f'ssm violations, {selector}: {totals["violations"]} in {totals["samples"]:,} '
+                  f'samples of {len(scenarios)} episodes x {args.violation_epochs} epochs '
+                  f'(contacts {totals["contacts"]}, speed-bound breaches {totals["breaches"]}, '
+                  f'min separation {minimum:.3f} m)  target 0')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

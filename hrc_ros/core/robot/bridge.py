@@ -1,0 +1,666 @@
+"""Actions into motion: the robot bridge as a sans-IO state machine, and the robot description.
+
+The decision layer ends at an action a_k (MODEL.md 2) each epoch. `Bridge` turns it into what a
+joint_trajectory_controller and a speed override take, under speed and separation monitoring
+(`ssm`). It is fed values with their stamps and the clock, and returns what to send, so every
+rule is a unit test (test/test_robot.py) and the phase-2 node only converts messages:
+
+    joint_state(names, q, qd, stamp, now)   the arm's sensor_msgs/JointState
+    skeleton(body, stamp, now)              the person's capsules (`arm.body_capsules`)
+    task_state(x, now)                      hrc/task_state: tp tc tx ty hp hc bp bc
+    action(a, now)                          hrc/action
+    tick(now) -> BridgeCommand              a new trajectory (or None), the override 0..1,
+                                            the protective stop and its reason, the separation
+
+**What each action does** (the task state x of the epoch decides the program):
+
+- ct: commits to the pending task when `model.commit_effective` says it can (tp > 0, ty = 0,
+  tx in {0, 2}) and runs its nature's program, tc cycles; otherwise as nw.
+- nw: continues the current motion; when x shows the robot committed (ty in {2, 3}, bc > 0: a
+  ct before, an accepted rh2) and its program is not done or not running (after dp, dm, a
+  pause), runs it from where it stopped.
+- dp: moves to the retreat pose (the program, if any, waits).
+- dm: moves to the collaboration pose, its override capped at `collaboration_speed`.
+- dn: holds: override 0, no new trajectory (the arm brakes along its path and stands; the
+  program waits).
+- rh1, rh2, mh: leave the motion as it is (requests to the person); a hold stays a hold.
+
+**Safe point.** A new trajectory replaces the running one only where the arm is at rest (every
+joint slower than `rest_speed`): the bridge first commands override 0, the controller brakes
+along the *current* path at the stopping deceleration (the same ramp SSM relies on), and the new
+trajectory starts from where the arm stands. An arm already at rest (between trajectories, at a
+waypoint of the cubic segments, which all end at rest) switches at once. So no goal is ever
+replaced mid-segment at speed, and the arm never leaves its path while braking.
+
+**Programs and progress.** A nature's program is one cycle of joint waypoints W_0..W_{m-1}
+with durations D_i (into W_i from the previous waypoint, W_0's from W_{m-1}: the cycle closes);
+a task of tc epochs is tc cycles. The run approaches W_0 (not counted), then program segment n
+goes from W_{n mod m} to W_{(n+1) mod m}; it counts when the arm, on the program's trajectory,
+comes within `waypoint_tolerance` of its end waypoint (joint states only, so a real controller
+counts the same). Pre-empted, the run resumes with a segment from wherever the arm stands to the
+end waypoint of the segment it was on. `progress` reports the cycles done: the batch cell (and
+the phase-2 task manager) lets the robot's counter bc fall only when a cycle has completed
+(docs/ROBOT.md, "physical progress").
+
+**SSM below everything.** Every tick computes the separation of the arm's capsules at the
+latest joint state from the latest skeleton, and `SpeedSeparationMonitor` caps the override so
+that the links' top speed at override 1 (`Trajectory.nominal_speed`) times the override stays
+within the speed SSM allows. Whatever the action, the commanded override is the smallest of
+SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collaboration_speed)
+and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
+than `joint_state_timeout`: a protective stop with its reason.
+
+**Robot description** (`load_robot_description`, config/robot/ur5e.yaml): the arm's joints in
+chain order with their limits, the poses home / retreat / collaboration, and the bridge's
+settings; `load_programs` reads the motion programs (config/robot/ur5e_programs.yaml). Both
+refuse, in one line, a missing pose or limit, an unknown joint, a value outside the limits, a
+program segment faster than the limits allow.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from ..model import ACTIONS, CT, DM, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, action_index
+from ..model import commit_effective
+from ..paths import read_yaml, share_dir
+from ..protocol import OK, WARN, InputError, Report
+from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
+from .arm import segment_duration
+from .ssm import SpeedSeparationMonitor, SsmParameters, SsmState
+
+POSES = ('home', 'retreat', 'collaboration')
+LIMITS = ('lower', 'upper', 'velocity', 'acceleration')
+NATURES = {0: 'robot only', 1: 'human only', 2: 'either', 3: 'both together'}
+ROBOT_NATURES = (0, 2, 3)          # tasks with a robot share: they need a program
+LIMIT_SLACK = 1e-3                 # rad a joint state may lie beyond a position limit
+DESCRIPTION_DEFAULTS = {
+    'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
+    'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
+    'waypoint_tolerance': 0.02,    # rad: a waypoint is reached within this on every joint
+    'rest_speed': 0.01,            # rad/s: the arm is at rest below this on every joint
+    'joint_state_timeout': 0.1,    # s: an older joint state is no state (protective stop)
+}
+
+
+class RobotDescriptionError(ValueError):
+    """A robot description or programs file cannot be used; the text says why."""
+
+
+def shipped_robot_path(name: str = 'ur5e') -> Path:
+    """config/robot/<name>.yaml of the share folder."""
+    return share_dir() / 'config' / 'robot' / f'{name}.yaml'
+
+
+def shipped_programs_path(name: str = 'ur5e') -> Path:
+    """config/robot/<name>_programs.yaml of the share folder."""
+    return share_dir() / 'config' / 'robot' / f'{name}_programs.yaml'
+
+
+def _read_yaml(path, kind: str):
+    """A robot description or motion-program file by the project's safe YAML loader
+    (`paths.read_yaml`: a regular file of at most 1 MiB, nesting and aliases bounded, one line
+    for any error), which must hold a mapping."""
+    data = read_yaml(path, RobotDescriptionError, kind)
+    if not isinstance(data, dict):
+        raise RobotDescriptionError(f'{path}: a {kind} is a mapping, got {type(data).__name__}')
+    return data
+
+
+def _number(where: str, value, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RobotDescriptionError(f'{where} must be a finite number, got {value!r}')
+    if positive and value <= 0:
+        raise RobotDescriptionError(f'{where} must be > 0, got {value!r}')
+    return float(value)
+
+
+def _vector(where: str, value, n: int) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise RobotDescriptionError(f'{where} must be a list of {n} numbers (one per joint), '
+                                    f'got {value!r}')
+    return np.array([_number(f'{where}[{i}]', v) for i, v in enumerate(value)])
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    """The arm the bridge drives (see the module docstring); arrays in `joint_names` order."""
+
+    name: str
+    joint_names: tuple
+    lower: np.ndarray
+    upper: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    poses: dict
+    collaboration_speed: float = DESCRIPTION_DEFAULTS['collaboration_speed']
+    max_link_speed: float = DESCRIPTION_DEFAULTS['max_link_speed']
+    waypoint_tolerance: float = DESCRIPTION_DEFAULTS['waypoint_tolerance']
+    rest_speed: float = DESCRIPTION_DEFAULTS['rest_speed']
+    joint_state_timeout: float = DESCRIPTION_DEFAULTS['joint_state_timeout']
+    ssm: SsmParameters = field(default_factory=SsmParameters)
+    source: str = ''
+
+    def outside(self, q) -> str:
+        """'' when q lies within the position limits, else which joint is out and by what."""
+        q = np.asarray(q, dtype=float)
+        if ((q >= self.lower - LIMIT_SLACK) & (q <= self.upper + LIMIT_SLACK)).all():
+            return ''          # (NaN fails both comparisons, so it is named below)
+        for i, name in enumerate(self.joint_names):
+            if not math.isfinite(q[i]):
+                return f'{name} is {q[i]}'
+            if q[i] < self.lower[i] - LIMIT_SLACK or q[i] > self.upper[i] + LIMIT_SLACK:
+                return (f'{name} = {q[i]:.4f} rad is outside its limits '
+                        f'[{self.lower[i]:.4f}, {self.upper[i]:.4f}]')
+        return ''
+
+
+def robot_description(data: Mapping, source: str = '') -> RobotDescription:
+    """Validate a robot description mapping (what the YAML file holds)."""
+    where = source or 'robot description'
+    try:
+        missing = [k for k in ('joints', 'poses') if k not in data]
+        if missing:
+            raise RobotDescriptionError(f'missing {", ".join(missing)} (a robot description '
+                                        'names its joints with their limits and the poses '
+                                        f'{", ".join(POSES)})')
+        known = {'robot', 'joints', 'poses', 'ssm', *DESCRIPTION_DEFAULTS}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise RobotDescriptionError(f'unknown keys {unknown}; known: '
+                                        f'{", ".join(sorted(known))}')
+        joints = data['joints']
+        if not isinstance(joints, list) or len(joints) != len(JOINT_NAMES):
+            raise RobotDescriptionError(f'joints must list the arm\'s {len(JOINT_NAMES)} joints '
+                                        f'in chain order (base to flange), got {joints!r}')
+        names, limits = [], {k: [] for k in LIMITS}
+        for i, joint in enumerate(joints):
+            if not isinstance(joint, dict) or not isinstance(joint.get('name'), str) \
+                    or not joint['name']:
+                raise RobotDescriptionError(f'joints[{i}] must be a mapping with a name and its '
+                                            f'limits {", ".join(LIMITS)}, got {joint!r}')
+            lack = [k for k in LIMITS if k not in joint]
+            if lack:
+                raise RobotDescriptionError(f'joint {joint["name"]} has no {", ".join(lack)} '
+                                            '(limits: lower, upper rad; velocity rad/s; '
+                                            'acceleration rad/s^2)')
+            extra = sorted(set(joint) - {'name', *LIMITS})
+            if extra:
+                raise RobotDescriptionError(f'joint {joint["name"]}: unknown keys {extra}')
+            names.append(joint['name'])
+            for k in LIMITS:
+                limits[k].append(_number(f'joint {joint["name"]} {k}', joint[k],
+                                         positive=k in ('velocity', 'acceleration')))
+        if len(set(names)) != len(names):
+            raise RobotDescriptionError(f'joint names repeat: {names}')
+        lower, upper = np.array(limits['lower']), np.array(limits['upper'])
+        bad = [n for n, lo, hi in zip(names, lower, upper) if not lo < hi]
+        if bad:
+            raise RobotDescriptionError(f'joints {bad}: lower must be below upper')
+        poses_in = data['poses']
+        if not isinstance(poses_in, dict):
+            raise RobotDescriptionError(f'poses must map {", ".join(POSES)} to joint angles')
+        lack = [p for p in POSES if p not in poses_in]
+        if lack:
+            raise RobotDescriptionError(f'missing poses {", ".join(lack)} (the bridge needs '
+                                        f'{", ".join(POSES)})')
+        poses = {}
+        for pose, value in poses_in.items():
+            poses[pose] = _pose(f'pose {pose}', value, names)
+        settings = {}
+        for key, default in DESCRIPTION_DEFAULTS.items():
+            settings[key] = _number(key, data.get(key, default), positive=True)
+        if settings['collaboration_speed'] > 1:
+            raise RobotDescriptionError('collaboration_speed is an override in (0, 1], got '
+                                        f'{settings["collaboration_speed"]}')
+        try:
+            ssm = SsmParameters.from_mapping(data.get('ssm'))
+        except ValueError as exc:
+            raise RobotDescriptionError(str(exc)) from None
+        description = RobotDescription(
+            str(data.get('robot', 'robot')), tuple(names), lower, upper,
+            np.array(limits['velocity']), np.array(limits['acceleration']), poses,
+            ssm=ssm, source=source, **settings)
+        for pose, q in poses.items():
+            why = description.outside(q)
+            if why:
+                raise RobotDescriptionError(f'pose {pose}: {why}')
+        return description
+    except RobotDescriptionError as exc:
+        raise RobotDescriptionError(f'{where}: {exc}') from None
+
+
+def _pose(where: str, value, names) -> np.ndarray:
+    """A pose as a list in joint order, or a mapping joint name -> angle (every joint)."""
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - set(names))
+        if unknown:
+            raise RobotDescriptionError(f'{where}: unknown joints {unknown}; the description\'s '
+                                        f'joints are {", ".join(names)}')
+        lack = [n for n in names if n not in value]
+        if lack:
+            raise RobotDescriptionError(f'{where}: no angle for {", ".join(lack)}')
+        value = [value[n] for n in names]
+    return _vector(where, value, len(names))
+
+
+def load_robot_description(path=None) -> RobotDescription:
+    """Load and validate a robot description YAML file (None: the shipped UR5e)."""
+    path = Path(path) if path is not None else shipped_robot_path()
+    return robot_description(_read_yaml(path, 'robot description'), str(path))
+
+
+@dataclass(frozen=True)
+class Program:
+    """One nature's motion program: a closed cycle of waypoints (m, 6) and the duration
+    (s, at override 1) of the segment into each waypoint from the previous one."""
+
+    nature: int
+    name: str
+    waypoints: np.ndarray
+    durations: np.ndarray
+
+    @property
+    def cycle_time(self) -> float:
+        return float(np.sum(self.durations))
+
+    def segment(self, n: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """Program segment n (from 0): its start and end waypoints and duration."""
+        m = len(self.waypoints)
+        end = (n + 1) % m
+        return self.waypoints[n % m], self.waypoints[end], float(self.durations[end])
+
+
+def programs_from(data: Mapping, description: RobotDescription, source: str = '') -> dict:
+    """Validate a programs mapping: nature -> `Program` (natures 0, 2 and 3 are required)."""
+    where = source or 'motion programs'
+    try:
+        known = {'programs', 'joints'}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise RobotDescriptionError(f'unknown keys {unknown}; known: '
+                                        f'{", ".join(sorted(known))}')
+        joints = data.get('joints', list(description.joint_names))
+        if list(joints) != list(description.joint_names):
+            strange = sorted(set(joints) - set(description.joint_names))
+            raise RobotDescriptionError(
+                (f'unknown joints {strange}; ' if strange else '')
+                + f'joints must be the robot description\'s, in its order: '
+                f'{", ".join(description.joint_names)}')
+        programs_in = data.get('programs')
+        if not isinstance(programs_in, dict):
+            raise RobotDescriptionError('programs must map task natures (0 robot only, 2 either, '
+                                        '3 both together) to programs')
+        programs = {}
+        for key, program in programs_in.items():
+            if isinstance(key, bool) or not isinstance(key, int) or key not in NATURES:
+                raise RobotDescriptionError(f'program key {key!r} is no task nature '
+                                            f'(0..3: {NATURES})')
+            programs[key] = _program(key, program, description)
+        lack = [n for n in ROBOT_NATURES if n not in programs]
+        if lack:
+            raise RobotDescriptionError(f'no program for natures {lack} (every nature with a '
+                                        'robot share needs one: 0, 2, 3)')
+        return programs
+    except RobotDescriptionError as exc:
+        raise RobotDescriptionError(f'{where}: {exc}') from None
+
+
+def _program(nature: int, program, description: RobotDescription) -> Program:
+    where = f'program {nature}'
+    if not isinstance(program, dict) or 'waypoints' not in program \
+            or 'durations' not in program:
+        raise RobotDescriptionError(f'{where} needs waypoints and durations')
+    extra = sorted(set(program) - {'name', 'waypoints', 'durations'})
+    if extra:
+        raise RobotDescriptionError(f'{where}: unknown keys {extra}')
+    waypoints_in = program['waypoints']
+    if not isinstance(waypoints_in, list) or len(waypoints_in) < 2:
+        raise RobotDescriptionError(f'{where}: waypoints must list at least 2 poses')
+    waypoints = np.array([_pose(f'{where} waypoint {i}', w, description.joint_names)
+                          for i, w in enumerate(waypoints_in)])
+    durations = _vector(f'{where} durations', program['durations'], len(waypoints))
+    for i, q in enumerate(waypoints):
+        why = description.outside(q)
+        if why:
+            raise RobotDescriptionError(f'{where} waypoint {i}: {why}')
+    m = len(waypoints)
+    for i in range(m):
+        shortest = segment_duration(waypoints[i - 1], waypoints[i], description.velocity,
+                                    description.acceleration)
+        if durations[i] <= 0 or durations[i] < shortest - 1e-9:
+            raise RobotDescriptionError(
+                f'{where}: the segment into waypoint {i} takes {durations[i]:.3f} s, shorter '
+                f'than the {shortest:.3f} s the joint speed and acceleration limits allow')
+    return Program(nature, str(program.get('name', NATURES[nature])), waypoints, durations)
+
+
+def load_programs(description: RobotDescription, path=None) -> dict:
+    """Load and validate a motion programs YAML file (None: the shipped UR5e programs)."""
+    path = Path(path) if path is not None else shipped_programs_path()
+    return programs_from(_read_yaml(path, 'motion programs file'), description, str(path))
+
+
+# -- the bridge -------------------------------------------------------------------------------
+@dataclass
+class ProgramRun:
+    """The robot's share of one task: its nature's program for `cycles` cycles."""
+
+    nature: int
+    cycles: int
+    task: tuple                 # (tp, tx) of the task it belongs to
+    segments_done: int = 0
+    started: bool = False       # reached W_0 once
+    committed: bool = False     # the task state has shown the commitment
+
+    def total(self, program: Program) -> int:
+        return self.cycles * len(program.waypoints)
+
+    def cycles_done(self, program: Program) -> int:
+        return self.segments_done // len(program.waypoints)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """The robot's share of the current task: its nature, cycles asked and done."""
+
+    nature: int
+    cycles: int
+    cycles_done: int
+
+    @property
+    def complete(self) -> bool:
+        return self.cycles_done >= self.cycles
+
+
+@dataclass(frozen=True)
+class BridgeCommand:
+    """What to send after a tick: a new trajectory (or None), the speed override 0..1, the
+    protective stop and its reason, the SSM state, the separation, and the motion's name
+    (hold, program, retreat, collaboration, idle, braking: on the way to a safe point)."""
+
+    trajectory: Trajectory | None
+    override: float
+    stop: bool
+    reason: str
+    ssm: SsmState | None
+    separation: Separation | None
+    motion: str
+    reports: tuple = ()
+
+
+MOTIONS = ('idle', 'program', 'retreat', 'collaboration')
+
+
+class Bridge:
+    """The robot bridge (see the module docstring). Times are integer nanoseconds of one
+    clock; `period` is the control period (s) the override is held for."""
+
+    def __init__(self, description: RobotDescription, programs: Mapping, arm: Arm | None = None,
+                 period: float = 0.01):
+        self.description = description
+        self.programs = dict(programs)
+        self.arm = arm if arm is not None else Arm()
+        self.monitor = SpeedSeparationMonitor(description.ssm, period)
+        self.index = {name: i for i, name in enumerate(description.joint_names)}
+        self.q: np.ndarray | None = None
+        self.qd = np.zeros(len(self.index))
+        self._joint_stamp: int | None = None
+        self.body: BodyCapsules | None = None
+        self._body_stamp: int | None = None
+        self.task: dict | None = None
+        self.last_action: int | None = None
+        self.paused = True            # nothing asked yet: hold
+        self.motion = 'idle'          # what the active trajectory does
+        self.active: Trajectory | None = None
+        self._next = 0                # the active trajectory's next waypoint (segment index)
+        self.pending: str | None = None
+        self.run: ProgramRun | None = None
+        self._stop_reason = ''
+        self._peaks: dict = {}
+        self._state_names: tuple | None = None
+        self._state_order = np.arange(len(self.index))
+
+    # -- inputs ------------------------------------------------------------------------------
+    def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
+        """The arm's joint state; InputError (nothing kept) for a missing joint, NaN or a
+        position outside the limits. Joints the description does not name (a gripper) are
+        ignored."""
+        names = tuple(names)
+        positions = np.asarray(positions, dtype=float).reshape(-1)
+        velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
+            else np.zeros(len(names))
+        if len(positions) != len(names) or len(velocities) != len(names):
+            raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
+                             f'and {len(velocities)} velocities')
+        if names != self._state_names:
+            where = {n: i for i, n in enumerate(names)}
+            lack = [n for n in self.description.joint_names if n not in where]
+            if lack:
+                raise InputError(f'joint state without {", ".join(lack)} (has '
+                                 f'{", ".join(names) or "no joints"})')
+            self._state_order = np.array([where[n] for n in self.description.joint_names])
+            self._state_names = names
+        q, qd = positions[self._state_order], velocities[self._state_order]
+        why = self.description.outside(q)
+        if why:
+            raise InputError(f'joint state refused: {why}')
+        if not np.isfinite(qd).all():
+            raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
+        self.q, self.qd, self._joint_stamp = q, qd, int(stamp_ns)
+
+    def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int) -> None:
+        """The person's capsules (None: nobody in view, which SSM treats as no data)."""
+        if body is not None and not isinstance(body, BodyCapsules):
+            raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
+        if body is None:
+            self.body, self._body_stamp = None, None
+            return
+        if self._body_stamp is not None and stamp_ns < self._body_stamp:
+            raise InputError('skeleton older than the one held: dropped')
+        self.body, self._body_stamp = body, int(stamp_ns)
+
+    def task_state(self, state: Mapping, now_ns: int) -> None:
+        """hrc/task_state x: the eight task variables."""
+        try:
+            x = {n: int(state[n]) for n in TASK_VARIABLES}
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f'task state must map {", ".join(TASK_VARIABLES)} to integers, '
+                             f'got {state!r}') from None
+        self.task = x
+        run = self.run
+        if run is None:
+            return
+        same_task = (x['tp'], x['tx']) == run.task
+        robot_in = x['ty'] in (2, 3) and x['bc'] > 0
+        if robot_in and same_task:
+            run.committed = True
+        elif run.committed or not same_task or x['ty'] not in (0, 2, 3):
+            self._drop_run()
+
+    def action(self, action, now_ns: int) -> None:
+        """hrc/action a_k (name or index); InputError for an unknown action."""
+        try:
+            a = action_index(action)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        self.last_action = a
+        if a == DN:
+            self.paused = True
+            return
+        if a in (RH1, RH2, MH):
+            return                    # requests to the person: the motion stays as it is
+        self.paused = False
+        x = self.task
+        if a == DP:
+            self._want('retreat')
+        elif a == DM:
+            self._want('collaboration')
+        elif a == CT and x is not None and bool(commit_effective(x['tp'], x['tx'], x['ty'])):
+            if x['tx'] in self.programs:
+                self._drop_run()
+                self.run = ProgramRun(x['tx'], max(1, x['tc']), (x['tp'], x['tx']))
+                self._want('program')
+        elif a in (NW, CT):
+            self._continue_program()
+
+    # -- the tick ------------------------------------------------------------------------------
+    def tick(self, now_ns: int) -> BridgeCommand:
+        """What to send now (see the module docstring)."""
+        reports = []
+        fresh = (self.q is not None and self._joint_stamp is not None
+                 and (now_ns - self._joint_stamp) * 1e-9 <= self.description.joint_state_timeout)
+        if not fresh:
+            reason = ('no joint state yet' if self.q is None else
+                      f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
+                      f'(joint_state_timeout {self.description.joint_state_timeout} s)')
+            self._note_stop(reason, reports)
+            return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
+        self._track_progress()
+        trajectory = None
+        at_rest = bool((np.abs(self.qd) <= self.description.rest_speed).all())
+        if self.pending is not None and at_rest and not self.paused:
+            trajectory = self._plan(self.pending)
+            self.motion = self.pending if len(trajectory.durations) else 'idle'
+            self.pending = None
+            self.active, self._next = trajectory, 0
+        sep = self.arm.separation(self.q, self.body) if self.body is not None else None
+        nominal = self.active.nominal_speed if self.active is not None else 0.0
+        state = self.monitor.update(None if sep is None else sep.distance, self._body_stamp,
+                                    now_ns, nominal)
+        override = state.override
+        motion = self.motion
+        if self.paused:
+            override, motion = 0.0, 'hold'
+        elif self.pending is not None:
+            override, motion = 0.0, 'braking'
+        elif self.motion == 'collaboration':
+            override = min(override, self.description.collaboration_speed)
+        if state.stop:
+            self._note_stop(state.reason, reports)
+        elif self._stop_reason:
+            reports.append(Report(OK, 'ssm', 'protective stop cleared', {}, kind='stop'))
+            self._stop_reason = ''
+        return BridgeCommand(trajectory, override, state.stop, state.reason, state, sep, motion,
+                             tuple(reports))
+
+    # -- views ---------------------------------------------------------------------------------
+    @property
+    def progress(self) -> Progress | None:
+        """The robot's share of the current task, None when it has none."""
+        run = self.run
+        if run is None:
+            return None
+        return Progress(run.nature, run.cycles, run.cycles_done(self.programs[run.nature]))
+
+    # -- internals -----------------------------------------------------------------------------
+    def _note_stop(self, reason: str, reports: list) -> None:
+        if reason != self._stop_reason:
+            reports.append(Report(WARN, 'ssm', f'protective stop: {reason}', {}, kind='stop'))
+            self._stop_reason = reason
+
+    def _want(self, motion: str) -> None:
+        self.pending = motion
+
+    def _drop_run(self) -> None:
+        if self.run is not None:
+            self.run = None
+            if self.motion == 'program' or self.pending == 'program':
+                self.pending = 'idle'
+
+    def _continue_program(self) -> None:
+        x = self.task
+        run = self.run
+        if run is None and x is not None and x['ty'] in (2, 3) and x['bc'] > 0 \
+                and x['tx'] in self.programs:
+            # Committed without a ct of ours (an accepted rh2, a restart): start the share.
+            run = self.run = ProgramRun(x['tx'], x['bc'], (x['tp'], x['tx']), committed=True)
+        if run is None or run.segments_done >= run.total(self.programs[run.nature]):
+            return
+        if self.motion != 'program' or self.active is None:
+            self._want('program')
+
+    def _track_progress(self) -> None:
+        traj = self.active
+        if traj is None or self._next >= len(traj.durations):
+            return
+        target = traj.positions[self._next + 1]
+        if np.max(np.abs(self.q - target)) > self.description.waypoint_tolerance:
+            return
+        mark = traj.marks[self._next] if self._next < len(traj.marks) else -1
+        self._next += 1
+        run = self.run
+        if self.motion == 'program' and run is not None:
+            if mark == -1:
+                run.started = True
+            else:
+                run.started = True
+                run.segments_done = max(run.segments_done, mark + 1)
+
+    def _plan(self, motion: str) -> Trajectory:
+        """The trajectory of `motion` from the arm's configuration; a trajectory of no
+        segment (stay where the arm stands) when there is nothing to do."""
+        q = self.q
+        d = self.description
+        if motion in ('retreat', 'collaboration'):
+            return self._trajectory(q, [d.poses[motion]], [0.0], [-1], motion)
+        run = self.run
+        if motion == 'idle' or run is None:
+            return self._trajectory(q, [], [], [], 'idle')
+        program = self.programs[run.nature]
+        total = run.total(program)
+        if run.segments_done >= total:
+            return self._trajectory(q, [], [], [], 'idle')
+        targets, durations, marks = [], [], []
+        k = run.segments_done
+        if not run.started:
+            start = program.waypoints[0]
+            if np.max(np.abs(q - start)) > d.waypoint_tolerance:
+                targets.append(start)
+                durations.append(0.0)
+                marks.append(-1)
+            else:
+                run.started = True
+        for n in range(k, total):
+            _, end, duration = program.segment(n)
+            targets.append(end)
+            durations.append(duration)
+            marks.append(n)
+        return self._trajectory(q, targets, durations, marks, 'program')
+
+    def _trajectory(self, q, targets, durations, marks, kind) -> Trajectory:
+        d = self.description
+        positions = [np.asarray(q, dtype=float)]
+        times, peaks = [], []
+        for target, nominal in zip(targets, durations):
+            start = positions[-1]
+            shortest = segment_duration(start, target, d.velocity, d.acceleration)
+            duration = max(float(nominal), shortest, 1e-3)
+            peak = self._peak(start, target, duration)
+            if peak > d.max_link_speed:
+                duration *= peak / d.max_link_speed
+                peak = d.max_link_speed
+            positions.append(np.asarray(target, dtype=float))
+            times.append(duration)
+            peaks.append(peak)
+        return Trajectory(d.joint_names, np.array(positions), np.array(times, dtype=float),
+                          float(max(peaks, default=0.0)), tuple(marks), kind)
+
+    def _peak(self, start, target, duration) -> float:
+        key = (start.tobytes(), np.asarray(target, dtype=float).tobytes(), duration)
+        peak = self._peaks.get(key)
+        if peak is None:
+            peak = peak_link_speed(self.arm, start, target, duration)
+            if len(self._peaks) < 4096:
+                self._peaks[key] = peak
+        return peak
+
+
+__all__ = ['ACTIONS', 'Bridge', 'BridgeCommand', 'Program', 'ProgramRun', 'Progress',
+           'RobotDescription', 'RobotDescriptionError', 'load_programs',
+           'load_robot_description', 'programs_from', 'robot_description']

@@ -1,0 +1,422 @@
+"""The cell with the arm as a batch: seeded episodes in physical units (hrc-evaluate --cell arm).
+
+The same core modules as the ROS graph with the arm (phase 2): the task book, the simulated
+human (`cell.human`: hidden emotions, answers, Delta, O) with a body (`cell.person`), the belief
+filter and the selectors, the robot bridge (`bridge.Bridge`: actions into trajectories under
+SSM), the MuJoCo arm and a scaled trajectory controller (`arm.TrajectoryFollower`). One
+episode runs the epoch protocol of docs/DESIGN.md with a physical epoch in between:
+
+1. ``book.begin_epoch(k)``; the distance level d_k is the band (`safety_radii`, the
+   estimator's rule `observation.level_of_distance`) of the separation between the arm's links
+   and the latest skeleton the bridge holds, not of a reference point;
+2. a_k from (b_k, x_k) by the selector (the d = 0 fail-safe applies, except to ssm_only);
+3. the human reacts (`SimulatedHuman.react`: acceptance, Delta, em', ea', O'); the person's
+   approach level moves by Delta and their walking speed follows em', ea';
+4. for `epoch_period` seconds, every `control_period`: the person walks, a skeleton frame is
+   captured at `skeleton_rate` and reaches the bridge `skeleton_latency` later, the bridge
+   ticks on the arm's joint state and the controller follows its trajectory and override;
+5. ``book.apply(a_k, accepted, robot_runs)`` with the **physical progress rule**: the robot's
+   counter bc falls this epoch only if its program completed a cycle that bc has not counted
+   yet (`bridge.Progress`); b_{k+1} = update(b_k, a_k, O').
+
+**Physical progress** (what "a task done" means here). The robot's share of a task of tc
+epochs is tc cycles of its nature's program (0.9 s each at full speed); the share is done when
+the last cycle completes, so SSM slow-downs, holds (dn), detours to the retreat or the
+collaboration pose (dp, dm) and the approach to the program's station all delay it, for
+ssm_only and for the decision layer alike. MODEL.md 3.2's bookkeeping is kept: bc falls by at
+most one per epoch (never in the commit epoch, where it is set to tc), the task completes when
+every committed agent's counter is 0, and the human's counter hc runs as the model says (the
+person's work is not simulated physically). At full speed from the program's station the
+robot's share takes exactly the model's epochs.
+
+**The baseline `ssm_only`**: what a cell without this project runs, SSM alone. The arm always
+works on the next task at the speed SSM allows: ct whenever the task is the robot's to take
+(tx 0 or 2), nw while committed; it never motivates (mh), never moves away or closer (dp, dm),
+never holds (dn), and has no d = 0 fail-safe (SSM stops the arm). Tasks only the person can do
+(tx 1) or that need both (tx 3) go to the person through the work plan, which in the model's
+terms is the only way a person commits: rh1 / rh2 every epoch until taken (with the model's
+acceptance odds and its effect on the emotions).
+
+**Metrics per episode** (then mean, 95% interval, paired differences on common random numbers:
+episode e of every selector sees the same task stream, the same human uniforms and the same
+person's walk, `evaluation.episodes_of`): tasks completed per hour of cell time; the share of
+time the arm is idle (at rest, no protective stop) and in a protective stop; the minimum
+separation (m) over every control sample; ssm violations, samples where the arm moved (its
+speed bound s v_nominal above 1 mm/s) while the true separation (the person's body now, not
+the delayed skeleton) was below S_p at that speed (ISO/TS 15066's formula: must be 0); refused
+requests (eligible rh1 / rh2 answered no). Also kept: contacts (samples at S <= 0 while the
+arm moved) and speed-bound breaches (samples where the links' true top speed exceeded the
+bound SSM was given, which would make the check meaningless: must be 0).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from ..cell.human import SimulatedHuman
+from ..cell.person import SimulatedPerson
+from ..cell.tracking import K4ABT_JOINTS
+from ..decision.observation import DEFAULT_SAFETY_RADII, level_of_distance
+from ..decision.selection import ActionSelector
+from ..mdp.policy import policy_arrays
+from ..model import ACTIONS, CT, DN, NW, RH1, RH2, TASK_VARIABLES, HRCModel
+from ..pomdp.belief import BeliefFilter
+from ..study.evaluation import Z95, episodes_of
+from ..study.simulation import SIMULATION_SELECTORS
+from ..tasks import TaskBook
+from .arm import Arm, TrajectoryFollower, body_capsules
+from .bridge import Bridge, load_programs, load_robot_description
+from .ssm import MOVING_SPEED, ssm_violated
+
+CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS
+DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp')
+METRICS = (
+    ('tasks_per_hour', 'tasks per hour'),
+    ('idle_share', 'robot idle %'),
+    ('stop_share', 'protective stop %'),
+    ('min_separation', 'min separation m'),
+    ('ssm_violations', 'ssm violations'),
+    ('refused_requests', 'refused requests'),
+)
+SPEED_SLACK = 1e-6      # m/s a link may exceed its bound by rounding
+
+
+def ssm_only_action(task) -> int:
+    """The ssm_only baseline's action for the task state (see the module docstring)."""
+    tp, tx, ty = int(task['tp']), int(task['tx']), int(task['ty'])
+    if tp > 0 and ty == 0:
+        return {0: CT, 2: CT, 1: RH1, 3: RH2}[tx]
+    return NW
+
+
+@dataclass(frozen=True)
+class ArmCellSettings:
+    """The physical epoch (seconds, metres, hertz; docs/ROBOT.md)."""
+
+    epoch_period: float = 1.0
+    control_period: float = 0.02
+    skeleton_rate: float = 30.0
+    skeleton_latency: float = 0.05
+    safety_radii: tuple = DEFAULT_SAFETY_RADII
+
+    def __post_init__(self):
+        for name in ('epoch_period', 'control_period', 'skeleton_rate'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f'{name} must be a positive number, got {value!r}')
+        if not 0 <= self.skeleton_latency < 1.0:
+            raise ValueError(f'skeleton_latency must lie in [0, 1) s, got '
+                             f'{self.skeleton_latency!r}')
+        steps = self.epoch_period / self.control_period
+        if abs(steps - round(steps)) > 1e-9:
+            raise ValueError(f'epoch_period {self.epoch_period} s must be a whole number of '
+                             f'control periods ({self.control_period} s)')
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return int(round(self.epoch_period / self.control_period))
+
+
+@dataclass
+class EpisodeResult:
+    """One episode's metrics (module docstring) and, per epoch, what happened."""
+
+    tasks_completed: int
+    tasks_released: int
+    seconds: float
+    idle_time: float
+    stop_time: float
+    min_separation: float
+    ssm_violations: int
+    contacts: int
+    speed_breaches: int
+    refused_requests: int
+    requests: int
+    actions: list = field(default_factory=list)
+    distances: list = field(default_factory=list)       # d_k
+    separations: list = field(default_factory=list)     # S at the epoch boundary (m)
+    accepted: list = field(default_factory=list)
+    task_states: list = field(default_factory=list)     # x_k's task part (8 values)
+    violations: list = field(default_factory=list)      # (t, S, bound, bridge's S, override)
+
+
+@dataclass
+class ArmResult:
+    """Per-episode metrics of one selector (arrays of length E)."""
+
+    selector: str
+    tasks_per_hour: np.ndarray
+    idle_share: np.ndarray
+    stop_share: np.ndarray
+    min_separation: np.ndarray
+    ssm_violations: np.ndarray
+    refused_requests: np.ndarray
+    contacts: np.ndarray
+    speed_breaches: np.ndarray
+    tasks_completed: np.ndarray
+    seconds: float = 0.0        # compute time of the selector's episodes
+    simulated: float = 0.0      # simulated cell time (s)
+
+
+class ArmCell:
+    """Runs episodes of the cell with the arm (see the module docstring)."""
+
+    def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
+                 pomdp=None, description=None, programs=None,
+                 settings: ArmCellSettings | None = None):
+        self.model = model
+        self.policy, self.value = policy_arrays(policy, value)
+        self.pomdp = pomdp
+        self.mode = mode
+        self.filter = BeliefFilter(model, mode=mode)
+        self.description = description or load_robot_description()
+        self.programs = programs or load_programs(self.description)
+        self.settings = settings or ArmCellSettings()
+        self.arm = Arm()
+        self._peaks: dict = {}
+        self._choosers: dict = {}
+
+    def _chooser(self, selector: str):
+        if selector not in self._choosers:
+            self._choosers[selector] = ActionSelector(self.model, self.policy, self.value,
+                                                      method=selector, pomdp=self.pomdp)
+        return self._choosers[selector]
+
+    def _decide(self, selector: str, belief, x, hidden) -> int:
+        if selector == 'ssm_only':
+            return ssm_only_action(dict(zip(TASK_VARIABLES, x[:-1])))
+        if selector == 'mdp':
+            action = int(self.policy[self.model.index(hidden + x)])
+        else:
+            action = int(self._chooser(selector).select(belief, x).action)
+        return DN if x[-1] == 0 else action
+
+    def episode(self, scenario, human_seed, person_seed, selector: str = 'paper',
+                record: bool = False) -> EpisodeResult:
+        """One seeded episode (scenario as `evaluation.random_scenarios` makes them)."""
+        if selector not in CELL_SELECTORS:
+            raise ValueError(f'unknown selector {selector!r}; expected one of '
+                             f'{", ".join(CELL_SELECTORS)}')
+        model, cfg, desc = self.model, self.settings, self.description
+        em, ea, *task_values, d0 = (int(v) for v in scenario.initial_state)
+        book = TaskBook(model, initial_task=dict(zip(TASK_VARIABLES, task_values)),
+                        schedule=scenario.schedule)
+        human = SimulatedHuman(model, seed=human_seed, em=em, ea=ea, d=d0)
+        person = SimulatedPerson(d0, seed=person_seed, em=em, ea=ea, radii=cfg.safety_radii)
+        bridge = Bridge(desc, self.programs, self.arm, cfg.control_period)
+        bridge._peaks = self._peaks
+        follower = TrajectoryFollower(desc.poses['home'], desc.ssm.deceleration)
+        arm, names, ssm = self.arm, desc.joint_names, desc.ssm
+        dt = cfg.control_period
+        frame_interval = 1.0 / cfg.skeleton_rate
+        latency = cfg.skeleton_latency
+        belief = self.filter.initial(human.observation)
+        observation = human.observation
+
+        # The skeleton the bridge holds at t = 0: captured `latency` before the start.
+        first = body_capsules(person.keypoints(), K4ABT_JOINTS)
+        bridge.skeleton(first, _ns(-latency), 0)
+        held = first
+        frames: deque = deque()
+        next_capture = frame_interval - latency
+        out = EpisodeResult(0, 0, 0.0, 0.0, 0.0, math.inf, 0, 0, 0, 0, 0)
+        true_separation = arm.distance(follower.q, first)
+        last = None
+        step = 0
+        for k in range(1, scenario.epochs + 1):
+            book.begin_epoch(k)
+            t = step * dt
+            boundary = arm.distance(follower.q, held)
+            d = level_of_distance(boundary, cfg.safety_radii)
+            x = book.observable(d)
+            action = self._decide(selector, belief, x, (human.em, human.ea))
+            task_before = book.state
+            reaction = human.react(action, task_before)
+            person.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)
+            now = _ns(t)
+            bridge.task_state(task_before, now)
+            bridge.action(action, now)
+            if reaction.accepted is not None:
+                out.requests += 1
+                out.refused_requests += not reaction.accepted
+            if record:
+                out.actions.append(ACTIONS[action])
+                out.distances.append(d)
+                out.separations.append(boundary)
+                out.accepted.append(reaction.accepted)
+                out.task_states.append(tuple(task_before[n] for n in TASK_VARIABLES))
+            for _ in range(cfg.steps_per_epoch):
+                t = step * dt
+                now = _ns(t)
+                keypoints = person.keypoints()
+                body = body_capsules(keypoints, K4ABT_JOINTS)
+                if t >= next_capture - 1e-9:
+                    frames.append((t, body))
+                    next_capture += frame_interval
+                while frames and frames[0][0] + latency <= t + 1e-9:
+                    stamp, held = frames.popleft()
+                    bridge.skeleton(held, _ns(stamp), now)
+                # The truth at t: the person's body now, the arm's speed bound now.
+                true_separation = arm.distance(follower.q, body)
+                bound = follower.speed_bound
+                out.min_separation = min(out.min_separation, true_separation)
+                if bound > MOVING_SPEED:
+                    if ssm_violated(true_separation, bound, ssm):
+                        out.ssm_violations += 1
+                        if record:
+                            out.violations.append((t, true_separation, bound, last))
+                    if true_separation <= 0.0:
+                        out.contacts += 1
+                    if arm.link_speed(follower.q, follower.qd) > bound + SPEED_SLACK:
+                        out.speed_breaches += 1
+                bridge.joint_state(names, follower.q, follower.qd, now, now)
+                command = bridge.tick(now)
+                last = (command.separation.distance if command.separation else None,
+                        command.override, command.motion, command.stop)
+                if command.stop:
+                    out.stop_time += dt
+                elif bound <= MOVING_SPEED:
+                    out.idle_time += dt
+                if command.trajectory is not None:
+                    follower.follow(command.trajectory)
+                follower.step(dt, command.override)
+                person.step(dt, true_separation)
+                step += 1
+            progress = bridge.progress
+            bc = task_before['bc']
+            robot_runs = progress is not None and progress.cycles_done > progress.cycles - bc
+            book.apply(action, reaction.accepted, robot_runs)
+            evidence = None
+            if self.filter.mode == 'posterior':
+                evidence = model.transition_likelihood(action, reaction.accepted is not None,
+                                                       bool(reaction.accepted), d,
+                                                       level_of_distance(
+                                                           arm.separation(follower.q,
+                                                                          held).distance,
+                                                           cfg.safety_radii))
+                if not np.sum(evidence) > 0:
+                    evidence = None     # a move the model calls impossible: left out
+            belief = self.filter.update(belief, action, reaction.observation, evidence)
+            observation = reaction.observation
+        del observation
+        out.seconds = scenario.epochs * cfg.epoch_period
+        out.tasks_completed = len(book.completed)
+        out.tasks_released = sum(1 for r in book.records if r.release_epoch <= scenario.epochs)
+        return out
+
+
+def _ns(seconds: float) -> int:
+    return int(round(seconds * 1e9))
+
+
+def person_seed(seed: int, episode: int) -> list:
+    """Seed of episode `episode`'s person's walk (the same for every selector)."""
+    return [seed, episode, 2]
+
+
+def evaluate_arm(model: HRCModel, policy, episodes: int = 200, epochs: int = 50,
+                 seed: int = 0, task_rate: float = 0.5, selectors=DEFAULT_SELECTORS,
+                 mode: str | None = None, pomdp=None, progress=None,
+                 settings: ArmCellSettings | None = None, description=None,
+                 programs=None) -> dict:
+    """selector -> ArmResult over the same seeded episodes (common random numbers)."""
+    for s in selectors:
+        if s not in CELL_SELECTORS:
+            raise ValueError(f'unknown selector {s!r}; expected some of '
+                             f'{", ".join(CELL_SELECTORS)}')
+    scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed, task_rate)
+    cell = ArmCell(model, policy, mode=mode, pomdp=pomdp, description=description,
+                   programs=programs, settings=settings)
+    results = {}
+    for selector in selectors:
+        t0 = time.process_time()
+        rows = []
+        for e, (scenario, human) in enumerate(zip(scenarios, seeds)):
+            rows.append(cell.episode(scenario, human, person_seed(seed, e), selector))
+            if progress and ((e + 1) % 50 == 0 or e + 1 == episodes):
+                progress(f'{selector}: {e + 1}/{episodes} episodes '
+                         f'({time.process_time() - t0:.1f} s)')
+        hours = np.array([r.seconds for r in rows]) / 3600.0
+        results[selector] = ArmResult(
+            selector,
+            tasks_per_hour=np.array([r.tasks_completed for r in rows]) / hours,
+            idle_share=100.0 * np.array([r.idle_time / r.seconds for r in rows]),
+            stop_share=100.0 * np.array([r.stop_time / r.seconds for r in rows]),
+            min_separation=np.array([r.min_separation for r in rows]),
+            ssm_violations=np.array([r.ssm_violations for r in rows], dtype=float),
+            refused_requests=np.array([r.refused_requests for r in rows], dtype=float),
+            contacts=np.array([r.contacts for r in rows], dtype=float),
+            speed_breaches=np.array([r.speed_breaches for r in rows], dtype=float),
+            tasks_completed=np.array([r.tasks_completed for r in rows], dtype=float),
+            seconds=time.process_time() - t0,
+            simulated=float(np.sum(hours) * 3600.0))
+    return results
+
+
+# -- statistics and the table ------------------------------------------------------------------
+def _interval(x: np.ndarray) -> dict:
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    mean = float(x.mean()) if x.size else float('nan')
+    half = float(Z95 * x.std(ddof=1) / math.sqrt(x.size)) if x.size > 1 else float('nan')
+    return {'n': int(x.size), 'mean': mean, 'half_width': half, 'low': mean - half,
+            'high': mean + half}
+
+
+def summarize_arm(result: ArmResult) -> dict:
+    """metric -> {n, mean, half_width, low, high}: a 95% normal interval over episodes."""
+    return {metric: _interval(getattr(result, metric)) for metric, _ in METRICS}
+
+
+def paired_arm(result: ArmResult, reference: ArmResult) -> dict:
+    """metric -> the paired (same episodes) difference result - reference, 95% interval."""
+    return {metric: _interval(getattr(result, metric) - getattr(reference, metric))
+            for metric, _ in METRICS}
+
+
+def format_arm_table(results: dict) -> str:
+    """Mean ± 95% half-width per selector and metric."""
+    width = 20
+    head = f'{"selector":<9}' + ''.join(f'{label:>{width}}' for _, label in METRICS)
+    lines = [head, '-' * len(head)]
+    for selector, result in results.items():
+        summary = summarize_arm(result)
+        cells = []
+        for metric, _ in METRICS:
+            s = summary[metric]
+            digits = 3 if metric == 'min_separation' else 2
+            cells.append(f'{s["mean"]:.{digits}f} ± {s["half_width"]:.{digits}f}')
+        lines.append(f'{selector:<9}' + ''.join(f'{c:>{width}}' for c in cells))
+    return '\n'.join(lines)
+
+
+def format_arm_paired(results: dict, baseline: str) -> str:
+    """Per selector and metric, the paired difference to `baseline` with its 95% interval
+    and whether the interval excludes 0."""
+    reference = results[baseline]
+    lines = [f'paired differences to {baseline} (same episodes, 95%):']
+    for selector, result in results.items():
+        if selector == baseline:
+            continue
+        for metric, label in METRICS:
+            d = paired_arm(result, reference)[metric]
+            if not math.isfinite(d['half_width']):
+                verdict = ''
+            elif d['low'] > 0:
+                verdict = 'higher'
+            elif d['high'] < 0:
+                verdict = 'lower'
+            else:
+                verdict = 'not distinguishable'
+            lines.append(f'  {selector:<9} - {baseline:<9} {label:<20} {d["mean"]:+10.3f} ± '
+                         f'{d["half_width"]:.3f}  {verdict}')
+    return '\n'.join(lines)
+
+
+def arm_result_fields() -> tuple:
+    return tuple(f.name for f in fields(ArmResult))[1:-2]
