@@ -49,6 +49,7 @@ DEPENDENCIES = {
     'aiohttp': ('aiohttp', 'python3-aiohttp-pip'),
     'ray': ('ray', 'python3-ray-pip'),
     'mujoco': ('mujoco', 'python3-mujoco-pip'),
+    'playwright': ('playwright', 'python3-playwright-pip'),
     'rclpy': ('ros-jazzy-rclpy', ROS),
     'rcl_interfaces': ('ros-jazzy-rclpy', ROS),
     'builtin_interfaces': ('ros-jazzy-rclpy', ROS),
