@@ -79,3 +79,41 @@ def test_hrc_solve_refuses_a_model_that_does_not_fit_in_memory(tmp_path, a_file)
 def test_an_unbounded_sweep_count_is_a_configuration_error(tmp_path):
     with pytest.raises(ConfigError, match=r'solver\.sweeps must be null .* 1\.\.100000'):
         load_config(default_config_path(), overrides={'solver': {'sweeps': 10 ** 9}})
+
+
+def test_a_wrong_kernel_setting_is_one_line(tmp_path):
+    """HRC_KERNEL_THREADS=bogus used to end in a ValueError traceback from the first kernel."""
+    import os
+    env = {**os.environ, 'HRC_KERNEL_THREADS': 'bogus'}
+    result = subprocess.run([sys.executable, '-m', MODULES['hrc-solve'], '--config',
+                             str(default_config_path()), '-o', str(tmp_path / 'p.npz')],
+                            capture_output=True, text=True, timeout=120, env=env)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'HRC_KERNEL_THREADS' in lines[0] and 'bogus' in lines[0], lines
+
+
+def test_ctrl_c_ends_a_command_in_one_line_and_writes_nothing(tmp_path):
+    """Ctrl-C in a long solve used to print a KeyboardInterrupt traceback: now one line, exit
+    130 (the shell's code for an interrupted command), and no policy file half written. The
+    signal is sent once the solve reports its first sweep (a condition, not a sleep)."""
+    import signal
+    output = tmp_path / 'p.npz'
+    process = subprocess.Popen(
+        [sys.executable, '-u', '-m', MODULES['hrc-solve'], '--config', str(default_config_path()),
+         '-o', str(output)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen = []
+    try:
+        for line in process.stdout:
+            seen.append(line)
+            if 'sweep    1' in line:
+                process.send_signal(signal.SIGINT)
+                break
+        rest = process.communicate(timeout=120)[0]
+    finally:
+        if process.poll() is None:
+            process.kill()
+    text = ''.join(seen) + rest
+    assert process.returncode == 130, text[-2000:]
+    assert 'Traceback' not in text and 'hrc-solve: interrupted' in text
+    assert list(tmp_path.iterdir()) == []

@@ -64,9 +64,13 @@ def machine_threads() -> int:
     return max(1, min(cores, numba.config.NUMBA_NUM_THREADS))
 
 
+class KernelSettingError(ValueError):
+    """``HRC_KERNEL_THREADS`` (or a `set_mode` value) is not one this module accepts."""
+
+
 def parse_mode(value) -> str | int:
     """`AUTO`, `SERIAL` or a thread count >= 2 from a `set_mode` / ``HRC_KERNEL_THREADS``
-    value; ValueError saying what is accepted."""
+    value; KernelSettingError (a ValueError) saying what is accepted."""
     text = str(value).strip().lower()
     if text in ('', AUTO):
         return AUTO
@@ -74,7 +78,7 @@ def parse_mode(value) -> str | int:
         return SERIAL
     if text.isdigit() and int(text) >= 2:
         return int(text)
-    raise ValueError(f'{ENV} (or parallel.set_mode) must be auto, serial or a number of '
+    raise KernelSettingError(f'{ENV} (or parallel.set_mode) must be auto, serial or a number of '
                      f'threads >= 1, got {value!r}')
 
 

@@ -10,15 +10,17 @@ a model that would not fit in memory.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 from pathlib import Path
 from typing import NoReturn
 
+from ..core import parallel
 from ..core.config import Config, ConfigError, load_config
+from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 from ..core.model import HRCModel
 from ..core.paths import default_config_path, output_target
-from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 
 MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
 MAX_EPOCHS = 100_000            # one closed-loop run
@@ -143,8 +145,8 @@ def add_pomdp_argument(parser: argparse.ArgumentParser) -> None:
 
 def load_pomdp(args: argparse.Namespace, config: Config, selectors) -> object | None:
     """The POMDP policy when one of `selectors` needs it (pomdp, fib), else None."""
-    from ..core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
     from ..core.decision.selection import POMDP_SELECTORS
+    from ..core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
     if not any(s in POMDP_SELECTORS for s in selectors):
         return None
     try:
@@ -157,3 +159,27 @@ def fail(prog: str, error: Exception) -> int:
     """Print a refusal as one line and return the exit status 2."""
     print(f'{prog}: error: {" ".join(str(error).split())}', file=sys.stderr)
     return 2
+
+
+INTERRUPTED = 130    # the shell's code for a command ended by Ctrl-C
+
+
+def command(prog: str):
+    """Decorate a command's ``main(argv)``: the kernel setting (``HRC_KERNEL_THREADS``) is
+    checked before any work (one line and 2 when it is wrong), and Ctrl-C ends the command
+    with one line and 130 instead of a traceback (what it was writing is written whole or not
+    at all: `paths.replace_file`)."""
+    def decorate(main):
+        @functools.wraps(main)
+        def run(argv=None) -> int:
+            try:
+                parallel.current_mode()
+            except parallel.KernelSettingError as exc:
+                return fail(prog, exc)
+            try:
+                return main(argv)
+            except KeyboardInterrupt:
+                print(f'\n{prog}: interrupted', file=sys.stderr)
+                return INTERRUPTED
+        return run
+    return decorate

@@ -37,9 +37,9 @@ from ..core.model import HRCModel
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
-from .common import (MAX_EPISODE_EPOCHS, MAX_EPISODES, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
-                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, fail,
-                     load_model, load_pomdp, output_folder)
+from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
+                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, command,
+                     fail, load_model, load_pomdp, output_folder)
 
 
 def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
@@ -77,8 +77,7 @@ def evaluate_arm_cell(args, parser) -> int:
     """--cell arm: the selectors in the cell with the arm (core.robot.cell)."""
     from ..core.robot.bridge import RobotDescriptionError
     from ..core.robot.cell import (CELL_SELECTORS, DEFAULT_SELECTORS, METRICS, evaluate_arm,
-                                   format_arm_paired, format_arm_table, paired_arm,
-                                   summarize_arm)
+                                   format_arm_paired, format_arm_table, paired_arm, summarize_arm)
     for flag, value in (('--true-config', args.true_config), ('--true-policy', args.true_policy),
                         ('--no-fail-safe', args.no_fail_safe)):
         if value:
@@ -158,6 +157,7 @@ def evaluate_arm_cell(args, parser) -> int:
     return 0
 
 
+@command('hrc-evaluate')
 def main(argv=None) -> int:
     parser = Parser(
         prog='hrc-evaluate',

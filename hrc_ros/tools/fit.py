@@ -27,9 +27,11 @@ from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL
                                  config_yaml, expand_hold, fit, prepare, report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
-from .common import MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail, output_file
+from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
+                     output_file)
 
 
+@command('hrc-fit')
 def main(argv=None) -> int:
     parser = Parser(
         prog='hrc-fit', description='Fit the model (acceptance, distance drift, emotion chains, '

@@ -39,7 +39,7 @@ from ..core.paths import replace_file
 from ..core.plant import report as reporting
 from ..core.plant.pipeline import DRIVER, DRIVER_NODE, CellPipeline, Ref, run_serially, run_stage
 from ..core.plant.spec import Plant, PlantError, load_plant
-from .common import Parser, ToolError, bounded_int, fail, output_folder
+from .common import Parser, ToolError, bounded_int, command, fail, output_folder
 
 PROGRESS_WIDTH = 110
 STARTS = 3          # attempts at starting the embedded Ray (its raylet's start-up can time out)
@@ -316,6 +316,7 @@ def run_plant(plant: Plant, out: Path, address: str | None = None, serial: bool 
     return report
 
 
+@command('hrc-fleet')
 def main(argv=None) -> int:
     parser = Parser(prog='hrc-fleet', description=__doc__.split('\n')[0].split(': ', 1)[1])
     commands = parser.add_subparsers(dest='command', required=True, parser_class=Parser)

@@ -14,9 +14,11 @@ from ..core.config import BELIEF_MODES
 from ..core.study.plots import plot_trajectory
 from ..core.study.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
 from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments,
-                     add_pomdp_argument, bounded_int, fail, load_model, load_pomdp, output_folder)
+                     add_pomdp_argument, bounded_int, command, fail, load_model, load_pomdp,
+                     output_folder)
 
 
+@command('hrc-simulate')
 def main(argv=None) -> int:
     parser = Parser(
         prog='hrc-simulate',

@@ -17,13 +17,14 @@ from ..core.model import ACTIONS
 from ..core.mdp.policy import save_policy
 from ..core.mdp.solver import memory_estimate, solve
 from .common import (MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int, check_memory,
-                     fail, load_model, output_file)
+                     command, fail, load_model, output_file)
 
 POMDP = 'pomdp'
 MAX_ROUNDS = 20
 MAX_POMDP_EPISODES = 100_000   # x 50 epochs of 9 floats: under 2 GB of gathered beliefs
 
 
+@command('hrc-solve')
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-solve', description=__doc__.split('\n')[1])
     add_model_arguments(parser, policy=False)
