@@ -73,10 +73,10 @@ def validate_belief(belief, name: str = 'belief') -> np.ndarray:
     try:
         b = np.asarray(belief, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f'{name} must be 9 probabilities over h = 3*em + ea, '
+        raise ValueError(f'{name} must be {N_HIDDEN} probabilities over h = 3*em + ea, '
                          f'got {belief!r}') from None
     if b.shape != (N_HIDDEN,):
-        raise ValueError(f'{name} must have shape (9,) (h = 3*em + ea), got {b.shape}')
+        raise ValueError(f'{name} must have shape ({N_HIDDEN},) (h = 3*em + ea), got {b.shape}')
     values = b.tolist()   # nine Python floats: faster to reduce than numpy calls
     total = sum(values)
     low = min(values)
@@ -93,9 +93,11 @@ def _check_table(table) -> np.ndarray:
     try:
         t = np.array(table, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f'table must be 3 rows of 9 probabilities, got {table!r}') from None
+        raise ValueError(f'table must be 3 rows of {N_HIDDEN} probabilities, got '
+                         f'{table!r}') from None
     if t.shape != (N_OBSERVATIONS, N_HIDDEN):
-        raise ValueError(f'table must have shape (3, 9) (row O-1, column h), got {t.shape}')
+        raise ValueError(f'table must have shape (3, {N_HIDDEN}) (row O-1, column h), got '
+                         f'{t.shape}')
     if not np.all(np.isfinite(t)) or np.any(t < 0):
         raise ValueError('table must hold finite non-negative probabilities')
     rows = t.sum(axis=1)
@@ -112,8 +114,8 @@ def _check_table(table) -> np.ndarray:
 def _checked_evidence(evidence) -> np.ndarray:
     e = np.asarray(evidence, dtype=float)
     if e.shape != (N_HIDDEN,) or not np.all(np.isfinite(e)) or e.min() < 0.0:
-        raise ValueError('evidence must be 9 finite non-negative likelihoods P(x\' | x, h, a), '
-                         f'got {evidence!r}')
+        raise ValueError(f'evidence must be {N_HIDDEN} finite non-negative likelihoods '
+                         f"P(x' | x, h, a), got {evidence!r}")
     return e
 
 

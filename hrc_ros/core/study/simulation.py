@@ -34,13 +34,13 @@ import numpy as np
 
 from ..pomdp.belief import BeliefFilter
 from ..cell.human import SimulatedHuman
-from ..model import ACTIONS, DN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
+from ..model import ACTIONS, DN, N_HIDDEN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from ..mdp.policy import policy_arrays
 from ..decision.selection import SELECTORS, ActionSelector
 from ..tasks import TaskBook, TaskRecord
 
 SIMULATION_SELECTORS = SELECTORS + ('mdp',)
-BELIEF_COLUMNS = tuple(f'b{h}' for h in range(9))
+BELIEF_COLUMNS = tuple(f'b{h}' for h in range(N_HIDDEN))
 SCORE_COLUMNS = tuple(f'score_{a}' for a in ACTIONS)
 COLUMNS = (('epoch',) + STATE_VARIABLES + ('O',) + BELIEF_COLUMNS
            + ('action', 'accepted', 'fail_safe') + SCORE_COLUMNS + ('cost',))
