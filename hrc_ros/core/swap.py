@@ -30,14 +30,9 @@ from typing import Callable
 from .config import Config, ConfigError, load_config
 from .mdp.policy import PolicyError, default_policy_path, peek_policy
 from .paths import default_config_path
+from .quoting import cap    # a reason goes back through the parameter service: capped
 
 SAME, REFUSED, STAGED, ACCEPTED = 'same', 'refused', 'staged', 'accepted'
-REASON_LIMIT = 800      # characters of a reason (it goes back through the parameter service)
-
-
-def _cap(text: str) -> str:
-    return text if len(text) <= REASON_LIMIT else \
-        f'{text[:REASON_LIMIT]}... ({len(text)} characters)'
 
 
 def config_path(value: str) -> str:
@@ -82,7 +77,7 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
         config = load(config_value)
     except Exception as exc:  # noqa: BLE001 - whatever a file does, the old pair keeps running
         reason = str(exc) if isinstance(exc, ConfigError) else f'{type(exc).__name__}: {exc}'
-        return SwapCheck(REFUSED, _cap(f'config refused: bad model configuration: {reason}'))
+        return SwapCheck(REFUSED, cap(f'config refused: bad model configuration: {reason}'))
     if (config.rho, config.sigma) != (rho, sigma):
         return SwapCheck(REFUSED, f'config refused: {config.source} has rho {config.rho}, '
                          f'sigma {config.sigma}; the running cell {rho}, {sigma}: restart the '
@@ -95,8 +90,8 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
         if not isinstance(exc, PolicyError):
             exc = f'{type(exc).__name__}: {exc}'
         elif policy_value == running_policy:
-            return SwapCheck(STAGED, _cap(str(exc)), config)
-        return SwapCheck(REFUSED, _cap(f'policy refused: {exc} (the configuration set is '
+            return SwapCheck(STAGED, cap(str(exc)), config)
+        return SwapCheck(REFUSED, cap(f'policy refused: {exc} (the configuration set is '
                                        f'{config.source}; to change both, set config first, '
                                        'then policy)'), config)
     return SwapCheck(ACCEPTED, config=config)

@@ -160,7 +160,7 @@ class NodeParameters:
         except (TypeError, ValueError) as exc:
             reason = cap(str(exc))
         if reason:
-            return SetParametersResult(successful=False, reason=reason)
+            return SetParametersResult(successful=False, reason=cap(reason))
         return SetParametersResult(successful=True)
 
     def _post_set(self, parameters: list[Parameter]) -> None:
