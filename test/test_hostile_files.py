@@ -640,3 +640,26 @@ def test_the_decision_node_refuses_hostile_files_at_once_and_keeps_deciding(
     for k in range(epoch + 1, epoch + 3):      # decided, with the configuration it had
         values = conv.diagnostic_values(dec.status(k))
         assert (values['config'], values['policy_file']) == (str(DEFAULT), policy_path)
+
+
+@pytest.mark.parametrize('command, output, args', [
+    ('hrc_ros.tools.simulate', 'trajectory.csv', []),
+    ('hrc_ros.tools.evaluate', 'summary.csv', ['--episodes', '2', '--epochs', '3',
+                                               '--selectors', 'paper']),
+])
+def test_a_link_planted_in_an_output_folder_is_not_followed(tmp_path, command, output, args):
+    """The commands' CSV, JSON and plot outputs used to be written with open('w'), which
+    follows a link planted in the output folder onto whatever it names (a FIFO here: the
+    command would block on it; a device would be clobbered). Now they are written through
+    paths.replace_file: the command stops in one line, exit 1, and the FIFO is untouched."""
+    out = tmp_path / 'out'
+    out.mkdir()
+    fifo = tmp_path / 'fifo'
+    os.mkfifo(fifo)
+    (out / output).symlink_to(fifo)
+    result = subprocess.run([sys.executable, '-m', command, '--out', str(out), *args],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1, (result.returncode, result.stderr[-2000:])
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'cannot write' in lines[0] and 'FIFO' in lines[0], lines
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and (out / output).is_symlink()

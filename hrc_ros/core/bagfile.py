@@ -71,7 +71,7 @@ from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
 
 from .paths import (MIB, ament_share_dir, file_limit, input_stat, open_input, output_target,
-                    parse_yaml, read_yaml)
+                    parse_yaml, read_yaml, write_text)
 from .quoting import QUOTE_LIMIT, cap, quote
 
 PROFILE = 'ros2'
@@ -438,7 +438,7 @@ class BagWriter:
         finally:
             self._stream.close()
         if self.directory is not None:
-            (self.directory / METADATA_FILE).write_text(self.metadata_yaml(), encoding='utf-8')
+            write_text(self.directory / METADATA_FILE, self.metadata_yaml())
 
     def metadata_yaml(self) -> str:
         """rosbag2 jazzy's ``metadata.yaml`` for this bag (metadata version 9)."""

@@ -40,7 +40,9 @@ of the commands and nodes.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import os
 import re
 import stat
@@ -344,3 +346,31 @@ def replace_file(path: str | Path, write, check=None) -> Path:
     finally:
         temporary.unlink(missing_ok=True)
     return Path(path)
+
+
+@contextlib.contextmanager
+def written(path: str | Path):
+    """``with written(path) as f:`` a text file (UTF-8, newlines as written: csv's too) that
+    appears whole when the block ends without an exception, or not at all (`replace_file`: a
+    link is written through only to a regular file). For the commands' outputs (CSV, JSON,
+    YAML) a user may have pointed anywhere."""
+    buffer = io.StringIO(newline='')
+    yield buffer
+
+    def write(temporary):
+        with open(temporary, 'w', newline='', encoding='utf-8') as handle:
+            handle.write(buffer.getvalue())
+    replace_file(path, write)
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """`text` written to `path` whole or not at all (`written`)."""
+    with written(path) as handle:
+        handle.write(text)
+    return Path(path)
+
+
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """A matplotlib figure saved whole or not at all (`replace_file`: the temporary keeps the
+    suffix, which tells matplotlib the format)."""
+    return replace_file(path, lambda temporary: fig.savefig(temporary, dpi=dpi))

@@ -47,7 +47,7 @@ import yaml
 from ..core.config import BELIEF_MODES, ConfigError, load_config
 from ..core.cell.faults import parse_faults
 from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
-from ..core.paths import default_config_path, share_dir
+from ..core.paths import default_config_path, share_dir, write_text
 from ..core.study.plots import plot_trajectory
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.learning.recordings import place_in_epochs
@@ -114,8 +114,8 @@ def recorded_topics(args) -> dict[str, str]:
 
 def write_scenario_params(path: Path, scenario: Scenario) -> Path:
     """The scenario's node parameters (`launch_plan.scenario_parameters`) as a params file."""
-    path.write_text(SCENARIO_HEADER + yaml.safe_dump(scenario_parameters(scenario),
-                                                     sort_keys=False, default_flow_style=None))
+    write_text(path, SCENARIO_HEADER + yaml.safe_dump(scenario_parameters(scenario),
+                                                      sort_keys=False, default_flow_style=None))
     return path
 
 
@@ -146,7 +146,7 @@ def write_run_params(path: Path, args) -> Path:
         params['/**/hmi'] = {'ros__parameters': {'port': args.hmi_port,
                                                  'worker_answers': args.hmi == 'answers'}}
         params['/**/cell_sim']['ros__parameters']['answer_requests'] = args.hmi != 'answers'
-    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    write_text(path, yaml.safe_dump(params, sort_keys=False))
     return path
 
 

@@ -166,9 +166,10 @@ INTERRUPTED = 130    # the shell's code for a command ended by Ctrl-C
 
 def command(prog: str):
     """Decorate a command's ``main(argv)``: the kernel setting (``HRC_KERNEL_THREADS``) is
-    checked before any work (one line and 2 when it is wrong), and Ctrl-C ends the command
-    with one line and 130 instead of a traceback (what it was writing is written whole or not
-    at all: `paths.replace_file`)."""
+    checked before any work (one line and 2 when it is wrong), Ctrl-C ends the command with one
+    line and 130 instead of a traceback, and an output it cannot write (a full disk, a link to
+    a device planted in its folder) is one line and 1 (what it was writing is written whole or
+    not at all: `paths.replace_file`)."""
     def decorate(main):
         @functools.wraps(main)
         def run(argv=None) -> int:
@@ -181,5 +182,10 @@ def command(prog: str):
             except KeyboardInterrupt:
                 print(f'\n{prog}: interrupted', file=sys.stderr)
                 return INTERRUPTED
+            except OSError as exc:      # an output it cannot write: a full disk, a link
+                where = f'{exc.filename}: ' if exc.filename else ''
+                print(f'{prog}: error: cannot write {where}{exc.strerror or exc}',
+                      file=sys.stderr)
+                return 1
         return run
     return decorate

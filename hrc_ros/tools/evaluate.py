@@ -35,6 +35,7 @@ from ..core.study.evaluation import (METRICS, SCENARIOS, evaluate, format_paired
                                      format_table, paired_difference, summarize)
 from ..core.model import HRCModel
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
+from ..core.paths import write_text, written
 from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
@@ -127,7 +128,7 @@ def evaluate_arm_cell(args, parser) -> int:
         paired = {s: paired_arm(r, results[baseline]) for s, r in results.items()
                   if s != baseline}
     summaries = {s: summarize_arm(r) for s, r in results.items()}
-    with (out / 'summary.csv').open('w', newline='') as f:
+    with written(out / 'summary.csv') as f:
         writer = csv.writer(f)
         writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
         for s, summary in summaries.items():
@@ -136,7 +137,7 @@ def evaluate_arm_cell(args, parser) -> int:
                 writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
                                  f'{m["high"]:.6g}'])
     names = [m for m, _ in METRICS] + ['contacts', 'speed_breaches', 'tasks_completed']
-    with (out / 'episodes.csv').open('w', newline='') as f:
+    with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
         writer.writerow(['selector', 'episode'] + names)
         for s, r in results.items():
@@ -151,7 +152,7 @@ def evaluate_arm_cell(args, parser) -> int:
                              'speed_breaches': int(r.speed_breaches.sum())}
                          for s, r in results.items()},
               **({'baseline': baseline, 'minus_baseline': paired} if baseline else {})}
-    (out / 'summary.json').write_text(json.dumps(report, indent=2) + '\n')
+    write_text(out / 'summary.json', json.dumps(report, indent=2) + '\n')
     for path in (out / 'summary.csv', out / 'summary.json', out / 'episodes.csv'):
         print(f'wrote {path}')
     return 0
@@ -273,7 +274,7 @@ def main(argv=None) -> int:
               f'{getattr(true_policy, "path", "solved here")}), same episodes')
         print(format_regret(results, true_results))
 
-    with (out / 'summary.csv').open('w', newline='') as f:
+    with written(out / 'summary.csv') as f:
         writer = csv.writer(f)
         writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
         for s, summary in summaries.items():
@@ -281,7 +282,7 @@ def main(argv=None) -> int:
                 m = summary[metric]
                 writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
                                  f'{m["high"]:.6g}'])
-    with (out / 'episodes.csv').open('w', newline='') as f:
+    with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
         fields = ([m for m, _ in METRICS]
                   + ['longest_collision_run', 'requests', 'tasks_released'])
@@ -305,19 +306,19 @@ def main(argv=None) -> int:
                         true_policy=getattr(true_policy, 'path', None))
         report.update(true_model={s: summarize(r) for s, r in true_results.items()},
                       regret=regret)
-    (out / 'summary.json').write_text(json.dumps(report, indent=2) + '\n')
-    written = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
+    write_text(out / 'summary.json', json.dumps(report, indent=2) + '\n')
+    outputs = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',
                plot_summaries(summaries, out / 'summary.png', differences)]
     if args.baseline is not None:
-        with (out / 'paired.csv').open('w', newline='') as f:
+        with written(out / 'paired.csv') as f:
             writer = csv.writer(f)
             writer.writerow(['selector', 'baseline', 'mean_difference', 'ci95_low',
                              'ci95_high'])
             for s, d in paired.items():
                 writer.writerow([s, args.baseline, f'{d["mean"]:.6g}', f'{d["low"]:.6g}',
                                  f'{d["high"]:.6g}'])
-        written.append(out / 'paired.csv')
-    for path in written:
+        outputs.append(out / 'paired.csv')
+    for path in outputs:
         print(f'wrote {path}')
     return 0
 

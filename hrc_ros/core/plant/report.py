@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..paths import save_figure
+
 
 def figure_bytes(plot, *args) -> bytes:
     """The PNG `plot(*args, path)` draws, as bytes (plots are made where the data are; the
@@ -53,8 +55,10 @@ def plot_shadow(entry: dict, difference: np.ndarray, path) -> Path:
     ax.set_title(f'{entry["cell"]}: {entry["decision"]}', fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=100)
+    finally:
+        plt.close(fig)
     return Path(path)
 
 
@@ -77,8 +81,10 @@ def plot_plant(entries: list[dict], path) -> Path:
     ax.invert_yaxis()
     ax.set_xlabel('discounted cost, new - running (paired, 95%)')
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=100)
+    finally:
+        plt.close(fig)
     return Path(path)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from .evaluation import METRICS
 from ..model import ACTIONS
+from ..paths import save_figure
 
 if TYPE_CHECKING:
     from .simulation import Trajectory
@@ -25,8 +26,10 @@ def _pyplot():
 
 def _save_figure(plt, fig, path) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)
     return path
 
 

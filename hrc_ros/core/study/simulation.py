@@ -36,6 +36,7 @@ from ..pomdp.belief import BeliefFilter
 from ..cell.human import SimulatedHuman
 from ..model import ACTIONS, DN, N_HIDDEN, STATE_VARIABLES, TASK_VARIABLES, HRCModel
 from ..mdp.policy import policy_arrays
+from ..paths import written
 from ..decision.selection import SELECTORS, ActionSelector
 from ..tasks import TaskBook, TaskRecord
 
@@ -107,7 +108,7 @@ class Trajectory:
     def to_csv(self, path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open('w', newline='') as f:
+        with written(path) as f:
             writer = csv.DictWriter(f, fieldnames=COLUMNS)
             writer.writeheader()
             for row in self.rows:
