@@ -95,21 +95,9 @@ def output_file(path: str | Path, suffix: str | None = None) -> Path:
     return target
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux MemAvailable), or None."""
-    try:
-        with open('/proc/meminfo') as meminfo:
-            for line in meminfo:
-                if line.startswith('MemAvailable:'):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
 def check_memory(needed: int, what: str) -> None:
     """ToolError if `needed` bytes are more than the memory available now."""
-    available = available_memory()
+    available = parallel.available_memory()
     if available is not None and needed > available:
         raise ToolError(f'{what} needs about {needed / 2**30:.1f} GiB of memory and '
                         f'{available / 2**30:.1f} GiB are available; use a smaller model '

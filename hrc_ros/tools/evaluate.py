@@ -43,6 +43,18 @@ from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Par
                      fail, load_model, load_pomdp, output_folder)
 
 
+def write_summary_csv(path, summaries: dict, metrics) -> None:
+    """summary.csv: per selector and metric the count, mean and 95% interval."""
+    with written(path) as f:
+        writer = csv.writer(f)
+        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
+        for s, summary in summaries.items():
+            for metric, _ in metrics:
+                m = summary[metric]
+                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
+                                 f'{m["high"]:.6g}'])
+
+
 def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
     """(the true model, its policy or None when it must be solved); ToolError otherwise."""
     try:
@@ -128,14 +140,7 @@ def evaluate_arm_cell(args, parser) -> int:
         paired = {s: paired_arm(r, results[baseline]) for s, r in results.items()
                   if s != baseline}
     summaries = {s: summarize_arm(r) for s, r in results.items()}
-    with written(out / 'summary.csv') as f:
-        writer = csv.writer(f)
-        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
-        for s, summary in summaries.items():
-            for metric, _ in METRICS:
-                m = summary[metric]
-                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
-                                 f'{m["high"]:.6g}'])
+    write_summary_csv(out / 'summary.csv', summaries, METRICS)
     names = [m for m, _ in METRICS] + ['contacts', 'speed_breaches', 'tasks_completed']
     with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
@@ -274,14 +279,7 @@ def main(argv=None) -> int:
               f'{getattr(true_policy, "path", "solved here")}), same episodes')
         print(format_regret(results, true_results))
 
-    with written(out / 'summary.csv') as f:
-        writer = csv.writer(f)
-        writer.writerow(['selector', 'metric', 'n', 'mean', 'ci95_low', 'ci95_high'])
-        for s, summary in summaries.items():
-            for metric, _ in METRICS:
-                m = summary[metric]
-                writer.writerow([s, metric, m['n'], f'{m["mean"]:.6g}', f'{m["low"]:.6g}',
-                                 f'{m["high"]:.6g}'])
+    write_summary_csv(out / 'summary.csv', summaries, METRICS)
     with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
         fields = ([m for m, _ in METRICS]

@@ -36,6 +36,7 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
+from .. import parallel
 from ..config import Config, ConfigError, load_config, validate
 from ..learning import fit as fitting
 from ..learning.recordings import (NO_OBSERVATION, UNANSWERED, Recording, RecordingError,
@@ -254,7 +255,7 @@ def check_memory(model: HRCModel, max_memory_mb: int | None, what: str) -> int:
     limits = []
     if max_memory_mb is not None:
         limits.append((max_memory_mb * 2 ** 20, 'the cell\'s max_memory_mb'))
-    available = _available_memory()
+    available = parallel.available_memory()
     if available is not None:
         limits.append((available, 'the memory available on this node'))
     for limit, name in limits:
@@ -263,17 +264,6 @@ def check_memory(model: HRCModel, max_memory_mb: int | None, what: str) -> int:
                             f'{needed / 2 ** 20:,.0f} MiB, more than {name} '
                             f'({limit / 2 ** 20:,.0f} MiB); not solved')
     return needed
-
-
-def _available_memory() -> int | None:
-    try:
-        with open('/proc/meminfo') as meminfo:
-            for line in meminfo:
-                if line.startswith('MemAvailable:'):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
 
 
 def _npz_bytes(save, *args) -> bytes:
