@@ -356,7 +356,8 @@ def test_programs_refusals_and_file_checks(tmp_path):
         programs_from(strange, description)
     big = tmp_path / 'big.yaml'
     big.write_text('x: ' + 'a' * (1 << 20) + '\n')
-    with pytest.raises(RobotDescriptionError, match='more than the 1,048,576 a robot description file may have'):
+    too_big = 'more than the 1,048,576 a robot description file may have'
+    with pytest.raises(RobotDescriptionError, match=too_big):
         load_robot_description(big)
     listed = tmp_path / 'list.yaml'
     listed.write_text('- 1\n')
