@@ -28,7 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8MultiArray
-from trajectory_msgs.msg import JointTrajectory
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from hrc_ros.core.model import TASK_VARIABLES
 from hrc_ros.core.robot.bridge import load_programs, load_robot_description
@@ -204,6 +204,60 @@ def assert_alive(suite) -> None:
     assert not suite.dead(), suite.logs()
 
 
+# -- the conversions ---------------------------------------------------------------------------
+def test_a_trajectory_goes_out_as_a_controller_goal_and_comes_back():
+    start = DESCRIPTION.poses['home']
+    path = [start, PROGRAMS[0].waypoints[0], PROGRAMS[0].waypoints[1]]
+    msg = conv.trajectory_to_msg(JOINTS, path, [1.25, 0.5])
+    assert [conv.duration_to_seconds(p.time_from_start) for p in msg.points] == [1.25, 1.75]
+    assert all(list(p.velocities) == [0.0] * 6 for p in msg.points)
+    names, positions, times = conv.trajectory_from_msg(msg)
+    assert names == JOINTS
+    np.testing.assert_allclose(positions, path[1:])
+    np.testing.assert_allclose(times, [1.25, 1.75])
+    stay = conv.trajectory_to_msg(JOINTS, [start], [])     # no segment: one point at time 0
+    assert len(stay.points) == 1 and conv.duration_to_seconds(stay.points[0].time_from_start) == 0
+    np.testing.assert_allclose(conv.trajectory_from_msg(stay)[1], [start])
+
+
+def _goal(names=JOINTS, points=((0.0,) * 6,), times=(1.0,)) -> JointTrajectory:
+    msg = JointTrajectory(joint_names=list(names))
+    msg.points = [JointTrajectoryPoint(positions=list(q), time_from_start=
+                                       conv.seconds_to_duration(t))
+                  for q, t in zip(points, times)]
+    return msg
+
+
+@pytest.mark.parametrize('msg, reason', [
+    (_goal(names=JOINTS[:5] + (JOINTS[0],)), 'unique'),
+    (_goal(points=()), 'no points'),
+    (_goal(points=((0.0,) * 5,)), 'must hold 6 positions'),
+    (_goal(points=((float('nan'),) + (0.0,) * 5,)), 'NaN'),
+    (_goal(points=((0.0,) * 6, (0.1,) * 6), times=(1.0, 1.0)), 'increase strictly'),
+    (_goal(points=((0.0,) * 6, (0.1,) * 6), times=(0.0, 1.0)), 'increase strictly'),
+], ids=['repeated-name', 'no-points', 'short-point', 'nan', 'same-time', 'zero-start'])
+def test_a_malformed_trajectory_is_refused(msg, reason):
+    with pytest.raises(conv.MessageError, match=reason):
+        conv.trajectory_from_msg(msg)
+
+
+def test_override_progress_and_separation_messages():
+    assert conv.speed_override_from_msg(Float64(data=0.25)) == 0.25
+    for bad in (float('nan'), -0.1, 1.5):
+        with pytest.raises(conv.MessageError, match='speed override must lie in'):
+            conv.speed_override_from_msg(Float64(data=bad))
+    progress = conv.robot_progress_to_msg(2, 3, 1)
+    assert [d.label for d in progress.layout.dim] == ['nature', 'cycles', 'cycles_done']
+    assert conv.robot_progress_from_msg(progress) == {'nature': 2, 'cycles': 3, 'cycles_done': 1}
+    msg = conv.separation_to_msg(0.8, [0.1, 0.2, 0.3], [0.9, 0.2, 0.3], 0.6, 0.4)
+    assert msg.layout.dim[0].label == 'separation' and msg.layout.dim[0].size == 9
+    got = conv.separation_from_msg(msg)
+    assert (got['S'], got['S_p'], got['speed']) == (0.8, 0.6, 0.4)
+    np.testing.assert_allclose(got['human'] - got['arm'], [0.8, 0, 0])
+    with pytest.raises(conv.MessageError, match='must hold 9 values'):
+        conv.separation_from_msg(Float64MultiArray(data=[0.8]))
+
+
 # -- the actions -------------------------------------------------------------------------------
 def test_ct_on_a_pending_task_runs_its_program(cell):
     driver, suite = cell
@@ -342,6 +396,56 @@ def test_a_skeleton_far_outside_the_cell_is_refused(cell):
                     f'{status} to refuse the skeleton 50 m away')
     assert driver.stops[-1] is False        # the person's stream goes on: no stop for it
     assert_alive(suite)
+
+
+def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
+    """A second bridge (namespace /solo) whose override the test listens to: joint states that
+    stop (its watchdog ticks) or are all refused (NaN) age into a protective stop, override 0."""
+    driver, _ = cell
+    solo = NodeProcesses(tmp_path, [])
+    stops: list[bool] = []
+    overrides: list[float] = []
+    node = driver.node
+    node.create_subscription(Bool, '/solo/hrc/protective_stop', lambda m: stops.append(m.data),
+                             qos.LATCHED)
+    node.create_subscription(Float64, '/solo/hrc/speed_override',
+                             lambda m: overrides.append(m.data), DEEP)
+    joints = node.create_publisher(JointState, '/solo/joint_states', qos.SENSOR_DATA)
+    skeleton = node.create_publisher(PoseArray, '/solo/human/skeleton', qos.SENSOR_DATA)
+    home = DESCRIPTION.poses['home']
+    try:
+        solo.start('robot_bridge_node', [('__ns', '/solo')])
+
+        def feed(position=home):
+            stamp = node.get_clock().now().to_msg()
+            joints.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, position, stamp))
+            skeleton.publish(conv.keypoints_to_msg(FAR[None] + BODY, stamp))
+            time.sleep(0.01)
+            return (stops and stops[-1] is False) or solo.dead()
+        driver.wait(feed, 'the solo bridge to clear its stop on fresh data', START_TIMEOUT)
+        assert not solo.dead(), solo.logs()
+        since = len(driver.statuses)
+        # the joint states stop: the watchdog ticks the bridge into a stop
+        status = driver.wait(lambda: driver.status('solo/robot_bridge: ssm', WARN,
+                                                   'joint state', since),
+                             'the stop for joint states that stopped')
+        assert 's old (joint_state_timeout 0.1 s)' in status.message
+        assert stops[-1] is True
+        driver.wait(lambda: overrides and overrides[-1] == 0.0, 'override 0 from the watchdog')
+        count = len(overrides)
+        driver.wait(lambda: len(overrides) > count + 5, 'the watchdog to go on ticking')
+        assert set(overrides[count:]) == {0.0}
+        # fresh again, then only refused (NaN) joint states: stopped, alive
+        driver.wait(feed, 'the stop to clear')
+        since = len(driver.statuses)
+        nan = [float('nan')] + list(home[1:])
+        driver.wait(lambda: (feed(nan), stops[-1] is True)[1], 'a stop on NaN joint states')
+        driver.wait(lambda: driver.value('solo/robot_bridge: bridge', 'last_refused_joint_states',
+                                         'is nan', since), 'the NaN refusal on its status')
+        assert not solo.dead(), solo.logs()
+        assert solo.stop() == {'robot_bridge_node': 0}, solo.logs()
+    finally:
+        solo.stop(5.0)
 
 
 def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, tmp_path):
