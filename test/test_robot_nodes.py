@@ -287,7 +287,7 @@ def test_ct_on_a_pending_task_runs_its_program(cell):
 
 def test_a_person_close_to_the_arm_stops_it_with_a_latched_protective_stop(cell):
     driver, suite = cell
-    driver.epoch('ct', task(tp=2, tc=60))
+    driver.epoch('ct', task(tp=2, tc=120))
     driver.wait(driver.moving, 'the arm to run the program')
     overrides = len(driver.overrides)
     driver.walk_to(NEAR)
@@ -331,7 +331,7 @@ def test_no_skeleton_for_longer_than_the_timeout_stops_the_arm(cell):
 def test_dn_holds_the_arm_and_sends_no_trajectory(cell):
     driver, suite = cell
     driver.wait(driver.moving, 'the arm to run the program')
-    driver.epoch('dn', task(tp=2, tc=60, ty=2, bc=60))
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
     driver.wait(driver.at_rest, 'the arm to stand on dn')
     goals, overrides, states = (len(driver.trajectories), len(driver.overrides),
                                 len(driver.joint_states))

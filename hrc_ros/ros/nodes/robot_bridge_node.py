@@ -255,6 +255,7 @@ class RobotBridgeNode(Node):
                 self.sent += 1
             override, stop, reason = command.override, command.stop, command.reason
         else:
+            self.command = None
             override, stop = 0.0, True
             reason = (f'nobody subscribes to the speed override on '
                       f'{self.override_pub.topic_name}: SSM cannot act on the arm')
@@ -267,6 +268,10 @@ class RobotBridgeNode(Node):
         self._publish_progress()
 
     def _set_stop(self, stop: bool, reason: str) -> None:
+        """Latch the stop on change and report it. The core's own stop reports
+        (`BridgeCommand.reports`) are not forwarded: they come with every change of the
+        reason's text, which holds the data's age, so at every tick of a timeout; and the stop
+        for an override nobody listens to is this node's."""
         changed = stop != self.stop
         if changed:
             self.stop = stop
