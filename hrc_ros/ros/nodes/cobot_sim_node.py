@@ -97,7 +97,7 @@ class CobotSimNode(Node):
                                                     qos.SENSOR_DATA)
         self.inputs = Inputs(self)
         self.inputs.subscribe(JointTrajectory, values['joint_trajectory_topic'], qos.RELIABLE,
-                              conv.trajectory_from_msg, self._on_trajectory, name='trajectory')
+                              lambda msg: msg, self._on_trajectory, name='trajectory')
         self.inputs.subscribe(Float64, values['speed_override_topic'], qos.RELIABLE,
                               conv.speed_override_from_msg, self._on_override,
                               name='speed_override')
@@ -112,9 +112,10 @@ class CobotSimNode(Node):
         self.override_timeout = values['override_timeout']
 
     # -- inputs ------------------------------------------------------------------------------
-    def _on_trajectory(self, converted) -> None:
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
+        """A goal; anything refused (the conversion's refusals too) holds the arm."""
         try:
-            trajectory = self._goal(*converted)
+            trajectory = self._goal(*conv.trajectory_from_msg(msg))
         except InputError as exc:
             self.refused += 1
             self.held = str(exc)
