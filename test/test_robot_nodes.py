@@ -532,6 +532,21 @@ def test_a_robot_description_missing_a_pose_or_a_limit_stops_the_node_at_start(
     assert 'cannot start' in lines[0] and reason in lines[0] and path in lines[0], lines[0]
 
 
+@pytest.mark.parametrize('executable, parameter, reason', [
+    ('robot_bridge_node', 'keypoint_joints:=[pelvis, tail]',
+     "unknown body-tracking joints ['tail']"),
+    ('cobot_sim_node', 'initial_positions:=[0.0, 0.0, 9.0, 0.0, 0.0, 0.0]',
+     'elbow_joint = 9.0000 rad is outside its limits'),
+], ids=['bridge-keypoint-joints', 'cobot-initial-positions'])
+def test_a_bad_parameter_stops_the_node_at_start(ros_domain_id, executable, parameter, reason):
+    result = subprocess.run(node_command(executable) + [
+        '--ros-args', '-r', '__ns:=/refused', '-p', parameter],
+        capture_output=True, text=True, timeout=START_TIMEOUT, stdin=subprocess.DEVNULL)
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
+    assert len(lines) == 1 and 'cannot start' in lines[0] and reason in lines[0], lines
+
+
 # -- across the whole run ---------------------------------------------------------------------
 def test_ssm_held_in_every_sample_while_the_arm_moved(cell):
     driver, _ = cell
