@@ -322,6 +322,12 @@ def test_no_skeleton_for_longer_than_the_timeout_stops_the_arm(cell):
         driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1][1] == 0.0,
                     'a protective stop with override 0')
         driver.wait(driver.at_rest, 'the arm to stand')
+        # the reason's figure (the data's age) changes every tick; reported once a second
+        start, ticks = time.monotonic(), len(driver.overrides)
+        driver.wait(lambda: len(driver.overrides) > ticks + 250, '250 more ticks')
+        reports = [st for st in driver.statuses[since:] if st.name == 'robot_bridge: ssm'
+                   and 'human data' in st.message]
+        assert 1 <= len(reports) <= time.monotonic() - start + 3, [r.message for r in reports]
     finally:
         driver.skeleton_on = True
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear with the skeleton back')
