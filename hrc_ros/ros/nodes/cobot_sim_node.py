@@ -90,6 +90,8 @@ class CobotSimNode(Node):
         self._body_stamp = 0
         self.accepted = self.refused = 0
         self.steps = 0
+        self.published = 0             # joint states
+        self._rate_mark = (time.monotonic(), 0)
         self._every = max(1, int(round(values['rate'] / values['joint_state_rate'])))
         self._last_step = time.monotonic()
         self.joint_pub = self.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
@@ -189,6 +191,7 @@ class CobotSimNode(Node):
         clock = self.get_clock().now()
         self.joint_pub.publish(conv.joint_state_to_msg(
             self.description.joint_names, state.qd, state.q, clock.to_msg()))
+        self.published += 1
         body = self.body
         if body is None or (clock.nanoseconds - self._body_stamp) * 1e-9 \
                 > self.description.ssm.human_timeout:
@@ -201,11 +204,15 @@ class CobotSimNode(Node):
 
     def _publish_status(self) -> None:
         follower = self.follower
+        now = time.monotonic()
+        (since, count), self._rate_mark = self._rate_mark, (now, self.published)
+        rate = (self.published - count) / (now - since) if now > since else 0.0
         self.inputs.publish_health('arm', {
             'held': self.held, 'override': self._commanded(time.monotonic()),
             'scale': round(follower.scale, 4), 'speed_bound_m_s': round(follower.speed_bound, 4),
             'goal_done': follower.done, 'goals_accepted': self.accepted,
-            'goals_refused': self.refused, 'steps': self.steps, **last_refusals(self.inputs)})
+            'goals_refused': self.refused, 'steps': self.steps,
+            'joint_states_hz': round(rate, 1), **last_refusals(self.inputs)})
 
 
 def main(args=None):
