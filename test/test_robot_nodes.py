@@ -467,6 +467,47 @@ def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
         solo.stop(5.0)
 
 
+def test_a_bad_speed_override_holds_the_simulated_arm(cell, tmp_path):
+    """A second simulated arm (namespace /arm2) running a goal at override 1: NaN overrides are
+    refused and taken as 0, and the arm brakes and stands short of the goal."""
+    driver, _ = cell
+    arm2 = NodeProcesses(tmp_path, [])
+    node = driver.node
+    states: list[tuple[np.ndarray, np.ndarray]] = []
+    node.create_subscription(JointState, '/arm2/joint_states', lambda m: states.append(
+        (np.array(m.position), np.array(m.velocity))), qos.SENSOR_DATA)
+    goals = node.create_publisher(JointTrajectory, f'/arm2/{DEFAULT_TRAJECTORY_TOPIC}',
+                                  qos.RELIABLE)
+    override = node.create_publisher(Float64, f'/arm2/{DEFAULT_OVERRIDE_TOPIC}', qos.RELIABLE)
+    retreat = DESCRIPTION.poses['retreat']
+    try:
+        # a long override_timeout: the stop must come from the refusal, not from the silence
+        arm2.start('cobot_sim_node', ros_args=['-r', '__ns:=/arm2',
+                                               '-p', 'override_timeout:=10.0'])
+        driver.wait(lambda: (states and goals.get_subscription_count()
+                             and override.get_subscription_count()) or arm2.dead(),
+                    'the second arm to join', START_TIMEOUT)
+        assert not arm2.dead(), arm2.logs()
+        goals.publish(conv.trajectory_to_msg(JOINTS, [states[-1][0], retreat], [4.0]))
+
+        def go(value):
+            override.publish(Float64(data=value))
+            return True
+        driver.wait(lambda: go(1.0) and np.abs(states[-1][1]).max() > 0.05,
+                    'the second arm to move at override 1')
+        since = len(driver.statuses)
+        driver.wait(lambda: go(float('nan')) and driver.status(
+            'arm2/cobot_sim: speed_override input', WARN, 'must lie in [0, 1]', since),
+            'the refusal of a NaN override')
+        driver.wait(lambda: go(float('nan')) and len(states) > 20
+                    and all(np.abs(qd).max() == 0.0 for _, qd in states[-20:]),
+                    'the second arm to stand')
+        assert np.abs(states[-1][0] - retreat).max() > 0.05, 'it reached the goal: not held'
+        assert arm2.stop() == {'cobot_sim_node': 0}, arm2.logs()
+    finally:
+        arm2.stop(5.0)
+
+
 def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, tmp_path):
     driver, _ = cell
     lonely = NodeProcesses(tmp_path, [])

@@ -101,8 +101,7 @@ class CobotSimNode(Node):
         self.inputs.subscribe(JointTrajectory, values['joint_trajectory_topic'], qos.RELIABLE,
                               lambda msg: msg, self._on_trajectory, name='trajectory')
         self.inputs.subscribe(Float64, values['speed_override_topic'], qos.RELIABLE,
-                              conv.speed_override_from_msg, self._on_override,
-                              name='speed_override')
+                              lambda msg: msg, self._on_override, name='speed_override')
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
                               skeleton_converter(values['robot_frame'],
                                                  values['keypoint_joints'] or None),
@@ -167,7 +166,13 @@ class CobotSimNode(Node):
                       for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
 
-    def _on_override(self, value: float) -> None:
+    def _on_override(self, msg: Float64) -> None:
+        """The speed override; a refused one (outside [0, 1], NaN) is taken as 0."""
+        try:
+            value = conv.speed_override_from_msg(msg)
+        except InputError:
+            self.override = 0.0
+            raise
         self.override, self._override_at = value, time.monotonic()
 
     def _on_skeleton(self, converted) -> None:
