@@ -12,7 +12,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 ROS_MODULES = ('rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
-               'geometry_msgs', 'diagnostic_msgs', 'visualization_msgs', 'ament_index_python',
+               'geometry_msgs', 'diagnostic_msgs', 'visualization_msgs', 'trajectory_msgs',
+               'ament_index_python',
                'launch', 'launch_ros', 'rosidl_runtime_py', 'rosidl_parser')
 ROS_FREE_PACKAGES = ('hrc_ros.core', 'hrc_ros.tools')
 
@@ -71,6 +72,21 @@ def test_lint():
     result = subprocess.run([ruff, 'check', '--no-cache', '.'], cwd=REPO, capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 0, result.stdout[-5000:] + result.stderr[-2000:]
+
+
+def test_no_tracked_file_holds_a_merge_conflict_marker():
+    """A merge resolved by hand once left `<<<<<<< HEAD` ... `>>>>>>> branch` in a doc."""
+    files = subprocess.run(['git', 'ls-files', '-z'], cwd=REPO, capture_output=True, check=True,
+                           timeout=60).stdout.decode().split('\0')
+    marked = []
+    for name in filter(None, files):
+        path = REPO / name
+        if not path.is_file() or path.stat().st_size > 1 << 22:
+            continue
+        for number, line in enumerate(path.read_bytes().splitlines(), 1):
+            if line.startswith((b'<<<<<<< ', b'>>>>>>> ')) or line == b'=======':
+                marked.append(f'{name}:{number}')
+    assert not marked, marked
 
 
 def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
