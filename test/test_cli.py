@@ -50,6 +50,7 @@ def a_file(tmp_path):
     ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--bootstrap', '-1'], '-1 is outside 0..10000'),
     ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--starts', '0'], '0 is outside 1..100'),
     ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--tol', 'nan'], 'outside [1e-15, 1.0]'),
+    ('hrc-fit', ['x.csv', '-o', 'f.yaml', '--method', 'bfgs'], "invalid choice: 'bfgs'"),
 ])
 def test_out_of_range_arguments_are_refused(command, args, reason, tmp_path):
     assert reason in refused(command, *args, cwd=tmp_path)

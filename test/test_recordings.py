@@ -261,6 +261,20 @@ def run_fit(capsys, *argv):
 QUICK = ('--bootstrap', '0', '--starts', '1', '-q')
 
 
+def test_hrc_fit_by_the_quasi_newton_em_writes_the_same_outputs(tmp_path, capsys, policy,
+                                                                default_config):
+    paths = simulated_csv(tmp_path, HRCModel(default_config), policy, range(12))
+    out = tmp_path / 'newton.yaml'
+    status, lines = run_fit(capsys, *paths, '-o', out, '--method', 'newton', '--bootstrap', 4,
+                            '--starts', 1, '-q')
+    assert status == 0, lines
+    report = json.loads(out.with_suffix('.report.json').read_text())
+    assert report['bootstrap'] == 4 and report['converged']
+    assert report['loglik_trace'] == sorted(report['loglik_trace'])
+    assert all(p['ci95'][0] <= p['ci95'][1] for p in report['parameters'])
+    assert load_config(out).observation_likelihood is not None
+
+
 @pytest.mark.parametrize('outputs, clash', [
     (lambda d: ['-o', d / 'run.csv'], 'output {d}/run.csv (-o) is input {d}/run.csv'),
     (lambda d: ['-o', d / 'link.csv'], 'output {d}/link.csv (-o) is input {d}/run.csv'),

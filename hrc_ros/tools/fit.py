@@ -23,8 +23,9 @@ import sys
 from pathlib import Path
 
 from ..core.config import ConfigError, load_config
-from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, TOL, FitError,
-                                 config_yaml, expand_hold, fit, prepare, report_dict, report_text)
+from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, NEWTON, SQUAREM,
+                                 TOL, FitError, config_yaml, expand_hold, fit, prepare,
+                                 report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
@@ -54,6 +55,10 @@ def main(argv=None) -> int:
     parser.add_argument('--bootstrap', type=bounded_int(0, 10_000), default=BOOTSTRAP,
                         help=f'resamples of the episodes for the 95%% intervals (default '
                         f'{BOOTSTRAP}; 0: none)')
+    parser.add_argument('--method', choices=(SQUAREM, NEWTON), default=SQUAREM,
+                        help='how EM is accelerated: squarem (default) or newton, a '
+                        "quasi-Newton step with the full-data fit's curvature for the last "
+                        'iterations and every resample (docs/LEARNING.md)')
     parser.add_argument('--min-support', type=bounded_float(0.0, 1e12), default=MIN_SUPPORT,
                         help='warn below this many informative epochs per parameter')
     parser.add_argument('--namespace', default=None,
@@ -86,7 +91,7 @@ def main(argv=None) -> int:
     try:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
-                     min_support=args.min_support, progress=say)
+                     min_support=args.min_support, progress=say, method=args.method)
         text = config_yaml(result, base, args.inputs)
     except FitError as exc:
         return fail('hrc-fit', exc)

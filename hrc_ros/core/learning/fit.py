@@ -34,7 +34,9 @@ chain; their log likelihood is a sum of multinomial terms, so every M-step is cl
 be held fixed at the base configuration's value. The log likelihood never decreases; the fit
 stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
 the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
-an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation.
+an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation; or,
+with `method=NEWTON`, a quasi-Newton step with the curvature of the full-data fit, checked
+(`run_em_batch`).
 
 Initialisations. EM finds a local maximum. The first start is the base configuration (mixed
 with `INIT_FLOOR` of uniform, because EM can never move a probability away from exactly 0 or
@@ -98,6 +100,8 @@ INIT_CONCENTRATION = 10.0  # Dirichlet concentration of the random starts around
 SHORT_RUN = 10             # EM iterations of every start before the best one continues
 TOL = 1e-8                 # stop when the log likelihood rises by less than this per epoch
 MAX_ITER = 1000
+EM, SQUAREM, NEWTON = 'em', 'squarem', 'newton'   # run_em_batch's methods
+METHODS = (EM, SQUAREM, NEWTON)
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
 UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
@@ -564,18 +568,19 @@ def _unpack(vector: np.ndarray, like: Params) -> Params:
 
 def run_em(data: FitData, start: Params, hold: tuple = (), tol: float = TOL,
            max_iter: int = MAX_ITER, seg_weight=None, run: EMRun | None = None,
-           accelerate: bool = True) -> EMRun:
+           method: str = SQUAREM, curvature: 'Curvature | None' = None) -> EMRun:
     """EM from `start` (or continuing `run`) until the log likelihood rises by less than
     `tol` per epoch in an iteration, or after `max_iter` iterations in all: `run_em_batch`
     with one lane."""
     weights = None if seg_weight is None else np.asarray(seg_weight, dtype=float)[None]
     return run_em_batch(data, [start], hold, tol, max_iter, weights,
-                        None if run is None else [run], accelerate)[0]
+                        None if run is None else [run], method, curvature=curvature)[0]
 
 
 def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL,
                  max_iter: int = MAX_ITER, seg_weight=None, runs: list | None = None,
-                 accelerate: bool = True, progress=None) -> list:
+                 method: str = SQUAREM, progress=None, curvature: 'Curvature | None' = None
+                 ) -> list:
     """EM for each lane: from `starts[l]` (or continuing `runs[l]`) with segment weights
     `seg_weight[l]` (None: all 1), until its log likelihood rises by less than `tol` per
     epoch in an iteration, or after `max_iter` iterations in all. Returns an `EMRun` per lane.
@@ -583,17 +588,35 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
     The lanes are independent: each follows exactly the steps it would alone; they only share
     the E-step calls (the lanes still running, in one batch).
 
-    With `accelerate` an iteration is one SQUAREM cycle (Varadhan and Roland 2008, scheme
-    S3, with the step control of their SQUAREM package): two EM steps theta1 = M(theta0),
-    theta2 = M(theta1); the extrapolation x = theta0 - 2 alpha r + alpha^2 v (r = theta1 -
-    theta0, v = theta2 - 2 theta1 + theta0, alpha = -|r| / |v|, at most `step_max` in size,
-    halved towards -1 while x leaves the probabilities' domain; alpha = -1 is theta2); one EM
-    step from x, kept if its likelihood is not below theta0's, else theta2. `step_max` starts
-    at 1, grows 4-fold when alpha reaches it and shrinks 4-fold when an extrapolation is
-    refused. So the likelihood never decreases from cycle to cycle, and EM's crawl along flat
+    `method` `SQUAREM` (the default): an iteration is one SQUAREM cycle (Varadhan and Roland
+    2008, scheme S3, with the step control of their SQUAREM package): two EM steps theta1 =
+    M(theta0), theta2 = M(theta1); the extrapolation x = theta0 - 2 alpha r + alpha^2 v (r =
+    theta1 - theta0, v = theta2 - 2 theta1 + theta0, alpha = -|r| / |v|, at most `step_max`
+    in size, halved towards -1 while x leaves the probabilities' domain; alpha = -1 is theta2);
+    one EM step from x, kept if its likelihood is not below theta0's, else theta2. `step_max`
+    starts at 1, grows 4-fold when alpha reaches it and shrinks 4-fold when an extrapolation
+    is refused. So the likelihood never decreases from cycle to cycle, and EM's crawl along flat
     directions (its rate is the share of missing information) is cut several times over.
-    Without it an iteration is one EM step. The returned parameters' E-step is `stats` (the
-    trace's last entry). `progress(lanes done)` is called after every iteration."""
+    `EM`: an iteration is one EM step.
+
+    `NEWTON`: an iteration is one quasi-Newton step on the log likelihood in the log-ratio
+    coordinates of `curvature` (a `Curvature`, by default `curvature_at` the first lane's
+    start): the gradient from the lane's own E-step counts (Fisher's identity), the inverse
+    Hessian starting from `curvature.inverse` (minus the Hessian at the full-data fit: each
+    bootstrap resample's is near it) and improved by BFGS updates from the lane's own steps;
+    the step's largest log ratio change at most `NEWTON_CAP`. A step that lowers the
+    likelihood (or makes the evidence impossible) is halved, at most `NEWTON_HALVINGS` times;
+    then the lane takes EM's step (which never lowers it) and starts again from
+    `curvature.inverse`. So the likelihood never decreases, and the fixed points are EM's:
+    the points where the gradient is 0. The stopping rule is the same, with one addition: an
+    iteration that fell back to EM's step ends the run only if the quasi-Newton step it
+    refused also predicted a rise below `tol` per epoch (EM's own step is short where it
+    crawls).
+
+    The returned parameters' E-step is `stats` (the trace's last entry). `progress(lanes
+    done)` is called after every iteration."""
+    if method not in METHODS:
+        raise ValueError(f'unknown EM method {method!r}; known: {", ".join(METHODS)}')
     n_lanes = len(starts) if runs is None else len(runs)
     weights = None if seg_weight is None else np.asarray(seg_weight, dtype=float)
     lengths = np.diff(data.seg_start)
@@ -625,16 +648,24 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
                            for f in fields(Expected)))
     converged = np.zeros(n_lanes, dtype=bool)
     step_max = np.ones(n_lanes)
+    if method == NEWTON:
+        if curvature is None:
+            curvature = curvature_at(data, _unpack(x[0], like), hold)
+        inverse = np.repeat(curvature.inverse[None], n_lanes, axis=0)
     while True:
         lanes = np.flatnonzero(~converged & (np.array([len(t) for t in traces]) <= max_iter))
         if lanes.size == 0:
             break
         x0, s0 = x[lanes], stats.lane(lanes)
-        x1 = m_step_batch(s0, x0, hold)
-        s1 = expect(x1, lanes)
-        if not accelerate:
-            x_new, s_new = x1, s1
+        ahead = np.zeros(len(lanes))
+        if method == NEWTON:
+            x_new, s_new, ahead = _quasi_newton_step(curvature, inverse, lanes, x0, s0, hold,
+                                                     expect)
         else:
+            x1 = m_step_batch(s0, x0, hold)
+            s1 = expect(x1, lanes)
+            x_new, s_new = x1, s1
+        if method == SQUAREM:
             x2 = m_step_batch(s1, x1, hold)
             s2 = expect(x2, lanes)
             r, v = x1 - x0, x2 - 2 * x1 + x0
@@ -675,12 +706,168 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
         stats = _merged(stats, lanes, s_new)
         for i, lane in enumerate(lanes):
             traces[lane].append(float(s_new.loglik[i]))
-            if abs(traces[lane][-1] - traces[lane][-2]) < tol * n[lane]:
+            if max(abs(traces[lane][-1] - traces[lane][-2]), ahead[i]) < tol * n[lane]:
                 converged[lane] = True
         if progress is not None:
             progress(int(np.sum(converged | (np.array([len(t) for t in traces]) > max_iter))))
     return [EMRun(_unpack(x[lane], like), traces[lane], bool(converged[lane]),
                   _single(stats.lane(lane)), int(e_steps[lane])) for lane in range(n_lanes)]
+
+
+# -- quasi-Newton EM --------------------------------------------------------------------------
+@dataclass
+class Curvature:
+    """The log likelihood's curvature at a fit in the coordinates `NEWTON` moves in: each
+    free probability as its log ratio to a reference entry of its distribution (the largest
+    at the fit; p_accept: to its complement), entries that are exactly 0 left out (EM keeps
+    them 0). `inverse` is the pseudo-inverse of minus the Hessian in those coordinates."""
+
+    index: np.ndarray       # (d,) packed position of each coordinate
+    reference: np.ndarray   # (d,) packed position of its reference entry; -1: 1 - x (p_accept)
+    rows: list              # per distribution: the packed positions of its entries
+    inverse: np.ndarray     # (d, d)
+
+    def coordinates(self, x: np.ndarray) -> np.ndarray:
+        """(B, d) log ratios of packed rows x (B, N_PACKED)."""
+        ref = np.where(self.reference >= 0, x[:, np.maximum(self.reference, 0)],
+                       1.0 - x[:, self.index])
+        with np.errstate(divide='ignore'):
+            return np.log(x[:, self.index]) - np.log(ref)
+
+    def packed(self, eta: np.ndarray, like: np.ndarray) -> np.ndarray:
+        """Packed rows with the coordinates `eta` (B, d) in place of `like`'s free entries."""
+        out = like.copy()
+        binary = self.reference < 0
+        out[:, self.index[binary]] = 1.0 / (1.0 + np.exp(-eta[:, binary]))
+        for row, members in self.rows:
+            top = np.maximum(0.0, eta[:, members].max(axis=1, initial=0.0))
+            weight = np.exp(eta[:, members] - top[:, None])
+            total = weight.sum(axis=1) + np.exp(-top)
+            out[:, row] = 0.0
+            out[:, self.reference[members[0]]] = np.exp(-top) / total
+            out[:, self.index[members]] = weight / total[:, None]
+        return out
+
+    def gradient(self, stats: Expected, x: np.ndarray) -> np.ndarray:
+        """(B, d) the log likelihood's gradient in the coordinates at packed rows x, from
+        their E-step's counts (Fisher's identity: n_i - N x_i per distribution)."""
+        counts = np.zeros_like(x)
+        _field(counts, 'pi')[:] = stats.first
+        _field(counts, 'p_accept')[:] = stats.accept[:, 0]
+        _field(counts, 'p_delta')[:] = stats.delta
+        chains = _field(x, 'chains')
+        _field(counts, 'chains')[:] = _chain_moves(stats.transitions, chains)
+        _field(counts, 'likelihood')[:] = stats.observed
+        total = np.zeros_like(x)
+        for row, _ in self.rows:
+            total[:, row] = counts[:, row].sum(axis=1, keepdims=True)
+        accept = _SLICES['p_accept']
+        total[:, accept] = stats.accept.sum(axis=1)
+        return counts[:, self.index] - total[:, self.index] * x[:, self.index]
+
+
+CURVATURE_STEP = 1e-4     # central differences of the gradient, in log ratio
+CURVATURE_FLOOR = 1e-6    # eigenvalues of -H are raised to at least this share of the largest
+NEWTON_CAP = 1.0          # the largest change of a log ratio in one step
+NEWTON_HALVINGS = 2       # a step that lowers the likelihood is halved this often, then EM
+
+
+def curvature_at(data: FitData, params: Params, hold: tuple = ()) -> Curvature:
+    """The log likelihood's `Curvature` at `params` (on all of `data`, weights 1): central
+    differences of its gradient, every coordinate's two lanes in one batched E-step."""
+    x = _pack(params)
+    index, reference, rows = [], [], []
+    accept = _SLICES['p_accept']
+    if 'p_accept' not in hold:
+        for i in range(accept.start, accept.stop):
+            if 0.0 < x[i] < 1.0:
+                index.append(i)
+                reference.append(-1)
+    distributions = [np.arange(_SLICES['pi'].start, _SLICES['pi'].stop)]
+    offsets = {name: _SLICES[name].start for name in ('p_delta', 'chains', 'likelihood')}
+    if 'p_delta' not in hold:
+        distributions += [offsets['p_delta'] + 3 * ea + np.arange(3) for ea in range(3)]
+    for g, group in enumerate(EMOTION_GROUPS):
+        for v, variable in enumerate(EMOTION_VARIABLES):
+            if f'emotion.{group}.{variable}' not in hold:
+                distributions.append(offsets['chains'] + 3 * (2 * g + v) + np.arange(3))
+    if 'likelihood' not in hold:
+        distributions += [offsets['likelihood'] + N_HIDDEN * np.arange(N_OBSERVATIONS) + h
+                          for h in range(N_HIDDEN)]
+    for row in distributions:
+        positive = row[x[row] > 0]
+        top = positive[np.argmax(x[positive])]
+        members = [i for i in positive if i != top]
+        if members:
+            rows.append((row, np.arange(len(index), len(index) + len(members))))
+            index += members
+            reference += [top] * len(members)
+    curvature = Curvature(np.array(index, dtype=int), np.array(reference, dtype=int), rows,
+                          np.zeros((len(index), len(index))))
+    d = len(index)
+    if d == 0:
+        return curvature
+    eta = curvature.coordinates(x[None])[0]
+    shifted = eta + CURVATURE_STEP * np.concatenate([np.eye(d), -np.eye(d)])
+    lanes = curvature.packed(shifted, np.repeat(x[None], 2 * d, axis=0))
+    stats, impossible = e_step_batch(lanes, data)
+    if np.any(impossible >= 0):
+        raise _impossible(data, int(impossible[impossible >= 0][0]))
+    g = curvature.gradient(stats, lanes)
+    hessian = (g[:d] - g[d:]).T / (2 * CURVATURE_STEP)
+    values, vectors = np.linalg.eigh(-(hessian + hessian.T) / 2)
+    values = np.maximum(values, CURVATURE_FLOOR * max(values.max(), 1.0))
+    curvature.inverse = (vectors / values) @ vectors.T
+    return curvature
+
+
+def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, lanes: np.ndarray,
+                       x0: np.ndarray, s0: Expected, hold: tuple, expect):
+    """One `NEWTON` iteration of `lanes` (see `run_em_batch`); updates `inverse` (the
+    lanes' inverse Hessian estimates) in place. Returns the new packed rows, their E-steps
+    and, per lane, the rise its quasi-Newton step predicted if EM's step was taken instead
+    (else 0)."""
+    eta0 = curvature.coordinates(x0)
+    g0 = curvature.gradient(s0, x0)
+    step = np.einsum('lij,lj->li', inverse[lanes], g0)
+    predicted = np.einsum('li,li->l', g0, step) / 2
+    largest = np.abs(step).max(axis=1, initial=0.0)
+    step *= np.minimum(1.0, NEWTON_CAP / np.where(largest > 0, largest, 1.0))[:, None]
+    x_new, s_new = x0.copy(), s0
+    pending = np.flatnonzero(largest > 0)
+    for _ in range(NEWTON_HALVINGS + 1):
+        if pending.size == 0:
+            break
+        xt = curvature.packed(eta0[pending] + step[pending], x0[pending])
+        st = expect(xt, lanes[pending], guarded=True)
+        better = np.isfinite(st.loglik) & (st.loglik >= s0.loglik[pending])
+        x_new[pending[better]] = xt[better]
+        s_new = _merged(s_new, pending[better], st.lane(np.flatnonzero(better)))
+        pending = pending[~better]
+        step[pending] /= 2
+    fallback = np.union1d(pending, np.flatnonzero(largest == 0))
+    if fallback.size:            # EM's step never lowers the likelihood
+        xf = m_step_batch(s0.lane(fallback), x0[fallback], hold)
+        x_new[fallback] = xf
+        s_new = _merged(s_new, fallback, expect(xf, lanes[fallback]))
+        inverse[lanes[fallback]] = curvature.inverse
+    moved = np.setdiff1d(np.arange(len(lanes)), fallback)
+    if moved.size:               # BFGS on minus the log likelihood
+        s = curvature.coordinates(x_new[moved]) - eta0[moved]
+        y = g0[moved] - curvature.gradient(s_new.lane(moved), x_new[moved])
+        sy = np.einsum('li,li->l', s, y)
+        ok = np.isfinite(sy) & (sy > 1e-12 * np.linalg.norm(s, axis=1)
+                                * np.linalg.norm(y, axis=1))
+        for i in np.flatnonzero(ok):
+            h = inverse[lanes[moved[i]]]
+            rho = 1.0 / sy[i]
+            hy = h @ y[i]
+            inverse[lanes[moved[i]]] = (h - rho * (np.outer(s[i], hy) + np.outer(hy, s[i]))
+                                        + (rho ** 2 * (y[i] @ hy) + rho)
+                                        * np.outer(s[i], s[i]))
+    unsettled = np.zeros(len(lanes), dtype=bool)
+    unsettled[fallback] = True
+    return x_new, s_new, np.where(unsettled, predicted, 0.0)
 
 
 def _merged(stats: Expected, lanes: np.ndarray, new: Expected) -> Expected:
@@ -791,6 +978,7 @@ class FitResult:
     issues: list
     seconds: dict = field(default_factory=dict)
     min_support: float = MIN_SUPPORT
+    sample_logliks: np.ndarray | None = None   # (B,) the log likelihood of each resample's fit
 
     @property
     def iterations(self) -> int:
@@ -882,20 +1070,26 @@ def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
 
 def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         tol: float = TOL, max_iter: int = MAX_ITER, bootstrap: int = BOOTSTRAP,
-        min_support: float = MIN_SUPPORT, progress=None) -> FitResult:
-    """EM from `n_init` starts (the base first), then the bootstrap (module docstring)."""
+        min_support: float = MIN_SUPPORT, progress=None, method: str = SQUAREM) -> FitResult:
+    """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
+    `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
+    start by SQUAREM, then the quasi-Newton EM (`run_em_batch`) from there with the
+    `curvature_at` the estimate, and every resample by the quasi-Newton EM with that
+    curvature."""
     hold = expand_hold(hold)
     if n_init < 1:
         raise FitError(f'n_init must be >= 1, got {n_init}')
     if bootstrap < 0:
         raise FitError(f'bootstrap must be >= 0, got {bootstrap}')
+    if method not in (SQUAREM, NEWTON):
+        raise FitError(f'method must be {SQUAREM} or {NEWTON}, got {method!r}')
     say = progress or (lambda message: None)
     t0, cpu0 = time.perf_counter(), time.process_time()
     base_params = Params.from_config(base)
     rng = np.random.default_rng(seed)
     starts = [_smoothed(base_params, hold)]
     starts += [_random_start(base_params, hold, rng) for _ in range(n_init - 1)]
-    runs = run_em_batch(data, starts, hold, tol, min(SHORT_RUN, max_iter), accelerate=False)
+    runs = run_em_batch(data, starts, hold, tol, min(SHORT_RUN, max_iter), method=EM)
     start_logliks = [r.trace[-1] for r in runs]
     chosen = int(np.argmax(start_logliks))
     say(f'{n_init} start{"s" if n_init > 1 else ""}, log likelihood after {SHORT_RUN} '
@@ -906,11 +1100,17 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         best = run_em(data, best.params, hold, tol, max_iter, run=best)
     params, relabelled = canonical_labels(best.params, base_params, hold)
     stats = e_step(params, data)
+    curvature = None
+    if method == NEWTON:
+        curvature = curvature_at(data, params, hold)
+        best = run_em(data, params, hold, tol, max_iter, method=NEWTON, curvature=curvature,
+                      run=dataclasses.replace(best, params=params, stats=stats))
+        params, stats = best.params, best.stats
     support = support_of(stats)
     seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
         f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
-    interval = samples = effective = None
+    interval = samples = effective = sample_logliks = None
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
@@ -924,8 +1124,10 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                 shown[0] = done
                 say(f'bootstrap {done}/{bootstrap} ({time.perf_counter() - t1:.1f} s)')
         runs = run_em_batch(data, [params] * bootstrap, hold, tol, max_iter, weights,
-                            progress=show)
+                            method=method, progress=show,
+                            curvature=curvature)
         samples = np.stack([run.params.vector() for run in runs])
+        sample_logliks = np.array([run.trace[-1] for run in runs])
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
         effective = effective_support(params.vector(), samples)
         seconds['bootstrap'] = time.perf_counter() - t1
@@ -938,7 +1140,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      best.converged, relabelled, support, interval, samples, effective,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
-                     data.issues, seconds, min_support)
+                     data.issues, seconds, min_support, sample_logliks)
 
 
 def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:

@@ -47,7 +47,7 @@ import math
 import numpy as np
 
 from ..config import Config
-from ..learning.fit import FAMILIES, FitData, FitError, Params, fit, run_em
+from ..learning.fit import EM, FAMILIES, FitData, FitError, Params, fit, run_em
 from ..model import N_HIDDEN, N_OBSERVATIONS
 
 NO_OBSERVATION = N_OBSERVATIONS          # FitData.observation's "none"
@@ -72,7 +72,7 @@ def statistic(data: FitData, running: Config, tol: float = 1e-6, max_iter: int =
     start = theta0.copy()
     start.pi = np.full(N_HIDDEN, 1.0 / N_HIDDEN)
     try:
-        null = run_em(data, start, FAMILIES, tol, max_iter, accelerate=False)
+        null = run_em(data, start, FAMILIES, tol, max_iter, method=EM)
     except FitError as exc:
         return Statistic(math.inf, -math.inf, math.nan, start.pi, str(exc))
     loglik0 = null.trace[-1]
