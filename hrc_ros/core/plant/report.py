@@ -149,7 +149,7 @@ def markdown(plant: dict) -> str:
              'recordings, the ones it was solved from; optimistic for it, reported, never '
              'deciding (docs/FLEET.md).', '',
              '| cell | namespace | decision | drift p | cost new - running, held out (95%) | '
-             'in-sample (not deciding) | collision epochs new / running | '
+             'in-sample (not deciding) | collision epochs new / running, held out | '
              'refused new / running | moved | reason |',
              '|---|---|---|---|---|---|---|---|---|---|']
     for e in entries:
