@@ -83,6 +83,8 @@ CELL = '  - name: a\n    recordings: x.csv\n'
     ('defaults:\n  recordings: x\ncells:\n' + CELL, 'recordings is set per cell'),
     ('cells:\n' + CELL + '  - name: b\n    namespace: /a\n    recordings: y.csv\n',
      'namespace /a is also the namespace of cell a'),
+    ('cells:\n' + CELL + '    evaluate: {worlds: 1}\n',
+     'evaluate.worlds must be 0 or an integer in 2..1000'),
     ('cells: [\n', 'is not valid YAML'),
     ('celss: []\n', "unknown top-level key 'celss'"),
 ])
@@ -274,6 +276,44 @@ def test_bootstrap_summary_applies_fits_rules_to_resamples_made_elsewhere(defaul
     np.testing.assert_array_equal(again.interval, whole.interval)
     np.testing.assert_array_equal(again.effective, whole.effective)
     assert again.warnings == whole.warnings
+
+
+# -- the held-out check's pieces --------------------------------------------------------------
+def episode(name: str, epochs: int, first: int = 1):
+    from hrc_ros.core.learning.recordings import Recording
+    k = np.arange(first, first + epochs)
+    return Recording('x.csv', name, k, np.zeros((epochs, 8), dtype=int), k % 4, k % 3,
+                     k % 5, np.full(epochs, -1), k + 1)
+
+
+def test_the_halves_are_the_earlier_and_the_later_epochs_the_middle_episode_cut():
+    from hrc_ros.core.plant.stages import halves, tail
+    recordings = [episode('a', 30), episode('b', 50), episode('c', 21)]    # 101 epochs
+    earlier, later = halves(recordings)
+    assert [(r.episode, len(r)) for r in earlier] == [('a', 30), ('b', 21)]
+    assert [(r.episode, len(r)) for r in later] == [('b', 29), ('c', 21)]
+    assert earlier[1].epoch[-1] + 1 == later[0].epoch[0] == 22            # cut, not overlapping
+    assert earlier[0] is recordings[0] and later[1] is recordings[2]
+    whole = np.concatenate([r.action for r in earlier + later])
+    assert np.array_equal(whole, np.concatenate([r.action for r in recordings]))
+    assert [(r.episode, len(r)) for r in tail(recordings, 25)] == [('b', 4), ('c', 21)]
+    assert tail(recordings, 500) == recordings and tail(recordings, 0) == []
+
+
+def test_the_interval_over_worlds_is_wider_than_the_one_over_their_episodes():
+    from scipy.stats import t as student
+    from hrc_ros.core.plant.stages import clustered, paired
+    rng = np.random.default_rng(5)
+    shifts = np.array([-2.0, 1.0, 0.5, -1.5, 2.0])        # what the worlds disagree on
+    new = [10 + s + rng.normal(0, 1, 200) for s in shifts]
+    running = [np.full(200, 10.0) for _ in shifts]
+    c = clustered(new, running)
+    means = np.array([np.mean(n - r) for n, r in zip(new, running)])
+    assert c['worlds'] == 5 and c['mean'] == pytest.approx(means.mean())
+    assert c['half_width'] == pytest.approx(student.ppf(0.975, 4) * means.std(ddof=1)
+                                            / np.sqrt(5))
+    flat = paired(np.concatenate(new), np.concatenate(running))
+    assert flat['mean'] == pytest.approx(c['mean']) and c['half_width'] > 5 * flat['half_width']
 
 
 # -- the drift test's pieces ------------------------------------------------------------------
