@@ -83,6 +83,8 @@ CELL = '  - name: a\n    recordings: x.csv\n'
     ('defaults:\n  recordings: x\ncells:\n' + CELL, 'recordings is set per cell'),
     ('cells:\n' + CELL + '  - name: b\n    namespace: /a\n    recordings: y.csv\n',
      'namespace /a is also the namespace of cell a'),
+    ('cells:\n' + CELL + '    evaluate: {worlds: 1}\n',
+     'evaluate.worlds must be 0 or an integer in 2..1000'),
     ('cells: [\n', 'is not valid YAML'),
     ('celss: []\n', "unknown top-level key 'celss'"),
 ])
@@ -171,7 +173,7 @@ def test_no_drift_keeps_the_cell_without_fitting(tmp_path):
     p.done('null.1', {'statistics': [40.0] * 10})
     p.done('null.2', {'statistics': [40.0] * 10})
     out = p.done('null.3', {'statistics': [40.0] * 9})
-    assert keys(out) == ['outputs'] and out[0].args[1:] == (None, None, None, None)
+    assert keys(out) == ['outputs'] and out[0].args[1:] == (None,) * 5
     assert p.entry['decision'] == KEEP and p.entry['drift_p'] == pytest.approx(11 / 40)
     assert 'no drift' in p.entry['reason']
     write = p.done('outputs', {'files': ['cell_report.json']})
@@ -187,7 +189,7 @@ def test_drift_starts_the_fit_and_a_failure_fails_only_that_cell(tmp_path):
     for i in range(3):
         p.done(f'null.{i}', {'statistics': [10.0] * 10})
     fit = p.done('null.3', {'statistics': [10.0] * 9})
-    assert keys(fit) == ['fit'] and p.entry['drift_p'] == 0.025
+    assert keys(fit) == ['fit', 'fold.0', 'fold.1'] and p.entry['drift_p'] == 0.025
     boots = p.done('fit', {'iterations': 12, 'loglik': -5.0})
     assert keys(boots) == ['boot.0', 'boot.1', 'boot.2']
     assert [len(j.args[-1]) for j in boots] == [10, 10, 5]
@@ -205,7 +207,9 @@ def test_drift_starts_the_fit_and_a_failure_fails_only_that_cell(tmp_path):
 def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
     p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9)
     p.start()
-    assert keys(p.done('read', READ)) == ['drift', 'fit']
+    first = p.done('read', READ)
+    assert keys(first) == ['drift', 'fit', 'fold.0', 'fold.1']
+    assert [j.args[1] for j in first[2:]] == [0, 1]            # the two halves
     summary = p.done('fit', {'iterations': 3, 'loglik': -1.0})
     assert keys(summary) == ['summary'] and summary[0].args[:2] == (Ref('fit'),
                                                                     Ref('@base:a'))
@@ -214,11 +218,22 @@ def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
     assert keys(solve) == ['mdp']
     assert keys(p.done('drift', DRIFT)) == ['null.0']
     assert p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0}) == []
+    assert p.done('fold.1', {'half': 'the later half'}) == []
     shadow = p.done('null.0', {'statistics': [100.0] * 9})     # no drift, but run: always
     assert keys(shadow) == ['shadow'] and p.entry['drift_p'] == 1.0
-    outputs = p.done('shadow', figures((-1.0, -2.0, -0.5)) | {'epochs': 50, 'seed': 0,
-                                                                'selector': 'paper'})
-    assert keys(outputs) == ['outputs'] and p.entry['decision'] == PROMOTE
+    heldout = p.done('fold.0', {'half': 'the earlier half'})
+    assert keys(heldout) == ['heldout']
+    assert heldout[0].args[1:3] == (Ref('fold.0'), Ref('fold.1'))
+    # in-sample cheaper and safe, held out not: the held-out figures decide
+    inside = figures((-1.0, -2.0, -0.5)) | {'world': 'in-sample'}
+    assert p.done('shadow', inside) == []                       # waits for the held-out
+    held = figures((0.2, -0.3, 0.7)) | {'world': 'held out', 'folds': [], 'worlds': 10,
+                                        'epochs': 50, 'seed': 0, 'selector': 'paper'}
+    outputs = p.done('heldout', held)
+    assert keys(outputs) == ['outputs'] and p.entry['decision'] == KEEP
+    assert 'held out' in p.entry['reason'] and p.entry['cost_difference']['high'] == 0.7
+    assert p.entry['shadow']['in_sample']['decision'] == PROMOTE
+    assert outputs[0].args[-2:] == (Ref('shadow'), Ref('heldout'))
 
 
 def test_a_stage_error_or_bug_becomes_the_cells_reason():
@@ -261,6 +276,44 @@ def test_bootstrap_summary_applies_fits_rules_to_resamples_made_elsewhere(defaul
     np.testing.assert_array_equal(again.interval, whole.interval)
     np.testing.assert_array_equal(again.effective, whole.effective)
     assert again.warnings == whole.warnings
+
+
+# -- the held-out check's pieces --------------------------------------------------------------
+def episode(name: str, epochs: int, first: int = 1):
+    from hrc_ros.core.learning.recordings import Recording
+    k = np.arange(first, first + epochs)
+    return Recording('x.csv', name, k, np.zeros((epochs, 8), dtype=int), k % 4, k % 3,
+                     k % 5, np.full(epochs, -1), k + 1)
+
+
+def test_the_halves_are_the_earlier_and_the_later_epochs_the_middle_episode_cut():
+    from hrc_ros.core.plant.stages import halves, tail
+    recordings = [episode('a', 30), episode('b', 50), episode('c', 21)]    # 101 epochs
+    earlier, later = halves(recordings)
+    assert [(r.episode, len(r)) for r in earlier] == [('a', 30), ('b', 21)]
+    assert [(r.episode, len(r)) for r in later] == [('b', 29), ('c', 21)]
+    assert earlier[1].epoch[-1] + 1 == later[0].epoch[0] == 22            # cut, not overlapping
+    assert earlier[0] is recordings[0] and later[1] is recordings[2]
+    whole = np.concatenate([r.action for r in earlier + later])
+    assert np.array_equal(whole, np.concatenate([r.action for r in recordings]))
+    assert [(r.episode, len(r)) for r in tail(recordings, 25)] == [('b', 4), ('c', 21)]
+    assert tail(recordings, 500) == recordings and tail(recordings, 0) == []
+
+
+def test_the_interval_over_worlds_is_wider_than_the_one_over_their_episodes():
+    from scipy.stats import t as student
+    from hrc_ros.core.plant.stages import clustered, paired
+    rng = np.random.default_rng(5)
+    shifts = np.array([-2.0, 1.0, 0.5, -1.5, 2.0])        # what the worlds disagree on
+    new = [10 + s + rng.normal(0, 1, 200) for s in shifts]
+    running = [np.full(200, 10.0) for _ in shifts]
+    c = clustered(new, running)
+    means = np.array([np.mean(n - r) for n, r in zip(new, running)])
+    assert c['worlds'] == 5 and c['mean'] == pytest.approx(means.mean())
+    assert c['half_width'] == pytest.approx(student.ppf(0.975, 4) * means.std(ddof=1)
+                                            / np.sqrt(5))
+    flat = paired(np.concatenate(new), np.concatenate(running))
+    assert flat['mean'] == pytest.approx(c['mean']) and c['half_width'] > 5 * flat['half_width']
 
 
 # -- the drift test's pieces ------------------------------------------------------------------
@@ -516,6 +569,47 @@ def test_a_worker_killed_mid_task_is_retried_and_the_report_is_right(ray_session
     assert entry['decision'] == KEEP, entry['reason']
     assert entry['drift_p'] == reference['drift_p']
     assert entry['drift']['statistic'] == reference['drift']['statistic']
+
+
+UNCHANGED_ALWAYS = """\
+plant: optimism
+cells:
+  - name: unchanged_always
+    policy: {policy}
+    run: always
+    seed: 14
+    drift: {{simulations: 9}}
+    fit: {{bootstrap: 0}}
+    generate: {{world: {{}}, episodes: 20, epochs: 50, seed: 1014}}
+"""
+
+
+def test_an_unchanged_cell_the_in_sample_check_would_promote_is_kept_held_out(
+        ray_session, tmp_path, policy_path):
+    """The cell's people are the default's, so nothing should be promoted. Fitted from its
+    1000 epochs the refit policy is cheaper, with 95% confidence and no less safe, in the
+    world fitted from those same epochs (the in-sample figures, the old rule: promote); held
+    out (each half's policy in the world fitted from the other half) it is dearer, so the
+    cell is kept. Seeded (recordings, fit, episodes): the figures are the same every run;
+    this cell is seed 14 of bench/shadow_bench.py's unchanged cells."""
+    from hrc_ros.tools.fleet import Progress, run_plant
+    (tmp_path / 'plant.yaml').write_text(UNCHANGED_ALWAYS.format(policy=policy_path))
+    report = run_plant(load_plant(tmp_path / 'plant.yaml'), tmp_path / 'out',
+                       progress=Progress(quiet=True))
+    (entry,) = report['cells']
+    inside = entry['shadow']['in_sample']
+    assert inside['decision'] == PROMOTE and inside['discounted_cost']['high'] < 0
+    assert decide(inside, 'in-sample')[0] == PROMOTE          # the old rule on its figures
+    assert 'all the recordings' in inside['world']
+    assert entry['decision'] == KEEP, entry['reason']
+    assert 'held out' in entry['reason'] and entry['cost_difference']['high'] >= 0
+    folds = entry['shadow']['folds']
+    assert [(f['policy_fitted_from'], f['world_fitted_from']) for f in folds] == [
+        ('the earlier half', 'the later half'), ('the later half', 'the earlier half')]
+    assert [f['epochs'] for f in entry['folds']] == [500, 500]
+    markdown = (tmp_path / 'out' / 'plant_report.md').read_text()
+    assert 'fitted from the later half' in markdown and 'the rule there would say promote' \
+        in markdown
 
 
 class Stream:

@@ -11,15 +11,22 @@ resamples, what a failure stops and the decision are unit tests, whatever runs t
     [generate -> save]  ->  read  ->  drift_observed  ->  drift_null x K  ->  p
         run on_drift and p >= alpha: keep (no drift), nothing fitted
         otherwise: fit_point -> bootstrap x M -> fit_summary -> solve_mdp [-> solve_pomdp]
-                   -> shadow -> decide -> outputs -> write
-    (run always: the fit starts beside the drift test instead of after it.)
+                   -> shadow (the in-sample figures, reported)
+          beside it: fold x 2 (each half of the recordings fitted and solved) -> heldout
+          both done: decide (on heldout's figures) -> outputs -> write
+    (run always: the fits start beside the drift test instead of after it.)
 
 The promotion rule (`decide`), exactly: promote when the new policy's discounted cost minus
-the running one's, over the same episodes in the cell as now fitted, has a 95% interval whose
-upper end is below zero, AND its mean collision epochs and mean refused requests per episode
-are not above the running policy's (paired mean difference <= 0: safety is not traded for
-cost, not even within noise); otherwise keep, with the figures. A failed stage fails the cell
-with its reason (decision `failed`); the other cells go on.
+the running one's, held out (2-fold cross-fitting: the policy fitted and solved from one half
+of the recordings and the running pair over the same episodes in the world fitted from the
+other half, and the roles swapped, each episode's two differences averaged), has a 95%
+interval whose upper end is below zero, AND its mean collision epochs and mean refused
+requests per episode, held out alike, are not above the running policy's (paired mean
+difference <= 0: safety is not traded for cost, not even within noise); otherwise keep, with
+the figures. The in-sample figures (the new policy in the world fitted from the recordings it
+was solved from) are reported beside them and do not decide: the new policy is optimal for
+that world, so it wins there even when the cell did not change (docs/FLEET.md). A failed
+stage fails the cell with its reason (decision `failed`); the other cells go on.
 """
 
 from __future__ import annotations
@@ -32,8 +39,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import drift
-from .spec import CHUNK, CellSpec
-from .stages import STAGES, CellError
+from .spec import CHUNK, POMDP_SELECTORS, CellSpec
+from .stages import SHADOW_METRICS, STAGES, CellError
 
 PROMOTE, KEEP, FAILED = 'promote', 'keep', 'failed'
 ANY, DRIVER_NODE, DRIVER = 'any', 'driver_node', 'driver'
@@ -58,11 +65,13 @@ class Job:
     label: str = ''     # for the progress bar
 
 
-def decide(shadow: dict) -> tuple[str, str]:
-    """The promotion rule (module docstring) on the shadow check's paired figures."""
+def decide(shadow: dict, world: str = 'held out') -> tuple[str, str]:
+    """The promotion rule (module docstring) on the shadow check's paired figures, measured
+    in `world` (named in the reason)."""
     cost = shadow['discounted_cost']
     figures = (f'cost new - running {cost["mean"]:+.3f} [{cost["low"]:+.3f}, '
-               f'{cost["high"]:+.3f}] per episode (95%, {shadow["episodes"]} paired episodes)')
+               f'{cost["high"]:+.3f}] per episode (95%, {shadow["episodes"]} paired episodes, '
+               f'{world})')
     if not (math.isfinite(cost['high']) and cost['high'] < 0):
         return KEEP, (f'the new policy is not cheaper with 95% confidence: {figures}')
     for metric, what in (('collision_epochs', 'collision epochs'),
@@ -105,7 +114,9 @@ class CellPipeline:
     _fitting: bool = False
     _summarised: bool = False
     _solves: set = field(default_factory=set)
-    _shadow_started: bool = False
+    _folds: set = field(default_factory=set)
+    _started: set = field(default_factory=set)      # of shadow, heldout
+    _checks: dict = field(default_factory=dict)     # their facts
 
     def __post_init__(self):
         s = self.spec
@@ -141,9 +152,16 @@ class CellPipeline:
                          where=DRIVER_NODE)
 
     def _fit(self) -> list[Job]:
+        """The fit of all the recordings and, beside it, of each half (the held-out check's
+        folds)."""
+        s = self.spec
         self._fitting = True
-        return [self._job('fit', 'fit_point', Ref('read'), self._object('base'),
-                          self.spec.fit, self.spec.seed)]
+        pomdp = s.pomdp if s.selector in POMDP_SELECTORS else None
+        return [self._job('fit', 'fit_point', Ref('read'), self._object('base'), s.fit, s.seed)
+                ] + [self._job(f'fold.{half}', 'fold', Ref('read'), half, self._object('base'),
+                               s.fit, s.seed, s.max_memory_mb, pomdp, s.evaluate['worlds'],
+                               label='fit and solve halves')
+                     for half in (0, 1)]
 
     def done(self, key: str, facts: dict) -> list[Job]:
         """The stage `key` finished with `facts` ({'error': ...} when it failed)."""
@@ -211,14 +229,17 @@ class CellPipeline:
             if self._solves:
                 return []
             return self._after_fit()
-        if key == 'shadow':
-            for metric in ('collision_epochs', 'refused_requests'):
-                self.entry[metric] = facts[metric]
-            self.entry['cost_difference'] = facts['discounted_cost']
-            self.entry['shadow'] = {k: facts[k] for k in ('episodes', 'epochs', 'seed',
-                                                          'selector')}
-            decision, reason = decide(facts)
-            return self._outputs(decision, reason, shadow=True)
+        if key.startswith('fold.'):
+            self._folds.add(key)
+            self.entry.setdefault('folds', []).append(
+                {k: v for k, v in facts.items() if k != 'seconds'})
+            self.entry['folds'].sort(key=lambda f: f['half'])
+            return self._after_fit()
+        if key in ('shadow', 'heldout'):
+            self._checks[key] = facts
+            if len(self._checks) < 2:
+                return []
+            return self._decided()
         if key == 'outputs':
             self.entry['files'] = facts['files']
             self.stage = 'write'
@@ -237,29 +258,52 @@ class CellPipeline:
                          self.entry['recordings'], *(Ref(f'boot.{i}') for i in range(chunks)))
 
     def _after_fit(self) -> list[Job]:
-        """Solve once the fit is summarised; the shadow check once the drift test says so
-        (or run: always) and the solves are done."""
+        """Solve once the fit is summarised; once the drift test says so (or run: always),
+        the in-sample figures once the solves are done and the held-out check once both
+        halves are fitted and solved."""
         s = self.spec
-        if not self._summarised:
-            return []
-        if 'mdp' not in self.entry.get('solve', {}) and 'mdp' not in self._solves:
+        jobs: list[Job] = []
+        if (self._summarised and 'mdp' not in self.entry.get('solve', {})
+                and 'mdp' not in self._solves):
             self.stage = 'solve'
             self._solves = {'mdp'} | ({'pomdp'} if s.solves_pomdp else set())
-            jobs = [self._job('mdp', 'solve_mdp', Ref('summary'), s.max_memory_mb,
-                              label='solve')]
+            jobs.append(self._job('mdp', 'solve_mdp', Ref('summary'), s.max_memory_mb,
+                                  label='solve'))
             if s.solves_pomdp:
                 jobs.append(self._job('pomdp', 'solve_pomdp', Ref('summary'), s.pomdp, s.seed,
                                       s.max_memory_mb, label='solve pomdp'))
+        if self._drift_p() is None:
             return jobs
-        if self._solves or self._drift_p() is None:
-            return []
-        if self._shadow_started:
-            return []
-        self._shadow_started = True
-        self.stage = 'shadow check'
-        return [self._job('shadow', 'shadow', self._object('running'), Ref('summary'),
-                          Ref('mdp'), Ref('pomdp') if s.solves_pomdp else None, s.selector,
-                          s.evaluate, s.seed, label='shadow check')]
+        if (self._summarised and not self._solves and 'mdp' in self.entry.get('solve', {})
+                and 'shadow' not in self._started):
+            self._started.add('shadow')
+            self.stage = 'shadow check'
+            jobs.append(self._job('shadow', 'shadow', self._object('running'), Ref('summary'),
+                                  Ref('mdp'), Ref('pomdp') if s.solves_pomdp else None,
+                                  s.selector, s.evaluate, s.seed, label='shadow check'))
+        if len(self._folds) == 2 and 'heldout' not in self._started:
+            self._started.add('heldout')
+            self.stage = 'shadow check'
+            jobs.append(self._job('heldout', 'heldout', self._object('running'), Ref('fold.0'),
+                                  Ref('fold.1'), s.selector, s.evaluate, s.seed,
+                                  label='shadow check'))
+        return jobs
+
+    def _decided(self) -> list[Job]:
+        """The rule on the held-out figures; the in-sample ones reported beside them, with
+        what the rule would have said on them."""
+        held, inside = self._checks['heldout'], self._checks['shadow']
+        for metric in ('collision_epochs', 'refused_requests'):
+            self.entry[metric] = held[metric]
+        self.entry['cost_difference'] = held['discounted_cost']
+        in_sample_decision, _ = decide(inside, 'in-sample')
+        self.entry['shadow'] = {
+            **{k: held[k] for k in ('world', 'folds', 'worlds', 'episodes', 'epochs', 'seed',
+                                    'selector')},
+            'in_sample': {**{k: inside[k] for k in ('world', 'episodes') + SHADOW_METRICS},
+                          'decision': in_sample_decision}}
+        decision, reason = decide(held)
+        return self._outputs(decision, reason, shadow=True)
 
     def _drift_p(self) -> float | None:
         return self.entry['drift_p']
@@ -289,11 +333,11 @@ class CellPipeline:
         self.stage = 'outputs'
         if not shadow:
             return [self._job('outputs', 'outputs', self._report(), None, None, None, None,
-                              label='outputs')]
+                              None, label='outputs')]
         s = self.spec
         return [self._job('outputs', 'outputs', self._report(), Ref('summary'), Ref('mdp'),
                           Ref('pomdp') if s.solves_pomdp else None, Ref('shadow'),
-                          label='outputs')]
+                          Ref('heldout'), label='outputs')]
 
     def _report(self) -> dict:
         return json.loads(json.dumps(self.entry, default=float))

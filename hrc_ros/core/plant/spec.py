@@ -19,7 +19,7 @@
                                    # always: every run
         drift: {window: 1000, alpha: 0.05, simulations: 199}
         fit: {bootstrap: 50, starts: 2, tol: 1.0e-7, max_iter: 1000, hold: [], window: null}
-        evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2}
+        evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2, worlds: 0}
         pomdp: {episodes: 2000, rounds: 1}
         max_memory_mb: null        # a solve whose memory estimate is above this fails
         retries: 3                 # Ray's retries of a task whose worker died
@@ -67,7 +67,7 @@ SECTIONS = {
             'tol': ('float:1e-15:1', 1e-7), 'max_iter': ('int:1:100000', 1000),
             'hold': ('families', ()), 'window': ('int_or_null:20:1000000000', None)},
     'evaluate': {'episodes': ('int:10:1000000', 1000), 'epochs': ('int:1:100000', 50),
-                 'task_rate': ('prob', 0.2)},
+                 'task_rate': ('prob', 0.2), 'worlds': ('worlds', 0)},
     'pomdp': {'episodes': ('int:1:100000', 2000), 'rounds': ('int:0:20', 1)},
     'generate': {'world': ('world', None), 'episodes': ('int:1:1000000', 40),
                  'epochs': ('int:1:100000', 50), 'explore': ('prob', 0.2),
@@ -169,6 +169,11 @@ def _value(where: str, key: str, kind, value):
         if not ok:
             raise bad('a probability in [0, 1]' if kind == 'prob' else 'a number in (0, 1)')
         return float(value)
+    if kind == 'worlds':        # 0 (the other half's fit alone) or 2..1000 bootstrap worlds
+        if isinstance(value, bool) or not isinstance(value, int) or not (
+                value == 0 or 2 <= value <= 1000):
+            raise bad('0 or an integer in 2..1000')
+        return value
     if kind == 'families':
         from ..learning.fit import FitError, expand_hold
         if isinstance(value, str):

@@ -10,7 +10,7 @@ bytes and the driver writes them (`paths.replace_file`), so workers need no shar
 The recordings are read where they are (`read` runs on the driver's node).
 
     generate       the batch simulator records the running policy in another world (CSV)
-    read           recordings -> the fit's arrays, all of them and the drift window
+    read           recordings -> the fit's arrays: all of them, the drift window, two halves
     drift_observed the likelihood ratio of the window against the running model (drift.py)
     drift_null     the same statistic on recordings simulated under the running model
     fit_point      EM from the running configuration (core.learning.fit)
@@ -18,7 +18,10 @@ The recordings are read where they are (`read` runs on the driver's node).
     fit_summary    intervals, the fitted configuration and what moved
     solve_mdp      value iteration of the fitted configuration
     solve_pomdp    the POMDP over the belief (solver pomdp or both)
-    shadow         both policies in the cell as now fitted, paired episodes
+    fold           one half of the recordings fitted and solved (bootstrap-free)
+    shadow         both policies in the world fitted from all recordings (in-sample figures)
+    heldout        the promotion rule's figures: each half's policy and the running one in
+                   the world fitted from the other half, paired episodes
     outputs        the files of the cell: fitted YAML and report, policies, report, plots
 """
 
@@ -27,6 +30,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import tempfile
 import time
 from dataclasses import replace
@@ -102,21 +106,35 @@ def generate(base: Config, policy, settings: dict, selector: str) -> tuple[dict,
 
 
 # -- read -------------------------------------------------------------------------------------
+def span(recordings: list[Recording], start: int, stop: int) -> list[Recording]:
+    """Epochs `start`..`stop` - 1 of the recordings taken one after the other, in order; an
+    episode that straddles either end is cut there."""
+    out, at = [], 0
+    for r in recordings:
+        low, high = max(start - at, 0), min(stop - at, len(r))
+        at += len(r)
+        if low >= high:
+            continue
+        if (low, high) == (0, len(r)):
+            out.append(r)
+            continue
+        cut = slice(low, high)
+        out.append(replace(r, **{f: getattr(r, f)[cut] for f in FIT_TASK_FIELDS}))
+    return out
+
+
 def tail(recordings: list[Recording], epochs: int) -> list[Recording]:
     """The last `epochs` epochs of the recordings, in order; the oldest episode kept is cut
     at the window's start."""
-    out, left = [], epochs
-    for r in reversed(recordings):
-        if left <= 0:
-            break
-        if len(r) <= left:
-            out.append(r)
-            left -= len(r)
-            continue
-        cut = slice(len(r) - left, len(r))
-        out.append(replace(r, **{f: getattr(r, f)[cut] for f in FIT_TASK_FIELDS}))
-        left = 0
-    return out[::-1]
+    total = sum(len(r) for r in recordings)
+    return span(recordings, max(total - epochs, 0), total)
+
+
+def halves(recordings: list[Recording]) -> tuple[list[Recording], list[Recording]]:
+    """The earlier and the later half of the recordings' epochs, in time order (the episode
+    in the middle is cut there): the two folds of the held-out shadow check."""
+    total = sum(len(r) for r in recordings)
+    return span(recordings, 0, total - total // 2), span(recordings, total - total // 2, total)
 
 
 def read(paths, rho: int, sigma: int, namespace: str, window: int,
@@ -140,13 +158,15 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
         used = recordings if fit_window is None else tail(recordings, fit_window)
         data = fitting.prepare(used)
         recent = fitting.prepare(tail(recordings, window))
+        folds = tuple(fitting.prepare(h) for h in halves(used))
     except (RecordingError, fitting.FitError) as exc:
         raise CellError(f'recordings: {" ".join(str(exc).split())}') from None
     facts = {'files': [str(f) for f in files], 'epochs': data.epochs,
              'episodes': len(data.episodes), 'window_epochs': recent.epochs,
+             'halves': [f.epochs for f in folds],
              'issues': len(data.issues), 'first_issues': data.issues[:5],
              'seconds': _seconds(t0)}
-    return facts, {'all': data, 'window': recent}
+    return facts, {'all': data, 'window': recent, 'halves': folds}
 
 
 # -- drift ------------------------------------------------------------------------------------
@@ -193,18 +213,24 @@ def bootstrap_counts(n_episodes: int, seed) -> np.ndarray:
     return rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
 
 
+def resample_fits(data: fitting.FitData, point: fitting.FitResult, settings: dict, seeds
+                  ) -> list[fitting.Params]:
+    """The fit of one resample of the episodes per seed, by EM from the estimate."""
+    out = []
+    for seed in seeds:
+        counts = bootstrap_counts(len(data.episodes), seed)
+        out.append(fitting.run_em(data, point.params, point.hold, settings['tol'],
+                                  settings['max_iter'],
+                                  seg_weight=counts[data.seg_episode].astype(float)).params)
+    return out
+
+
 def bootstrap(data: dict, point: fitting.FitResult, settings: dict, seeds
               ) -> tuple[dict, np.ndarray]:
-    """The fit of one resample of the episodes per seed, by EM from the estimate: (n, 57)."""
+    """`resample_fits` of all the recordings, as rows of the 57 parameters: (n, 57)."""
     t0 = time.perf_counter()
-    fit_data = data['all']
-    out = np.empty((len(seeds), len(fitting.PARAMETER_NAMES)))
-    for i, seed in enumerate(seeds):
-        counts = bootstrap_counts(len(fit_data.episodes), seed)
-        run = fitting.run_em(fit_data, point.params, point.hold, settings['tol'],
-                             settings['max_iter'],
-                             seg_weight=counts[fit_data.seg_episode].astype(float))
-        out[i] = run.params.vector()
+    fits = resample_fits(data['all'], point, settings, seeds)
+    out = np.array([p.vector() for p in fits]).reshape(len(seeds), len(fitting.PARAMETER_NAMES))
     return {'resamples': len(seeds), 'seconds': _seconds(t0)}, out
 
 
@@ -313,6 +339,9 @@ def solve_pomdp(summary: dict, settings: dict, seed: int, max_memory_mb: int | N
 
 # -- the shadow check -------------------------------------------------------------------------
 SHADOW_METRICS = ('discounted_cost', 'collision_epochs', 'refused_requests')
+HALVES = ('the earlier half', 'the later half')
+IN_SAMPLE_WORLD = ('fitted from all the recordings, the ones the new policy was solved from '
+                   '(optimistic for it: not used to decide)')
 
 
 def paired(new: np.ndarray, running: np.ndarray) -> dict:
@@ -324,34 +353,140 @@ def paired(new: np.ndarray, running: np.ndarray) -> dict:
     return {**d, 'new': float(np.mean(new)), 'running': float(np.mean(running))}
 
 
-def shadow(running: dict, summary: dict, mdp: dict, pomdp: dict | None, selector: str,
-           settings: dict, seed: int) -> tuple[dict, dict]:
-    """The running pair (its configuration, policy and, for pomdp / fib, POMDP policy) and
-    the new one, each planning with its own model and belief filter, in the world of the
-    fitted configuration: `hrc-evaluate --true-config`'s machinery on the same seeded
-    episodes, so every difference is paired (common random numbers)."""
+def _both_in(world: Config, running: dict, config: Config, policy, pomdp, selector: str,
+             settings: dict, seed: int) -> dict:
+    """metric -> (new, running) per-episode arrays: the running pair (its configuration,
+    policy and, for pomdp / fib, POMDP policy) and the new one, each planning with its own
+    model and belief filter, in the world `world`: `hrc-evaluate --true-config`'s machinery
+    on the same seeded episodes, so every difference is paired (common random numbers)."""
     from ..study.evaluation import evaluate
-    t0 = time.perf_counter()
-    world = HRCModel(summary['config'])
     common = dict(episodes=settings['episodes'], epochs=settings['epochs'], seed=seed,
-                  task_rate=settings['task_rate'], selectors=(selector,), world=world)
+                  task_rate=settings['task_rate'], selectors=(selector,),
+                  world=HRCModel(world))
     try:
         old = evaluate(HRCModel(running['config']), running['policy'],
                        pomdp=running.get('pomdp'), **common)[selector]
-        new = evaluate(world, mdp['result'], pomdp=None if pomdp is None else pomdp['policy'],
-                       **common)[selector]
+        new = evaluate(HRCModel(config), policy, pomdp=pomdp, **common)[selector]
     except (ValueError, RuntimeError) as exc:
         raise CellError(f'shadow check: {exc}') from None
-    facts = {metric: paired(getattr(new, metric), getattr(old, metric))
+    return {metric: (getattr(new, metric).astype(float), getattr(old, metric).astype(float))
+            for metric in SHADOW_METRICS}
+
+
+def shadow(running: dict, summary: dict, mdp: dict, pomdp: dict | None, selector: str,
+           settings: dict, seed: int) -> tuple[dict, dict]:
+    """The in-sample figures: the running pair and the new one (fitted from all the
+    recordings, its policy) in the world fitted from those same recordings. Reported beside
+    the held-out check (`heldout`), which decides: here the new policy is scored in the
+    world it was planned for."""
+    t0 = time.perf_counter()
+    runs = _both_in(summary['config'], running, summary['config'], mdp['result'],
+                    None if pomdp is None else pomdp['policy'], selector, settings, seed)
+    facts = {metric: paired(*runs[metric]) for metric in SHADOW_METRICS}
+    facts.update(world=IN_SAMPLE_WORLD, episodes=settings['episodes'],
+                 epochs=settings['epochs'], seed=seed, selector=selector,
+                 seconds=_seconds(t0))
+    cost = runs['discounted_cost']
+    return facts, {'difference': cost[0] - cost[1]}
+
+
+def fold(data: dict, half: int, base: Config, fit_settings: dict, seed: int,
+         max_memory_mb: int | None, pomdp_settings: dict | None, worlds: int
+         ) -> tuple[dict, dict]:
+    """One half of the recordings (`read`'s 'halves'): fitted as `fit_point` fits and solved
+    as `solve_mdp` (and, for the pomdp and fib selectors, as `solve_pomdp`) solves, the
+    candidate of this fold; and `worlds` bootstrap resamples of the half's episodes refitted
+    from its estimate (as `bootstrap` refits, seeds [seed, 3 + half, b]), the worlds the other
+    fold's candidate is evaluated in: what the people of this half may be, given its epochs."""
+    t0 = time.perf_counter()
+    which = HALVES[half]
+    half_data = {'all': data['halves'][half]}
+    try:
+        point_facts, point = fit_point(half_data, base, fit_settings, seed)
+        _, summary = fit_summary(point, base, [f'{which} of the recordings'])
+        _, mdp = solve_mdp(summary, max_memory_mb)
+        pomdp = (None if pomdp_settings is None else
+                 solve_pomdp(summary, pomdp_settings, seed, max_memory_mb)[1]['policy'])
+        draws = resample_fits(half_data['all'], point, fit_settings,
+                              [[seed, 3 + half, b] for b in range(worlds)])   # none for 0
+        resampled = [Config(fitting.fitted_data(replace(point, params=params), base),
+                            source=f'{which}, bootstrap world {b}')
+                     for b, params in enumerate(draws)]
+    except (CellError, ConfigError) as exc:
+        raise CellError(f'{which} of the recordings: {exc}') from None
+    facts = {'half': which, 'epochs': point.epochs, 'episodes': point.episodes,
+             'iterations': point_facts['iterations'], 'loglik': point_facts['loglik'],
+             'worlds': worlds, 'config_sha256': summary['config'].policy_hash,
+             'seconds': _seconds(t0)}
+    return facts, {'config': summary['config'], 'policy': mdp['result'], 'pomdp': pomdp,
+                   'worlds': resampled}
+
+
+def clustered(new: list, running: list) -> dict:
+    """Mean of new - running over the episodes of K worlds (lists of per-episode arrays, the
+    same episodes for both), its 95% interval by the worlds' means: mean +- t(0.975, K - 1)
+    sd / sqrt(K), so that what the worlds disagree on is in the interval, not only the
+    episodes' noise."""
+    from scipy.stats import t as student
+    means = np.array([np.mean(n - r) for n, r in zip(new, running)])
+    k = len(means)
+    mean = float(means.mean())
+    half = float(student.ppf(0.975, k - 1) * means.std(ddof=1) / math.sqrt(k))
+    return {'mean': mean, 'half_width': half, 'low': mean - half, 'high': mean + half,
+            'worlds': k, 'new': float(np.mean([np.mean(n) for n in new])),
+            'running': float(np.mean([np.mean(r) for r in running]))}
+
+
+def _difference(new: list, running: list) -> dict:
+    """`paired` over one world's episodes, `clustered` over several worlds'."""
+    if len(new) == 1:
+        return {**paired(new[0], running[0]), 'worlds': 1}
+    return clustered(new, running)
+
+
+def heldout(running: dict, first: dict, second: dict, selector: str, settings: dict,
+            seed: int) -> tuple[dict, dict]:
+    """The held-out shadow check (docs/FLEET.md): the candidate fitted and solved from one
+    half of the recordings and the running pair, paired, in each bootstrap world of the
+    other half (with `evaluate.worlds: 0`, in the other half's fit alone), then the roles
+    swapped. World k of both folds gets the same ceil(episodes / worlds) seeded episodes
+    (seed + 1 + k); per world the two folds' differences are averaged episode by episode,
+    and the interval is over the worlds (`clustered`; over the episodes for one world).
+    Neither candidate is ever scored in a world fitted from its own epochs."""
+    t0 = time.perf_counter()
+    worlds = [fold['worlds'] or [fold['config']] for fold in (first, second)]
+    k = len(worlds[0])
+    each = dict(settings, episodes=math.ceil(settings['episodes'] / k))
+    folds, runs = [], []
+    for candidate, other, fitted, evaluated in ((first, worlds[1], 0, 1),
+                                                (second, worlds[0], 1, 0)):
+        per_world = [_both_in(world, running, candidate['config'], candidate['policy'],
+                              candidate['pomdp'], selector, each, seed + 1 + w)
+                     for w, world in enumerate(other)]
+        runs.append(per_world)
+        folds.append({'policy_fitted_from': HALVES[fitted],
+                      'world_fitted_from': HALVES[evaluated],
+                      **{metric: _difference([r[metric][0] for r in per_world],
+                                             [r[metric][1] for r in per_world])
+                         for metric in SHADOW_METRICS}})
+    facts = {metric: _difference([(a[metric][0] + b[metric][0]) / 2 for a, b in zip(*runs)],
+                                 [(a[metric][1] + b[metric][1]) / 2 for a, b in zip(*runs)])
              for metric in SHADOW_METRICS}
-    facts.update(episodes=settings['episodes'], epochs=settings['epochs'], seed=seed,
-                 selector=selector, seconds=_seconds(t0))
-    return facts, {'difference': new.discounted_cost - old.discounted_cost}
+    where = (f'{k} bootstrap worlds of the other half, the interval over the worlds' if k > 1
+             else 'the world fitted from the other half, the interval over the episodes')
+    facts.update(world=(f'held out: each half\'s candidate in {where}; the two folds '
+                        'averaged per episode'), folds=folds, episodes=each['episodes'] * k,
+                 epochs=settings['epochs'], seed=seed, selector=selector, worlds=k,
+                 seconds=_seconds(t0))
+    difference = np.concatenate([(a['discounted_cost'][0] - a['discounted_cost'][1]
+                                  + b['discounted_cost'][0] - b['discounted_cost'][1]) / 2
+                                 for a, b in zip(*runs)])
+    return facts, {'difference': difference}
 
 
 # -- outputs ----------------------------------------------------------------------------------
 def outputs(report: dict, summary: dict | None, mdp: dict | None, pomdp: dict | None,
-            shadow_payload: dict | None) -> tuple[dict, dict]:
+            shadow_payload: dict | None, heldout_payload: dict | None) -> tuple[dict, dict]:
     """The cell's files as bytes, by name: fitted.yaml, fitted.report.json, fitted.png,
     policy.npz, pomdp.npz, shadow.png and cell_report.json (last: its presence says the
     others are complete)."""
@@ -367,13 +502,14 @@ def outputs(report: dict, summary: dict | None, mdp: dict | None, pomdp: dict | 
         files['policy.npz'] = mdp['npz']
     if pomdp is not None:
         files['pomdp.npz'] = pomdp['npz']
-    if shadow_payload is not None:
+    if heldout_payload is not None:
         files['shadow.png'] = reporting.figure_bytes(reporting.plot_shadow, report,
+                                                     heldout_payload['difference'],
                                                      shadow_payload['difference'])
     files['cell_report.json'] = (json.dumps(report, indent=2, default=float) + '\n').encode()
     return {'files': sorted(files), 'seconds': _seconds(t0)}, files
 
 
 STAGES = {f.__name__: f for f in (generate, read, drift_observed, drift_null, fit_point,
-                                  bootstrap, fit_summary, solve_mdp, solve_pomdp, shadow,
-                                  outputs)}
+                                  bootstrap, fit_summary, solve_mdp, solve_pomdp, shadow, fold,
+                                  heldout, outputs)}
