@@ -53,6 +53,7 @@ os.environ.setdefault('RAY_worker_niceness', '0')
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hrc_ros.core.parallel import descendants  # noqa: E402
 from hrc_ros.core.plant.pipeline import run_serially  # noqa: E402
 from hrc_ros.core.plant.spec import load_plant  # noqa: E402
 from hrc_ros.tools import fleet  # noqa: E402
@@ -84,24 +85,6 @@ def pss_kib(pid: int) -> int:
     return 0
 
 
-def tree(pid: int) -> set[int]:
-    children: dict = {}
-    for entry in Path('/proc').iterdir():
-        if entry.name.isdigit():
-            try:
-                ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, set()).add(int(entry.name))
-    out, todo = {pid}, [pid]
-    while todo:
-        for child in children.get(todo.pop(), ()):
-            if child not in out:
-                out.add(child)
-                todo.append(child)
-    return out
-
-
 class PeakMemory:
     """The largest PSS sum over this process and its descendants, sampled in a thread."""
 
@@ -111,7 +94,8 @@ class PeakMemory:
 
     def _run(self):
         while not self._stop.is_set():
-            self.peak = max(self.peak, sum(pss_kib(p) for p in tree(os.getpid())))
+            pids = {os.getpid()} | descendants(os.getpid())
+            self.peak = max(self.peak, sum(pss_kib(p) for p in pids))
             self._stop.wait(self.period)
 
     def __enter__(self):

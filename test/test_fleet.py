@@ -28,6 +28,7 @@ import pytest
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.learning import fit as fitting
+from hrc_ros.core.parallel import descendants
 from hrc_ros.core.plant import drift
 from hrc_ros.core.plant.pipeline import (FAILED, KEEP, PROMOTE, CellPipeline, Ref, decide,
                                          run_stage)
@@ -344,24 +345,6 @@ def test_recordings_impossible_under_the_running_model_have_p_zero(default_confi
 
 
 # -- hrc-fleet run on Ray ---------------------------------------------------------------------
-def descendants(pid: int) -> set[int]:
-    children: dict = {}
-    for entry in Path('/proc').iterdir():
-        if entry.name.isdigit():
-            try:
-                ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, set()).add(int(entry.name))
-    out, todo = set(), [pid]
-    while todo:
-        for child in children.get(todo.pop(), ()):
-            if child not in out:
-                out.add(child)
-                todo.append(child)
-    return out
-
-
 @pytest.fixture(scope='module')
 def ray_session():
     """The one embedded Ray of the test session (only this module uses Ray): 2 CPUs, a

@@ -220,3 +220,21 @@ def test_the_fit_e_step_is_the_same_serial_and_parallel(real_threads):
         alone = fit.e_step(fit._unpack(x[lane], random_params(rng)), data, weights[lane])
         assert alone.loglik == pytest.approx(float(batch_s.loglik[lane]), rel=1e-12)
         np.testing.assert_allclose(alone.transitions, batch_s.transitions[lane], rtol=1e-12)
+
+
+def test_descendants_names_a_grandchild_and_not_the_parent():
+    import os
+    import subprocess
+    import sys
+    code = ('import subprocess, sys; p = subprocess.Popen([sys.executable, "-c", '
+            '"import sys; sys.stdin.read()"], stdin=subprocess.PIPE); print(p.pid, flush=True); '
+            'sys.stdin.read(); p.communicate("")')
+    child = subprocess.Popen([sys.executable, '-c', code], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        grandchild = int(child.stdout.readline())
+        found = parallel.descendants(os.getpid())
+        assert {child.pid, grandchild} <= found
+        assert os.getpid() not in found and os.getppid() not in found
+    finally:
+        child.communicate('', timeout=60)

@@ -80,6 +80,32 @@ class KernelSettingError(ValueError):
     """``HRC_KERNEL_THREADS`` (or a `set_mode` value) is not one this module accepts."""
 
 
+def descendants(pid: int) -> set[int]:
+    """Every live process below pid (children, their children, ...), read from /proc; empty
+    where /proc is missing. For measuring what a pool of workers holds (memory, stray
+    processes)."""
+    from pathlib import Path
+    children: dict[int, set[int]] = {}
+    try:
+        entries = list(Path('/proc').iterdir())
+    except OSError:
+        return set()
+    for entry in entries:
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, set()).add(int(entry.name))
+    out, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), ()):
+            if child not in out:
+                out.add(child)
+                todo.append(child)
+    return out
+
+
 def parse_mode(value) -> str | int:
     """`AUTO`, `SERIAL` or a thread count >= 2 from a `set_mode` / ``HRC_KERNEL_THREADS``
     value; KernelSettingError (a ValueError) saying what is accepted."""
