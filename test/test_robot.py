@@ -773,12 +773,12 @@ def test_a_second_writer_can_only_slow_the_arm(setup):
         command = bridge.tick(t)
     assert not command.stop and command.separation.distance > 2
     # joint states of another writer: refused, and the arm holds while it writes
-    with pytest.raises(InputError, match='second writer on joint_states'):
+    with pytest.raises(InputError, match='second writer of joint_states'):
         bridge.joint_state(JOINT_NAMES, description.poses['retreat'], np.zeros(6), t, t,
                            sequence=5)
     command = bridge.tick(t)
     assert command.stop and command.override == 0.0
-    assert 'second writer on joint_states' in command.reason
+    assert 'second writer of joint_states' in command.reason
     np.testing.assert_array_equal(bridge.q, q)
     t += int(1.05e9)                           # silent for SECOND_WRITER_HOLD (1 s): free again
     bridge.joint_state(JOINT_NAMES, q, np.zeros(6), t, t, sequence=122)

@@ -22,11 +22,13 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64, String, UInt8MultiArray
+from trajectory_msgs.msg import JointTrajectory
 
 from hrc_ros.core.model import TASK_VARIABLES
 from hrc_ros.core.robot.bridge import load_robot_description
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
+from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
 from hrc_ros.ros.processes import NodeProcesses
 
 START_TIMEOUT = 90.0        # the bridge imports rclpy, MuJoCo and numba: slow on a loaded machine
@@ -170,7 +172,7 @@ def test_a_second_joint_states_writer_holds_the_arm_until_it_is_silent(feeder):
     since = len(driver.statuses)
     driver.forged_q = DESCRIPTION.poses['retreat']
     try:
-        driver.wait(lambda: driver.status('second writer on joint_states', since),
+        driver.wait(lambda: driver.status('second writer of joint_states', since),
                     'a protective stop for two joint_states writers')
         driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1] == 0.0,
                     'a latched stop with override 0')
@@ -182,3 +184,50 @@ def test_a_second_joint_states_writer_holds_the_arm_until_it_is_silent(feeder):
     driver.wait(lambda: driver.stops[-1] is False and driver.overrides[-1] > 0.5,
                 'the stop to clear once the forger is silent')
     assert not suite.dead(), suite.logs()
+
+
+def test_a_second_speed_override_writer_holds_the_simulated_arm(feeder, tmp_path):
+    """A simulated arm (namespace /hostile_arm) on a goal: the bridge's writer says 0, a forger's
+    says 1.0 as often. The arm must not follow the forger: it brakes and stands."""
+    driver, _ = feeder
+    arm = NodeProcesses(tmp_path, [])
+    node = driver.node
+    states: list[tuple[np.ndarray, np.ndarray]] = []
+    node.create_subscription(JointState, '/hostile_arm/joint_states', lambda m: states.append(
+        (np.array(m.position), np.array(m.velocity))), qos.SENSOR_DATA)
+    goals = node.create_publisher(JointTrajectory, f'/hostile_arm/{DEFAULT_TRAJECTORY_TOPIC}',
+                                  qos.RELIABLE)
+    topic = f'/hostile_arm/{DEFAULT_OVERRIDE_TOPIC}'
+    bridge_side = node.create_publisher(Float64, topic, qos.RELIABLE)
+    forger = node.create_publisher(Float64, topic, qos.RELIABLE)
+    retreat = DESCRIPTION.poses['retreat']
+    try:
+        arm.start('cobot_sim_node', ros_args=['-r', '__ns:=/hostile_arm'])
+        driver.wait(lambda: (states and goals.get_subscription_count()
+                             and bridge_side.get_subscription_count()) or arm.dead(),
+                    'the arm to join', START_TIMEOUT)
+        assert not arm.dead(), arm.logs()
+        goals.publish(conv.trajectory_to_msg(JOINTS, [states[-1][0], retreat], [6.0]))
+
+        def send(mine, theirs=None):
+            bridge_side.publish(Float64(data=mine))
+            if theirs is not None:
+                forger.publish(Float64(data=theirs))
+            time.sleep(0.01)
+            return True
+        driver.wait(lambda: send(1.0) and np.abs(states[-1][1]).max() > 0.05,
+                    'the arm to move at override 1')
+        since = len(driver.statuses)
+        driver.wait(lambda: send(0.0, 1.0) and len(states) > 20
+                    and all(np.abs(qd).max() == 0.0 for _, qd in states[-20:]),
+                    'the arm to stand while the forger says 1.0')
+        stood = len(states)
+        end = time.monotonic() + 1.0
+        driver.wait(lambda: send(0.0, 1.0) and time.monotonic() > end, '1 s more of both')
+        assert all(np.abs(qd).max() == 0.0 for _, qd in states[stood:]), 'it moved again'
+        assert np.abs(states[-1][0] - retreat).max() > 0.05, 'it reached the goal: not held'
+        assert any('second writer' in status.message for status in driver.statuses[since:]
+                   if status.name == 'hostile_arm/cobot_sim: speed_override input')
+        assert arm.stop() == {'cobot_sim_node': 0}, arm.logs()
+    finally:
+        arm.stop(5.0)

@@ -386,12 +386,14 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     assert_alive(suite)
 
 
-@pytest.mark.parametrize('position, reason', [
-    ([float('nan'), 0, 0, 0, 0, 0], 'shoulder_pan_joint is nan'),
-    ([0, 0, 4.0, 0, 0, 0], 'elbow_joint = 4.0000 rad is outside its limits'),
-], ids=['nan', 'out-of-limit'])
-def test_a_bad_joint_state_is_refused(cell, position, reason):
+@pytest.mark.parametrize('position', [[float('nan'), 0, 0, 0, 0, 0], [0, 0, 4.0, 0, 0, 0]],
+                         ids=['nan', 'out-of-limit'])
+def test_a_bad_joint_state_is_refused(cell, position):
+    """Sent by this test beside cobot_sim, it is a second writer's: refused as such (the NaN
+    and limit refusals of the arm's own writer: test_joint_states_that_stop_or_are_refused_...
+    and test_robot.py), and the arm held."""
     driver, suite = cell
+    reason = 'joint_states of a second writer'
     since = len(driver.statuses)
     held, states = driver.q, len(driver.joint_states)
     driver.joint_pub.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, position,

@@ -80,7 +80,7 @@ import numpy as np
 from ..model import ACTIONS, CT, DM, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, action_index
 from ..model import commit_effective
 from ..paths import read_yaml, share_dir
-from ..protocol import OK, WARN, InputError, Report, StreamLock
+from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import segment_duration
 from .ssm import SpeedSeparationMonitor, SsmParameters, SsmState
@@ -449,8 +449,8 @@ class Bridge:
         self._peaks: dict = {}
         self._state_names: tuple | None = None
         self._state_order = np.arange(len(self.index))
-        self._joint_lock = StreamLock()
-        self._other_joint_ns: int | None = None
+        self._joint_writer = SingleWriter('joint_states', description.joint_state_timeout,
+                                          SECOND_WRITER_HOLD)
         self._skeleton_lock = StreamLock()
         self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
 
@@ -461,12 +461,7 @@ class Bridge:
         position outside the limits, a stamp ahead of the clock (`_check_stamp`) or a second
         writer (`sequence`: its publication sequence number; the arm then holds, module
         docstring). Joints the description does not name (a gripper) are ignored."""
-        stream = self._joint_lock.classify(sequence, now_ns * 1e-9,
-                                           self.description.joint_state_timeout)
-        if stream == StreamLock.OTHER:
-            self._other_joint_ns = int(now_ns)
-            raise InputError('joint state of a second writer on joint_states: refused, and the '
-                             'arm holds while two write (which is the arm is unknown)')
+        self._joint_writer.check(sequence, now_ns * 1e-9)
         _check_stamp('joint state', stamp_ns, now_ns)
         names = tuple(names)
         positions = np.asarray(positions, dtype=float).reshape(-1)
@@ -583,10 +578,8 @@ class Bridge:
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
             self._note_stop(reason, reports)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
-        if self._other_joint_ns is not None \
-                and (now_ns - self._other_joint_ns) * 1e-9 <= SECOND_WRITER_HOLD:
-            reason = (f'a second writer on joint_states (within {SECOND_WRITER_HOLD} s): which '
-                      'is the arm is unknown')
+        if self._joint_writer.held(now_ns * 1e-9):
+            reason = self._joint_writer.reason
             self._note_stop(reason, reports)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
         self._track_progress()
