@@ -773,7 +773,7 @@ def test_a_second_writer_can_only_slow_the_arm(setup):
         command = bridge.tick(t)
     assert not command.stop and command.separation.distance > 2
     # joint states of another writer: refused, and the arm holds while it writes
-    with pytest.raises(InputError, match='second writer of joint_states'):
+    with pytest.raises(InputError, match='joint_states of a second writer'):
         bridge.joint_state(JOINT_NAMES, description.poses['retreat'], np.zeros(6), t, t,
                            sequence=5)
     command = bridge.tick(t)

@@ -231,3 +231,26 @@ def test_a_second_speed_override_writer_holds_the_simulated_arm(feeder, tmp_path
         assert arm.stop() == {'cobot_sim_node': 0}, arm.logs()
     finally:
         arm.stop(5.0)
+
+
+def test_another_publisher_of_the_goal_topic_stops_the_arm(feeder):
+    """The override is a fraction of the bridge's own goal's timing: a goal of another node,
+    faster, would run at it beyond what SSM allows. While another publisher is on the goal
+    topic, the bridge holds the arm."""
+    driver, suite = feeder
+    driver.person = FAR
+    driver.wait(lambda: driver.stops[-1] is False and driver.overrides[-1] > 0.5,
+                'no stop for a person far away, the retreat at speed')
+    since = len(driver.statuses)
+    forger = driver.node.create_publisher(JointTrajectory, f'{NS}/{DEFAULT_TRAJECTORY_TOPIC}',
+                                          qos.RELIABLE)
+    try:
+        driver.wait(lambda: driver.status('other publisher(s) of the goal topic', since),
+                    'a protective stop for another goal publisher')
+        driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1] == 0.0,
+                    'a latched stop with override 0')
+    finally:
+        driver.node.destroy_publisher(forger)
+    driver.wait(lambda: driver.stops[-1] is False and driver.overrides[-1] > 0.5,
+                'the stop to clear once the other publisher is gone')
+    assert not suite.dead(), suite.logs()

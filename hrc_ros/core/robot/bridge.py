@@ -58,7 +58,10 @@ before the followed newest is kept too, for `ssm.human_timeout` from its stamp, 
 the nearest of the bodies held at the oldest of their stamps: a second writer can only slow the
 arm, never free it. Joint states of a second writer are refused and hold the arm in a
 protective stop until it has been silent for SECOND_WRITER_HOLD s: which of two is the arm
-cannot be known, and SSM from the other's configuration would measure the wrong links.
+cannot be known, and SSM from the other's configuration would measure the wrong links. The
+override is a fraction of the bridge's own goal's timing, so it bounds only the goals the bridge
+sends: while the graph shows another publisher of the goal topic (`goal_publishers`), the arm is
+held in a protective stop.
 
 **Robot description** (`load_robot_description`, config/robot/ur5e.yaml): the arm's joints in
 chain order with their limits, the poses home / retreat / collaboration, and the bridge's
@@ -451,6 +454,7 @@ class Bridge:
         self._state_order = np.arange(len(self.index))
         self._joint_writer = SingleWriter('joint_states', description.joint_state_timeout,
                                           SECOND_WRITER_HOLD)
+        self._goal_publishers = 1
         self._skeleton_lock = StreamLock()
         self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
 
@@ -522,6 +526,10 @@ class Bridge:
         seps = [self.arm.separation(self.q, b) for b, _ in held]
         return min(seps, key=lambda sep: sep.distance), min(t for _, t in held)
 
+    def goal_publishers(self, count: int) -> None:
+        """How many publishers the graph shows on the goal topic (this bridge's included)."""
+        self._goal_publishers = int(count)
+
     def task_state(self, state: Mapping, now_ns: int) -> None:
         """hrc/task_state x: the eight task variables."""
         try:
@@ -578,8 +586,13 @@ class Bridge:
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
             self._note_stop(reason, reports)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
-        if self._joint_writer.held(now_ns * 1e-9):
+        reason = ''
+        if self._goal_publishers > 1:
+            reason = (f'{self._goal_publishers - 1} other publisher(s) of the goal topic: the '
+                      'override bounds only the bridge\'s own goals')
+        elif self._joint_writer.held(now_ns * 1e-9):
             reason = self._joint_writer.reason
+        if reason:
             self._note_stop(reason, reports)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
         self._track_progress()

@@ -19,7 +19,8 @@ Contract: one core `Bridge` (`core.robot.bridge`, every rule there) fed from
 
 Both sensor inputs pass the writer's publication sequence number to the core: a second writer's
 skeletons count beside the first's (SSM takes the nearest body), a second writer's joint states
-hold the arm (`core.robot.bridge`, "One arm, every person").
+hold the arm (`core.robot.bridge`, "One arm, every person"); so does another publisher of the
+goal topic, which the watchdog timer counts every `joint_state_timeout / 2`.
 
 It publishes the `JointTrajectory` goals on `joint_trajectory_topic`, the speed override
 (std_msgs/Float64, 0..1) on `speed_override_topic` every tick, `hrc/protective_stop`
@@ -243,7 +244,9 @@ class RobotBridgeNode(Node):
 
     # -- the tick ----------------------------------------------------------------------------
     def _watchdog(self) -> None:
-        """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops)."""
+        """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops). Also
+        tells the bridge how many publishers the goal topic has (another one: a stop)."""
+        self.bridge.goal_publishers(self.count_publishers(self.trajectory_pub.topic_name))
         if time.monotonic() - self._last_tick > self.description.joint_state_timeout:
             self._tick(time.perf_counter())
 
