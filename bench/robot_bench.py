@@ -47,6 +47,7 @@ from hrc_ros.core.mdp.policy import default_policy_path, load_policy
 from hrc_ros.core.model import HRCModel
 from hrc_ros.core.paths import default_config_path
 from hrc_ros.core.robot import bridge as bridge_module
+from hrc_ros.core.protocol import Stamp
 from hrc_ros.core.robot.arm import Arm, body_capsules
 from hrc_ros.core.robot.cell import ArmCell, person_seed
 from hrc_ros.core.study.evaluation import episodes_of
@@ -148,12 +149,12 @@ def node_compute(steps: int) -> list:
             if step % 3 == 0:                    # 33 Hz
                 u = 0.5 - 0.5 * np.cos(2 * np.pi * step / 1500)     # 15 s out and back
                 msg = conv.keypoints_to_msg((far + (near - far) * u)[None] + offsets, stamp)
-                timed(skeleton, node._on_skeleton, msg)
+                timed(skeleton, node._on_skeleton, msg, Stamp(time.time_ns(), step // 3 + 1))
             state = follower.step(0.01, override)
             msg = JointState(name=list(node.description.joint_names),
                              position=state.q.tolist(), velocity=state.qd.tolist())
             msg.header.stamp = stamp
-            timed(lambda m: m, node._on_joint_state, msg)
+            timed(lambda m: m, node._on_joint_state, msg, Stamp(time.time_ns(), step + 1))
             command = node.command
             override = command.override
             if command.trajectory is not None:

@@ -735,3 +735,52 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
         with pytest.raises(SystemExit):
             main(['--cell', 'arm', '--out', str(tmp_path)] + argv)
         assert message in capsys.readouterr().err
+
+
+def test_a_second_writer_can_only_slow_the_arm(setup):
+    """Skeletons of another writer (publication sequence numbers off the followed line) count
+    beside the followed one's, for human_timeout: SSM takes the nearest body. Joint states of
+    another writer are refused and hold the arm for SECOND_WRITER_HOLD."""
+    description, programs, arm = setup
+    bridge = Bridge(description, programs, arm, period=0.01)
+    q = description.poses['home']
+    near = body_capsules(np.array([[0.4, -0.3, 0.8]]))       # S about 0.3 m: no speed is safe
+    t = 0
+    for seq in range(1, 41):                   # 0.4 s of one writer far away: free
+        bridge.joint_state(JOINT_NAMES, q, np.zeros(6), t, t, sequence=seq)
+        bridge.skeleton(far_body(), t, t, sequence=seq)
+        command = bridge.tick(t)
+        t += 10 * MS
+    assert not command.stop
+    # a second writer (its numbers restart) reports the person near: it is taken, and a far
+    # skeleton of the first writer stamped later does not free the arm from it
+    bridge.skeleton(near, t, t, sequence=1)
+    bridge.skeleton(far_body(), t + 10 * MS, t, sequence=41)
+    command = bridge.tick(t)
+    assert command.stop and 'below the protective distance' in command.reason
+    assert command.separation.distance < 0.5
+    # the followed writer's skeleton stamped before the newest held counts too (not dropped)
+    bridge2 = Bridge(description, programs, arm, period=0.01)
+    bridge2.joint_state(JOINT_NAMES, q, np.zeros(6), t, t)
+    bridge2.skeleton(far_body(), t, t)
+    bridge2.skeleton(near, t - 20 * MS, t)
+    assert bridge2.tick(t).stop
+    # the near body ages out after human_timeout: the far followed writer alone frees the arm
+    for seq in range(42, 122):
+        t += 10 * MS
+        bridge.joint_state(JOINT_NAMES, q, np.zeros(6), t, t, sequence=seq)
+        bridge.skeleton(far_body(), t, t, sequence=seq)
+        command = bridge.tick(t)
+    assert not command.stop and command.separation.distance > 2
+    # joint states of another writer: refused, and the arm holds while it writes
+    with pytest.raises(InputError, match='joint_states of a second writer'):
+        bridge.joint_state(JOINT_NAMES, description.poses['retreat'], np.zeros(6), t, t,
+                           sequence=5)
+    command = bridge.tick(t)
+    assert command.stop and command.override == 0.0
+    assert 'second writer of joint_states' in command.reason
+    np.testing.assert_array_equal(bridge.q, q)
+    t += int(1.05e9)                           # silent for SECOND_WRITER_HOLD (1 s): free again
+    bridge.joint_state(JOINT_NAMES, q, np.zeros(6), t, t, sequence=122)
+    bridge.skeleton(far_body(), t, t, sequence=122)
+    assert 'second writer' not in bridge.tick(t).reason

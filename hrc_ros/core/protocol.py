@@ -15,7 +15,9 @@ nothing.
 
 - `EpochFollower`: which `hrc/epoch` values a follower takes: one writer's line (the next one;
   1 after a higher one is a restart; a forger's jump is refused; anything else is refused).
-- `StreamLock`: one writer of a sensor stream (the body tracker's frames).
+- `StreamLock`: one writer of a sensor stream (the body tracker's frames). `SingleWriter`: a
+  command or state stream that must have one writer (the arm's joint states, its goals and
+  speed override): another writer's messages are refused and hold the consumer.
 - `TaskEpochs`: the task manager's bookkeeping of epoch k: hold for a_{k-1} and the answer to
   an eligible request, finalise, begin epoch k; screen late answers; follow restarts.
   `RequestCounts`: every task request accepted, refused or lost, once.
@@ -372,6 +374,33 @@ class StreamLock:
             return self.NEW
         self.others += 1
         return self.OTHER
+
+
+class SingleWriter:
+    """A stream that must have one writer (the arm's joint states, goals, speed override):
+    `check(sequence, now)` raises InputError for a message of a writer other than the followed
+    one (`StreamLock`, lines silent for `silence` s give way), and `held(now)` is True until the
+    other writer has been silent for `hold` s: which of two is right cannot be known, so the
+    consumer holds (the arm stops). Times in seconds of one clock."""
+
+    def __init__(self, what: str, silence: float, hold: float):
+        self.what, self.silence, self.hold = what, float(silence), float(hold)
+        self.lock = StreamLock()
+        self.other_at: float | None = None
+
+    def check(self, sequence: int | None, now: float) -> None:
+        if self.lock.classify(sequence, now, self.silence) == StreamLock.OTHER:
+            self.other_at = now
+            raise InputError(f'{self.what} of a second writer: refused, and the arm holds while '
+                             'two write (which is right is unknown)')
+
+    def held(self, now: float) -> bool:
+        return self.other_at is not None and now - self.other_at <= self.hold
+
+    @property
+    def reason(self) -> str:
+        return (f'a second writer of {self.what} (within {self.hold:g} s): which is right is '
+                'unknown')
 
 
 class SequenceGaps:

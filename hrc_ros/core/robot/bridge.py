@@ -50,6 +50,19 @@ SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collabor
 and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
 than `joint_state_timeout`: a protective stop with its reason.
 
+**One arm, every person.** Each input names its writer by its publication sequence number
+(`core.protocol.StreamLock`; None where the middleware gives none: all one writer). The
+skeletons of the followed writer keep the newest; a skeleton of any other writer (a second
+tracker, a bag played on the cell, a forger claiming the person is far away) or one stamped
+before the followed newest is kept too, for `ssm.human_timeout` from its stamp, and SSM takes
+the nearest of the bodies held at the oldest of their stamps: a second writer can only slow the
+arm, never free it. Joint states of a second writer are refused and hold the arm in a
+protective stop until it has been silent for SECOND_WRITER_HOLD s: which of two is the arm
+cannot be known, and SSM from the other's configuration would measure the wrong links. The
+override is a fraction of the bridge's own goal's timing, so it bounds only the goals the bridge
+sends: while the graph shows another publisher of the goal topic (`goal_publishers`), the arm is
+held in a protective stop.
+
 **Robot description** (`load_robot_description`, config/robot/ur5e.yaml): the arm's joints in
 chain order with their limits, the poses home / retreat / collaboration, and the bridge's
 settings; `load_programs` reads the motion programs (config/robot/ur5e_programs.yaml). Both
@@ -60,6 +73,7 @@ program segment faster than the limits allow.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -69,7 +83,7 @@ import numpy as np
 from ..model import ACTIONS, CT, DM, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, action_index
 from ..model import commit_effective
 from ..paths import read_yaml, share_dir
-from ..protocol import OK, WARN, InputError, Report
+from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import segment_duration
 from .ssm import SpeedSeparationMonitor, SsmParameters, SsmState
@@ -80,6 +94,8 @@ NATURES = {0: 'robot only', 1: 'human only', 2: 'either', 3: 'both together'}
 ROBOT_NATURES = (0, 2, 3)          # tasks with a robot share: they need a program
 LIMIT_SLACK = 1e-3                 # rad a joint state may lie beyond a position limit
 FUTURE_SLACK = 0.05                # s a sample's stamp may lie ahead of the bridge's clock
+SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the arm after its last
+OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
 DESCRIPTION_DEFAULTS = {
     'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
     'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
@@ -436,12 +452,20 @@ class Bridge:
         self._peaks: dict = {}
         self._state_names: tuple | None = None
         self._state_order = np.arange(len(self.index))
+        self._joint_writer = SingleWriter('joint_states', description.joint_state_timeout,
+                                          SECOND_WRITER_HOLD)
+        self._goal_publishers = 1
+        self._skeleton_lock = StreamLock()
+        self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
 
     # -- inputs ------------------------------------------------------------------------------
-    def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
+    def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
+                    sequence: int | None = None) -> None:
         """The arm's joint state; InputError (nothing kept) for a missing joint, NaN, a
-        position outside the limits or a stamp ahead of the clock (`_check_stamp`). Joints the
-        description does not name (a gripper) are ignored."""
+        position outside the limits, a stamp ahead of the clock (`_check_stamp`) or a second
+        writer (`sequence`: its publication sequence number; the arm then holds, module
+        docstring). Joints the description does not name (a gripper) are ignored."""
+        self._joint_writer.check(sequence, now_ns * 1e-9)
         _check_stamp('joint state', stamp_ns, now_ns)
         names = tuple(names)
         positions = np.asarray(positions, dtype=float).reshape(-1)
@@ -466,18 +490,45 @@ class Bridge:
             raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
         self.q, self.qd, self._joint_stamp = q, qd, int(stamp_ns)
 
-    def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int) -> None:
-        """The person's capsules (None: nobody in view, which SSM treats as no data);
-        InputError for a stamp older than the one held or ahead of the clock."""
+    def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
+                 sequence: int | None = None) -> None:
+        """The person's capsules (None: nobody in view, which SSM treats as no data) from the
+        writer of publication sequence number `sequence`; InputError for a stamp ahead of the
+        clock. Another writer's, or one stamped before the newest held, counts beside it
+        (module docstring, "One arm, every person")."""
         if body is not None and not isinstance(body, BodyCapsules):
             raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
+        if body is not None:
+            _check_stamp('skeleton', stamp_ns, now_ns)
+        stream = self._skeleton_lock.classify(sequence, now_ns * 1e-9,
+                                              self.monitor.p.human_timeout)
+        if stream == StreamLock.OTHER or (body is not None and self._body_stamp is not None
+                                          and stamp_ns < self._body_stamp):
+            if body is not None:
+                self._others.append((body, int(stamp_ns)))
+            return
         if body is None:
             self.body, self._body_stamp = None, None
             return
-        _check_stamp('skeleton', stamp_ns, now_ns)
-        if self._body_stamp is not None and stamp_ns < self._body_stamp:
-            raise InputError('skeleton older than the one held: dropped')
         self.body, self._body_stamp = body, int(stamp_ns)
+
+    def _nearest(self, now_ns: int) -> tuple[Separation | None, int | None]:
+        """The separation SSM takes: the nearest of the bodies held (the followed writer's
+        newest, and the others' of the last human_timeout), with the oldest of their stamps."""
+        timeout_ns = self.monitor.p.human_timeout * 1e9
+        while self._others and now_ns - self._others[0][1] > timeout_ns:
+            self._others.popleft()
+        held = [(b, t) for b, t in self._others if now_ns - t <= timeout_ns]
+        if self.body is not None:
+            held.append((self.body, self._body_stamp))
+        if not held:
+            return None, None
+        seps = [self.arm.separation(self.q, b) for b, _ in held]
+        return min(seps, key=lambda sep: sep.distance), min(t for _, t in held)
+
+    def goal_publishers(self, count: int) -> None:
+        """How many publishers the graph shows on the goal topic (this bridge's included)."""
+        self._goal_publishers = int(count)
 
     def task_state(self, state: Mapping, now_ns: int) -> None:
         """hrc/task_state x: the eight task variables."""
@@ -535,6 +586,15 @@ class Bridge:
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
             self._note_stop(reason, reports)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
+        reason = ''
+        if self._goal_publishers > 1:
+            reason = (f'{self._goal_publishers - 1} other publisher(s) of the goal topic: the '
+                      'override bounds only the bridge\'s own goals')
+        elif self._joint_writer.held(now_ns * 1e-9):
+            reason = self._joint_writer.reason
+        if reason:
+            self._note_stop(reason, reports)
+            return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
         self._track_progress()
         trajectory = None
         at_rest = bool((np.abs(self.qd) <= self.description.rest_speed).all())
@@ -543,9 +603,9 @@ class Bridge:
             self.motion = self.pending if len(trajectory.durations) else 'idle'
             self.pending = None
             self.active, self._next = trajectory, 0
-        sep = self.arm.separation(self.q, self.body) if self.body is not None else None
+        sep, human_stamp = self._nearest(now_ns)
         nominal = self.active.nominal_speed if self.active is not None else 0.0
-        state = self.monitor.update(None if sep is None else sep.distance, self._body_stamp,
+        state = self.monitor.update(None if sep is None else sep.distance, human_stamp,
                                     now_ns, nominal)
         override = state.override
         motion = self.motion

@@ -15,7 +15,10 @@ SSM deceleration's rate). It subscribes
   from where the arm is, or a stay away from it), a goal while the arm moves (a joint faster
   than the description's `rest_speed`: goals replace each other at a safe point only);
 - `speed_override_topic` (std_msgs/Float64, 0..1): the trajectory's speed scaling. A value
-  outside [0, 1] is refused and taken as 0; none for `override_timeout` is 0 too;
+  outside [0, 1] is refused and taken as 0; none for `override_timeout` is 0 too; so is every
+  value while a second writer publishes there (`core.protocol.SingleWriter`, by publication
+  sequence numbers: refused, and 0 until it has been silent for `bridge.SECOND_WRITER_HOLD`):
+  another node's 1.0 must not outvote the bridge's 0;
 - `human/skeleton` (geometry_msgs/PoseArray in `robot_frame`), for the separation.
 
 It steps the follower at `rate` Hz on a timer (with the elapsed time, so the arm moves in wall
@@ -40,9 +43,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
-from ...core.protocol import InputError
+from ...core.protocol import InputError, SingleWriter, Stamp
 from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed
 from ...core.robot.arm import segment_duration
+from ...core.robot.bridge import SECOND_WRITER_HOLD
 from ...core.robot.ssm import protective_distance
 from .. import conversions as conv
 from .. import qos
@@ -85,6 +89,9 @@ class CobotSimNode(Node):
         self.override = 0.0
         self._override_at: float | None = None
         self.override_timeout = values['override_timeout']
+        self.override_writer = SingleWriter(f'the speed override on '
+                                            f'{values["speed_override_topic"]}',
+                                            self.override_timeout, SECOND_WRITER_HOLD)
         self.held = ''                # why the arm holds ('' = it follows its goal)
         self.body = None
         self._body_stamp = 0
@@ -101,7 +108,8 @@ class CobotSimNode(Node):
         self.inputs.subscribe(JointTrajectory, values['joint_trajectory_topic'], qos.RELIABLE,
                               lambda msg: msg, self._on_trajectory, name='trajectory')
         self.inputs.subscribe(Float64, values['speed_override_topic'], qos.RELIABLE,
-                              lambda msg: msg, self._on_override, name='speed_override')
+                              lambda msg: msg, self._on_override, name='speed_override',
+                              with_stamp=True)
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
                               skeleton_converter(values['robot_frame'],
                                                  values['keypoint_joints'] or None),
@@ -110,7 +118,7 @@ class CobotSimNode(Node):
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
 
     def _apply(self, values) -> None:
-        self.override_timeout = values['override_timeout']
+        self.override_timeout = self.override_writer.silence = values['override_timeout']
 
     # -- inputs ------------------------------------------------------------------------------
     def _on_trajectory(self, msg: JointTrajectory) -> None:
@@ -166,9 +174,11 @@ class CobotSimNode(Node):
                       for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
 
-    def _on_override(self, msg: Float64) -> None:
-        """The speed override; a refused one (outside [0, 1], NaN) is taken as 0."""
+    def _on_override(self, msg: Float64, source: Stamp) -> None:
+        """The speed override; a refused one (outside [0, 1], NaN, a second writer's) is
+        taken as 0."""
         try:
+            self.override_writer.check(source.sequence, time.monotonic())
             value = conv.speed_override_from_msg(msg)
         except InputError:
             self.override = 0.0
@@ -181,7 +191,8 @@ class CobotSimNode(Node):
     # -- the arm ------------------------------------------------------------------------------
     def _commanded(self, now: float) -> float:
         if self.held or self._override_at is None \
-                or now - self._override_at > self.override_timeout:
+                or now - self._override_at > self.override_timeout \
+                or self.override_writer.held(now):
             return 0.0
         return self.override
 
@@ -217,6 +228,7 @@ class CobotSimNode(Node):
             'scale': round(follower.scale, 4), 'speed_bound_m_s': round(follower.speed_bound, 4),
             'goal_done': follower.done, 'goals_accepted': self.accepted,
             'goals_refused': self.refused, 'steps': self.steps,
+            'override_second_writer': self.override_writer.held(now),
             'joint_states_hz': round(rate, 1), **last_refusals(self.inputs)})
 
 

@@ -17,6 +17,11 @@ Contract: one core `Bridge` (`core.robot.bridge`, every rule there) fed from
   keypoints (`keypoint_joints`: K4ABT names of each body's keypoints, bones between them; []:
   a sphere around each keypoint).
 
+Both sensor inputs pass the writer's publication sequence number to the core: a second writer's
+skeletons count beside the first's (SSM takes the nearest body), a second writer's joint states
+hold the arm (`core.robot.bridge`, "One arm, every person"); so does another publisher of the
+goal topic, which the watchdog timer counts every `joint_state_timeout / 2`.
+
 It publishes the `JointTrajectory` goals on `joint_trajectory_topic`, the speed override
 (std_msgs/Float64, 0..1) on `speed_override_topic` every tick, `hrc/protective_stop`
 (std_msgs/Bool, latched, on change), `hrc/robot_progress` (UInt8MultiArray `[nature, cycles,
@@ -48,7 +53,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from ...core.cell.tracking import joint_indices
 from ...core.model import ACTIONS
-from ...core.protocol import CELL_HOLD, ERROR, OK, WARN, ActionPairing, PeriodEstimate, Report
+from ...core.protocol import (CELL_HOLD, ERROR, OK, WARN, ActionPairing, PeriodEstimate, Report,
+                              Stamp)
 from ...core.robot.arm import Arm, body_capsules
 from ...core.robot.bridge import (Bridge, RobotDescriptionError, load_programs,
                                   load_robot_description)
@@ -176,11 +182,11 @@ class RobotBridgeNode(Node):
                                                   qos.LATCHED)
         self.inputs = Inputs(self)
         self.inputs.subscribe(JointState, 'joint_states', qos.SENSOR_DATA, lambda msg: msg,
-                              self._on_joint_state)
+                              self._on_joint_state, with_stamp=True)
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
                               skeleton_converter(values['robot_frame'],
                                                  values['keypoint_joints'] or None),
-                              self._on_skeleton, name='skeleton')
+                              self._on_skeleton, name='skeleton', with_stamp=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                               conv.task_state_from_msg, self._on_task_state)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
@@ -203,17 +209,17 @@ class RobotBridgeNode(Node):
         return self.get_clock().now().nanoseconds
 
     # -- inputs ------------------------------------------------------------------------------
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: JointState, source: Stamp) -> None:
         started = time.perf_counter()
         try:
             self.bridge.joint_state(msg.name, msg.position, msg.velocity,
-                                    stamp_ns(msg.header.stamp), self._now())
+                                    stamp_ns(msg.header.stamp), self._now(), source.sequence)
         finally:                # a refused state still ticks: the last one kept ages out
             self._tick(started)
 
-    def _on_skeleton(self, converted) -> None:
+    def _on_skeleton(self, converted, source: Stamp) -> None:
         body, stamp = converted
-        self.bridge.skeleton(body, stamp, self._now())
+        self.bridge.skeleton(body, stamp, self._now(), source.sequence)
 
     def _on_task_state(self, task_state: dict) -> None:
         self.bridge.task_state(task_state, self._now())
@@ -238,7 +244,9 @@ class RobotBridgeNode(Node):
 
     # -- the tick ----------------------------------------------------------------------------
     def _watchdog(self) -> None:
-        """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops)."""
+        """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops). Also
+        tells the bridge how many publishers the goal topic has (another one: a stop)."""
+        self.bridge.goal_publishers(self.count_publishers(self.trajectory_pub.topic_name))
         if time.monotonic() - self._last_tick > self.description.joint_state_timeout:
             self._tick(time.perf_counter())
 
