@@ -65,8 +65,8 @@ from . import _kernels as kernels
 from .belief import BeliefFilter
 from ..config import EMOTION_GROUPS
 from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
-                     SAFETY_ORDER, TASK_VARIABLES, HRCModel, safest_best, safest_best_one,
-                     tie_floor)
+                     SAFETY_ORDER, TASK_VARIABLES, HRCModel, entering_task, safest_best,
+                     safest_best_one, tie_floor)
 from ..mdp.solver import FactoredBellman
 
 
@@ -176,17 +176,6 @@ class HRCPomdp:
             raise ValueError(f'observable state {tuple(observable)} is not one the task book '
                              'can produce; the POMDP policy does not cover it')
         return i
-
-
-def entering_task(model: HRCModel, y: np.ndarray, tp, tc, tx) -> np.ndarray:
-    """The task state after task (tp, tc, tx) enters an idle cell in task state y: the task
-    uncommitted (ty = 0), the activities as they were (`TaskBook.begin_epoch`)."""
-    grid = model.task_grid
-    task = {n: grid[n][y] for n in TASK_VARIABLES}
-    shape = np.shape(y)
-    task.update(tp=np.broadcast_to(tp, shape), tc=np.broadcast_to(tc, shape),
-                tx=np.broadcast_to(tx, shape), ty=np.zeros(shape, dtype=np.int64))
-    return np.asarray(model.task_index(task), dtype=np.intp)
 
 
 def _task_outcomes(op: FactoredBellman):
