@@ -149,3 +149,70 @@ def test_the_stream_policy_waits_for_nothing_when_no_task_can_come(small_stream)
     np.testing.assert_allclose(a.value, b.value, atol=1e-9)
     np.testing.assert_array_equal(a.policy, b.policy)
     assert {DN, RH2} <= set(np.unique(a.policy))
+
+
+# -- the POMDP of the stream model -------------------------------------------------------------
+@pytest.fixture(scope='module')
+def small_stream_hrc(small_stream):
+    from hrc_ros.core.pomdp.solver import hrc_pomdp
+    return hrc_pomdp(small_stream)
+
+
+def test_pomdp_successors_are_the_rule_by_rule_stream_transition(small_stream, small_stream_hrc):
+    """P(x' | x, h, a) of the POMDP, arrivals included, equals the model's explicit transition
+    summed over h', at every solved state."""
+    hrc, pomdp, m = small_stream_hrc, small_stream_hrc.pomdp, small_stream
+    n_columns = m.n_task * 4
+    arrived = 0
+    for i in range(pomdp.n_x):
+        for h in (0, 4, 8):
+            for a in range(8):
+                t = m.transition([h * n_columns + hrc.columns[i]], a)
+                expected = np.bincount(t.target % n_columns, weights=t.probability,
+                                       minlength=n_columns)
+                got = np.zeros(n_columns)
+                for k in np.flatnonzero(pomdp.succ_x[i, a] >= 0):
+                    got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
+                np.testing.assert_allclose(got, expected, atol=1e-12)
+                arrived += int(np.count_nonzero(pomdp.succ_x[i, a] >= 0) > 6)
+    assert arrived > 0      # some successors are arrivals: more than the 2 x 3 of no stream
+
+
+def test_pomdp_mdp_over_the_solved_states_is_the_stream_factored_q(small_stream,
+                                                                    small_stream_hrc):
+    hrc, pomdp = small_stream_hrc, small_stream_hrc.pomdp
+    value = np.random.default_rng(2).normal(size=small_stream.n_states) * 20
+    q = FactoredBellman(small_stream).q(value).reshape(8, 9, -1)[:, :, hrc.columns]
+    v = value.reshape(9, -1)[:, hrc.columns].T
+    mine = pomdp.reward + pomdp.gamma * pomdp.expected_next(v)
+    available = pomdp.available[..., None]
+    np.testing.assert_allclose(np.where(available, mine, 0.0),
+                               np.where(available, q.transpose(2, 0, 1), 0.0), atol=1e-10)
+
+
+def test_the_stream_pomdp_bounds_bracket_and_sit_below_the_mdp(small_stream):
+    from hrc_ros.core.pomdp.solver import solve_pomdp
+    result = solve_pomdp(small_stream, episodes=100, per_state=15, rounds=0, seed=2,
+                         tol=1e-2)
+    for target in result.report['targets']:
+        assert target['lower'] <= target['upper'] + 1e-9
+        assert target['relative_gap'] < 0.05
+    # the POMDP's lower bound is no better than the fully informed MDP at any point
+    mdp = solve(small_stream).value.reshape(9, -1)[:, result.hrc.columns].T   # (x, h)
+    alphas = result.alphas
+    for x, b in zip(result.points_x[:400], result.points[:400]):
+        lower = (alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+        assert lower <= b @ mdp[x] + 1e-9
+
+
+def test_the_shipped_stream_pomdp_policy_is_found_and_refused_for_the_papers_model():
+    from hrc_ros.core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
+    config = load_config(shipped_config_path('case_study_stream'))
+    path = default_pomdp_policy_path(config)
+    assert path.name == 'case_study_stream.npz'
+    loaded = load_pomdp_policy(path, config)
+    assert loaded.meta['report']['case_study_relative_gap'] < 0.02
+    assert loaded.meta['config']['stream'] == config.data['stream']
+    plain = load_config(default_config_path())
+    with pytest.raises(PolicyError, match='plans a task stream .* describes no task stream'):
+        load_pomdp_policy(path, plain)
