@@ -119,7 +119,7 @@ def test_shipped_policies_of_the_paper_model_are_unchanged_by_the_stream_code():
         np.testing.assert_allclose(fresh.value, shipped.value, atol=1e-9)
 
 
-@pytest.mark.parametrize('name', ['stream', 'case_study_stream'])
+@pytest.mark.parametrize('name', ['stream', 'case_study_stream', 'case_study_stream150'])
 def test_shipped_stream_policies_load_and_are_fresh_solves(name):
     config = load_config(shipped_config_path(name))
     shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
