@@ -216,3 +216,12 @@ def test_the_shipped_stream_pomdp_policy_is_found_and_refused_for_the_papers_mod
     plain = load_config(default_config_path())
     with pytest.raises(PolicyError, match='plans a task stream .* describes no task stream'):
         load_pomdp_policy(path, plain)
+
+
+@pytest.mark.parametrize('name', ['stream', 'case_study_stream150'])
+def test_every_stream_configuration_ships_its_pomdp_policy(name):
+    from hrc_ros.core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
+    config = load_config(shipped_config_path(name))
+    path = default_pomdp_policy_path(config)
+    assert path.name == f'{name}.npz'
+    assert load_pomdp_policy(path, config).meta['report']['case_study_relative_gap'] < 0.02
