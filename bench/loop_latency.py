@@ -66,6 +66,7 @@ from std_msgs.msg import Float64MultiArray, String, UInt8, UInt8MultiArray, UInt
 
 from hrc_ros.core.decision.observation import (synthesize_joint_velocities,  # noqa: E402
                                                synthesize_skeleton)
+from hrc_ros.core.config import load_config  # noqa: E402
 from hrc_ros.core.mdp.policy import default_policy_path  # noqa: E402
 from hrc_ros.ros import conversions as conv  # noqa: E402
 from hrc_ros.ros import qos  # noqa: E402
@@ -270,13 +271,14 @@ def phase_loop(args, processes: Processes, policy: str) -> dict:
         if args.view:
             view = processes.start('cell_view', [script('cell_view_node')])
             spin_until(executor, lambda: pictures, 60)
-        processes.start('belief_estimator', [script('belief_estimator_node')])
+        processes.start('belief_estimator', [script('belief_estimator_node'), '--ros-args',
+                                             '-p', f'config:={args.config}'])
         spin_until(executor, lambda: node.count_subscribers('human/joint_states') > 0
                    and node.count_subscribers('bench/ping') > 0, 60)
         sensors.start()
         processes.start('decision', [
             script('decision_node'), '--ros-args', '-p', f'policy:={policy}',
-            '-p', f'selector:={args.selector}',
+            '-p', f'config:={args.config}', '-p', f'selector:={args.selector}',
             '-p', f'epoch_period:={args.epoch}', '-p', f'input_timeout:={0.8 * args.epoch}',
             '-p', 'stale_timeout:=5.0'])
         if not spin_until(executor, lambda: bench.epoch > WARMUP_EPOCHS, 60):
@@ -399,7 +401,11 @@ def main(argv=None) -> int:
     parser.add_argument('--epoch', type=float, default=0.05, help='epoch_period, seconds')
     parser.add_argument('--lag-seconds', type=float, default=30.0,
                         help='duration of the 1 kHz belief estimator run')
-    parser.add_argument('--policy', default='', help="policy file ('' = shipped default)")
+    parser.add_argument('--policy', default='', help="policy file ('' = the shipped one "
+                        'solved for --config)')
+    parser.add_argument('--config', default=str(ROOT / 'config' / 'default.yaml'),
+                        help='model configuration of the nodes (e.g. config/case_study_stream.'
+                        'yaml: a task-stream policy, MODEL.md 8)')
     parser.add_argument('--selector', default='paper',
                         help="the decision node's selector (e.g. pomdp: its compute figure)")
     parser.add_argument('--skip-lag', action='store_true', help='phase 1 only')
@@ -412,7 +418,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.echo:
         return echo_main()
-    policy = args.policy or str(default_policy_path())
+    policy = args.policy or str(default_policy_path(load_config(args.config)))
     log_dir = Path(os.environ.get('TMPDIR', '/tmp')) / f'hrc_loop_latency_{os.getpid()}'
     log_dir.mkdir(parents=True, exist_ok=True)
     processes = Processes(log_dir)

@@ -139,3 +139,26 @@ def test_the_posterior_estimator_on_the_graph_equals_the_ros_free_posterior(tmp_
     assert gap > 1e-3
     assert 'no task state within the hold' not in (tmp_path / 'logs' /
                                                    'belief_estimator_node.log').read_text()
+
+
+def test_the_suite_runs_a_task_stream_policy_as_the_ros_free_loop_does(tmp_path, ros_domain_id):
+    """A configuration with a task stream (MODEL.md 8) and its POMDP policy: the nodes find the
+    stream policies by the configuration and decide as the ROS-free loop does."""
+    from hrc_ros.core.paths import shipped_config_path
+    from hrc_ros.core.pomdp.policy import load_shipped_pomdp_policy
+    path = shipped_config_path('case_study_stream')
+    proc = hrc_case_study(tmp_path, '--config', str(path), '--selector', 'pomdp',
+                          '--belief-mode', 'posterior', '--no-view')
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    config = load_config(path)
+    model = HRCModel(config)
+    policy = load_policy(default_policy_path(config), config)
+    assert policy.path.endswith('case_study_stream.npz')
+    expected = simulate(model, policy, case_study(), selector='pomdp', seed=SEED,
+                        mode='posterior', pomdp=load_shipped_pomdp_policy(config))
+    rows = trajectory(tmp_path)
+    assert len(rows) == len(expected.rows) == 20
+    for got, want in zip(rows, expected.rows):
+        k = want['epoch']
+        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
+        assert (int(got['O']), got['action']) == (want['O'], want['action']), k

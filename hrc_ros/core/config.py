@@ -23,7 +23,8 @@ Sections:
   the one optional key: a file written before it existed stays valid.
 
 The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
-sections that determine the policy (`model`, `cost`, `solver`). Observation settings do not
+sections that determine the policy (`model`, `cost`, `solver`, and `stream` when present, so
+the hash of a configuration without a stream is what it always was). Observation settings do not
 change the policy, so editing them does not invalidate a solved policy file.
 """
 
@@ -56,9 +57,12 @@ _SCHEMA: dict[str, dict[str, str]] = {
                'fail_safe_aware': 'bool'},
     'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode',
                     'likelihood': 'columns[3x9]|null'},
+    'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null'},
 }
 # Keys that may be left out (they then read as null).
-_OPTIONAL = {('observation', 'likelihood')}
+_OPTIONAL = {('observation', 'likelihood'), ('stream', 'q')}
+# Sections that may be left out (then absent from the validated data).
+_OPTIONAL_SECTIONS = {'stream'}
 
 PROBABILITY_TOLERANCE = 1e-9
 MAX_SWEEPS = 100_000   # value iteration's bound: a fixed count, or the cap of a run to eta
@@ -143,14 +147,38 @@ class Config:
     def belief_mode(self) -> str:
         return str(self.data['observation']['mode'])
 
+    @property
+    def has_stream(self) -> bool:
+        """Whether the configuration describes a task stream (MODEL.md 8)."""
+        return 'stream' in self.data
+
+    @property
+    def stream(self) -> tuple[float, float, np.ndarray, np.ndarray] | None:
+        """(arrival_idle, arrival_complete, tasks (K, 3) int (tp, tc, tx), q (K,)) of the
+        stream section, None without one. q null: every task of the model equally likely."""
+        body = self.data.get('stream')
+        if body is None:
+            return None
+        rows = body.get('q')
+        if rows is None:
+            tasks = np.array([(tp, tc, tx) for tp in range(1, self.rho + 1)
+                              for tc in range(1, self.sigma + 1) for tx in range(4)])
+            q = np.full(len(tasks), 1.0 / len(tasks))
+        else:
+            tasks = np.array([row[:3] for row in rows], dtype=np.int64)
+            q = np.array([row[3] for row in rows], dtype=float)
+        return float(body['arrival_idle']), float(body['arrival_complete']), tasks, q
+
     # -- identity ------------------------------------------------------------------------
     @property
     def policy_sections(self) -> dict:
-        return {k: self.data[k] for k in ('model', 'cost', 'solver')}
+        keys = ('model', 'cost', 'solver') + (('stream',) if self.has_stream else ())
+        return {k: self.data[k] for k in keys}
 
     @property
     def policy_hash(self) -> str:
-        """SHA-256 of the sections that determine the policy (model, cost, solver)."""
+        """SHA-256 of the sections that determine the policy (model, cost, solver; stream
+        when the configuration has one)."""
         return config_hash(self.policy_sections)
 
     @property
@@ -188,7 +216,8 @@ def _canonical(value: Any) -> Any:
 def _merge(base: dict, overrides: Mapping[str, Any], prefix: str) -> None:
     for key, value in overrides.items():
         name = f'{prefix}{key}'
-        if key not in base and tuple(name.split('.')) not in _OPTIONAL:
+        if key not in base and tuple(name.split('.')) not in _OPTIONAL \
+                and name not in _OPTIONAL_SECTIONS:
             raise ConfigError(f'unknown configuration key {quote(name)}')
         if key not in base:
             base[key] = None
@@ -225,6 +254,8 @@ def validate(data: Any) -> dict:
     out: dict = {}
     for section, keys in _SCHEMA.items():
         body = data.get(section)
+        if body is None and section in _OPTIONAL_SECTIONS:
+            continue
         if not isinstance(body, dict):
             raise ConfigError(f'missing section {section!r}')
         for key in body:
@@ -238,7 +269,17 @@ def validate(data: Any) -> dict:
                     continue
                 raise ConfigError(f'missing key {name}')
             out[section][key] = _check(name, kind, body[key])
+    if 'stream' in out:
+        _check_stream_tasks(out['stream'].get('q'), out['model']['rho'], out['model']['sigma'])
     return out
+
+
+def _check_stream_tasks(rows, rho: int, sigma: int) -> None:
+    """The stream's tasks must be tasks of the model: tp 1..rho, tc 1..sigma, tx 0..3."""
+    for i, (tp, tc, tx, _) in enumerate(rows or ()):
+        if not (1 <= tp <= rho and 1 <= tc <= sigma and 0 <= tx <= 3):
+            raise ConfigError(f'stream.q[{i}] = [{tp}, {tc}, {tx}, ...] is not a task of the '
+                              f'model (tp 1..{rho}, tc 1..{sigma}, tx 0..3)')
 
 
 def _number(name: str, value: Any) -> float:
@@ -337,6 +378,26 @@ def _check(name: str, kind: str, value: Any) -> Any:
             if not any(row):
                 raise ConfigError(f'{name}: observation O={r + 1} has probability 0 under every '
                                   'hidden state, so the filter could not take it')
+        return rows
+    if kind == 'tasks|null':
+        if value is None:
+            return None
+        if not isinstance(value, (list, tuple)) or not value:
+            raise ConfigError(f'{name} must be null or a non-empty list of [tp, tc, tx, '
+                              f'probability] rows, got {quote(value)}')
+        rows, seen = [], set()
+        for i, row in enumerate(value):
+            if not isinstance(row, (list, tuple)) or len(row) != 4 or any(
+                    isinstance(v, bool) or not isinstance(v, int) for v in row[:3]):
+                raise ConfigError(f'{name}[{i}] must be [tp, tc, tx, probability] with integer '
+                                  f'tp, tc, tx, got {quote(row)}')
+            if tuple(row[:3]) in seen:
+                raise ConfigError(f'{name}[{i}]: task {list(row[:3])} is listed twice')
+            seen.add(tuple(row[:3]))
+            rows.append([int(v) for v in row[:3]] + [_check(f'{name}[{i}][3]', 'prob', row[3])])
+        total = sum(r[3] for r in rows)
+        if abs(total - 1.0) > PROBABILITY_TOLERANCE:
+            raise ConfigError(f'{name}: the probabilities sum to {total:.12g}, not 1')
         return rows
     if kind == 'chains':
         if not isinstance(value, dict):

@@ -30,6 +30,11 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
 4. Emotions: em and ea each follow a bounded (down, stay, up) chain chosen by the action's
    group (base, motivate = mh, request = rh1/rh2); the 9x9 matrix is their Kronecker product.
 
+5. Arrivals (MODEL.md 8, only with a configuration's `stream` section): when the step
+   leaves the cell without a task (tp' = 0), a task (tp, tc, tx) ~ q enters it, uncommitted,
+   with probability ``arrival_complete`` if the epoch started with a task (it just completed)
+   and ``arrival_idle`` if it started idle (`arrivals`). Without a stream no task arrives.
+
 Cost (MODEL.md 4): ``J(s, a) = k1*f1(s) + k2*f2(s) + g(a)``; see `state_cost`.
 """
 
@@ -191,6 +196,37 @@ def step_task(task: dict, action: int, accepted, robot_runs=None) -> dict:
     }
 
 
+def entering_task(model: 'HRCModel', y: np.ndarray, tp, tc, tx) -> np.ndarray:
+    """The task state after task (tp, tc, tx) enters an idle cell in task state y: the task
+    uncommitted (ty = 0), the activities as they were (`TaskBook.begin_epoch`)."""
+    grid = model.task_grid
+    task = {n: grid[n][y] for n in TASK_VARIABLES}
+    shape = np.shape(y)
+    task.update(tp=np.broadcast_to(tp, shape), tc=np.broadcast_to(tc, shape),
+                tx=np.broadcast_to(tx, shape), ty=np.zeros(shape, dtype=np.int64))
+    return np.asarray(model.task_index(task), dtype=np.intp)
+
+
+@dataclass(frozen=True)
+class Arrivals:
+    """The stream's arrivals on the task part (MODEL.md 8), as arrays over y.
+
+    `idle[y]`: the cell of task state y has no task (tp = 0); `enter[y, k]`: the task state
+    after task k of the stream enters the idle cell y (-1 where y is busy); `q` (K,) the
+    tasks' probabilities; `p_idle`, `p_complete` the arrival probabilities after an epoch that
+    started idle, and after one that started with a task."""
+
+    idle: np.ndarray
+    enter: np.ndarray
+    q: np.ndarray
+    p_idle: float
+    p_complete: float
+
+    def probability(self, source_y):
+        """P(a task arrives | the step ends idle), by the epoch-start task state(s)."""
+        return np.where(self.idle[source_y], self.p_idle, self.p_complete)
+
+
 @dataclass(frozen=True)
 class Transition:
     """Sparse rows of P(. | s, a) for a batch of source states (flat indices)."""
@@ -234,6 +270,20 @@ class HRCModel:
         if np.ndim(index) == 0:
             return tuple(int(v) for v in parts)
         return np.stack(parts, axis=-1)
+
+    @cached_property
+    def arrivals(self) -> Arrivals | None:
+        """The configuration's task stream on the task part, None without one."""
+        stream = self.config.stream
+        if stream is None:
+            return None
+        p_idle, p_complete, tasks, q = stream
+        idle = self.task_grid['tp'] == 0
+        y = np.arange(self.n_task)
+        enter = np.stack([np.where(idle, entering_task(self, y, *t), -1) for t in tasks], axis=1)
+        for a in (idle, enter, q):
+            a.flags.writeable = False
+        return Arrivals(idle, enter.astype(np.intp), q, p_idle, p_complete)
 
     @cached_property
     def task_grid(self) -> dict:
@@ -381,19 +431,29 @@ class HRCModel:
         p_delta = self.config.p_delta
         batch = np.arange(len(sources))
         src, tgt, prob = [], [], []
+        arrivals = self.arrivals
         for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
             nxt = step_task(task, action, accepted)
-            y_next = self.task_index(nxt)
-            for k, delta in enumerate(DELTAS):
-                d_next = next_distance(d, action, delta)
-                p_ad = p_a * p_delta[ea, k]
-                for h_next in range(N_HIDDEN):
-                    p = p_ad * emotion[3 * em + ea, h_next]
-                    keep = p > 0
-                    flat = (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep]
-                    src.append(batch[keep])
-                    tgt.append(flat)
-                    prob.append(p[keep])
+            y_step = self.task_index(nxt)
+            branches = [(y_step, p_a)]
+            if arrivals is not None:    # MODEL.md 8: a task may enter the cell left idle
+                p_arrive = np.where(nxt['tp'] == 0,
+                                    arrivals.probability(self.task_index(task)), 0.0)
+                branches = [(y_step, p_a * (1.0 - p_arrive))]
+                for j, q_j in enumerate(arrivals.q):
+                    entered = np.where(nxt['tp'] == 0, arrivals.enter[y_step, j], y_step)
+                    branches.append((entered, p_a * p_arrive * q_j))
+            for y_next, p_y in branches:
+                for k, delta in enumerate(DELTAS):
+                    d_next = next_distance(d, action, delta)
+                    p_ad = p_y * p_delta[ea, k]
+                    for h_next in range(N_HIDDEN):
+                        p = p_ad * emotion[3 * em + ea, h_next]
+                        keep = p > 0
+                        flat = (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep]
+                        src.append(batch[keep])
+                        tgt.append(flat)
+                        prob.append(p[keep])
         return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
 
     def sparse_matrices(self, chunk: int = 1 << 16):

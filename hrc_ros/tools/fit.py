@@ -1,12 +1,14 @@
 """hrc-fit: learn the cell's model from its recordings (core.learning.fit; docs/LEARNING.md).
 
     hrc-fit INPUT... -o OUT.yaml [--base CONFIG] [--hold FAMILY,...] [--bootstrap 200] [--plot]
+            [--stream]
 
 INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .csv files.
 Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
 OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
 support, the log likelihood at every 10th iteration and the last (the JSON report has every
-iteration), the epochs used and the warnings.
+iteration), the epochs used and the warnings. `--stream` also counts the task stream's
+arrivals (MODEL.md 8, core.learning.stream) and writes them as OUT.yaml's `stream` section.
 
 Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
 in an input bag folder, is the base configuration or is another output. Output folders are
@@ -28,6 +30,7 @@ from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, NEW
                                  report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
+from ..core.learning.stream import fit_stream
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
                      output_file)
 
@@ -67,6 +70,9 @@ def main(argv=None) -> int:
                         help='JSON report to write (default: OUT with .report.json)')
     parser.add_argument('--plot', nargs='?', const='', default=None, metavar='PNG',
                         help='also plot fitted vs base parameters (default: OUT with .png)')
+    parser.add_argument('--stream', action='store_true',
+                        help='also fit the task stream (arrival_idle, arrival_complete, q; '
+                        'MODEL.md 8) and write it as the stream section')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
@@ -92,7 +98,9 @@ def main(argv=None) -> int:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say, method=args.method)
-        text = config_yaml(result, base, args.inputs)
+        stream = (fit_stream(recordings, bootstrap=args.bootstrap, seed=args.seed)
+                  if args.stream else None)
+        text = config_yaml(result, base, args.inputs, stream)
     except FitError as exc:
         return fail('hrc-fit', exc)
     except ConfigError as exc:
@@ -100,6 +108,8 @@ def main(argv=None) -> int:
                     'written')
     report = report_dict(result)
     report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
+    if stream is not None:
+        report['stream'] = stream.report()
     try:
         # what is written is a configuration load_config accepts, or OUT.yaml is left as it was
         write_replacing(output, text, check=load_config)
@@ -112,6 +122,8 @@ def main(argv=None) -> int:
     print(report_text(result) if not args.quiet else
           f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '
           f'{len(result.warnings)} warning(s)')
+    if stream is not None:
+        print('\n'.join(stream.lines()))
     written = [output, report_path]
     if plot_path is not None:
         from ..core.study.plots import plot_fit

@@ -1209,10 +1209,13 @@ def _yaml_lines(value, indent: int = 0) -> list[str]:
     return lines
 
 
-def config_yaml(result: FitResult, base: Config, sources) -> str:
-    """The fitted configuration as a complete YAML file with a header saying what it is."""
+def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
+    """The fitted configuration as a complete YAML file with a header saying what it is;
+    with `stream` (a `stream.StreamFit`) its `stream` section is the fitted one."""
     import textwrap
     data = fitted_data(result, base)
+    if stream is not None:
+        data['stream'] = stream.section()
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds')
     sources = [str(s) for s in sources]
     header = [
@@ -1229,6 +1232,10 @@ def config_yaml(result: FitResult, base: Config, sources) -> str:
         "Everything else (rho, sigma, cost, solver, observation table, epsilon, mode) is the "
         "base's. Solve it before use: hrc-solve --config <this file> -o <policy.npz>",
     ]
+    if stream is not None:
+        header.insert(-1, f'Stream (MODEL.md 8) counted: arrival_idle from {stream.idle_trials} '
+                      f'idle epochs, arrival_complete from {stream.complete_trials} completions, '
+                      f'q from {int(stream.counts.sum())} arrivals; intervals in the report.')
     lines = [f'# {line}' for paragraph in header
              for line in textwrap.wrap(paragraph, 97, break_on_hyphens=False)]
     return '\n'.join(lines + [''] + _yaml_lines(data)) + '\n'

@@ -24,9 +24,16 @@ task maps
 `t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
 [group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
-(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `value` V (9, n_y, 4); `w` (3, 9, n_y, 4)
-scratch for the emotion step; `out` receives T V; `residual` (n_y,) receives max over h, d
-of |T V - V| per y.
+(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); the stream (MODEL.md 8; empty
+`arrive_y` without one): `arrive_y` the idle y, `arrive_enter` (len(arrive_y), K) the task
+states a task k makes of them, `arrive_q` (K,), `p_idle`, `p_complete`; `value` V (9, n_y, 4);
+`w` (3, 9, n_w, 4) scratch for the emotion step (n_w = n_y, or 2 n_y with a stream: rows
+n_y + y hold the arrival_idle mix, and the task maps of idle sources point there); `out`
+receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
+
+1b. (a stream only) at the idle y: W[y] <- (1 - p_complete) W[y] + p_complete sum_k q_k
+W[enter(y, k)], and W[n_y + y] the same with p_idle; the entered rows are busy, so never
+written in this pass.
 """
 
 from __future__ import annotations
@@ -46,7 +53,8 @@ def _mix(c, x0, x1, x2, x3):
 
 
 def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
-           fail_safe_aware, value, w, out, residual):
+           fail_safe_aware, arrive_y, arrive_enter, arrive_q, p_idle, p_complete, value, w,
+           out, residual):
     n_y = value.shape[1]
     # 1. emotion step for the three groups (one parallel region)
     for y in numba.prange(n_y):
@@ -66,6 +74,19 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
                 w[grp, h, y, 1] = a1
                 w[grp, h, y, 2] = a2
                 w[grp, h, y, 3] = a3
+    # 1b. the stream's arrivals at the idle y (nothing without a stream)
+    n_k = arrive_q.shape[0]
+    for j in numba.prange(arrive_y.shape[0]):
+        y = arrive_y[j]
+        for grp in range(3):
+            for h in range(N_HIDDEN):
+                for d in range(4):
+                    mixed = 0.0
+                    for k in range(n_k):
+                        mixed += arrive_q[k] * w[grp, h, arrive_enter[j, k], d]
+                    stay = w[grp, h, y, d]
+                    w[grp, h, n_y + y, d] = (1.0 - p_idle) * stay + p_idle * mixed
+                    w[grp, h, y, d] = (1.0 - p_complete) * stay + p_complete * mixed
     # 2. distance step at the successors, max over actions, cost, residual
     g_rh = g[1]
     g_dp = g[4]

@@ -314,14 +314,26 @@ def check_policy(policy: Policy, config: Config, states: int | None = None) -> N
                           f'configuration has {n}. Solve it again with hrc-solve.')
 
 
+def _stream_kind(stream: bool) -> str:
+    return ('a task stream (MODEL.md 8: tasks keep arriving)' if stream
+            else 'no task stream (the paper\'s model: no task arrives)')
+
+
 def check_config_hash(path, meta: dict, config: Config, solve: str = '') -> None:
     """Refuse a policy file (its `meta`) solved for another configuration than `config`."""
     expected = config.policy_hash
     found = meta['config_sha256']
     if found != expected:
+        raw = meta.get('config')
+        planned = isinstance(raw, dict) and isinstance(raw.get('stream'), dict)
+        kinds = ''
+        if planned != config.has_stream:
+            kinds = (f' The policy plans {_stream_kind(planned)}; the configuration describes '
+                     f'{_stream_kind(config.has_stream)}.')
         raise PolicyError(
             f'policy {path} was solved for configuration {str(found)[:12]} '
             f'({cap(meta.get("config_source", "unknown source"), QUOTE_LIMIT)}), but the '
-            f'configuration in use ({config.source}) is {expected[:12]}. Solve a policy for it: '
+            f'configuration in use ({config.source}) is {expected[:12]}.{kinds} '
+            'Solve a policy for it: '
             f'hrc-solve --config {config.source}{solve} -o <policy.npz>, or pass the matching '
             'configuration.')

@@ -27,6 +27,14 @@ the paused robot counter.
 With `solver.fail_safe_aware` only dn is available at d = 0 (the other actions' Q there is
 -inf), so the policy plans with the decision node's fail-safe instead of against it.
 
+With a task stream (MODEL.md 8, `HRCModel.arrivals`) a step that leaves the cell idle is
+followed by an arrival: U is mixed along y' before the gather, U'[y'] = (1 - p) U[y'] + p sum_k
+q_k U[enter(y', k)] at the idle y', once with p = arrival_complete (read by the sources with a
+task) and once with p = arrival_idle (read by the idle sources, through task maps offset by
+n_y into the second copy). The arrival is independent of h and d, so it commutes with the
+emotion and distance steps. Without a stream nothing of this runs and the sweep is the one it
+always was, bit for bit.
+
 Solvers, in the shape of QuantEcon's ``ddp.py``: `value_iteration` (MODEL.md 5: from V_0 = 0
 until ``max|V_{t+1} - V_t| < eta``, or a fixed number of sweeps) and `policy_iteration`
 (Howard's: exact evaluation by a sparse linear solve, greedy improvement, until the policy is
@@ -135,6 +143,26 @@ class FactoredBellman:
         self.mix = np.ascontiguousarray(np.stack(
             [model.distance_matrix(a).transpose(0, 2, 1) for a in (NW, DP, DM)])
             .reshape(3, 3, 16))
+        # The stream (MODEL.md 8): the continuation is mixed over the arrivals at the idle y'
+        # (`_arrive`); the idle sources read the arrival_idle copy, offset by n_y.
+        arrivals = self.arrivals = model.arrivals
+        if arrivals is None:
+            offset = np.zeros(n_y, dtype=np.intp)
+            self.arrive_y = np.zeros(0, dtype=np.intp)
+            self.arrive_enter = np.zeros((0, 1), dtype=np.intp)
+            self.arrive_q = np.zeros(1)
+            self.arrive_p = (0.0, 0.0)
+        else:
+            offset = np.where(arrivals.idle, n_y, 0).astype(np.intp)
+            self.arrive_y = np.flatnonzero(arrivals.idle).astype(np.intp)
+            self.arrive_enter = np.ascontiguousarray(arrivals.enter[self.arrive_y])
+            self.arrive_q = np.asarray(arrivals.q, dtype=float)
+            self.arrive_p = (arrivals.p_idle, arrivals.p_complete)
+        self.n_w = n_y if arrivals is None else 2 * n_y
+        self.g_default = self.t_default + offset
+        self.g_pause = self.t_pause + offset
+        self.g_commit_full = np.where(self.t_commit_full >= 0, self.t_commit_full + offset, -1)
+        self.g_accept_full = np.where(self.t_accept_full >= 0, self.t_accept_full + offset, -1)
         self._w = None
         self._residual = np.empty(n_y)
 
@@ -147,25 +175,38 @@ class FactoredBellman:
         base = np.matmul(w[0], self.dist_base)          # (9, n_y, 12): nw | dp | dm
         motivate = np.matmul(w[1], self.dist_other)
         request = np.matmul(w[2], self.dist_other)
-        return base, motivate, request
+        return self._arrive(base), self._arrive(motivate), self._arrive(request)
+
+    def _arrive(self, u: np.ndarray) -> np.ndarray:
+        """U (9, n_y, m) with the stream's arrival at the idle y': [arrival_complete form,
+        arrival_idle form] along y (9, 2 n_y, m); U itself without a stream."""
+        if self.arrivals is None:
+            return u
+        rows = self.arrive_y
+        mixed = np.einsum('hykm,k->hym', u[:, self.arrive_enter], self.arrive_q)
+        p_idle, p_complete = self.arrive_p
+        busy, idle = u.copy(), u.copy()
+        busy[:, rows] = (1.0 - p_complete) * u[:, rows] + p_complete * mixed
+        idle[:, rows] = (1.0 - p_idle) * u[:, rows] + p_idle * mixed
+        return np.concatenate([busy, idle], axis=1)
 
     def q(self, value: np.ndarray) -> np.ndarray:
         """Full Q(s, a) = -J(s, a) + gamma E[V(s') | s, a], shape (8, N): the reference form."""
         base, motivate, request = self._continuations(value)
         nw = base[..., 0:4]
         q = np.empty((len(ACTIONS),) + self.shape)
-        q[NW] = nw[:, self.t_default]
-        q[DP] = base[:, self.t_default, 4:8]
-        q[DM] = base[:, self.t_default, 8:12]
-        q[MH] = motivate[:, self.t_default]
-        q[DN] = nw[:, self.t_pause]
+        q[NW] = nw[:, self.g_default]
+        q[DP] = base[:, self.g_default, 4:8]
+        q[DM] = base[:, self.g_default, 8:12]
+        q[MH] = motivate[:, self.g_default]
+        q[DN] = nw[:, self.g_pause]
         q[CT] = q[NW]
-        q[CT][:, self.ct_effective] = nw[:, self.t_commit]
-        refused = request[:, self.t_default]
+        q[CT][:, self.ct_effective] = nw[:, self.g_commit_full[self.ct_effective]]
+        refused = request[:, self.g_default]
         q[RH1] = refused
         q[RH2] = refused
         ry = self.request_y
-        accepted = request[:, self.t_accept]
+        accepted = request[:, self.g_accept_full[ry]]
         mixed = refused[:, ry] + self.p_accept_h * (accepted - refused[:, ry])
         rh2 = self.request_is_rh2
         q[RH1][:, ry[~rh2]] = mixed[:, ~rh2]
@@ -180,12 +221,14 @@ class FactoredBellman:
               ) -> tuple[np.ndarray, float]:
         """(T V, max |T V - V|): one sweep by the fused kernel (`_kernels.sweep`)."""
         if self._w is None:
-            self._w = np.empty((3,) + self.shape)
+            self._w = np.empty((3, N_HIDDEN, self.n_w, N_DISTANCE))
         if out is None:
             out = np.empty(self.model.n_states)
-        _kernels.sweep(self.gamma_emotion, self.t_default, self.t_pause, self.t_commit_full,
-                       self.t_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
-                       self.fail_safe_aware, np.ascontiguousarray(value).reshape(self.shape),
+        _kernels.sweep(self.gamma_emotion, self.g_default, self.g_pause, self.g_commit_full,
+                       self.g_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
+                       self.fail_safe_aware, self.arrive_y, self.arrive_enter, self.arrive_q,
+                       self.arrive_p[0], self.arrive_p[1],
+                       np.ascontiguousarray(value).reshape(self.shape),
                        self._w, out.reshape(self.shape), self._residual)
         return out, float(self._residual.max())
 
@@ -195,13 +238,15 @@ class FactoredBellman:
 
 
 BYTES_PER_STATE = 180        # value, spare, cost, kernel scratch, the policy step's Q and masks
+STREAM_BYTES_PER_STATE = 180  # with a stream: the second scratch copy and q's arrival copies
 RUNTIME_BYTES = 150 * 2**20  # python, numpy, scipy, numba
 
 
 def memory_estimate(model: HRCModel) -> int:
     """Peak bytes of a value-iteration solve of `model`: about BYTES_PER_STATE per state plus
     the runtime (bench/solve_bench.py measures 227 MB at 0.42 M states, 1.6 GB at 9 M)."""
-    return BYTES_PER_STATE * model.n_states + RUNTIME_BYTES
+    per_state = BYTES_PER_STATE + (STREAM_BYTES_PER_STATE if model.arrivals is not None else 0)
+    return per_state * model.n_states + RUNTIME_BYTES
 
 
 def greedy_policy(q: np.ndarray) -> np.ndarray:

@@ -65,8 +65,8 @@ from . import _kernels as kernels
 from .belief import BeliefFilter
 from ..config import EMOTION_GROUPS
 from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
-                     SAFETY_ORDER, TASK_VARIABLES, HRCModel, safest_best, safest_best_one,
-                     tie_floor)
+                     SAFETY_ORDER, TASK_VARIABLES, HRCModel, entering_task, safest_best,
+                     safest_best_one, tie_floor)
 from ..mdp.solver import FactoredBellman
 
 
@@ -178,17 +178,6 @@ class HRCPomdp:
         return i
 
 
-def entering_task(model: HRCModel, y: np.ndarray, tp, tc, tx) -> np.ndarray:
-    """The task state after task (tp, tc, tx) enters an idle cell in task state y: the task
-    uncommitted (ty = 0), the activities as they were (`TaskBook.begin_epoch`)."""
-    grid = model.task_grid
-    task = {n: grid[n][y] for n in TASK_VARIABLES}
-    shape = np.shape(y)
-    task.update(tp=np.broadcast_to(tp, shape), tc=np.broadcast_to(tc, shape),
-                tx=np.broadcast_to(tx, shape), ty=np.zeros(shape, dtype=np.int64))
-    return np.asarray(model.task_index(task), dtype=np.intp)
-
-
 def _task_outcomes(op: FactoredBellman):
     """Per action: (y' when refused or not a request, y' when accepted or -1, eligible)."""
     rh1 = np.zeros(op.n_y, dtype=bool)
@@ -201,6 +190,22 @@ def _task_outcomes(op: FactoredBellman):
         refused = {DN: op.t_pause, CT: commit}.get(a, op.t_default)
         eligible = {RH1: rh1, RH2: rh2}.get(a, np.zeros(op.n_y, dtype=bool))
         out.append((refused, np.where(eligible, op.t_accept_full, -1), eligible))
+    return out
+
+
+def _arrival_branches(arrivals, ys: np.ndarray, branches: list) -> list:
+    """The stream's arrivals (MODEL.md 8) on the task branches [(y' per source, P by h)]: a
+    branch that leaves the cell idle splits into 'no task arrives' and one branch per task of
+    the stream, entered (`model.Arrivals`); the arrival is independent of h, so it scales the
+    branch's likelihood. -1 (no branch) stays -1."""
+    p_arrive = arrivals.probability(ys)[:, None]                    # (n_y, 1), by the source
+    out = []
+    for y_next, p_y in branches:
+        ends_idle = (y_next >= 0) & arrivals.idle[np.maximum(y_next, 0)]
+        out.append((y_next, p_y * np.where(ends_idle[:, None], 1.0 - p_arrive, 1.0)))
+        for j, q_j in enumerate(arrivals.q):
+            entered = np.where(ends_idle, arrivals.enter[np.maximum(y_next, 0), j], -1)
+            out.append((entered, p_y * p_arrive * q_j))
     return out
 
 
@@ -238,7 +243,8 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     ea = np.arange(N_HIDDEN) % 3
     p_accept = op.p_accept_vector                                   # by h
     n_a = len(ACTIONS)
-    n_k = 2 * 3
+    arrivals = model.arrivals
+    n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
     succ_x = np.full((n_x, n_a, n_k), -1, dtype=np.intp)
     succ_l = np.zeros((n_x, n_a, n_k, N_HIDDEN))
     d_of_x = np.tile(np.arange(N_DISTANCE), n_y)
@@ -246,6 +252,8 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
         dist = model.distance_matrix(a)[ea]                         # (9, d, d')
         branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
         branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
+        if arrivals is not None:
+            branches = _arrival_branches(arrivals, ys, branches)
         k = np.zeros(n_x, dtype=np.intp)
         for y_next, p_y in branches:
             has = y_next >= 0
@@ -704,8 +712,11 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     for r in range(rounds + 1):
         policy = (q_policy(pomdp, q_fib) if r == 0
                   else AlphaPolicy.from_set(alphas, q_fib, pomdp.available, hrc).act)
+        # A stream model's successors hold its arrivals; the paper's model gets the
+        # hrc-evaluate task stream from outside.
+        enter = None if model.arrivals is not None else hrc.enter
         xs, bs = sample_beliefs(pomdp, hrc.likelihood, starts, policy, episodes, epochs,
-                                seed=seed + r, explore=explore, enter=hrc.enter)
+                                seed=seed + r, explore=explore, enter=enter)
         points_x, points = thin_points(np.concatenate([points_x, xs]), np.vstack([points, bs]),
                                        resolution, per_state, seed=seed + r)
         points_x, points = _with_fixed(points_x, points, fixed_x, fixed_b)

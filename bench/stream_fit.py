@@ -1,0 +1,57 @@
+"""The task stream (MODEL.md 8) fitted on recorded runs of hrc-evaluate's scenarios.
+
+    .venv/bin/python bench/stream_fit.py [--episodes 500] [--seed 0]
+
+Records `--episodes` runs of each scenario hrc-evaluate runs (the random streams: 50 epochs,
+task rate 0.2; the paper's case study at its 20 epochs and at 150) with the default
+configuration's policy and the paper selector, the posterior belief (the robot's view only: the
+recordings hold no emotions), and prints the stream that `core.learning.stream` (hrc-fit
+--stream) counts from each, with bootstrap 95% intervals: the numbers of config/stream.yaml
+(random) and config/case_study_stream.yaml (the case study's 20 epochs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hrc_ros.core.config import load_config  # noqa: E402
+from hrc_ros.core.learning.stream import fit_stream  # noqa: E402
+from hrc_ros.core.mdp.policy import load_policy  # noqa: E402
+from hrc_ros.core.model import HRCModel  # noqa: E402
+from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of  # noqa: E402
+
+SCENARIOS = (('random', 50, 0.2), ('case-study', 20, 0.0), ('case-study', 150, 0.0))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
+    parser.add_argument('--episodes', type=int, default=500)
+    parser.add_argument('--seed', type=int, default=0)
+    args = parser.parse_args(argv)
+    config = load_config(ROOT / 'config' / 'default.yaml')
+    model = HRCModel(config)
+    policy = load_policy(ROOT / 'policies' / 'default.npz', config).policy
+    print(f'stream_fit: {args.episodes} recorded episodes per scenario, seed {args.seed}; '
+          f'command: .venv/bin/python bench/stream_fit.py --episodes {args.episodes} '
+          f'--seed {args.seed}')
+    for scenario, epochs, rate in SCENARIOS:
+        scenarios, seeds = episodes_of(model, scenario, args.episodes, epochs, args.seed, rate)
+        run = BatchSimulator(model, policy, mode='posterior').run(scenarios, seeds, 'paper',
+                                                                   record=True)
+        fitted = fit_stream(run.recordings(model), seed=args.seed)
+        print(f'\n{scenario}, {epochs} epochs, task rate {rate}: '
+              f'{np.mean(run.tasks_completed):.2f} tasks completed per episode')
+        print('\n'.join(fitted.lines()))
+        print(f'  section: {fitted.section()}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,227 @@
+"""The task stream in the model (MODEL.md 8): configuration, rule-by-rule arrivals, the factored
+MDP solver against them, and the paper's model left exactly as it was."""
+
+import numpy as np
+import pytest
+from reference import rule_q
+
+from hrc_ros.core.config import ConfigError, load_config
+from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
+from hrc_ros.core.mdp.solver import FactoredBellman, solve
+from hrc_ros.core.model import CT, DN, NW, RH2, HRCModel
+from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
+
+CONFIG = default_config_path()
+STREAM = {'arrival_idle': 0.3, 'arrival_complete': 0.6,
+          'q': [[1, 1, 0, 0.5], [1, 1, 3, 0.2], [1, 1, 2, 0.3]]}
+SMALL = {'model': {'rho': 1, 'sigma': 1}}
+
+
+@pytest.fixture(scope='module')
+def small_stream():
+    return HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': STREAM}))
+
+
+def test_no_stream_section_is_the_papers_model_with_its_hash():
+    plain = load_config(CONFIG)
+    assert not plain.has_stream and plain.stream is None
+    assert HRCModel(plain).arrivals is None
+    # the hash of a configuration without a stream is the one the shipped policies carry
+    meta = load_policy(share_dir() / 'policies' / 'default.npz', plain).meta
+    assert meta['config_sha256'] == plain.policy_hash
+    streamed = load_config(CONFIG, overrides={'stream': STREAM | {'q': None}})
+    assert streamed.policy_hash != plain.policy_hash
+    p_idle, p_complete, tasks, q = streamed.stream
+    assert (p_idle, p_complete) == (0.3, 0.6)
+    assert len(tasks) == 16 and np.allclose(q, 1 / 16)     # q null: the model's tasks, uniform
+
+
+@pytest.mark.parametrize('stream, message', [
+    ({'arrival_idle': 1.5, 'arrival_complete': 0.5}, 'stream.arrival_idle'),
+    ({'arrival_idle': 0.5}, 'missing key stream.arrival_complete'),
+    ({'arrival_idle': 0.5, 'arrival_complete': 0.5, 'rate': 1}, 'unknown key stream.rate'),
+    ({'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[1, 1, 0, 0.5]]}, 'sum to 0.5'),
+    ({'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[3, 1, 0, 1.0]]}, 'not a task'),
+    ({'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[1, 1, 0, 0.5], [1, 1, 0, 0.5]]},
+     'listed twice'),
+    ({'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[1, 1.5, 0, 1.0]]}, 'integer'),
+])
+def test_a_bad_stream_section_is_refused_naming_the_field(stream, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(CONFIG, overrides={'stream': stream})
+
+
+def test_arrivals_rule_by_rule(small_stream):
+    """From an idle cell a task of q arrives with arrival_idle; right after a task completes,
+    with arrival_complete; a busy cell gets none."""
+    m = small_stream
+    idle = m.index((1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 2))
+    completing = m.index((1, 1, 1, 1, 0, 2, 0, 0, 1, 1, 2))   # the robot's last epoch of it
+    waiting = m.index((1, 1, 1, 1, 3, 0, 0, 0, 0, 0, 2))      # a joint task, uncommitted
+    for source, p_arrive in ((idle, 0.3), (completing, 0.6), (waiting, 0.0)):
+        t = m.transition(np.array([source]), NW)
+        nxt = m.state(t.target)
+        got = {}
+        for row, p in zip(nxt, t.probability):
+            key = tuple(row[2:5]) if row[2] else None
+            got[key] = got.get(key, 0.0) + p
+        if p_arrive == 0.0:
+            assert set(got) == {(1, 1, 3)}
+            continue
+        assert got[None] == pytest.approx(1 - p_arrive)
+        for (tp, tc, tx, q) in STREAM['q']:
+            assert got[(tp, tc, tx)] == pytest.approx(p_arrive * q)
+        # an arrived task is uncommitted and the emotions move as without the stream
+        assert np.all(nxt[nxt[:, 2] > 0, 5] == 0)
+    assert np.allclose(m.sparse_matrices()[CT].sum(axis=1), 1.0)
+
+
+@pytest.mark.parametrize('aware', [True, False])
+def test_factored_q_and_the_fused_sweep_equal_the_rule_by_rule_stream(small_stream, aware):
+    model = HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': STREAM,
+                                                     'solver': {'fail_safe_aware': aware}}))
+    op = FactoredBellman(model)
+    value = np.random.default_rng(5).normal(size=model.n_states) * 20
+    q = op.q(value)
+    sources = np.arange(model.n_states)
+    np.testing.assert_allclose(q.T, rule_q(model, value, sources), atol=1e-10)
+    new, residual = op.apply(value)
+    np.testing.assert_allclose(new, q.max(axis=0), atol=1e-10)
+    assert residual == pytest.approx(np.max(np.abs(q.max(axis=0) - value)), abs=1e-10)
+
+
+def test_factored_q_equals_rule_by_rule_on_sampled_full_stream_states():
+    model = HRCModel(load_config(shipped_config_path('stream')))
+    rng = np.random.default_rng(13)
+    value = rng.normal(size=model.n_states) * 20
+    sample = rng.choice(model.n_states, size=1500, replace=False)
+    q = FactoredBellman(model).q(value)
+    np.testing.assert_allclose(q[:, sample].T, rule_q(model, value, sample), atol=1e-10)
+
+
+def test_the_stream_changes_what_an_idle_cell_expects(small_stream):
+    """Tasks that will come cost: every idle state is worth less with the stream, and the
+    same state without one is the paper's value."""
+    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
+    v_plain, v_stream = solve(plain).value, solve(small_stream).value
+    idle = small_stream.state(np.arange(small_stream.n_states))[:, 2] == 0
+    assert np.all(v_stream[idle] < v_plain[idle] - 1e-6)
+
+
+def test_shipped_policies_of_the_paper_model_are_unchanged_by_the_stream_code():
+    """The solver with the stream code solves every shipped configuration without a stream to
+    its shipped policy, action for action."""
+    for name in ('default', 'paper', 'fail_safe_unaware'):
+        config = load_config(shipped_config_path(name))
+        shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
+        fresh = solve(HRCModel(config))
+        np.testing.assert_array_equal(fresh.policy, shipped.policy)
+        np.testing.assert_allclose(fresh.value, shipped.value, atol=1e-9)
+
+
+@pytest.mark.parametrize('name', ['stream', 'case_study_stream', 'case_study_stream150'])
+def test_shipped_stream_policies_load_and_are_fresh_solves(name):
+    config = load_config(shipped_config_path(name))
+    shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
+    fresh = solve(HRCModel(config))
+    np.testing.assert_array_equal(fresh.policy, shipped.policy)
+    assert shipped.meta['config']['stream'] == config.data['stream']
+
+
+def test_a_stream_policy_is_refused_against_the_papers_model_saying_which_is_which(tmp_path):
+    stream = load_config(CONFIG, overrides={**SMALL, 'stream': STREAM})
+    plain = load_config(CONFIG, overrides=SMALL)
+    path = save_policy(tmp_path / 'stream.npz', solve(HRCModel(stream)), stream)
+    with pytest.raises(PolicyError, match=r'plans a task stream .* describes no task stream'):
+        load_policy(path, plain)
+    path = save_policy(tmp_path / 'plain.npz', solve(HRCModel(plain)), plain)
+    with pytest.raises(PolicyError, match=r'plans no task stream .* describes a task stream.*'
+                       r'hrc-solve --config'):
+        load_policy(path, stream)
+
+
+def test_the_stream_policy_waits_for_nothing_when_no_task_can_come(small_stream):
+    """arrival 0: the stream model is the paper's model (same values, same policy)."""
+    zero = HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': {
+        'arrival_idle': 0.0, 'arrival_complete': 0.0, 'q': None}}))
+    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
+    a, b = solve(zero), solve(plain)
+    np.testing.assert_allclose(a.value, b.value, atol=1e-9)
+    np.testing.assert_array_equal(a.policy, b.policy)
+    assert {DN, RH2} <= set(np.unique(a.policy))
+
+
+# -- the POMDP of the stream model -------------------------------------------------------------
+@pytest.fixture(scope='module')
+def small_stream_hrc(small_stream):
+    from hrc_ros.core.pomdp.solver import hrc_pomdp
+    return hrc_pomdp(small_stream)
+
+
+def test_pomdp_successors_are_the_rule_by_rule_stream_transition(small_stream, small_stream_hrc):
+    """P(x' | x, h, a) of the POMDP, arrivals included, equals the model's explicit transition
+    summed over h', at every solved state."""
+    hrc, pomdp, m = small_stream_hrc, small_stream_hrc.pomdp, small_stream
+    n_columns = m.n_task * 4
+    arrived = 0
+    for i in range(pomdp.n_x):
+        for h in (0, 4, 8):
+            for a in range(8):
+                t = m.transition([h * n_columns + hrc.columns[i]], a)
+                expected = np.bincount(t.target % n_columns, weights=t.probability,
+                                       minlength=n_columns)
+                got = np.zeros(n_columns)
+                for k in np.flatnonzero(pomdp.succ_x[i, a] >= 0):
+                    got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
+                np.testing.assert_allclose(got, expected, atol=1e-12)
+                arrived += int(np.count_nonzero(pomdp.succ_x[i, a] >= 0) > 6)
+    assert arrived > 0      # some successors are arrivals: more than the 2 x 3 of no stream
+
+
+def test_pomdp_mdp_over_the_solved_states_is_the_stream_factored_q(small_stream,
+                                                                    small_stream_hrc):
+    hrc, pomdp = small_stream_hrc, small_stream_hrc.pomdp
+    value = np.random.default_rng(2).normal(size=small_stream.n_states) * 20
+    q = FactoredBellman(small_stream).q(value).reshape(8, 9, -1)[:, :, hrc.columns]
+    v = value.reshape(9, -1)[:, hrc.columns].T
+    mine = pomdp.reward + pomdp.gamma * pomdp.expected_next(v)
+    available = pomdp.available[..., None]
+    np.testing.assert_allclose(np.where(available, mine, 0.0),
+                               np.where(available, q.transpose(2, 0, 1), 0.0), atol=1e-10)
+
+
+def test_the_stream_pomdp_bounds_bracket_and_sit_below_the_mdp(small_stream):
+    from hrc_ros.core.pomdp.solver import solve_pomdp
+    result = solve_pomdp(small_stream, episodes=100, per_state=15, rounds=0, seed=2,
+                         tol=1e-2)
+    for target in result.report['targets']:
+        assert target['lower'] <= target['upper'] + 1e-9
+        assert target['relative_gap'] < 0.05
+    # the POMDP's lower bound is no better than the fully informed MDP at any point
+    mdp = solve(small_stream).value.reshape(9, -1)[:, result.hrc.columns].T   # (x, h)
+    alphas = result.alphas
+    for x, b in zip(result.points_x[:400], result.points[:400]):
+        lower = (alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+        assert lower <= b @ mdp[x] + 1e-9
+
+
+def test_the_shipped_stream_pomdp_policy_is_found_and_refused_for_the_papers_model():
+    from hrc_ros.core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
+    config = load_config(shipped_config_path('case_study_stream'))
+    path = default_pomdp_policy_path(config)
+    assert path.name == 'case_study_stream.npz'
+    loaded = load_pomdp_policy(path, config)
+    assert loaded.meta['report']['case_study_relative_gap'] < 0.02
+    assert loaded.meta['config']['stream'] == config.data['stream']
+    plain = load_config(default_config_path())
+    with pytest.raises(PolicyError, match='plans a task stream .* describes no task stream'):
+        load_pomdp_policy(path, plain)
+
+
+@pytest.mark.parametrize('name', ['stream', 'case_study_stream150'])
+def test_every_stream_configuration_ships_its_pomdp_policy(name):
+    from hrc_ros.core.pomdp.policy import default_pomdp_policy_path, load_pomdp_policy
+    config = load_config(shipped_config_path(name))
+    path = default_pomdp_policy_path(config)
+    assert path.name == f'{name}.npz'
+    assert load_pomdp_policy(path, config).meta['report']['case_study_relative_gap'] < 0.02
