@@ -68,7 +68,7 @@ from ..model import ACTIONS, CT, DN, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from ..pomdp.belief import BeliefFilter
 from ..study.evaluation import Z95, episodes_of
 from ..study.simulation import SIMULATION_SELECTORS
-from ..tasks import TaskBook
+from ..tasks import TaskBook, robot_cycle_done
 from .arm import Arm, TrajectoryFollower, body_capsules
 from .bridge import Bridge, load_programs, load_robot_description
 from .ssm import MOVING_SPEED, ssm_violated
@@ -289,7 +289,8 @@ class ArmCell:
                 step += 1
             progress = bridge.progress
             bc = task_before['bc']
-            robot_runs = progress is not None and progress.cycles_done > progress.cycles - bc
+            robot_runs = progress is not None and robot_cycle_done(progress.cycles,
+                                                                   progress.cycles_done, bc)
             book.apply(action, reaction.accepted, robot_runs)
             evidence = None
             if self.filter.mode == 'posterior':
