@@ -3,13 +3,25 @@
 - the task manager's `robot_progress` (`core.protocol.TaskEpochs`): the robot's counter bc
   runs down in an epoch only when the bridge's progress, published before the epoch's end,
   shows a cycle bc has not counted (the batch cell's `robot_cycle_done`);
+- the estimator's `distance_source: arm_links` (`core.robot.links.LinkDistance`): d is the band
+  of the separation between the arm's links at its latest joint state and the person's body
+  capsules; without a fresh arm state d = 0 (the fail-safe), with the reason.
 """
 
-from hrc_ros.core.model import CT, NW, TASK_VARIABLES, HRCModel
-from hrc_ros.core.protocol import Stamp, TaskEpochs
-from hrc_ros.core.tasks import TaskBook, robot_cycle_done
+import math
 
+import numpy as np
 import pytest
+
+from hrc_ros.core.cell.person import SimulatedPerson
+from hrc_ros.core.cell.tracking import K4ABT_JOINTS
+from hrc_ros.core.decision.observation import distance_level
+from hrc_ros.core.model import CT, NW, TASK_VARIABLES, HRCModel
+from hrc_ros.core.protocol import InputError, Stamp, TaskEpochs
+from hrc_ros.core.robot.arm import JOINT_NAMES, Arm
+from hrc_ros.core.robot.bridge import load_robot_description
+from hrc_ros.core.robot.links import LinkDistance
+from hrc_ros.core.tasks import TaskBook, robot_cycle_done
 
 MS = 1_000_000
 TIMEOUT = 250 * MS
@@ -89,3 +101,95 @@ def test_no_share_or_no_progress_is_no_robot_work(model):
         assert run_epochs(tasks, [CT, NW, NW], progress) == [0, 2, 2, 2]
     state = tuple(tasks.book.state[n] for n in TASK_VARIABLES)
     assert state[3] == 2 and state[7] == 2        # committed, bc untouched
+
+
+# -- the estimator's arm_links ----------------------------------------------------------------
+RADII = (0.2, 0.6, 1.2)
+S = 1_000_000_000
+
+
+@pytest.fixture(scope='module')
+def description():
+    return load_robot_description()
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return Arm()
+
+
+def person_at(rho):
+    """The simulated person at their workstation, pelvis `rho` m from the base axis."""
+    person = SimulatedPerson(1, seed=0)          # hands on the table
+    person.theta = person.theta_target = math.radians(-31.0)
+    person.rho = rho
+    return person.keypoints()
+
+
+def test_d_is_the_band_of_the_separation_to_the_arms_links(description, arm):
+    links = LinkDistance(description, RADII, K4ABT_JOINTS, arm)
+    far = person_at(1.9)
+    # by the reference point (the base) this person is in the outer band ...
+    assert distance_level(far, (0, 0, 0), RADII) == 3
+    poses = description.poses
+    # ... by the links: 1.06 m from the arm at home (middle), 0.70 m at the collaboration pose
+    # over their station (middle), 1.23 m folded back in the retreat pose (outer)
+    for pose, band in (('home', 2), ('collaboration', 2), ('retreat', 3)):
+        links.joint_state(JOINT_NAMES, poses[pose], 1 * S)
+        level = links.level(far, 1 * S + 50_000_000)
+        assert (level.d, level.reason) == (band, ''), pose
+        assert level.separation.distance == pytest.approx(
+            arm.distance(poses[pose], links_body(far)), abs=1e-12)
+    # at the table's edge the arm over the station is 0.24 m away: the inner band, 1
+    links.joint_state(JOINT_NAMES, poses['collaboration'], 2 * S)
+    assert links.level(person_at(1.35), 2 * S).d == 1
+    # the joints in another order (a driver's), a gripper joint besides: the same arm
+    order = [5, 3, 1, 0, 2, 4]
+    links.joint_state([JOINT_NAMES[i] for i in order] + ['gripper'],
+                      [poses['retreat'][i] for i in order] + [0.5], 3 * S)
+    assert links.level(far, 3 * S).d == 3
+
+
+def links_body(points):
+    from hrc_ros.core.robot.arm import body_capsules
+    return body_capsules(points, K4ABT_JOINTS)
+
+
+def test_without_a_fresh_arm_state_d_is_the_collision_level(description, arm):
+    links = LinkDistance(description, RADII, K4ABT_JOINTS, arm)
+    far = person_at(3.0)
+    level = links.level(far, 1 * S)                     # never a joint state
+    assert (level.d, level.separation) == (0, None)
+    assert level.reason == 'no joint state of the arm yet'
+    links.joint_state(JOINT_NAMES, description.poses['home'], 1 * S)
+    assert links.level(far, 1 * S + 100_000_000).d == 3      # 0.1 s old: still fresh
+    level = links.level(far, 1 * S + 150_000_000)            # older than 0.1 s
+    assert level.d == 0 and '0.150 s old' in level.reason and '0.1 s' in level.reason
+
+
+def test_a_refused_arm_state_keeps_the_last_good_one(description, arm):
+    links = LinkDistance(description, RADII, K4ABT_JOINTS, arm)
+    home = description.poses['home']
+    links.joint_state(JOINT_NAMES, home, 5 * S)
+    bad = (
+        (JOINT_NAMES[:5], home[:5], 'without wrist_3_joint'),
+        (JOINT_NAMES, np.where(np.arange(6) == 2, np.nan, home), 'elbow_joint is nan'),
+        (JOINT_NAMES, np.where(np.arange(6) == 2, 4.0, home), 'outside its limits'),
+    )
+    for names, positions, why in bad:
+        with pytest.raises(InputError, match=why):
+            links.joint_state(names, positions, 6 * S)
+        assert links.stamp_ns == 5 * S and np.array_equal(links.q, home)
+    with pytest.raises(InputError, match='older than the one held'):
+        links.joint_state(JOINT_NAMES, description.poses['retreat'], 4 * S)
+    assert np.array_equal(links.q, home)
+    with pytest.raises(InputError, match='not whole bodies'):      # 7 keypoints, 32 names
+        links.level(np.zeros((7, 3)) + 1.0, 5 * S)
+    # an unlabelled skeleton: a sphere around each keypoint
+    spheres = LinkDistance(description, RADII, None, arm)
+    spheres.joint_state(JOINT_NAMES, home, 5 * S)
+    # the closest part is a hand tip: its 0.1 m sphere reaches 5 cm nearer than the hand's
+    # 0.05 m capsule (1.011 m, not 1.061 m)
+    bones = links.level(person_at(1.9), 5 * S).separation.distance
+    level = spheres.level(person_at(1.9), 5 * S)
+    assert level.d == 2 and level.separation.distance == pytest.approx(bones - 0.05)

@@ -378,6 +378,41 @@ class Progress:
         return self.cycles_done >= self.cycles
 
 
+class JointStateReader:
+    """A sensor_msgs/JointState's arrays in the description's joint order: (q, qd), or
+    InputError (nothing kept) for a missing joint, NaN, or a position outside the limits.
+    Joints the description does not name (a gripper) are ignored; no velocities: zeros."""
+
+    def __init__(self, description: RobotDescription):
+        self.description = description
+        self._names: tuple | None = None
+        self._order = np.arange(len(description.joint_names))
+
+    def read(self, names, positions, velocities=()) -> tuple[np.ndarray, np.ndarray]:
+        names = tuple(names)
+        positions = np.asarray(positions, dtype=float).reshape(-1)
+        velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
+            else np.zeros(len(names))
+        if len(positions) != len(names) or len(velocities) != len(names):
+            raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
+                             f'and {len(velocities)} velocities')
+        if names != self._names:
+            where = {n: i for i, n in enumerate(names)}
+            lack = [n for n in self.description.joint_names if n not in where]
+            if lack:
+                raise InputError(f'joint state without {", ".join(lack)} (has '
+                                 f'{", ".join(names) or "no joints"})')
+            self._order = np.array([where[n] for n in self.description.joint_names])
+            self._names = names
+        q, qd = positions[self._order], velocities[self._order]
+        why = self.description.outside(q)
+        if why:
+            raise InputError(f'joint state refused: {why}')
+        if not np.isfinite(qd).all():
+            raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
+        return q, qd
+
+
 @dataclass(frozen=True)
 class BridgeCommand:
     """What to send after a tick: a new trajectory (or None), the speed override 0..1, the
@@ -423,36 +458,14 @@ class Bridge:
         self.run: ProgramRun | None = None
         self._stop_reason = ''
         self._peaks: dict = {}
-        self._state_names: tuple | None = None
-        self._state_order = np.arange(len(self.index))
+        self.joint_states = JointStateReader(description)
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
         """The arm's joint state; InputError (nothing kept) for a missing joint, NaN or a
-        position outside the limits. Joints the description does not name (a gripper) are
-        ignored."""
-        names = tuple(names)
-        positions = np.asarray(positions, dtype=float).reshape(-1)
-        velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
-            else np.zeros(len(names))
-        if len(positions) != len(names) or len(velocities) != len(names):
-            raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
-                             f'and {len(velocities)} velocities')
-        if names != self._state_names:
-            where = {n: i for i, n in enumerate(names)}
-            lack = [n for n in self.description.joint_names if n not in where]
-            if lack:
-                raise InputError(f'joint state without {", ".join(lack)} (has '
-                                 f'{", ".join(names) or "no joints"})')
-            self._state_order = np.array([where[n] for n in self.description.joint_names])
-            self._state_names = names
-        q, qd = positions[self._state_order], velocities[self._state_order]
-        why = self.description.outside(q)
-        if why:
-            raise InputError(f'joint state refused: {why}')
-        if not np.isfinite(qd).all():
-            raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
-        self.q, self.qd, self._joint_stamp = q, qd, int(stamp_ns)
+        position outside the limits (`JointStateReader`)."""
+        self.q, self.qd = self.joint_states.read(names, positions, velocities)
+        self._joint_stamp = int(stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int) -> None:
         """The person's capsules (None: nobody in view, which SSM treats as no data)."""
