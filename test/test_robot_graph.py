@@ -193,3 +193,39 @@ def test_a_refused_arm_state_keeps_the_last_good_one(description, arm):
     bones = links.level(person_at(1.9), 5 * S).separation.distance
     level = spheres.level(person_at(1.9), 5 * S)
     assert level.d == 2 and level.separation.distance == pytest.approx(bones - 0.05)
+
+
+# -- the view with the arm --------------------------------------------------------------------
+def test_the_view_draws_the_arm_its_ssm_shell_the_body_and_the_separation(description, arm):
+    from hrc_ros.core.cell.view import LEVEL_COLORS, CellView, scene
+    from hrc_ros.core.robot.arm import body_capsules
+    q = description.poses['collaboration']
+    keypoints = person_at(1.35)
+    body = body_capsules(keypoints, K4ABT_JOINTS)
+    sep = arm.separation(q, body)
+    view = CellView()
+    view.feed('arm', (arm.segments(q), arm.radii), 0.0)
+    view.feed('skeleton', keypoints, 0.0)
+    view.feed('body', (body.segments, body.radii), 0.0)
+    view.feed('separation', {'S': sep.distance, 'arm': sep.arm_point,
+                             'human': sep.human_point, 'S_p': 0.3}, 0.0)
+    shapes = scene(view.state, RADII, (0, 0, 0))
+    by_ns = {}
+    for shape in shapes:
+        by_ns.setdefault(shape.ns, []).append(shape)
+    # no circles around the base: with the arm, d is the band of the separation
+    assert 'safety' not in by_ns and 'closest' not in by_ns
+    assert len(by_ns['arm']) == 2 * len(arm.radii) and len(by_ns['body']) == 2 * len(body.radii)
+    lines = [s for s in by_ns['arm'] if s.kind == 'line']
+    assert [s.scale[0] for s in lines] == pytest.approx(2 * arm.radii)
+    np.testing.assert_allclose(np.stack([s.points for s in lines]), arm.segments(q))
+    shell = [s for s in by_ns['ssm_shell'] if s.kind == 'line']
+    assert [s.scale[0] for s in shell] == pytest.approx(2 * (arm.radii + 0.3))
+    assert all(s.color[3] < 0.2 for s in by_ns['ssm_shell'])          # translucent
+    segment = next(s for s in by_ns['separation'] if s.kind == 'line')
+    np.testing.assert_allclose(segment.points, [sep.arm_point, sep.human_point])
+    text = next(s for s in by_ns['separation'] if s.kind == 'text').text
+    assert text == f'S {sep.distance:.2f} m (inner)  S_p 0.30 m'
+    assert by_ns['body'][0].color[:3] == LEVEL_COLORS[1]              # S 0.24 m: inner
+    # without the arm's state the picture is the reference point's, as before
+    assert 'safety' in {s.ns for s in scene(CellView().state, RADII, (0, 0, 0))}

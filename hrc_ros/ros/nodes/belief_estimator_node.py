@@ -77,6 +77,9 @@ KEYPOINT_JOINTS = ParamSpec(
     'keypoint_joints', T.STRING_ARRAY, [], "the K4ABT joint names of each body's keypoints on "
     "human/skeleton, as robot_bridge_node's parameter (the person is capsules over their "
     'bones); [] = an unlabelled skeleton, a 0.1 m sphere around each keypoint', read_only=True)
+ROBOT_DESCRIPTION = ParamSpec(
+    'robot_description', T.STRING, '', "the arm's robot description YAML (joint names, limits, "
+    "joint_state_timeout; '' = the shipped UR5e, config/robot/ur5e.yaml)", read_only=True)
 ARM_PARAMETERS = (
     ParamSpec('distance_source', T.STRING, 'reference_point', 'what the distance level d is '
               'the band of: reference_point (the closest keypoint to robot_reference_point) or '
@@ -84,9 +87,7 @@ ARM_PARAMETERS = (
               "and the person's body capsules; no fresh arm state: d = 0)", read_only=True,
               constraints="'reference_point' or 'arm_links'"),
     KEYPOINT_JOINTS,
-    ParamSpec('robot_description', T.STRING, '', "arm_links: the robot description YAML (joint "
-              "names, limits, joint_state_timeout; '' = the shipped UR5e, "
-              'config/robot/ur5e.yaml)', read_only=True),
+    ROBOT_DESCRIPTION,
 )
 PARAMETERS = (
     LIVE_CONFIG,
@@ -135,16 +136,20 @@ def check_parameters(values) -> str | None:
     return check_motion_parameters(values) or check_keypoint_joints(values)
 
 
-def link_distance(values):
-    """The arm_links machine for the node's parameters; StartupError with the description's
-    one-line reason when it cannot be used."""
+def robot_description(values):
+    """The description `robot_description` names; StartupError with its one-line reason."""
     from ...core.robot.bridge import RobotDescriptionError, load_robot_description
-    from ...core.robot.links import LinkDistance
     try:
-        description = load_robot_description(values['robot_description'] or None)
+        return load_robot_description(values['robot_description'] or None)
     except RobotDescriptionError as exc:
         raise StartupError(str(exc)) from None
-    return LinkDistance(description, values['safety_radii'], values['keypoint_joints'] or None)
+
+
+def link_distance(values):
+    """The arm_links machine for the node's parameters."""
+    from ...core.robot.links import LinkDistance
+    return LinkDistance(robot_description(values), values['safety_radii'],
+                        values['keypoint_joints'] or None)
 
 
 class BeliefEstimatorNode(Node):
