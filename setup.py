@@ -7,7 +7,8 @@ from setuptools import find_packages, setup
 PACKAGE = 'hrc_ros'
 
 NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node',
-         'cell_view_node', 'body_tracking_node', 'tracker_sim_node', 'hmi_node']
+         'cell_view_node', 'body_tracking_node', 'tracker_sim_node', 'hmi_node',
+         'robot_bridge_node', 'cobot_sim_node']
 # The nodes, hrc-bag and hrc-case-study enter through hrc_ros.ros.entry, which installs the
 # stop regime (hrc_ros/ros/stop.py) before the heavy imports: Ctrl-C during them is a clean stop.
 TOOLS = {

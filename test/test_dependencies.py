@@ -58,6 +58,7 @@ DEPENDENCIES = {
     'geometry_msgs': ('ros-jazzy-common-interfaces', ROS),
     'diagnostic_msgs': ('ros-jazzy-common-interfaces', ROS),
     'visualization_msgs': ('ros-jazzy-common-interfaces', ROS),
+    'trajectory_msgs': ('ros-jazzy-common-interfaces', ROS),
     'ament_index_python': (COLCON_ONLY, ROS),
     'launch': (COLCON_ONLY, ROS),
     'launch_ros': (COLCON_ONLY, ROS),

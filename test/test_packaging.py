@@ -50,6 +50,8 @@ NODE_NAMES = {  # executable -> node name (DESIGN.md, config/hrc_params.yaml)
     'body_tracking_node': 'body_tracking',
     'tracker_sim_node': 'tracker_sim',
     'hmi_node': 'hmi',
+    'robot_bridge_node': 'robot_bridge',
+    'cobot_sim_node': 'cobot_sim',
 }
 # Nodes that cannot start on hrc_params.yaml alone (no camera pose): the params they also need.
 EXTRA_PARAMS = {'body_tracking_node': 'body_tracking_sim_params.yaml',

@@ -56,8 +56,9 @@ from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray
 from sensor_msgs.msg import JointState
-from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, UInt8,
+from std_msgs.msg import (Bool, Float64, Float64MultiArray, MultiArrayDimension, String, UInt8,
                           UInt8MultiArray, UInt32)
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.pomdp.belief import BELIEF_TOLERANCE
@@ -216,6 +217,110 @@ def keypoints_to_msg(points, stamp: Time | None = None,
         pose.orientation.w = 1.0
         msg.poses.append(pose)
     return msg
+
+
+# -- the robot: trajectories, override, progress, separation ---------------------------------
+MAX_TRAJECTORY_POINTS = 10_000     # a goal of more points is refused (a program is a few dozen)
+SEPARATION_LABELS = ('S', 'arm_x', 'arm_y', 'arm_z', 'human_x', 'human_y', 'human_z', 'S_p',
+                     'speed')
+PROGRESS_LABELS = ('nature', 'cycles', 'cycles_done')
+
+
+def duration_to_seconds(duration: Duration) -> float:
+    return duration.sec + duration.nanosec * 1e-9
+
+
+def trajectory_to_msg(joint_names: Sequence[str], positions, durations,
+                      stamp: Time | None = None) -> JointTrajectory:
+    """A joint_trajectory_controller goal from a core `Trajectory`'s waypoints (n + 1, 6, the
+    first the start) and segment durations (n,): one point per waypoint after the start, zero
+    velocities, time_from_start the cumulative durations. A trajectory of no segment is one
+    point at the start, time 0 (stay where the arm stands). The header stamp is left 0 (start
+    at once) unless `stamp` is given."""
+    msg = JointTrajectory()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.joint_names = list(joint_names)
+    positions = np.asarray(positions, dtype=float)
+    zeros = [0.0] * len(msg.joint_names)
+    if len(durations) == 0:
+        msg.points = [JointTrajectoryPoint(positions=positions[-1].tolist(), velocities=zeros,
+                                           time_from_start=seconds_to_duration(0.0))]
+        return msg
+    times = np.cumsum(np.asarray(durations, dtype=float))
+    msg.points = [JointTrajectoryPoint(positions=q.tolist(), velocities=zeros,
+                                       time_from_start=seconds_to_duration(float(t)))
+                  for q, t in zip(positions[1:], times)]
+    return msg
+
+
+def trajectory_from_msg(msg: JointTrajectory) -> tuple[tuple, np.ndarray, np.ndarray]:
+    """(joint names, positions (n, joints), time_from_start (n,) s) of a JointTrajectory;
+    refused unless the names are unique and non-empty, every point has one finite position per
+    joint, and the times are finite, >= 0 and strictly increasing (a single point may be at
+    time 0: stay). Velocities and accelerations are not read (the segments are at rest at
+    every point)."""
+    names = tuple(msg.joint_names)
+    if not names or len(set(names)) != len(names) or not all(names):
+        raise MessageError(f'JointTrajectory joint_names must be unique and non-empty, got '
+                           f'{quote(list(names))}')
+    if not msg.points:
+        raise MessageError('JointTrajectory holds no points')
+    if len(msg.points) > MAX_TRAJECTORY_POINTS:
+        raise MessageError(f'JointTrajectory holds {len(msg.points)} points, more than '
+                           f'{MAX_TRAJECTORY_POINTS}')
+    if any(len(p.positions) != len(names) for p in msg.points):
+        raise MessageError(f'JointTrajectory points must hold {len(names)} positions (one per '
+                           'joint name)')
+    positions = np.array([list(p.positions) for p in msg.points], dtype=float)
+    times = np.array([duration_to_seconds(p.time_from_start) for p in msg.points])
+    if not (np.isfinite(positions).all() and np.isfinite(times).all()):
+        raise MessageError('JointTrajectory positions or times hold NaN or inf')
+    if times[0] < 0 or np.any(np.diff(times) <= 0) or (len(times) > 1 and times[0] <= 0):
+        raise MessageError(f'JointTrajectory time_from_start must increase strictly from > 0 '
+                           f'(a single point may be at 0), got {quote(times.tolist())}')
+    return names, positions, times
+
+
+def speed_override_from_msg(msg: Float64) -> float:
+    """The speed override, a fraction in [0, 1]."""
+    value = float(msg.data)
+    if not 0.0 <= value <= 1.0:        # (NaN fails too)
+        raise MessageError(f'speed override must lie in [0, 1], got {value!r}')
+    return value
+
+
+def robot_progress_to_msg(nature: int, cycles: int, cycles_done: int) -> UInt8MultiArray:
+    """hrc/robot_progress: the robot's share of the current task (cycles 0: none)."""
+    return _labelled_record([min(max(int(v), 0), 255) for v in (nature, cycles, cycles_done)],
+                            PROGRESS_LABELS)
+
+
+def robot_progress_from_msg(msg: UInt8MultiArray) -> dict:
+    return _record_from_msg(msg, PROGRESS_LABELS, 'robot progress', None)
+
+
+def separation_to_msg(distance: float, arm_point, human_point, protective: float,
+                      speed: float) -> Float64MultiArray:
+    """hrc/separation: S, the closest points on the arm and on the person (base frame), S_p at
+    the arm's speed bound, and that speed bound (m, m/s), labelled (`SEPARATION_LABELS`)."""
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label='separation', size=len(SEPARATION_LABELS),
+                                          stride=len(SEPARATION_LABELS))]
+    msg.data = [float(distance), *map(float, arm_point), *map(float, human_point),
+                float(protective), float(speed)]
+    return msg
+
+
+def separation_from_msg(msg: Float64MultiArray) -> dict:
+    values = list(msg.data)
+    if len(values) != len(SEPARATION_LABELS):
+        raise MessageError(f'separation must hold {len(SEPARATION_LABELS)} values '
+                           f'({" ".join(SEPARATION_LABELS)}), got {len(values)}')
+    if not all(math.isfinite(v) for v in values):
+        raise MessageError('separation holds NaN or inf')
+    return {'S': values[0], 'arm': np.array(values[1:4]), 'human': np.array(values[4:7]),
+            'S_p': values[7], 'speed': values[8]}
 
 
 # -- levels and epochs ------------------------------------------------------------------------

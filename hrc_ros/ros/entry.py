@@ -28,6 +28,8 @@ COMMANDS = {
     'body_tracking_node': 'hrc_ros.ros.nodes.body_tracking_node',
     'tracker_sim_node': 'hrc_ros.ros.nodes.tracker_sim_node',
     'hmi_node': 'hrc_ros.ros.nodes.hmi_node',
+    'robot_bridge_node': 'hrc_ros.ros.nodes.robot_bridge_node',
+    'cobot_sim_node': 'hrc_ros.ros.nodes.cobot_sim_node',
     'hrc-bag': 'hrc_ros.ros.bag',
     'hrc-case-study': 'hrc_ros.ros.case_study',
 }
@@ -57,6 +59,8 @@ cell_view_node = _command('cell_view_node')
 body_tracking_node = _command('body_tracking_node')
 tracker_sim_node = _command('tracker_sim_node')
 hmi_node = _command('hmi_node')
+robot_bridge_node = _command('robot_bridge_node')
+cobot_sim_node = _command('cobot_sim_node')
 hrc_bag = _command('hrc-bag')
 hrc_case_study = _command('hrc-case-study')
 

@@ -1,0 +1,215 @@
+"""cobot_sim: a simulated UR5e that follows JointTrajectory goals under the speed override
+(docs/ROBOT.md, sections 2 and 5).
+
+Contract: an `Arm` (MuJoCo, capsule links) and the core `TrajectoryFollower` (a scaled joint
+trajectory controller: the trajectory's clock runs at the override, which it follows at the
+SSM deceleration's rate). It subscribes
+
+- `joint_trajectory_topic` (trajectory_msgs/JointTrajectory): a goal as a
+  joint_trajectory_controller takes it, the points after the arm's current configuration with
+  cumulative `time_from_start` (velocities are not read: the segments are cubic, at rest at
+  every point), or one point at time 0 (stay). Refused with a diagnostic, the arm held (it brakes
+  along its current path at the override's ramp and stands until a valid goal comes): a goal
+  naming a joint the description does not have or lacking one, a point outside the limits, a
+  goal that does not start at the arm (its first segment faster than the joint limits allow
+  from where the arm is, or a stay away from it), a goal while the arm moves (a joint faster
+  than the description's `rest_speed`: goals replace each other at a safe point only);
+- `speed_override_topic` (std_msgs/Float64, 0..1): the trajectory's speed scaling. A value
+  outside [0, 1] is refused and taken as 0; none for `override_timeout` is 0 too;
+- `human/skeleton` (geometry_msgs/PoseArray in `robot_frame`), for the separation.
+
+It steps the follower at `rate` Hz on a timer (with the elapsed time, so the arm moves in wall
+time on a loaded machine) and publishes `joint_states` (sensor_msgs/JointState, position and
+velocity of the description's joints) at `joint_state_rate` Hz and, with them while a skeleton
+at most `ssm.human_timeout` old is held, `hrc/separation` (std_msgs/Float64MultiArray
+`[S, arm_x, arm_y, arm_z, human_x, human_y, human_z, S_p, speed]`: the separation and its two
+closest points in the base frame, S_p at the arm's speed bound as ISO/TS 15066 gives it, and
+that bound, m/s: the override times the goal's top link speed; `S < S_p` with `speed` above
+`ssm.MOVING_SPEED` is an SSM violation).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64, Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory
+
+from ...core.protocol import InputError
+from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed
+from ...core.robot.arm import segment_duration
+from ...core.robot.ssm import protective_distance
+from .. import conversions as conv
+from .. import qos
+from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
+                            run)
+from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTION, ROBOT_FRAME,
+                                TRAJECTORY_TOPIC, check_names, load_description,
+                                skeleton_converter)
+
+T = Parameter.Type
+MAX_STEP_SEC = 0.05      # a longer pause of the timer is stepped as this (the arm does not jump)
+TIME_SLACK = 1e-3        # s (and relative): a first segment may be this much faster than computed
+PARAMETERS = (
+    ROBOT_DESCRIPTION, TRAJECTORY_TOPIC, OVERRIDE_TOPIC, KEYPOINT_JOINTS, ROBOT_FRAME,
+    ParamSpec('rate', T.DOUBLE, 250.0, 'Hz the follower steps at', read_only=True,
+              range=(10.0, 2000.0)),
+    ParamSpec('joint_state_rate', T.DOUBLE, 125.0, 'Hz of joint_states and hrc/separation '
+              '(at most rate)', read_only=True, range=(1.0, 2000.0)),
+    ParamSpec('initial_positions', T.DOUBLE_ARRAY, [], 'the arm\'s configuration at start, '
+              'rad in the description\'s joint order ([] = its home pose)', read_only=True),
+    ParamSpec('override_timeout', T.DOUBLE, 0.25, 'seconds without a speed override after '
+              'which it is taken as 0', range=(0.01, 10.0)),
+)
+
+
+class CobotSimNode(Node):
+    NODE_NAME = 'cobot_sim'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.params = NodeParameters(self, PARAMETERS, check_names, self._apply)
+        values = self.params.values()
+        self.description = d = load_description(values['robot_description'])
+        q0 = np.asarray(values['initial_positions'] or d.poses['home'], dtype=float)
+        if q0.shape != (len(d.joint_names),) or d.outside(q0):
+            raise StartupError(f'initial_positions must be {len(d.joint_names)} angles within '
+                               f'the limits, got {q0.tolist()} ({d.outside(q0) or "wrong size"})')
+        self.arm = Arm()
+        self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
+        self.override = 0.0
+        self._override_at: float | None = None
+        self.override_timeout = values['override_timeout']
+        self.held = ''                # why the arm holds ('' = it follows its goal)
+        self.body = None
+        self._body_stamp = 0
+        self.accepted = self.refused = 0
+        self.steps = 0
+        self._every = max(1, int(round(values['rate'] / values['joint_state_rate'])))
+        self._last_step = time.monotonic()
+        self.joint_pub = self.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
+        self.separation_pub = self.create_publisher(Float64MultiArray, 'hrc/separation',
+                                                    qos.SENSOR_DATA)
+        self.inputs = Inputs(self)
+        self.inputs.subscribe(JointTrajectory, values['joint_trajectory_topic'], qos.RELIABLE,
+                              conv.trajectory_from_msg, self._on_trajectory, name='trajectory')
+        self.inputs.subscribe(Float64, values['speed_override_topic'], qos.RELIABLE,
+                              conv.speed_override_from_msg, self._on_override,
+                              name='speed_override')
+        self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
+                              skeleton_converter(values['robot_frame'],
+                                                 values['keypoint_joints'] or None),
+                              self._on_skeleton, name='skeleton')
+        self.step_timer = self.create_timer(1.0 / values['rate'], self._step)
+        self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+
+    def _apply(self, values) -> None:
+        self.override_timeout = values['override_timeout']
+
+    # -- inputs ------------------------------------------------------------------------------
+    def _on_trajectory(self, converted) -> None:
+        try:
+            trajectory = self._goal(*converted)
+        except InputError as exc:
+            self.refused += 1
+            self.held = str(exc)
+            raise
+        self.follower.follow(trajectory)
+        self.accepted += 1
+        self.held = ''
+
+    def _goal(self, names, positions, times) -> Trajectory:
+        """The core trajectory of a goal from the arm's configuration; InputError (the arm
+        then holds) for what the module docstring lists."""
+        d = self.description
+        index = {name: i for i, name in enumerate(names)}
+        unknown = [n for n in names if n not in d.joint_names]
+        lack = [n for n in d.joint_names if n not in index]
+        if unknown or lack:
+            raise InputError('trajectory refused, the arm holds: '
+                             + (f'unknown joints {conv.quote(unknown)}' if unknown else
+                                f'no {", ".join(lack)}')
+                             + f' (the arm\'s joints are {", ".join(d.joint_names)})')
+        points = positions[:, [index[n] for n in d.joint_names]]
+        for i, q in enumerate(points):
+            why = d.outside(q)
+            if why:
+                raise InputError(f'trajectory refused, the arm holds: point {i}: {why}')
+        fastest = float(np.max(np.abs(self.follower.qd)))
+        if fastest > d.rest_speed:
+            raise InputError(f'trajectory refused, the arm holds: a goal while the arm moves '
+                             f'({fastest:.3f} rad/s, rest_speed {d.rest_speed}); goals replace '
+                             'each other at rest only')
+        q = self.follower.q
+        if len(points) == 1 and times[0] == 0.0:
+            away = float(np.max(np.abs(points[0] - q)))
+            if away > d.waypoint_tolerance:
+                raise InputError(f'trajectory refused, the arm holds: a stay {away:.4f} rad '
+                                 'away from the arm (a goal must start at the arm)')
+            return Trajectory(d.joint_names, q[None].copy(), np.zeros(0), 0.0, (), 'stay')
+        shortest = segment_duration(q, points[0], d.velocity, d.acceleration)
+        if shortest > times[0] * (1.0 + TIME_SLACK) + TIME_SLACK:
+            raise InputError(
+                f'trajectory refused, the arm holds: it does not start at the arm (its first '
+                f'point is {float(np.max(np.abs(points[0] - q))):.3f} rad away, at least '
+                f'{shortest:.3f} s within the joint limits, given {times[0]:.3f} s)')
+        path = np.vstack([q[None], points])
+        durations = np.diff(np.concatenate([[0.0], times]))
+        nominal = max(peak_link_speed(self.arm, a, b, t)
+                      for a, b, t in zip(path[:-1], path[1:], durations))
+        return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
+
+    def _on_override(self, value: float) -> None:
+        self.override, self._override_at = value, time.monotonic()
+
+    def _on_skeleton(self, converted) -> None:
+        self.body, self._body_stamp = converted
+
+    # -- the arm ------------------------------------------------------------------------------
+    def _commanded(self, now: float) -> float:
+        if self.held or self._override_at is None \
+                or now - self._override_at > self.override_timeout:
+            return 0.0
+        return self.override
+
+    def _step(self) -> None:
+        now = time.monotonic()
+        dt = min(max(now - self._last_step, 0.0), MAX_STEP_SEC)
+        self._last_step = now
+        state = self.follower.step(dt, self._commanded(now))
+        self.steps += 1
+        if self.steps % self._every:
+            return
+        clock = self.get_clock().now()
+        self.joint_pub.publish(conv.joint_state_to_msg(
+            self.description.joint_names, state.qd, state.q, clock.to_msg()))
+        body = self.body
+        if body is None or (clock.nanoseconds - self._body_stamp) * 1e-9 \
+                > self.description.ssm.human_timeout:
+            return
+        sep = self.arm.separation(state.q, body)
+        speed = state.speed_bound
+        self.separation_pub.publish(conv.separation_to_msg(
+            sep.distance, sep.arm_point, sep.human_point,
+            float(protective_distance(speed, sep.distance, self.description.ssm)), speed))
+
+    def _publish_status(self) -> None:
+        follower = self.follower
+        self.inputs.publish_health('arm', {
+            'held': self.held, 'override': self._commanded(time.monotonic()),
+            'scale': round(follower.scale, 4), 'speed_bound_m_s': round(follower.speed_bound, 4),
+            'goal_done': follower.done, 'goals_accepted': self.accepted,
+            'goals_refused': self.refused, 'steps': self.steps})
+
+
+def main(args=None):
+    return run(CobotSimNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
