@@ -162,9 +162,12 @@ def test_without_a_fresh_arm_state_d_is_the_collision_level(description, arm):
     assert (level.d, level.separation) == (0, None)
     assert level.reason == 'no joint state of the arm yet'
     links.joint_state(JOINT_NAMES, description.poses['home'], 1 * S)
-    assert links.level(far, 1 * S + 100_000_000).d == 3      # 0.1 s old: still fresh
-    level = links.level(far, 1 * S + 150_000_000)            # older than 0.1 s
-    assert level.d == 0 and '0.150 s old' in level.reason and '0.1 s' in level.reason
+    # by the stamps: the skeleton 0.1 s after the arm's state is still fresh ...
+    assert links.level(far, 1 * S + 100_000_000).d == 3
+    assert links.level(far, 1 * S - 500_000_000).d == 3      # (an arm state newer than it)
+    level = links.level(far, 1 * S + 150_000_000)            # ... 0.15 s after it is not
+    assert level.d == 0 and '0.150 s older than the skeleton' in level.reason
+    assert 'joint_state_timeout 0.1 s' in level.reason
 
 
 def test_a_refused_arm_state_keeps_the_last_good_one(description, arm):

@@ -7,10 +7,13 @@ separation between the arm's link capsules and the person's body capsules (`Arm.
 joint states and the skeletons as they arrive:
 
     joint_state(names, positions, stamp_ns)    the arm's sensor_msgs/JointState
-    level(keypoints, now_ns) -> LinkLevel      each skeleton's d, and why
+    level(keypoints, stamp_ns) -> LinkLevel    each skeleton's d (at its stamp), and why
 
-**Stale arm state** (decision). The arm's joint state is fresh while it is younger than the
-robot description's `joint_state_timeout` (the bridge's own rule: 0.1 s for the UR5e). Without
+**Stale arm state** (decision). The arm's joint state is fresh for a skeleton while it is at
+most the robot description's `joint_state_timeout` (the bridge's own bound: 0.1 s for the
+UR5e) older than the skeleton, both by their stamps: the arm as it stood when the person was
+seen, whatever the reader's own delay (a loaded estimator that takes both late still pairs
+them right; an arm whose stream stopped ages out while the skeletons keep coming). Without
 a fresh one the estimator cannot place the links: they may stand anywhere within the arm's
 reach, and at the shared table the person stands within it. The reference point's band would
 then overstate the separation (a person 1.4 m from the base is "outer" while a link can be 0.3
@@ -55,6 +58,9 @@ class LinkDistance:
         self.arm = arm if arm is not None else Arm()
         self.q: np.ndarray | None = None
         self.stamp_ns: int | None = None
+        # The kernels' first call loads them (seconds on a loaded machine): here, before a
+        # node subscribes anything, not at the first skeleton of a running cell.
+        self.arm.separation(description.poses['home'], body_capsules(np.ones((1, 3))))
 
     def joint_state(self, names, positions, stamp_ns: int) -> None:
         """The arm's joint state (InputError, nothing kept, as the bridge refuses it)."""
@@ -63,24 +69,25 @@ class LinkDistance:
             raise InputError('arm joint state older than the one held: dropped')
         self.q, self.stamp_ns = q, int(stamp_ns)
 
-    def stale(self, now_ns: int) -> str:
-        """Why the arm's state cannot be used at `now_ns` ('' when it can)."""
+    def stale(self, stamp_ns: int) -> str:
+        """Why the arm's state cannot be used for a skeleton stamped `stamp_ns` ('' when it
+        can)."""
         if self.q is None:
             return 'no joint state of the arm yet'
-        age = (now_ns - self.stamp_ns) * 1e-9
+        age = (stamp_ns - self.stamp_ns) * 1e-9
         if age > self.timeout_ns * 1e-9:
-            return (f"the arm's joint state is {age:.3f} s old (joint_state_timeout "
-                    f'{self.timeout_ns * 1e-9:g} s)')
+            return (f"the arm's joint state is {age:.3f} s older than the skeleton "
+                    f'(joint_state_timeout {self.timeout_ns * 1e-9:g} s)')
         return ''
 
-    def level(self, keypoints, now_ns: int) -> LinkLevel:
-        """The distance level of one skeleton (n, 3), robot base frame; InputError for
-        keypoints that make no body."""
+    def level(self, keypoints, stamp_ns: int) -> LinkLevel:
+        """The distance level of one skeleton (n, 3), robot base frame, stamped `stamp_ns`;
+        InputError for keypoints that make no body."""
         try:
             body = body_capsules(keypoints, self.joints)
         except ValueError as exc:
             raise InputError(f'skeleton: {exc}') from None
-        reason = self.stale(now_ns)
+        reason = self.stale(stamp_ns)
         if reason:
             return LinkLevel(0, None, reason)
         separation = self.arm.separation(self.q, body)

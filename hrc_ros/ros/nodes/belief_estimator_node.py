@@ -17,7 +17,8 @@ docs/ROBOT.md): the separation between the arm's link capsules, at its latest `j
 (sensor_msgs/JointState, the arm's, as `robot_bridge_node` reads them), and the person's body
 capsules of each skeleton (`keypoint_joints`: K4ABT names, bones between them; []: a sphere
 around each keypoint), the batch cell's rule (`core.robot.links.LinkDistance`). Without a fresh
-arm state (none, or older than the robot description's `joint_state_timeout`) d is 0, the
+arm state (none, or older than the skeleton by more than the robot description's
+`joint_state_timeout`, both by their header stamps) d is 0, the
 collision level, so the decision node fails safe, with a WARN on /diagnostics when that
 begins and an OK when the arm's state is back.
 
@@ -39,7 +40,6 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray, String, UInt8, UInt8MultiArray
 
-from ...core.cell.tracking import joint_indices
 from ...core.pomdp.belief import BeliefFilter
 from ...core.config import BELIEF_MODES
 from ...core.model import HRCModel
@@ -54,6 +54,8 @@ from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, Dead
                             ParamSpec, StartupError, check_array, check_core, load_node_config,
                             node_setup, run)
 from ..sources import subscribe_epochs
+from .robot_bridge_node import (KEYPOINT_JOINTS, ROBOT_DESCRIPTION, check_names, load_description,
+                                stamp_ns)
 
 T = Parameter.Type
 VELOCITY_THRESHOLDS = ParamSpec(
@@ -73,13 +75,6 @@ ROBOT_FRAME = ParamSpec(
     read_only=True, constraints='non-empty')
 MOTION_PARAMETERS = (VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME)
 DISTANCE_SOURCES = ('reference_point', 'arm_links')
-KEYPOINT_JOINTS = ParamSpec(
-    'keypoint_joints', T.STRING_ARRAY, [], "the K4ABT joint names of each body's keypoints on "
-    "human/skeleton, as robot_bridge_node's parameter (the person is capsules over their "
-    'bones); [] = an unlabelled skeleton, a 0.1 m sphere around each keypoint', read_only=True)
-ROBOT_DESCRIPTION = ParamSpec(
-    'robot_description', T.STRING, '', "the arm's robot description YAML (joint names, limits, "
-    "joint_state_timeout; '' = the shipped UR5e, config/robot/ur5e.yaml)", read_only=True)
 ARM_PARAMETERS = (
     ParamSpec('distance_source', T.STRING, 'reference_point', 'what the distance level d is '
               'the band of: reference_point (the closest keypoint to robot_reference_point) or '
@@ -120,12 +115,6 @@ def check_motion_parameters(values) -> str | None:
                 else None))
 
 
-def check_keypoint_joints(values) -> str | None:
-    if values.get('keypoint_joints'):
-        return check_core(values, 'keypoint_joints', joint_indices)
-    return None
-
-
 def check_parameters(values) -> str | None:
     mode = values.get('belief_mode', '')
     if mode not in ('',) + BELIEF_MODES:
@@ -133,23 +122,14 @@ def check_parameters(values) -> str | None:
     source = values.get('distance_source', DISTANCE_SOURCES[0])
     if source not in DISTANCE_SOURCES:
         return f"distance_source must be {' or '.join(DISTANCE_SOURCES)}, got {source!r}"
-    return check_motion_parameters(values) or check_keypoint_joints(values)
-
-
-def robot_description(values):
-    """The description `robot_description` names; StartupError with its one-line reason."""
-    from ...core.robot.bridge import RobotDescriptionError, load_robot_description
-    try:
-        return load_robot_description(values['robot_description'] or None)
-    except RobotDescriptionError as exc:
-        raise StartupError(str(exc)) from None
+    return check_motion_parameters(values) or check_names(values)
 
 
 def link_distance(values):
     """The arm_links machine for the node's parameters."""
     from ...core.robot.links import LinkDistance
-    return LinkDistance(robot_description(values), values['safety_radii'],
-                        values['keypoint_joints'] or None)
+    return LinkDistance(load_description(values['robot_description']),
+                        values['safety_radii'], values['keypoint_joints'] or None)
 
 
 class BeliefEstimatorNode(Node):
@@ -181,7 +161,8 @@ class BeliefEstimatorNode(Node):
                               with_published=True)
         frame = self.params.value('robot_frame')
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
-                              lambda msg: conv.keypoints_from_msg(msg, frame),
+                              lambda msg: (conv.keypoints_from_msg(msg, frame),
+                                           stamp_ns(msg.header.stamp)),
                               self._on_keypoints, with_published=True)
         if self.links is not None:
             self.inputs.subscribe(JointState, 'joint_states', qos.SENSOR_DATA, lambda msg: msg,
@@ -284,19 +265,19 @@ class BeliefEstimatorNode(Node):
         if sample.stamp > 0.0:
             self._lag.add(self.get_clock().now().nanoseconds * 1e-9 - sample.stamp)
 
-    def _on_keypoints(self, keypoints: np.ndarray, published_ns: int) -> None:
+    def _on_keypoints(self, skeleton: tuple, published_ns: int) -> None:
+        keypoints, stamp = skeleton
         if self.links is None:
             self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
                                                  self.safety_radii), published_ns)
             return
-        level = self.links.level(keypoints, self.get_clock().now().nanoseconds)
+        level = self.links.level(keypoints, stamp)
         self.separation = None if level.separation is None else level.separation.distance
         self._arm_state(level.reason)
         self.windows.skeleton(level.d, published_ns)
 
     def _on_arm_state(self, msg: JointState) -> None:
-        self.links.joint_state(msg.name, msg.position,
-                               msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        self.links.joint_state(msg.name, msg.position, stamp_ns(msg.header.stamp))
 
     def _arm_state(self, reason: str) -> None:
         """Report when the arm's links stop (WARN) or start again (OK) to give d."""

@@ -45,9 +45,9 @@ from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,
                             run)
-from .belief_estimator_node import (KEYPOINT_JOINTS, ROBOT_DESCRIPTION, ROBOT_FRAME,
-                                    ROBOT_REFERENCE_POINT, SAFETY_RADII, check_keypoint_joints,
-                                    check_motion_parameters, robot_description)
+from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_RADII,
+                                    check_motion_parameters)
+from .robot_bridge_node import KEYPOINT_JOINTS, ROBOT_DESCRIPTION, check_names, load_description
 
 T = Parameter.Type
 STOP_ACK_SEC = 1.0
@@ -69,7 +69,7 @@ PARAMETERS = (
 
 
 def check_parameters(values) -> str | None:
-    return check_motion_parameters(values) or check_keypoint_joints(values)
+    return check_motion_parameters(values) or check_names(values)
 
 
 class CellViewNode(Node):
@@ -108,7 +108,7 @@ class CellViewNode(Node):
         from ...core.robot.arm import Arm, body_capsules
         from ...core.robot.bridge import JointStateReader
         values = self.params.values()
-        reader = JointStateReader(robot_description(values))
+        reader = JointStateReader(load_description(values['robot_description']))
         self.arm = Arm()
         joints = tuple(values['keypoint_joints']) or None
 
