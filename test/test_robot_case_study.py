@@ -172,3 +172,31 @@ def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, batch):
     to_batch = path_gaps(ros_t, ros_q, batch_t, batch_q, PATH_SHIFT)
     assert to_ros.max() <= PATH_TOLERANCE, (batch_t[np.argmax(to_ros)], to_ros.max())
     assert to_batch.max() <= PATH_TOLERANCE, (ros_t[np.argmax(to_batch)], to_batch.max())
+
+
+def test_the_robot_layout_plots_separation_against_s_p_and_the_override(run):
+    """config/foxglove_layout_robot.json: the base layout's panels and the robot's plots, each
+    path a field of a topic the run's bag holds."""
+    import json
+
+    from hrc_ros.ros.bag import message_class
+    from test_view import LAYOUT, layout_topics, mosaic_leaves
+    out, proc = run
+    assert proc.returncode == 0
+    layout = json.loads((LAYOUT.parent / 'foxglove_layout_robot.json').read_text())
+    base = json.loads(LAYOUT.read_text())
+    panels = layout['configById']
+    assert sorted(mosaic_leaves(layout['layout'])) == sorted(panels)
+    assert set(base['configById']) < set(panels)
+    paths = {p['value'] for c in panels.values() for p in c.get('paths', [])}
+    assert {'/hrc/separation.data[0]', '/hrc/separation.data[7]',
+            '/hrc/speed_override.data'} <= paths
+    recorded = {t.topic: t.type_name for t in bag_info(out / 'bag').topics}
+    for topic, fields in layout_topics(layout).items():
+        assert topic in recorded, topic
+        for field in fields - {''}:
+            name, _, index = field.partition('[')
+            assert name in message_class(recorded[topic]).get_fields_and_field_types()
+    # the separation's labels: index 0 is S, 7 is S_p
+    sample = next(msg for _, msg, _, _ in messages(out, '/hrc/separation'))
+    assert [d.label for d in sample.layout.dim][:1] in (['separation'], ['S'])
