@@ -1,7 +1,7 @@
 """The robot side's targets (issue 18), measured: batch speed, separation query, bridge compute,
 SSM violations.
 
-    python bench/robot_bench.py [--episodes 20] [--violation-episodes 1000]
+    python bench/robot_bench.py [--episodes 20] [--node-steps 6000] [--violation-episodes 1000]
                                 [--violation-epochs 20] [--skip-violations]
 
 1. Batch speed: `--episodes` seeded episodes of the cell with the arm (50 epochs of 1 s,
@@ -13,7 +13,16 @@ SSM violations.
 3. Bridge compute per message: every call the phase-2 node makes into `Bridge` (joint state +
    tick every control period, 50 Hz here, skeleton at 30 Hz, task state and action per epoch)
    timed over the batch cell's episodes, p50 / p99 / max (target p99 < 1 ms).
-4. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
+4. The node's compute per message: `robot_bridge_node` in this process (real rclpy, its
+   publishers on DDS, a subscriber of its override so that it ticks), each message handled
+   as its subscription does (the conversion, the core, the publishing), timed from the
+   message to the handler's return: `--node-steps` joint states at 100 Hz from the core's
+   trajectory follower running the node's goals under its override, skeletons of a person
+   walking towards the arm and away at 30 Hz, a task state and an action each second (the
+   actions ct, nw, dp, nw, dm, nw, dn, nw in turn). The deserialisation and the executor are
+   rclpy's and not counted. Printed as the CPU time of the node's thread per message (target
+   p99 < 1 ms) and as wall time, which on a loaded machine adds the preemptions.
+5. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
    (samples where the arm moved while the true separation was below S_p: target 0), with the
    contacts and speed-bound breaches.
 """
@@ -81,9 +90,81 @@ class TimedBridge(bridge_module.Bridge):
         return self._timed('tick', *args)
 
 
+NODE_ACTIONS = ('ct', 'nw', 'dp', 'nw', 'dm', 'nw', 'dn', 'nw')
+
+
+def node_compute(steps: int) -> list:
+    """Per-message compute of robot_bridge_node's handlers (module docstring, 4): the wall
+    times and the CPU times of the calling thread (s); on a shared machine the wall times
+    include the time the process was preempted."""
+    import rclpy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64, String
+
+    from hrc_ros.core.model import TASK_VARIABLES
+    from hrc_ros.core.robot.arm import TrajectoryFollower
+    from hrc_ros.ros import conversions as conv
+    from hrc_ros.ros import qos
+    from hrc_ros.ros.nodes.robot_bridge_node import RobotBridgeNode, skeleton_converter
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = RobotBridgeNode(context=context)
+    probe = rclpy.create_node('bench_probe', context=context)
+    probe.create_subscription(Float64, node.override_topic, lambda _: None, qos.RELIABLE)
+    deadline = time.monotonic() + 10.0
+    while node.override_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    follower = TrajectoryFollower(node.description.poses['home'],
+                                  node.description.ssm.deceleration)
+    skeleton = skeleton_converter(node.get_parameter('robot_frame').value, None)
+    far, near = np.array([2.5, -1.5, 1.0]), np.array([0.5, -0.35, 0.8])
+    offsets = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0.15, 0, 0.3], [-0.15, 0, 0.3],
+                        [0, 0.1, -0.4], [0, -0.1, -0.4]])
+    wall, cpu, override = [], [], 0.0
+
+    def timed(convert, handle, msg, *extra):
+        """handle(convert(msg), *extra), as `Inputs.subscribe` calls them, timed."""
+        w0, c0 = time.perf_counter(), time.thread_time()
+        handle(convert(msg), *extra)
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.thread_time() - c0)
+
+    try:
+        for step in range(steps):
+            stamp = node.get_clock().now().to_msg()
+            if step % 100 == 0:
+                epoch = step // 100
+                state = {name: 0 for name in TASK_VARIABLES}
+                state.update(tp=1 + epoch // len(NODE_ACTIONS) % 3, tc=3, tx=0)
+                timed(conv.task_state_from_msg, node._on_task_state,
+                      conv.task_state_to_msg(state))
+                timed(conv.action_from_msg, node._on_action,
+                      String(data=NODE_ACTIONS[epoch % len(NODE_ACTIONS)]), time.time_ns())
+            if step % 3 == 0:                    # 33 Hz
+                u = 0.5 - 0.5 * np.cos(2 * np.pi * step / 1500)     # 15 s out and back
+                msg = conv.keypoints_to_msg((far + (near - far) * u)[None] + offsets, stamp)
+                timed(skeleton, node._on_skeleton, msg)
+            state = follower.step(0.01, override)
+            msg = JointState(name=list(node.description.joint_names),
+                             position=state.q.tolist(), velocity=state.qd.tolist())
+            msg.header.stamp = stamp
+            timed(lambda m: m, node._on_joint_state, msg)
+            command = node.command
+            override = command.override
+            if command.trajectory is not None:
+                follower.follow(command.trajectory)
+    finally:
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return wall, cpu
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--episodes', type=int, default=20)
+    parser.add_argument('--node-steps', type=int, default=6000)
     parser.add_argument('--violation-episodes', type=int, default=1000)
     parser.add_argument('--violation-epochs', type=int, default=20)
     parser.add_argument('--skip-violations', action='store_true')
@@ -130,7 +211,12 @@ def main(argv=None) -> int:
     finally:
         cell_module.Bridge = original
 
-    # 4. SSM violations
+    # 4. the node's compute per message
+    wall, cpu = node_compute(args.node_steps)
+    print(f'robot_bridge_node compute per message, CPU: {percentiles(cpu)}  target p99 < 1 ms')
+    print(f'robot_bridge_node compute per message, wall: {percentiles(wall)}')
+
+    # 5. SSM violations
     if not args.skip_violations:
         cell = ArmCell(model, policy)
         scenarios, seeds = episodes_of(model, 'random', args.violation_episodes,

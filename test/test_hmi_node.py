@@ -253,7 +253,8 @@ def test_the_operator_sees_the_cell_the_belief_the_fail_safe_and_the_robot(graph
     belief = graph.probe.create_publisher(Float64MultiArray, 'hrc/belief', qos.LATCHED)
     diagnostics = graph.probe.create_publisher(DiagnosticArray, '/diagnostics', qos.RELIABLE)
     override = graph.probe.create_publisher(Float64, 'hrc/speed_override', qos.SENSOR_DATA)
-    separation = graph.probe.create_publisher(Float64, 'hrc/separation', qos.SENSOR_DATA)
+    separation = graph.probe.create_publisher(Float64MultiArray, 'hrc/separation',
+                                              qos.SENSOR_DATA)
     level = graph.probe.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
     wait_for(graph, lambda: all(p.get_subscription_count() > 0 for p in (
         belief, diagnostics, override, separation, level)), 'the HMI to subscribe')
@@ -265,7 +266,8 @@ def test_the_operator_sees_the_cell_the_belief_the_fail_safe_and_the_robot(graph
         'circle'})
     cell.publish(diagnostics, conv.diagnostic_array([status]), 'diagnostics')
     cell.publish(override, Float64(data=0.25), 'speed_override')
-    cell.publish(separation, Float64(data=0.4), 'separation')
+    cell.publish(separation, conv.separation_to_msg(0.4, [0.3, 0, 0.5], [0.7, 0, 0.5], 0.3, 0.2),
+                 'separation')
     cell.publish(override, Float64(data=float('nan')), 'speed_override')     # dropped
     wait_for(graph, lambda: (page.view() or {}).get('robot') is not None, 'the robot side')
     view = page.view()

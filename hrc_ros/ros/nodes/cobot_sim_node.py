@@ -49,8 +49,8 @@ from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, StartupError,
                             run)
 from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTION, ROBOT_FRAME,
-                                TRAJECTORY_TOPIC, check_names, load_description,
-                                skeleton_converter)
+                                TRAJECTORY_TOPIC, check_names, last_refusals,
+                                load_description, skeleton_converter)
 
 T = Parameter.Type
 MAX_STEP_SEC = 0.05      # a longer pause of the timer is stepped as this (the arm does not jump)
@@ -204,7 +204,7 @@ class CobotSimNode(Node):
             'held': self.held, 'override': self._commanded(time.monotonic()),
             'scale': round(follower.scale, 4), 'speed_bound_m_s': round(follower.speed_bound, 4),
             'goal_done': follower.done, 'goals_accepted': self.accepted,
-            'goals_refused': self.refused, 'steps': self.steps})
+            'goals_refused': self.refused, 'steps': self.steps, **last_refusals(self.inputs)})
 
 
 def main(args=None):

@@ -26,7 +26,6 @@ ready with it first, so the machine decides on the latest state, then publishes 
 from __future__ import annotations
 
 import json
-import math
 import os
 import queue
 import resource
@@ -95,8 +94,8 @@ PARAMETERS = (
               'override (std_msgs/Float64, 0..1), shown on /operator while published',
               read_only=True),
     ParamSpec('separation_topic', T.STRING, 'hrc/separation', "the robot side's separation of "
-              'the person from the arm (std_msgs/Float64, metres), shown on /operator while '
-              'published', read_only=True),
+              'the person from the arm (std_msgs/Float64MultiArray of cobot_sim_node, its S in '
+              'metres), shown on /operator while published', read_only=True),
 )
 
 
@@ -106,18 +105,9 @@ def check_parameters(values) -> str | None:
     return None
 
 
-def _unit_interval(msg: Float64) -> float:
-    value = float(msg.data)
-    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
-        raise conv.MessageError(f'speed override must be in 0..1, got {conv.quote(value)}')
-    return value
-
-
-def _metres(msg: Float64) -> float:
-    value = float(msg.data)
-    if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
-        raise conv.MessageError(f'separation must be metres in 0..1000, got {conv.quote(value)}')
-    return value
+def _separation(msg: Float64MultiArray) -> float:
+    """S (m) of the robot side's hrc/separation (`conversions.separation_from_msg`)."""
+    return conv.separation_from_msg(msg)['S']
 
 
 class HmiNode(Node):
@@ -165,9 +155,9 @@ class HmiNode(Node):
                   conv.task_request_result_from_msg)
         subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._statuses,
                   name='diagnostics')
-        subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA, _unit_interval,
-                  name='speed_override', latest_only=True)
-        subscribe(Float64, values['separation_topic'], qos.SENSOR_DATA, _metres,
+        subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA,
+                  conv.speed_override_from_msg, name='speed_override', latest_only=True)
+        subscribe(Float64MultiArray, values['separation_topic'], qos.SENSOR_DATA, _separation,
                   name='separation', latest_only=True)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.order_refs: dict[int, tuple] = {}

@@ -116,6 +116,16 @@ def load_description(path: str):
         raise StartupError(str(exc)) from None
 
 
+def stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def last_refusals(inputs: Inputs) -> dict:
+    """last_refused_<input>: the reason the input's last dropped message was refused."""
+    return {f'last_refused_{name}': reason
+            for name, reason in sorted(inputs.last_drop_reason.items())}
+
+
 def skeleton_converter(robot_frame: str, joints):
     """human/skeleton -> (BodyCapsules, stamp ns); MessageError for what the core refuses."""
     def convert(msg: PoseArray):
@@ -126,10 +136,6 @@ def skeleton_converter(robot_frame: str, joints):
             raise conv.MessageError(f'skeleton: {exc}') from None
         return body, stamp_ns(msg.header.stamp)
     return convert
-
-
-def stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 class RobotBridgeNode(Node):
@@ -249,6 +255,7 @@ class RobotBridgeNode(Node):
                 self.sent += 1
             override, stop, reason = command.override, command.stop, command.reason
         else:
+            self.command = None
             override, stop = 0.0, True
             reason = (f'nobody subscribes to the speed override on '
                       f'{self.override_pub.topic_name}: SSM cannot act on the arm')
@@ -261,6 +268,10 @@ class RobotBridgeNode(Node):
         self._publish_progress()
 
     def _set_stop(self, stop: bool, reason: str) -> None:
+        """Latch the stop on change and report it. The core's own stop reports
+        (`BridgeCommand.reports`) are not forwarded: they come with every change of the
+        reason's text, which holds the data's age, so at every tick of a timeout; and the stop
+        for an override nobody listens to is this node's."""
         changed = stop != self.stop
         if changed:
             self.stop = stop
@@ -319,6 +330,7 @@ class RobotBridgeNode(Node):
             'compute_p99_ms': (round(float(np.percentile(compute, 99)), 3) if compute.size
                                else None),
             'override_subscribers': self.override_pub.get_subscription_count(),
+            **last_refusals(self.inputs),
         }
         self.inputs.publish_health('bridge', values)
         if not self._listening:

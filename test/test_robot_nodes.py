@@ -1,0 +1,535 @@
+"""The robot side on a real graph: robot_bridge_node and cobot_sim_node as processes over DDS,
+driven by a test node that plays the person (a skeleton at 30 Hz), the task manager
+(hrc/task_state) and the decision node (hrc/action), and records everything the two publish.
+
+The person walks (0.5 m/s, below the 1.6 m/s SSM assumes) between a place far from the arm and
+one within its reach, or vanishes (no skeleton). The tests run in file order on one cell: the
+program runs on `ct`, a person close to the arm stops it, no skeleton stops it, `dn` holds it;
+then the bad inputs of issue 18, each refused or reported with the arm held and both nodes
+alive; the refused robot descriptions (separate processes, which must exit at start); at the
+end SSM held in every sample of hrc/separation and both nodes stop on SIGINT with exit 0.
+The core rules themselves are unit-tested in test_robot.py.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from hrc_ros.core.model import TASK_VARIABLES
+from hrc_ros.core.robot.bridge import load_programs, load_robot_description
+from hrc_ros.core.robot.ssm import MOVING_SPEED
+from hrc_ros.ros import conversions as conv
+from hrc_ros.ros import qos
+from hrc_ros.ros.processes import NodeProcesses, node_command
+from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
+
+START_TIMEOUT = 90.0        # both nodes import rclpy, MuJoCo and numba: slow on a loaded machine
+TIMEOUT = 30.0
+WALK = 0.5                  # m/s, the person's speed
+FAR = np.array([2.5, -1.5, 1.0])
+NEAR = np.array([0.4, -0.3, 0.8])     # S 0.19-0.29 m to the arm: no speed is safe there
+BODY = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0.15, 0, 0.3], [-0.15, 0, 0.3],
+                 [0, 0.1, -0.4], [0, -0.1, -0.4]])     # 7 keypoints around the person's place
+DESCRIPTION = load_robot_description()
+PROGRAMS = load_programs(DESCRIPTION)
+JOINTS = DESCRIPTION.joint_names
+DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
+                  reliability=ReliabilityPolicy.RELIABLE)
+STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,      # hrc/separation's QoS
+                    reliability=ReliabilityPolicy.BEST_EFFORT)
+WARN, ERROR = DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+def task(tp: int, tc: int, tx: int = 0, ty: int = 0, bc: int = 0) -> dict:
+    return {**{name: 0 for name in TASK_VARIABLES}, 'tp': tp, 'tc': tc, 'tx': tx, 'ty': ty,
+            'bc': bc}
+
+
+class Cell:
+    """The test's node, spun in a thread: the person, the task manager and decision node's
+    outputs, and everything the two robot nodes publish, with the arrival time."""
+
+    def __init__(self):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('robot_nodes_test', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self.person = FAR.copy()
+        self.target = FAR.copy()
+        self.skeleton_on = True
+        self._moved = time.monotonic()
+        self.trajectories: list[JointTrajectory] = []
+        self.overrides: list[tuple[float, float]] = []
+        self.stops: list[bool] = []
+        self.progress: list[list[int]] = []
+        self.separations: list[list[float]] = []
+        self.joint_states: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.statuses: list[DiagnosticStatus] = []
+        n = self.node
+        n.create_subscription(JointTrajectory, DEFAULT_TRAJECTORY_TOPIC,
+                              self.trajectories.append, DEEP)
+        n.create_subscription(Float64, DEFAULT_OVERRIDE_TOPIC,
+                              lambda m: self.overrides.append((time.monotonic(), m.data)), DEEP)
+        n.create_subscription(Bool, 'hrc/protective_stop', lambda m: self.stops.append(m.data),
+                              qos.LATCHED)
+        n.create_subscription(UInt8MultiArray, 'hrc/robot_progress',
+                              lambda m: self.progress.append(list(m.data)), qos.LATCHED)
+        n.create_subscription(Float64MultiArray, 'hrc/separation',
+                              lambda m: self.separations.append(list(m.data)), STREAM)
+        n.create_subscription(JointState, 'joint_states', self._joint_state, qos.SENSOR_DATA)
+        n.create_subscription(DiagnosticArray, '/diagnostics',
+                              lambda m: self.statuses.extend(m.status), DEEP)
+        self.skeleton_pub = n.create_publisher(PoseArray, 'human/skeleton', qos.SENSOR_DATA)
+        self.task_pub = n.create_publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
+        self.action_pub = n.create_publisher(String, 'hrc/action', qos.RELIABLE)
+        self.trajectory_pub = n.create_publisher(JointTrajectory, DEFAULT_TRAJECTORY_TOPIC,
+                                                 qos.RELIABLE)
+        self.joint_pub = n.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
+        n.create_timer(1 / 30, self._walk)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - the context went down under it
+                return
+
+    def _joint_state(self, msg: JointState):
+        self.joint_states.append((time.monotonic(), np.array(msg.position),
+                                  np.array(msg.velocity)))
+
+    def _walk(self):
+        now = time.monotonic()
+        dt, self._moved = now - self._moved, now
+        with self.lock:
+            step = self.target - self.person
+            distance = float(np.linalg.norm(step))
+            if distance > 0:
+                self.person = self.person + step * min(1.0, WALK * dt / distance)
+            person = self.person.copy()
+        if self.skeleton_on:
+            self.skeleton_pub.publish(conv.keypoints_to_msg(
+                person[None] + BODY, self.node.get_clock().now().to_msg()))
+
+    def walk_to(self, target) -> None:
+        with self.lock:
+            self.target = np.asarray(target, dtype=float)
+
+    def epoch(self, action: str, task_state: dict) -> None:
+        """The epoch's task state, then its action (as the task manager and decision node)."""
+        self.task_pub.publish(conv.task_state_to_msg(task_state))
+        self.action_pub.publish(String(data=action))
+
+    def wait(self, predicate, what: str, timeout: float = TIMEOUT):
+        deadline = time.monotonic() + timeout
+        while True:
+            value = predicate()
+            if value:
+                return value
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            time.sleep(0.02)
+
+    # -- views -------------------------------------------------------------------------------
+    @property
+    def q(self) -> np.ndarray:
+        return self.joint_states[-1][1]
+
+    def at_rest(self, since: int = 0) -> bool:
+        """The last 20 joint states (after index `since`) all at rest."""
+        recent = self.joint_states[since:][-20:]
+        return len(recent) == 20 and all(np.abs(qd).max() < 1e-6 for _, _, qd in recent)
+
+    def moving(self) -> bool:
+        return bool(self.separations) and self.separations[-1][8] > 0.05
+
+    def status(self, name: str, level=None, contains: str = '', since: int = 0):
+        """The last /diagnostics status of that name (and level, and words), else None."""
+        for status in reversed(self.statuses[since:]):
+            if status.name == name and (level is None or status.level == level) \
+                    and contains in status.message:
+                return status
+        return None
+
+    def value(self, name: str, key: str, contains: str, since: int = 0):
+        """A status of that name whose key-value `key` holds `contains`."""
+        for status in reversed(self.statuses[since:]):
+            if status.name == name and contains in conv.diagnostic_values(status).get(key, ''):
+                return status
+        return None
+
+    def close(self):
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(5)
+        self.node.destroy_node()
+
+
+@pytest.fixture(scope='module')
+def cell(tmp_path_factory, ros_domain_id):
+    folder = tmp_path_factory.mktemp('robot_nodes')
+    suite = NodeProcesses(folder, [])
+    driver = Cell()
+    try:
+        suite.start('cobot_sim_node')
+        suite.start('robot_bridge_node')
+        driver.wait(lambda: driver.stops and driver.stops[-1] is False or suite.dead(),
+                    'the bridge to see the arm and the person and clear its stop',
+                    START_TIMEOUT)
+        assert not suite.dead(), suite.logs()
+        yield driver, suite
+    finally:
+        suite.stop(10.0)
+        driver.close()
+
+
+def assert_alive(suite) -> None:
+    assert not suite.dead(), suite.logs()
+
+
+# -- the conversions ---------------------------------------------------------------------------
+def test_a_trajectory_goes_out_as_a_controller_goal_and_comes_back():
+    start = DESCRIPTION.poses['home']
+    path = [start, PROGRAMS[0].waypoints[0], PROGRAMS[0].waypoints[1]]
+    msg = conv.trajectory_to_msg(JOINTS, path, [1.25, 0.5])
+    assert [conv.duration_to_seconds(p.time_from_start) for p in msg.points] == [1.25, 1.75]
+    assert all(list(p.velocities) == [0.0] * 6 for p in msg.points)
+    names, positions, times = conv.trajectory_from_msg(msg)
+    assert names == JOINTS
+    np.testing.assert_allclose(positions, path[1:])
+    np.testing.assert_allclose(times, [1.25, 1.75])
+    stay = conv.trajectory_to_msg(JOINTS, [start], [])     # no segment: one point at time 0
+    assert len(stay.points) == 1 and conv.duration_to_seconds(stay.points[0].time_from_start) == 0
+    np.testing.assert_allclose(conv.trajectory_from_msg(stay)[1], [start])
+
+
+def _goal(names=JOINTS, points=((0.0,) * 6,), times=(1.0,)) -> JointTrajectory:
+    msg = JointTrajectory(joint_names=list(names))
+    msg.points = [JointTrajectoryPoint(positions=list(q), time_from_start=
+                                       conv.seconds_to_duration(t))
+                  for q, t in zip(points, times)]
+    return msg
+
+
+@pytest.mark.parametrize('msg, reason', [
+    (_goal(names=JOINTS[:5] + (JOINTS[0],)), 'unique'),
+    (_goal(points=()), 'no points'),
+    (_goal(points=((0.0,) * 5,)), 'must hold 6 positions'),
+    (_goal(points=((float('nan'),) + (0.0,) * 5,)), 'NaN'),
+    (_goal(points=((0.0,) * 6, (0.1,) * 6), times=(1.0, 1.0)), 'increase strictly'),
+    (_goal(points=((0.0,) * 6, (0.1,) * 6), times=(0.0, 1.0)), 'increase strictly'),
+], ids=['repeated-name', 'no-points', 'short-point', 'nan', 'same-time', 'zero-start'])
+def test_a_malformed_trajectory_is_refused(msg, reason):
+    with pytest.raises(conv.MessageError, match=reason):
+        conv.trajectory_from_msg(msg)
+
+
+def test_override_progress_and_separation_messages():
+    assert conv.speed_override_from_msg(Float64(data=0.25)) == 0.25
+    for bad in (float('nan'), -0.1, 1.5):
+        with pytest.raises(conv.MessageError, match='speed override must lie in'):
+            conv.speed_override_from_msg(Float64(data=bad))
+    progress = conv.robot_progress_to_msg(2, 3, 1)
+    assert [d.label for d in progress.layout.dim] == ['nature', 'cycles', 'cycles_done']
+    assert conv.robot_progress_from_msg(progress) == {'nature': 2, 'cycles': 3, 'cycles_done': 1}
+    msg = conv.separation_to_msg(0.8, [0.1, 0.2, 0.3], [0.9, 0.2, 0.3], 0.6, 0.4)
+    assert msg.layout.dim[0].label == 'separation' and msg.layout.dim[0].size == 9
+    got = conv.separation_from_msg(msg)
+    assert (got['S'], got['S_p'], got['speed']) == (0.8, 0.6, 0.4)
+    np.testing.assert_allclose(got['human'] - got['arm'], [0.8, 0, 0])
+    with pytest.raises(conv.MessageError, match='must hold 9 values'):
+        conv.separation_from_msg(Float64MultiArray(data=[0.8]))
+
+
+# -- the actions -------------------------------------------------------------------------------
+def test_ct_on_a_pending_task_runs_its_program(cell):
+    driver, suite = cell
+    start = driver.q
+    program = PROGRAMS[0]
+    driver.epoch('ct', task(tp=1, tc=1))
+    goal = driver.wait(lambda: next((t for t in driver.trajectories if len(t.points) > 1), None),
+                       'a JointTrajectory for the program')
+    assert tuple(goal.joint_names) == JOINTS
+    points = np.array([p.positions for p in goal.points])
+    # the approach to W_0, then one cycle: W_1, W_0
+    assert len(points) == 1 + len(program.waypoints)
+    np.testing.assert_allclose(points[0], program.waypoints[0])
+    np.testing.assert_allclose(points[1:], program.waypoints[[1, 0]])
+    times = [conv.duration_to_seconds(p.time_from_start) for p in goal.points]
+    assert all(b > a for a, b in zip(times, times[1:])) and times[0] > 0
+    # the arm moves to the program and runs it: the bridge counts the cycle
+    driver.wait(lambda: np.abs(driver.q - program.waypoints[1]).max() < 0.02,
+                'the arm to reach the program\'s second waypoint')
+    assert np.abs(start - program.waypoints[0]).max() > 0.5     # it came from afar
+    driver.wait(lambda: driver.progress and driver.progress[-1] == [0, 1, 1],
+                'robot_progress [nature 0, 1 cycle, 1 done]')
+    driver.wait(lambda: driver.at_rest(), 'the arm to stand at the end of the program')
+    np.testing.assert_allclose(driver.q, program.waypoints[0], atol=0.02)
+    assert_alive(suite)
+
+
+def test_a_person_close_to_the_arm_stops_it_with_a_latched_protective_stop(cell):
+    driver, suite = cell
+    driver.epoch('ct', task(tp=2, tc=120))
+    driver.wait(driver.moving, 'the arm to run the program')
+    overrides = len(driver.overrides)
+    driver.walk_to(NEAR)
+    driver.wait(lambda: driver.stops[-1] is True, 'a protective stop')
+    driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'below the protective '
+                                      'distance'), 'the stop\'s reason on /diagnostics')
+    driver.wait(lambda: driver.overrides[-1][1] == 0.0, 'override 0')
+    assert min(v for _, v in driver.overrides[overrides:]) == 0.0
+    driver.wait(driver.at_rest, 'the arm to stand')
+    # latched: a subscriber that joins now gets the stop at once
+    late: list[bool] = []
+    driver.node.create_subscription(Bool, 'hrc/protective_stop', lambda m: late.append(m.data),
+                                    qos.LATCHED)
+    assert driver.wait(lambda: late, 'the latched stop for a late subscriber') == [True]
+    # the person leaves: the program resumes
+    driver.walk_to(FAR)
+    driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear', 2 * TIMEOUT)
+    driver.wait(driver.moving, 'the arm to move again')
+    assert_alive(suite)
+
+
+def test_no_skeleton_for_longer_than_the_timeout_stops_the_arm(cell):
+    driver, suite = cell
+    driver.wait(driver.moving, 'the arm to run the program')
+    since = len(driver.statuses)
+    driver.skeleton_on = False
+    try:
+        status = driver.wait(lambda: driver.status('robot_bridge: ssm', WARN,
+                                                   'the person may be anywhere', since),
+                             'the skeleton timeout on /diagnostics')
+        assert 'human data' in status.message and 'human_timeout 0.5 s' in status.message
+        driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1][1] == 0.0,
+                    'a protective stop with override 0')
+        driver.wait(driver.at_rest, 'the arm to stand')
+    finally:
+        driver.skeleton_on = True
+    driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear with the skeleton back')
+    assert_alive(suite)
+
+
+def test_dn_holds_the_arm_and_sends_no_trajectory(cell):
+    driver, suite = cell
+    driver.wait(driver.moving, 'the arm to run the program')
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
+    driver.wait(driver.at_rest, 'the arm to stand on dn')
+    goals, overrides, states = (len(driver.trajectories), len(driver.overrides),
+                                len(driver.joint_states))
+    held = driver.q
+    driver.wait(lambda: len(driver.overrides) > overrides + 100
+                and len(driver.joint_states) > states + 100, '100 more ticks')
+    assert all(v == 0.0 for _, v in driver.overrides[overrides:])
+    assert len(driver.trajectories) == goals
+    assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
+    assert driver.status('robot_bridge: bridge') is not None
+    assert_alive(suite)
+
+
+# -- bad input (issue 18): refused or reported, the arm held, the nodes alive -----------------
+def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
+    driver, suite = cell
+    held, states = driver.q, len(driver.joint_states)
+    since = len(driver.statuses)
+    goal = conv.trajectory_to_msg(JOINTS[:5] + ('gripper_joint',),
+                                  [held, DESCRIPTION.poses['retreat']], [2.0])
+    driver.trajectory_pub.publish(goal)
+    driver.wait(lambda: driver.status('cobot_sim: trajectory input', WARN, 'unknown joints',
+                                      since), 'the refusal of an unknown joint')
+    assert 'gripper_joint' in driver.status('cobot_sim: trajectory input').message
+    # a goal whose first point is 1.2 rad away in 0.1 s does not start at the arm
+    away = conv.trajectory_to_msg(JOINTS, [held, held + [1.2, 0, 0, 0, 0, 0]], [0.1])
+    driver.trajectory_pub.publish(away)
+    driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'does not start at the arm',
+                                     since), 'the refusal of a goal away from the arm')
+    driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
+    assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
+    assert_alive(suite)
+
+
+@pytest.mark.parametrize('position, reason', [
+    ([float('nan'), 0, 0, 0, 0, 0], 'shoulder_pan_joint is nan'),
+    ([0, 0, 4.0, 0, 0, 0], 'elbow_joint = 4.0000 rad is outside its limits'),
+], ids=['nan', 'out-of-limit'])
+def test_a_bad_joint_state_is_refused(cell, position, reason):
+    driver, suite = cell
+    since = len(driver.statuses)
+    held, states = driver.q, len(driver.joint_states)
+    driver.joint_pub.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, position,
+                                                     driver.node.get_clock().now().to_msg()))
+    driver.wait(lambda: driver.value('robot_bridge: bridge', 'last_refused_joint_states',
+                                     reason, since), f'the refusal ({reason})')
+    driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
+    arm = [q for _, q, _ in driver.joint_states[states:]     # (the test hears its own too)
+           if not np.array_equal(q, position, equal_nan=True)]
+    assert max(np.abs(q - held).max() for q in arm) == 0.0
+    assert_alive(suite)
+
+
+def test_a_skeleton_far_outside_the_cell_is_refused(cell):
+    driver, suite = cell
+    since = len(driver.statuses)
+    driver.skeleton_pub.publish(conv.keypoints_to_msg(
+        np.array([[50.0, 0.0, 1.0]]) + BODY, driver.node.get_clock().now().to_msg()))
+    for status in ('robot_bridge: bridge', 'cobot_sim: arm'):
+        driver.wait(lambda name=status: driver.value(name, 'last_refused_skeleton',
+                                                     'farther than 20 m', since),
+                    f'{status} to refuse the skeleton 50 m away')
+    assert driver.stops[-1] is False        # the person's stream goes on: no stop for it
+    assert_alive(suite)
+
+
+def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
+    """A second bridge (namespace /solo) whose override the test listens to: joint states that
+    stop (its watchdog ticks) or are all refused (NaN) age into a protective stop, override 0."""
+    driver, _ = cell
+    solo = NodeProcesses(tmp_path, [])
+    stops: list[bool] = []
+    overrides: list[float] = []
+    node = driver.node
+    node.create_subscription(Bool, '/solo/hrc/protective_stop', lambda m: stops.append(m.data),
+                             qos.LATCHED)
+    node.create_subscription(Float64, '/solo/hrc/speed_override',
+                             lambda m: overrides.append(m.data), DEEP)
+    joints = node.create_publisher(JointState, '/solo/joint_states', qos.SENSOR_DATA)
+    skeleton = node.create_publisher(PoseArray, '/solo/human/skeleton', qos.SENSOR_DATA)
+    home = DESCRIPTION.poses['home']
+    try:
+        solo.start('robot_bridge_node', [('__ns', '/solo')])
+
+        def feed(position=home):
+            stamp = node.get_clock().now().to_msg()
+            joints.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, position, stamp))
+            skeleton.publish(conv.keypoints_to_msg(FAR[None] + BODY, stamp))
+            time.sleep(0.01)
+            return (stops and stops[-1] is False) or solo.dead()
+        driver.wait(feed, 'the solo bridge to clear its stop on fresh data', START_TIMEOUT)
+        assert not solo.dead(), solo.logs()
+        since = len(driver.statuses)
+        # the joint states stop: the watchdog ticks the bridge into a stop
+        status = driver.wait(lambda: driver.status('solo/robot_bridge: ssm', WARN,
+                                                   'joint state', since),
+                             'the stop for joint states that stopped')
+        assert 's old (joint_state_timeout 0.1 s)' in status.message
+        assert stops[-1] is True
+        driver.wait(lambda: overrides and overrides[-1] == 0.0, 'override 0 from the watchdog')
+        count = len(overrides)
+        driver.wait(lambda: len(overrides) > count + 5, 'the watchdog to go on ticking')
+        assert set(overrides[count:]) == {0.0}
+        # fresh again, then only refused (NaN) joint states: stopped, alive
+        driver.wait(feed, 'the stop to clear')
+        since = len(driver.statuses)
+        nan = [float('nan')] + list(home[1:])
+        driver.wait(lambda: (feed(nan), stops[-1] is True)[1], 'a stop on NaN joint states')
+        driver.wait(lambda: driver.value('solo/robot_bridge: bridge', 'last_refused_joint_states',
+                                         'is nan', since), 'the NaN refusal on its status')
+        assert not solo.dead(), solo.logs()
+        assert solo.stop() == {'robot_bridge_node': 0}, solo.logs()
+    finally:
+        solo.stop(5.0)
+
+
+def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, tmp_path):
+    driver, _ = cell
+    lonely = NodeProcesses(tmp_path, [])
+    stops: list[bool] = []
+    driver.node.create_subscription(Bool, '/lonely/hrc/protective_stop',
+                                    lambda m: stops.append(m.data),
+                                    qos.LATCHED)
+    goals: list[JointTrajectory] = []
+    driver.node.create_subscription(JointTrajectory,
+                                    f'/lonely/{DEFAULT_TRAJECTORY_TOPIC}', goals.append, DEEP)
+    try:
+        lonely.start('robot_bridge_node', [('__ns', '/lonely')])
+        status = driver.wait(lambda: driver.status('lonely/robot_bridge: speed override',
+                                                   ERROR) or lonely.dead(),
+                             'the ERROR for an override nobody listens to', START_TIMEOUT)
+        assert not lonely.dead(), lonely.logs()
+        assert 'nobody subscribes to the speed override on /lonely/hrc/speed_override' \
+            in status.message
+        driver.wait(lambda: stops and stops[-1] is True, 'its latched protective stop')
+        # fed an arm at rest and a person far away, with a ct, it still sends no goal
+        pub = driver.node.create_publisher(JointState, '/lonely/joint_states', qos.SENSOR_DATA)
+        skeleton = driver.node.create_publisher(PoseArray, '/lonely/human/skeleton',
+                                                qos.SENSOR_DATA)
+        tasks = driver.node.create_publisher(UInt8MultiArray, '/lonely/hrc/task_state',
+                                             qos.LATCHED)
+        actions = driver.node.create_publisher(String, '/lonely/hrc/action', qos.RELIABLE)
+        since = len(driver.statuses)
+        tasks.publish(conv.task_state_to_msg(task(tp=1, tc=1)))
+        actions.publish(String(data='ct'))
+
+        def feed():
+            stamp = driver.node.get_clock().now().to_msg()
+            pub.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6,
+                                                DESCRIPTION.poses['home'], stamp))
+            skeleton.publish(conv.keypoints_to_msg(FAR[None] + BODY, stamp))
+            return driver.value('lonely/robot_bridge: bridge', 'last_action', 'ct', since)
+        status = driver.wait(feed, 'the lonely bridge to take the ct')
+        assert conv.diagnostic_values(status)['trajectories_sent'] == '0'
+        assert goals == [] and stops[-1] is True
+        assert lonely.stop() == {'robot_bridge_node': 0}, lonely.logs()
+    finally:
+        lonely.stop(5.0)
+
+
+# -- refused robot descriptions: the node exits at start, non-zero, with one line ------------
+def _broken_description(tmp_path, change) -> str:
+    data = yaml.safe_load(Path(DESCRIPTION.source).read_text())
+    change(data)
+    path = tmp_path / 'arm.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@pytest.mark.parametrize('executable, change, reason', [
+    ('robot_bridge_node', lambda d: d['poses'].pop('retreat'), 'missing poses retreat'),
+    ('robot_bridge_node', lambda d: d['joints'][2].pop('velocity'),
+     'joint elbow_joint has no velocity'),
+    ('cobot_sim_node', lambda d: d['poses'].pop('home'), 'missing poses home'),
+], ids=['bridge-pose', 'bridge-limit', 'cobot-pose'])
+def test_a_robot_description_missing_a_pose_or_a_limit_stops_the_node_at_start(
+        tmp_path, ros_domain_id, executable, change, reason):
+    path = _broken_description(tmp_path, change)
+    result = subprocess.run(node_command(executable) + [
+        '--ros-args', '-r', '__ns:=/refused', '-p', f'robot_description:={path}'],
+        capture_output=True, text=True, timeout=START_TIMEOUT, stdin=subprocess.DEVNULL)
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    assert 'cannot start' in lines[0] and reason in lines[0] and path in lines[0], lines[0]
+
+
+# -- across the whole run ---------------------------------------------------------------------
+def test_ssm_held_in_every_sample_while_the_arm_moved(cell):
+    driver, _ = cell
+    samples = np.array(driver.separations)
+    moving = samples[:, 8] > MOVING_SPEED
+    assert moving.sum() > 200, 'the arm hardly moved: nothing was checked'
+    assert samples[moving, 0].min() < 1.0, 'the person never came near the moving arm'
+    violations = samples[moving & (samples[:, 0] < samples[:, 7])]
+    assert len(violations) == 0, violations[:5]
+
+
+def test_both_nodes_stop_cleanly_on_sigint(cell):
+    _, suite = cell
+    assert suite.stop() == {'cobot_sim_node': 0, 'robot_bridge_node': 0}, suite.logs()
