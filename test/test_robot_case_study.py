@@ -197,6 +197,8 @@ def test_the_robot_layout_plots_separation_against_s_p_and_the_override(run):
         for field in fields - {''}:
             name, _, index = field.partition('[')
             assert name in message_class(recorded[topic]).get_fields_and_field_types()
-    # the separation's labels: index 0 is S, 7 is S_p
+    # the separation's layout: 9 values, index 0 S and 7 S_p (conversions.SEPARATION_LABELS)
+    from hrc_ros.ros.conversions import SEPARATION_LABELS
+    assert (SEPARATION_LABELS[0], SEPARATION_LABELS[7]) == ('S', 'S_p')
     sample = next(msg for _, msg, _, _ in messages(out, '/hrc/separation'))
-    assert [d.label for d in sample.layout.dim][:1] in (['separation'], ['S'])
+    assert [(d.label, d.size) for d in sample.layout.dim] == [('separation', 9)]
