@@ -232,3 +232,16 @@ def test_the_view_draws_the_arm_its_ssm_shell_the_body_and_the_separation(descri
     assert by_ns['body'][0].color[:3] == LEVEL_COLORS[1]              # S 0.24 m: inner
     # without the arm's state the picture is the reference point's, as before
     assert 'safety' in {s.ns for s in scene(CellView().state, RADII, (0, 0, 0))}
+
+
+def test_the_nodes_refuse_a_person_source_or_fault_they_cannot_run():
+    from hrc_ros.ros.nodes import belief_estimator_node, cell_sim_node
+    assert cell_sim_node.check_parameters({'person': '3d', 'faults': ['dropout:3']}) is None
+    assert 'collision needs person' in cell_sim_node.check_parameters(
+        {'person': '3d', 'faults': ['collision:3']})
+    assert "person must be point or 3d, got 'ghost'" in cell_sim_node.check_parameters(
+        {'person': 'ghost'})
+    assert 'distance_source must be reference_point or arm_links' in \
+        belief_estimator_node.check_parameters({'distance_source': 'gps'})
+    assert 'keypoint_joints' in belief_estimator_node.check_parameters(
+        {'keypoint_joints': ['pelvis', 'tail']})
