@@ -1,11 +1,11 @@
 """Start one hrc_ros cell: belief estimator, decision, task manager, the simulated cell, the view,
-the HMI.
+the HMI, the robot bridge and a simulated arm.
 
     ros2 launch hrc_ros hrc.launch.py [params_file:=FILE] [config:=YAML] [policy:=NPZ]
         [selector:=paper|qmdp|mls|pomdp|fib] [belief_mode:=bayes|table|posterior]
         [namespace:=cell1] [use_sim:=true|false]
         [view:=auto|true|false] [body_tracking:=false|true]
-        [hmi:=false|true|answers]
+        [hmi:=false|true|answers] [robot:=none|sim]
 
 The plan (which nodes, which parameters) is `hrc_ros.ros.launch_plan`; this file only turns it
 into launch_ros actions.

@@ -437,6 +437,10 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert by_name['cell_sim'].parameters[-1] == {'config': 'c.yaml', 'person': '3d'}
     assert by_name['cell_view'].parameters[-1]['robot'] is True
     assert 'robot_bridge' not in {n.name for n in cell_nodes(share)}
+    with pytest.raises(ValueError, match="tracker_sim's synthetic body"):
+        cell_nodes(share, robot='sim', body_tracking='true')
+    assert 'body_tracking' in {n.name for n in cell_nodes(share, robot='sim', use_sim='false',
+                                                          body_tracking='true')}
     for name, bad in (('selector', 'greedy'), ('belief_mode', 'kalman'), ('use_sim', 'maybe'),
                       ('view', 'yes'),
                       ('body_tracking', 'on'), ('hmi', 'yes'), ('robot', 'real')):

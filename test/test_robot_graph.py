@@ -245,3 +245,14 @@ def test_the_nodes_refuse_a_person_source_or_fault_they_cannot_run():
         belief_estimator_node.check_parameters({'distance_source': 'gps'})
     assert 'keypoint_joints' in belief_estimator_node.check_parameters(
         {'keypoint_joints': ['pelvis', 'tail']})
+
+
+def test_the_case_study_refuses_the_arm_with_the_synthetic_tracker(tmp_path):
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, '-m', 'hrc_ros.ros.case_study', '--out',
+                           str(tmp_path / 'out'), '--robot', 'sim', '--input', 'body_tracking'],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("hrc-case-study: error: robot 'sim' with body_tracking")
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / 'out').exists()

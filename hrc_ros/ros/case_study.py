@@ -67,7 +67,7 @@ from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_
                             output_folder)
 from ..core.protocol import TaskEpochs
 from .launch_plan import (BODY_TRACKING_SIM_PARAMS, ROBOT_OVERRIDES, ROBOTS, SIM_MOTION_REMAPS,
-                          scenario_parameters)
+                          SYNTHETIC_TRACKER_WITH_ARM, scenario_parameters)
 from . import stop
 from .processes import NodeProcessError, NodeProcesses
 
@@ -405,6 +405,8 @@ def _main(argv: list[str] | None) -> int:
         args.timeout = args.epochs * args.epoch_period + 60.0
     out = Path(args.out)
     bag_dir = Path(args.bag) if args.bag else out / 'bag'
+    if args.robot == 'sim' and args.input == 'body_tracking':
+        return fail('hrc-case-study', ToolError(SYNTHETIC_TRACKER_WITH_ARM))
     try:
         parse_faults(args.faults)
         output_folder(out)

@@ -89,6 +89,10 @@ VIEW_NODE = ('cell_view_node', 'cell_view')
 BODY_TRACKING_NODE = ('body_tracking_node', 'body_tracking')
 TRACKER_SIM_NODE = ('tracker_sim_node', 'tracker_sim')
 HMI_NODE = ('hmi_node', 'hmi')
+SYNTHETIC_TRACKER_WITH_ARM = (
+    "robot 'sim' with body_tracking and the simulated cell: tracker_sim's synthetic body walks "
+    "by the reference point's bands, not as the 3D person by the separation to the arm; use "
+    'the simulated cell without body_tracking, or a real tracker (use_sim false)')
 ROBOT_NODES = (('robot_bridge_node', 'robot_bridge'), ('cobot_sim_node', 'cobot_sim'))
 # robot:=sim: the parameters that run the cell with the arm, per node name.
 ROBOT_OVERRIDES = {
@@ -162,6 +166,8 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     elif use_sim and hmi:                # the simulated person answers, the page shows it
         overrides['hmi'] = {**common, 'worker_answers': False}
     robot = _flag('robot', robot, ROBOTS) == 'sim'
+    if robot and body_tracking and use_sim:
+        raise ValueError(SYNTHETIC_TRACKER_WITH_ARM)
     if robot:
         for name, values in ROBOT_OVERRIDES.items():
             overrides[name] = {**common, **overrides.get(name, {}), **values}
