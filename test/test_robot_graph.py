@@ -24,6 +24,7 @@ from hrc_ros.core.robot.links import LinkDistance
 from hrc_ros.core.tasks import TaskBook, robot_cycle_done
 
 MS = 1_000_000
+SEED = 26       # the seed of the case study with the arm (test_robot_case_study.py)
 TIMEOUT = 250 * MS
 
 
@@ -256,3 +257,30 @@ def test_the_case_study_refuses_the_arm_with_the_synthetic_tracker(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.startswith("hrc-case-study: error: robot 'sim' with body_tracking")
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / 'out').exists()
+
+
+def test_the_batch_pre_roll_starts_the_first_epoch_out_of_ssms_start_up_stop(model):
+    """ArmCellSettings.pre_roll: the bridge runs before epoch 1 (as a graph's does), so it has
+    left its start-up protective stop (resume_time 0.2 s) when a_1 comes; the arm holds
+    meanwhile (no action yet)."""
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.robot.cell import ArmCell, ArmCellSettings
+    from hrc_ros.core.study.simulation import Scenario, case_study
+    policy = load_policy(default_policy_path(), model.config)
+    scenario = case_study()
+    one = Scenario(scenario.initial_state, scenario.schedule, 1, 'epoch 1')
+    home = load_robot_description().poses['home']
+    runs = {}
+    for pre_roll in (0.0, 1.0):
+        cell = ArmCell(model, policy, settings=ArmCellSettings(pre_roll=pre_roll))
+        runs[pre_roll] = cell.episode(one, SEED, [SEED, 2], 'paper', record=True)
+    assert runs[0.0].actions == runs[1.0].actions == ['dp']
+    assert runs[0.0].stop_time == pytest.approx(0.2)         # resume_time, in epoch 1
+    assert runs[1.0].stop_time == 0.0
+    assert np.array_equal(runs[1.0].arm_path[0][1], home)     # it held through the pre-roll
+    # so the retreat starts earlier: 0.3 s in, the arm has gone farther
+    moved = {p: np.abs(r.arm_path[15][1] - home).max() for p, r in runs.items()}
+    assert moved[1.0] > moved[0.0] > 0
+    with pytest.raises(ValueError, match='pre_roll'):
+        ArmCellSettings(pre_roll=-1.0)
+
