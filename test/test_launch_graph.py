@@ -116,10 +116,12 @@ def test_the_cell_with_the_arm_launches_with_unique_names_and_its_wiring(tmp_pat
             nodes.start(node.executable, ros_args=ros_arguments(node, tmp_path))
         expected = {f'/cell1/{n}' for n in names} | {'/cell1/cell_view_inputs'}
         deadline = time.monotonic() + GRAPH_TIMEOUT
-        while not (set(full_names(probe)) >= expected
-                   and all(readers(t) >= want for t, want in wiring.items())):
+        def missing():
+            return (expected - set(full_names(probe)),
+                    {t: want - readers(t) for t, want in wiring.items() if want - readers(t)})
+        while any(missing()):
             assert not nodes.dead(), nodes.logs()
-            assert time.monotonic() < deadline, (full_names(probe), nodes.logs())
+            assert time.monotonic() < deadline, (missing(), nodes.logs()[-4000:])
             time.sleep(0.05)
         got = [n for n in full_names(probe) if n != '/launch_graph_probe']
         twice = sorted(n for n, count in Counter(got).items() if count > 1)

@@ -522,9 +522,19 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
     nodes = opaque.kwargs['function'](values)
     plan = cell_nodes(tmp_path, **values)
     assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
-             n.kwargs['namespace'], n.kwargs['parameters'], n.kwargs['remappings'])
-            for n in nodes] == \
-        [(PACKAGE, p.executable, p.name, p.namespace, p.parameters, p.remappings) for p in plan]
+             n.kwargs['namespace'], n.kwargs['remappings']) for n in nodes] == \
+        [(PACKAGE, p.executable, p.name, p.namespace, p.remappings) for p in plan]
+    # the parameters: the plan's files, and its overrides as a file of the node's own name
+    # (one under `/**` would lose to hrc_params.yaml's section of the node: rcl's merge)
+    for node, planned in zip(nodes, plan):
+        files = node.kwargs['parameters']
+        assert len(files) == len(planned.parameters)
+        for path, want in zip(files, planned.parameters):
+            if isinstance(want, dict):
+                assert yaml.safe_load(open(path).read()) == \
+                    {f'/**/{planned.name}': {'ros__parameters': want}}
+            else:
+                assert path == want
 
 
 # --- the ROS parameter files against DESIGN.md's table --------------------------------------

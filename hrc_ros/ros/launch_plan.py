@@ -180,22 +180,35 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
             for executable, name in nodes]
 
 
-def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:
-    """What launch_ros's `Node` action passes after `--ros-args` for `node` (Jazzy): `-r
-    __node:=NAME`, `-r __ns:=/NS` (made absolute; none for the root namespace), a
-    `--params-file` per parameter file and per dict (written, as launch_ros does, to a file
-    under `/**` in `params_dir`), then `-r FROM:=TO` per remapping. The tests start the plan
-    with these, as `ros2 launch` would, where ROS `launch` is not installed."""
+def parameter_files(node: NodeLaunch, params_dir: str | Path) -> list[str]:
+    """`node.parameters` as params files: each dict written to a file in `params_dir` under
+    the node's own name, ``/**/NAME`` (any namespace). Not under ``/**``, as launch_ros writes a
+    dict: rcl merges the files' sections by name, in the order each name first appears, so a
+    parameter that `config/hrc_params.yaml` sets in ``/**/NAME`` would win over a later
+    file's ``/**`` (the arguments' overrides, `ROBOT_OVERRIDES`, would be lost). The launch file
+    and the tests pass these files."""
     import yaml
-    args = ['-r', f'__node:={node.name}']
-    if node.namespace:
-        args += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    files = []
     for index, parameters in enumerate(node.parameters):
         if isinstance(parameters, dict):
             path = Path(params_dir) / f'{node.name}_{index}.yaml'
-            path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+            path.write_text(yaml.safe_dump({f'/**/{node.name}': {'ros__parameters': parameters}}))
             parameters = str(path)
-        args += ['--params-file', str(parameters)]
+        files.append(str(parameters))
+    return files
+
+
+def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:
+    """What launch_ros's `Node` action passes after `--ros-args` for `node` as the launch file
+    starts it (Jazzy): `-r __node:=NAME`, `-r __ns:=/NS` (made absolute; none for the root
+    namespace), a `--params-file` per file of `parameter_files`, then `-r FROM:=TO` per
+    remapping. The tests start the plan with these, as `ros2 launch` would, where ROS `launch`
+    is not installed."""
+    args = ['-r', f'__node:={node.name}']
+    if node.namespace:
+        args += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    for path in parameter_files(node, params_dir):
+        args += ['--params-file', path]
     for old, new in node.remappings:
         args += ['-r', f'{old}:={new}']
     return args
