@@ -1,8 +1,9 @@
 """The robot side's targets (issue 18), measured: batch speed, separation query, bridge compute,
 SSM violations.
 
-    python bench/robot_bench.py [--episodes 20] [--node-steps 6000] [--violation-episodes 1000]
-                                [--violation-epochs 20] [--skip-violations]
+    python bench/robot_bench.py [--episodes 20] [--node-steps 6000] [--sim-seconds 10]
+                                [--violation-episodes 1000] [--violation-epochs 20]
+                                [--skip-violations]
 
 1. Batch speed: `--episodes` seeded episodes of the cell with the arm (50 epochs of 1 s,
    ssm_only and paper), pinned to one core; simulated seconds / CPU seconds of the process
@@ -22,7 +23,10 @@ SSM violations.
    actions ct, nw, dp, nw, dm, nw, dn, nw in turn). The deserialisation and the executor are
    rclpy's and not counted. Printed as the CPU time of the node's thread per message (target
    p99 < 1 ms) and as wall time, which on a loaded machine adds the preemptions.
-5. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
+5. cobot_sim_node's joint_states rate: the node as a process (its console script) for
+   `--sim-seconds`, its own count of what it published each second (`joint_states_hz` in its
+   status) and what a subscriber in this process received (target >= 100 Hz; 125 nominal).
+6. SSM violations over `--violation-episodes` batch episodes of each of ssm_only and paper
    (samples where the arm moved while the true separation was below S_p: target 0), with the
    contacts and speed-bound breaches.
 """
@@ -161,10 +165,55 @@ def node_compute(steps: int) -> list:
     return wall, cpu
 
 
+def sim_rate(seconds: float) -> tuple[list, float]:
+    """cobot_sim_node's published joint-state rates (Hz, one per status) and the rate a
+    subscriber here received over `seconds` (module docstring, 5)."""
+    import tempfile
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from hrc_ros.ros import conversions as conv
+    from hrc_ros.ros import qos
+    from hrc_ros.ros.processes import NodeProcesses
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('bench_sim_rate', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    rates, received = [], []
+    node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: rates.extend(
+        float(conv.diagnostic_values(s)['joint_states_hz']) for s in m.status
+        if s.name == 'cobot_sim: arm'), qos.RELIABLE)
+    node.create_subscription(JointState, 'joint_states', lambda m: received.append(
+        time.monotonic()), qos.SENSOR_DATA)
+    suite = NodeProcesses(tempfile.mkdtemp(prefix='robot_bench_'), [])
+    try:
+        suite.start('cobot_sim_node')
+        deadline = time.monotonic() + 120.0
+        while len(rates) < 2 and time.monotonic() < deadline and not suite.dead():
+            executor.spin_once(timeout_sec=0.05)
+        rates.clear()
+        start, first = time.monotonic(), len(received)
+        while time.monotonic() - start < seconds:
+            executor.spin_once(timeout_sec=0.05)
+        got = (len(received) - first) / (time.monotonic() - start)
+    finally:
+        suite.stop()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return rates, got
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--episodes', type=int, default=20)
     parser.add_argument('--node-steps', type=int, default=6000)
+    parser.add_argument('--sim-seconds', type=float, default=10.0)
     parser.add_argument('--violation-episodes', type=int, default=1000)
     parser.add_argument('--violation-epochs', type=int, default=20)
     parser.add_argument('--skip-violations', action='store_true')
@@ -216,7 +265,16 @@ def main(argv=None) -> int:
     print(f'robot_bridge_node compute per message, CPU: {percentiles(cpu)}  target p99 < 1 ms')
     print(f'robot_bridge_node compute per message, wall: {percentiles(wall)}')
 
-    # 5. SSM violations
+    # 5. the simulated arm's joint-state rate
+    rates, received = sim_rate(args.sim_seconds)
+    if rates:
+        print(f'cobot_sim_node joint_states: published {min(rates):.0f} to {max(rates):.0f} Hz '
+              f'(median {np.median(rates):.0f}, {len(rates)} seconds), received here '
+              f'{received:.0f} Hz  target >= 100 Hz')
+    else:
+        print('cobot_sim_node joint_states: no status received (the node did not start?)')
+
+    # 6. SSM violations
     if not args.skip_violations:
         cell = ArmCell(model, policy)
         scenarios, seeds = episodes_of(model, 'random', args.violation_episodes,

@@ -322,6 +322,12 @@ def test_no_skeleton_for_longer_than_the_timeout_stops_the_arm(cell):
         driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1][1] == 0.0,
                     'a protective stop with override 0')
         driver.wait(driver.at_rest, 'the arm to stand')
+        # the reason's figure (the data's age) changes every tick; reported once a second
+        start, ticks = time.monotonic(), len(driver.overrides)
+        driver.wait(lambda: len(driver.overrides) > ticks + 250, '250 more ticks')
+        reports = [st for st in driver.statuses[since:] if st.name == 'robot_bridge: ssm'
+                   and 'human data' in st.message]
+        assert 1 <= len(reports) <= time.monotonic() - start + 3, [r.message for r in reports]
     finally:
         driver.skeleton_on = True
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear with the skeleton back')
@@ -348,21 +354,34 @@ def test_dn_holds_the_arm_and_sends_no_trajectory(cell):
 # -- bad input (issue 18): refused or reported, the arm held, the nodes alive -----------------
 def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     driver, suite = cell
-    held, states = driver.q, len(driver.joint_states)
+    driver.epoch('nw', task(tp=2, tc=120, ty=2, bc=120))       # the program resumes after dn
+    driver.wait(driver.moving, 'the arm to run the program again')
     since = len(driver.statuses)
     goal = conv.trajectory_to_msg(JOINTS[:5] + ('gripper_joint',),
-                                  [held, DESCRIPTION.poses['retreat']], [2.0])
+                                  [driver.q, DESCRIPTION.poses['retreat']], [2.0])
     driver.trajectory_pub.publish(goal)
     driver.wait(lambda: driver.status('cobot_sim: trajectory input', WARN, 'unknown joints',
                                       since), 'the refusal of an unknown joint')
     assert 'gripper_joint' in driver.status('cobot_sim: trajectory input').message
+    # the arm holds: it brakes and stands, although the bridge still lets the program run
+    driver.wait(driver.at_rest, 'the arm to stand on the refused goal')
+    assert driver.overrides[-1][1] > 0.0
+    held, states = driver.q, len(driver.joint_states)
     # a goal whose first point is 1.2 rad away in 0.1 s does not start at the arm
     away = conv.trajectory_to_msg(JOINTS, [held, held + [1.2, 0, 0, 0, 0, 0]], [0.1])
     driver.trajectory_pub.publish(away)
     driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'does not start at the arm',
                                      since), 'the refusal of a goal away from the arm')
+    # a malformed goal (times that go back) is refused by the conversion, and holds the arm too
+    back = conv.trajectory_to_msg(JOINTS, [held, held, held], [1.0, 1.0])
+    back.points[1].time_from_start = conv.seconds_to_duration(0.5)
+    driver.trajectory_pub.publish(back)
+    driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'increase strictly', since),
+                'the refusal of a malformed goal')
     driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
     assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))       # the bridge holds it too
+    driver.wait(lambda: driver.overrides[-1][1] == 0.0, 'override 0 on dn')
     assert_alive(suite)
 
 
@@ -448,6 +467,47 @@ def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
         solo.stop(5.0)
 
 
+def test_a_bad_speed_override_holds_the_simulated_arm(cell, tmp_path):
+    """A second simulated arm (namespace /arm2) running a goal at override 1: NaN overrides are
+    refused and taken as 0, and the arm brakes and stands short of the goal."""
+    driver, _ = cell
+    arm2 = NodeProcesses(tmp_path, [])
+    node = driver.node
+    states: list[tuple[np.ndarray, np.ndarray]] = []
+    node.create_subscription(JointState, '/arm2/joint_states', lambda m: states.append(
+        (np.array(m.position), np.array(m.velocity))), qos.SENSOR_DATA)
+    goals = node.create_publisher(JointTrajectory, f'/arm2/{DEFAULT_TRAJECTORY_TOPIC}',
+                                  qos.RELIABLE)
+    override = node.create_publisher(Float64, f'/arm2/{DEFAULT_OVERRIDE_TOPIC}', qos.RELIABLE)
+    retreat = DESCRIPTION.poses['retreat']
+    try:
+        # a long override_timeout: the stop must come from the refusal, not from the silence
+        arm2.start('cobot_sim_node', ros_args=['-r', '__ns:=/arm2',
+                                               '-p', 'override_timeout:=10.0'])
+        driver.wait(lambda: (states and goals.get_subscription_count()
+                             and override.get_subscription_count()) or arm2.dead(),
+                    'the second arm to join', START_TIMEOUT)
+        assert not arm2.dead(), arm2.logs()
+        goals.publish(conv.trajectory_to_msg(JOINTS, [states[-1][0], retreat], [4.0]))
+
+        def go(value):
+            override.publish(Float64(data=value))
+            return True
+        driver.wait(lambda: go(1.0) and np.abs(states[-1][1]).max() > 0.05,
+                    'the second arm to move at override 1')
+        since = len(driver.statuses)
+        driver.wait(lambda: go(float('nan')) and driver.status(
+            'arm2/cobot_sim: speed_override input', WARN, 'must lie in [0, 1]', since),
+            'the refusal of a NaN override')
+        driver.wait(lambda: go(float('nan')) and len(states) > 20
+                    and all(np.abs(qd).max() == 0.0 for _, qd in states[-20:]),
+                    'the second arm to stand')
+        assert np.abs(states[-1][0] - retreat).max() > 0.05, 'it reached the goal: not held'
+        assert arm2.stop() == {'cobot_sim_node': 0}, arm2.logs()
+    finally:
+        arm2.stop(5.0)
+
+
 def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, tmp_path):
     driver, _ = cell
     lonely = NodeProcesses(tmp_path, [])
@@ -517,6 +577,21 @@ def test_a_robot_description_missing_a_pose_or_a_limit_stops_the_node_at_start(
     lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
     assert len(lines) == 1, lines
     assert 'cannot start' in lines[0] and reason in lines[0] and path in lines[0], lines[0]
+
+
+@pytest.mark.parametrize('executable, parameter, reason', [
+    ('robot_bridge_node', 'keypoint_joints:=[pelvis, tail]',
+     "unknown body-tracking joints ['tail']"),
+    ('cobot_sim_node', 'initial_positions:=[0.0, 0.0, 9.0, 0.0, 0.0, 0.0]',
+     'elbow_joint = 9.0000 rad is outside its limits'),
+], ids=['bridge-keypoint-joints', 'cobot-initial-positions'])
+def test_a_bad_parameter_stops_the_node_at_start(ros_domain_id, executable, parameter, reason):
+    result = subprocess.run(node_command(executable) + [
+        '--ros-args', '-r', '__ns:=/refused', '-p', parameter],
+        capture_output=True, text=True, timeout=START_TIMEOUT, stdin=subprocess.DEVNULL)
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
+    assert len(lines) == 1 and 'cannot start' in lines[0] and reason in lines[0], lines
 
 
 # -- across the whole run ---------------------------------------------------------------------

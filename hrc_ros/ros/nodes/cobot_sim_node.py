@@ -90,6 +90,8 @@ class CobotSimNode(Node):
         self._body_stamp = 0
         self.accepted = self.refused = 0
         self.steps = 0
+        self.published = 0             # joint states
+        self._rate_mark = (time.monotonic(), 0)
         self._every = max(1, int(round(values['rate'] / values['joint_state_rate'])))
         self._last_step = time.monotonic()
         self.joint_pub = self.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
@@ -97,10 +99,9 @@ class CobotSimNode(Node):
                                                     qos.SENSOR_DATA)
         self.inputs = Inputs(self)
         self.inputs.subscribe(JointTrajectory, values['joint_trajectory_topic'], qos.RELIABLE,
-                              conv.trajectory_from_msg, self._on_trajectory, name='trajectory')
+                              lambda msg: msg, self._on_trajectory, name='trajectory')
         self.inputs.subscribe(Float64, values['speed_override_topic'], qos.RELIABLE,
-                              conv.speed_override_from_msg, self._on_override,
-                              name='speed_override')
+                              lambda msg: msg, self._on_override, name='speed_override')
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
                               skeleton_converter(values['robot_frame'],
                                                  values['keypoint_joints'] or None),
@@ -112,9 +113,10 @@ class CobotSimNode(Node):
         self.override_timeout = values['override_timeout']
 
     # -- inputs ------------------------------------------------------------------------------
-    def _on_trajectory(self, converted) -> None:
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
+        """A goal; anything refused (the conversion's refusals too) holds the arm."""
         try:
-            trajectory = self._goal(*converted)
+            trajectory = self._goal(*conv.trajectory_from_msg(msg))
         except InputError as exc:
             self.refused += 1
             self.held = str(exc)
@@ -164,7 +166,13 @@ class CobotSimNode(Node):
                       for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
 
-    def _on_override(self, value: float) -> None:
+    def _on_override(self, msg: Float64) -> None:
+        """The speed override; a refused one (outside [0, 1], NaN) is taken as 0."""
+        try:
+            value = conv.speed_override_from_msg(msg)
+        except InputError:
+            self.override = 0.0
+            raise
         self.override, self._override_at = value, time.monotonic()
 
     def _on_skeleton(self, converted) -> None:
@@ -188,6 +196,7 @@ class CobotSimNode(Node):
         clock = self.get_clock().now()
         self.joint_pub.publish(conv.joint_state_to_msg(
             self.description.joint_names, state.qd, state.q, clock.to_msg()))
+        self.published += 1
         body = self.body
         if body is None or (clock.nanoseconds - self._body_stamp) * 1e-9 \
                 > self.description.ssm.human_timeout:
@@ -200,11 +209,15 @@ class CobotSimNode(Node):
 
     def _publish_status(self) -> None:
         follower = self.follower
+        now = time.monotonic()
+        (since, count), self._rate_mark = self._rate_mark, (now, self.published)
+        rate = (self.published - count) / (now - since) if now > since else 0.0
         self.inputs.publish_health('arm', {
             'held': self.held, 'override': self._commanded(time.monotonic()),
             'scale': round(follower.scale, 4), 'speed_bound_m_s': round(follower.speed_bound, 4),
             'goal_done': follower.done, 'goals_accepted': self.accepted,
-            'goals_refused': self.refused, 'steps': self.steps, **last_refusals(self.inputs)})
+            'goals_refused': self.refused, 'steps': self.steps,
+            'joint_states_hz': round(rate, 1), **last_refusals(self.inputs)})
 
 
 def main(args=None):
