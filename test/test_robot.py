@@ -433,6 +433,14 @@ def test_joint_states_are_checked_reordered_and_extra_joints_ignored(setup):
     with pytest.raises(InputError, match='without wrist_3_joint'):
         bridge.joint_state(JOINT_NAMES[:5], q[:5], [0.0] * 5, 1, 1)
     np.testing.assert_array_equal(bridge.q, q)       # nothing kept from a refused state
+    # a sample from a clock ahead would look fresh after its source stopped: refused
+    with pytest.raises(InputError, match='joint state stamped 0.060 s ahead'):
+        bridge.joint_state(JOINT_NAMES, q, [0.0] * 6, 61 * MS, 1 * MS)
+    bridge.joint_state(JOINT_NAMES, q, [0.0] * 6, 40 * MS, 1 * MS)    # within FUTURE_SLACK
+    body = body_capsules(np.array([[2.0, 0.0, 1.0]]))
+    with pytest.raises(InputError, match='skeleton stamped 1.000 s ahead'):
+        bridge.skeleton(body, 1000 * MS, 0)
+    assert bridge.body is None
     with pytest.raises(InputError, match='unknown action'):
         bridge.action('fly', 0)
 

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.executors import SingleThreadedExecutor
@@ -413,6 +414,13 @@ def test_a_skeleton_far_outside_the_cell_is_refused(cell):
         driver.wait(lambda name=status: driver.value(name, 'last_refused_skeleton',
                                                      'farther than 20 m', since),
                     f'{status} to refuse the skeleton 50 m away')
+    # a skeleton from a clock 2 s ahead would look fresh for 2 s after its source stopped
+    ahead = driver.node.get_clock().now().nanoseconds + 2_000_000_000
+    driver.skeleton_pub.publish(conv.keypoints_to_msg(FAR[None] + BODY, Time(
+        sec=ahead // 1_000_000_000, nanosec=ahead % 1_000_000_000)))
+    driver.wait(lambda: driver.value('robot_bridge: bridge', 'last_refused_skeleton',
+                                     'ahead of this clock', since),
+                'the bridge to refuse a skeleton stamped ahead')
     assert driver.stops[-1] is False        # the person's stream goes on: no stop for it
     assert_alive(suite)
 

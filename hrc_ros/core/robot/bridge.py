@@ -79,6 +79,7 @@ LIMITS = ('lower', 'upper', 'velocity', 'acceleration')
 NATURES = {0: 'robot only', 1: 'human only', 2: 'either', 3: 'both together'}
 ROBOT_NATURES = (0, 2, 3)          # tasks with a robot share: they need a program
 LIMIT_SLACK = 1e-3                 # rad a joint state may lie beyond a position limit
+FUTURE_SLACK = 0.05                # s a sample's stamp may lie ahead of the bridge's clock
 DESCRIPTION_DEFAULTS = {
     'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
     'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
@@ -347,6 +348,16 @@ def load_programs(description: RobotDescription, path=None) -> dict:
 
 
 # -- the bridge -------------------------------------------------------------------------------
+def _check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
+    """InputError for a sample stamped more than FUTURE_SLACK ahead of the clock: its source's
+    clock runs ahead, and the sample would still look fresh after its source stopped."""
+    ahead = (stamp_ns - now_ns) * 1e-9
+    if ahead > FUTURE_SLACK:
+        raise InputError(f'{what} stamped {ahead:.3f} s ahead of this clock (more than '
+                         f'{FUTURE_SLACK} s): its source\'s clock is not synchronised with '
+                         'this one, and an age from it cannot be trusted')
+
+
 @dataclass
 class ProgramRun:
     """The robot's share of one task: its nature's program for `cycles` cycles."""
@@ -462,18 +473,22 @@ class Bridge:
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
-        """The arm's joint state; InputError (nothing kept) for a missing joint, NaN or a
-        position outside the limits (`JointStateReader`)."""
+        """The arm's joint state; InputError (nothing kept) for a missing joint, NaN, a
+        position outside the limits (`JointStateReader`) or a stamp ahead of the clock
+        (`_check_stamp`)."""
+        _check_stamp('joint state', stamp_ns, now_ns)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int) -> None:
-        """The person's capsules (None: nobody in view, which SSM treats as no data)."""
+        """The person's capsules (None: nobody in view, which SSM treats as no data);
+        InputError for a stamp older than the one held or ahead of the clock."""
         if body is not None and not isinstance(body, BodyCapsules):
             raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
         if body is None:
             self.body, self._body_stamp = None, None
             return
+        _check_stamp('skeleton', stamp_ns, now_ns)
         if self._body_stamp is not None and stamp_ns < self._body_stamp:
             raise InputError('skeleton older than the one held: dropped')
         self.body, self._body_stamp = body, int(stamp_ns)
