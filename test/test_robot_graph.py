@@ -136,18 +136,18 @@ def test_d_is_the_band_of_the_separation_to_the_arms_links(description, arm):
     # ... by the links: 1.06 m from the arm at home (middle), 0.70 m at the collaboration pose
     # over their station (middle), 1.23 m folded back in the retreat pose (outer)
     for pose, band in (('home', 2), ('collaboration', 2), ('retreat', 3)):
-        links.joint_state(JOINT_NAMES, poses[pose], 1 * S)
+        links.joint_state(JOINT_NAMES, poses[pose], 1 * S, 1 * S)
         level = links.level(far, 1 * S + 50_000_000)
         assert (level.d, level.reason) == (band, ''), pose
         assert level.separation.distance == pytest.approx(
             arm.distance(poses[pose], links_body(far)), abs=1e-12)
     # at the table's edge the arm over the station is 0.24 m away: the inner band, 1
-    links.joint_state(JOINT_NAMES, poses['collaboration'], 2 * S)
+    links.joint_state(JOINT_NAMES, poses['collaboration'], 2 * S, 2 * S)
     assert links.level(person_at(1.35), 2 * S).d == 1
     # the joints in another order (a driver's), a gripper joint besides: the same arm
     order = [5, 3, 1, 0, 2, 4]
     links.joint_state([JOINT_NAMES[i] for i in order] + ['gripper'],
-                      [poses['retreat'][i] for i in order] + [0.5], 3 * S)
+                      [poses['retreat'][i] for i in order] + [0.5], 3 * S, 3 * S)
     assert links.level(far, 3 * S).d == 3
 
 
@@ -162,7 +162,7 @@ def test_without_a_fresh_arm_state_d_is_the_collision_level(description, arm):
     level = links.level(far, 1 * S)                     # never a joint state
     assert (level.d, level.separation) == (0, None)
     assert level.reason == 'no joint state of the arm yet'
-    links.joint_state(JOINT_NAMES, description.poses['home'], 1 * S)
+    links.joint_state(JOINT_NAMES, description.poses['home'], 1 * S, 1 * S)
     # by the stamps: the skeleton 0.1 s after the arm's state is still fresh ...
     assert links.level(far, 1 * S + 100_000_000).d == 3
     assert links.level(far, 1 * S - 500_000_000).d == 3      # (an arm state newer than it)
@@ -174,7 +174,7 @@ def test_without_a_fresh_arm_state_d_is_the_collision_level(description, arm):
 def test_a_refused_arm_state_keeps_the_last_good_one(description, arm):
     links = LinkDistance(description, RADII, K4ABT_JOINTS, arm)
     home = description.poses['home']
-    links.joint_state(JOINT_NAMES, home, 5 * S)
+    links.joint_state(JOINT_NAMES, home, 5 * S, 5 * S)
     bad = (
         (JOINT_NAMES[:5], home[:5], 'without wrist_3_joint'),
         (JOINT_NAMES, np.where(np.arange(6) == 2, np.nan, home), 'elbow_joint is nan'),
@@ -182,16 +182,19 @@ def test_a_refused_arm_state_keeps_the_last_good_one(description, arm):
     )
     for names, positions, why in bad:
         with pytest.raises(InputError, match=why):
-            links.joint_state(names, positions, 6 * S)
+            links.joint_state(names, positions, 6 * S, 6 * S)
         assert links.stamp_ns == 5 * S and np.array_equal(links.q, home)
     with pytest.raises(InputError, match='older than the one held'):
-        links.joint_state(JOINT_NAMES, description.poses['retreat'], 4 * S)
+        links.joint_state(JOINT_NAMES, description.poses['retreat'], 4 * S, 6 * S)
+    # stamped ahead of the reader's clock: it would pair with skeletons after the arm stopped
+    with pytest.raises(InputError, match='arm joint state stamped 1.000 s ahead'):
+        links.joint_state(JOINT_NAMES, description.poses['retreat'], 7 * S, 6 * S)
     assert np.array_equal(links.q, home)
     with pytest.raises(InputError, match='not whole bodies'):      # 7 keypoints, 32 names
         links.level(np.zeros((7, 3)) + 1.0, 5 * S)
     # an unlabelled skeleton: a sphere around each keypoint
     spheres = LinkDistance(description, RADII, None, arm)
-    spheres.joint_state(JOINT_NAMES, home, 5 * S)
+    spheres.joint_state(JOINT_NAMES, home, 5 * S, 5 * S)
     # the closest part is a hand tip: its 0.1 m sphere reaches 5 cm nearer than the hand's
     # 0.05 m capsule (1.011 m, not 1.061 m)
     bones = links.level(person_at(1.9), 5 * S).separation.distance

@@ -348,7 +348,7 @@ def load_programs(description: RobotDescription, path=None) -> dict:
 
 
 # -- the bridge -------------------------------------------------------------------------------
-def _check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
+def check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
     """InputError for a sample stamped more than FUTURE_SLACK ahead of the clock: its source's
     clock runs ahead, and the sample would still look fresh after its source stopped."""
     ahead = (stamp_ns - now_ns) * 1e-9
@@ -475,8 +475,8 @@ class Bridge:
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int) -> None:
         """The arm's joint state; InputError (nothing kept) for a missing joint, NaN, a
         position outside the limits (`JointStateReader`) or a stamp ahead of the clock
-        (`_check_stamp`)."""
-        _check_stamp('joint state', stamp_ns, now_ns)
+        (`check_stamp`)."""
+        check_stamp('joint state', stamp_ns, now_ns)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
 
@@ -488,7 +488,7 @@ class Bridge:
         if body is None:
             self.body, self._body_stamp = None, None
             return
-        _check_stamp('skeleton', stamp_ns, now_ns)
+        check_stamp('skeleton', stamp_ns, now_ns)
         if self._body_stamp is not None and stamp_ns < self._body_stamp:
             raise InputError('skeleton older than the one held: dropped')
         self.body, self._body_stamp = body, int(stamp_ns)

@@ -6,7 +6,7 @@ separation between the arm's link capsules and the person's body capsules (`Arm.
 `body_capsules`), against `safety_radii`; this is the same rule for a graph, fed the arm's
 joint states and the skeletons as they arrive:
 
-    joint_state(names, positions, stamp_ns)    the arm's sensor_msgs/JointState
+    joint_state(names, positions, stamp, now)  the arm's sensor_msgs/JointState
     level(keypoints, stamp_ns) -> LinkLevel    each skeleton's d (at its stamp), and why
 
 **Stale arm state** (decision). The arm's joint state is fresh for a skeleton while it is at
@@ -31,7 +31,7 @@ import numpy as np
 from ..decision.observation import level_of_distance
 from ..protocol import InputError
 from .arm import Arm, Separation, body_capsules
-from .bridge import JointStateReader, RobotDescription
+from .bridge import JointStateReader, RobotDescription, check_stamp
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,11 @@ class LinkDistance:
         # node subscribes anything, not at the first skeleton of a running cell.
         self.arm.separation(description.poses['home'], body_capsules(np.ones((1, 3))))
 
-    def joint_state(self, names, positions, stamp_ns: int) -> None:
-        """The arm's joint state (InputError, nothing kept, as the bridge refuses it)."""
+    def joint_state(self, names, positions, stamp_ns: int, now_ns: int) -> None:
+        """The arm's joint state at `now_ns` of the reader's clock (InputError, nothing kept,
+        as the bridge refuses it: also one stamped ahead of the clock, which would pair with
+        skeletons after the arm's stream stopped)."""
+        check_stamp('arm joint state', stamp_ns, now_ns)
         q, _ = self.reader.read(names, positions)
         if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
             raise InputError('arm joint state older than the one held: dropped')

@@ -277,7 +277,8 @@ class BeliefEstimatorNode(Node):
         self.windows.skeleton(level.d, published_ns)
 
     def _on_arm_state(self, msg: JointState) -> None:
-        self.links.joint_state(msg.name, msg.position, stamp_ns(msg.header.stamp))
+        self.links.joint_state(msg.name, msg.position, stamp_ns(msg.header.stamp),
+                               self.get_clock().now().nanoseconds)
 
     def _arm_state(self, reason: str) -> None:
         """Report when the arm's links stop (WARN) or start again (OK) to give d."""
