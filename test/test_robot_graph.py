@@ -5,10 +5,13 @@
   shows a cycle bc has not counted (the batch cell's `robot_cycle_done`);
 - the estimator's `distance_source: arm_links` (`core.robot.links.LinkDistance`): d is the band
   of the separation between the arm's links at its latest joint state and the person's body
-  capsules; without a fresh arm state d = 0 (the fail-safe), with the reason.
+  capsules; without a fresh arm state d = 0 (the fail-safe), with the reason; as a node over
+  DDS too;
+- the view with the arm, the batch's pre-roll, and the refusals of what the graph cannot run.
 """
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -287,3 +290,62 @@ def test_the_batch_pre_roll_starts_the_first_epoch_out_of_ssms_start_up_stop(mod
     with pytest.raises(ValueError, match='pre_roll'):
         ArmCellSettings(pre_roll=-1.0)
 
+
+
+# -- the estimator node with arm_links, over DDS ----------------------------------------------
+@pytest.fixture()
+def graph():
+    from test_nodes import Graph
+    graph = Graph()
+    yield graph
+    graph.close()
+
+
+def test_the_estimator_node_takes_d_from_the_arms_links_and_fails_safe_without_them(
+        graph, description):
+    from sensor_msgs.msg import JointState
+    from test_nodes import Estimator
+
+    from hrc_ros.ros import conversions as conv
+    from hrc_ros.ros import qos
+    est = Estimator(graph, distance_source='arm_links', keypoint_joints=list(K4ABT_JOINTS))
+    arm_pub = graph.publisher(JointState, 'joint_states', qos.SENSOR_DATA)
+    far = person_at(1.9)           # outer by the base, 0.70 m from the arm over its station
+    collaboration = description.poses['collaboration']
+
+    def arm(q):
+        stamp = conv.seconds_to_stamp(time.time())
+        est.send('arm_joint_states', arm_pub, conv.joint_state_to_msg(
+            JOINT_NAMES, np.zeros(6), q, stamp))
+
+    def skeleton(later=0.0):
+        est.send('skeleton', est.skeleton,
+                 conv.keypoints_to_msg(far, conv.seconds_to_stamp(time.time() + later)))
+    arm(collaboration)
+    est.motion(1)
+    skeleton()
+    est.epoch(1)
+    assert est.distances[-1].data == 2
+    assert est.node.separation == pytest.approx(0.704, abs=0.01)
+    arm(description.poses['retreat'])               # folded away: the outer band
+    est.motion(1)
+    skeleton()
+    est.act('nw')
+    est.epoch(2)
+    assert est.distances[-1].data == 3
+    # the arm's stream stops: the next skeleton is 0.5 s newer than its last state
+    est.motion(1)
+    skeleton(later=0.5)
+    est.act('nw')
+    est.epoch(3)
+    assert est.distances[-1].data == 0
+    warn = graph.diagnostics('belief_estimator: arm links', level=b'\x01')
+    assert warn and 'older than the skeleton' in warn[-1].message
+    arm(collaboration)                                # back
+    est.motion(1)
+    skeleton()
+    est.act('dn')
+    est.epoch(4)
+    assert est.distances[-1].data == 2
+    assert graph.spin_until(lambda: graph.diagnostics('belief_estimator: arm links',
+                                                      level=b'\x00'))
