@@ -101,7 +101,7 @@ def run_args() -> argparse.Namespace:
     """The parameters hrc-case-study gives a default run."""
     return argparse.Namespace(config='', epoch_period=EPOCH_PERIOD, view=True, selector='paper',
                               policy='', seed=0, belief_mode='', faults=[],
-                              input='joint_states')
+                              input='joint_states', hmi='', robot='none')
 
 
 def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: Observer,

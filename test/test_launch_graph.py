@@ -89,3 +89,47 @@ def test_the_shipped_case_study_params_are_the_core_scenario():
     expected = scenario_parameters(case_study())
     assert shipped == expected, ('config/case_study_params.yaml differs from case_study(); '
                                  f'it should read:\n{yaml.safe_dump(expected)}')
+
+
+def test_the_cell_with_the_arm_launches_with_unique_names_and_its_wiring(tmp_path,
+                                                                        ros_domain_id):
+    """robot:=sim adds the bridge and the simulated arm and switches the cell to the arm: the
+    estimator reads the arm's joint states, the task manager the arm's progress, the
+    simulated person the separation, the view both; every node keeps a name of its own."""
+    plan = cell_nodes(share_dir(), namespace='cell1', robot='sim')
+    names = [n.name for n in plan]
+    assert {'robot_bridge', 'cobot_sim', 'cell_sim', 'cell_view'} <= set(names)
+    context = rclpy.Context()
+    rclpy.init(context=context, **stop.init_options())
+    probe = rclpy.create_node('launch_graph_probe', context=context)
+    nodes = NodeProcesses(tmp_path, [])
+
+    def readers(topic):
+        return {info.node_name for info in probe.get_subscriptions_info_by_topic(topic)}
+    wiring = {'/cell1/joint_states': {'belief_estimator', 'robot_bridge', 'cell_view_inputs'},
+              '/cell1/hrc/robot_progress': {'task_manager'},
+              '/cell1/hrc/separation': {'cell_sim', 'cell_view_inputs'},
+              '/cell1/hrc/speed_override': {'cobot_sim'},
+              '/cell1/joint_trajectory_controller/joint_trajectory': {'cobot_sim'}}
+    try:
+        for node in plan:
+            nodes.start(node.executable, ros_args=ros_arguments(node, tmp_path))
+        expected = {f'/cell1/{n}' for n in names} | {'/cell1/cell_view_inputs'}
+        deadline = time.monotonic() + GRAPH_TIMEOUT
+        def missing():
+            return (expected - set(full_names(probe)),
+                    {t: want - readers(t) for t, want in wiring.items() if want - readers(t)})
+        while any(missing()):
+            assert not nodes.dead(), nodes.logs()
+            assert time.monotonic() < deadline, (missing(), nodes.logs()[-4000:])
+            time.sleep(0.05)
+        got = [n for n in full_names(probe) if n != '/launch_graph_probe']
+        twice = sorted(n for n, count in Counter(got).items() if count > 1)
+        assert not twice, f'nodes that share a fully qualified name: {twice} in {got}'
+        assert set(got) == expected
+        codes = nodes.stop()
+    finally:
+        nodes.stop(timeout=5.0)
+        probe.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert codes == {name: 0 for name in codes}, nodes.logs()

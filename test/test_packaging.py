@@ -390,7 +390,7 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
 
 LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
 LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'belief_mode', 'namespace',
-                    'use_sim', 'view', 'body_tracking', 'hmi'}
+                    'use_sim', 'view', 'body_tracking', 'hmi', 'robot'}
 
 
 def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
@@ -426,9 +426,24 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert 'cell_view' not in {n.name for n in cell_nodes(share, view='false')}
     # the shipped params file named again is not loaded twice
     assert cell_nodes(share, params_file=base)[0].parameters == [base, {}]
+    # the cell with the arm: the bridge and the simulated arm, the cell switched to the arm
+    by_name = {n.name: n for n in cell_nodes(share, robot='sim', config='c.yaml',
+                                             belief_mode='posterior')}
+    assert {'robot_bridge', 'cobot_sim'} <= set(by_name)
+    estimator = by_name['belief_estimator'].parameters[-1]
+    assert (estimator['distance_source'], estimator['belief_mode'], estimator['config']) == \
+        ('arm_links', 'posterior', 'c.yaml')
+    assert by_name['task_manager'].parameters[-1] == {'config': 'c.yaml', 'robot_progress': True}
+    assert by_name['cell_sim'].parameters[-1] == {'config': 'c.yaml', 'person': '3d'}
+    assert by_name['cell_view'].parameters[-1]['robot'] is True
+    assert 'robot_bridge' not in {n.name for n in cell_nodes(share)}
+    with pytest.raises(ValueError, match="tracker_sim's synthetic body"):
+        cell_nodes(share, robot='sim', body_tracking='true')
+    assert 'body_tracking' in {n.name for n in cell_nodes(share, robot='sim', use_sim='false',
+                                                          body_tracking='true')}
     for name, bad in (('selector', 'greedy'), ('belief_mode', 'kalman'), ('use_sim', 'maybe'),
                       ('view', 'yes'),
-                      ('body_tracking', 'on'), ('hmi', 'yes')):
+                      ('body_tracking', 'on'), ('hmi', 'yes'), ('robot', 'real')):
         with pytest.raises(ValueError, match=name):
             cell_nodes(share, **{name: bad})
 
@@ -507,9 +522,19 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
     nodes = opaque.kwargs['function'](values)
     plan = cell_nodes(tmp_path, **values)
     assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
-             n.kwargs['namespace'], n.kwargs['parameters'], n.kwargs['remappings'])
-            for n in nodes] == \
-        [(PACKAGE, p.executable, p.name, p.namespace, p.parameters, p.remappings) for p in plan]
+             n.kwargs['namespace'], n.kwargs['remappings']) for n in nodes] == \
+        [(PACKAGE, p.executable, p.name, p.namespace, p.remappings) for p in plan]
+    # the parameters: the plan's files, and its overrides as a file of the node's own name
+    # (one under `/**` would lose to hrc_params.yaml's section of the node: rcl's merge)
+    for node, planned in zip(nodes, plan):
+        files = node.kwargs['parameters']
+        assert len(files) == len(planned.parameters)
+        for path, want in zip(files, planned.parameters):
+            if isinstance(want, dict):
+                assert yaml.safe_load(open(path).read()) == \
+                    {f'/**/{planned.name}': {'ros__parameters': want}}
+            else:
+                assert path == want
 
 
 # --- the ROS parameter files against DESIGN.md's table --------------------------------------

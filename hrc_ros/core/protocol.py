@@ -49,12 +49,13 @@ import numpy as np
 
 from .model import ACTIONS, DN, OBSERVATION_LEVELS, TASK_VARIABLES, request_eligible
 from .decision.observation import window_level
-from .tasks import TaskBook, TaskRecord
+from .tasks import TaskBook, TaskRecord, robot_cycle_done
 
 OK, WARN, ERROR = 'OK', 'WARN', 'ERROR'
 RECENT = 2048   # samples per stream kept with their publication time, to split a window:
 #                2 s of joint states at 1 kHz, a minute of skeletons at 30 Hz
 NO_EVIDENCE = np.ones(9)   # the likelihood of an epoch without an observation: predict only
+PROGRESS_KEPT = 64         # changes of the robot's progress kept to find the one at a signal
 
 
 class InputError(ValueError):
@@ -476,15 +477,27 @@ class TaskEpochs:
     window's action is the late answer to the refused request: it is ignored, with a report.
     A restarted count finalises the old count's last action like any epoch, then renumbers.
 
+    With `robot_progress` the robot's counter bc follows the arm's physical work, as in the
+    batch cell (docs/ROBOT.md, "physical progress"): a_{k-1} is applied with ``robot_runs`` =
+    `robot_cycle_done` of the robot's progress ``(nature, cycles, cycles_done)`` (the bridge's
+    `hrc/robot_progress`) published last *before* epoch k's signal, the end of epoch k-1,
+    whenever it arrives; no progress published yet, or cycles 0 (no robot share): the robot
+    has not run. Without it bc runs
+    as MODEL.md 3.2 says (every action but dn).
+
     Epochs come through an `EpochFollower` (one source; a stray or second source is refused).
     The task book counts the epochs taken (from 1, and from 1 again after a restart), not the
     numbers on `hrc/epoch`, so a number that jumps (lost epochs, a source followed mid-count)
     never releases the schedule early: the schedule's epochs are the cell's epochs.
     """
 
-    def __init__(self, book: TaskBook, input_timeout_ns: int):
+    def __init__(self, book: TaskBook, input_timeout_ns: int, robot_progress: bool = False):
         self.book = book
         self.input_timeout_ns = int(input_timeout_ns)
+        self.robot_progress = bool(robot_progress)
+        # (published_ns, nature, cycles, cycles_done) at each change, the last PROGRESS_KEPT
+        self.progress: deque = deque(maxlen=PROGRESS_KEPT)
+        self.signal_ns: int | None = None     # epoch k's signal: where epoch k - 1 ended
         self.epochs = EpochFollower()
         self.action_taken: int | None = None          # a_{k-1}
         self.action_ns: int | None = None             # its publication time
@@ -510,6 +523,7 @@ class TaskEpochs:
         self.epochs.take(k, stamp)
         if self.next_epoch is not None:       # epoch k came before k-1 was finalised
             self._finalise(step, now, timed_out=True)
+        self.signal_ns = stamp.published_ns
         restart = new_count is not None and k == 1
         self.next_epoch = 1 if restart else self.book.epoch + 1
         self.renumber = restart               # the old count's last action is finalised first
@@ -539,6 +553,34 @@ class TaskEpochs:
         if self.deadline is not None and now >= self.deadline:
             self._finalise(step, now, timed_out=True)
         return step
+
+    def robot_progress_received(self, nature: int, cycles: int, cycles_done: int,
+                                published_ns: int) -> None:
+        """The bridge's `hrc/robot_progress`; kept at each change of its value."""
+        value = (int(nature), int(cycles), int(cycles_done))
+        if self.progress and self.progress[-1][1:] == value:
+            return
+        if self.progress and published_ns < self.progress[-1][0]:   # overtaken: in its place
+            entries = sorted([*self.progress, (int(published_ns), *value)])
+            self.progress.clear()
+            self.progress.extend(entries)
+            return
+        self.progress.append((int(published_ns), *value))
+
+    def progress_at(self, signal_ns: int | None) -> tuple | None:
+        """(nature, cycles, cycles_done) published last before `signal_ns`, or None."""
+        before = [entry for entry in self.progress
+                  if signal_ns is None or entry[0] < signal_ns]
+        return before[-1][1:] if before else None
+
+    def robot_runs(self) -> bool | None:
+        """`TaskBook.apply`'s robot_runs for the epoch being finalised (None: the model's
+        rule, without robot_progress)."""
+        if not self.robot_progress:
+            return None
+        progress = self.progress_at(self.signal_ns)
+        return (progress is not None and progress[1] > 0
+                and robot_cycle_done(progress[1], progress[2], self.book.state['bc']))
 
     def request(self, tp: int, tc: int, tx: int) -> TaskRecord:
         """Queue a requested task; `InputError` if the book refuses it (bad or queue full)."""
@@ -590,7 +632,7 @@ class TaskEpochs:
                 {'epoch': self.book.epoch}, kind='late_input'))
         action = DN if self.action_taken is None else self.action_taken
         accepted = self.response is not None and self.response[0]
-        self.book.apply(action, accepted)
+        self.book.apply(action, accepted, self.robot_runs())
         self.last_finalised = (self.book.epoch, ACTIONS[action], accepted)
         if self.renumber:
             self.book.renumber(self.next_epoch)
@@ -614,7 +656,8 @@ class TaskEpochs:
                 'waiting_for': None if self.next_epoch is None else self.awaited(),
                 'late_inputs': self.late_inputs,
                 'late_answers_ignored': self.late_answers,
-                'completed_tasks': len(self.book.completed)}
+                'completed_tasks': len(self.book.completed),
+                **({'robot_progress': self.progress_at(None)} if self.robot_progress else {})}
 
 
 # -- the decision node ------------------------------------------------------------------------

@@ -36,6 +36,15 @@ from .model import TASK_VARIABLES, HRCModel, action_index, step_task
 _ENTRY = re.compile(r'^\s*(\d+)\s*:\s*(\d+)\s*,\s*(\d+)\s*,\s*(\d+)\s*$')
 
 
+def robot_cycle_done(cycles: int, cycles_done: int, bc: int) -> bool:
+    """The physical progress rule (docs/ROBOT.md, "physical progress"): the robot's counter bc
+    runs down this epoch (`TaskBook.apply`'s `robot_runs`) only if its program, asked for
+    `cycles` cycles of which `cycles_done` are complete at the epoch's end, has completed a
+    cycle that bc has not counted yet (bc cycles were left at the epoch's start). The batch
+    cell with the arm and the task manager with `robot_progress` apply this one rule."""
+    return int(cycles_done) > int(cycles) - int(bc)
+
+
 @dataclass
 class TaskRecord:
     """One task's life in the cell; epochs are None until the event happens."""

@@ -2,6 +2,7 @@
 
     hrc-case-study --out out/case_study [--epochs 20] [--epoch-period 0.5] [--seed 0]
         [--input joint_states|body_tracking] [--no-view] [--hmi [show|answers]]
+        [--robot none|sim]
 
 What it does, as a user would by hand:
 
@@ -25,6 +26,14 @@ What it does, as a user would by hand:
    the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
 
 The trajectory is assembled by publication time around the epoch signals (`assemble`).
+
+`--robot sim` runs the cell with the arm (docs/ROBOT.md, "the graph with the arm"): it also
+starts `cobot_sim_node` (a simulated UR5e) and `robot_bridge_node` (the actions into its motion
+under speed and separation monitoring) before the decision node, with the parameters of
+`launch_plan.ROBOT_OVERRIDES` (d from the arm's links, the robot's counter from its program's
+progress, the 3D person), an epoch of 1 s unless `--epoch-period` says otherwise (the batch
+cell's physical epoch), and records the bridge's goals, the arm's joint states,
+`hrc/separation`, the speed override, the protective stop and the progress in the bag.
 
 `--hmi` also starts `hmi_node` (docs/HMI.md) on ``http://127.0.0.1:<--hmi-port>/``: with `show`
 (the default) the simulated person keeps answering the robot's requests and the page only shows
@@ -56,15 +65,27 @@ from ..core.tasks import TaskBook
 from ..core.decision.selection import SELECTORS
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
                             output_folder)
-from .launch_plan import BODY_TRACKING_SIM_PARAMS, SIM_MOTION_REMAPS, scenario_parameters
+from ..core.protocol import TaskEpochs
+from .launch_plan import (BODY_TRACKING_SIM_PARAMS, ROBOT_OVERRIDES, ROBOTS, SIM_MOTION_REMAPS,
+                          SYNTHETIC_TRACKER_WITH_ARM, scenario_parameters)
 from . import stop
 from .processes import NodeProcessError, NodeProcesses
 
 NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
               'belief_estimator_node': 'belief_estimator', 'decision_node': 'decision',
               'cell_view_node': 'cell_view', 'tracker_sim_node': 'tracker_sim',
-              'body_tracking_node': 'body_tracking', 'hmi_node': 'hmi'}
+              'body_tracking_node': 'body_tracking', 'hmi_node': 'hmi',
+              'cobot_sim_node': 'cobot_sim', 'robot_bridge_node': 'robot_bridge'}
 INPUTS = ('joint_states', 'body_tracking')
+ROBOT_TOPICS = {
+    'joint_trajectory_controller/joint_trajectory': 'trajectory_msgs/msg/JointTrajectory',
+    'joint_states': 'sensor_msgs/msg/JointState',
+    'hrc/separation': 'std_msgs/msg/Float64MultiArray',
+    'hrc/speed_override': 'std_msgs/msg/Float64',
+    'hrc/protective_stop': 'std_msgs/msg/Bool',
+    'hrc/robot_progress': 'std_msgs/msg/UInt8MultiArray',
+}
+ROBOT_EPOCH_PERIOD = 1.0    # s, the batch cell's physical epoch (ArmCellSettings)
 TOPICS = {
     'human/joint_states': 'sensor_msgs/msg/JointState',
     'human/skeleton': 'geometry_msgs/msg/PoseArray',
@@ -84,6 +105,7 @@ VIEW_TOPICS = {'hrc/markers': 'visualization_msgs/msg/MarkerArray'}
 BODY_TRACKING_TOPICS = {'body_tracking_data': 'visualization_msgs/msg/MarkerArray'}
 WATCHED = ('hrc/epoch', 'hrc/task_state', 'hrc/observation', 'hrc/distance_level',
            'hrc/belief', 'hrc/action', 'hrc/human_response', 'hrc/sim/true_state')
+ROBOT_WATCHED = ('hrc/robot_progress',)
 LATCHED_TOPICS = ('hrc/task_state', 'hrc/distance_level', 'hrc/belief', 'hrc/sim/true_state')
 
 
@@ -104,12 +126,14 @@ def cell_nodes(args) -> list[str]:
             + ['cell_view_node'] * args.view
             + ['tracker_sim_node', 'body_tracking_node'] * (args.input == 'body_tracking')
             + ['hmi_node'] * bool(args.hmi)
+            + ['cobot_sim_node', 'robot_bridge_node'] * (args.robot == 'sim')
             + ['decision_node'])
 
 
 def recorded_topics(args) -> dict[str, str]:
     return {**TOPICS, **(VIEW_TOPICS if args.view else {}),
-            **(BODY_TRACKING_TOPICS if args.input == 'body_tracking' else {})}
+            **(BODY_TRACKING_TOPICS if args.input == 'body_tracking' else {}),
+            **(ROBOT_TOPICS if args.robot == 'sim' else {})}
 
 
 def write_scenario_params(path: Path, scenario: Scenario) -> Path:
@@ -146,6 +170,10 @@ def write_run_params(path: Path, args) -> Path:
         params['/**/hmi'] = {'ros__parameters': {'port': args.hmi_port,
                                                  'worker_answers': args.hmi == 'answers'}}
         params['/**/cell_sim']['ros__parameters']['answer_requests'] = args.hmi != 'answers'
+    if args.robot == 'sim':
+        for name, values in ROBOT_OVERRIDES.items():
+            key = f'/**/{name}'
+            params.setdefault(key, {'ros__parameters': {}})['ros__parameters'].update(values)
     write_text(path, yaml.safe_dump(params, sort_keys=False))
     return path
 
@@ -192,11 +220,19 @@ def assemble(events: list, model: HRCModel, scenario: Scenario, args) -> Traject
             **{c: float('nan') for c in SCORE_COLUMNS},
             'cost': float(model.cost(np.array([state]), ACTIONS.index(action))[0])})
     # The task records (release, commit, completion) of the same bookkeeping the task manager
-    # ran, driven by the observed actions and answers.
+    # ran, driven by the observed actions and answers (and, with the arm, the robot's progress
+    # published last before the next epoch's signal, the task manager's rule; after the last
+    # epoch the last one recorded).
     book = TaskBook(model, initial_task=scenario.initial_state[2:5], schedule=scenario.schedule)
+    tasks = TaskEpochs(book, 0, robot_progress=args.robot == 'sim')
+    for topic, value, t in events:
+        if topic == 'hrc/robot_progress':
+            tasks.robot_progress_received(*value, t)
+    signals = {value: t for topic, value, t in events if topic == 'hrc/epoch'}
     for row in rows:
         book.begin_epoch(row['epoch'])
-        book.apply(ACTIONS.index(row['action']), bool(row['accepted']))
+        tasks.signal_ns = signals.get(row['epoch'] + 1)
+        book.apply(ACTIONS.index(row['action']), bool(row['accepted']), tasks.robot_runs())
     return Trajectory(rows=rows, scenario=scenario, selector=args.selector,
                       mode=args.belief_mode or model.config.belief_mode, seed=args.seed,
                       gamma=model.gamma, tasks=book.records)
@@ -238,6 +274,8 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
         'hrc/human_response': conversions.human_response_from_msg,
         'hrc/sim/true_state': lambda m: tuple(conversions.true_state_from_msg(m)[n]
                                               for n in STATE_VARIABLES),
+        'hrc/robot_progress': lambda m: tuple(conversions.robot_progress_from_msg(m)[n]
+                                              for n in ('nature', 'cycles', 'cycles_done')),
     }
 
     clock = node.get_clock()
@@ -258,9 +296,10 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     latched = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    for topic in WATCHED:
+    types = recorded_topics(args)
+    for topic in WATCHED + ROBOT_WATCHED * (args.robot == 'sim'):
         node.create_subscription(
-            message_class(TOPICS[topic]), topic, watcher(topic),
+            message_class(types[topic]), topic, watcher(topic),
             latched if topic in LATCHED_TOPICS else reliable)
     try:
         with BagWriter(bag_dir) as writer:
@@ -327,8 +366,9 @@ def _main(argv: list[str] | None) -> int:
     parser.add_argument('--out', default='out/case_study', help='output folder')
     parser.add_argument('--epochs', type=bounded_int(1, MAX_RUN_EPOCHS),
                         default=case_study().epochs)
-    parser.add_argument('--epoch-period', type=bounded_float(0.05, 60.0), default=0.5,
-                        help='seconds per decision epoch (default 0.5)')
+    parser.add_argument('--epoch-period', type=bounded_float(0.05, 60.0), default=None,
+                        help='seconds per decision epoch (default 0.5; with --robot sim 1.0, '
+                        "the batch cell's physical epoch)")
     parser.add_argument('--seed', type=bounded_int(0, MAX_SEED), default=0,
                         help="the simulated human's seed")
     parser.add_argument('--selector', default='paper', choices=SELECTORS)
@@ -355,11 +395,18 @@ def _main(argv: list[str] | None) -> int:
                         'answers on the page (the simulated one stops answering)')
     parser.add_argument('--hmi-port', type=bounded_int(1, 65535), default=8080,
                         help="the HMI's port on 127.0.0.1 (default 8080)")
+    parser.add_argument('--robot', default='none', choices=ROBOTS,
+                        help='sim: the cell with the arm, robot_bridge_node and cobot_sim_node '
+                        '(a simulated UR5e under speed and separation monitoring; docs/ROBOT.md)')
     args = parser.parse_args(argv)
+    if args.epoch_period is None:
+        args.epoch_period = ROBOT_EPOCH_PERIOD if args.robot == 'sim' else 0.5
     if args.timeout is None:
         args.timeout = args.epochs * args.epoch_period + 60.0
     out = Path(args.out)
     bag_dir = Path(args.bag) if args.bag else out / 'bag'
+    if args.robot == 'sim' and args.input == 'body_tracking':
+        return fail('hrc-case-study', ToolError(SYNTHETIC_TRACKER_WITH_ARM))
     try:
         parse_faults(args.faults)
         output_folder(out)

@@ -17,6 +17,12 @@ the worker answers the robot's requests on the page; with the simulated cell `hm
 the simulated person's answers and the page only shows them (`worker_answers: false`, so the
 run stays the seeded one), and `hmi:=answers` stops the simulated person's answers
 (`answer_requests: false`) so that the worker answers on the page.
+`robot` `sim` adds the robot side of docs/ROBOT.md: `robot_bridge_node` (the actions into arm
+motion under speed and separation monitoring) and `cobot_sim_node` (the simulated UR5e), and
+switches the cell to the arm (`ROBOT_OVERRIDES`): the belief estimator's d from the arm's links
+(`distance_source: arm_links`), the task manager's robot counter from the arm's progress
+(`robot_progress: true`), the simulated person to a 3D body (`person: 3d`, with use_sim), and
+every reader of the 32-joint skeleton to its joint names (`keypoint_joints`).
 """
 
 from __future__ import annotations
@@ -25,8 +31,12 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..core.cell.tracking import K4ABT_JOINTS
 from ..core.config import BELIEF_MODES
 from ..core.decision.selection import SELECTORS
+
+
+ROBOTS = ('none', 'sim')
 
 
 @dataclass(frozen=True)
@@ -62,6 +72,10 @@ ARGUMENTS = (
                    "robot's requests and the page shows the answers; 'answers': the simulated "
                    'person stops answering and the worker answers on the page',
                    ('false', 'true', 'answers')),
+    LaunchArgument('robot', 'none', "the robot side: 'sim' starts robot_bridge_node and "
+                   'cobot_sim_node (a simulated UR5e under speed and separation monitoring) and '
+                   "runs the cell with the arm (docs/ROBOT.md); 'none': the decision layer "
+                   'alone, hrc/action its last word', ROBOTS),
 )
 
 # (executable, node name) of the cell's nodes; the simulated cell is the last.
@@ -75,6 +89,20 @@ VIEW_NODE = ('cell_view_node', 'cell_view')
 BODY_TRACKING_NODE = ('body_tracking_node', 'body_tracking')
 TRACKER_SIM_NODE = ('tracker_sim_node', 'tracker_sim')
 HMI_NODE = ('hmi_node', 'hmi')
+SYNTHETIC_TRACKER_WITH_ARM = (
+    "robot 'sim' with body_tracking and the simulated cell: tracker_sim's synthetic body walks "
+    "by the reference point's bands, not as the 3D person by the separation to the arm; use "
+    'the simulated cell without body_tracking, or a real tracker (use_sim false)')
+ROBOT_NODES = (('robot_bridge_node', 'robot_bridge'), ('cobot_sim_node', 'cobot_sim'))
+# robot:=sim: the parameters that run the cell with the arm, per node name.
+ROBOT_OVERRIDES = {
+    'belief_estimator': {'distance_source': 'arm_links', 'keypoint_joints': list(K4ABT_JOINTS)},
+    'task_manager': {'robot_progress': True},
+    'cell_sim': {'person': '3d'},
+    'robot_bridge': {'keypoint_joints': list(K4ABT_JOINTS)},
+    'cobot_sim': {'keypoint_joints': list(K4ABT_JOINTS)},
+    'cell_view': {'keypoint_joints': list(K4ABT_JOINTS), 'robot': True},
+}
 BODY_TRACKING_SIM_PARAMS = 'body_tracking_sim_params.yaml'
 # cell_sim's motion goes to tracker_sim instead of the estimator when a tracker is simulated.
 SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
@@ -103,7 +131,7 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
                config: str = '', policy: str = '', selector: str = '', belief_mode: str = '',
                use_sim: str | bool = 'true', view: str | bool = 'auto',
                body_tracking: str | bool = 'false',
-               hmi: str | bool = 'false') -> list[NodeLaunch]:
+               hmi: str | bool = 'false', robot: str = 'none') -> list[NodeLaunch]:
     """The nodes of one cell for the launch arguments' values (strings, as launch gives them)."""
     if selector not in ('',) + SELECTORS:
         raise ValueError(f'selector must be one of {", ".join(SELECTORS)} or empty, got '
@@ -137,31 +165,50 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
         overrides['cell_sim'] = {**common, 'answer_requests': False}
     elif use_sim and hmi:                # the simulated person answers, the page shows it
         overrides['hmi'] = {**common, 'worker_answers': False}
+    robot = _flag('robot', robot, ROBOTS) == 'sim'
+    if robot and body_tracking and use_sim:
+        raise ValueError(SYNTHETIC_TRACKER_WITH_ARM)
+    if robot:
+        for name, values in ROBOT_OVERRIDES.items():
+            overrides[name] = {**common, **overrides.get(name, {}), **values}
     nodes = list(DECISION_NODES) + [VIEW_NODE] * view + [BODY_TRACKING_NODE] * body_tracking \
         + [TRACKER_SIM_NODE] * (body_tracking and use_sim) + [HMI_NODE] * hmi \
-        + [SIMULATION_NODE] * use_sim
+        + list(ROBOT_NODES) * robot + [SIMULATION_NODE] * use_sim
     remaps = {'cell_sim': SIM_MOTION_REMAPS} if body_tracking else {}
     return [NodeLaunch(executable, name, namespace,
                        params_files + [overrides.get(name, common)], list(remaps.get(name, [])))
             for executable, name in nodes]
 
 
-def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:
-    """What launch_ros's `Node` action passes after `--ros-args` for `node` (Jazzy): `-r
-    __node:=NAME`, `-r __ns:=/NS` (made absolute; none for the root namespace), a
-    `--params-file` per parameter file and per dict (written, as launch_ros does, to a file
-    under `/**` in `params_dir`), then `-r FROM:=TO` per remapping. The tests start the plan
-    with these, as `ros2 launch` would, where ROS `launch` is not installed."""
+def parameter_files(node: NodeLaunch, params_dir: str | Path) -> list[str]:
+    """`node.parameters` as params files: each dict written to a file in `params_dir` under
+    the node's own name, ``/**/NAME`` (any namespace). Not under ``/**``, as launch_ros writes a
+    dict: rcl merges the files' sections by name, in the order each name first appears, so a
+    parameter that `config/hrc_params.yaml` sets in ``/**/NAME`` would win over a later
+    file's ``/**`` (the arguments' overrides, `ROBOT_OVERRIDES`, would be lost). The launch file
+    and the tests pass these files."""
     import yaml
-    args = ['-r', f'__node:={node.name}']
-    if node.namespace:
-        args += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    files = []
     for index, parameters in enumerate(node.parameters):
         if isinstance(parameters, dict):
             path = Path(params_dir) / f'{node.name}_{index}.yaml'
-            path.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+            path.write_text(yaml.safe_dump({f'/**/{node.name}': {'ros__parameters': parameters}}))
             parameters = str(path)
-        args += ['--params-file', str(parameters)]
+        files.append(str(parameters))
+    return files
+
+
+def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:
+    """What launch_ros's `Node` action passes after `--ros-args` for `node` as the launch file
+    starts it (Jazzy): `-r __node:=NAME`, `-r __ns:=/NS` (made absolute; none for the root
+    namespace), a `--params-file` per file of `parameter_files`, then `-r FROM:=TO` per
+    remapping. The tests start the plan with these, as `ros2 launch` would, where ROS `launch`
+    is not installed."""
+    args = ['-r', f'__node:={node.name}']
+    if node.namespace:
+        args += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    for path in parameter_files(node, params_dir):
+        args += ['--params-file', path]
     for old, new in node.remappings:
         args += ['-r', f'{old}:={new}']
     return args

@@ -17,6 +17,19 @@ previous picture and nothing accumulates in RViz or Foxglove. The shapes, by nam
   decision node's reasons when the robot failed safe; then the distance level d_k the decision
   used, the three most likely (em, ea) of the belief, and the task state.
 
+With the arm (`cell_view_node` `robot: true`, docs/ROBOT.md) the picture is the cell with the
+arm instead of the circles around p, whose bands no longer say d:
+
+- ``arm``: the arm's link capsules at its latest joint state, each its axis drawn as a line as
+  wide as the capsule with a sphere at either end;
+- ``ssm_shell``: S_p as a translucent shell around the links: each capsule widened by the
+  protective separation distance S_p of the arm's current speed (`hrc/separation`), so the
+  person's body must stay outside it;
+- ``body``: the person's body capsules (over the skeleton's bones), in the colour of the band
+  of the separation S, their keypoints as before;
+- ``separation``: the segment between the two closest points (on the arm, on the body), with
+  S and S_p.
+
 `CellView` is the node's state: its inputs, fed in publication order, make one consistent epoch
 record (epoch, action, belief, d_k, task state, fail-safe reasons) and the latest skeleton.
 
@@ -37,7 +50,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model import TASK_VARIABLES
-from ..decision.observation import MAX_KEYPOINT_RANGE, closest_distance, distance_level
+from ..decision.observation import (MAX_KEYPOINT_RANGE, closest_distance, distance_level,
+                                    level_of_distance)
 
 LEVEL_COLORS = {0: (0.85, 0.1, 0.1), 1: (1.0, 0.5, 0.0), 2: (0.95, 0.8, 0.1),
                 3: (0.2, 0.7, 0.3)}
@@ -81,6 +95,9 @@ class CellState:
     keypoints: np.ndarray | None = None  # (n, 3), robot frame, the latest skeleton
     skeleton_age: int | None = None     # whole seconds since the last skeleton, once stale
     action_age: int | None = None       # whole seconds since the last action, once stale
+    arm: tuple | None = None            # the arm's capsules: (segments (n, 2, 3), radii (n,))
+    body: tuple | None = None           # the person's capsules, the same form
+    separation: dict | None = None      # hrc/separation: S, arm / human points, S_p (m)
 
 
 def with_alpha(rgb, alpha: float = 1.0) -> tuple:
@@ -142,10 +159,63 @@ def drawable(keypoints) -> np.ndarray:
     return points[np.sqrt((points ** 2).sum(axis=1)) <= MAX_KEYPOINT_RANGE]
 
 
+ARM_COLOR = (0.55, 0.6, 0.7)
+SHELL_ALPHA = 0.12
+BODY_ALPHA = 0.6
+
+
+def capsules(ns: str, capsules_: tuple, color: tuple, grow: float = 0.0) -> list[Shape]:
+    """Capsules (segments (n, 2, 3), radii (n,)) as markers: per capsule its axis as a line
+    of the capsule's width and a sphere of that diameter at either end; `grow` widens each by
+    that many metres (the S_p shell)."""
+    segments, radii = capsules_
+    shapes = []
+    for i, (segment, radius) in enumerate(zip(np.asarray(segments, dtype=float),
+                                              np.asarray(radii, dtype=float))):
+        if not np.isfinite(segment).all() or np.abs(segment).max() > MAX_KEYPOINT_RANGE:
+            continue
+        width = 2.0 * (float(radius) + grow)
+        shapes += [Shape(ns, 2 * i, 'line', segment, (width, 0.0, 0.0), color),
+                   Shape(ns, 2 * i + 1, 'spheres', segment, (width, width, width), color)]
+    return shapes
+
+
+def arm_scene(state: CellState, radii) -> list[Shape]:
+    """The arm, its S_p shell, the person's body and the separation (module docstring)."""
+    shapes = capsules('arm', state.arm, with_alpha(ARM_COLOR))
+    sep = state.separation
+    level = None
+    if sep is not None and np.isfinite(sep['S']):
+        level = level_of_distance(sep['S'], radii)
+        if sep['S_p'] > 0:
+            shapes += capsules('ssm_shell', state.arm, with_alpha(LEVEL_COLORS[0], SHELL_ALPHA),
+                               grow=float(sep['S_p']))
+        ends = np.vstack([sep['arm'], sep['human']])
+        if np.isfinite(ends).all() and np.abs(ends).max() <= MAX_KEYPOINT_RANGE:
+            color = with_alpha(LEVEL_COLORS[level])
+            shapes += [
+                Shape('separation', 0, 'line', ends, (0.01, 0.0, 0.0), color),
+                Shape('separation', 1, 'spheres', ends, (0.04, 0.04, 0.04), color),
+                Shape('separation', 2, 'text', (ends.mean(axis=0) + [0.0, 0.0, 0.12])[None],
+                      (0.0, 0.0, TEXT_HEIGHT), WHITE,
+                      f'S {sep["S"]:.2f} m ({LEVEL_NAMES[level]})  S_p {sep["S_p"]:.2f} m'),
+            ]
+    color = LEVEL_COLORS[level] if level is not None else GREY[:3]
+    if state.body is not None:
+        shapes += capsules('body', state.body, with_alpha(color, BODY_ALPHA))
+    keypoints = drawable(state.keypoints)
+    if len(keypoints):
+        shapes.append(Shape('human', 0, 'spheres', keypoints,
+                            (KEYPOINT_SIZE, KEYPOINT_SIZE, KEYPOINT_SIZE), with_alpha(color)))
+    return shapes
+
+
 def scene(state: CellState, radii, reference_point) -> list[Shape]:
     """The whole picture of `state` (module docstring)."""
     p = np.asarray(reference_point, dtype=float).reshape(3)
     r = [float(x) for x in radii]
+    if state.arm is not None:
+        return arm_scene(state, r) + panel(state, p)
     shapes = []
     for i, radius in enumerate(r):    # collision on top of inner on top of middle
         shapes.append(Shape('safety', i, 'disc', (p + [0.0, 0.0, (2 - i) * DISC_THICKNESS])[None],
@@ -167,7 +237,12 @@ def scene(state: CellState, radii, reference_point) -> list[Shape]:
                   (0.0, 0.0, TEXT_HEIGHT), WHITE,
                   f'{distance:.2f} m ({LEVEL_NAMES[level]})'),
         ]
-    shapes += [
+    return shapes + panel(state, p)
+
+
+def panel(state: CellState, p: np.ndarray) -> list[Shape]:
+    """The text above the robot: the epoch and its action, then the state."""
+    return [
         Shape('panel', 0, 'text', (p + [0.0, 0.0, PANEL_HEIGHT])[None],
               (0.0, 0.0, 1.5 * TEXT_HEIGHT),
               with_alpha(LEVEL_COLORS[0]) if fail_safe(state)
@@ -175,7 +250,6 @@ def scene(state: CellState, radii, reference_point) -> list[Shape]:
         Shape('panel', 1, 'text', (p + [0.0, 0.0, PANEL_HEIGHT - 0.35])[None],
               (0.0, 0.0, TEXT_HEIGHT), WHITE, state_text(state)),
     ]
-    return shapes
 
 
 STAGED = ('belief', 'distance_level', 'task_state')
@@ -199,7 +273,8 @@ class CellView:
 
     def feed(self, name: str, value, now: float | None = None) -> None:
         """One input: 'epoch', 'action' (its name), 'belief', 'distance_level', 'task_state',
-        'skeleton' (keypoints), 'decision' ((epoch, action, faults) of its per-epoch status);
+        'skeleton' (keypoints), 'decision' ((epoch, action, faults) of its per-epoch status),
+        with the arm 'arm' and 'body' (capsules) and 'separation' (hrc/separation);
         `now` (seconds, any monotonic clock) is when it came, for `age`."""
         if name == 'skeleton':
             self.skeleton_s, self.state.skeleton_age = now, None
@@ -220,6 +295,9 @@ class CellView:
         elif name == 'skeleton':
             self.state.keypoints = value
             self.changed = True
+        elif name in ('arm', 'body', 'separation'):
+            setattr(self.state, name, value)
+            self.changed = True
         elif name == 'decision':
             epoch, action, faults = value
             faults = '' if faults in ('', 'none') else faults
@@ -237,6 +315,7 @@ class CellView:
             age = int(now - self.skeleton_s)
             if self.state.keypoints is not None or age != self.state.skeleton_age:
                 self.state.keypoints, self.state.skeleton_age = None, age
+                self.state.body = self.state.separation = None
                 self.changed = True
         if self.action_s is not None and now - self.action_s > ACTION_STALE_S:
             age = int(now - self.action_s)

@@ -364,7 +364,7 @@ def load_programs(description: RobotDescription, path=None) -> dict:
 
 
 # -- the bridge -------------------------------------------------------------------------------
-def _check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
+def check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
     """InputError for a sample stamped more than FUTURE_SLACK ahead of the clock: its source's
     clock runs ahead, and the sample would still look fresh after its source stopped."""
     ahead = (stamp_ns - now_ns) * 1e-9
@@ -403,6 +403,41 @@ class Progress:
     @property
     def complete(self) -> bool:
         return self.cycles_done >= self.cycles
+
+
+class JointStateReader:
+    """A sensor_msgs/JointState's arrays in the description's joint order: (q, qd), or
+    InputError (nothing kept) for a missing joint, NaN, or a position outside the limits.
+    Joints the description does not name (a gripper) are ignored; no velocities: zeros."""
+
+    def __init__(self, description: RobotDescription):
+        self.description = description
+        self._names: tuple | None = None
+        self._order = np.arange(len(description.joint_names))
+
+    def read(self, names, positions, velocities=()) -> tuple[np.ndarray, np.ndarray]:
+        names = tuple(names)
+        positions = np.asarray(positions, dtype=float).reshape(-1)
+        velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
+            else np.zeros(len(names))
+        if len(positions) != len(names) or len(velocities) != len(names):
+            raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
+                             f'and {len(velocities)} velocities')
+        if names != self._names:
+            where = {n: i for i, n in enumerate(names)}
+            lack = [n for n in self.description.joint_names if n not in where]
+            if lack:
+                raise InputError(f'joint state without {", ".join(lack)} (has '
+                                 f'{", ".join(names) or "no joints"})')
+            self._order = np.array([where[n] for n in self.description.joint_names])
+            self._names = names
+        q, qd = positions[self._order], velocities[self._order]
+        why = self.description.outside(q)
+        if why:
+            raise InputError(f'joint state refused: {why}')
+        if not np.isfinite(qd).all():
+            raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
+        return q, qd
 
 
 @dataclass(frozen=True)
@@ -450,8 +485,7 @@ class Bridge:
         self.run: ProgramRun | None = None
         self._stop_reason = ''
         self._peaks: dict = {}
-        self._state_names: tuple | None = None
-        self._state_order = np.arange(len(self.index))
+        self.joint_states = JointStateReader(description)
         self._joint_writer = SingleWriter('joint_states', description.joint_state_timeout,
                                           SECOND_WRITER_HOLD)
         self._goal_publishers = 1
@@ -462,33 +496,13 @@ class Bridge:
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
                     sequence: int | None = None) -> None:
         """The arm's joint state; InputError (nothing kept) for a missing joint, NaN, a
-        position outside the limits, a stamp ahead of the clock (`_check_stamp`) or a second
-        writer (`sequence`: its publication sequence number; the arm then holds, module
-        docstring). Joints the description does not name (a gripper) are ignored."""
+        position outside the limits (`JointStateReader`), a stamp ahead of the clock
+        (`check_stamp`) or a second writer (`sequence`: its publication sequence number; the arm
+        then holds, module docstring)."""
         self._joint_writer.check(sequence, now_ns * 1e-9)
-        _check_stamp('joint state', stamp_ns, now_ns)
-        names = tuple(names)
-        positions = np.asarray(positions, dtype=float).reshape(-1)
-        velocities = np.asarray(velocities, dtype=float).reshape(-1) if len(velocities) \
-            else np.zeros(len(names))
-        if len(positions) != len(names) or len(velocities) != len(names):
-            raise InputError(f'joint state with {len(names)} names, {len(positions)} positions '
-                             f'and {len(velocities)} velocities')
-        if names != self._state_names:
-            where = {n: i for i, n in enumerate(names)}
-            lack = [n for n in self.description.joint_names if n not in where]
-            if lack:
-                raise InputError(f'joint state without {", ".join(lack)} (has '
-                                 f'{", ".join(names) or "no joints"})')
-            self._state_order = np.array([where[n] for n in self.description.joint_names])
-            self._state_names = names
-        q, qd = positions[self._state_order], velocities[self._state_order]
-        why = self.description.outside(q)
-        if why:
-            raise InputError(f'joint state refused: {why}')
-        if not np.isfinite(qd).all():
-            raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
-        self.q, self.qd, self._joint_stamp = q, qd, int(stamp_ns)
+        check_stamp('joint state', stamp_ns, now_ns)
+        self.q, self.qd = self.joint_states.read(names, positions, velocities)
+        self._joint_stamp = int(stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
                  sequence: int | None = None) -> None:
@@ -499,7 +513,7 @@ class Bridge:
         if body is not None and not isinstance(body, BodyCapsules):
             raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
         if body is not None:
-            _check_stamp('skeleton', stamp_ns, now_ns)
+            check_stamp('skeleton', stamp_ns, now_ns)
         stream = self._skeleton_lock.classify(sequence, now_ns * 1e-9,
                                               self.monitor.p.human_timeout)
         if stream == StreamLock.OTHER or (body is not None and self._body_stamp is not None

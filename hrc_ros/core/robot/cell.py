@@ -68,7 +68,7 @@ from ..model import ACTIONS, CT, DN, NW, RH1, RH2, TASK_VARIABLES, HRCModel
 from ..pomdp.belief import BeliefFilter
 from ..study.evaluation import Z95, episodes_of
 from ..study.simulation import SIMULATION_SELECTORS
-from ..tasks import TaskBook
+from ..tasks import TaskBook, robot_cycle_done
 from .arm import Arm, TrajectoryFollower, body_capsules
 from .bridge import Bridge, load_programs, load_robot_description
 from .ssm import MOVING_SPEED, ssm_violated
@@ -103,12 +103,19 @@ class ArmCellSettings:
     skeleton_rate: float = 30.0
     skeleton_latency: float = 0.05
     safety_radii: tuple = DEFAULT_SAFETY_RADII
+    # s the bridge and the arm run before epoch 1, the person standing and no action yet (the
+    # bridge holds): 0 starts the bridge at t = 0 in SSM's start-up protective stop, which
+    # clears after resume_time. A graph's bridge is up before the decision node's first epoch
+    # (docs/ROBOT.md, "the graph with the arm"): compare with one with a pre-roll of 1 s.
+    pre_roll: float = 0.0
 
     def __post_init__(self):
         for name in ('epoch_period', 'control_period', 'skeleton_rate'):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f'{name} must be a positive number, got {value!r}')
+        if not (isinstance(self.pre_roll, (int, float)) and 0 <= self.pre_roll <= 60.0):
+            raise ValueError(f'pre_roll must lie in [0, 60] s, got {self.pre_roll!r}')
         if not 0 <= self.skeleton_latency < 1.0:
             raise ValueError(f'skeleton_latency must lie in [0, 1) s, got '
                              f'{self.skeleton_latency!r}')
@@ -120,6 +127,13 @@ class ArmCellSettings:
     @property
     def steps_per_epoch(self) -> int:
         return int(round(self.epoch_period / self.control_period))
+
+
+# The batch cell as the ROS graph with the simulated arm runs it (`hrc-case-study --robot sim`,
+# docs/ROBOT.md "the graph with the arm"): cell_sim streams skeletons at its sensor_rate, 50 Hz,
+# that reach the bridge over one DDS hop (a few ms on one host), and the bridge is up before
+# the decision node's first epoch. The agreement test compares a graph run with this.
+GRAPH_SETTINGS = ArmCellSettings(skeleton_rate=50.0, skeleton_latency=0.005, pre_roll=1.0)
 
 
 @dataclass
@@ -143,6 +157,7 @@ class EpisodeResult:
     accepted: list = field(default_factory=list)
     task_states: list = field(default_factory=list)     # x_k's task part (8 values)
     violations: list = field(default_factory=list)      # (t, S, bound, bridge's S, override)
+    arm_path: list = field(default_factory=list)        # (t, q (6,)) every control period
 
 
 @dataclass
@@ -218,8 +233,14 @@ class ArmCell:
         belief = self.filter.initial(human.observation)
         observation = human.observation
 
-        # The skeleton the bridge holds at t = 0: captured `latency` before the start.
         first = body_capsules(person.keypoints(), K4ABT_JOINTS)
+        pre = int(round(cfg.pre_roll / dt))
+        for n in range(-pre, 0):       # the pre-roll: the person stands, the bridge holds
+            now = _ns(n * dt)
+            bridge.skeleton(first, _ns(n * dt - latency), now)
+            bridge.joint_state(names, follower.q, follower.qd, now, now)
+            follower.step(dt, bridge.tick(now).override)
+        # The skeleton the bridge holds at t = 0: captured `latency` before the start.
         bridge.skeleton(first, _ns(-latency), 0)
         held = first
         frames: deque = deque()
@@ -261,6 +282,8 @@ class ArmCell:
                 while frames and frames[0][0] + latency <= t + 1e-9:
                     stamp, held = frames.popleft()
                     bridge.skeleton(held, _ns(stamp), now)
+                if record:
+                    out.arm_path.append((t, follower.q.copy()))
                 # The truth at t: the person's body now, the arm's speed bound now.
                 true_separation = arm.distance(follower.q, body)
                 bound = follower.speed_bound
@@ -289,7 +312,8 @@ class ArmCell:
                 step += 1
             progress = bridge.progress
             bc = task_before['bc']
-            robot_runs = progress is not None and progress.cycles_done > progress.cycles - bc
+            robot_runs = progress is not None and robot_cycle_done(progress.cycles,
+                                                                   progress.cycles_done, bc)
             book.apply(action, reaction.accepted, robot_runs)
             evidence = None
             if self.filter.mode == 'posterior':

@@ -11,6 +11,17 @@ level (closest keypoint, `robot_frame`); the windows, O_k and the belief update 
 without enough joint states or without a skeleton publishes nothing for that input, so the
 decision node fails safe.
 
+`distance_source` says what d is the band of. `reference_point` (the default): the closest
+keypoint's distance to `robot_reference_point`. `arm_links` (the cell with the arm,
+docs/ROBOT.md): the separation between the arm's link capsules, at its latest `joint_states`
+(sensor_msgs/JointState, the arm's, as `robot_bridge_node` reads them), and the person's body
+capsules of each skeleton (`keypoint_joints`: K4ABT names, bones between them; []: a sphere
+around each keypoint), the batch cell's rule (`core.robot.links.LinkDistance`). Without a fresh
+arm state (none, or older than the skeleton by more than the robot description's
+`joint_state_timeout`, both by their header stamps) d is 0, the
+collision level, so the decision node fails safe, with a WARN on /diagnostics when that
+begins and an OK when the arm's state is back.
+
 It announces the configuration its filter runs on `hrc/estimator_config` (latched:
 `Config.belief_hash` and the file), so the decision node can flag a mismatch. A new `config`
 (`ros2 param set /belief_estimator config <file>`) is checked in the parameter callback by the
@@ -43,6 +54,8 @@ from ..node_support import (LIVE_CONFIG, STATUS_PERIOD_SEC, BackgroundLoad, Dead
                             ParamSpec, StartupError, check_array, check_core, load_node_config,
                             node_setup, run)
 from ..sources import subscribe_epochs
+from .robot_bridge_node import (KEYPOINT_JOINTS, ROBOT_DESCRIPTION, check_names, load_description,
+                                stamp_ns)
 
 T = Parameter.Type
 VELOCITY_THRESHOLDS = ParamSpec(
@@ -61,6 +74,16 @@ ROBOT_FRAME = ParamSpec(
     'base frame the keypoints and robot_reference_point are in (e.g. cell1/base_link)',
     read_only=True, constraints='non-empty')
 MOTION_PARAMETERS = (VELOCITY_THRESHOLDS, SAFETY_RADII, ROBOT_REFERENCE_POINT, ROBOT_FRAME)
+DISTANCE_SOURCES = ('reference_point', 'arm_links')
+ARM_PARAMETERS = (
+    ParamSpec('distance_source', T.STRING, 'reference_point', 'what the distance level d is '
+              'the band of: reference_point (the closest keypoint to robot_reference_point) or '
+              "arm_links (the separation between the arm's links at its latest joint_states "
+              "and the person's body capsules; no fresh arm state: d = 0)", read_only=True,
+              constraints="'reference_point' or 'arm_links'"),
+    KEYPOINT_JOINTS,
+    ROBOT_DESCRIPTION,
+)
 PARAMETERS = (
     LIVE_CONFIG,
     ParamSpec('belief_mode', T.STRING, '', "belief filter: 'bayes', 'table' or 'posterior' "
@@ -76,7 +99,7 @@ PARAMETERS = (
               f'({ESTIMATOR_HOLD.fallback_s:g} s before two epochs); an explicit value must be '
               "longer than the task manager's input_timeout and shorter than the decision "
               "node's", range=(0.0, 3600.0)),
-) + MOTION_PARAMETERS
+) + MOTION_PARAMETERS + ARM_PARAMETERS
 
 
 def check_motion_parameters(values) -> str | None:
@@ -96,7 +119,17 @@ def check_parameters(values) -> str | None:
     mode = values.get('belief_mode', '')
     if mode not in ('',) + BELIEF_MODES:
         return f"belief_mode must be '', {' or '.join(BELIEF_MODES)}, got {mode!r}"
-    return check_motion_parameters(values)
+    source = values.get('distance_source', DISTANCE_SOURCES[0])
+    if source not in DISTANCE_SOURCES:
+        return f"distance_source must be {' or '.join(DISTANCE_SOURCES)}, got {source!r}"
+    return check_motion_parameters(values) or check_names(values)
+
+
+def link_distance(values):
+    """The arm_links machine for the node's parameters."""
+    from ...core.robot.links import LinkDistance
+    return LinkDistance(load_description(values['robot_description']),
+                        values['safety_radii'], values['keypoint_joints'] or None)
 
 
 class BeliefEstimatorNode(Node):
@@ -115,6 +148,9 @@ class BeliefEstimatorNode(Node):
         self._announce()
         self._previous_sample: conv.JointSample | None = None
         self._lag = LagStats()
+        self.links = link_distance(values) if values['distance_source'] == 'arm_links' else None
+        self._arm_reason: str | None = None       # why the arm's links cannot be used now
+        self.separation: float | None = None      # S of the latest skeleton (arm_links)
 
         self.belief_pub = self.create_publisher(Float64MultiArray, 'hrc/belief', qos.LATCHED)
         self.distance_pub = self.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
@@ -125,8 +161,12 @@ class BeliefEstimatorNode(Node):
                               with_published=True)
         frame = self.params.value('robot_frame')
         self.inputs.subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA,
-                              lambda msg: conv.keypoints_from_msg(msg, frame),
+                              lambda msg: (conv.keypoints_from_msg(msg, frame),
+                                           stamp_ns(msg.header.stamp)),
                               self._on_keypoints, with_published=True)
+        if self.links is not None:
+            self.inputs.subscribe(JointState, 'joint_states', qos.SENSOR_DATA, lambda msg: msg,
+                                  self._on_arm_state, name='arm_joint_states')
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               lambda action, published_ns: self.windows.action(action,
                                                                                published_ns),
@@ -206,6 +246,8 @@ class BeliefEstimatorNode(Node):
         self.velocity_thresholds = tuple(values['velocity_thresholds'])
         self.safety_radii = tuple(values['safety_radii'])
         self.robot_reference_point = tuple(values['robot_reference_point'])
+        if getattr(self, 'links', None) is not None:
+            self.links.radii = self.safety_radii
 
     @property
     def belief(self):
@@ -223,9 +265,33 @@ class BeliefEstimatorNode(Node):
         if sample.stamp > 0.0:
             self._lag.add(self.get_clock().now().nanoseconds * 1e-9 - sample.stamp)
 
-    def _on_keypoints(self, keypoints: np.ndarray, published_ns: int) -> None:
-        self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
-                                             self.safety_radii), published_ns)
+    def _on_keypoints(self, skeleton: tuple, published_ns: int) -> None:
+        keypoints, stamp = skeleton
+        if self.links is None:
+            self.windows.skeleton(distance_level(keypoints, self.robot_reference_point,
+                                                 self.safety_radii), published_ns)
+            return
+        level = self.links.level(keypoints, stamp)
+        self.separation = None if level.separation is None else level.separation.distance
+        self._arm_state(level.reason)
+        self.windows.skeleton(level.d, published_ns)
+
+    def _on_arm_state(self, msg: JointState) -> None:
+        self.links.joint_state(msg.name, msg.position, stamp_ns(msg.header.stamp),
+                               self.get_clock().now().nanoseconds)
+
+    def _arm_state(self, reason: str) -> None:
+        """Report when the arm's links stop (WARN) or start again (OK) to give d."""
+        was_stale = bool(self._arm_reason)
+        self._arm_reason = reason
+        if reason and not was_stale:
+            self.inputs.report(Report(WARN, 'arm links', f'{reason}: distance level 0 (the '
+                                      "arm's links cannot be placed) until it is back",
+                                      {'reason': reason}, kind='stale_arm'))
+        elif was_stale and not reason:
+            self.inputs.report(Report(OK, 'arm links', "the arm's joint states are back: d is "
+                                      "the band of the separation to the arm's links",
+                                      log=False, kind='stale_arm'))
 
     def _swap(self, k: int) -> None:
         """At epoch k's signal: a configuration loaded meanwhile takes over the filter."""
@@ -284,6 +350,9 @@ class BeliefEstimatorNode(Node):
                   'joint_states_in_period': lag['count'],
                   'joint_state_lag_ms_mean': lag['mean_ms'],
                   'joint_state_lag_ms_max': lag['max_ms']}
+        if self.links is not None:
+            values.update({'distance_source': 'arm_links', 'separation_m': self.separation,
+                           'arm_state': self._arm_reason or 'fresh'})
         self.inputs.publish_health('estimator', values)
 
 

@@ -11,6 +11,19 @@ requests on `hrc/human_response` (false for an ineligible one; with `answer_requ
 leaves the answers to the HMI page), and publishes the debug topic
 `hrc/sim/true_state` (latched: the 11 state variables after each reaction). `faults` injects
 `core.cell.faults` (dropout, nan_velocity, decline, collision) without changing the random draws.
+
+`person` says what the skeleton is. `point` (the default): 7 keypoints inside the band of the
+model's d around `robot_reference_point` (`synthesize_skeleton`). `3d` (the cell with the arm,
+docs/ROBOT.md): the same `SimulatedHuman` drives a body walking around the arm
+(`core.cell.person.SimulatedPerson`, seeded ``[seed, 2]``, the batch cell's person for that
+seed): each reaction's Delta and emotions set where and how fast they walk, relative to the
+separation to the arm's links, which it reads on `hrc/separation` (std_msgs/Float64MultiArray
+``[S, arm xyz, human xyz, S_p, ...]`` from `cobot_sim_node`); `human/skeleton` carries the
+body's 32 Azure Kinect joints (`tracking.K4ABT_JOINTS` order, `keypoint_joints` of the readers),
+and the true state's d is the band of that separation (`safety_radii`). `human/joint_states`
+stays the six arm angles in the body-tracking adapter's form, their velocities in the band of
+the model's O (the observation is the model's event, which the walk does not simulate). The
+`collision` fault needs `point` (a 3D person's distance is the arm's to make).
 """
 
 from __future__ import annotations
@@ -20,12 +33,14 @@ from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, String, UInt8MultiArray
+from std_msgs.msg import Bool, Float64MultiArray, String, UInt8MultiArray
 
 from ...core.cell import faults
 from ...core.cell.human import SimulatedHuman
+from ...core.cell.person import SimulatedPerson
 from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
-from ...core.decision.observation import synthesize_joint_velocities, synthesize_skeleton
+from ...core.decision.observation import (level_of_distance, synthesize_joint_velocities,
+                                          synthesize_skeleton)
 from ...core.protocol import CELL_HOLD, ActionPairing, PeriodEstimate
 from .. import conversions as conv
 from .. import qos
@@ -34,6 +49,8 @@ from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, Dea
 from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
 
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
+PERSON_STREAM = 2   # the 3D person's walk: SimulatedPerson(seed=[seed, PERSON_STREAM])
+PERSONS = ('point', '3d')
 IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
 
 T = Parameter.Type
@@ -59,15 +76,26 @@ PARAMETERS = (
               'requests on hrc/human_response; false: a person answers them on the HMI page '
               '(hmi_node) and the simulated one only reacts (its emotions and distance move '
               'as before, with the same random draws)'),
+    ParamSpec('person', T.STRING, 'point', "the simulated person's body: point (7 keypoints in "
+              "the model's distance band around robot_reference_point) or 3d (a body of 32 "
+              'joints walking around the arm, its approach relative to the separation on '
+              'hrc/separation; the cell with the arm)', read_only=True,
+              constraints="'point' or '3d'"),
 )
 
 
 def check_parameters(values) -> str | None:
+    person = values.get('person', PERSONS[0])
+    if person not in PERSONS:
+        return f"person must be {' or '.join(PERSONS)}, got {person!r}"
     if 'faults' in values:
         try:
-            faults.parse_faults(values['faults'])
+            parsed = faults.parse_faults(values['faults'])
         except ValueError as exc:
             return str(exc)
+        if person == '3d' and parsed['collision']:
+            return ("fault collision needs person 'point' (a 3D person's distance is the "
+                    "separation to the arm)")
     return (check_array(values, 'initial_emotions', 2, low=0, high=2)
             or check_motion_parameters(values))
 
@@ -80,6 +108,7 @@ class CellSimNode(Node):
         self.params, values, self.config, self.model = node_setup(
             self, PARAMETERS, check_parameters, self._apply_parameters)
         em, ea = (int(v) for v in values['initial_emotions'])
+        self.initial_distance = values['initial_distance']
         try:
             self.human = SimulatedHuman(self.model, seed=values['seed'], em=em, ea=ea,
                                         d=values['initial_distance'])
@@ -96,6 +125,13 @@ class CellSimNode(Node):
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
         self._last_sample_ns: int | None = None
         self._apply_motion(values)
+        self.person = None
+        self.separation: float | None = None    # S on hrc/separation (person 3d)
+        self._walked_ns: int | None = None
+        if values['person'] == '3d':
+            self.person = SimulatedPerson(values['initial_distance'],
+                                          seed=[values['seed'], PERSON_STREAM], em=em, ea=ea,
+                                          radii=self.safety_radii)
 
         self.joint_pub = self.create_publisher(JointState, 'human/joint_states',
                                                qos.SENSOR_DATA)
@@ -108,6 +144,9 @@ class CellSimNode(Node):
                               self._on_action, with_published=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
                               self._task_state_from_msg, self._on_task_state)
+        if self.person is not None:
+            self.inputs.subscribe(Float64MultiArray, 'hrc/separation', qos.SENSOR_DATA,
+                                  conv.separation_from_msg, self._on_separation)
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
         self.hold = DeadlineTimer(self, lambda now: self._react(self.pairing.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
@@ -147,6 +186,16 @@ class CellSimNode(Node):
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
 
+    def _on_separation(self, separation: dict) -> None:
+        self.separation = separation['S']
+
+    def _person_separation(self) -> float:
+        """The separation the 3D person walks by: the latest on hrc/separation, before any
+        the middle of the band they start in."""
+        if self.separation is not None:
+            return self.separation
+        return self.person.targets[self.initial_distance]
+
     # -- inputs ----------------------------------------------------------------------------
     def _on_task_state(self, task_state: dict) -> None:
         self._react(self.pairing.task_state_received(task_state, self.clock.now().nanoseconds))
@@ -175,6 +224,9 @@ class CellSimNode(Node):
             self.get_logger().warning('no task state received yet; reacting as in an idle '
                                       'cell', throttle_duration_sec=WARNING_THROTTLE_SEC)
         reaction = self.human.react(action, task_state)
+        if self.person is not None:
+            self.person.begin_epoch(reaction.delta, reaction.em, reaction.ea,
+                                    self._person_separation())
         accepted = reaction.accepted is True and not self._fault('decline')
         if action in (RH1, RH2) and self.answer_requests:
             if reaction.accepted and not accepted:
@@ -187,18 +239,29 @@ class CellSimNode(Node):
         self._stream()
 
     # -- outputs ---------------------------------------------------------------------------
+    def _walk(self, now_ns: int) -> None:
+        """The 3D person walks up to now (also while the sensors drop out)."""
+        dt = 0.0 if self._walked_ns is None else max(0.0, (now_ns - self._walked_ns) * 1e-9)
+        self._walked_ns = now_ns
+        self.person.step(dt, self._person_separation())
+
     def _stream(self) -> None:
+        now = self.get_clock().now()
+        if self.person is not None:
+            self._walk(now.nanoseconds)
         if self._fault('dropout'):
             return
-        now = self.get_clock().now()
         dt = 0.0 if self._last_sample_ns is None else (now.nanoseconds
                                                        - self._last_sample_ns) * 1e-9
         self._last_sample_ns = now.nanoseconds
         velocity = synthesize_joint_velocities(self.human.observation, len(conv.HUMAN_JOINTS),
                                                self.velocity_thresholds, self.sensor_rng)
         self._position += velocity * dt
-        keypoints = synthesize_skeleton(self.human.d, self.safety_radii,
-                                        self.robot_reference_point, self.sensor_rng)
+        if self.person is None:
+            keypoints = synthesize_skeleton(self.human.d, self.safety_radii,
+                                            self.robot_reference_point, self.sensor_rng)
+        else:
+            keypoints = self.person.keypoints()
         stamp = now.to_msg()
         if self._fault('nan_velocity'):
             velocity = np.full_like(velocity, np.nan)
@@ -208,7 +271,10 @@ class CellSimNode(Node):
 
     def true_state(self) -> dict:
         task = self.task_state or IDLE_TASK
-        return {'em': self.human.em, 'ea': self.human.ea, **task, 'd': self.human.d}
+        d = self.human.d
+        if self.person is not None:
+            d = level_of_distance(self._person_separation(), self.safety_radii)
+        return {'em': self.human.em, 'ea': self.human.ea, **task, 'd': d}
 
     def _publish_true_state(self) -> None:
         self.true_state_pub.publish(conv.true_state_to_msg(self.true_state()))
@@ -218,7 +284,10 @@ class CellSimNode(Node):
                   'held_action': (None if self.pairing.held is None
                                   else ACTIONS[self.pairing.held]),
                   'em': self.human.em, 'ea': self.human.ea,
-                  'd': self.human.d, 'observation': self.human.observation}
+                  'd': self.true_state()['d'], 'observation': self.human.observation}
+        if self.person is not None:
+            values.update({'person': '3d', 'separation_m': self.separation,
+                           'person_xy': np.round(self.person.keypoints()[0, :2], 3)})
         self.inputs.publish_health('simulation', values)
 
 

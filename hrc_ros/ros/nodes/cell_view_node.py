@@ -18,6 +18,11 @@ and a picture is drawn at a tick when something changed. So it never wakes for a
 share of the CPU does not grow with the rate of the epochs or of the tracker, nothing of the
 decision loop waits for it, and bench/loop_latency.py --view-pairs measures the loop with and
 without it.
+
+With `robot` true (the cell with the arm, docs/ROBOT.md) it also reads the arm's `joint_states`
+and `hrc/separation` and draws the arm's link capsules at the latest joint state, S_p as a
+translucent shell around them, the person's body capsules (`keypoint_joints`) and the
+separation segment between the two closest points (`core.cell.view.arm_scene`).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
+from sensor_msgs.msg import JointState
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -41,6 +47,7 @@ from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec
                             run)
 from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_RADII,
                                     check_motion_parameters)
+from .robot_bridge_node import KEYPOINT_JOINTS, ROBOT_DESCRIPTION, check_names, load_description
 
 T = Parameter.Type
 STOP_ACK_SEC = 1.0
@@ -54,7 +61,15 @@ PARAMETERS = (
               'anything changed, the picture drawn', range=(0.1, 100.0)),
     ParamSpec('decision_node', T.STRING, 'decision', 'name of the decision node whose '
               '/diagnostics status gives the reasons of a fail-safe dn', read_only=True),
+    ParamSpec('robot', T.BOOL, False, "draw the cell with the arm: the arm's capsules at its "
+              'joint_states, the S_p shell and the separation of hrc/separation, the '
+              "person's body capsules (docs/ROBOT.md)", read_only=True),
+    KEYPOINT_JOINTS, ROBOT_DESCRIPTION,
 )
+
+
+def check_parameters(values) -> str | None:
+    return check_motion_parameters(values) or check_names(values)
 
 
 class CellViewNode(Node):
@@ -62,7 +77,7 @@ class CellViewNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_motion_parameters, self._apply)
+        self.params = NodeParameters(self, PARAMETERS, check_parameters, self._apply)
         self._apply(self.params.values())
         self.view = CellView()
         self.pictures = 0
@@ -83,8 +98,36 @@ class CellViewNode(Node):
                   lambda msg: conv.keypoints_from_msg(msg, self.robot_frame), latest_only=True)
         subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._decision_report,
                   name='decision')
+        self.arm = None
+        if self.params.value('robot'):
+            self._robot_inputs(subscribe)
         self.refresh = self.create_timer(1.0 / self.params.value('refresh_rate'), self._refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+
+    def _robot_inputs(self, subscribe) -> None:
+        from ...core.robot.arm import Arm, body_capsules
+        from ...core.robot.bridge import JointStateReader
+        values = self.params.values()
+        reader = JointStateReader(load_description(values['robot_description']))
+        self.arm = Arm()
+        joints = tuple(values['keypoint_joints']) or None
+
+        def arm_capsules(msg: JointState):
+            q, _ = reader.read(msg.name, msg.position)
+            return self.arm.segments(q), self.arm.radii
+
+        def body(msg: PoseArray):
+            try:
+                caps = body_capsules(conv.keypoints_from_msg(msg, self.robot_frame), joints)
+            except ValueError as exc:
+                raise conv.MessageError(f'skeleton: {exc}') from None
+            return caps.segments, caps.radii
+        subscribe(JointState, 'joint_states', qos.SENSOR_DATA, arm_capsules, name='arm',
+                  latest_only=True)
+        subscribe(PoseArray, 'human/skeleton', qos.SENSOR_DATA, body, name='body',
+                  latest_only=True)
+        subscribe(Float64MultiArray, 'hrc/separation', qos.SENSOR_DATA, conv.separation_from_msg,
+                  name='separation', latest_only=True)
 
     def _apply(self, values) -> None:
         self.safety_radii = tuple(values['safety_radii'])

@@ -2,7 +2,11 @@
 
 Contract (docs/DESIGN.md, "ROS epoch protocol"): on `hrc/epoch` k it finalises a_{k-1}
 (`hrc/action`, and the `hrc/human_response` to an eligible request), begins epoch k and
-publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). Tasks come from the
+publishes `hrc/task_state` ``[tp, tc, tx, ty, hp, hc, bp, bc]`` (latched). With
+`robot_progress` true it also subscribes the robot bridge's `hrc/robot_progress` ``[nature,
+cycles, cycles_done]`` and the robot's counter bc runs down only when the arm has completed a
+cycle of its program (`core.tasks.robot_cycle_done`, the batch cell's rule; docs/ROBOT.md).
+Tasks come from the
 `initial_task`, the scripted `schedule` and `hrc/task_request` ``[tp, tc, tx]``. The rules
 (holds, timeouts, late answers, restarts) are `core.protocol.TaskEpochs`; this node owns the
 topics, the parameters and the timer. Every task request is counted once, as accepted, refused
@@ -46,6 +50,11 @@ PARAMETERS = (
               f'({TASK_HOLD.fallback_s:g} s before two epochs); an explicit value must be '
               "shorter than the belief estimator's task_state_timeout and the decision node's "
               'input_timeout', range=(0.0, 3600.0)),
+    ParamSpec('robot_progress', T.BOOL, False, "the robot's counter bc follows the arm's "
+              'physical work: it runs down in an epoch only if the robot bridge reported a '
+              'completed program cycle on hrc/robot_progress by its end (the cell with the '
+              "arm, docs/ROBOT.md); false: the model's rule (every action but dn)",
+              read_only=True),
 )
 
 
@@ -78,7 +87,8 @@ class TaskManagerNode(Node):
             raise StartupError(f'task parameters: {exc}') from None
         self.clock = control_clock(self)
         self.input_timeout = values['input_timeout']
-        self.tasks = TaskEpochs(book, TASK_HOLD.ns(self.input_timeout, None))
+        self.tasks = TaskEpochs(book, TASK_HOLD.ns(self.input_timeout, None),
+                                robot_progress=values['robot_progress'])
         self._order_reported: str | None = None
 
         self.task_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_state',
@@ -97,6 +107,12 @@ class TaskManagerNode(Node):
                               with_published=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_request', qos.ORDERS,
                               lambda msg: msg, self._on_task_request, with_stamp=True)
+        if values['robot_progress']:
+            self.inputs.subscribe(UInt8MultiArray, 'hrc/robot_progress', qos.RELIABLE,
+                                  conv.robot_progress_from_msg,
+                                  lambda p, t: self.tasks.robot_progress_received(
+                                      p['nature'], p['cycles'], p['cycles_done'], t),
+                                  with_published=True)
         self.requests = RequestCounts()
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self.hold = DeadlineTimer(self, lambda now: self._step(self.tasks.expire(now)))
