@@ -31,19 +31,17 @@ import os
 import re
 import signal
 import socket
-import threading
 import time
 
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from playwright.sync_api import expect
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, String, UInt8MultiArray
 
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros.processes import NodeProcesses
+from spun import SpunNode
 
 EPOCH_PERIOD = 1.0        # a person's window: the epoch and the task manager's 0.6 s hold
 START_TIMEOUT = 40.0      # seconds for the processes to start (a loaded machine)
@@ -78,15 +76,11 @@ DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                   reliability=ReliabilityPolicy.RELIABLE)
 
 
-class Listener:
+class Listener(SpunNode):
     """The test's own node, spun in a thread: what the cell publishes, in arrival order."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('hmi_browser_listener', context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__('hmi_browser_listener')
         self.task_states: list[dict] = []
         self.responses: list[bool] = []
         self.actions: list[str] = []
@@ -99,15 +93,7 @@ class Listener:
         self.node.create_subscription(String, 'hrc/action',
                                       lambda m: self.actions.append(m.data), DEEP)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._status, DEEP)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - the context went down under it
-                return
+        self.start()
 
     def _status(self, msg):
         for status in msg.status:
@@ -123,10 +109,6 @@ class Listener:
     def nodes_up(self, names) -> bool:
         return set(names) <= set(self.node.get_node_names())
 
-    def close(self):
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(5)
-        self.node.destroy_node()
 
 
 def free_port() -> int:

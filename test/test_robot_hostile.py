@@ -9,16 +9,13 @@ The core rule is unit-tested in test_robot.py.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64, String, UInt8MultiArray
@@ -30,6 +27,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
 from hrc_ros.ros.processes import NodeProcesses
+from spun import SpunNode
 
 START_TIMEOUT = 90.0        # the bridge imports rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 20.0
@@ -44,15 +42,12 @@ DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
                   reliability=ReliabilityPolicy.RELIABLE)
 
 
-class Feeder:
+class Feeder(SpunNode):
     """The arm, the tracker and the forger, as publishers of one test node spun in a thread."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = n = rclpy.create_node('robot_hostile_test', context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(n)
+        super().__init__('robot_hostile_test')
+        n = self.node
         self.person = NEAR.copy()
         self.forged_person: np.ndarray | None = None
         self.forged_q: np.ndarray | None = None
@@ -76,15 +71,7 @@ class Feeder:
         self.action_pub = n.create_publisher(String, f'{NS}/hrc/action', qos.RELIABLE)
         n.create_timer(0.01, self._arm)
         n.create_timer(1 / 30, self._tracker)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - the context went down under it
-                return
+        self.start()
 
     def _now(self, offset: float = 0.0):
         return (self.node.get_clock().now() + Duration(nanoseconds=int(offset * 1e9))).to_msg()
@@ -118,10 +105,6 @@ class Feeder:
                 return status
         return None
 
-    def close(self):
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(5)
-        self.node.destroy_node()
 
 
 @pytest.fixture(scope='module')

@@ -20,12 +20,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8MultiArray
@@ -38,6 +36,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.processes import NodeProcesses, node_command
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
+from spun import SpunNode
 
 START_TIMEOUT = 90.0        # both nodes import rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 30.0
@@ -61,16 +60,12 @@ def task(tp: int, tc: int, tx: int = 0, ty: int = 0, bc: int = 0) -> dict:
             'bc': bc}
 
 
-class Cell:
+class Cell(SpunNode):
     """The test's node, spun in a thread: the person, the task manager and decision node's
     outputs, and everything the two robot nodes publish, with the arrival time."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('robot_nodes_test', context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__('robot_nodes_test')
         self.lock = threading.Lock()
         self.person = FAR.copy()
         self.target = FAR.copy()
@@ -102,15 +97,7 @@ class Cell:
         self.action_pub = n.create_publisher(String, 'hrc/action', qos.RELIABLE)
         self.joint_pub = n.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
         n.create_timer(1 / 30, self._walk)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - the context went down under it
-                return
+        self.start()
 
     def _joint_state(self, msg: JointState):
         self.joint_states.append((time.monotonic(), np.array(msg.position),
@@ -175,10 +162,6 @@ class Cell:
                 return status
         return None
 
-    def close(self):
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(5)
-        self.node.destroy_node()
 
 
 @pytest.fixture(scope='module')

@@ -1,0 +1,39 @@
+"""A test's own rclpy node, in its own Context, spun in a daemon thread."""
+
+import threading
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+
+
+class SpunNode:
+    """`self.node` in its own Context and executor; `start()` spins it in a daemon thread (call
+    it once the subscriptions and timers exist). `close()` stops the spin, destroys the node
+    while its context is still valid, then shuts the context down (the order of
+    hrc_ros/ros/stop.py)."""
+
+    def __init__(self, name: str):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stopping = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not self._stopping.is_set() and self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - the context went down under it
+                return
+
+    def close(self) -> None:
+        self._stopping.set()
+        self.thread.join(5)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
