@@ -51,6 +51,22 @@ def test_a_bad_stream_section_is_refused_naming_the_field(stream, message):
         load_config(CONFIG, overrides={'stream': stream})
 
 
+@pytest.mark.parametrize('stream', [[0.3, 0.6], 'yes', 5])
+def test_a_stream_section_that_is_not_a_mapping_is_named_so_not_missing(stream):
+    with pytest.raises(ConfigError, match="section 'stream' must be a mapping") as caught:
+        load_config(CONFIG, overrides={'stream': stream})
+    assert 'missing' not in str(caught.value) and '\n' not in str(caught.value)
+
+
+def test_a_task_outside_the_model_is_quoted_within_the_cap():
+    """A 4,000-digit tp (as a 64 KiB configuration or a live `config` may hold) is refused in
+    a line of bounded size, not echoed whole."""
+    with pytest.raises(ConfigError, match='not a task of the model') as caught:
+        load_config(CONFIG, overrides={'stream': {
+            'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[10 ** 4000, 1, 0, 1.0]]}})
+    assert len(str(caught.value)) < 600
+
+
 def test_arrivals_rule_by_rule(small_stream):
     """From an idle cell a task of q arrives with arrival_idle; right after a task completes,
     with arrival_complete; a busy cell gets none."""
