@@ -222,6 +222,18 @@ def test_the_fit_by_quasi_newton_ends_no_lower_and_bootstraps_the_same_resamples
         fit.fit(data, base, n_init=1, bootstrap=0, method='bfgs')
 
 
+def test_the_fit_by_quasi_newton_keeps_squarems_convergence_when_no_iteration_is_left(base):
+    """SQUAREM converging on the last of --max-iter's iterations leaves the quasi-Newton
+    continuation none: the fit is SQUAREM's, converged, not reported as not converged."""
+    data = random_data(np.random.default_rng(0), [10, 8])
+    old = fit.fit(data, base, n_init=1, bootstrap=0, method=fit.SQUAREM)
+    assert old.converged
+    new = fit.fit(data, base, n_init=1, bootstrap=0, method=fit.NEWTON,
+                  max_iter=old.iterations)
+    assert new.converged and new.trace == old.trace
+    assert not any('converge' in w for w in new.warnings)
+
+
 # -- a world where em is observed exactly ------------------------------------------------------
 def em_shown_config(base):
     """O = em + 1 always (the likelihood shows em), distances as the default."""

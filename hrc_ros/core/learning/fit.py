@@ -1073,9 +1073,9 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         min_support: float = MIN_SUPPORT, progress=None, method: str = SQUAREM) -> FitResult:
     """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
     `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
-    start by SQUAREM, then the quasi-Newton EM (`run_em_batch`) from there with the
-    `curvature_at` the estimate, and every resample by the quasi-Newton EM with that
-    curvature."""
+    start by SQUAREM, then (if it left any of `max_iter`) the quasi-Newton EM
+    (`run_em_batch`) from there with the `curvature_at` the estimate, and every resample by
+    the quasi-Newton EM with that curvature."""
     hold = expand_hold(hold)
     if n_init < 1:
         raise FitError(f'n_init must be >= 1, got {n_init}')
@@ -1103,9 +1103,11 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     curvature = None
     if method == NEWTON:
         curvature = curvature_at(data, params, hold)
-        best = run_em(data, params, hold, tol, max_iter, method=NEWTON, curvature=curvature,
-                      run=dataclasses.replace(best, params=params, stats=stats))
-        params, stats = best.params, best.stats
+        if len(best.trace) <= max_iter:   # else SQUAREM used every iteration: its fit stands
+            best = run_em(data, params, hold, tol, max_iter, method=NEWTON,
+                          curvature=curvature,
+                          run=dataclasses.replace(best, params=params, stats=stats))
+            params, stats = best.params, best.stats
     support = support_of(stats)
     seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
