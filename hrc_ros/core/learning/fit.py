@@ -853,9 +853,10 @@ def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, lanes: np.ndar
         inverse[lanes[fallback]] = curvature.inverse
     moved = np.setdiff1d(np.arange(len(lanes)), fallback)
     if moved.size:               # BFGS on minus the log likelihood
-        s = curvature.coordinates(x_new[moved]) - eta0[moved]
-        y = g0[moved] - curvature.gradient(s_new.lane(moved), x_new[moved])
-        sy = np.einsum('li,li->l', s, y)
+        with np.errstate(invalid='ignore'):   # a probability at 0: -inf - -inf, skipped below
+            s = curvature.coordinates(x_new[moved]) - eta0[moved]
+            y = g0[moved] - curvature.gradient(s_new.lane(moved), x_new[moved])
+            sy = np.einsum('li,li->l', s, y)
         ok = np.isfinite(sy) & (sy > 1e-12 * np.linalg.norm(s, axis=1)
                                 * np.linalg.norm(y, axis=1))
         for i in np.flatnonzero(ok):
