@@ -241,3 +241,21 @@ def test_every_stream_configuration_ships_its_pomdp_policy(name):
     path = default_pomdp_policy_path(config)
     assert path.name == f'{name}.npz'
     assert load_pomdp_policy(path, config).meta['report']['case_study_relative_gap'] < 0.02
+
+
+def test_the_live_swap_never_takes_a_policy_of_the_other_model():
+    """The parameter service's rule (core.swap.check_swap) between the paper's model and the
+    stream's, both ways: a policy of the other model set with a configuration is refused,
+    saying which model each is; a configuration set alone beside the policy of the other
+    model is staged (the old pair decides); '' finds the policy solved for it."""
+    from hrc_ros.core.swap import ACCEPTED, REFUSED, STAGED, check_swap
+    paper_cfg, stream_cfg = str(CONFIG), str(shipped_config_path('stream'))
+    paper_pol = str(share_dir() / 'policies' / 'default.npz')
+    stream_pol = str(share_dir() / 'policies' / 'stream.npz')
+    for (run_cfg, run_pol), (cfg, pol) in (((paper_cfg, paper_pol), (stream_cfg, paper_pol)),
+                                           ((stream_cfg, stream_pol), (paper_cfg, stream_pol))):
+        staged = check_swap(2, 2, run_cfg, cfg, run_pol, run_pol)
+        assert staged.verdict == STAGED and 'task stream' in staged.reason
+        refused = check_swap(2, 2, run_cfg, cfg, '', pol)
+        assert refused.verdict == REFUSED and 'task stream' in refused.reason
+        assert check_swap(2, 2, run_cfg, cfg, run_pol, '').verdict == ACCEPTED
