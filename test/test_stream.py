@@ -259,3 +259,18 @@ def test_the_live_swap_never_takes_a_policy_of_the_other_model():
         refused = check_swap(2, 2, run_cfg, cfg, '', pol)
         assert refused.verdict == REFUSED and 'task stream' in refused.reason
         assert check_swap(2, 2, run_cfg, cfg, run_pol, '').verdict == ACCEPTED
+
+
+def test_a_stream_without_its_optional_q_is_the_same_model_as_q_null(tmp_path):
+    """`q` may be left out (it then reads as null, MODEL.md 8): the configuration is the same
+    model, so it has the same hash and finds the policy shipped for `q: null`."""
+    from hrc_ros.core.mdp.policy import default_policy_path
+    shipped = shipped_config_path('stream')
+    text = shipped.read_text()
+    assert '\n  q: null' in text
+    left_out = tmp_path / 'stream.yaml'
+    left_out.write_text(text.replace('\n  q: null', '\n'))
+    config = load_config(left_out)
+    assert config.stream[2].shape == (16, 3)
+    assert config.policy_hash == load_config(shipped).policy_hash
+    assert default_policy_path(config) == share_dir() / 'policies' / 'stream.npz'

@@ -172,8 +172,10 @@ class Config:
     # -- identity ------------------------------------------------------------------------
     @property
     def policy_sections(self) -> dict:
-        keys = ('model', 'cost', 'solver') + (('stream',) if self.has_stream else ())
-        return {k: self.data[k] for k in keys}
+        sections = {k: self.data[k] for k in ('model', 'cost', 'solver')}
+        if self.has_stream:   # q left out reads as null: one model, one hash
+            sections['stream'] = {'q': None, **self.data['stream']}
+        return sections
 
     @property
     def policy_hash(self) -> str:
