@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import warnings
 
 import numpy as np
 import pytest
@@ -220,6 +221,34 @@ def test_the_fit_by_quasi_newton_ends_no_lower_and_bootstraps_the_same_resamples
     assert np.all(np.isfinite(new.sample_logliks)) and np.all(np.isfinite(new.interval))
     with pytest.raises(fit.FitError, match='method must be'):
         fit.fit(data, base, n_init=1, bootstrap=0, method='bfgs')
+
+
+def test_the_fit_by_quasi_newton_keeps_squarems_convergence_when_no_iteration_is_left(base):
+    """SQUAREM converging on the last of --max-iter's iterations leaves the quasi-Newton
+    continuation none: the fit is SQUAREM's, converged, not reported as not converged."""
+    data = random_data(np.random.default_rng(0), [10, 8])
+    old = fit.fit(data, base, n_init=1, bootstrap=0, method=fit.SQUAREM)
+    assert old.converged
+    new = fit.fit(data, base, n_init=1, bootstrap=0, method=fit.NEWTON,
+                  max_iter=old.iterations)
+    assert new.converged and new.trace == old.trace
+    assert not any('converge' in w for w in new.warnings)
+
+
+def test_a_resample_that_empties_a_probability_runs_the_quasi_newton_em_without_warnings(base):
+    """A resample without some episodes can take a free probability to exactly 0 (EM's step):
+    its log ratio is then -inf and the BFGS update is skipped, without numpy's 'invalid
+    value' warning on the user's terminal."""
+    rng = np.random.default_rng(2)
+    data = random_data(rng, [10, 8, 6])
+    start = fit.fit(data, base, n_init=1, seed=2, bootstrap=0, method=fit.SQUAREM).params
+    weights = np.stack([rng.multinomial(3, np.full(3, 1 / 3)) for _ in range(8)]).astype(float)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        runs = fit.run_em_batch(data, [start] * 8, (), fit.TOL, 500, weights, method=fit.NEWTON,
+                                curvature=fit.curvature_at(data, start))
+    for run in runs:
+        assert np.isfinite(run.trace[-1]) and np.all(np.diff(run.trace) >= -1e-9)
 
 
 # -- a world where em is observed exactly ------------------------------------------------------

@@ -51,6 +51,22 @@ def test_a_bad_stream_section_is_refused_naming_the_field(stream, message):
         load_config(CONFIG, overrides={'stream': stream})
 
 
+@pytest.mark.parametrize('stream', [[0.3, 0.6], 'yes', 5])
+def test_a_stream_section_that_is_not_a_mapping_is_named_so_not_missing(stream):
+    with pytest.raises(ConfigError, match="section 'stream' must be a mapping") as caught:
+        load_config(CONFIG, overrides={'stream': stream})
+    assert 'missing' not in str(caught.value) and '\n' not in str(caught.value)
+
+
+def test_a_task_outside_the_model_is_quoted_within_the_cap():
+    """A 4,000-digit tp (as a 64 KiB configuration or a live `config` may hold) is refused in
+    a line of bounded size, not echoed whole."""
+    with pytest.raises(ConfigError, match='not a task of the model') as caught:
+        load_config(CONFIG, overrides={'stream': {
+            'arrival_idle': 0.5, 'arrival_complete': 0.5, 'q': [[10 ** 4000, 1, 0, 1.0]]}})
+    assert len(str(caught.value)) < 600
+
+
 def test_arrivals_rule_by_rule(small_stream):
     """From an idle cell a task of q arrives with arrival_idle; right after a task completes,
     with arrival_complete; a busy cell gets none."""
@@ -225,3 +241,36 @@ def test_every_stream_configuration_ships_its_pomdp_policy(name):
     path = default_pomdp_policy_path(config)
     assert path.name == f'{name}.npz'
     assert load_pomdp_policy(path, config).meta['report']['case_study_relative_gap'] < 0.02
+
+
+def test_the_live_swap_never_takes_a_policy_of_the_other_model():
+    """The parameter service's rule (core.swap.check_swap) between the paper's model and the
+    stream's, both ways: a policy of the other model set with a configuration is refused,
+    saying which model each is; a configuration set alone beside the policy of the other
+    model is staged (the old pair decides); '' finds the policy solved for it."""
+    from hrc_ros.core.swap import ACCEPTED, REFUSED, STAGED, check_swap
+    paper_cfg, stream_cfg = str(CONFIG), str(shipped_config_path('stream'))
+    paper_pol = str(share_dir() / 'policies' / 'default.npz')
+    stream_pol = str(share_dir() / 'policies' / 'stream.npz')
+    for (run_cfg, run_pol), (cfg, pol) in (((paper_cfg, paper_pol), (stream_cfg, paper_pol)),
+                                           ((stream_cfg, stream_pol), (paper_cfg, stream_pol))):
+        staged = check_swap(2, 2, run_cfg, cfg, run_pol, run_pol)
+        assert staged.verdict == STAGED and 'task stream' in staged.reason
+        refused = check_swap(2, 2, run_cfg, cfg, '', pol)
+        assert refused.verdict == REFUSED and 'task stream' in refused.reason
+        assert check_swap(2, 2, run_cfg, cfg, run_pol, '').verdict == ACCEPTED
+
+
+def test_a_stream_without_its_optional_q_is_the_same_model_as_q_null(tmp_path):
+    """`q` may be left out (it then reads as null, MODEL.md 8): the configuration is the same
+    model, so it has the same hash and finds the policy shipped for `q: null`."""
+    from hrc_ros.core.mdp.policy import default_policy_path
+    shipped = shipped_config_path('stream')
+    text = shipped.read_text()
+    assert '\n  q: null' in text
+    left_out = tmp_path / 'stream.yaml'
+    left_out.write_text(text.replace('\n  q: null', '\n'))
+    config = load_config(left_out)
+    assert config.stream[2].shape == (16, 3)
+    assert config.policy_hash == load_config(shipped).policy_hash
+    assert default_policy_path(config) == share_dir() / 'policies' / 'stream.npz'

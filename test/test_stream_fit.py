@@ -82,3 +82,16 @@ def test_hrc_fit_stream_writes_a_stream_section_from_a_bag(tmp_path):
     assert sorted(tuple(r[:3]) for r in expected['q']) == [(2, 2, 1), (2, 2, 2)]
     report = (tmp_path / 'fitted.report.json').read_text()
     assert '"stream"' in report and '"arrival_idle"' in report
+
+
+def test_the_written_q_sums_to_one_without_a_negative_entry_when_a_task_is_rare():
+    """q is written to 6 decimals, the rounding's remainder on one entry: on the most frequent
+    task, so that a rare one (1 of 1.5 million arrivals) is not pushed below 0 and the fitted
+    configuration still validates."""
+    from hrc_ros.core.learning.stream import StreamFit
+    tasks = np.array([(tp, tc, tx) for tp in (1, 2) for tc in (1, 2) for tx in range(4)])
+    fitted = StreamFit(10, 1, 10, 5, tasks, np.array([100_000] * 15 + [1]), 0, 0)
+    section = fitted.section()
+    assert min(row[3] for row in section['q']) >= 0
+    config = load_config(default_config_path(), overrides={'stream': section})
+    assert config.stream[3].sum() == pytest.approx(1.0, abs=1e-9)

@@ -172,8 +172,10 @@ class Config:
     # -- identity ------------------------------------------------------------------------
     @property
     def policy_sections(self) -> dict:
-        keys = ('model', 'cost', 'solver') + (('stream',) if self.has_stream else ())
-        return {k: self.data[k] for k in keys}
+        sections = {k: self.data[k] for k in ('model', 'cost', 'solver')}
+        if self.has_stream:   # q left out reads as null: one model, one hash
+            sections['stream'] = {'q': None, **self.data['stream']}
+        return sections
 
     @property
     def policy_hash(self) -> str:
@@ -256,8 +258,11 @@ def validate(data: Any) -> dict:
         body = data.get(section)
         if body is None and section in _OPTIONAL_SECTIONS:
             continue
-        if not isinstance(body, dict):
+        if body is None:
             raise ConfigError(f'missing section {section!r}')
+        if not isinstance(body, dict):
+            raise ConfigError(f'section {section!r} must be a mapping of keys, got '
+                              f'{quote(body)}')
         for key in body:
             if key not in keys:
                 raise ConfigError(f'unknown key {section}.{cap(key, QUOTE_LIMIT)}')
@@ -278,7 +283,7 @@ def _check_stream_tasks(rows, rho: int, sigma: int) -> None:
     """The stream's tasks must be tasks of the model: tp 1..rho, tc 1..sigma, tx 0..3."""
     for i, (tp, tc, tx, _) in enumerate(rows or ()):
         if not (1 <= tp <= rho and 1 <= tc <= sigma and 0 <= tx <= 3):
-            raise ConfigError(f'stream.q[{i}] = [{tp}, {tc}, {tx}, ...] is not a task of the '
+            raise ConfigError(f'stream.q[{i}] = {quote([tp, tc, tx])} is not a task of the '
                               f'model (tp 1..{rho}, tc 1..{sigma}, tx 0..3)')
 
 

@@ -853,9 +853,10 @@ def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, lanes: np.ndar
         inverse[lanes[fallback]] = curvature.inverse
     moved = np.setdiff1d(np.arange(len(lanes)), fallback)
     if moved.size:               # BFGS on minus the log likelihood
-        s = curvature.coordinates(x_new[moved]) - eta0[moved]
-        y = g0[moved] - curvature.gradient(s_new.lane(moved), x_new[moved])
-        sy = np.einsum('li,li->l', s, y)
+        with np.errstate(invalid='ignore'):   # a probability at 0: -inf - -inf, skipped below
+            s = curvature.coordinates(x_new[moved]) - eta0[moved]
+            y = g0[moved] - curvature.gradient(s_new.lane(moved), x_new[moved])
+            sy = np.einsum('li,li->l', s, y)
         ok = np.isfinite(sy) & (sy > 1e-12 * np.linalg.norm(s, axis=1)
                                 * np.linalg.norm(y, axis=1))
         for i in np.flatnonzero(ok):
@@ -1073,9 +1074,9 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         min_support: float = MIN_SUPPORT, progress=None, method: str = SQUAREM) -> FitResult:
     """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
     `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
-    start by SQUAREM, then the quasi-Newton EM (`run_em_batch`) from there with the
-    `curvature_at` the estimate, and every resample by the quasi-Newton EM with that
-    curvature."""
+    start by SQUAREM, then (if it left any of `max_iter`) the quasi-Newton EM
+    (`run_em_batch`) from there with the `curvature_at` the estimate, and every resample by
+    the quasi-Newton EM with that curvature."""
     hold = expand_hold(hold)
     if n_init < 1:
         raise FitError(f'n_init must be >= 1, got {n_init}')
@@ -1103,9 +1104,11 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     curvature = None
     if method == NEWTON:
         curvature = curvature_at(data, params, hold)
-        best = run_em(data, params, hold, tol, max_iter, method=NEWTON, curvature=curvature,
-                      run=dataclasses.replace(best, params=params, stats=stats))
-        params, stats = best.params, best.stats
+        if len(best.trace) <= max_iter:   # else SQUAREM used every iteration: its fit stands
+            best = run_em(data, params, hold, tol, max_iter, method=NEWTON,
+                          curvature=curvature,
+                          run=dataclasses.replace(best, params=params, stats=stats))
+            params, stats = best.params, best.stats
     support = support_of(stats)
     seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'

@@ -59,7 +59,8 @@ class StreamFit:
         if self.counts.sum():
             rows = [[int(tp), int(tc), int(tx), round(float(p), 6)]
                     for (tp, tc, tx), p in zip(self.tasks, self.q)]
-            rows[-1][3] = round(1.0 - sum(r[3] for r in rows[:-1]), 6)
+            top = int(np.argmax(self.counts))   # the rounding's remainder, where it cannot
+            rows[top][3] = round(1.0 - sum(r[3] for i, r in enumerate(rows) if i != top), 6)
         return {'arrival_idle': round(self.arrival_idle or 0.0, 6),
                 'arrival_complete': round(self.arrival_complete or 0.0, 6), 'q': rows}
 
