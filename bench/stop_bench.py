@@ -13,8 +13,8 @@ sends SIGINT to every process group at a moment drawn for the round, one of thre
   the imports of rclpy, numpy and the model, and for the fastest the node's construction);
 - `start-up`: the first four on the graph, the decision node started, SIGINT after a uniform
   0-1.5 s (the decision node importing or building, the others connecting to it);
-- `mid-epoch`: after epoch k (uniform 1-5) was published, plus a uniform fraction of the 0.5 s
-  epoch period (every node in its loop, the 50 Hz motion streaming).
+- `mid-epoch`: after epoch k (uniform 1-5) was published, plus a uniform fraction of the
+  epoch period (0.5 s; `--robot sim`: 1 s) (every node in its loop, the 50 Hz motion streaming).
 
 A node that has not exited `--timeout` s after the signal is a hang: `NodeProcesses.stop` then
 writes its stacks into its log and kills it. A log line with a traceback, KeyboardInterrupt,
@@ -39,13 +39,12 @@ from pathlib import Path
 from hrc_ros.core.paths import share_dir
 from hrc_ros.core.study.simulation import case_study
 from hrc_ros.ros import stop
-from hrc_ros.ros.case_study import cell_nodes, write_run_params, write_scenario_params
+from hrc_ros.ros.case_study import (NODE_NAMES, ROBOT_EPOCH_PERIOD, cell_nodes,
+                                    write_run_params,
+                                    write_scenario_params)
 from hrc_ros.ros.processes import NodeProcesses
 
 PHASES = ('import', 'start-up', 'mid-epoch')
-NODE_NAMES = {'cell_sim_node': 'cell_sim', 'task_manager_node': 'task_manager',
-              'belief_estimator_node': 'belief_estimator', 'cell_view_node': 'cell_view',
-              'decision_node': 'decision'}
 BAD_LOG_LINES = ('Traceback', 'KeyboardInterrupt', 'Exception ignored', 'Fatal Python error')
 EPOCH_PERIOD = 0.5
 GRAPH_TIMEOUT = 60.0
@@ -97,20 +96,21 @@ class Observer:
         self.rclpy.try_shutdown(context=self.context)
 
 
-def run_args() -> argparse.Namespace:
-    """The parameters hrc-case-study gives a default run."""
-    return argparse.Namespace(config='', epoch_period=EPOCH_PERIOD, view=True, selector='paper',
+def run_args(robot: str = 'none') -> argparse.Namespace:
+    """The parameters hrc-case-study gives a default run (`robot='sim'`: `--robot sim`'s)."""
+    period = ROBOT_EPOCH_PERIOD if robot == 'sim' else EPOCH_PERIOD
+    return argparse.Namespace(config='', epoch_period=period, view=True, selector='paper',
                               policy='', seed=0, belief_mode='', faults=[],
-                              input='joint_states', hmi='', robot='none')
+                              input='joint_states', hmi='', robot=robot)
 
 
 def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: Observer,
-              timeout: float) -> dict:
+              timeout: float, robot: str = 'none') -> dict:
     """Start the graph, stop it at the phase's random moment; per node (code, stop seconds,
     bad log lines, stacks dumped)."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    args = run_args()
+    args = run_args(robot)
     params = [share_dir() / 'config' / 'hrc_params.yaml',
               write_scenario_params(work / 'case_study_params.yaml', case_study()),
               write_run_params(work / 'run_params.yaml', args)]
@@ -139,7 +139,7 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
                 epoch = rng.randint(1, 5)
                 fraction = rng.uniform(0.0, 1.0)
                 if observer.spin_until(lambda: observer.epoch >= epoch, GRAPH_TIMEOUT, nodes):
-                    observer.spin_until(lambda: False, fraction * EPOCH_PERIOD, nodes)
+                    observer.spin_until(lambda: False, fraction * args.epoch_period, nodes)
                     moment = f'{fraction:.2f} of epoch {epoch}'
                 else:
                     moment = moment or f'epoch {epoch} never came'
@@ -203,7 +203,8 @@ def report(results: list[dict], args, elapsed: float) -> str:
                              f'{row["bad"][:2]}')
     lines.append('reproduce: python bench/stop_bench.py '
                  f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}'
-                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else ''))
+                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else '')
+                 + (f' --robot {args.robot}' if args.robot != 'none' else ''))
     return '\n'.join(lines)
 
 
@@ -216,6 +217,8 @@ def main(argv=None) -> int:
     parser.add_argument('--out', default='out/stop_bench')
     parser.add_argument('--phases', default=','.join(PHASES),
                         help=f'the phases to cycle through (default {",".join(PHASES)})')
+    parser.add_argument('--robot', default='none', choices=('none', 'sim'),
+                        help="sim: the graph of hrc-case-study --robot sim (seven nodes)")
     args = parser.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
@@ -235,7 +238,8 @@ def main(argv=None) -> int:
         try:
             for index in range(args.rounds):
                 phase = phases[index % len(phases)]
-                result = one_round(index, phase, rng, out / 'round', observer, args.timeout)
+                result = one_round(index, phase, rng, out / 'round', observer, args.timeout,
+                                   args.robot)
                 result['round'] = index
                 results.append(result)
                 bad = [n for n, row in result['nodes'].items()
