@@ -166,7 +166,7 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
 
 
 def report(results: list[dict], args, elapsed: float) -> str:
-    names = list(NODE_NAMES)
+    names = [n for n in NODE_NAMES if any(n in r['nodes'] for r in results)]  # the graph's
     phases = Counter(r['phase'] for r in results)
     lines = [f'stop_bench: {len(results)} rounds ('
              + ', '.join(f'{p} {phases[p]}' for p in PHASES) + f'), seed {args.seed}, '
