@@ -50,6 +50,19 @@ def trajectory(out):
         return list(csv.DictReader(f))
 
 
+def assert_same_trajectory(rows, expected_rows):
+    """The graph's trajectory.csv rows equal the ROS-free simulation's, epoch by epoch: states,
+    observation, action and belief."""
+    assert len(rows) == len(expected_rows) == 20
+    for got, want in zip(rows, expected_rows):
+        k = want['epoch']
+        assert int(got['epoch']) == k
+        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
+        assert (int(got['O']), got['action']) == (want['O'], want['action']), k
+        np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
+                                   [want[f'b{h}'] for h in range(9)], atol=1e-5)
+
+
 def test_the_main_job_runs_and_says_where_it_wrote(run):
     out, proc = run
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -77,16 +90,7 @@ def test_the_ros_trajectory_equals_the_ros_free_simulation(run):
     config = load_config(default_config_path())
     expected = simulate(HRCModel(config), load_policy(default_policy_path(), config),
                         case_study(), seed=SEED)
-    rows = trajectory(out)
-    assert len(rows) == len(expected.rows) == 20
-    for got, want in zip(rows, expected.rows):
-        k = want['epoch']
-        assert int(got['epoch']) == k
-        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
-        assert int(got['O']) == want['O'], k
-        assert got['action'] == want['action'], k
-        np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
-                                   [want[f'b{h}'] for h in range(9)], atol=1e-5)
+    assert_same_trajectory(trajectory(out), expected.rows)
 
 
 def test_a_body_tracker_stream_drives_the_suite_to_the_same_decisions(run, body_tracking_run):
@@ -126,13 +130,7 @@ def test_the_posterior_estimator_on_the_graph_equals_the_ros_free_posterior(tmp_
     expected = simulate(model, policy, case_study(), seed=SEED, mode='posterior')
     bayes = simulate(model, policy, case_study(), seed=SEED)
     rows = trajectory(tmp_path)
-    assert len(rows) == len(expected.rows) == 20
-    for got, want in zip(rows, expected.rows):
-        k = want['epoch']
-        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
-        assert (int(got['O']), got['action']) == (want['O'], want['action']), k
-        np.testing.assert_allclose([float(got[f'b{h}']) for h in range(9)],
-                                   [want[f'b{h}'] for h in range(9)], atol=1e-5)
+    assert_same_trajectory(rows, expected.rows)
     # the answers and moves are evidence: the beliefs differ from bayes in some epoch
     gap = max(abs(float(g[f'b{h}']) - b[f'b{h}']) for g, b in zip(rows, bayes.rows)
               for h in range(9))
@@ -156,9 +154,4 @@ def test_the_suite_runs_a_task_stream_policy_as_the_ros_free_loop_does(tmp_path,
     assert policy.path.endswith('case_study_stream.npz')
     expected = simulate(model, policy, case_study(), selector='pomdp', seed=SEED,
                         mode='posterior', pomdp=load_shipped_pomdp_policy(config))
-    rows = trajectory(tmp_path)
-    assert len(rows) == len(expected.rows) == 20
-    for got, want in zip(rows, expected.rows):
-        k = want['epoch']
-        assert [int(got[n]) for n in STATE_VARIABLES] == [want[n] for n in STATE_VARIABLES], k
-        assert (int(got['O']), got['action']) == (want['O'], want['action']), k
+    assert_same_trajectory(trajectory(tmp_path), expected.rows)
