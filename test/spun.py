@@ -1,6 +1,7 @@
 """A test's own rclpy node, in its own Context, spun in a daemon thread."""
 
 import threading
+import time
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -11,6 +12,8 @@ class SpunNode:
     it once the subscriptions and timers exist). `close()` stops the spin, destroys the node
     while its context is still valid, then shuts the context down (the order of
     hrc_ros/ros/stop.py)."""
+
+    wait_timeout = 30.0    # s, wait()'s default
 
     def __init__(self, name: str):
         self.context = rclpy.Context()
@@ -30,6 +33,18 @@ class SpunNode:
                 self.executor.spin_once(timeout_sec=0.05)
             except Exception:  # noqa: BLE001 - the context went down under it
                 return
+
+    def wait(self, predicate, what: str, timeout: float | None = None):
+        """predicate()'s first true value, polled every 20 ms; an AssertionError naming `what`
+        after `timeout` s (default `wait_timeout`)."""
+        timeout = self.wait_timeout if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        while True:
+            value = predicate()
+            if value:
+                return value
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            time.sleep(0.02)
 
     def close(self) -> None:
         self._stopping.set()

@@ -45,6 +45,8 @@ DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
 class Feeder(SpunNode):
     """The arm, the tracker and the forger, as publishers of one test node spun in a thread."""
 
+    wait_timeout = TIMEOUT
+
     def __init__(self):
         super().__init__('robot_hostile_test')
         n = self.node
@@ -89,15 +91,6 @@ class Feeder(SpunNode):
 
     def _tracker(self):
         self.skeleton.publish(conv.keypoints_to_msg(self.person[None] + BODY, self._now(-0.03)))
-
-    def wait(self, predicate, what: str, timeout: float = TIMEOUT):
-        deadline = time.monotonic() + timeout
-        while True:
-            value = predicate()
-            if value:
-                return value
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            time.sleep(0.02)
 
     def status(self, contains: str, since: int = 0):
         for status in reversed(self.statuses[since:]):

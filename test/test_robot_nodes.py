@@ -64,6 +64,8 @@ class Cell(SpunNode):
     """The test's node, spun in a thread: the person, the task manager and decision node's
     outputs, and everything the two robot nodes publish, with the arrival time."""
 
+    wait_timeout = TIMEOUT
+
     def __init__(self):
         super().__init__('robot_nodes_test')
         self.lock = threading.Lock()
@@ -124,15 +126,6 @@ class Cell(SpunNode):
         """The epoch's task state, then its action (as the task manager and decision node)."""
         self.task_pub.publish(conv.task_state_to_msg(task_state))
         self.action_pub.publish(String(data=action))
-
-    def wait(self, predicate, what: str, timeout: float = TIMEOUT):
-        deadline = time.monotonic() + timeout
-        while True:
-            value = predicate()
-            if value:
-                return value
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            time.sleep(0.02)
 
     # -- views -------------------------------------------------------------------------------
     @property
