@@ -27,6 +27,23 @@ def write_config(tmp_path, mutate):
     return path
 
 
+def test_the_arm_config_is_the_default_with_the_robot_paused_under_dp_and_dm():
+    """config/arm.yaml (docs/ROBOT.md 4): one model key more than the default; [dn] and the
+    key left out are one model, one hash; the belief filter's model is the default's."""
+    default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
+    assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
+    assert {k: v for k, v in arm.data['model'].items() if k != 'robot_paused_by'} == \
+        default.data['model']
+    assert {k: arm.data[k] for k in arm.data if k != 'model'} == \
+        {k: default.data[k] for k in default.data if k != 'model'}
+    assert arm.policy_hash != default.policy_hash
+    assert arm.belief_hash == default.belief_hash
+    explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn']}})
+    assert explicit.policy_hash == default.policy_hash
+    reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp']}})
+    assert reordered.policy_hash == arm.policy_hash
+
+
 def test_shipped_configs_load_and_differ_only_in_alpha10():
     default, paper = load_config(DEFAULT), load_config(shipped_config_path('paper'))
     assert default.cost['alpha10'] == 10 and paper.cost['alpha10'] == 1
@@ -57,6 +74,12 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['observation'].__setitem__('mode', 'magic'), r'observation\.mode'),
     (lambda d: d['solver'].__setitem__('eta', 'small'), r'solver\.eta'),
     (lambda d: d['solver'].__setitem__('fail_safe_aware', 'yes'), r'solver\.fail_safe_aware'),
+    (lambda d: d['model'].__setitem__('robot_paused_by', ['dp']), r'robot_paused_by must hold dn'),
+    (lambda d: d['model'].__setitem__('robot_paused_by', ['dn', 'ct']),
+     r"robot_paused_by: 'ct' cannot pause"),
+    (lambda d: d['model'].__setitem__('robot_paused_by', ['dn', 'dn']),
+     r'robot_paused_by lists an action twice'),
+    (lambda d: d['model'].__setitem__('robot_paused_by', 'dn'), r'robot_paused_by must be a list'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):
@@ -77,7 +100,7 @@ def test_unreadable_and_malformed_files(tmp_path):
 
 
 def test_shipped_policies_load_and_match_their_configs():
-    for name in ('default', 'paper', 'fail_safe_unaware'):
+    for name in ('default', 'paper', 'fail_safe_unaware', 'arm'):
         config = load_config(shipped_config_path(name))
         policy = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
         assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
@@ -91,7 +114,7 @@ def test_the_shipped_policy_is_found_for_its_configuration():
     """No policy named: the shipped one solved for the configuration, else default.npz (whose
     check then says what to solve)."""
     from hrc_ros.core.mdp.policy import default_policy_path
-    for name in ('default', 'paper', 'fail_safe_unaware'):
+    for name in ('default', 'paper', 'fail_safe_unaware', 'arm'):
         path = default_policy_path(load_config(shipped_config_path(name)))
         assert path.name == f'{name}.npz'
         load_policy(path, load_config(shipped_config_path(name)))

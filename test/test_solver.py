@@ -7,7 +7,7 @@ from scipy import sparse
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import ACTIONS, DN, NW, HRCModel
-from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.paths import default_config_path, shipped_config_path
 from hrc_ros.core.mdp.solver import (FactoredBellman, greedy_policy, policy_iteration, solve,
                                      value_iteration)
 
@@ -33,7 +33,9 @@ def explicit_q(model, value, matrices):
     return q
 
 
-def test_factored_q_equals_explicit_sparse_on_reduced_model(reduced):
+@pytest.mark.parametrize('config', ['default', 'arm'])
+def test_factored_q_equals_explicit_sparse_on_reduced_model(config):
+    reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
     matrices = reduced.sparse_matrices()
     for m in matrices:
         assert isinstance(m, sparse.csr_matrix)
@@ -51,6 +53,29 @@ def test_factored_q_equals_rule_by_rule_q_on_sampled_full_states(full):
     q = FactoredBellman(full).q(value)
     sample = rng.choice(full.n_states, size=3000, replace=False)
     np.testing.assert_allclose(q[:, sample].T, rule_q(full, value, sample), atol=1e-10)
+
+
+@pytest.mark.parametrize('paused', [['dn'], ['dn', 'dp'], ['dn', 'dm'], ['dn', 'dp', 'dm']])
+def test_the_robot_counter_pauses_under_the_actions_the_configuration_names(paused):
+    """model.robot_paused_by (MODEL.md 3.2): a committed robot's counter bc stays under the
+    named actions, as under dn, and runs down under the others; the factored operator's task
+    maps follow the same rule, and the fused sweep equals the max of its Q."""
+    model = HRCModel(load_config(CONFIG, overrides={**REDUCED,
+                                                    'model': {**REDUCED['model'],
+                                                              'robot_paused_by': paused}}))
+    busy = {'tp': 1, 'tc': 1, 'tx': 0, 'ty': 2, 'hp': 0, 'hc': 0, 'bp': 1, 'bc': 1}
+    task = {n: np.array([v]) for n, v in busy.items()}
+    for a in ('nw', 'dp', 'dm', 'mh', 'dn'):
+        after = model.step_task(task, ACTIONS.index(a), False)
+        assert int(after['bc'][0]) == (1 if a in paused else 0), a
+        assert int(after['tp'][0]) == (1 if a in paused else 0), a   # else the task completes
+    op = FactoredBellman(model)
+    y = int(model.task_index(task)[0])
+    assert op.t_dp[y] == (op.t_pause[y] if 'dp' in paused else op.t_default[y])
+    assert op.t_dm[y] == (op.t_pause[y] if 'dm' in paused else op.t_default[y])
+    assert op.t_pause[y] != op.t_default[y]
+    value = np.random.default_rng(5).normal(size=model.n_states) * 20
+    np.testing.assert_allclose(op.apply(value)[0], op.q(value).max(axis=0), atol=1e-10)
 
 
 @pytest.mark.parametrize('aware', [False, True], ids=['model', 'fail_safe_aware'])

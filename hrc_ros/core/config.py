@@ -9,7 +9,12 @@ tests) are made with `load_config(path, overrides={...})`.
 Sections:
 
 - `model`: rho, sigma, p_accept (per em), p_delta (per ea, Delta = -1, 0, +1), emotion chains
-  (down, stay, up) per action group and emotion variable;
+  (down, stay, up) per action group and emotion variable, and optionally `robot_paused_by`: the
+  actions under which the robot's counter bc does not run down (MODEL.md 3.2; absent: [dn], the
+  paper's model; [dn, dp, dm]: the cell with an arm, where a retreat or a move to the
+  collaboration pose stops the task's program, docs/ROBOT.md), and optionally `retreat_reach`:
+  the band below which a retreat (dp) gains one (MODEL.md 3.3; absent or null: every band; 2:
+  the arm's retreat pose cannot take a person at the shared table beyond the middle band);
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
 - `solver`: gamma, eta, sweeps (null = run to eta, at most MAX_SWEEPS; an integer = the paper's
   fixed sweep count, at most MAX_SWEEPS),
@@ -51,7 +56,8 @@ BELIEF_MODES = ('table', 'bayes', 'posterior')
 # The schema: section -> key -> kind. Kinds are checked by _check_* below.
 _SCHEMA: dict[str, dict[str, str]] = {
     'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
-              'p_delta': 'rows[3x3]', 'emotion': 'chains'},
+              'p_delta': 'rows[3x3]', 'emotion': 'chains', 'robot_paused_by': 'paused',
+              'retreat_reach': 'reach|null'},
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
     'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
@@ -60,7 +66,13 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null'},
 }
 # Keys that may be left out (they then read as null).
-_OPTIONAL = {('observation', 'likelihood'), ('stream', 'q')}
+_OPTIONAL = {('observation', 'likelihood'), ('stream', 'q'), ('model', 'robot_paused_by'),
+             ('model', 'retreat_reach')}
+# model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
+PAUSED_ALWAYS = ('dn',)
+PAUSED_MAY = ('dp', 'dm')
+# the optional model keys of the cell with an arm (docs/ROBOT.md 4), left out of belief_hash
+CELL_KEYS = ('robot_paused_by', 'retreat_reach')
 # Sections that may be left out (then absent from the validated data).
 _OPTIONAL_SECTIONS = {'stream'}
 
@@ -104,6 +116,19 @@ class Config:
     def emotion_chain(self, group: str, variable: str) -> np.ndarray:
         """(down, stay, up) of `variable` ('em' or 'ea') under action group `group`."""
         return np.asarray(self.data['model']['emotion'][group][variable], dtype=float)
+
+    @property
+    def robot_paused_by(self) -> tuple[str, ...]:
+        """The actions under which the robot's counter bc is paused (MODEL.md 3.2), in the
+        order dn, dp, dm; ('dn',) unless the configuration says more."""
+        given = self.data['model'].get('robot_paused_by') or PAUSED_ALWAYS
+        return tuple(a for a in PAUSED_ALWAYS + PAUSED_MAY if a in given)
+
+    @property
+    def retreat_reach(self) -> int | None:
+        """The band below which dp gains one band (MODEL.md 3.3); None: every band."""
+        value = self.data['model'].get('retreat_reach')
+        return None if value is None else int(value)
 
     @property
     def cost(self) -> dict[str, float]:
@@ -173,6 +198,14 @@ class Config:
     @property
     def policy_sections(self) -> dict:
         sections = {k: self.data[k] for k in ('model', 'cost', 'solver')}
+        # robot_paused_by left out or [dn], and retreat_reach left out or null, read as the
+        # paper's model: one model, one hash
+        model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
+        if self.robot_paused_by != PAUSED_ALWAYS:
+            model['robot_paused_by'] = list(self.robot_paused_by)
+        if self.retreat_reach is not None:
+            model['retreat_reach'] = self.retreat_reach
+        sections['model'] = model
         if self.has_stream:   # q left out reads as null: one model, one hash
             sections['stream'] = {'q': None, **self.data['stream']}
         return sections
@@ -189,7 +222,11 @@ class Config:
         observation), so two nodes can tell whether they track the human with one model."""
         observation = dict(self.data['observation'])
         observation.setdefault('likelihood', None)
-        return config_hash({'model': self.data['model'], 'observation': observation})
+        # what pauses the robot's counter and what a retreat gains are not the filter's:
+        # cells with and without an arm
+        # track the person with one model
+        model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
+        return config_hash({'model': model, 'observation': observation})
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
         data = copy.deepcopy(self.data)
@@ -424,6 +461,29 @@ def _check(name: str, kind: str, value: Any) -> Any:
                     raise ConfigError(f'missing key {name}.{group}.{var}')
                 out[group][var] = _prob_rows(f'{name}.{group}.{var}', [body[var]], 1, 3)[0]
         return out
+    if kind == 'reach|null':
+        if value is None:
+            return None
+        if isinstance(value, bool) or value not in (1, 2):
+            raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
+                              f'or 1 or 2 (the band it cannot retreat beyond), got '
+                              f'{quote(value)}')
+        return int(value)
+    if kind == 'paused':
+        allowed = PAUSED_ALWAYS + PAUSED_MAY
+        if not isinstance(value, (list, tuple)) or not all(isinstance(a, str) for a in value):
+            raise ConfigError(f'{name} must be a list of action names from '
+                              f'{", ".join(allowed)}, got {quote(value)}')
+        for a in value:
+            if a not in allowed:
+                raise ConfigError(f'{name}: {quote(a)} cannot pause the robot\'s counter '
+                                  f'(only {", ".join(allowed)})')
+        if len(set(value)) != len(value):
+            raise ConfigError(f'{name} lists an action twice: {quote(value)}')
+        if 'dn' not in value:
+            raise ConfigError(f'{name} must hold dn (the robot stops under dn), got '
+                              f'{quote(value)}')
+        return [a for a in allowed if a in value]
     if kind == 'belief_mode':
         if value not in BELIEF_MODES:
             raise ConfigError(f'{name} must be one of {", ".join(BELIEF_MODES)}, '

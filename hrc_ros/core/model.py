@@ -22,11 +22,14 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
    an accepted rh2 ``ty'=3`` and both agents take (tp, tc); an effective ct
    (``tp > 0, ty = 0, tx in {0, 2}``) ``ty'=2, bp'=tp, bc'=tc``. Otherwise counters count
    down (``hc' = max(0, hc-1)``, ``hp' = hp if hc != 0 else 0``, the same for the robot),
-   except that under dn the robot is paused (``bc' = bc``). A committed task whose committed
-   agents' counters are all 0 is complete and resets ``tp = tc = tx = ty = 0``; otherwise
-   ``tc'`` is the largest committed counter. An uncommitted task waits unchanged.
+   except that under dn the robot is paused (``bc' = bc``), and under dp and dm too where
+   the configuration's ``model.robot_paused_by`` says so (the cell with an arm, MODEL.md 3.2).
+   A committed task whose committed agents' counters are all 0 is complete and resets
+   ``tp = tc = tx = ty = 0``; otherwise ``tc'`` is the largest committed counter.
+   An uncommitted task waits unchanged.
 3. Distance: Delta in {-1, 0, +1} drawn from ``p_delta[ea]``; dp: ``min(3, d+1-Delta)``,
-   dm: ``max(1, d-1-Delta)``, otherwise ``min(3, max(0, d-Delta))``.
+   dm: ``max(1, d-1-Delta)``, otherwise ``min(3, max(0, d-Delta))``. With the configuration's
+   ``model.retreat_reach`` r, dp gains the band only from d < r: ``min(3, d+[d<r]-Delta)``.
 4. Emotions: em and ea each follow a bounded (down, stay, up) chain chosen by the action's
    group (base, motivate = mh, request = rh1/rh2); the 9x9 matrix is their Kronecker product.
 
@@ -130,10 +133,13 @@ def chain_matrix(down: float, stay: float, up: float) -> np.ndarray:
     return m
 
 
-def next_distance(d, action: int, delta):
-    """MODEL.md 3.3 (works on scalars and arrays)."""
+def next_distance(d, action: int, delta, reach=None):
+    """MODEL.md 3.3 (works on scalars and arrays). `reach` (the configuration's
+    ``model.retreat_reach``, `HRCModel.retreat_reach`): a retreat gains a band only from a
+    band below it; None, the model's rule, from every band."""
     if action == DP:
-        return np.minimum(3, d + 1 - delta)
+        gain = 1 if reach is None else (np.asarray(d) < reach).astype(np.int64)
+        return np.minimum(3, d + gain - delta)
     if action == DM:
         return np.maximum(1, d - 1 - delta)
     return np.minimum(3, np.maximum(0, d - delta))
@@ -157,14 +163,16 @@ def commit_effective(tp, tx, ty):
     return (tp > 0) & (ty == 0) & ((tx == 0) | (tx == 2))
 
 
-def step_task(task: dict, action: int, accepted, robot_runs=None) -> dict:
+def step_task(task: dict, action: int, accepted, robot_runs=None, paused=(DN,)) -> dict:
     """MODEL.md 3.2: the next (tp, tc, tx, ty, hp, hc, bp, bc), vectorised.
 
     `task` maps the variable names to equal-shape integer arrays (the epoch's start values);
     `accepted` is whether the human accepted (ignored unless the request is eligible).
     `robot_runs`: whether the robot's counter bc runs down this epoch; None is the model's
-    rule (every action but dn). The cell with an arm (`robot.cell`, docs/ROBOT.md) passes
-    whether the arm completed a cycle of its program, so bc follows the physical work.
+    rule: every action but those in `paused` (the configuration's ``robot_paused_by``,
+    `HRCModel.paused`; dn alone in the paper's model). The cell with an arm (`robot.cell`,
+    docs/ROBOT.md) passes whether the arm completed a cycle of its program, so bc follows the
+    physical work.
     """
     tp, tc, tx, ty = task['tp'], task['tc'], task['tx'], task['ty']
     hp, hc, bp, bc = task['hp'], task['hc'], task['bp'], task['bc']
@@ -177,7 +185,7 @@ def step_task(task: dict, action: int, accepted, robot_runs=None) -> dict:
 
     hc_n = np.where(human_new, tc, np.maximum(0, hc - 1))
     hp_n = np.where(human_new, tp, np.where(hc != 0, hp, 0))
-    runs = (action != DN) if robot_runs is None else np.asarray(robot_runs, dtype=bool)
+    runs = (action not in paused) if robot_runs is None else np.asarray(robot_runs, dtype=bool)
     bc_run = np.where(runs, np.maximum(0, bc - 1), bc)
     bc_n = np.where(robot_new, tc, bc_run)
     bp_n = np.where(robot_new, tp, np.where(bc != 0, bp, 0))
@@ -249,6 +257,18 @@ class HRCModel:
         self.n_task = int(np.prod(self.task_dims))
         self.n_states = N_HIDDEN * self.n_task * N_DISTANCE
         self.gamma = config.gamma
+        # the actions under which the robot's counter is paused (MODEL.md 3.2)
+        self.paused = tuple(ACTION_INDEX[a] for a in config.robot_paused_by)
+        # the band below which a retreat gains one (MODEL.md 3.3; None: every band)
+        self.retreat_reach = config.retreat_reach
+
+    def next_distance(self, d, action: int, delta):
+        """`next_distance` with this model's retreat (`retreat_reach`)."""
+        return next_distance(d, action, delta, self.retreat_reach)
+
+    def step_task(self, task: dict, action: int, accepted, robot_runs=None) -> dict:
+        """`step_task` with this model's rule for the robot's counter (`paused`)."""
+        return step_task(task, action, accepted, robot_runs, self.paused)
 
     # -- indexing ------------------------------------------------------------------------
     def index(self, state) -> int | np.ndarray:
@@ -317,7 +337,7 @@ class HRCModel:
         for ea in range(3):
             for d in range(N_DISTANCE):
                 for k, delta in enumerate(DELTAS):
-                    out[ea, d, next_distance(d, action, delta)] += p_delta[ea, k]
+                    out[ea, d, self.next_distance(d, action, delta)] += p_delta[ea, k]
         return out
 
     def acceptance_probability(self, action: int, em, tp, tx, ty):
@@ -433,7 +453,7 @@ class HRCModel:
         src, tgt, prob = [], [], []
         arrivals = self.arrivals
         for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
-            nxt = step_task(task, action, accepted)
+            nxt = self.step_task(task, action, accepted)
             y_step = self.task_index(nxt)
             branches = [(y_step, p_a)]
             if arrivals is not None:    # MODEL.md 8: a task may enter the cell left idle
@@ -445,7 +465,7 @@ class HRCModel:
                     branches.append((entered, p_a * p_arrive * q_j))
             for y_next, p_y in branches:
                 for k, delta in enumerate(DELTAS):
-                    d_next = next_distance(d, action, delta)
+                    d_next = self.next_distance(d, action, delta)
                     p_ad = p_y * p_delta[ea, k]
                     for h_next in range(N_HIDDEN):
                         p = p_ad * emotion[3 * em + ea, h_next]

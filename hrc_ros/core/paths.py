@@ -85,6 +85,13 @@ def default_config_path() -> Path:
     return share_dir() / 'config' / 'default.yaml'
 
 
+def arm_config_path() -> Path:
+    """The shipped configuration of the cell with an arm, `config/arm.yaml` (the default's
+    model with the robot's counter paused under dp and dm, docs/ROBOT.md): what `--robot sim`,
+    `robot:=sim` and `hrc-evaluate --cell arm` plan with unless a configuration is named."""
+    return share_dir() / 'config' / 'arm.yaml'
+
+
 def shipped_config_path(name: str) -> Path:
     """A shipped configuration by name: ``shipped_config_path('paper')`` is
     `config/paper.yaml` of the share folder."""

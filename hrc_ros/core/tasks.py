@@ -31,7 +31,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .model import TASK_VARIABLES, HRCModel, action_index, step_task
+from .model import TASK_VARIABLES, HRCModel, action_index
 
 _ENTRY = re.compile(r'^\s*(\d+)\s*:\s*(\d+)\s*,\s*(\d+)\s*,\s*(\d+)\s*$')
 
@@ -227,8 +227,9 @@ class TaskBook:
         if accepted is not None and not isinstance(accepted, (bool, np.bool_)):
             raise ValueError(f'accepted must be None, True or False, got {accepted!r}')
         before = self._state
-        after = step_task({n: np.int64(v) for n, v in before.items()}, a, bool(accepted),
-                          None if robot_runs is None else bool(robot_runs))
+        after = self.model.step_task({n: np.int64(v) for n, v in before.items()}, a,
+                                     bool(accepted),
+                                     None if robot_runs is None else bool(robot_runs))
         self._state = {n: int(after[n]) for n in TASK_VARIABLES}
         if self.current is not None:
             if before['ty'] == 0 and self._state['ty'] != 0:

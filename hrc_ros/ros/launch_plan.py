@@ -104,6 +104,8 @@ ROBOT_OVERRIDES = {
     'cell_view': {'keypoint_joints': list(K4ABT_JOINTS), 'robot': True},
 }
 BODY_TRACKING_SIM_PARAMS = 'body_tracking_sim_params.yaml'
+# robot:=sim without config:=: every node reads the arm's model (docs/ROBOT.md, section 4)
+ARM_CONFIG = 'arm.yaml'
 # cell_sim's motion goes to tracker_sim instead of the estimator when a tracker is simulated.
 SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
                      ('human/skeleton', 'sim/human/skeleton')]
@@ -152,6 +154,9 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
         params_files.append(os.path.join(config_dir, BODY_TRACKING_SIM_PARAMS))
     if params_file and os.path.abspath(params_file) not in map(os.path.abspath, params_files):
         params_files.append(params_file)
+    robot = _flag('robot', robot, ROBOTS) == 'sim'
+    if robot and not config:   # the arm's model: its program waits under dp and dm
+        config = os.path.join(config_dir, ARM_CONFIG)
     common = {'config': config} if config else {}
     decision = dict(common)
     if policy:
@@ -165,7 +170,6 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
         overrides['cell_sim'] = {**common, 'answer_requests': False}
     elif use_sim and hmi:                # the simulated person answers, the page shows it
         overrides['hmi'] = {**common, 'worker_answers': False}
-    robot = _flag('robot', robot, ROBOTS) == 'sim'
     if robot and body_tracking and use_sim:
         raise ValueError(SYNTHETIC_TRACKER_WITH_ARM)
     if robot:

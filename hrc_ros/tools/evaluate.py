@@ -9,6 +9,8 @@ With `--cell arm` the episodes run in the cell with the arm (core.robot.cell: th
 the MuJoCo UR5e, the person walking around it) and the table is in physical units: tasks per
 hour, idle and protective-stop time, the minimum separation, SSM violations, refused requests,
 with every selector's paired differences to the baseline (ssm_only, SSM alone, by default).
+Without `--config` it plans with the arm's model, `config/arm.yaml` (the robot's counter paused
+under dp and dm, MODEL.md 3.2), and its shipped policy.
 
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
 `episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
@@ -35,7 +37,7 @@ from ..core.study.evaluation import (METRICS, SCENARIOS, evaluate, format_paired
                                      format_table, paired_difference, summarize)
 from ..core.model import HRCModel
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
-from ..core.paths import write_text, written
+from ..core.paths import arm_config_path, write_text, written
 from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
@@ -111,6 +113,8 @@ def evaluate_arm_cell(args, parser) -> int:
         parser.error(f'--episodes x --epochs = {episodes * epochs:,} is more than '
                      f'{MAX_EPISODE_EPOCHS // 1000:,} epochs per selector in the cell with the '
                      'arm (about an hour)')
+    if not args.config:   # the arm's model: its program waits under dp and dm (docs/ROBOT.md)
+        args.config = str(arm_config_path())
     try:
         config, model, policy = load_model(args)
         pomdp = load_pomdp(args, config, selectors)

@@ -29,8 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, next_distance,
-                     request_eligible)
+from ..model import (ACTION_EMOTION_GROUP, DELTAS, HRCModel, action_index, request_eligible)
 
 UNIFORMS_PER_EPOCH = 5
 
@@ -111,7 +110,7 @@ class SimulatedHuman:
         if request_eligible(a, tp, tx, ty):
             accepted = bool(u_accept < self._accept[self.em])
         delta = DELTAS[int(sample_index(self._delta_cdf[self.ea], u_delta))]
-        self.d = int(next_distance(self.d, a, delta))
+        self.d = int(self.model.next_distance(self.d, a, delta))
         em_cdf, ea_cdf = self._chain_cdf[ACTION_EMOTION_GROUP[a]]
         self.em = int(sample_index(em_cdf[self.em], u_em))
         self.ea = int(sample_index(ea_cdf[self.ea], u_ea))

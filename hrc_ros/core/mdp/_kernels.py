@@ -24,7 +24,9 @@ task maps
 `t_default`, `t_pause`, `t_commit` (-1 where ct is not effective), `t_accept` (-1 where no
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
 [group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
-(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); the stream (MODEL.md 8; empty
+(9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `dp_paused`, `dm_paused` (dp, dm step
+the task as dn does, `t_pause`, instead of as nw, `t_default`: `model.robot_paused_by`); the
+stream (MODEL.md 8; empty
 `arrive_y` without one): `arrive_y` the idle y, `arrive_enter` (len(arrive_y), K) the task
 states a task k makes of them, `arrive_q` (K,), `p_idle`, `p_complete`; `value` V (9, n_y, 4);
 `w` (3, 9, n_w, 4) scratch for the emotion step (n_w = n_y, or 2 n_y with a stream: rows
@@ -53,8 +55,8 @@ def _mix(c, x0, x1, x2, x3):
 
 
 def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
-           fail_safe_aware, arrive_y, arrive_enter, arrive_q, p_idle, p_complete, value, w,
-           out, residual):
+           fail_safe_aware, dp_paused, dm_paused, arrive_y, arrive_enter, arrive_q, p_idle,
+           p_complete, value, w, out, residual):
     n_y = value.shape[1]
     # 1. emotion step for the three groups (one parallel region)
     for y in numba.prange(n_y):
@@ -114,13 +116,23 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             x1 = wb[y0, 1]
             x2 = wb[y0, 2]
             x3 = wb[y0, 3]
+            p0 = wb[yq, 0]  # the paused successor: dn's, and dp's, dm's where they pause
+            p1 = wb[yq, 1]
+            p2 = wb[yq, 2]
+            p3 = wb[yq, 3]
             b0, b1, b2, b3 = _mix_inline(cn, x0, x1, x2, x3)  # nw
-            q0, q1, q2, q3 = _mix_inline(cp, x0, x1, x2, x3)  # dp
+            if dp_paused:
+                q0, q1, q2, q3 = _mix_inline(cp, p0, p1, p2, p3)  # dp
+            else:
+                q0, q1, q2, q3 = _mix_inline(cp, x0, x1, x2, x3)  # dp
             b0 = max(b0, q0 - g_dp)
             b1 = max(b1, q1 - g_dp)
             b2 = max(b2, q2 - g_dp)
             b3 = max(b3, q3 - g_dp)
-            q0, q1, q2, q3 = _mix_inline(cm, x0, x1, x2, x3)  # dm
+            if dm_paused:
+                q0, q1, q2, q3 = _mix_inline(cm, p0, p1, p2, p3)  # dm
+            else:
+                q0, q1, q2, q3 = _mix_inline(cm, x0, x1, x2, x3)  # dm
             b0 = max(b0, q0 - g_dm)
             b1 = max(b1, q1 - g_dm)
             b2 = max(b2, q2 - g_dm)
@@ -130,7 +142,7 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             b1 = max(b1, q1 - g_mh)
             b2 = max(b2, q2 - g_mh)
             b3 = max(b3, q3 - g_mh)
-            q0, q1, q2, q3 = _mix_inline(cn, wb[yq, 0], wb[yq, 1], wb[yq, 2], wb[yq, 3])  # dn
+            q0, q1, q2, q3 = _mix_inline(cn, p0, p1, p2, p3)  # dn
             dn0 = q0
             b0 = max(b0, q0)
             b1 = max(b1, q1)

@@ -15,7 +15,8 @@ deterministic task step y -> y' = T_a(y, accepted). These commute in the right o
 So a sweep is one 27x9 matrix product (the three emotion groups), a few batched 4x4 distance
 products, and gathers along y. ct differs from nw only where it is effective
 (`model.commit_effective`), requests only where eligible (`model.request_eligible`), dn only by
-the paused robot counter.
+the paused robot counter; dp and dm step the task as nw does, or as dn does where the
+configuration pauses the robot under them (`model.robot_paused_by`, the cell with an arm).
 
 `FactoredBellman` is the operator, in two forms of one definition:
 
@@ -56,7 +57,7 @@ import numpy as np
 from . import _kernels
 from ..config import MAX_SWEEPS
 from ..model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, HRCModel,
-                     commit_effective, request_eligible, safest_best, step_task, tie_floor)
+                     commit_effective, request_eligible, safest_best, tie_floor)
 
 SOLVER_VERSION = '2.0'
 METHODS = ('value_iteration', 'policy_iteration')
@@ -94,11 +95,15 @@ class FactoredBellman:
         self.shape = (N_HIDDEN, n_y, N_DISTANCE)
 
         def task_map(action, accepted):
-            return model.task_index(step_task(grid, action, accepted)).astype(np.intp)
+            return model.task_index(model.step_task(grid, action, accepted)).astype(np.intp)
 
         # Deterministic task steps y -> y'.
-        self.t_default = task_map(NW, False)        # nw dp dm mh, refused requests, idle ct
+        self.t_default = task_map(NW, False)        # nw mh, refused requests, idle ct
         self.t_pause = task_map(DN, False)          # dn: the robot's counter is paused
+        # dp, dm: t_default, or t_pause where the configuration pauses the robot under them
+        self.dp_paused, self.dm_paused = DP in model.paused, DM in model.paused
+        self.t_dp = self.t_pause if self.dp_paused else self.t_default
+        self.t_dm = self.t_pause if self.dm_paused else self.t_default
         tp, tx, ty = grid['tp'], grid['tx'], grid['ty']
         self.ct_effective = np.flatnonzero(commit_effective(tp, tx, ty))
         t_ct = task_map(CT, False)                  # equals t_default where ct is ineffective
@@ -161,6 +166,8 @@ class FactoredBellman:
         self.n_w = n_y if arrivals is None else 2 * n_y
         self.g_default = self.t_default + offset
         self.g_pause = self.t_pause + offset
+        self.g_dp = self.t_dp + offset
+        self.g_dm = self.t_dm + offset
         self.g_commit_full = np.where(self.t_commit_full >= 0, self.t_commit_full + offset, -1)
         self.g_accept_full = np.where(self.t_accept_full >= 0, self.t_accept_full + offset, -1)
         self._w = None
@@ -196,8 +203,8 @@ class FactoredBellman:
         nw = base[..., 0:4]
         q = np.empty((len(ACTIONS),) + self.shape)
         q[NW] = nw[:, self.g_default]
-        q[DP] = base[:, self.g_default, 4:8]
-        q[DM] = base[:, self.g_default, 8:12]
+        q[DP] = base[:, self.g_dp, 4:8]
+        q[DM] = base[:, self.g_dm, 8:12]
         q[MH] = motivate[:, self.g_default]
         q[DN] = nw[:, self.g_pause]
         q[CT] = q[NW]
@@ -226,7 +233,8 @@ class FactoredBellman:
             out = np.empty(self.model.n_states)
         _kernels.sweep(self.gamma_emotion, self.g_default, self.g_pause, self.g_commit_full,
                        self.g_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
-                       self.fail_safe_aware, self.arrive_y, self.arrive_enter, self.arrive_q,
+                       self.fail_safe_aware, self.dp_paused, self.dm_paused,
+                       self.arrive_y, self.arrive_enter, self.arrive_q,
                        self.arrive_p[0], self.arrive_p[1],
                        np.ascontiguousarray(value).reshape(self.shape),
                        self._w, out.reshape(self.shape), self._residual)

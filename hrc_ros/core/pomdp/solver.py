@@ -64,7 +64,7 @@ import numpy as np
 from . import _kernels as kernels
 from .belief import BeliefFilter
 from ..config import EMOTION_GROUPS
-from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DN, N_DISTANCE, N_HIDDEN, RH1, RH2,
+from ..model import (ACTION_EMOTION_GROUP, ACTIONS, CT, DM, DN, DP, N_DISTANCE, N_HIDDEN, RH1, RH2,
                      SAFETY_ORDER, TASK_VARIABLES, HRCModel, entering_task, safest_best,
                      safest_best_one, tie_floor)
 from ..mdp.solver import FactoredBellman
@@ -187,7 +187,7 @@ def _task_outcomes(op: FactoredBellman):
     commit = np.where(op.t_commit_full >= 0, op.t_commit_full, op.t_default)
     out = []
     for a in range(len(ACTIONS)):
-        refused = {DN: op.t_pause, CT: commit}.get(a, op.t_default)
+        refused = {DN: op.t_pause, CT: commit, DP: op.t_dp, DM: op.t_dm}.get(a, op.t_default)
         eligible = {RH1: rh1, RH2: rh2}.get(a, np.zeros(op.n_y, dtype=bool))
         out.append((refused, np.where(eligible, op.t_accept_full, -1), eligible))
     return out

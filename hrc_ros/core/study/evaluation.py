@@ -39,8 +39,8 @@ import numpy as np
 from ..pomdp.belief import BeliefFilter
 from ..cell.human import UNIFORMS_PER_EPOCH, sample_index
 from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HIDDEN,
-                     TASK_VARIABLES, HRCModel, first_in_safety_order, next_distance,
-                     request_eligible, safest_best, step_task)
+                     TASK_VARIABLES, HRCModel, first_in_safety_order,
+                     request_eligible, safest_best)
 from ..mdp.policy import policy_arrays
 from ..decision.selection import POMDP_SELECTORS, VOTE_TOLERANCE
 from .simulation import SIMULATION_SELECTORS, Scenario, case_study
@@ -173,14 +173,14 @@ class BatchSimulator:
         self.grid = grid
         # y' = task_step[a, accepted, y]; eligible[a, y]: an eligible request.
         self.task_step = np.stack([
-            np.stack([model.task_index(step_task(grid, a, acc)) for acc in (False, True)])
+            np.stack([model.task_index(world.step_task(grid, a, acc)) for acc in (False, True)])
             for a in range(len(ACTIONS))]).astype(np.intp)
         self.eligible = np.stack([request_eligible(a, grid['tp'], grid['tx'], grid['ty'])
                                   for a in range(len(ACTIONS))])
         cfg = world.config        # the human's side: the world's
         self.p_accept = cfg.p_accept
         self.delta_cdf = np.cumsum(cfg.p_delta, axis=1)
-        self.next_d = np.array([[[next_distance(d, a, delta) for delta in DELTAS]
+        self.next_d = np.array([[[world.next_distance(d, a, delta) for delta in DELTAS]
                                  for d in range(N_DISTANCE)] for a in range(len(ACTIONS))])
         chains = world.emotion_chains
         self.em_cdf = np.stack([np.cumsum(chains[ACTION_EMOTION_GROUP[a]][0], axis=1)
