@@ -45,7 +45,7 @@ from hrc_ros.core.cell.tracking import K4ABT_JOINTS
 from hrc_ros.core.config import load_config
 from hrc_ros.core.mdp.policy import default_policy_path, load_policy
 from hrc_ros.core.model import HRCModel
-from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.paths import arm_config_path
 from hrc_ros.core.robot import bridge as bridge_module
 from hrc_ros.core.protocol import Stamp
 from hrc_ros.core.robot.arm import Arm, body_capsules
@@ -221,7 +221,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     print(f'python bench/robot_bench.py {" ".join(argv or sys.argv[1:])}'.rstrip())
     print(pin_to_one_core(), f'load average {os.getloadavg()[0]:.1f}')
-    config = load_config(default_config_path())
+    config = load_config(arm_config_path())     # the arm's model, as hrc-evaluate --cell arm
     model = HRCModel(config)
     policy = load_policy(default_policy_path(config), config)
 

@@ -27,20 +27,25 @@ def write_config(tmp_path, mutate):
     return path
 
 
-def test_the_arm_config_is_the_default_with_the_robot_paused_under_dp_and_dm():
-    """config/arm.yaml (docs/ROBOT.md 4): one model key more than the default; [dn] and the
-    key left out are one model, one hash; the belief filter's model is the default's."""
+def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
+    """config/arm.yaml (docs/ROBOT.md 4): two model keys more than the default (the robot
+    paused under dp and dm, a retreat that gains no band); each key's default and the key left
+    out are one model, one hash; the belief filter's model is the default's."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
-    assert {k: v for k, v in arm.data['model'].items() if k != 'robot_paused_by'} == \
-        default.data['model']
+    assert default.retreat_reach is None and arm.retreat_reach == 1
+    assert {k: v for k, v in arm.data['model'].items()
+            if k not in ('robot_paused_by', 'retreat_reach')} == default.data['model']
     assert {k: arm.data[k] for k in arm.data if k != 'model'} == \
         {k: default.data[k] for k in default.data if k != 'model'}
     assert arm.policy_hash != default.policy_hash
     assert arm.belief_hash == default.belief_hash
-    explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn']}})
+    explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None}})
     assert explicit.policy_hash == default.policy_hash
-    reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp']}})
+    reach = load_config(DEFAULT, {'model': {'retreat_reach': 2}})
+    assert reach.policy_hash not in (default.policy_hash, arm.policy_hash)
+    reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp'],
+                                                'retreat_reach': 1}})
     assert reordered.policy_hash == arm.policy_hash
 
 
@@ -80,6 +85,8 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['model'].__setitem__('robot_paused_by', ['dn', 'dn']),
      r'robot_paused_by lists an action twice'),
     (lambda d: d['model'].__setitem__('robot_paused_by', 'dn'), r'robot_paused_by must be a list'),
+    (lambda d: d['model'].__setitem__('retreat_reach', 3), r'model\.retreat_reach must be null'),
+    (lambda d: d['model'].__setitem__('retreat_reach', True), r'model\.retreat_reach must be'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):

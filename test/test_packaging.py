@@ -437,6 +437,17 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert by_name['cell_sim'].parameters[-1] == {'config': 'c.yaml', 'person': '3d'}
     assert by_name['cell_view'].parameters[-1]['robot'] is True
     assert 'robot_bridge' not in {n.name for n in cell_nodes(share)}
+    # no config:= with the arm: every node reads the arm's model (docs/ROBOT.md 6), for which
+    # the shipped policies hold one
+    arm = str(share / 'config' / 'arm.yaml')
+    plan = cell_nodes(share, robot='sim')
+    assert all(n.parameters[-1]['config'] == arm for n in plan), \
+        [(n.name, n.parameters[-1]) for n in plan]
+    assert all(n.parameters[-1].get('config', '') == '' for n in cell_nodes(share))
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.mdp.policy import default_policy_path
+    from hrc_ros.core.paths import arm_config_path
+    assert default_policy_path(load_config(arm_config_path())).name == 'arm.npz'
     with pytest.raises(ValueError, match="tracker_sim's synthetic body"):
         cell_nodes(share, robot='sim', body_tracking='true')
     assert 'body_tracking' in {n.name for n in cell_nodes(share, robot='sim', use_sim='false',

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -725,6 +726,9 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
     assert 'paired differences to ssm_only' in out
     summary = json.loads((tmp_path / 'summary.json').read_text())
     assert summary['baseline'] == 'ssm_only' and summary['settings']['cell'] == 'arm'
+    # no --config: the arm's model and its shipped policy (docs/ROBOT.md 4)
+    assert Path(summary['settings']['config']).name == 'arm.yaml'
+    assert Path(summary['settings']['policy']).name == 'arm.npz'
     assert all(v['ssm_violations']['mean'] == 0 for v in summary['selectors'].values())
     with (tmp_path / 'episodes.csv').open() as f:
         assert len(list(csv.DictReader(f))) == 9

@@ -78,6 +78,28 @@ def test_the_robot_counter_pauses_under_the_actions_the_configuration_names(paus
     np.testing.assert_allclose(op.apply(value)[0], op.q(value).max(axis=0), atol=1e-10)
 
 
+@pytest.mark.parametrize('reach', [None, 2, 1])
+def test_a_retreat_gains_a_band_only_below_the_configured_reach(reach):
+    """model.retreat_reach (MODEL.md 3.3): dp raises d by one from d < reach (every d without
+    one), the human's Delta as ever; the distance matrices the solvers use follow it."""
+    model = HRCModel(load_config(CONFIG, overrides={**REDUCED, 'model': {
+        **REDUCED['model'], 'retreat_reach': reach}}))
+    for d in range(4):
+        for delta in (-1, 0, 1):
+            gain = 1 if reach is None or d < reach else 0
+            assert int(model.next_distance(d, ACTIONS.index('dp'), delta)) == \
+                min(3, d + gain - delta)
+            assert int(model.next_distance(d, NW, delta)) == min(3, max(0, d - delta))
+    p_delta = model.config.p_delta
+    matrix = model.distance_matrix(ACTIONS.index('dp'))
+    # ea = 0 at d = 2: without a reach dp lands on 3 unless the human steps closer (Delta = +1)
+    expected = {None: [0, 0, p_delta[0, 2], p_delta[0, 0] + p_delta[0, 1]],
+                2: [0, p_delta[0, 2], p_delta[0, 1], p_delta[0, 0]],
+                1: [0, p_delta[0, 2], p_delta[0, 1], p_delta[0, 0]]}[reach]
+    np.testing.assert_allclose(matrix[0, 2], expected)
+    assert matrix[0, 1, 2] == pytest.approx(p_delta[0, 1] if reach != 1 else p_delta[0, 0])
+
+
 @pytest.mark.parametrize('aware', [False, True], ids=['model', 'fail_safe_aware'])
 @pytest.mark.parametrize('overrides', [REDUCED, {}], ids=['reduced', 'full'])
 def test_fast_sweeps_equal_the_max_of_q(overrides, aware):
