@@ -30,7 +30,7 @@ def write_config(tmp_path, mutate):
 def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     """config/arm.yaml (docs/ROBOT.md 4): two model keys more than the default (the robot
     paused under dp and dm, a retreat that gains no band); each key's default and the key left
-    out are one model, one hash; the belief filter's model is the default's."""
+    out are one model, one hash."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
     assert default.retreat_reach is None and arm.retreat_reach == 1
