@@ -459,6 +459,50 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
             cell_nodes(share, **{name: bad})
 
 
+def _resolved_parameter(node, params_dir, name: str):
+    """The value rcl gives parameter `name` of `node` started as the launch file starts it
+    (`ros_arguments`: its params files in order, the arguments' overrides last)."""
+    import rclpy
+    from hrc_ros.ros import stop
+    from hrc_ros.ros.launch_plan import ros_arguments
+    context = rclpy.Context()
+    rclpy.init(args=['plan', '--ros-args', *ros_arguments(node, params_dir)], context=context,
+               **stop.init_options())
+    try:
+        probe = rclpy.create_node('launch_plan_probe', context=context)
+        try:
+            return probe.declare_parameter(name, '').value
+        finally:
+            probe.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_the_arm_config_of_robot_sim_yields_to_a_params_file_that_names_one(tmp_path,
+                                                                             ros_domain_id):
+    """robot:=sim without config:= reads the arm's model (docs/ROBOT.md 4), but, as the
+    config argument says ('' = the params files'), a params_file that sets `config` keeps it:
+    for every node (`/**`) and for one node's section alike. config:= wins over both."""
+    from hrc_ros.core.paths import share_dir
+    from hrc_ros.ros.launch_plan import cell_nodes
+    share = share_dir()
+    arm = str(share / 'config' / 'arm.yaml')
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text(yaml.safe_dump({
+        '/**': {'ros__parameters': {'config': '/cells/mine.yaml'}},
+        '/**/decision': {'ros__parameters': {'config': '/cells/decision.yaml'}}}))
+    for params_file, config, expected in (
+            ('', '', {'decision': arm, 'task_manager': arm}),
+            (str(mine), '', {'decision': '/cells/decision.yaml',
+                             'task_manager': '/cells/mine.yaml'}),
+            (str(mine), 'c.yaml', {'decision': 'c.yaml', 'task_manager': 'c.yaml'})):
+        plan = {n.name: n for n in cell_nodes(share, params_file=params_file, config=config,
+                                              robot='sim')}
+        for name, want in expected.items():
+            got = _resolved_parameter(plan[name], tmp_path, 'config')
+            assert got == want, (params_file, config, name, plan[name].parameters)
+
+
 def test_launch_plan_reads_human_motion_from_a_body_tracker(tmp_path):
     """body_tracking:=true: body_tracking_node feeds human/*; with the simulated cell its motion
     goes to tracker_sim_node (remapped), with the synthetic camera's pose."""
