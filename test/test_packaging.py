@@ -439,11 +439,16 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert 'robot_bridge' not in {n.name for n in cell_nodes(share)}
     # no config:= with the arm: every node reads the arm's model (docs/ROBOT.md 6), for which
     # the shipped policies hold one
+    # (a layer for every node before the user's params file, which may name another)
+    from hrc_ros.ros.launch_plan import AllNodes
     arm = str(share / 'config' / 'arm.yaml')
-    plan = cell_nodes(share, robot='sim')
-    assert all(n.parameters[-1]['config'] == arm for n in plan), \
-        [(n.name, n.parameters[-1]) for n in plan]
-    assert all(n.parameters[-1].get('config', '') == '' for n in cell_nodes(share))
+    plan = cell_nodes(share, robot='sim', params_file='mine.yaml')
+    assert all(n.parameters[:3] == [base, AllNodes(config=arm), 'mine.yaml']
+               and isinstance(n.parameters[1], AllNodes)
+               and 'config' not in n.parameters[-1] for n in plan), \
+        [(n.name, n.parameters) for n in plan]
+    assert all(n.parameters[-1].get('config', '') == '' and len(n.parameters) == 2
+               for n in cell_nodes(share))
     from hrc_ros.core.config import load_config
     from hrc_ros.core.mdp.policy import default_policy_path
     from hrc_ros.core.paths import arm_config_path
