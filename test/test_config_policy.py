@@ -111,6 +111,8 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['model'].__setitem__('robot_paused_by', 'dn'), r'robot_paused_by must be a list'),
     (lambda d: d['model'].__setitem__('retreat_reach', 3), r'model\.retreat_reach must be null'),
     (lambda d: d['model'].__setitem__('retreat_reach', True), r'model\.retreat_reach must be'),
+    # an integer key, as rho and sigma: 1.0 is not one
+    (lambda d: d['model'].__setitem__('retreat_reach', 1.0), r'model\.retreat_reach must be'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):
