@@ -467,7 +467,8 @@ def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'reach|null':
         if value is None:
             return None
-        if isinstance(value, bool) or value not in (1, 2):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+                or value not in (1, 2):
             raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
                               f'or 1 or 2 (the band it cannot retreat beyond), got '
                               f'{quote(value)}')
