@@ -157,8 +157,11 @@ def test_the_shipped_policy_is_found_for_its_configuration():
         load_policy(default_policy_path(other), other)
 
 
-def test_shipped_default_policy_is_a_fresh_solve():
-    config = load_config(DEFAULT)
+@pytest.mark.parametrize('name', ['default', 'arm'])
+def test_shipped_default_policy_is_a_fresh_solve(name):
+    """policies/default.npz and, solved with the arm's keys (the kernel's dp_paused and
+    dm_paused), policies/arm.npz: action for action what a solve gives today."""
+    config = load_config(shipped_config_path(name))
     fresh = solve(HRCModel(config))
     shipped = load_policy(default_policy_path(config), config)
     np.testing.assert_array_equal(shipped.policy, fresh.policy)
