@@ -155,3 +155,18 @@ def test_the_suite_runs_a_task_stream_policy_as_the_ros_free_loop_does(tmp_path,
     expected = simulate(model, policy, case_study(), selector='pomdp', seed=SEED,
                         mode='posterior', pomdp=load_shipped_pomdp_policy(config))
     assert_same_trajectory(trajectory(tmp_path), expected.rows)
+
+
+def test_a_selector_without_a_shipped_pomdp_policy_is_refused_before_any_node_starts(
+        tmp_path, ros_domain_id):
+    """pomdp and fib read the shipped POMDP policy of the configuration; --robot sim plans with
+    config/arm.yaml, for which none is shipped: one line that says what to solve and exit 2
+    before the nodes start (as for a policy file), not a decision node that dies after the
+    graph is up."""
+    result = hrc_case_study(tmp_path / 'out', '--robot', 'sim', '--selector', 'pomdp',
+                            '--epochs', '2')
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert 'nodes up' not in result.stdout
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('hrc-case-study: error:'), lines
+    assert '--method pomdp' in lines[0] and 'arm.yaml' in lines[0]

@@ -30,7 +30,7 @@ def write_config(tmp_path, mutate):
 def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     """config/arm.yaml (docs/ROBOT.md 4): two model keys more than the default (the robot
     paused under dp and dm, a retreat that gains no band); each key's default and the key left
-    out are one model, one hash; the belief filter's model is the default's."""
+    out are one model, one hash."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
     assert default.retreat_reach is None and arm.retreat_reach == 1
@@ -39,7 +39,6 @@ def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     assert {k: arm.data[k] for k in arm.data if k != 'model'} == \
         {k: default.data[k] for k in default.data if k != 'model'}
     assert arm.policy_hash != default.policy_hash
-    assert arm.belief_hash == default.belief_hash
     explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None}})
     assert explicit.policy_hash == default.policy_hash
     reach = load_config(DEFAULT, {'model': {'retreat_reach': 2}})
@@ -47,6 +46,31 @@ def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp'],
                                                 'retreat_reach': 1}})
     assert reordered.policy_hash == arm.policy_hash
+
+
+def test_the_belief_hash_tells_apart_what_the_posterior_filter_reads_of_the_arms_keys():
+    """The exact posterior (mode posterior, MODEL.md 6) reads the distance move through the
+    distance matrices, which model.retreat_reach changes: after dp from d = 2 to d = 3 the arm's
+    model (reach 1: no band gained) and the default (a band gained) update the belief apart, so
+    their belief hashes must differ, or the decision node calls an estimator on the other model
+    a match. What pauses the robot's counter is no part of the filter: one belief hash."""
+    from hrc_ros.core.model import DP
+    from hrc_ros.core.pomdp.belief import BeliefFilter
+    default = load_config(DEFAULT)
+    reach = load_config(DEFAULT, {'model': {'retreat_reach': 1}})
+    beliefs = []
+    for config in (default, reach):
+        model = HRCModel(config)
+        belief_filter = BeliefFilter(model, mode='posterior')
+        evidence = model.transition_likelihood(DP, False, False, 2, 3)
+        beliefs.append(belief_filter.update(np.full(9, 1 / 9), DP, 2, evidence))
+    assert np.abs(beliefs[0] - beliefs[1]).max() > 0.01
+    assert reach.belief_hash != default.belief_hash
+    assert load_config(shipped_config_path('arm')).belief_hash == reach.belief_hash
+    assert load_config(DEFAULT, {'model': {'retreat_reach': None}}).belief_hash == \
+        default.belief_hash
+    paused = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn', 'dp', 'dm']}})
+    assert paused.belief_hash == default.belief_hash
 
 
 def test_shipped_configs_load_and_differ_only_in_alpha10():
@@ -87,6 +111,8 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['model'].__setitem__('robot_paused_by', 'dn'), r'robot_paused_by must be a list'),
     (lambda d: d['model'].__setitem__('retreat_reach', 3), r'model\.retreat_reach must be null'),
     (lambda d: d['model'].__setitem__('retreat_reach', True), r'model\.retreat_reach must be'),
+    # an integer key, as rho and sigma: 1.0 is not one
+    (lambda d: d['model'].__setitem__('retreat_reach', 1.0), r'model\.retreat_reach must be'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):
@@ -131,8 +157,11 @@ def test_the_shipped_policy_is_found_for_its_configuration():
         load_policy(default_policy_path(other), other)
 
 
-def test_shipped_default_policy_is_a_fresh_solve():
-    config = load_config(DEFAULT)
+@pytest.mark.parametrize('name', ['default', 'arm'])
+def test_shipped_default_policy_is_a_fresh_solve(name):
+    """policies/default.npz and, solved with the arm's keys (the kernel's dp_paused and
+    dm_paused), policies/arm.npz: action for action what a solve gives today."""
+    config = load_config(shipped_config_path(name))
     fresh = solve(HRCModel(config))
     shipped = load_policy(default_policy_path(config), config)
     np.testing.assert_array_equal(shipped.policy, fresh.policy)

@@ -439,11 +439,16 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert 'robot_bridge' not in {n.name for n in cell_nodes(share)}
     # no config:= with the arm: every node reads the arm's model (docs/ROBOT.md 6), for which
     # the shipped policies hold one
+    # (a layer for every node before the user's params file, which may name another)
+    from hrc_ros.ros.launch_plan import AllNodes
     arm = str(share / 'config' / 'arm.yaml')
-    plan = cell_nodes(share, robot='sim')
-    assert all(n.parameters[-1]['config'] == arm for n in plan), \
-        [(n.name, n.parameters[-1]) for n in plan]
-    assert all(n.parameters[-1].get('config', '') == '' for n in cell_nodes(share))
+    plan = cell_nodes(share, robot='sim', params_file='mine.yaml')
+    assert all(n.parameters[:3] == [base, AllNodes(config=arm), 'mine.yaml']
+               and isinstance(n.parameters[1], AllNodes)
+               and 'config' not in n.parameters[-1] for n in plan), \
+        [(n.name, n.parameters) for n in plan]
+    assert all(n.parameters[-1].get('config', '') == '' and len(n.parameters) == 2
+               for n in cell_nodes(share))
     from hrc_ros.core.config import load_config
     from hrc_ros.core.mdp.policy import default_policy_path
     from hrc_ros.core.paths import arm_config_path
@@ -457,6 +462,50 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
                       ('body_tracking', 'on'), ('hmi', 'yes'), ('robot', 'real')):
         with pytest.raises(ValueError, match=name):
             cell_nodes(share, **{name: bad})
+
+
+def _resolved_parameter(node, params_dir, name: str):
+    """The value rcl gives parameter `name` of `node` started as the launch file starts it
+    (`ros_arguments`: its params files in order, the arguments' overrides last)."""
+    import rclpy
+    from hrc_ros.ros import stop
+    from hrc_ros.ros.launch_plan import ros_arguments
+    context = rclpy.Context()
+    rclpy.init(args=['plan', '--ros-args', *ros_arguments(node, params_dir)], context=context,
+               **stop.init_options())
+    try:
+        probe = rclpy.create_node('launch_plan_probe', context=context)
+        try:
+            return probe.declare_parameter(name, '').value
+        finally:
+            probe.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_the_arm_config_of_robot_sim_yields_to_a_params_file_that_names_one(tmp_path,
+                                                                             ros_domain_id):
+    """robot:=sim without config:= reads the arm's model (docs/ROBOT.md 4), but, as the
+    config argument says ('' = the params files'), a params_file that sets `config` keeps it:
+    for every node (`/**`) and for one node's section alike. config:= wins over both."""
+    from hrc_ros.core.paths import share_dir
+    from hrc_ros.ros.launch_plan import cell_nodes
+    share = share_dir()
+    arm = str(share / 'config' / 'arm.yaml')
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text(yaml.safe_dump({
+        '/**': {'ros__parameters': {'config': '/cells/mine.yaml'}},
+        '/**/decision': {'ros__parameters': {'config': '/cells/decision.yaml'}}}))
+    for params_file, config, expected in (
+            ('', '', {'decision': arm, 'task_manager': arm}),
+            (str(mine), '', {'decision': '/cells/decision.yaml',
+                             'task_manager': '/cells/mine.yaml'}),
+            (str(mine), 'c.yaml', {'decision': 'c.yaml', 'task_manager': 'c.yaml'})):
+        plan = {n.name: n for n in cell_nodes(share, params_file=params_file, config=config,
+                                              robot='sim')}
+        for name, want in expected.items():
+            got = _resolved_parameter(plan[name], tmp_path, 'config')
+            assert got == want, (params_file, config, name, plan[name].parameters)
 
 
 def test_launch_plan_reads_human_motion_from_a_body_tracker(tmp_path):

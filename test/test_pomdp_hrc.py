@@ -42,8 +42,13 @@ def reduced_solution(reduced):
     return solve_pomdp(reduced, episodes=400, per_state=40, rounds=1, seed=3)
 
 
-def test_successors_are_the_rule_by_rule_transition(reduced, reduced_hrc):
-    """P(x' | x, h, a) of the POMDP equals the model's explicit transition summed over h'."""
+@pytest.mark.parametrize('config', ['default', 'arm'])
+def test_successors_are_the_rule_by_rule_transition(config, reduced, reduced_hrc):
+    """P(x' | x, h, a) of the POMDP equals the model's explicit transition summed over h';
+    with the arm's model too (dp, dm pause the robot's counter, a retreat gains no band)."""
+    if config != 'default':
+        reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
+        reduced_hrc = hrc_pomdp(reduced)
     hrc, pomdp = reduced_hrc, reduced_hrc.pomdp
     rng = np.random.default_rng(4)
     n_columns = reduced.n_task * N_DISTANCE

@@ -71,7 +71,8 @@ _OPTIONAL = {('observation', 'likelihood'), ('stream', 'q'), ('model', 'robot_pa
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
 PAUSED_MAY = ('dp', 'dm')
-# the optional model keys of the cell with an arm (docs/ROBOT.md 4), left out of belief_hash
+# the optional model keys of the cell with an arm (docs/ROBOT.md 4); belief_hash keeps only
+# retreat_reach (the posterior filter's distance move), and only when it is set
 CELL_KEYS = ('robot_paused_by', 'retreat_reach')
 # Sections that may be left out (then absent from the validated data).
 _OPTIONAL_SECTIONS = {'stream'}
@@ -222,10 +223,12 @@ class Config:
         observation), so two nodes can tell whether they track the human with one model."""
         observation = dict(self.data['observation'])
         observation.setdefault('likelihood', None)
-        # what pauses the robot's counter and what a retreat gains are not the filter's:
-        # cells with and without an arm
-        # track the person with one model
+        # what pauses the robot's counter is not the filter's (one hash with and without it);
+        # what a retreat gains is: the posterior mode reads the distance move after dp
+        # (HRCModel.transition_likelihood); left out or null, the paper's rule, one hash
         model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
+        if self.retreat_reach is not None:
+            model['retreat_reach'] = self.retreat_reach
         return config_hash({'model': model, 'observation': observation})
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
@@ -464,7 +467,8 @@ def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'reach|null':
         if value is None:
             return None
-        if isinstance(value, bool) or value not in (1, 2):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+                or value not in (1, 2):
             raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
                               f'or 1 or 2 (the band it cannot retreat beyond), got '
                               f'{quote(value)}')

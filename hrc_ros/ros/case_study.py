@@ -62,7 +62,8 @@ from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.learning.recordings import place_in_epochs
 from ..core.study.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
 from ..core.tasks import TaskBook
-from ..core.decision.selection import SELECTORS
+from ..core.decision.selection import POMDP_SELECTORS, SELECTORS
+from ..core.pomdp.policy import load_shipped_pomdp_policy
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
                             output_folder)
 from ..core.protocol import TaskEpochs
@@ -432,6 +433,8 @@ def _main(argv: list[str] | None) -> int:
         config = load_config(args.config or default_config_path())
         model = HRCModel(config)
         load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
+        if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one
+            load_shipped_pomdp_policy(config)
     except (ConfigError, PolicyError) as exc:
         return fail('hrc-case-study', exc)
     shutil.rmtree(out / 'logs', ignore_errors=True)

@@ -22,7 +22,9 @@ motion under speed and separation monitoring) and `cobot_sim_node` (the simulate
 switches the cell to the arm (`ROBOT_OVERRIDES`): the belief estimator's d from the arm's links
 (`distance_source: arm_links`), the task manager's robot counter from the arm's progress
 (`robot_progress: true`), the simulated person to a 3D body (`person: 3d`, with use_sim), and
-every reader of the 32-joint skeleton to its joint names (`keypoint_joints`).
+every reader of the 32-joint skeleton to its joint names (`keypoint_joints`), and the model to
+the arm's, `config/arm.yaml`, unless `config` or a params file names one (an `AllNodes` layer
+before `params_file`).
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ ARGUMENTS = (
     LaunchArgument('params_file', '', 'ROS parameters YAML loaded after the shipped '
                    'config/hrc_params.yaml (e.g. config/case_study_params.yaml)'),
     LaunchArgument('config', '', "model configuration YAML for every node ('' = the params "
-                   "files', else the shipped config/default.yaml)"),
+                   "files', else the shipped config/default.yaml, with robot:=sim "
+                   'config/arm.yaml)'),
     LaunchArgument('policy', '', "decision policy file from hrc-solve ('' = the params files', "
                    'else the shipped policy solved for config)'),
     LaunchArgument('selector', '', "action selection from the belief ('' = the params files', "
@@ -111,6 +114,11 @@ SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
                      ('human/skeleton', 'sim/human/skeleton')]
 
 
+class AllNodes(dict):
+    """Parameters for every node (a params file's ``/**`` section), in a node's parameters
+    between params files: what a later file sets wins over it (`parameter_files`)."""
+
+
 @dataclass(frozen=True)
 class NodeLaunch:
     """One node to start: launch_ros `Node(package, executable, name, namespace, parameters)`."""
@@ -118,7 +126,8 @@ class NodeLaunch:
     executable: str
     name: str
     namespace: str
-    parameters: list = field(default_factory=list)   # params file paths, then one dict
+    # params file paths (an `AllNodes` among them: robot:=sim's config), then one dict
+    parameters: list = field(default_factory=list)
     remappings: list = field(default_factory=list)   # (from, to) topic names
 
 
@@ -152,11 +161,13 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     params_files = [base_params]
     if body_tracking and use_sim:
         params_files.append(os.path.join(config_dir, BODY_TRACKING_SIM_PARAMS))
-    if params_file and os.path.abspath(params_file) not in map(os.path.abspath, params_files):
-        params_files.append(params_file)
     robot = _flag('robot', robot, ROBOTS) == 'sim'
-    if robot and not config:   # the arm's model: its program waits under dp and dm
-        config = os.path.join(config_dir, ARM_CONFIG)
+    if robot and not config:   # the arm's model (its program waits under dp and dm), unless
+        # the user's params file names a configuration: a layer before that file
+        params_files.append(AllNodes(config=os.path.join(config_dir, ARM_CONFIG)))
+    if params_file and os.path.abspath(params_file) not in map(
+            os.path.abspath, (p for p in params_files if isinstance(p, str))):
+        params_files.append(params_file)
     common = {'config': config} if config else {}
     decision = dict(common)
     if policy:
@@ -189,14 +200,18 @@ def parameter_files(node: NodeLaunch, params_dir: str | Path) -> list[str]:
     the node's own name, ``/**/NAME`` (any namespace). Not under ``/**``, as launch_ros writes a
     dict: rcl merges the files' sections by name, in the order each name first appears, so a
     parameter that `config/hrc_params.yaml` sets in ``/**/NAME`` would win over a later
-    file's ``/**`` (the arguments' overrides, `ROBOT_OVERRIDES`, would be lost). The launch file
-    and the tests pass these files."""
+    file's ``/**`` (the arguments' overrides, `ROBOT_OVERRIDES`, would be lost). An `AllNodes`
+    dict is written under ``/**``, so that a later params file (the user's) wins over it. The
+    launch file and the tests pass these files."""
     import yaml
     files = []
     for index, parameters in enumerate(node.parameters):
         if isinstance(parameters, dict):
             path = Path(params_dir) / f'{node.name}_{index}.yaml'
-            path.write_text(yaml.safe_dump({f'/**/{node.name}': {'ros__parameters': parameters}}))
+            # an AllNodes layer under /**: sections apply in the order each name first appears
+            # (config/hrc_params.yaml's /** first), so a later file's /** or /**/NAME wins
+            section = '/**' if isinstance(parameters, AllNodes) else f'/**/{node.name}'
+            path.write_text(yaml.safe_dump({section: {'ros__parameters': dict(parameters)}}))
             parameters = str(path)
         files.append(str(parameters))
     return files
