@@ -19,7 +19,7 @@ import pytest
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.model import STATE_VARIABLES, HRCModel
-from hrc_ros.core.paths import default_config_path
+from hrc_ros.core.paths import default_config_path, shipped_config_path
 from hrc_ros.core.mdp.policy import default_policy_path, load_policy
 from hrc_ros.core.study.simulation import case_study, simulate
 from hrc_ros.ros.bag import bag_info
@@ -159,14 +159,13 @@ def test_the_suite_runs_a_task_stream_policy_as_the_ros_free_loop_does(tmp_path,
 
 def test_a_selector_without_a_shipped_pomdp_policy_is_refused_before_any_node_starts(
         tmp_path, ros_domain_id):
-    """pomdp and fib read the shipped POMDP policy of the configuration; --robot sim plans with
-    config/arm.yaml, for which none is shipped: one line that says what to solve and exit 2
-    before the nodes start (as for a policy file), not a decision node that dies after the
-    graph is up."""
-    result = hrc_case_study(tmp_path / 'out', '--robot', 'sim', '--selector', 'pomdp',
-                            '--epochs', '2')
+    """pomdp and fib read the shipped POMDP policy of the configuration; for config/paper.yaml
+    none is shipped: one line that says what to solve and exit 2 before the nodes start (as
+    for a policy file), not a decision node that dies after the graph is up."""
+    result = hrc_case_study(tmp_path / 'out', '--config', str(shipped_config_path('paper')),
+                            '--selector', 'pomdp', '--epochs', '2')
     assert result.returncode == 2, (result.stdout, result.stderr)
     assert 'nodes up' not in result.stdout
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith('hrc-case-study: error:'), lines
-    assert '--method pomdp' in lines[0] and 'arm.yaml' in lines[0]
+    assert '--method pomdp' in lines[0] and 'paper.yaml' in lines[0]

@@ -306,6 +306,11 @@ def test_shipped_pomdp_policies_are_found_by_configuration():
         loaded = load_pomdp_policy(path, config)
         assert loaded.meta['report']['case_study_relative_gap'] < 0.01
         assert path.stat().st_size < 20e6
+    # the arm's model (docs/ROBOT.md 4): shipped, its gap stated there (1.59% at the study)
+    arm = load_config(shipped_config_path('arm'))
+    path = default_pomdp_policy_path(arm)
+    assert path.name == 'arm.npz' and path.parent.name == 'pomdp'
+    assert load_pomdp_policy(path, arm).meta['report']['case_study_relative_gap'] < 0.02
     paper = load_config(shipped_config_path('paper'))
     with pytest.raises(PolicyError, match='hrc-solve --config .* --method pomdp'):
         load_pomdp_policy(default_pomdp_policy_path(paper), paper)
