@@ -258,3 +258,13 @@ def test_the_swap_rule(default_config, policy_path):
     assert verdict('', other_config_policy_path, policy_path) == REFUSED
     reason = check_swap(2, 2, '', 'small.yaml', load=load).reason
     assert 'restart the nodes to change the state space' in reason
+    # the decision node: another rule for the robot's counter than the task manager keeps
+    files['arm.yaml'] = default_config.with_overrides({'model': {'robot_paused_by':
+                                                                 ['dn', 'dp', 'dm']}})
+    refused = check_swap(2, 2, '', 'arm.yaml', policy_path, policy_path, load=load,
+                         paused=default_config.robot_paused_by)
+    assert refused.verdict == REFUSED and 'restart the nodes' in refused.reason
+    assert 'under dn, dp, dm' in refused.reason
+    assert check_swap(2, 2, '', 'other.yaml', policy_path, policy_path, load=load,
+                      paused=('dn',)).verdict == STAGED
+    assert verdict('arm.yaml', policy_path, policy_path) == STAGED   # the estimator's rule

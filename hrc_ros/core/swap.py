@@ -9,6 +9,9 @@ rule, for both nodes alike (`check_swap`):
 - the values in use: nothing to do (`SAME`);
 - a configuration that does not load, or describes another cell size (other rho or sigma):
   `REFUSED`, with the reason (restart the nodes to change the state space);
+- for the decision node, a configuration whose `model.robot_paused_by` differs from the
+  running one's: `REFUSED` (the task manager keeps the robot's counter by the rule it started
+  with, so the planner would plan with another task step than the cell's; restart the nodes);
 - for the decision node, a policy that does not exist, is not a policy, or was not solved for
   the configuration set with it: `REFUSED`; a configuration set alone while the policy in use
   was not solved for it: `STAGED` (the old pair keeps deciding until a policy for it is set,
@@ -66,10 +69,12 @@ class SwapCheck:
 
 def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                running_policy: str | None = None, policy_value: str | None = None,
-               load: Callable[[str], Config] = load_node_config) -> SwapCheck:
+               load: Callable[[str], Config] = load_node_config,
+               paused: tuple | None = None) -> SwapCheck:
     """The swap rule (module docstring) for a running cell of size (rho, sigma) whose node runs
     the parameter values `running_config` (and `running_policy`: the decision node; None for a
-    node without a policy) and is asked for `config_value` (and `policy_value`)."""
+    node without a policy) and is asked for `config_value` (and `policy_value`); `paused`: the
+    running configuration's `robot_paused_by` (the decision node; None: not checked)."""
     with_policy = running_policy is not None
     if config_value == running_config and (not with_policy or policy_value == running_policy):
         return SwapCheck(SAME)
@@ -82,6 +87,12 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
         return SwapCheck(REFUSED, f'config refused: {config.source} has rho {config.rho}, '
                          f'sigma {config.sigma}; the running cell {rho}, {sigma}: restart the '
                          'nodes to change the state space', config)
+    if paused is not None and tuple(config.robot_paused_by) != tuple(paused):
+        return SwapCheck(REFUSED, f'config refused: {config.source} pauses the robot\'s '
+                         f'counter under {", ".join(config.robot_paused_by)}, the running '
+                         f'configuration under {", ".join(paused)} (MODEL.md 3.2), and the task '
+                         'manager keeps it by the rule it started with: restart the nodes',
+                         config)
     if not with_policy:
         return SwapCheck(ACCEPTED, config=config)
     try:

@@ -258,7 +258,8 @@ class DecisionNode(Node):
         if checked and done is not None and done[0] == key:
             return done[1]
         verdict = check_swap(running.model.rho, running.model.sigma, running.config_value,
-                             values['config'], running.policy_value, values['policy'])
+                             values['config'], running.policy_value, values['policy'],
+                             paused=running.model.config.robot_paused_by)
         self._checked = None if checked else (key, verdict)
         return verdict
 
