@@ -41,6 +41,8 @@ def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     assert arm.policy_hash != default.policy_hash
     explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None}})
     assert explicit.policy_hash == default.policy_hash
+    null = load_config(DEFAULT, {'model': {'robot_paused_by': None}})
+    assert null.robot_paused_by == ('dn',) and null.policy_hash == default.policy_hash
     reach = load_config(DEFAULT, {'model': {'retreat_reach': 2}})
     assert reach.policy_hash not in (default.policy_hash, arm.policy_hash)
     reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp'],

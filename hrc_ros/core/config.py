@@ -474,6 +474,8 @@ def _check(name: str, kind: str, value: Any) -> Any:
                               f'{quote(value)}')
         return int(value)
     if kind == 'paused':
+        if value is None:      # as left out: [dn], the paper's model (as retreat_reach: null)
+            return None
         allowed = PAUSED_ALWAYS + PAUSED_MAY
         if not isinstance(value, (list, tuple)) or not all(isinstance(a, str) for a in value):
             raise ConfigError(f'{name} must be a list of action names from '
