@@ -349,3 +349,28 @@ def test_together_signals_every_node_before_any_has_exited(tmp_path):
     assert sorted(lines[:3]) == ['signalled a', 'signalled b', 'signalled c'], lines
     with pytest.raises(ValueError, match='order must be one of sequential, together'):
         nodes.stop(order='reversed')
+
+
+SPAWNS = textwrap.dedent('''
+    import subprocess
+    started = []
+    popen = subprocess.Popen.__init__
+    def noted(self, args, *more, **options):
+        started.append(args)
+        popen(self, args, *more, **options)
+    subprocess.Popen.__init__ = noted
+    from hrc_ros.core.robot.arm import Arm
+    Arm()
+    print(len(started), started[:1])
+''')
+
+
+def test_building_an_arm_starts_no_child_process():
+    """MuJoCo's default GL backend (pyglfw) starts a Python child at import to read the GLFW
+    version; in a node's process group it took the node's SIGINT during its `site` import and
+    printed "Fatal Python error: init_import_site" into the log (core/robot/arm.py)."""
+    env = {k: v for k, v in os.environ.items() if k != 'MUJOCO_GL'}
+    out = subprocess.run([sys.executable, '-c', SPAWNS], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0] == '0', out.stdout
