@@ -306,8 +306,22 @@ NOTING = textwrap.dedent('''
 ''')
 
 
-def noting_processes(tmp_path, kinds: dict, delay: float = 0.3) -> tuple[NodeProcesses, Path]:
+@pytest.fixture
+def noting(tmp_path):
+    """`noting(kinds, delay)`: NOTING processes (name -> 'stop' or 'hang') in a NodeProcesses,
+    all up, and the file of their notes; whatever still runs at the end is killed."""
+    made: list[NodeProcesses] = []
+    yield lambda kinds, delay=0.3: noting_processes(tmp_path, kinds, delay, made)
+    for nodes in made:
+        nodes.kill()
+        for process in nodes.processes.values():
+            process.wait(timeout=10)
+
+
+def noting_processes(tmp_path, kinds: dict, delay: float, made: list
+                     ) -> tuple[NodeProcesses, Path]:
     nodes = NodeProcesses(tmp_path, [])
+    made.append(nodes)                  # killed by the fixture, also if they never come up
     events = tmp_path / 'events'
     for name, kind in kinds.items():
         with open(nodes.log_path(name), 'w') as output:
@@ -319,10 +333,10 @@ def noting_processes(tmp_path, kinds: dict, delay: float = 0.3) -> tuple[NodePro
     return nodes, events
 
 
-def test_the_runner_stops_the_nodes_one_after_another_the_last_started_first(tmp_path):
+def test_the_runner_stops_the_nodes_one_after_another_the_last_started_first(noting):
     """processes.stop: a node is signalled once the one before it has exited (several DDS
     participants destroyed at once can deadlock Fast DDS 2.14; bench/README.md)."""
-    nodes, events = noting_processes(tmp_path, {'a': 'stop', 'b': 'stop', 'c': 'stop'})
+    nodes, events = noting({'a': 'stop', 'b': 'stop', 'c': 'stop'})
     assert nodes.stop(timeout=10.0) == {'a': 0, 'b': 0, 'c': 0}
     lines = [line for line in events.read_text().splitlines() if not line.startswith('up')]
     assert lines == ['signalled c', 'exit c', 'signalled b', 'exit b', 'signalled a', 'exit a']
@@ -330,8 +344,8 @@ def test_the_runner_stops_the_nodes_one_after_another_the_last_started_first(tmp
     assert all(0.3 <= s < 10.0 for s in nodes.stop_seconds.values()), nodes.stop_seconds
 
 
-def test_a_hung_node_is_killed_after_its_timeout_and_the_next_is_stopped(tmp_path):
-    nodes, events = noting_processes(tmp_path, {'a': 'stop', 'b': 'hang', 'c': 'stop'})
+def test_a_hung_node_is_killed_after_its_timeout_and_the_next_is_stopped(noting):
+    nodes, events = noting({'a': 'stop', 'b': 'hang', 'c': 'stop'})
     started = time.monotonic()
     codes = nodes.stop(timeout=1.0)
     assert codes['a'] == codes['c'] == 0
@@ -342,8 +356,8 @@ def test_a_hung_node_is_killed_after_its_timeout_and_the_next_is_stopped(tmp_pat
     assert time.monotonic() - started < 1.0 + 2 * processes.STACK_DUMP_TIMEOUT + 10.0
 
 
-def test_together_signals_every_node_before_any_has_exited(tmp_path):
-    nodes, events = noting_processes(tmp_path, {'a': 'stop', 'b': 'stop', 'c': 'stop'}, 3.0)
+def test_together_signals_every_node_before_any_has_exited(noting):
+    nodes, events = noting({'a': 'stop', 'b': 'stop', 'c': 'stop'}, 3.0)
     assert nodes.stop(timeout=10.0, order='together') == {'a': 0, 'b': 0, 'c': 0}
     lines = [line for line in events.read_text().splitlines() if not line.startswith('up')]
     assert sorted(lines[:3]) == ['signalled a', 'signalled b', 'signalled c'], lines
