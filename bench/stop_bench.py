@@ -7,7 +7,10 @@ Each round starts the node set of `hrc-case-study` as it does (`cell_sim_node`,
 `task_manager_node`, `belief_estimator_node`, `cell_view_node`, then `decision_node`: console
 scripts in their own process groups, `processes.NodeProcesses`, with the shipped
 `hrc_params.yaml`, the case study's and the run's parameters as hrc-case-study writes them), and
-sends SIGINT to every process group at a moment drawn for the round, one of three phases in turn:
+stops them with SIGINT as hrc-case-study does (`NodeProcesses.stop`; `--order sequential`, the
+default: one after the other, the last started first, each once the one before has exited;
+`--order together`: every process group at once) at a moment drawn for the round, one of three
+phases in turn:
 
 - `import`: all five started at once, SIGINT after a uniform 0-1.5 s (interpreter start-up,
   the imports of rclpy, numpy and the model, and for the fastest the node's construction);
@@ -16,11 +19,11 @@ sends SIGINT to every process group at a moment drawn for the round, one of thre
 - `mid-epoch`: after epoch k (uniform 1-5) was published, plus a uniform fraction of the
   epoch period (0.5 s; `--robot sim`: 1 s) (every node in its loop, the 50 Hz motion streaming).
 
-A node that has not exited `--timeout` s after the signal is a hang: `NodeProcesses.stop` then
-writes its stacks into its log and kills it. A log line with a traceback, KeyboardInterrupt,
-"Exception ignored" or "Fatal Python error" is counted too. The logs of a round where anything
-went wrong are kept under `<out>/failures/`. Printed: per node the exits by code, the hangs,
-the bad logs and the stop time (SIGINT to exit), and the command to reproduce the run.
+A node that has not exited `--timeout` s after its signal is a hang: `NodeProcesses.stop` then
+writes its stacks into its log and kills it (then signals the next). A log line with a traceback,
+KeyboardInterrupt, "Exception ignored" or "Fatal Python error" is counted too. The logs of a round
+where anything went wrong are kept under `<out>/failures/`. Printed: per node the exits by code,
+the hangs, the bad logs and the stop time (SIGINT to exit), and the command to reproduce the run.
 """
 
 from __future__ import annotations
@@ -29,7 +32,6 @@ import argparse
 import os
 import random
 import shutil
-import signal
 import statistics
 import sys
 import time
@@ -42,7 +44,7 @@ from hrc_ros.ros import stop
 from hrc_ros.ros.case_study import (NODE_NAMES, ROBOT_EPOCH_PERIOD, cell_nodes,
                                     write_run_params,
                                     write_scenario_params)
-from hrc_ros.ros.processes import NodeProcesses
+from hrc_ros.ros.processes import STOP_ORDER, STOP_ORDERS, NodeProcesses
 
 PHASES = ('import', 'start-up', 'mid-epoch')
 BAD_LOG_LINES = ('Traceback', 'KeyboardInterrupt', 'Exception ignored', 'Fatal Python error')
@@ -105,7 +107,7 @@ def run_args(robot: str = 'none') -> argparse.Namespace:
 
 
 def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: Observer,
-              timeout: float, robot: str = 'none') -> dict:
+              timeout: float, robot: str = 'none', stop_order: str = STOP_ORDER) -> dict:
     """Start the graph, stop it at the phase's random moment; per node (code, stop seconds,
     bad log lines, stacks dumped)."""
     shutil.rmtree(work, ignore_errors=True)
@@ -143,22 +145,18 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
                     moment = f'{fraction:.2f} of epoch {epoch}'
                 else:
                     moment = moment or f'epoch {epoch} never came'
+        alive = {name for name, p in nodes.processes.items() if p.poll() is None}
         sent = time.monotonic()
-        for name in nodes.processes:
-            nodes.send_signal(name, signal.SIGINT)
-        stopped: dict[str, float] = {}
-        while len(stopped) < len(nodes.processes) and time.monotonic() - sent < timeout:
-            for name, process in nodes.processes.items():
-                if name not in stopped and process.poll() is not None:
-                    stopped[name] = time.monotonic() - sent
-            time.sleep(0.005)
+        codes = nodes.stop(timeout=timeout, order=stop_order)   # a hang: stacks, killed
+        total = time.monotonic() - sent
     finally:
-        codes = nodes.stop(timeout=0.1, signum=None)   # hung ones: stacks into the log, killed
-    result = {'phase': phase, 'moment': moment, 'nodes': {}}
+        codes = nodes.stop(timeout=0.1, signum=None)    # after an error: none left running
+    stopped = nodes.stop_seconds
+    result = {'phase': phase, 'moment': moment, 'nodes': {}, 'total': total}
     for name in nodes.processes:
         log = nodes.log(name, tail=10 ** 6)
         result['nodes'][name] = {
-            'code': codes.get(name), 'hang': name not in stopped,
+            'code': codes.get(name), 'hang': name in alive and name not in stopped,
             'seconds': stopped.get(name),
             'bad': [line for line in log.splitlines() if any(b in line for b in BAD_LOG_LINES)],
             'stacks': name in nodes.stacks_dumped}
@@ -187,6 +185,10 @@ def report(results: list[dict], args, elapsed: float) -> str:
                      f'{p99:>7.2f}s{(times[-1] if times else float("nan")):>7.2f}s'
                      + (f'   codes {dict(other)}' if other else ''))
         totals.update(nonzero=sum(other.values()), hangs=hangs, bad=bad)
+    totals_s = sorted(r['total'] for r in results)
+    if totals_s:
+        lines.append(f'whole stop (first signal to last exit, {args.order}): median '
+                     f'{statistics.median(totals_s):.2f} s, max {totals_s[-1]:.2f} s')
     for phase in PHASES:
         times = sorted(row['seconds'] for r in results if r['phase'] == phase
                        for row in r['nodes'].values() if row['seconds'] is not None)
@@ -204,7 +206,8 @@ def report(results: list[dict], args, elapsed: float) -> str:
     lines.append('reproduce: python bench/stop_bench.py '
                  f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}'
                  + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else '')
-                 + (f' --robot {args.robot}' if args.robot != 'none' else ''))
+                 + (f' --robot {args.robot}' if args.robot != 'none' else '')
+                 + (f' --order {args.order}' if args.order != STOP_ORDER else ''))
     return '\n'.join(lines)
 
 
@@ -219,6 +222,10 @@ def main(argv=None) -> int:
                         help=f'the phases to cycle through (default {",".join(PHASES)})')
     parser.add_argument('--robot', default='none', choices=('none', 'sim'),
                         help="sim: the graph of hrc-case-study --robot sim (seven nodes)")
+    parser.add_argument('--order', default=STOP_ORDER, choices=STOP_ORDERS,
+                        help='how the nodes are signalled (processes.NodeProcesses.stop): one '
+                        'after the other, the last started first, each once the one before '
+                        f'has exited, or all together (default {STOP_ORDER})')
     args = parser.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
@@ -239,7 +246,7 @@ def main(argv=None) -> int:
             for index in range(args.rounds):
                 phase = phases[index % len(phases)]
                 result = one_round(index, phase, rng, out / 'round', observer, args.timeout,
-                                   args.robot)
+                                   args.robot, args.order)
                 result['round'] = index
                 results.append(result)
                 bad = [n for n, row in result['nodes'].items()

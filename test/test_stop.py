@@ -27,6 +27,7 @@ import rclpy
 
 from hrc_ros.core.paths import share_dir
 from hrc_ros.ros import stop
+from hrc_ros.ros import processes
 from hrc_ros.ros.processes import NodeProcesses
 
 REPO = Path(__file__).resolve().parents[1]
@@ -283,3 +284,107 @@ def test_a_node_that_does_not_stop_leaves_its_stacks_in_its_log(tmp_path):
     assert nodes.stacks_dumped == ['hanging']
     text = log.read_text()
     assert 'stacks of pid' in text and 'stuck_in_shutdown' in text, text
+
+
+# A process that notes in a shared file when it is up, when SIGINT reaches it and when it exits,
+# `delay` s after the signal (a node destroying its DDS participant); `hang` ignores SIGINT.
+NOTING = textwrap.dedent('''
+    import os, signal, sys, time
+    name, path, hang, delay = sys.argv[1], sys.argv[2], sys.argv[3] == 'hang', float(sys.argv[4])
+    def note(what):
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+        os.write(fd, f'{what} {name}\\n'.encode())
+        os.close(fd)
+    signalled = []
+    signal.signal(signal.SIGINT, signal.SIG_IGN if hang else lambda s, f: signalled.append(s))
+    note('up')
+    while not signalled:
+        time.sleep(120 if hang else 0.01)
+    note('signalled')
+    time.sleep(delay)
+    note('exit')
+''')
+
+
+@pytest.fixture
+def noting(tmp_path):
+    """`noting(kinds, delay)`: NOTING processes (name -> 'stop' or 'hang') in a NodeProcesses,
+    all up, and the file of their notes; whatever still runs at the end is killed."""
+    made: list[NodeProcesses] = []
+    yield lambda kinds, delay=0.3: noting_processes(tmp_path, kinds, delay, made)
+    for nodes in made:
+        nodes.kill()
+        for process in nodes.processes.values():
+            process.wait(timeout=10)
+
+
+def noting_processes(tmp_path, kinds: dict, delay: float, made: list
+                     ) -> tuple[NodeProcesses, Path]:
+    nodes = NodeProcesses(tmp_path, [])
+    made.append(nodes)                  # killed by the fixture, also if they never come up
+    events = tmp_path / 'events'
+    for name, kind in kinds.items():
+        with open(nodes.log_path(name), 'w') as output:
+            nodes.processes[name] = subprocess.Popen(
+                [sys.executable, '-c', NOTING, name, str(events), kind, str(delay)], stdout=output,
+                stderr=subprocess.STDOUT, start_new_session=True)
+    wait_for(lambda: events.exists() and events.read_text().count('up ') == len(kinds),
+             START_TIMEOUT, 'the processes')
+    return nodes, events
+
+
+def test_the_runner_stops_the_nodes_one_after_another_the_last_started_first(noting):
+    """processes.stop: a node is signalled once the one before it has exited (several DDS
+    participants destroyed at once can deadlock Fast DDS 2.14; bench/README.md)."""
+    nodes, events = noting({'a': 'stop', 'b': 'stop', 'c': 'stop'})
+    assert nodes.stop(timeout=10.0) == {'a': 0, 'b': 0, 'c': 0}
+    lines = [line for line in events.read_text().splitlines() if not line.startswith('up')]
+    assert lines == ['signalled c', 'exit c', 'signalled b', 'exit b', 'signalled a', 'exit a']
+    assert set(nodes.stop_seconds) == {'a', 'b', 'c'}
+    assert all(0.3 <= s < 10.0 for s in nodes.stop_seconds.values()), nodes.stop_seconds
+
+
+def test_a_hung_node_is_killed_after_its_timeout_and_the_next_is_stopped(noting):
+    nodes, events = noting({'a': 'stop', 'b': 'hang', 'c': 'stop'})
+    started = time.monotonic()
+    codes = nodes.stop(timeout=1.0)
+    assert codes['a'] == codes['c'] == 0
+    assert codes['b'] in (-signal.SIGABRT, -signal.SIGKILL)
+    assert nodes.stacks_dumped == ['b'] and 'b' not in nodes.stop_seconds
+    lines = [line for line in events.read_text().splitlines() if not line.startswith('up')]
+    assert lines == ['signalled c', 'exit c', 'signalled a', 'exit a']
+    assert time.monotonic() - started < 1.0 + 2 * processes.STACK_DUMP_TIMEOUT + 10.0
+
+
+def test_together_signals_every_node_before_any_has_exited(noting):
+    nodes, events = noting({'a': 'stop', 'b': 'stop', 'c': 'stop'}, 3.0)
+    assert nodes.stop(timeout=10.0, order='together') == {'a': 0, 'b': 0, 'c': 0}
+    lines = [line for line in events.read_text().splitlines() if not line.startswith('up')]
+    assert sorted(lines[:3]) == ['signalled a', 'signalled b', 'signalled c'], lines
+    with pytest.raises(ValueError, match='order must be one of sequential, together'):
+        nodes.stop(order='reversed')
+
+
+SPAWNS = textwrap.dedent('''
+    import subprocess
+    started = []
+    popen = subprocess.Popen.__init__
+    def noted(self, args, *more, **options):
+        started.append(args)
+        popen(self, args, *more, **options)
+    subprocess.Popen.__init__ = noted
+    from hrc_ros.core.robot.arm import Arm
+    Arm()
+    print(len(started), started[:1])
+''')
+
+
+def test_building_an_arm_starts_no_child_process():
+    """MuJoCo's default GL backend (pyglfw) starts a Python child at import to read the GLFW
+    version; in a node's process group it took the node's SIGINT during its `site` import and
+    printed "Fatal Python error: init_import_site" into the log (core/robot/arm.py)."""
+    env = {k: v for k, v in os.environ.items() if k != 'MUJOCO_GL'}
+    out = subprocess.run([sys.executable, '-c', SPAWNS], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0] == '0', out.stdout

@@ -20,10 +20,11 @@ What it does, as a user would by hand:
    `config/body_tracking_sim_params.yaml`);
 3. records every hrc topic into a rosbag2-compatible MCAP bag (`bag/`) while it watches the
    run over DDS, until the decision node has acted in the last epoch;
-4. stops the nodes (SIGINT to each process group) and prints the trajectory as the paper's
-   Table 6: per epoch the true state (hidden emotions from the simulated cell's debug topic
-   `hrc/sim/true_state`, task and activity from `hrc/task_state`, distance), the observation,
-   the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
+4. stops the nodes (SIGINT to each process group, one after the other, the decision node first,
+   each once the one before has exited: `processes.NodeProcesses.stop`) and prints the trajectory
+   as the paper's Table 6: per epoch the true state (hidden emotions from the simulated cell's
+   debug topic `hrc/sim/true_state`, task and activity from `hrc/task_state`, distance), the
+   observation, the belief and the action; writes it as CSV and the plots of `hrc-simulate`.
 
 The trajectory is assembled by publication time around the epoch signals (`assemble`).
 

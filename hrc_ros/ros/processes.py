@@ -5,12 +5,19 @@ processes. Each node runs `<console script> --ros-args --params-file ...` in its
 SIGINT reaches the whole group, as Ctrl-C in a terminal would), logging to
 `<log_dir>/<executable>.log`.
 
-Stopping (stop.py has the nodes' side). `stop()` sends SIGINT and waits. A node is started with
-SIGINT and SIGTERM blocked, which survives exec: a signal sent before the interpreter has run
-the first line of the console script stays pending until `stop.install()` unblocks it, and is
-then a clean stop like any other. A node still running after the timeout is stuck somewhere:
-before it is killed its native and Python stacks go into its log (`py-spy dump --native`, and
-gdb's backtraces when gdb is installed; without either, the SIGABRT that Python's
+Stopping (stop.py has the nodes' side). `stop()` sends SIGINT to one node at a time, the last
+started first, and waits until it has exited before it signals the next (`STOP_ORDER`,
+'sequential'): Fast DDS 2.14 can deadlock when several participants are destroyed at once (a
+participant's `destroy_participant` waiting in `set_listener` for its listener's callbacks, while
+its discovery thread waits in `onReaderDiscovery` for the listener's mutex, called as another
+participant's readers go; bench/README.md, "Stopping"), and with one node leaving at a time no
+other participant is leaving while one is destroyed. `order='together'` signals every node at once
+(the old way; bench/stop_bench.py compares the two). Each node has the whole `timeout` of its own.
+A node is started with SIGINT and SIGTERM blocked, which survives exec: a signal sent before the
+interpreter has run the first line of the console script stays pending until `stop.install()`
+unblocks it, and is then a clean stop like any other. A node still running after the timeout is
+stuck somewhere: before it is killed its native and Python stacks go into its log (`py-spy dump
+--native`, and gdb's backtraces when gdb is installed; without either, the SIGABRT that Python's
 faulthandler answers with the Python stacks), then SIGABRT, then SIGKILL.
 """
 
@@ -29,6 +36,8 @@ from typing import Iterable
 from . import stop as stop_regime
 
 STACK_DUMP_TIMEOUT = 20.0     # seconds for py-spy or gdb to write a hung node's stacks
+STOP_ORDERS = ('sequential', 'together')
+STOP_ORDER = 'sequential'     # the default of `NodeProcesses.stop` (module docstring)
 
 
 class NodeProcessError(RuntimeError):
@@ -103,6 +112,7 @@ class NodeProcesses:
                     'PYTHONUNBUFFERED': '1'}
         self.processes: dict[str, subprocess.Popen] = {}
         self.stacks_dumped: list[str] = []
+        self.stop_seconds: dict[str, float] = {}    # signal (or the stop call) to exit, per node
         stop_regime.on_force(self.kill)     # a forced exit of this process leaves no node behind
 
     def start(self, executable: str, remappings: Iterable[tuple[str, str]] = (), *,
@@ -153,34 +163,58 @@ class NodeProcesses:
         except ProcessLookupError:
             pass
 
-    def stop(self, timeout: float = 10.0, signum: int | None = signal.SIGINT) -> dict[str, int]:
-        """`signum` (SIGINT; None: already sent) to every process group, then the exit codes.
+    def stop(self, timeout: float = 10.0, signum: int | None = signal.SIGINT,
+             order: str = STOP_ORDER) -> dict[str, int]:
+        """`signum` (SIGINT; None: already sent) to the process groups, then the exit codes
+        (in start order).
 
-        A process still running after `timeout` gets its stacks written to its log
-        (`dump_stacks`, named in `stacks_dumped`), then SIGABRT (Python's faulthandler,
-        PYTHONFAULTHANDLER=1, adds the Python stacks), then SIGKILL.
+        'sequential' (module docstring): the last started first, each signalled once the one
+        before it has exited, with `timeout` s of its own; 'together': all at once, `timeout`
+        for all. A process still running after its timeout gets its stacks written to its
+        log (`dump_stacks`, named in `stacks_dumped`), then SIGABRT (Python's faulthandler,
+        PYTHONFAULTHANDLER=1, adds the Python stacks), then SIGKILL; the next is signalled
+        after that. `stop_seconds` holds each one's time from its signal to its exit.
         """
-        for name, process in self.processes.items():
-            if process.poll() is None and signum is not None:
-                self.send_signal(name, signum)
+        if order not in STOP_ORDERS:
+            raise ValueError(f'order must be one of {", ".join(STOP_ORDERS)}, got {order!r}')
         codes = {}
-        deadline = time.monotonic() + timeout
-        for name, process in self.processes.items():
-            try:
-                codes[name] = process.wait(timeout=max(0.1, deadline - time.monotonic()))
-                continue
-            except subprocess.TimeoutExpired:
-                pass
-            if dump_stacks(process.pid, self.log_path(name)):
-                self.stacks_dumped.append(name)
-            for sig, wait in ((signal.SIGABRT, 2.0), (signal.SIGKILL, None)):
-                self.send_signal(name, sig)
-                try:
-                    codes[name] = process.wait(timeout=wait)
-                    break
-                except subprocess.TimeoutExpired:
-                    continue
-        return codes
+        running = {name for name, process in self.processes.items() if process.poll() is None}
+        if order == 'together':
+            sent = time.monotonic()
+            for name, process in self.processes.items():
+                if process.poll() is None and signum is not None:
+                    self.send_signal(name, signum)
+            for name, process in self.processes.items():
+                codes[name] = self._wait_or_kill(name, process, sent + timeout, sent,
+                                                  name in running)
+        else:
+            for name, process in reversed(self.processes.items()):
+                sent = time.monotonic()
+                if process.poll() is None and signum is not None:
+                    self.send_signal(name, signum)
+                codes[name] = self._wait_or_kill(name, process, sent + timeout, sent,
+                                                 name in running)
+        return {name: codes[name] for name in self.processes}
+
+    def _wait_or_kill(self, name: str, process: subprocess.Popen, deadline: float,
+                      sent: float, running: bool) -> int:
+        """The exit code of `process` by `deadline`, or its stacks, SIGABRT and SIGKILL;
+        `running`: it ran when `stop` was called (its stop time is then recorded)."""
+        try:
+            code = process.wait(timeout=max(0.1, deadline - time.monotonic()))
+            if running:
+                self.stop_seconds[name] = time.monotonic() - sent
+            return code
+        except subprocess.TimeoutExpired:
+            pass
+        if dump_stacks(process.pid, self.log_path(name)):
+            self.stacks_dumped.append(name)
+        self.send_signal(name, signal.SIGABRT)
+        try:
+            return process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            self.send_signal(name, signal.SIGKILL)
+            return process.wait()
 
     def kill(self) -> None:
         """SIGKILL every process group still running (a forced exit of the caller)."""

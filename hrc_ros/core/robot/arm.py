@@ -47,11 +47,21 @@ and s follows the commanded override with |ds/dt| <= a / v_nominal (v_nominal th
 trajectory's top link speed at s = 1), so the speed bound s v_nominal of its links changes at
 no more than the stopping deceleration a of SSM. Joint accelerations stay within the limits as
 long as the segments' own do at s = 1 and s changes at that rate.
+
+**No rendering.** Nothing here draws, so MuJoCo is imported with `MUJOCO_GL=disable` unless the
+environment names a backend (`import_mujoco`). With the default backend `import mujoco` imports
+pyglfw, which starts a second Python interpreter (`sys.executable -c ...`) to read the GLFW
+library's version: 40 ms and more of every node that builds an Arm, and a child in the node's
+process group, so a Ctrl-C (or a launcher's SIGINT to the group) during that child's start-up
+printed "Fatal Python error: init_import_site ... KeyboardInterrupt" into the node's log although
+the node itself stopped cleanly (bench/README.md, "Stopping").
 """
 
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -270,11 +280,20 @@ class ArmPose:
     anchors: np.ndarray
 
 
+def import_mujoco():
+    """`mujoco`, imported without an OpenGL backend unless `MUJOCO_GL` names one (module
+    docstring, "No rendering")."""
+    if 'mujoco' not in sys.modules and not os.environ.get('MUJOCO_GL'):
+        os.environ['MUJOCO_GL'] = 'disable'
+    import mujoco
+    return mujoco
+
+
 class Arm:
     """The UR5e of capsules in MuJoCo: forward kinematics, link speeds, separation."""
 
     def __init__(self, dh: DhParameters = UR5E_DH, capsules=UR5E_CAPSULES):
-        import mujoco
+        mujoco = import_mujoco()
         self._mujoco = mujoco
         self.mjcf = ur5e_mjcf(dh, capsules)
         self.model = mujoco.MjModel.from_xml_string(self.mjcf)

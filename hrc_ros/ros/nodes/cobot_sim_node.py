@@ -21,19 +21,35 @@ SSM deceleration's rate). It subscribes
   another node's 1.0 must not outvote the bridge's 0;
 - `human/skeleton` (geometry_msgs/PoseArray in `robot_frame`), for the separation.
 
-It steps the follower at `rate` Hz on a timer (with the elapsed time, so the arm moves in wall
-time on a loaded machine) and publishes `joint_states` (sensor_msgs/JointState, position and
-velocity of the description's joints) at `joint_state_rate` Hz and, with them while a skeleton
+It steps the follower at `rate` Hz (with the elapsed time, so the arm moves in wall time on a
+loaded machine) and publishes `joint_states` (sensor_msgs/JointState, position and velocity of
+the description's joints) at `joint_state_rate` Hz and, with them while a skeleton
 at most `ssm.human_timeout` old is held, `hrc/separation` (std_msgs/Float64MultiArray
 `[S, arm_x, arm_y, arm_z, human_x, human_y, human_z, S_p, speed]`: the separation and its two
 closest points in the base frame, S_p at the arm's speed bound as ISO/TS 15066 gives it, and
 that bound, m/s: the override times the goal's top link speed; `S < S_p` with `speed` above
 `ssm.MOVING_SPEED` is an SSM violation).
+
+The motion runs in a thread of its own (`_motion`), not on an executor timer (docs/ROBOT.md,
+section 5, and bench/README.md): an rclpy timer costs the executor's whole wait-set round per
+call, three quarters of the node's CPU at 250 Hz, and a call that comes later than a period
+loses that period, so on a loaded machine the timer fell to half its rate and the joint states,
+counted in steps (every 2nd), with it (64 Hz at load 20-30). The thread sleeps to a fixed grid
+of `rate` Hz and publishes at the first step in each period of a `joint_state_rate` grid, so a
+late step delays a joint state but does not drop it while steps come at least once a period;
+periods without any step are skipped, not caught up in a burst. Each joint state is the
+follower's state at the step it was published at, stamped with the time of that step. The
+executor thread only handles the inputs; the follower is touched under a lock (a goal is
+checked against the arm's configuration and taken as one step), and a goal is checked on an
+`Arm` of its own (a MuJoCo model's data is not shared between threads).
 """
 
 from __future__ import annotations
 
+import math
+import threading
 import time
+import traceback
 
 import numpy as np
 from geometry_msgs.msg import PoseArray
@@ -84,7 +100,9 @@ class CobotSimNode(Node):
         if q0.shape != (len(d.joint_names),) or d.outside(q0):
             raise StartupError(f'initial_positions must be {len(d.joint_names)} angles within '
                                f'the limits, got {q0.tolist()} ({d.outside(q0) or "wrong size"})')
-        self.arm = Arm()
+        self.arm = Arm()              # the motion thread's (separation)
+        self.goal_arm = Arm()         # the executor's (goal checks)
+        self._lock = threading.Lock()   # the follower, between the two threads
         self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
         self.override = 0.0
         self._override_at: float | None = None
@@ -99,7 +117,8 @@ class CobotSimNode(Node):
         self.steps = 0
         self.published = 0             # joint states
         self._rate_mark = (time.monotonic(), 0)
-        self._every = max(1, int(round(values['rate'] / values['joint_state_rate'])))
+        self.step_period = 1.0 / values['rate']
+        self.publish_period = max(1.0 / values['joint_state_rate'], self.step_period)
         self._last_step = time.monotonic()
         self.joint_pub = self.create_publisher(JointState, 'joint_states', qos.SENSOR_DATA)
         self.separation_pub = self.create_publisher(Float64MultiArray, 'hrc/separation',
@@ -114,8 +133,19 @@ class CobotSimNode(Node):
                               skeleton_converter(values['robot_frame'],
                                                  values['keypoint_joints'] or None),
                               self._on_skeleton, name='skeleton')
-        self.step_timer = self.create_timer(1.0 / values['rate'], self._step)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self._halt = threading.Event()
+        self._motion_thread = threading.Thread(target=self._motion, name='cobot_sim motion',
+                                               daemon=True)
+        self._motion_thread.start()
+
+    def destroy_node(self):
+        """The motion thread ends (it publishes) before the node's entities go."""
+        self._halt.set()
+        if self._motion_thread.is_alive() \
+                and self._motion_thread is not threading.current_thread():
+            self._motion_thread.join(timeout=5.0)
+        return super().destroy_node()
 
     def _apply(self, values) -> None:
         self.override_timeout = self.override_writer.silence = values['override_timeout']
@@ -123,15 +153,16 @@ class CobotSimNode(Node):
     # -- inputs ------------------------------------------------------------------------------
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         """A goal; anything refused (the conversion's refusals too) holds the arm."""
-        try:
-            trajectory = self._goal(*conv.trajectory_from_msg(msg))
-        except InputError as exc:
-            self.refused += 1
-            self.held = str(exc)
-            raise
-        self.follower.follow(trajectory)
-        self.accepted += 1
-        self.held = ''
+        with self._lock:              # checked against the arm where it is, taken there
+            try:
+                trajectory = self._goal(*conv.trajectory_from_msg(msg))
+            except InputError as exc:
+                self.refused += 1
+                self.held = str(exc)
+                raise
+            self.follower.follow(trajectory)
+            self.accepted += 1
+            self.held = ''
 
     def _goal(self, names, positions, times) -> Trajectory:
         """The core trajectory of a goal from the arm's configuration; InputError (the arm
@@ -170,7 +201,7 @@ class CobotSimNode(Node):
                 f'{shortest:.3f} s within the joint limits, given {times[0]:.3f} s)')
         path = np.vstack([q[None], points])
         durations = np.diff(np.concatenate([[0.0], times]))
-        nominal = max(peak_link_speed(self.arm, a, b, t)
+        nominal = max(peak_link_speed(self.goal_arm, a, b, t)
                       for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
 
@@ -196,15 +227,30 @@ class CobotSimNode(Node):
             return 0.0
         return self.override
 
-    def _step(self) -> None:
-        now = time.monotonic()
+    def _motion(self) -> None:
+        """The motion thread: a step on each tick of the `rate` grid, a joint state at the
+        first step in each period of the `joint_state_rate` grid (module docstring)."""
+        schedule = MotionSchedule(time.monotonic(), self.step_period, self.publish_period)
+        while not self._halt.wait(max(0.0, schedule.next_step - time.monotonic())):
+            now = time.monotonic()
+            publish = schedule.step(now)
+            try:
+                self._step(now, publish)
+            except Exception:  # noqa: BLE001 - a bug must not stop the arm's thread; reported
+                self.inputs.internal_error('motion', 'the motion thread',
+                                           traceback.format_exc())
+
+    def _step(self, now: float, publish: bool = True) -> None:
+        """One step of the follower to `now` (time.monotonic()), and the joint state (and the
+        separation) it gives when `publish`."""
+        clock = self.get_clock().now()    # the stamp of the state at `now`
         dt = min(max(now - self._last_step, 0.0), MAX_STEP_SEC)
         self._last_step = now
-        state = self.follower.step(dt, self._commanded(now))
+        with self._lock:
+            state = self.follower.step(dt, self._commanded(now))
         self.steps += 1
-        if self.steps % self._every:
+        if not publish:
             return
-        clock = self.get_clock().now()
         self.joint_pub.publish(conv.joint_state_to_msg(
             self.description.joint_names, state.qd, state.q, clock.to_msg()))
         self.published += 1
@@ -230,6 +276,30 @@ class CobotSimNode(Node):
             'goals_refused': self.refused, 'steps': self.steps,
             'override_second_writer': self.override_writer.held(now),
             'joint_states_hz': round(rate, 1), **last_refusals(self.inputs)})
+
+
+def next_tick(tick: float, now: float, period: float) -> float:
+    """The first tick of the grid `tick + k period` (k >= 1) after `now`: the ticks `now` is
+    past are skipped, not caught up."""
+    return tick + period * (math.floor(max(now - tick, 0.0) / period) + 1)
+
+
+class MotionSchedule:
+    """When the motion thread steps and publishes (module docstring): a grid of steps every
+    `step_period` s and one of joint states every `publish_period` s from `start`. `step(now)`
+    at a step: the next step is the first tick of its grid after `now`, and True if this step
+    publishes (the first step in a publish period; the periods it is past are skipped)."""
+
+    def __init__(self, start: float, step_period: float, publish_period: float):
+        self.step_period, self.publish_period = step_period, publish_period
+        self.next_step = self.next_publish = start
+
+    def step(self, now: float) -> bool:
+        self.next_step = next_tick(self.next_step, now, self.step_period)
+        if now < self.next_publish:
+            return False
+        self.next_publish = next_tick(self.next_publish, now, self.publish_period)
+        return True
 
 
 def main(args=None):
