@@ -19,12 +19,20 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 import tempfile
 from pathlib import Path
 
 import pytest
 
 ROS_DOMAIN_RANGE = (30, 99)
+
+# A suite started with SIGINT ignored (a background job of a non-interactive shell, `cmd &`)
+# would pass the ignoring on to every process it starts: Python then installs no
+# KeyboardInterrupt handler, and the stop tests' Ctrl-C stops nothing (a run hung 246 s). The
+# session takes SIGINT back as Python's default; an exec'd child then gets the default action.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 _given = os.environ.get('ROS_DOMAIN_ID', '').strip()
 ROS_DOMAIN_ID = int(_given) if _given else random.SystemRandom().randint(*ROS_DOMAIN_RANGE)

@@ -79,3 +79,25 @@ def test_joint_states_do_not_wait_for_the_nodes_executor(ros_domain_id):
         rclpy.try_shutdown(context=context)
         listener.close()
     assert not thread.is_alive()
+
+
+def test_an_override_older_than_the_watchdog_is_taken_as_0(ros_domain_id):
+    """The controller's watchdog (OVERRIDE_TIMEOUT): the bridge plans each override for its
+    control period, so one held back longer (the node's executor late on a loaded host) must
+    not keep the arm at its speed; 3 control periods, then 0."""
+    from hrc_ros.ros.nodes.cobot_sim_node import OVERRIDE_TIMEOUT
+    from hrc_ros.ros.nodes.robot_bridge_node import PARAMETERS as BRIDGE_PARAMETERS
+    period = next(p.default for p in BRIDGE_PARAMETERS if p.name == 'control_period')
+    assert OVERRIDE_TIMEOUT <= 3 * period + 1e-12
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = CobotSimNode(context=context)
+    try:
+        assert node.override_timeout == OVERRIDE_TIMEOUT
+        node.held = ''
+        node.override, node._override_at = 0.8, 100.0
+        assert node._commanded(100.0 + OVERRIDE_TIMEOUT - 1e-3) == 0.8
+        assert node._commanded(100.0 + OVERRIDE_TIMEOUT + 1e-3) == 0.0
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -62,7 +62,13 @@ def test_every_node_of_a_launched_cell_has_a_name_of_its_own(tmp_path, ros_domai
             return {(info.node_namespace, info.node_name)
                     for info in probe.get_subscriptions_info_by_topic(topic)}
 
-        while not (readers('/cell2/tracked/skeleton') and
+        # a reader can be discovered before its node's name (rmw: '_NODE_NAME_UNKNOWN_', seen
+        # on a loaded host): wait for the names, not only for the readers
+        def named(topic):
+            found = readers(topic)
+            return found and not any('_UNKNOWN_' in n for pair in found for n in pair)
+
+        while not (named('/cell2/tracked/skeleton') and named('/cell1/hrc/epoch') and
                    ('/cell1', 'cell_view_inputs') in readers('/cell1/hrc/epoch')):
             assert time.monotonic() < deadline, (readers('/cell2/tracked/skeleton'),
                                                  readers('/cell1/hrc/epoch'))

@@ -75,6 +75,13 @@ from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTI
 T = Parameter.Type
 MAX_STEP_SEC = 0.05      # a longer pause of the timer is stepped as this (the arm does not jump)
 TIME_SLACK = 1e-3        # s (and relative): a first segment may be this much faster than computed
+# The controller's watchdog on the monitor's override (docs/ROBOT.md 5): the bridge sends one
+# each joint state (8 ms at 125 Hz) and plans each to hold for its control_period (0.01 s);
+# an override older than 3 of those is taken as 0, so the arm brakes rather than run on at a
+# speed planned for a separation it no longer has. With 0.25 s, a CI run on a loaded host had
+# the node's executor hold the overrides back ~60 ms while the arm ran on at the older, higher
+# one: 1 sample of S < S_p (0.806 < 0.827 m) in 2,179 with the arm moving.
+OVERRIDE_TIMEOUT = 0.03
 PARAMETERS = (
     ROBOT_DESCRIPTION, TRAJECTORY_TOPIC, OVERRIDE_TOPIC, KEYPOINT_JOINTS, ROBOT_FRAME,
     ParamSpec('rate', T.DOUBLE, 250.0, 'Hz the follower steps at', read_only=True,
@@ -83,8 +90,8 @@ PARAMETERS = (
               '(at most rate)', read_only=True, range=(1.0, 2000.0)),
     ParamSpec('initial_positions', T.DOUBLE_ARRAY, [], 'the arm\'s configuration at start, '
               'rad in the description\'s joint order ([] = its home pose)', read_only=True),
-    ParamSpec('override_timeout', T.DOUBLE, 0.25, 'seconds without a speed override after '
-              'which it is taken as 0', range=(0.01, 10.0)),
+    ParamSpec('override_timeout', T.DOUBLE, OVERRIDE_TIMEOUT, 'seconds without a speed override '
+              'after which it is taken as 0 (the arm brakes)', range=(0.01, 10.0)),
 )
 
 
