@@ -48,15 +48,21 @@ from ..model import N_HIDDEN
 from ..parallel import parallel_kernel
 
 
-def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, transition,
+def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, chain,
               group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
-              alpha, emission, scale, loglik, first, accept, delta, xi, observed, unique):
+              alpha, pushed, emission, scale, loglik, first, accept, delta, moves, observed,
+              unique):
     """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
     n_h = N_HIDDEN
+    n_g = chain.shape[0]
     nxt = np.empty(n_h)
+    through = np.empty(n_h)
     beta = np.empty(n_h)
     gamma = np.empty(n_h)
     dist = np.empty(3)
+    inverse_norm = np.empty(3)
+    joint_em = np.zeros((n_g, 3, 3))     # sum_t w sum_a alpha_t(i, a) M_t(j, a), per group
+    joint_ea = np.zeros((n_g, 3, 3))     # sum_t w sum_j P_t(j, a) nxt_t(j, b), per group
     for s in range(first_segment, last_segment):
         a = seg_start[s]
         b = seg_start[s + 1]
@@ -82,25 +88,28 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                     if o < 3:
                         v *= likelihood[o, h]
                     emission[t - a, h] = v
-        # forward
+        # forward: alpha_t = (P_{t-1} A_ea) * e_t / c_t, P_{t-1}(j, a) = sum_i A_em(i, j)
+        # alpha_{t-1}(i, a), the kron(em, ea) transition in two 3 x 3 products
         total = 0.0
         possible = True
         for t in range(a, b):
             c = 0.0
             if t == a:
                 for j in range(n_h):
-                    v = pi[j] * emission[t - a, j]
-                    alpha[t - a, j] = v
+                    v = pi[j] * emission[0, j]
+                    alpha[0, j] = v
                     c += v
             else:
-                m = transition[group[t - 1]]
-                for j in range(n_h):
-                    v = 0.0
-                    for i in range(n_h):
-                        v += alpha[t - 1 - a, i] * m[i, j]
-                    v *= emission[t - a, j]
-                    alpha[t - a, j] = v
-                    c += v
+                m_ea = chain[group[t - 1], 1]
+                for j in range(3):
+                    p0 = pushed[t - 1 - a, 3 * j]
+                    p1 = pushed[t - 1 - a, 3 * j + 1]
+                    p2 = pushed[t - 1 - a, 3 * j + 2]
+                    for k in range(3):
+                        v = (p0 * m_ea[0, k] + p1 * m_ea[1, k] + p2 * m_ea[2, k]) \
+                            * emission[t - a, 3 * j + k]
+                        alpha[t - a, 3 * j + k] = v
+                        c += v
             if not c > 0.0:
                 possible = False
                 break
@@ -109,6 +118,13 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                 alpha[t - a, j] *= inverse
             scale[t - a] = c
             total += math.log(c)
+            if t < b - 1:
+                m_em = chain[group[t], 0]
+                for j in range(3):
+                    for k in range(3):
+                        pushed[t - a, 3 * j + k] = (m_em[0, j] * alpha[t - a, k]
+                                                    + m_em[1, j] * alpha[t - a, 3 + k]
+                                                    + m_em[2, j] * alpha[t - a, 6 + k])
         if not possible:
             loglik[s] = -math.inf
             continue
@@ -118,19 +134,34 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
             beta[j] = 1.0
         for t in range(b - 1, a - 1, -1):
             if t < b - 1:
-                m = transition[group[t]]
-                xs = xi[group[t]]
+                g = group[t]
+                m_em = chain[g, 0]
+                m_ea = chain[g, 1]
                 inverse = 1.0 / scale[t + 1 - a]
                 for j in range(n_h):
                     nxt[j] = emission[t + 1 - a, j] * beta[j] * inverse
-                for i in range(n_h):
-                    ai = alpha[t - a, i] * w
-                    v = 0.0
-                    for j in range(n_h):
-                        p = m[i, j] * nxt[j]
-                        v += p
-                        xs[i, j] += ai * p
-                    beta[i] = v
+                # through(j, a) = sum_b A_ea(a, b) nxt(j, b)
+                for j in range(3):
+                    n0 = nxt[3 * j]
+                    n1 = nxt[3 * j + 1]
+                    n2 = nxt[3 * j + 2]
+                    for k in range(3):
+                        through[3 * j + k] = m_ea[k, 0] * n0 + m_ea[k, 1] * n1 + m_ea[k, 2] * n2
+                # beta_t(i, a) = sum_j A_em(i, j) through(j, a)
+                for i in range(3):
+                    for k in range(3):
+                        beta[3 * i + k] = (m_em[i, 0] * through[k] + m_em[i, 1] * through[3 + k]
+                                           + m_em[i, 2] * through[6 + k])
+                for i in range(3):
+                    for j in range(3):
+                        joint_em[g, i, j] += w * (alpha[t - a, 3 * i] * through[3 * j]
+                                                  + alpha[t - a, 3 * i + 1] * through[3 * j + 1]
+                                                  + alpha[t - a, 3 * i + 2] * through[3 * j + 2])
+                for k in range(3):
+                    for m in range(3):
+                        joint_ea[g, k, m] += w * (pushed[t - a, k] * nxt[m]
+                                                  + pushed[t - a, 3 + k] * nxt[3 + m]
+                                                  + pushed[t - a, 6 + k] * nxt[6 + m])
             z = 0.0
             for h in range(n_h):
                 gamma[h] = alpha[t - a, h] * beta[h]
@@ -151,38 +182,46 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                         + gamma[3 * em + 2]
             if has_move[t]:
                 for ea in range(3):
+                    norm = (move[t, 0] * p_delta[ea, 0] + move[t, 1] * p_delta[ea, 1]
+                            + move[t, 2] * p_delta[ea, 2])
+                    inverse_norm[ea] = 1.0 / norm if norm > 0.0 else 0.0
+                for ea in range(3):
                     g_ea = gamma[ea] + gamma[3 + ea] + gamma[6 + ea]
-                    norm = 0.0
+                    r = g_ea * inverse_norm[ea]
                     for k in range(3):
-                        norm += move[t, k] * p_delta[ea, k]
-                    for k in range(3):
-                        if norm > 0.0:
-                            delta[ea, k] += g_ea * move[t, k] * p_delta[ea, k] / norm
+                        delta[ea, k] += r * move[t, k] * p_delta[ea, k]
                         if unique_move[t, k]:
                             unique[ea, k] += g_ea
+    # the expected moves: xi summed over the other variable is A (elementwise) joint
+    for g in range(n_g):
+        for i in range(3):
+            for j in range(3):
+                moves[g, 0, i, j] += chain[g, 0, i, j] * joint_em[g, i, j]
+                moves[g, 1, i, j] += chain[g, 1, i, j] * joint_ea[g, i, j]
 
 
-def _e_step_batch(likelihood, p_accept, p_delta, pi, transition, group, observation, answer,
+def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, observation, answer,
                   move, has_move, unique_move, seg_start, seg_weight, loglik, first, accept,
-                  delta, xi, observed, unique):
+                  delta, moves, observed, unique):
     longest = 1
     for s in range(seg_start.shape[0] - 1):
         longest = max(longest, seg_start[s + 1] - seg_start[s])
     for lane in numba.prange(pi.shape[0]):
         alpha = np.empty((longest, N_HIDDEN))
+        pushed = np.empty((longest, N_HIDDEN))
         emission = np.empty((longest, N_HIDDEN))
         scale = np.empty(longest)
         first[lane] = 0.0
         accept[lane] = 0.0
         delta[lane] = 0.0
-        xi[lane] = 0.0
+        moves[lane] = 0.0
         observed[lane] = 0.0
         unique[lane] = 0.0
         _segments_jit(0, seg_start.shape[0] - 1, likelihood[lane], p_accept[lane],
-                      p_delta[lane], pi[lane], transition[lane], group, observation, answer,
-                      move, has_move, unique_move, seg_start, seg_weight[lane], alpha,
+                      p_delta[lane], pi[lane], chain[lane], group, observation, answer,
+                      move, has_move, unique_move, seg_start, seg_weight[lane], alpha, pushed,
                       emission, scale, loglik[lane], first[lane], accept[lane], delta[lane],
-                      xi[lane], observed[lane], unique[lane])
+                      moves[lane], observed[lane], unique[lane])
 
 
 # fastmath without assuming finite values (an impossible segment's -inf must survive).

@@ -398,13 +398,6 @@ def _chain_matrices(chains: np.ndarray) -> np.ndarray:
     return m
 
 
-def _emotion_matrices(chains: np.ndarray) -> np.ndarray:
-    """(B, G, 9, 9): kron(em chain, ea chain) per lane and group."""
-    m = _chain_matrices(chains)
-    e = np.einsum('bgik,bgjl->bgijkl', m[:, :, 0], m[:, :, 1])
-    return e.reshape(chains.shape[:2] + (N_HIDDEN, N_HIDDEN))
-
-
 def _lane_last(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 0, -1))
 
@@ -435,27 +428,25 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     first = np.empty((n_lanes, N_HIDDEN))
     accept = np.empty((n_lanes, 2, 3))
     delta = np.empty((n_lanes, 3, 3))
-    xi = np.empty((n_lanes, len(EMOTION_GROUPS), N_HIDDEN, N_HIDDEN))
+    transitions = np.empty((n_lanes, len(EMOTION_GROUPS), len(EMOTION_VARIABLES), 3, 3))
     observed = np.empty((n_lanes, N_OBSERVATIONS, N_HIDDEN))
     unique = np.empty((n_lanes, 3, 3))
     _fit_kernels.e_step_batch(
         np.ascontiguousarray(_field(x, 'likelihood')),
         np.ascontiguousarray(_field(x, 'p_accept')),
         np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(_field(x, 'pi')),
-        np.ascontiguousarray(_emotion_matrices(_field(x, 'chains'))), data.group,
+        np.ascontiguousarray(_chain_matrices(_field(x, 'chains'))), data.group,
         data.observation, data.answer, data.move, data.has_move, data.unique_delta,
-        data.seg_start, weight, loglik, first, accept, delta, xi, observed, unique,
+        data.seg_start, weight, loglik, first, accept, delta, transitions, observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
     if split > 1:
         def joined(a):
             return a.reshape((split, used) + a.shape[1:]).sum(axis=0)
         loglik, weight = joined(loglik), joined(weight)
-        first, accept, delta, xi, observed, unique = (
-            joined(a) for a in (first, accept, delta, xi, observed, unique))
+        first, accept, delta, transitions, observed, unique = (
+            joined(a) for a in (first, accept, delta, transitions, observed, unique))
     finite = np.isfinite(loglik)
     impossible = np.where(finite.all(axis=1), -1, np.argmax(~finite, axis=1))
-    x5 = xi.reshape(used, len(EMOTION_GROUPS), 3, 3, 3, 3)        # [l, g, em, ea, em', ea']
-    transitions = np.stack([x5.sum(axis=(3, 5)), x5.sum(axis=(2, 4))], axis=2)
     ll = np.einsum('ls,ls->l', np.where(finite, loglik, 0.0), weight)
     return Expected(np.where(impossible < 0, ll, -np.inf), first, accept, delta, transitions,
                     observed, unique), impossible
