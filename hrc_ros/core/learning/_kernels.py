@@ -49,20 +49,41 @@ from ..parallel import parallel_kernel
 
 
 def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, chain,
-              group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
-              alpha, pushed, emission, scale, loglik, first, accept, delta, moves, observed,
-              unique):
-    """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
+              group, code, code_observation, code_answer, code_move, code_has_move,
+              code_unique, seg_start, seg_weight, alpha, pushed, scale, evidence, posterior,
+              loglik, first, accept, delta, moves, observed, unique):
+    """The segments first_segment .. last_segment - 1, counts added into the given arrays.
+    `evidence` (C, 9) and `posterior` (C, 9) are scratch: the evidence of each epoch kind and
+    the posterior summed over the epochs of each kind."""
     n_h = N_HIDDEN
     n_g = chain.shape[0]
+    n_codes = code_observation.shape[0]
     nxt = np.empty(n_h)
     through = np.empty(n_h)
     beta = np.empty(n_h)
     gamma = np.empty(n_h)
     dist = np.empty(3)
-    inverse_norm = np.empty(3)
     joint_em = np.zeros((n_g, 3, 3))     # sum_t w sum_a alpha_t(i, a) M_t(j, a), per group
     joint_ea = np.zeros((n_g, 3, 3))     # sum_t w sum_j P_t(j, a) nxt_t(j, b), per group
+    # evidence of each kind of epoch: e(h) = L[O, h] acc(em) sum_D move[D] p_delta[ea, D]
+    for c in range(n_codes):
+        o = code_observation[c]
+        for ea in range(3):
+            dist[ea] = (code_move[c, 0] * p_delta[ea, 0] + code_move[c, 1] * p_delta[ea, 1]
+                        + code_move[c, 2] * p_delta[ea, 2])
+        for em in range(3):
+            acc = 1.0
+            if code_answer[c] == 1:
+                acc = p_accept[em]
+            elif code_answer[c] == 2:
+                acc = 1.0 - p_accept[em]
+            for ea in range(3):
+                h = 3 * em + ea
+                v = acc * dist[ea]
+                if o < 3:
+                    v *= likelihood[o, h]
+                evidence[c, h] = v
+                posterior[c, h] = 0.0
     for s in range(first_segment, last_segment):
         a = seg_start[s]
         b = seg_start[s + 1]
@@ -70,33 +91,16 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
         if w == 0.0:
             loglik[s] = 0.0
             continue
-        # evidence
-        for t in range(a, b):
-            o = observation[t]
-            for ea in range(3):
-                dist[ea] = (move[t, 0] * p_delta[ea, 0] + move[t, 1] * p_delta[ea, 1]
-                            + move[t, 2] * p_delta[ea, 2])
-            for em in range(3):
-                acc = 1.0
-                if answer[t] == 1:
-                    acc = p_accept[em]
-                elif answer[t] == 2:
-                    acc = 1.0 - p_accept[em]
-                for ea in range(3):
-                    h = 3 * em + ea
-                    v = acc * dist[ea]
-                    if o < 3:
-                        v *= likelihood[o, h]
-                    emission[t - a, h] = v
         # forward: alpha_t = (P_{t-1} A_ea) * e_t / c_t, P_{t-1}(j, a) = sum_i A_em(i, j)
-        # alpha_{t-1}(i, a), the kron(em, ea) transition in two 3 x 3 products
+        # alpha_{t-1}(i, a): the kron(em, ea) transition as two 3 x 3 products
         total = 0.0
         possible = True
         for t in range(a, b):
+            e = evidence[code[t]]
             c = 0.0
             if t == a:
                 for j in range(n_h):
-                    v = pi[j] * emission[0, j]
+                    v = pi[j] * e[j]
                     alpha[0, j] = v
                     c += v
             else:
@@ -106,8 +110,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
                     p1 = pushed[t - 1 - a, 3 * j + 1]
                     p2 = pushed[t - 1 - a, 3 * j + 2]
                     for k in range(3):
-                        v = (p0 * m_ea[0, k] + p1 * m_ea[1, k] + p2 * m_ea[2, k]) \
-                            * emission[t - a, 3 * j + k]
+                        v = (p0 * m_ea[0, k] + p1 * m_ea[1, k] + p2 * m_ea[2, k]) * e[3 * j + k]
                         alpha[t - a, 3 * j + k] = v
                         c += v
             if not c > 0.0:
@@ -137,9 +140,10 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
                 g = group[t]
                 m_em = chain[g, 0]
                 m_ea = chain[g, 1]
+                e = evidence[code[t + 1]]
                 inverse = 1.0 / scale[t + 1 - a]
                 for j in range(n_h):
-                    nxt[j] = emission[t + 1 - a, j] * beta[j] * inverse
+                    nxt[j] = e[j] * beta[j] * inverse
                 # through(j, a) = sum_b A_ea(a, b) nxt(j, b)
                 for j in range(3):
                     n0 = nxt[3 * j]
@@ -172,26 +176,30 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
             if t == a:
                 for h in range(n_h):
                     first[h] += gamma[h]
-            o = observation[t]
-            if o < 3:
-                for h in range(n_h):
-                    observed[o, h] += gamma[h]
-            if answer[t] > 0:
-                for em in range(3):
-                    accept[answer[t] - 1, em] += gamma[3 * em] + gamma[3 * em + 1] \
-                        + gamma[3 * em + 2]
-            if has_move[t]:
-                for ea in range(3):
-                    norm = (move[t, 0] * p_delta[ea, 0] + move[t, 1] * p_delta[ea, 1]
-                            + move[t, 2] * p_delta[ea, 2])
-                    inverse_norm[ea] = 1.0 / norm if norm > 0.0 else 0.0
-                for ea in range(3):
-                    g_ea = gamma[ea] + gamma[3 + ea] + gamma[6 + ea]
-                    r = g_ea * inverse_norm[ea]
-                    for k in range(3):
-                        delta[ea, k] += r * move[t, k] * p_delta[ea, k]
-                        if unique_move[t, k]:
-                            unique[ea, k] += g_ea
+            kind = posterior[code[t]]
+            for h in range(n_h):
+                kind[h] += gamma[h]
+    # the counts of each kind of epoch
+    for c in range(n_codes):
+        o = code_observation[c]
+        kind = posterior[c]
+        if o < 3:
+            for h in range(n_h):
+                observed[o, h] += kind[h]
+        if code_answer[c] > 0:
+            for em in range(3):
+                accept[code_answer[c] - 1, em] += kind[3 * em] + kind[3 * em + 1] \
+                    + kind[3 * em + 2]
+        if code_has_move[c]:
+            for ea in range(3):
+                g_ea = kind[ea] + kind[3 + ea] + kind[6 + ea]
+                norm = (code_move[c, 0] * p_delta[ea, 0] + code_move[c, 1] * p_delta[ea, 1]
+                        + code_move[c, 2] * p_delta[ea, 2])
+                for k in range(3):
+                    if norm > 0.0:
+                        delta[ea, k] += g_ea * code_move[c, k] * p_delta[ea, k] / norm
+                    if code_unique[c, k]:
+                        unique[ea, k] += g_ea
     # the expected moves: xi summed over the other variable is A (elementwise) joint
     for g in range(n_g):
         for i in range(3):
@@ -200,17 +208,19 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
                 moves[g, 1, i, j] += chain[g, 1, i, j] * joint_ea[g, i, j]
 
 
-def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, observation, answer,
-                  move, has_move, unique_move, seg_start, seg_weight, loglik, first, accept,
-                  delta, moves, observed, unique):
+def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, code, code_observation,
+                  code_answer, code_move, code_has_move, code_unique, seg_start, seg_weight,
+                  loglik, first, accept, delta, moves, observed, unique):
     longest = 1
     for s in range(seg_start.shape[0] - 1):
         longest = max(longest, seg_start[s + 1] - seg_start[s])
+    n_codes = code_observation.shape[0]
     for lane in numba.prange(pi.shape[0]):
         alpha = np.empty((longest, N_HIDDEN))
         pushed = np.empty((longest, N_HIDDEN))
-        emission = np.empty((longest, N_HIDDEN))
         scale = np.empty(longest)
+        evidence = np.empty((n_codes, N_HIDDEN))
+        posterior = np.empty((n_codes, N_HIDDEN))
         first[lane] = 0.0
         accept[lane] = 0.0
         delta[lane] = 0.0
@@ -218,10 +228,11 @@ def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, observation, 
         observed[lane] = 0.0
         unique[lane] = 0.0
         _segments_jit(0, seg_start.shape[0] - 1, likelihood[lane], p_accept[lane],
-                      p_delta[lane], pi[lane], chain[lane], group, observation, answer,
-                      move, has_move, unique_move, seg_start, seg_weight[lane], alpha, pushed,
-                      emission, scale, loglik[lane], first[lane], accept[lane], delta[lane],
-                      moves[lane], observed[lane], unique[lane])
+                      p_delta[lane], pi[lane], chain[lane], group, code, code_observation,
+                      code_answer, code_move, code_has_move, code_unique, seg_start,
+                      seg_weight[lane], alpha, pushed, scale, evidence, posterior,
+                      loglik[lane], first[lane], accept[lane], delta[lane], moves[lane],
+                      observed[lane], unique[lane])
 
 
 # fastmath without assuming finite values (an impossible segment's -inf must survive).

@@ -398,6 +398,37 @@ def _chain_matrices(chains: np.ndarray) -> np.ndarray:
     return m
 
 
+def epoch_kinds(data: FitData) -> tuple:
+    """The epochs grouped by their evidence: (kind (T,), then per kind its observation,
+    answer, move (K, 3), has_move and unique_delta (K, 3)). Epochs of one kind have the same
+    evidence e_t(h) under any parameters, so the kernel computes it once per kind and lane,
+    and sums the posteriors of a kind before it makes the counts. Kept on `data` (keyed by the
+    arrays it was made from)."""
+    key = tuple(id(a) for a in (data.observation, data.answer, data.move, data.has_move,
+                                data.unique_delta))
+    cached = data.__dict__.get('_kinds')
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    move = np.asarray(data.move) > 0
+    unique = np.asarray(data.unique_delta, dtype=bool)
+    bits = np.array([1, 2, 4])
+    label = (np.asarray(data.observation, dtype=np.int64)
+             + 4 * (np.asarray(data.answer, dtype=np.int64)
+                    + 3 * ((move @ bits) + 8 * (np.asarray(data.has_move, dtype=np.int64)
+                                                + 2 * (unique @ bits)))))
+    labels, kind = np.unique(label, return_inverse=True)
+    at = np.zeros(len(labels), dtype=np.int64)
+    at[kind] = np.arange(len(kind))                     # an epoch of each kind
+    kinds = (np.ascontiguousarray(kind, dtype=np.int64),
+             np.ascontiguousarray(data.observation[at], dtype=np.int64),
+             np.ascontiguousarray(data.answer[at], dtype=np.int64),
+             np.ascontiguousarray(move[at], dtype=float),
+             np.ascontiguousarray(data.has_move[at], dtype=np.bool_),
+             np.ascontiguousarray(unique[at]))
+    data.__dict__['_kinds'] = (key, kinds)
+    return kinds
+
+
 def _lane_last(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 0, -1))
 
@@ -436,8 +467,8 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
         np.ascontiguousarray(_field(x, 'p_accept')),
         np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(_field(x, 'pi')),
         np.ascontiguousarray(_chain_matrices(_field(x, 'chains'))), data.group,
-        data.observation, data.answer, data.move, data.has_move, data.unique_delta,
-        data.seg_start, weight, loglik, first, accept, delta, transitions, observed, unique,
+        *epoch_kinds(data), data.seg_start, weight, loglik, first, accept, delta, transitions,
+        observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
     if split > 1:
         def joined(a):
