@@ -102,6 +102,7 @@ TOL = 1e-8                 # stop when the log likelihood rises by less than thi
 MAX_ITER = 1000
 EM, SQUAREM, NEWTON = 'em', 'squarem', 'newton'   # run_em_batch's methods
 METHODS = (EM, SQUAREM, NEWTON)
+DEFAULT_METHOD = SQUAREM   # hrc-fit's (bench/README.md "hrc-fit's bootstrap, side by side")
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
 UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
@@ -689,9 +690,12 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
             x_new, s_new = x1, s1
         if method == SQUAREM:
             x2 = m_step_batch(s1, x1, hold)
-            s2 = expect(x2, lanes)
             r, v = x1 - x0, x2 - 2 * x1 + x0
-            x_new, s_new = x2, s2
+            x_new = x2
+            # x2's E-step is needed only where x2 is the iteration's end (no extrapolation,
+            # or one refused): run after the extrapolations, for those lanes only
+            plain = np.ones(len(lanes), dtype=bool)
+            ends = None
             norm_r, norm_v = np.linalg.norm(r, axis=1), np.linalg.norm(v, axis=1)
             moving = norm_v > 0
             alpha = np.full(len(lanes), -1.0)
@@ -721,9 +725,17 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
                     keep = tried[ok][better]
                     x_new = x_new.copy()
                     x_new[keep] = x3[better]
-                    s_new = _merged(s_new, keep, s3.lane(np.flatnonzero(better)))
+                    plain[keep] = False
+                    ends = (keep, s3.lane(np.flatnonzero(better)))
                 refused = lanes[tried[~accepted]]
                 step_max[refused] = np.maximum(1.0, step_max[refused] / 4.0)
+            if plain.all():
+                s_new = expect(x2, lanes)
+            else:
+                s_new = _merged(s0, *ends)
+                if plain.any():
+                    need = np.flatnonzero(plain)
+                    s_new = _merged(s_new, need, expect(x2[need], lanes[need]))
         x[lanes] = x_new
         stats = _merged(stats, lanes, s_new)
         for i, lane in enumerate(lanes):
@@ -1002,6 +1014,8 @@ class FitResult:
     seconds: dict = field(default_factory=dict)
     min_support: float = MIN_SUPPORT
     sample_logliks: np.ndarray | None = None   # (B,) the log likelihood of each resample's fit
+    resample_counts: np.ndarray | None = None  # (B, episodes) how often each resample drew each
+    resample_points: np.ndarray | None = None  # (B, N_PACKED) each resample's fit, packed (pi too)
 
     @property
     def iterations(self) -> int:
@@ -1093,7 +1107,8 @@ def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
 
 def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         tol: float = TOL, max_iter: int = MAX_ITER, bootstrap: int = BOOTSTRAP,
-        min_support: float = MIN_SUPPORT, progress=None, method: str = SQUAREM) -> FitResult:
+        min_support: float = MIN_SUPPORT, progress=None, method: str = DEFAULT_METHOD
+        ) -> FitResult:
     """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
     `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
     start by SQUAREM, then (if it left any of `max_iter`) the quasi-Newton EM
@@ -1135,12 +1150,13 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
         f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
-    interval = samples = effective = sample_logliks = None
+    interval = samples = effective = sample_logliks = counts = points = None
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
-        weights = np.stack([rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
-                            [data.seg_episode] for _ in range(bootstrap)]).astype(float)
+        counts = np.stack([rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
+                           for _ in range(bootstrap)]).astype(np.int32)
+        weights = counts[:, data.seg_episode].astype(float)
         step = max(1, bootstrap // 10)
         shown = [0]
 
@@ -1153,6 +1169,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                             curvature=curvature)
         samples = np.stack([run.params.vector() for run in runs])
         sample_logliks = np.array([run.trace[-1] for run in runs])
+        points = np.stack([_pack(run.params) for run in runs])
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
         effective = effective_support(params.vector(), samples)
         seconds['bootstrap'] = time.perf_counter() - t1
@@ -1165,7 +1182,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      best.converged, relabelled, support, interval, samples, effective,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
-                     data.issues, seconds, min_support, sample_logliks)
+                     data.issues, seconds, min_support, sample_logliks, counts, points)
 
 
 def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:
