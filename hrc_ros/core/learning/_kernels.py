@@ -11,13 +11,25 @@ h = 3*em + ea:
                                                       beta_{t+1}(h') / c_{t+1}
     log P(segment) = sum_t log c_t      (Rabiner's scaling: no underflow at any length)
 
-and the counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
+Two things make it cheaper than the formulas read (docs/LEARNING.md, "Time"):
+
+- E = kron(A_em, A_ea): alpha E is two 3 x 3 products, P_t(j, a) = sum_i A_em(i, j)
+  alpha_t(i, a) (kept from the forward pass) then sum_a P(j, a) A_ea(a, b); E n likewise
+  through M(j, a) = sum_b A_ea(a, b) n(j, b). The M-step reads only xi summed over the other
+  variable, and those sums are A_em(i, j) sum_t sum_a alpha_t(i, a) M_t(j, a) and A_ea(a, b)
+  sum_t sum_j P_t(j, a) n_t(j, b): the 9 x 9 xi is never formed.
+- Epochs of one kind (the same observation, answer, fitting Deltas, has_move and unique
+  Deltas: `fit.epoch_kinds`, a few dozen kinds in 100k epochs) have the same evidence under
+  any parameters: it is computed once per kind and lane, and the posteriors gamma_t of each
+  kind are summed in the pass; the counts below are made from those sums at the end.
+
+The counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
 (1, or how often a bootstrap resample drew its episode; 0 skips the segment):
 
     first[h]          sum of gamma at the segments' first epochs
     accept[0|1, em]   sum of gamma_t(em) over accepted | refused eligible requests
     delta[ea, D]      sum of gamma_t(ea) r_t(D | ea) over known moves, r the posterior of D
-    xi[g, h, h']      expected transitions under action group g
+    moves[g, v, i, j] expected moves of variable v (em, ea) from level i to j under group g
     observed[O, h]    sum of gamma_t(h) over epochs that observed O
     unique[ea, D]     sum of gamma_t(ea) over moves that tell D apart from both others
 
@@ -27,14 +39,15 @@ variant, so its counts do not depend on it. (A layout with the lanes innermost, 
 across lanes, was tried: numba's code for it was no faster per lane on this machine and took
 several times longer to compile.)
 
-Arguments (T epochs, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane `likelihood`
-(B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `transition` (B, 3, 9, 9);
-per epoch `group` (T,) the emotion group of a_t, `observation` (T,) O_t - 1 or 3 for none,
-`answer` (T,) 0 none, 1 accepted, 2 refused, `move` (T, 3) 1 where Delta fits the move (all 1
-when it is unknown), `has_move` (T,), `unique_move` (T, 3); `seg_start` (S + 1,),
-`seg_weight` (B, S); outputs
-(overwritten) `loglik` (B, S) (unweighted, -inf for evidence impossible under the
-parameters, 0 where the weight is 0) and the counts above with a leading lane axis.
+Arguments (T epochs, K kinds of epoch, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane
+`likelihood` (B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `chain`
+(B, 3, 2, 3, 3) the bounded chain matrices [group, variable, i, j]; per epoch `group` (T,)
+the emotion group of a_t and `code` (T,) its kind; per kind `code_observation` (K,) O - 1 or 3
+for none, `code_answer` (K,) 0 none, 1 accepted, 2 refused, `code_move` (K, 3) 1 where Delta
+fits the move (all 1 when it is unknown), `code_has_move` (K,), `code_unique` (K, 3);
+`seg_start` (S + 1,), `seg_weight` (B, S); outputs (overwritten) `loglik` (B, S)
+(unweighted, -inf for evidence impossible under the parameters, 0 where the weight is 0) and
+the counts above with a leading lane axis.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ input-output hidden Markov model whose inputs are the actions (MODEL.md 3 and 6)
 
 so an observed move of d may be explained by several Delta values (MODEL.md 3.3's clipping),
 and a (down, stay, up) chain by several moves at its bounds. Every factor of e_k depends on
-h_k only, so the forward-backward recursions (`_fit_kernels.forward_backward`, scaled) give
+h_k only, so the forward-backward recursions (`_fit_kernels.e_step_batch`, scaled) give
 the posteriors gamma_k(h) and the expected transition counts xi_g(h, h') per action group.
 
 EM. The complete data add the hidden h_k, the Delta of every move and the move of each emotion
