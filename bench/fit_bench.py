@@ -45,7 +45,12 @@ se(q_p) = sqrt(p (1 - p) / B) * sd / phi(z_p) (the normal approximation with the
 bootstrap's sd; about 0.19 sd for p = 0.025 and B = 200). "Within Monte Carlo error" is taken
 as every endpoint within 1 se. And, per resample, the log likelihood each method's fit reached
 on the same multiplicities (which is nearer the resample's maximum). Target: fit + bootstrap
-< 30 s.
+< 30 s. `--reference` then continues every resample of both methods from where it stopped to
+REFERENCE_TOL per epoch (the quasi-Newton EM, at most MAX_ITER more iterations) and compares
+both methods' intervals with those of the converged resamples, every parameter's endpoints
+printed: the reference a "same intervals" check needs when the methods stop short of their
+resamples' maxima. (Expensive: on 100k epochs squarem's 200 resamples did not finish in
+5 min of CPU, bench/README.md.)
 
 Targets (issue 10), at 100k epochs: every well-supported parameter within 0.03 of the truth,
 at least 90% interval coverage, fitted regret at most a tenth of the default's, the fit (not
@@ -343,7 +348,7 @@ def reference(data, old, new, e_steps) -> None:
         e_steps[0] = 0
         c0 = time.process_time()
         starts = [fitting._unpack(p, result.params) for p in result.resample_points]
-        runs = fitting.run_em_batch(data, starts, (), REFERENCE_TOL, 10 * fitting.MAX_ITER,
+        runs = fitting.run_em_batch(data, starts, (), REFERENCE_TOL, fitting.MAX_ITER,
                                     weights, method=fitting.NEWTON, curvature=curvature)
         samples = np.stack([r.params.vector() for r in runs])
         gain = np.array([r.trace[-1] for r in runs]) - result.sample_logliks
