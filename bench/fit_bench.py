@@ -45,7 +45,12 @@ se(q_p) = sqrt(p (1 - p) / B) * sd / phi(z_p) (the normal approximation with the
 bootstrap's sd; about 0.19 sd for p = 0.025 and B = 200). "Within Monte Carlo error" is taken
 as every endpoint within 1 se. And, per resample, the log likelihood each method's fit reached
 on the same multiplicities (which is nearer the resample's maximum). Target: fit + bootstrap
-< 30 s.
+< 30 s. `--reference` then continues every resample of both methods from where it stopped to
+REFERENCE_TOL per epoch (the quasi-Newton EM, at most MAX_ITER more iterations) and compares
+both methods' intervals with those of the converged resamples, every parameter's endpoints
+printed: the reference a "same intervals" check needs when the methods stop short of their
+resamples' maxima. (Expensive: on 100k epochs squarem's 200 resamples did not finish in
+5 min of CPU, bench/README.md.)
 
 Targets (issue 10), at 100k epochs: every well-supported parameter within 0.03 of the truth,
 at least 90% interval coverage, fitted regret at most a tenth of the default's, the fit (not
@@ -157,6 +162,9 @@ def main(argv=None) -> int:
     parser.add_argument('--timing', action='store_true',
                         help='time fit and bootstrap on 100k epochs of the first world and '
                         'compare the intervals with the sequential bootstrap (see above)')
+    parser.add_argument('--reference', action='store_true',
+                        help='with --timing: also continue every resample of both methods '
+                        'to convergence and compare the intervals with those (see above)')
     args = parser.parse_args(argv)
     if args.timing:
         return timing(args)
@@ -227,10 +235,36 @@ def main(argv=None) -> int:
     return 0
 
 
+def _mc_se(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Monte Carlo standard error of a bootstrap 2.5% / 97.5% percentile of each
+    parameter (normal approximation, sqrt(p (1 - p) / B) sd / phi(z_p)) and where the
+    resamples spread at all."""
+    from statistics import NormalDist
+    sd = samples.std(axis=0, ddof=1)
+    z = NormalDist().inv_cdf(0.975)
+    return np.sqrt(0.025 * 0.975 / len(samples)) * sd / NormalDist().pdf(z), sd > 1e-9
+
+
+def _in_se(a: np.ndarray, b: np.ndarray, se: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """(2, 57) |a - b| of two intervals in Monte Carlo se."""
+    return np.where(spread, np.abs(a - b) / np.where(spread, se, 1.0), 0.0)
+
+
+def _compared(label: str, a: np.ndarray, b: np.ndarray, se, spread) -> bool:
+    """Print one line comparing intervals a and b (2, 57); whether within 1 se everywhere."""
+    in_se = _in_se(a, b, se, spread)
+    worst = np.unravel_index(np.argmax(in_se), in_se.shape)
+    within = in_se.max() <= 1.0
+    print(f'  {label}: largest |difference| {np.abs(a - b).max():.2e}, {in_se.max():.3f} Monte '
+          f'Carlo se ({fitting.PARAMETER_NAMES[worst[1]]}), {int(np.sum(in_se > 1))} of '
+          f'{int(2 * spread.sum())} beyond 1 se; {"WITHIN" if within else "OUTSIDE"} Monte '
+          'Carlo error')
+    return within
+
+
 def timing(args) -> int:
     """`--timing`: see the module docstring."""
     import os
-    from statistics import NormalDist
 
     from hrc_ros.core.mdp.policy import default_policy_path, load_policy
     bootstrap = args.bootstrap if args.bootstrap != BOOTSTRAP else fitting.BOOTSTRAP
@@ -261,48 +295,87 @@ def timing(args) -> int:
         result = fitting.fit(data, base, bootstrap=bootstrap, seed=args.seed, method=method)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         results[method] = result
-        print(f'{method}: fit {result.seconds["fit"]:.1f} s, bootstrap '
+        print(f'{method}{" (the default)" if method == fitting.DEFAULT_METHOD else ""}: fit '
+              f'{result.seconds["fit"]:.1f} s, bootstrap '
               f'{result.seconds["bootstrap"]:.1f} s, total {wall:.1f} s wall, {cpu:.1f} s CPU '
               f'(free 2-core estimate CPU/2 = {cpu / 2:.1f} s), {e_steps[0]} E-steps '
               f'({e_steps[0] / bootstrap:.0f} per resample), {1e3 * cpu / e_steps[0]:.1f} ms '
               f'CPU each; load average {load:.2f} before, {os.getloadavg()[0]:.2f} after; '
-              f'target < 30 s {"MET" if cpu / 2 < 30 and wall < 30 else "MISSED"}'
-              f'{"" if wall < 30 or cpu / 2 >= 30 else " (wall; MET on a free machine)"}',
+              f'target < 30 s {"MET" if wall < 30 else "MISSED"} (wall)'
+              f'{"; MET on two free cores (CPU/2)" if wall >= 30 and cpu / 2 < 30 else ""}',
               flush=True)
-    fitting.e_step_batch = e_step_batch
     old, new = results[fitting.SQUAREM], results[fitting.NEWTON]
     point = np.abs(new.params.vector() - old.params.vector())
     print(f'point estimates: largest |newton - squarem| {point.max():.2e} '
           f'({fitting.PARAMETER_NAMES[int(np.argmax(point))]}); log likelihood '
           f'{new.loglik:.4f} vs {old.loglik:.4f}')
     # the paired check: the same resamples (same seed, so the same multiplicities)
+    assert np.array_equal(old.resample_counts, new.resample_counts)
     differ = int(np.sum(np.any(old.samples != new.samples, axis=1)))
     per_resample = np.abs(old.samples - new.samples).max(axis=1)
-    sd = old.samples.std(axis=0, ddof=1)
-    z = NormalDist().inv_cdf(0.975)
-    se = np.sqrt(0.025 * 0.975 / bootstrap) * sd / NormalDist().pdf(z)
-    spread = sd > 1e-9
-    diff = np.abs(new.interval - old.interval)
-    in_se = np.where(spread, diff / np.where(spread, se, 1.0), 0.0)
-    worst = np.unravel_index(np.argmax(in_se), in_se.shape)
-    within = in_se.max() <= 1.0
-    print(f'paired check: {differ}/{bootstrap} resamples differ, median largest |difference| '
-          f'{np.median(per_resample):.3f}, max {per_resample.max():.3f}; interval endpoints: '
-          f'largest |difference| {diff.max():.2e}, {in_se.max():.3f} Monte Carlo se '
-          f'({fitting.PARAMETER_NAMES[worst[1]]}), {int(np.sum(in_se > 1))} of '
-          f'{int(2 * spread.sum())} beyond 1 se; {"WITHIN" if within else "OUTSIDE"} Monte '
-          'Carlo error')
+    se, spread = _mc_se(old.samples)
+    print(f'paired check, the same {bootstrap} resamples: {differ} differ, median largest '
+          f'|difference| {np.median(per_resample):.3f}, max {per_resample.max():.3f}; '
+          'interval endpoints (se: of the squarem bootstrap):')
+    _compared('newton vs squarem', new.interval, old.interval, se, spread)
     gain = new.sample_logliks - old.sample_logliks
     step = fitting.TOL * data.epochs
     print(f'resample log likelihoods, newton - squarem (same multiplicities): higher in '
           f'{int(np.sum(gain > step))}, within tol*n = {step:.0e} in '
           f'{int(np.sum(np.abs(gain) <= step))}, lower in {int(np.sum(gain < -step))} of '
           f'{bootstrap}; median {np.median(gain):+.4f}, from {gain.min():+.4f} to '
-          f'{gain.max():+.4f}')
-    print(f'newton as the default: {"passes" if within else "fails"} the paired check')
+          f'{gain.max():+.4f}', flush=True)
+    if args.reference:
+        reference(data, old, new, e_steps)
+    fitting.e_step_batch = e_step_batch
     print(f'\nreproduce: .venv/bin/python bench/fit_bench.py --timing --worlds {name} '
-          f'--bootstrap {bootstrap} --seed {args.seed}')
+          f'--bootstrap {bootstrap} --seed {args.seed}{" --reference" if args.reference else ""}')
     return 0
+
+
+REFERENCE_TOL = 1e-12    # per epoch: "fitted to convergence" (--reference)
+
+
+def reference(data, old, new, e_steps) -> None:
+    """`--timing --reference`: every resample of both methods continued from where it
+    stopped to REFERENCE_TOL (by the quasi-Newton EM, the curvature of the squarem estimate),
+    so each ends at the maximum its run was heading for; the intervals of those converged
+    bootstraps against each other and against the methods' own."""
+    curvature = fitting.curvature_at(data, old.params)
+    weights = old.resample_counts[:, data.seg_episode].astype(float)
+    converged = {}
+    for method, result in ((fitting.SQUAREM, old), (fitting.NEWTON, new)):
+        e_steps[0] = 0
+        c0 = time.process_time()
+        starts = [fitting._unpack(p, result.params) for p in result.resample_points]
+        runs = fitting.run_em_batch(data, starts, (), REFERENCE_TOL, fitting.MAX_ITER,
+                                    weights, method=fitting.NEWTON, curvature=curvature)
+        samples = np.stack([r.params.vector() for r in runs])
+        gain = np.array([r.trace[-1] for r in runs]) - result.sample_logliks
+        moved = np.abs(samples - result.samples).max(axis=1)
+        print(f'{method}\'s resamples continued to tol {REFERENCE_TOL:g} per epoch: '
+              f'{sum(r.converged for r in runs)}/{len(runs)} converged, {e_steps[0]} E-steps '
+              f'({time.process_time() - c0:.1f} s CPU); log likelihood rose by median '
+              f'{np.median(gain):.4f}, max {gain.max():.4f}; parameters moved by median '
+              f'{np.median(moved):.4f}, max {moved.max():.4f}', flush=True)
+        converged[method] = np.percentile(samples, [2.5, 97.5], axis=0)
+    ref = converged[fitting.SQUAREM]
+    se, spread = _mc_se(old.samples)
+    print('interval endpoints against the converged bootstrap of squarem\'s resamples '
+          '(se: of the squarem bootstrap):')
+    _compared('squarem (tol 1e-8) vs converged', old.interval, ref, se, spread)
+    _compared('newton (tol 1e-8) vs converged', new.interval, ref, se, spread)
+    _compared('newton vs its own resamples converged', new.interval, converged[fitting.NEWTON],
+              se, spread)
+    _compared('both converged', converged[fitting.NEWTON], ref, se, spread)
+    print(f'\n{"parameter":<30}{"squarem":>18}{"newton":>18}{"converged":>18}'
+          f'{"sq se":>7}{"nt se":>7}')
+    sq_se = _in_se(old.interval, ref, se, spread).max(axis=0)
+    nt_se = _in_se(new.interval, ref, se, spread).max(axis=0)
+    for i, parameter in enumerate(fitting.PARAMETER_NAMES):
+        cells = ''.join(f'{f"[{iv[0, i]:.4f}, {iv[1, i]:.4f}]":>18}'
+                        for iv in (old.interval, new.interval, ref))
+        print(f'{parameter:<30}{cells}{sq_se[i]:>7.2f}{nt_se[i]:>7.2f}')
 
 
 def load_fitted(result, base):

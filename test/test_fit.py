@@ -133,6 +133,74 @@ def test_the_e_step_equals_the_sum_over_every_hidden_path():
                                    err_msg=name)
 
 
+def plain_forward_backward(params: fit.Params, data: fit.FitData, weights) -> dict:
+    """Every count of `fit.Expected` by the textbook scaled forward-backward with the full
+    9 x 9 emotion matrices, per epoch: the reference for the kernel on segments too long to
+    enumerate (the kernel factors the matrices as kron(em, ea) and groups epochs by kind)."""
+    e = fit.emission(params, data)
+    transition = params.emotion_matrices()
+    out = {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
+           'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
+           'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
+    for s, w in enumerate(weights):
+        a, b = data.seg_start[s], data.seg_start[s + 1]
+        if w == 0:
+            continue
+        n = b - a
+        alpha, scale, beta = np.zeros((n, 9)), np.zeros(n), np.ones((n, 9))
+        for t in range(n):
+            alpha[t] = (params.pi if t == 0 else alpha[t - 1] @ transition[data.group[a + t - 1]])
+            alpha[t] *= e[a + t]
+            scale[t] = alpha[t].sum()
+            alpha[t] /= scale[t]
+        for t in range(n - 2, -1, -1):
+            beta[t] = transition[data.group[a + t]] @ (e[a + t + 1] * beta[t + 1]) / scale[t + 1]
+        gamma = w * alpha * beta / (alpha * beta).sum(axis=1, keepdims=True)
+        out['loglik'] += w * np.log(scale).sum()
+        out['first'] += gamma[0]
+        for t in range(n):
+            em, ea = gamma[t].reshape(3, 3).sum(axis=1), gamma[t].reshape(3, 3).sum(axis=0)
+            o = data.observation[a + t]
+            if o < 3:
+                out['observed'][o] += gamma[t]
+            if data.answer[a + t]:
+                out['accept'][data.answer[a + t] - 1] += em
+            if data.has_move[a + t]:
+                r = data.move[a + t] * params.p_delta
+                out['delta'] += ea[:, None] * r / r.sum(axis=1, keepdims=True)
+                out['unique_moves'] += ea[:, None] * data.unique_delta[a + t][None, :]
+            if t < n - 1:
+                g = data.group[a + t]
+                xi = (w * alpha[t][:, None] * transition[g]
+                      * (e[a + t + 1] * beta[t + 1] / scale[t + 1])[None, :])
+                xi = xi.reshape(3, 3, 3, 3)                        # [em, ea, em', ea']
+                out['transitions'][g, 0] += xi.sum(axis=(1, 3))
+                out['transitions'][g, 1] += xi.sum(axis=(0, 2))
+    return out
+
+
+def test_the_e_step_of_a_batch_equals_the_plain_forward_backward_of_each_lane():
+    """Long segments (60-120 epochs, where the scaling matters), lanes with their own
+    parameters and weights in one kernel call: each lane's counts are the plain per-epoch
+    forward-backward's to float precision."""
+    rng = np.random.default_rng(8)
+    data = random_data(rng, [60, 1, 120, 75], missing=0.25)
+    kinds = fit.epoch_kinds(data)
+    assert len(kinds[1]) < data.epochs // 2           # epochs do share kinds
+    lanes = [random_params(rng) for _ in range(3)]
+    weights = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 0.0, 1.0, 3.0], [0.0, 4.0, 2.0, 0.0]])
+    stats, impossible = fit.e_step_batch(np.stack([fit._pack(p) for p in lanes]), data,
+                                         weights)
+    assert np.all(impossible == -1)
+    for lane, params in enumerate(lanes):
+        truth = plain_forward_backward(params, data, weights[lane])
+        assert stats.loglik[lane] == pytest.approx(truth['loglik'], rel=1e-12)
+        for name in ('first', 'accept', 'delta', 'transitions', 'observed', 'unique_moves'):
+            assert truth[name].sum() > 0, name
+            np.testing.assert_allclose(getattr(stats, name)[lane], truth[name], rtol=1e-9,
+                                       atol=1e-9, err_msg=f'lane {lane}: {name}')
+
+
 def test_a_segment_weight_of_zero_drops_the_segment():
     rng = np.random.default_rng(4)
     data = random_data(rng, [3, 4])
@@ -568,3 +636,24 @@ def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
     write_replacing(link, 'new\n')
     assert link.is_symlink() and real.read_text() == 'new\n'
     assert sorted(p.name for p in shared.iterdir()) == ['cell.yaml']   # no temporary left
+
+
+def test_the_bootstrap_side_by_side_equals_each_resample_fitted_alone(base, policy):
+    """`fit`'s resamples, all in one batch, are each what EM by SQUAREM from the estimate
+    gives on that resample's multiplicities alone (float precision); the result keeps the
+    multiplicities and each resample's fitted point."""
+    recordings, _ = simulated(base, policy, 40, seed=6)
+    data = fit.prepare(recordings)
+    result = fit.fit(data, base, n_init=1, bootstrap=6, seed=1)
+    assert result.resample_counts.shape == (6, len(data.episodes))
+    assert np.all(result.resample_counts.sum(axis=1) == len(data.episodes))
+    assert len({tuple(c) for c in result.resample_counts}) == 6
+    for b in range(6):
+        weights = result.resample_counts[b][data.seg_episode].astype(float)
+        alone = fit.run_em(data, result.params, seg_weight=weights)
+        assert alone.converged
+        np.testing.assert_allclose(result.samples[b], alone.params.vector(), rtol=0,
+                                   atol=1e-9)
+        np.testing.assert_allclose(result.resample_points[b], fit._pack(alone.params), rtol=0,
+                                   atol=1e-9)
+        assert result.sample_logliks[b] == pytest.approx(alone.trace[-1], rel=1e-12)

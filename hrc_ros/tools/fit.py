@@ -25,9 +25,9 @@ import sys
 from pathlib import Path
 
 from ..core.config import ConfigError, load_config
-from ..core.learning.fit import (BOOTSTRAP, FAMILIES, MAX_ITER, MIN_SUPPORT, NEWTON, SQUAREM,
-                                 TOL, FitError, config_yaml, expand_hold, fit, prepare,
-                                 report_dict, report_text)
+from ..core.learning.fit import (BOOTSTRAP, DEFAULT_METHOD, FAMILIES, MAX_ITER, MIN_SUPPORT,
+                                 NEWTON, SQUAREM, TOL, FitError, config_yaml, expand_hold, fit,
+                                 prepare, report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
 from ..core.learning.stream import fit_stream
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     parser.add_argument('--bootstrap', type=bounded_int(0, 10_000), default=BOOTSTRAP,
                         help=f'resamples of the episodes for the 95%% intervals (default '
                         f'{BOOTSTRAP}; 0: none)')
-    parser.add_argument('--method', choices=(SQUAREM, NEWTON), default=SQUAREM,
+    parser.add_argument('--method', choices=(SQUAREM, NEWTON), default=DEFAULT_METHOD,
                         help='how EM is accelerated: squarem (default) or newton, a '
                         "quasi-Newton step with the full-data fit's curvature for the last "
                         'iterations and every resample (docs/LEARNING.md)')

@@ -11,13 +11,25 @@ h = 3*em + ea:
                                                       beta_{t+1}(h') / c_{t+1}
     log P(segment) = sum_t log c_t      (Rabiner's scaling: no underflow at any length)
 
-and the counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
+Two things make it cheaper than the formulas read (docs/LEARNING.md, "Time"):
+
+- E = kron(A_em, A_ea): alpha E is two 3 x 3 products, P_t(j, a) = sum_i A_em(i, j)
+  alpha_t(i, a) (kept from the forward pass) then sum_a P(j, a) A_ea(a, b); E n likewise
+  through M(j, a) = sum_b A_ea(a, b) n(j, b). The M-step reads only xi summed over the other
+  variable, and those sums are A_em(i, j) sum_t sum_a alpha_t(i, a) M_t(j, a) and A_ea(a, b)
+  sum_t sum_j P_t(j, a) n_t(j, b): the 9 x 9 xi is never formed.
+- Epochs of one kind (the same observation, answer, fitting Deltas, has_move and unique
+  Deltas: `fit.epoch_kinds`, a few dozen kinds in 100k epochs) have the same evidence under
+  any parameters: it is computed once per kind and lane, and the posteriors gamma_t of each
+  kind are summed in the pass; the counts below are made from those sums at the end.
+
+The counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
 (1, or how often a bootstrap resample drew its episode; 0 skips the segment):
 
     first[h]          sum of gamma at the segments' first epochs
     accept[0|1, em]   sum of gamma_t(em) over accepted | refused eligible requests
     delta[ea, D]      sum of gamma_t(ea) r_t(D | ea) over known moves, r the posterior of D
-    xi[g, h, h']      expected transitions under action group g
+    moves[g, v, i, j] expected moves of variable v (em, ea) from level i to j under group g
     observed[O, h]    sum of gamma_t(h) over epochs that observed O
     unique[ea, D]     sum of gamma_t(ea) over moves that tell D apart from both others
 
@@ -27,14 +39,15 @@ variant, so its counts do not depend on it. (A layout with the lanes innermost, 
 across lanes, was tried: numba's code for it was no faster per lane on this machine and took
 several times longer to compile.)
 
-Arguments (T epochs, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane `likelihood`
-(B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `transition` (B, 3, 9, 9);
-per epoch `group` (T,) the emotion group of a_t, `observation` (T,) O_t - 1 or 3 for none,
-`answer` (T,) 0 none, 1 accepted, 2 refused, `move` (T, 3) 1 where Delta fits the move (all 1
-when it is unknown), `has_move` (T,), `unique_move` (T, 3); `seg_start` (S + 1,),
-`seg_weight` (B, S); outputs
-(overwritten) `loglik` (B, S) (unweighted, -inf for evidence impossible under the
-parameters, 0 where the weight is 0) and the counts above with a leading lane axis.
+Arguments (T epochs, K kinds of epoch, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane
+`likelihood` (B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `chain`
+(B, 3, 2, 3, 3) the bounded chain matrices [group, variable, i, j]; per epoch `group` (T,)
+the emotion group of a_t and `code` (T,) its kind; per kind `code_observation` (K,) O - 1 or 3
+for none, `code_answer` (K,) 0 none, 1 accepted, 2 refused, `code_move` (K, 3) 1 where Delta
+fits the move (all 1 when it is unknown), `code_has_move` (K,), `code_unique` (K, 3);
+`seg_start` (S + 1,), `seg_weight` (B, S); outputs (overwritten) `loglik` (B, S)
+(unweighted, -inf for evidence impossible under the parameters, 0 where the weight is 0) and
+the counts above with a leading lane axis.
 """
 
 from __future__ import annotations
@@ -48,15 +61,42 @@ from ..model import N_HIDDEN
 from ..parallel import parallel_kernel
 
 
-def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, transition,
-              group, observation, answer, move, has_move, unique_move, seg_start, seg_weight,
-              alpha, emission, scale, loglik, first, accept, delta, xi, observed, unique):
-    """The segments first_segment .. last_segment - 1, counts added into the given arrays."""
+def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, chain,
+              group, code, code_observation, code_answer, code_move, code_has_move,
+              code_unique, seg_start, seg_weight, alpha, pushed, scale, evidence, posterior,
+              loglik, first, accept, delta, moves, observed, unique):
+    """The segments first_segment .. last_segment - 1, counts added into the given arrays.
+    `evidence` (C, 9) and `posterior` (C, 9) are scratch: the evidence of each epoch kind and
+    the posterior summed over the epochs of each kind."""
     n_h = N_HIDDEN
+    n_g = chain.shape[0]
+    n_codes = code_observation.shape[0]
     nxt = np.empty(n_h)
+    through = np.empty(n_h)
     beta = np.empty(n_h)
     gamma = np.empty(n_h)
     dist = np.empty(3)
+    joint_em = np.zeros((n_g, 3, 3))     # sum_t w sum_a alpha_t(i, a) M_t(j, a), per group
+    joint_ea = np.zeros((n_g, 3, 3))     # sum_t w sum_j P_t(j, a) nxt_t(j, b), per group
+    # evidence of each kind of epoch: e(h) = L[O, h] acc(em) sum_D move[D] p_delta[ea, D]
+    for c in range(n_codes):
+        o = code_observation[c]
+        for ea in range(3):
+            dist[ea] = (code_move[c, 0] * p_delta[ea, 0] + code_move[c, 1] * p_delta[ea, 1]
+                        + code_move[c, 2] * p_delta[ea, 2])
+        for em in range(3):
+            acc = 1.0
+            if code_answer[c] == 1:
+                acc = p_accept[em]
+            elif code_answer[c] == 2:
+                acc = 1.0 - p_accept[em]
+            for ea in range(3):
+                h = 3 * em + ea
+                v = acc * dist[ea]
+                if o < 3:
+                    v *= likelihood[o, h]
+                evidence[c, h] = v
+                posterior[c, h] = 0.0
     for s in range(first_segment, last_segment):
         a = seg_start[s]
         b = seg_start[s + 1]
@@ -64,43 +104,28 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
         if w == 0.0:
             loglik[s] = 0.0
             continue
-        # evidence
-        for t in range(a, b):
-            o = observation[t]
-            for ea in range(3):
-                dist[ea] = (move[t, 0] * p_delta[ea, 0] + move[t, 1] * p_delta[ea, 1]
-                            + move[t, 2] * p_delta[ea, 2])
-            for em in range(3):
-                acc = 1.0
-                if answer[t] == 1:
-                    acc = p_accept[em]
-                elif answer[t] == 2:
-                    acc = 1.0 - p_accept[em]
-                for ea in range(3):
-                    h = 3 * em + ea
-                    v = acc * dist[ea]
-                    if o < 3:
-                        v *= likelihood[o, h]
-                    emission[t - a, h] = v
-        # forward
+        # forward: alpha_t = (P_{t-1} A_ea) * e_t / c_t, P_{t-1}(j, a) = sum_i A_em(i, j)
+        # alpha_{t-1}(i, a): the kron(em, ea) transition as two 3 x 3 products
         total = 0.0
         possible = True
         for t in range(a, b):
+            e = evidence[code[t]]
             c = 0.0
             if t == a:
                 for j in range(n_h):
-                    v = pi[j] * emission[t - a, j]
-                    alpha[t - a, j] = v
+                    v = pi[j] * e[j]
+                    alpha[0, j] = v
                     c += v
             else:
-                m = transition[group[t - 1]]
-                for j in range(n_h):
-                    v = 0.0
-                    for i in range(n_h):
-                        v += alpha[t - 1 - a, i] * m[i, j]
-                    v *= emission[t - a, j]
-                    alpha[t - a, j] = v
-                    c += v
+                m_ea = chain[group[t - 1], 1]
+                for j in range(3):
+                    p0 = pushed[t - 1 - a, 3 * j]
+                    p1 = pushed[t - 1 - a, 3 * j + 1]
+                    p2 = pushed[t - 1 - a, 3 * j + 2]
+                    for k in range(3):
+                        v = (p0 * m_ea[0, k] + p1 * m_ea[1, k] + p2 * m_ea[2, k]) * e[3 * j + k]
+                        alpha[t - a, 3 * j + k] = v
+                        c += v
             if not c > 0.0:
                 possible = False
                 break
@@ -109,6 +134,13 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
                 alpha[t - a, j] *= inverse
             scale[t - a] = c
             total += math.log(c)
+            if t < b - 1:
+                m_em = chain[group[t], 0]
+                for j in range(3):
+                    for k in range(3):
+                        pushed[t - a, 3 * j + k] = (m_em[0, j] * alpha[t - a, k]
+                                                    + m_em[1, j] * alpha[t - a, 3 + k]
+                                                    + m_em[2, j] * alpha[t - a, 6 + k])
         if not possible:
             loglik[s] = -math.inf
             continue
@@ -118,19 +150,35 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
             beta[j] = 1.0
         for t in range(b - 1, a - 1, -1):
             if t < b - 1:
-                m = transition[group[t]]
-                xs = xi[group[t]]
+                g = group[t]
+                m_em = chain[g, 0]
+                m_ea = chain[g, 1]
+                e = evidence[code[t + 1]]
                 inverse = 1.0 / scale[t + 1 - a]
                 for j in range(n_h):
-                    nxt[j] = emission[t + 1 - a, j] * beta[j] * inverse
-                for i in range(n_h):
-                    ai = alpha[t - a, i] * w
-                    v = 0.0
-                    for j in range(n_h):
-                        p = m[i, j] * nxt[j]
-                        v += p
-                        xs[i, j] += ai * p
-                    beta[i] = v
+                    nxt[j] = e[j] * beta[j] * inverse
+                # through(j, a) = sum_b A_ea(a, b) nxt(j, b)
+                for j in range(3):
+                    n0 = nxt[3 * j]
+                    n1 = nxt[3 * j + 1]
+                    n2 = nxt[3 * j + 2]
+                    for k in range(3):
+                        through[3 * j + k] = m_ea[k, 0] * n0 + m_ea[k, 1] * n1 + m_ea[k, 2] * n2
+                # beta_t(i, a) = sum_j A_em(i, j) through(j, a)
+                for i in range(3):
+                    for k in range(3):
+                        beta[3 * i + k] = (m_em[i, 0] * through[k] + m_em[i, 1] * through[3 + k]
+                                           + m_em[i, 2] * through[6 + k])
+                for i in range(3):
+                    for j in range(3):
+                        joint_em[g, i, j] += w * (alpha[t - a, 3 * i] * through[3 * j]
+                                                  + alpha[t - a, 3 * i + 1] * through[3 * j + 1]
+                                                  + alpha[t - a, 3 * i + 2] * through[3 * j + 2])
+                for k in range(3):
+                    for m in range(3):
+                        joint_ea[g, k, m] += w * (pushed[t - a, k] * nxt[m]
+                                                  + pushed[t - a, 3 + k] * nxt[3 + m]
+                                                  + pushed[t - a, 6 + k] * nxt[6 + m])
             z = 0.0
             for h in range(n_h):
                 gamma[h] = alpha[t - a, h] * beta[h]
@@ -141,48 +189,63 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, tr
             if t == a:
                 for h in range(n_h):
                     first[h] += gamma[h]
-            o = observation[t]
-            if o < 3:
-                for h in range(n_h):
-                    observed[o, h] += gamma[h]
-            if answer[t] > 0:
-                for em in range(3):
-                    accept[answer[t] - 1, em] += gamma[3 * em] + gamma[3 * em + 1] \
-                        + gamma[3 * em + 2]
-            if has_move[t]:
-                for ea in range(3):
-                    g_ea = gamma[ea] + gamma[3 + ea] + gamma[6 + ea]
-                    norm = 0.0
-                    for k in range(3):
-                        norm += move[t, k] * p_delta[ea, k]
-                    for k in range(3):
-                        if norm > 0.0:
-                            delta[ea, k] += g_ea * move[t, k] * p_delta[ea, k] / norm
-                        if unique_move[t, k]:
-                            unique[ea, k] += g_ea
+            kind = posterior[code[t]]
+            for h in range(n_h):
+                kind[h] += gamma[h]
+    # the counts of each kind of epoch
+    for c in range(n_codes):
+        o = code_observation[c]
+        kind = posterior[c]
+        if o < 3:
+            for h in range(n_h):
+                observed[o, h] += kind[h]
+        if code_answer[c] > 0:
+            for em in range(3):
+                accept[code_answer[c] - 1, em] += kind[3 * em] + kind[3 * em + 1] \
+                    + kind[3 * em + 2]
+        if code_has_move[c]:
+            for ea in range(3):
+                g_ea = kind[ea] + kind[3 + ea] + kind[6 + ea]
+                norm = (code_move[c, 0] * p_delta[ea, 0] + code_move[c, 1] * p_delta[ea, 1]
+                        + code_move[c, 2] * p_delta[ea, 2])
+                for k in range(3):
+                    if norm > 0.0:
+                        delta[ea, k] += g_ea * code_move[c, k] * p_delta[ea, k] / norm
+                    if code_unique[c, k]:
+                        unique[ea, k] += g_ea
+    # the expected moves: xi summed over the other variable is A (elementwise) joint
+    for g in range(n_g):
+        for i in range(3):
+            for j in range(3):
+                moves[g, 0, i, j] += chain[g, 0, i, j] * joint_em[g, i, j]
+                moves[g, 1, i, j] += chain[g, 1, i, j] * joint_ea[g, i, j]
 
 
-def _e_step_batch(likelihood, p_accept, p_delta, pi, transition, group, observation, answer,
-                  move, has_move, unique_move, seg_start, seg_weight, loglik, first, accept,
-                  delta, xi, observed, unique):
+def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, code, code_observation,
+                  code_answer, code_move, code_has_move, code_unique, seg_start, seg_weight,
+                  loglik, first, accept, delta, moves, observed, unique):
     longest = 1
     for s in range(seg_start.shape[0] - 1):
         longest = max(longest, seg_start[s + 1] - seg_start[s])
+    n_codes = code_observation.shape[0]
     for lane in numba.prange(pi.shape[0]):
         alpha = np.empty((longest, N_HIDDEN))
-        emission = np.empty((longest, N_HIDDEN))
+        pushed = np.empty((longest, N_HIDDEN))
         scale = np.empty(longest)
+        evidence = np.empty((n_codes, N_HIDDEN))
+        posterior = np.empty((n_codes, N_HIDDEN))
         first[lane] = 0.0
         accept[lane] = 0.0
         delta[lane] = 0.0
-        xi[lane] = 0.0
+        moves[lane] = 0.0
         observed[lane] = 0.0
         unique[lane] = 0.0
         _segments_jit(0, seg_start.shape[0] - 1, likelihood[lane], p_accept[lane],
-                      p_delta[lane], pi[lane], transition[lane], group, observation, answer,
-                      move, has_move, unique_move, seg_start, seg_weight[lane], alpha,
-                      emission, scale, loglik[lane], first[lane], accept[lane], delta[lane],
-                      xi[lane], observed[lane], unique[lane])
+                      p_delta[lane], pi[lane], chain[lane], group, code, code_observation,
+                      code_answer, code_move, code_has_move, code_unique, seg_start,
+                      seg_weight[lane], alpha, pushed, scale, evidence, posterior,
+                      loglik[lane], first[lane], accept[lane], delta[lane], moves[lane],
+                      observed[lane], unique[lane])
 
 
 # fastmath without assuming finite values (an impossible segment's -inf must survive).

@@ -15,7 +15,7 @@ input-output hidden Markov model whose inputs are the actions (MODEL.md 3 and 6)
 
 so an observed move of d may be explained by several Delta values (MODEL.md 3.3's clipping),
 and a (down, stay, up) chain by several moves at its bounds. Every factor of e_k depends on
-h_k only, so the forward-backward recursions (`_fit_kernels.forward_backward`, scaled) give
+h_k only, so the forward-backward recursions (`_fit_kernels.e_step_batch`, scaled) give
 the posteriors gamma_k(h) and the expected transition counts xi_g(h, h') per action group.
 
 EM. The complete data add the hidden h_k, the Delta of every move and the move of each emotion
@@ -102,6 +102,7 @@ TOL = 1e-8                 # stop when the log likelihood rises by less than thi
 MAX_ITER = 1000
 EM, SQUAREM, NEWTON = 'em', 'squarem', 'newton'   # run_em_batch's methods
 METHODS = (EM, SQUAREM, NEWTON)
+DEFAULT_METHOD = SQUAREM   # hrc-fit's (bench/README.md "hrc-fit's bootstrap, side by side")
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
 UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
@@ -398,11 +399,35 @@ def _chain_matrices(chains: np.ndarray) -> np.ndarray:
     return m
 
 
-def _emotion_matrices(chains: np.ndarray) -> np.ndarray:
-    """(B, G, 9, 9): kron(em chain, ea chain) per lane and group."""
-    m = _chain_matrices(chains)
-    e = np.einsum('bgik,bgjl->bgijkl', m[:, :, 0], m[:, :, 1])
-    return e.reshape(chains.shape[:2] + (N_HIDDEN, N_HIDDEN))
+def epoch_kinds(data: FitData) -> tuple:
+    """The epochs grouped by their evidence: (kind (T,), then per kind its observation,
+    answer, move (K, 3), has_move and unique_delta (K, 3)). Epochs of one kind have the same
+    evidence e_t(h) under any parameters, so the kernel computes it once per kind and lane,
+    and sums the posteriors of a kind before it makes the counts. Kept on `data` (keyed by the
+    arrays it was made from)."""
+    key = tuple(id(a) for a in (data.observation, data.answer, data.move, data.has_move,
+                                data.unique_delta))
+    cached = data.__dict__.get('_kinds')
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    move = np.asarray(data.move) > 0
+    unique = np.asarray(data.unique_delta, dtype=bool)
+    bits = np.array([1, 2, 4])
+    label = (np.asarray(data.observation, dtype=np.int64)
+             + 4 * (np.asarray(data.answer, dtype=np.int64)
+                    + 3 * ((move @ bits) + 8 * (np.asarray(data.has_move, dtype=np.int64)
+                                                + 2 * (unique @ bits)))))
+    labels, kind = np.unique(label, return_inverse=True)
+    at = np.zeros(len(labels), dtype=np.int64)
+    at[kind] = np.arange(len(kind))                     # an epoch of each kind
+    kinds = (np.ascontiguousarray(kind, dtype=np.int64),
+             np.ascontiguousarray(data.observation[at], dtype=np.int64),
+             np.ascontiguousarray(data.answer[at], dtype=np.int64),
+             np.ascontiguousarray(move[at], dtype=float),
+             np.ascontiguousarray(data.has_move[at], dtype=np.bool_),
+             np.ascontiguousarray(unique[at]))
+    data.__dict__['_kinds'] = (key, kinds)
+    return kinds
 
 
 def _lane_last(a: np.ndarray) -> np.ndarray:
@@ -435,27 +460,25 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     first = np.empty((n_lanes, N_HIDDEN))
     accept = np.empty((n_lanes, 2, 3))
     delta = np.empty((n_lanes, 3, 3))
-    xi = np.empty((n_lanes, len(EMOTION_GROUPS), N_HIDDEN, N_HIDDEN))
+    transitions = np.empty((n_lanes, len(EMOTION_GROUPS), len(EMOTION_VARIABLES), 3, 3))
     observed = np.empty((n_lanes, N_OBSERVATIONS, N_HIDDEN))
     unique = np.empty((n_lanes, 3, 3))
     _fit_kernels.e_step_batch(
         np.ascontiguousarray(_field(x, 'likelihood')),
         np.ascontiguousarray(_field(x, 'p_accept')),
         np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(_field(x, 'pi')),
-        np.ascontiguousarray(_emotion_matrices(_field(x, 'chains'))), data.group,
-        data.observation, data.answer, data.move, data.has_move, data.unique_delta,
-        data.seg_start, weight, loglik, first, accept, delta, xi, observed, unique,
+        np.ascontiguousarray(_chain_matrices(_field(x, 'chains'))), data.group,
+        *epoch_kinds(data), data.seg_start, weight, loglik, first, accept, delta, transitions,
+        observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
     if split > 1:
         def joined(a):
             return a.reshape((split, used) + a.shape[1:]).sum(axis=0)
         loglik, weight = joined(loglik), joined(weight)
-        first, accept, delta, xi, observed, unique = (
-            joined(a) for a in (first, accept, delta, xi, observed, unique))
+        first, accept, delta, transitions, observed, unique = (
+            joined(a) for a in (first, accept, delta, transitions, observed, unique))
     finite = np.isfinite(loglik)
     impossible = np.where(finite.all(axis=1), -1, np.argmax(~finite, axis=1))
-    x5 = xi.reshape(used, len(EMOTION_GROUPS), 3, 3, 3, 3)        # [l, g, em, ea, em', ea']
-    transitions = np.stack([x5.sum(axis=(3, 5)), x5.sum(axis=(2, 4))], axis=2)
     ll = np.einsum('ls,ls->l', np.where(finite, loglik, 0.0), weight)
     return Expected(np.where(impossible < 0, ll, -np.inf), first, accept, delta, transitions,
                     observed, unique), impossible
@@ -667,9 +690,12 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
             x_new, s_new = x1, s1
         if method == SQUAREM:
             x2 = m_step_batch(s1, x1, hold)
-            s2 = expect(x2, lanes)
             r, v = x1 - x0, x2 - 2 * x1 + x0
-            x_new, s_new = x2, s2
+            x_new = x2
+            # x2's E-step is needed only where x2 is the iteration's end (no extrapolation,
+            # or one refused): run after the extrapolations, for those lanes only
+            plain = np.ones(len(lanes), dtype=bool)
+            ends = None
             norm_r, norm_v = np.linalg.norm(r, axis=1), np.linalg.norm(v, axis=1)
             moving = norm_v > 0
             alpha = np.full(len(lanes), -1.0)
@@ -699,9 +725,17 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
                     keep = tried[ok][better]
                     x_new = x_new.copy()
                     x_new[keep] = x3[better]
-                    s_new = _merged(s_new, keep, s3.lane(np.flatnonzero(better)))
+                    plain[keep] = False
+                    ends = (keep, s3.lane(np.flatnonzero(better)))
                 refused = lanes[tried[~accepted]]
                 step_max[refused] = np.maximum(1.0, step_max[refused] / 4.0)
+            if plain.all():
+                s_new = expect(x2, lanes)
+            else:
+                s_new = _merged(s0, *ends)
+                if plain.any():
+                    need = np.flatnonzero(plain)
+                    s_new = _merged(s_new, need, expect(x2[need], lanes[need]))
         x[lanes] = x_new
         stats = _merged(stats, lanes, s_new)
         for i, lane in enumerate(lanes):
@@ -980,6 +1014,8 @@ class FitResult:
     seconds: dict = field(default_factory=dict)
     min_support: float = MIN_SUPPORT
     sample_logliks: np.ndarray | None = None   # (B,) the log likelihood of each resample's fit
+    resample_counts: np.ndarray | None = None  # (B, episodes) how often each resample drew each
+    resample_points: np.ndarray | None = None  # (B, N_PACKED) each resample's fit, packed (pi too)
 
     @property
     def iterations(self) -> int:
@@ -1071,7 +1107,8 @@ def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
 
 def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         tol: float = TOL, max_iter: int = MAX_ITER, bootstrap: int = BOOTSTRAP,
-        min_support: float = MIN_SUPPORT, progress=None, method: str = SQUAREM) -> FitResult:
+        min_support: float = MIN_SUPPORT, progress=None, method: str = DEFAULT_METHOD
+        ) -> FitResult:
     """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
     `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
     start by SQUAREM, then (if it left any of `max_iter`) the quasi-Newton EM
@@ -1113,12 +1150,13 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     seconds = {'fit': time.perf_counter() - t0, 'fit_cpu': time.process_time() - cpu0}
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
         f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
-    interval = samples = effective = sample_logliks = None
+    interval = samples = effective = sample_logliks = counts = points = None
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
-        weights = np.stack([rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
-                            [data.seg_episode] for _ in range(bootstrap)]).astype(float)
+        counts = np.stack([rng.multinomial(n_episodes, np.full(n_episodes, 1.0 / n_episodes))
+                           for _ in range(bootstrap)]).astype(np.int32)
+        weights = counts[:, data.seg_episode].astype(float)
         step = max(1, bootstrap // 10)
         shown = [0]
 
@@ -1131,6 +1169,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                             curvature=curvature)
         samples = np.stack([run.params.vector() for run in runs])
         sample_logliks = np.array([run.trace[-1] for run in runs])
+        points = np.stack([_pack(run.params) for run in runs])
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
         effective = effective_support(params.vector(), samples)
         seconds['bootstrap'] = time.perf_counter() - t1
@@ -1143,7 +1182,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      best.converged, relabelled, support, interval, samples, effective,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
-                     data.issues, seconds, min_support, sample_logliks)
+                     data.issues, seconds, min_support, sample_logliks, counts, points)
 
 
 def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:
