@@ -162,7 +162,10 @@ def test_record_fit_solve_and_swap_the_running_suite(tmp_path, policy_path, ros_
         assert watcher.spin_until(swapped, 30) and swaps, suite.logs()
         first = int(swaps[0][3]['epoch'])
         last = first + AFTER
-        assert watcher.spin_until(lambda: all(k in watcher.decisions for k in range(1, last + 1))
+        # the decisions (diagnostics) and the actions (hrc/action) come on two topics: wait
+        # for both (a run stopped with the last action not yet taken, 16 of 17)
+        assert watcher.spin_until(lambda: (all(k in watcher.decisions for k in range(1, last + 1))
+                                           and len(watcher.actions) >= last)
                                   or suite.dead(), DEADLINE), suite.logs()
         assert not suite.dead(), suite.logs()
     finally:
