@@ -73,13 +73,18 @@ def random_params(rng) -> fit.Params:
                       rng.dirichlet(np.ones(3), (3, 2)), rng.dirichlet(np.ones(3), 9).T.copy())
 
 
+def empty_counts() -> dict:
+    """The counts of `fit.Expected`, zero: what the reference forms below add up."""
+    return {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
+            'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
+            'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
+
+
 def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
     """Every count of `fit.Expected` by enumerating the 9^T hidden paths of each segment."""
     e = fit.emission(params, data)
     transition = params.emotion_matrices()
-    out = {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
-           'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
-           'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
+    out = empty_counts()
     for s, w in enumerate(weights):
         a, b = data.seg_start[s], data.seg_start[s + 1]
         paths = np.array(list(itertools.product(range(9), repeat=b - a)))
@@ -139,9 +144,7 @@ def plain_forward_backward(params: fit.Params, data: fit.FitData, weights) -> di
     enumerate (the kernel factors the matrices as kron(em, ea) and groups epochs by kind)."""
     e = fit.emission(params, data)
     transition = params.emotion_matrices()
-    out = {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
-           'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
-           'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
+    out = empty_counts()
     for s, w in enumerate(weights):
         a, b = data.seg_start[s], data.seg_start[s + 1]
         if w == 0:
