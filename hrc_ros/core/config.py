@@ -13,8 +13,8 @@ Sections:
   actions under which the robot's counter bc does not run down (MODEL.md 3.2; absent: [dn], the
   paper's model; [dn, dp, dm]: the cell with an arm, where a retreat or a move to the
   collaboration pose stops the task's program, docs/ROBOT.md), and optionally `retreat_reach`:
-  the band below which a retreat (dp) gains one (MODEL.md 3.3; absent or null: every band; 2:
-  the arm's retreat pose cannot take a person at the shared table beyond the middle band);
+  the band below which a retreat (dp) gains one (MODEL.md 3.3; absent or null: every band; 1:
+  the cell with an arm, where a retreat gains none, config/arm.yaml);
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
 - `solver`: gamma, eta, sweeps (null = run to eta, at most MAX_SWEEPS; an integer = the paper's
   fixed sweep count, at most MAX_SWEEPS),
@@ -199,14 +199,7 @@ class Config:
     @property
     def policy_sections(self) -> dict:
         sections = {k: self.data[k] for k in ('model', 'cost', 'solver')}
-        # robot_paused_by left out or [dn], and retreat_reach left out or null, read as the
-        # paper's model: one model, one hash
-        model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
-        if self.robot_paused_by != PAUSED_ALWAYS:
-            model['robot_paused_by'] = list(self.robot_paused_by)
-        if self.retreat_reach is not None:
-            model['retreat_reach'] = self.retreat_reach
-        sections['model'] = model
+        sections['model'] = self._model_identity(with_paused=True)
         if self.has_stream:   # q left out reads as null: one model, one hash
             sections['stream'] = {'q': None, **self.data['stream']}
         return sections
@@ -225,11 +218,20 @@ class Config:
         observation.setdefault('likelihood', None)
         # what pauses the robot's counter is not the filter's (one hash with and without it);
         # what a retreat gains is: the posterior mode reads the distance move after dp
-        # (HRCModel.transition_likelihood); left out or null, the paper's rule, one hash
+        # (HRCModel.transition_likelihood)
+        return config_hash({'model': self._model_identity(with_paused=False),
+                            'observation': observation})
+
+    def _model_identity(self, with_paused: bool) -> dict:
+        """The model section as the hashes read it: the cell keys (CELL_KEYS) only where they
+        differ from the paper's model (robot_paused_by left out or [dn], retreat_reach left out
+        or null: one model, one hash), robot_paused_by only `with_paused`."""
         model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
+        if with_paused and self.robot_paused_by != PAUSED_ALWAYS:
+            model['robot_paused_by'] = list(self.robot_paused_by)
         if self.retreat_reach is not None:
             model['retreat_reach'] = self.retreat_reach
-        return config_hash({'model': model, 'observation': observation})
+        return model
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
         data = copy.deepcopy(self.data)

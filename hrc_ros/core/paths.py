@@ -85,11 +85,14 @@ def default_config_path() -> Path:
     return share_dir() / 'config' / 'default.yaml'
 
 
+ARM_CONFIG = 'arm'   # config/arm.yaml: the model of the cell with an arm (docs/ROBOT.md 4)
+
+
 def arm_config_path() -> Path:
     """The shipped configuration of the cell with an arm, `config/arm.yaml` (the default's
     model with the robot's counter paused under dp and dm, docs/ROBOT.md): what `--robot sim`,
     `robot:=sim` and `hrc-evaluate --cell arm` plan with unless a configuration is named."""
-    return share_dir() / 'config' / 'arm.yaml'
+    return shipped_config_path(ARM_CONFIG)
 
 
 def shipped_config_path(name: str) -> Path:

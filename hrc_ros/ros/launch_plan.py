@@ -35,6 +35,7 @@ from pathlib import Path
 
 from ..core.cell.tracking import K4ABT_JOINTS
 from ..core.config import BELIEF_MODES
+from ..core.paths import ARM_CONFIG
 from ..core.decision.selection import SELECTORS
 
 
@@ -107,8 +108,6 @@ ROBOT_OVERRIDES = {
     'cell_view': {'keypoint_joints': list(K4ABT_JOINTS), 'robot': True},
 }
 BODY_TRACKING_SIM_PARAMS = 'body_tracking_sim_params.yaml'
-# robot:=sim without config:=: every node reads the arm's model (docs/ROBOT.md, section 4)
-ARM_CONFIG = 'arm.yaml'
 # cell_sim's motion goes to tracker_sim instead of the estimator when a tracker is simulated.
 SIM_MOTION_REMAPS = [('human/joint_states', 'sim/human/joint_states'),
                      ('human/skeleton', 'sim/human/skeleton')]
@@ -164,7 +163,7 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
     robot = _flag('robot', robot, ROBOTS) == 'sim'
     if robot and not config:   # the arm's model (its program waits under dp and dm), unless
         # the user's params file names a configuration: a layer before that file
-        params_files.append(AllNodes(config=os.path.join(config_dir, ARM_CONFIG)))
+        params_files.append(AllNodes(config=os.path.join(config_dir, f'{ARM_CONFIG}.yaml')))
     if params_file and os.path.abspath(params_file) not in map(
             os.path.abspath, (p for p in params_files if isinstance(p, str))):
         params_files.append(params_file)
