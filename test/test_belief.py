@@ -131,6 +131,64 @@ def test_initial_belief(model):
         np.testing.assert_allclose(f.initial(np.asarray(row)), row / row.sum())
 
 
+PRIOR = [0.5, 0.2, 0.0, 0.1, 0.1, 0.0, 0.05, 0.05, 0.0]
+
+
+def test_person_prior_starts_the_filter(model):
+    """observation.prior: b_1 ∝ prior * L[O_1] in bayes and posterior mode (initial and
+    initial_many), the prior itself before any observation; table mode reads Table 5."""
+    cfg = model.config.with_overrides({'observation': {'prior': PRIOR}})
+    prior = np.array(PRIOR)
+    for mode in ('bayes', 'posterior'):
+        f = BeliefFilter(HRCModel(cfg), mode=mode)
+        np.testing.assert_allclose(f.initial(), prior)
+        for o in (1, 2, 3):
+            want = f.likelihood[o - 1] * prior
+            np.testing.assert_allclose(f.initial(o), want / want.sum())
+            assert f.initial(o)[2] == 0.0          # no mass where the prior has none
+        np.testing.assert_allclose(f.initial_many(np.array([3, 1, 2])),
+                                   np.stack([f.initial(o) for o in (3, 1, 2)]))
+        lik = np.linspace(0.1, 0.9, 9)
+        np.testing.assert_allclose(f.initial(lik), lik * prior / (lik * prior).sum())
+    table = BeliefFilter(HRCModel(cfg), mode='table')
+    np.testing.assert_allclose(table.initial(2), TABLE5[1])
+
+
+def test_person_prior_that_rules_out_the_evidence_falls_back_to_it(model):
+    """A prior with all its mass where O_1 has none (epsilon 0): the evidence alone, not NaN."""
+    cfg = model.config.with_overrides({'observation': {'epsilon': 0.0,
+                                                       'prior': [0, 0, 0, 0, 0, 0, 0, 0, 1]}})
+    f = BeliefFilter(HRCModel(cfg))
+    row = f.likelihood[0]
+    assert row[8] == 0.0
+    np.testing.assert_allclose(f.initial(1), row / row.sum())
+    np.testing.assert_allclose(f.initial_many(np.array([1])), [row / row.sum()])
+
+
+def test_person_prior_hashes(model):
+    """Left out and null hash the same (the shipped policies and estimators keep their
+    identity); a prior changes the filter's hash and the POMDP's, never the MDP policy's."""
+    from hrc_ros.core.pomdp.policy import observation_hash
+    base = model.config
+    null = base.with_overrides({'observation': {'prior': None}})
+    given = base.with_overrides({'observation': {'prior': PRIOR}})
+    assert null.belief_hash == base.belief_hash
+    assert observation_hash(null) == observation_hash(base)
+    assert given.belief_hash != base.belief_hash
+    assert observation_hash(given) != observation_hash(base)
+    assert given.policy_hash == base.policy_hash
+
+
+@pytest.mark.parametrize('prior, message', [
+    ([0.5] * 9, 'sums to'), ([1.0] * 8, 'list of 9'), ([1.5] + [-0.0625] * 8, 'probability'),
+    ('uniform', 'list of 9')])
+def test_bad_person_prior_is_refused_by_name(model, prior, message):
+    from hrc_ros.core.config import ConfigError
+    with pytest.raises(ConfigError, match=message) as err:
+        model.config.with_overrides({'observation': {'prior': prior}})
+    assert 'observation.prior' in str(err.value)
+
+
 def test_likelihood_vector_equals_the_level(model):
     f = BeliefFilter(model)
     rng = np.random.default_rng(3)

@@ -62,11 +62,11 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
     'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode',
-                    'likelihood': 'columns[3x9]|null'},
+                    'likelihood': 'columns[3x9]|null', 'prior': 'prior[9]|null'},
     'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null'},
 }
 # Keys that may be left out (they then read as null).
-_OPTIONAL = {('observation', 'likelihood'), ('stream', 'q'), ('model', 'robot_paused_by'),
+_OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'), ('model', 'robot_paused_by'),
              ('model', 'retreat_reach')}
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
@@ -166,6 +166,13 @@ class Config:
         return None if value is None else np.asarray(value, dtype=float)
 
     @property
+    def observation_prior(self) -> np.ndarray | None:
+        """The person's emotions h when the belief filter starts, shape (9,), if the
+        configuration gives them; else None (uniform, MODEL.md 6)."""
+        value = self.data['observation'].get('prior')
+        return None if value is None else np.asarray(value, dtype=float)
+
+    @property
     def epsilon(self) -> float:
         return float(self.data['observation']['epsilon'])
 
@@ -216,6 +223,8 @@ class Config:
         observation), so two nodes can tell whether they track the human with one model."""
         observation = dict(self.data['observation'])
         observation.setdefault('likelihood', None)
+        if observation.get('prior') is None:   # left out or null: uniform, one hash
+            observation.pop('prior', None)
         # what pauses the robot's counter is not the filter's (one hash with and without it);
         # what a retreat gains is: the posterior mode reads the distance move after dp
         # (HRCModel.transition_likelihood)
@@ -426,6 +435,14 @@ def _check(name: str, kind: str, value: Any) -> Any:
                 raise ConfigError(f'{name}: observation O={r + 1} has probability 0 under every '
                                   'hidden state, so the filter could not take it')
         return rows
+    if kind == 'prior[9]|null':
+        if value is None:
+            return None
+        row = _prob_vector(name, value, 9)
+        total = sum(row)
+        if abs(total - 1.0) > PROBABILITY_TOLERANCE:
+            raise ConfigError(f'{name} (P(h) over h = 3*em + ea) sums to {total:.12g}, not 1')
+        return row
     if kind == 'tasks|null':
         if value is None:
             return None

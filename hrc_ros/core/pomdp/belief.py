@@ -38,6 +38,12 @@ evidence alone, b' = l / sum(l) (the belief `initial` would give under a uniform
 than return NaN. The same fallback applies whenever the normaliser is below the smallest normal
 float, where the quotient would lose precision.
 
+The first belief. Without a person prior b_1 = L[O_1] / sum (uniform before the first
+observation). A configuration may give `observation.prior`, the distribution of h when the
+filter starts (the cell's people, fitted by `hrc-fit`: MODEL.md 6.1); then b_1 ∝ prior * L[O_1]
+(bayes and posterior mode; table mode reads Table 5 as always), and `initial()` without an
+observation is the prior.
+
 Evidence of the observable transition (mode ``posterior``). Acting reveals more than O': the
 human's answer to an eligible request depends on em and the distance move on ea, both at the
 epoch's start (MODEL.md 3). With their likelihood e(h) = P(x' | x, h, a)
@@ -152,9 +158,18 @@ class BeliefFilter:
             exact = self.table / column_mass            # L0[O, h], columns sum to 1
             self.likelihood = _read_only((1.0 - self.epsilon) * exact
                                          + self.epsilon / N_OBSERVATIONS)
-        # initial(O) in bayes mode: uniform prior corrected by L[O].
+        # The restart from the evidence alone: uniform prior corrected by L[O].
         self._evidence_only = _read_only(self.likelihood
                                          / self.likelihood.sum(axis=1, keepdims=True))
+        # initial(O) in bayes and posterior mode: the prior (the configuration's person prior,
+        # else uniform) corrected by L[O]; where the prior gives O no mass, the evidence alone.
+        prior = cfg.observation_prior
+        self.prior = _read_only(np.full(N_HIDDEN, 1.0 / N_HIDDEN) if prior is None
+                                else prior / prior.sum())
+        first = self.likelihood * self.prior
+        mass = first.sum(axis=1, keepdims=True)
+        self._first = _read_only(np.where(mass >= _TINY, first / np.maximum(mass, _TINY),
+                                          self._evidence_only))
         self.emotion = _read_only(np.stack([model.action_emotion_matrix(a)
                                             for a in range(len(ACTIONS))]))
         # M[a, O-1] = E_a with column h' scaled by L[O, h']: b' ∝ b @ M[a, O-1].
@@ -184,13 +199,18 @@ class BeliefFilter:
 
     # -- the filter --------------------------------------------------------------------
     def initial(self, observation=None) -> np.ndarray:
-        """b_1: uniform without an observation; else row O (table) or L[O] normalised (bayes)."""
+        """b_1: the prior without an observation (`observation.prior`, else uniform); else row O
+        (table) or the prior times L[O], normalised (bayes, posterior)."""
         if observation is None:
-            return np.full(N_HIDDEN, 1.0 / N_HIDDEN)
+            return self.prior.copy()
         o, lik = self._observation(observation)
         if self.mode == 'table':
             return self.table[o].copy() if lik is None else self._table_vector(lik)
-        return self._evidence_only[o].copy() if lik is None else lik / lik.sum()
+        if lik is None:
+            return self._first[o].copy()
+        post = lik * self.prior
+        total = post.sum()
+        return post / total if total >= _TINY else lik / lik.sum()
 
     def update(self, belief, action, observation, evidence=None) -> np.ndarray:
         """b' after taking `action` (name or index) and then observing `observation`;
@@ -236,7 +256,7 @@ class BeliefFilter:
     def initial_many(self, observations) -> np.ndarray:
         """`initial` of a batch of observations O (E,) in 1..3."""
         o = np.asarray(observations, dtype=np.intp) - 1
-        return (self.table if self.mode == 'table' else self._evidence_only)[o].copy()
+        return (self.table if self.mode == 'table' else self._first)[o].copy()
 
     def _table_vector(self, lik: np.ndarray) -> np.ndarray:
         post = lik * self.table_prior

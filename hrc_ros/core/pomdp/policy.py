@@ -51,9 +51,13 @@ MAX_VECTORS = 2_000_000
 
 
 def observation_hash(config: Config) -> str:
-    """SHA-256 of what the POMDP takes from the observation section: Table 5 and epsilon."""
+    """SHA-256 of what the POMDP takes from the observation section: Table 5 and epsilon, and
+    the person prior where the configuration gives one (its belief points start from it)."""
     obs = config.data['observation']
-    return config_hash({'table': obs['table'], 'epsilon': obs['epsilon']})
+    sections = {'table': obs['table'], 'epsilon': obs['epsilon']}
+    if obs.get('prior') is not None:
+        sections['prior'] = obs['prior']
+    return config_hash(sections)
 
 
 @dataclass

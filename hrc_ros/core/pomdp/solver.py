@@ -644,14 +644,16 @@ def case_study_targets(hrc: HRCPomdp) -> tuple[list, np.ndarray, np.ndarray]:
 
 
 def _starts(hrc: HRCPomdp) -> Starts:
-    """The case study's start (true h = (0, 0), belief from O_1 alone) and every task
-    entering the idle cell at d = 1..3 with a uniformly random human (`hrc-evaluate`)."""
-    uniform = np.full(N_HIDDEN, 1.0 / N_HIDDEN)
+    """The case study's start (true h = (0, 0)) and every task entering the idle cell at
+    d = 1..3 with a human drawn from the person prior (`observation.prior`, else uniform: the
+    humans of `hrc-evaluate`); every belief starts from that prior (b_1 ∝ prior * L[O_1], as
+    `BeliefFilter.initial`)."""
+    prior = BeliefFilter(hrc.model, mode='bayes').prior
     _, tx, _ = case_study_targets(hrc)
     idle = hrc.column_index[np.arange(N_DISTANCE)]          # y = 0: the idle cell
     xs = [tx[0]] + [hrc.enter[idle[d], j] for d in (1, 2, 3) for j in range(len(hrc.tasks))]
-    truth = np.vstack([np.eye(N_HIDDEN)[0]] + [uniform] * (len(xs) - 1))
-    return Starts(np.array(xs), truth, np.tile(uniform, (len(xs), 1)))
+    truth = np.vstack([np.eye(N_HIDDEN)[0]] + [prior] * (len(xs) - 1))
+    return Starts(np.array(xs), truth, np.tile(prior, (len(xs), 1)))
 
 
 def _fixed_points(hrc: HRCPomdp) -> tuple[np.ndarray, np.ndarray]:
