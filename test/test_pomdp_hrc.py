@@ -173,6 +173,50 @@ def test_pomdp_selector_achieves_the_lower_bound_from_the_case_study_start(
     assert abs(cost.mean() + lower) < half + (upper - lower) + tail
 
 
+PERSON_PRIOR = [0.45, 0.2, 0.0, 0.15, 0.1, 0.0, 0.05, 0.05, 0.0]
+
+
+def test_sampled_starts_come_from_the_person_prior(reduced):
+    """observation.prior: every sampled episode's belief starts from it and the humans of the
+    random starts are drawn from it (the case study's start keeps its own h = (0, 0))."""
+    from hrc_ros.core.pomdp.solver import _starts
+    model = HRCModel(reduced.config.with_overrides({'observation': {'prior': PERSON_PRIOR}}))
+    starts = _starts(hrc_pomdp(model))
+    np.testing.assert_allclose(starts.prior, np.tile(PERSON_PRIOR, (len(starts.x), 1)))
+    np.testing.assert_array_equal(starts.truth[0], np.eye(9)[0])
+    np.testing.assert_allclose(starts.truth[1:], np.tile(PERSON_PRIOR, (len(starts.x) - 1, 1)))
+    uniform = _starts(hrc_pomdp(reduced))
+    np.testing.assert_array_equal(uniform.prior, np.full((len(uniform.x), 9), 1 / 9))
+
+
+def test_pomdp_selector_achieves_the_lower_bound_with_a_person_prior(reduced):
+    """The reduced model with a non-uniform person prior: the solve's bounds at the case
+    study's first beliefs (b_1 ∝ prior * L[O_1]) bracket the pomdp selector's mean cost over
+    humans drawn from that prior, as they do for the uniform one above."""
+    model = HRCModel(reduced.config.with_overrides({'observation': {'prior': PERSON_PRIOR}}))
+    s = solve_pomdp(model, episodes=400, per_state=40, rounds=1, seed=3)
+    prior = np.array(PERSON_PRIOR)
+    lik = BeliefFilter(model).likelihood
+    p_o = lik @ prior                                                 # P(O_1)
+    names, tx, tb = case_study_targets(s.hrc)
+    for o in (1, 2, 3):
+        np.testing.assert_allclose(tb[o - 1], lik[o - 1] * prior / p_o[o - 1])
+    lower = sum(p * t['lower'] for p, t in zip(p_o, s.report['targets']))
+    upper = sum(p * t['upper'] for p, t in zip(p_o, s.report['targets']))
+    epochs, n = 150, 3600
+    hs = np.random.default_rng(5).choice(9, size=n, p=prior)
+    scenarios = [Scenario((h // 3, h % 3) + CASE_TASK + (1,), (), epochs) for h in hs]
+    seeds = [human_seed(12, e) for e in range(n)]
+    sim = BatchSimulator(model, solve(model), mode='posterior', pomdp=s.policy())
+    cost = np.concatenate([sim.run(scenarios[i:i + 900], seeds[i:i + 900], 'pomdp')
+                           .discounted_cost for i in range(0, n, 900)])
+    half = 1.96 * cost.std(ddof=1) / np.sqrt(cost.size)
+    tail = 0.95 ** epochs * 200.0
+    assert cost.mean() - half <= -lower + tail
+    assert cost.mean() + half >= -upper - tail
+    assert abs(cost.mean() + lower) < half + (upper - lower) + tail
+
+
 def test_pomdp_and_fib_ties_go_to_the_safety_order():
     alpha = np.array([[1.0] * 9, [1.0] * 9, [0.0] * 9])
     policy = AlphaPolicy(columns=[5], alpha=alpha, action=[NW, DN, RH2], offsets=[0, 3],
