@@ -509,8 +509,8 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
         np.ascontiguousarray(_field(x, 'p_accept')),
         np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(pi),
         np.ascontiguousarray(_chain_matrices(_field(x, 'chains'))), data.group,
-        *epoch_kinds(data), data.seg_start, seg_kind, weight, loglik, first, accept, delta, transitions,
-        observed, unique,
+        *epoch_kinds(data), data.seg_start, seg_kind, weight, loglik, first, accept, delta,
+        transitions, observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
     if split > 1:
         def joined(a):
