@@ -30,8 +30,19 @@ chain; their log likelihood is a sum of multinomial terms, so every M-step is cl
     L[O, h]        = sum_k gamma_k(h) [O_k = O] / sum_k gamma_k(h)          (epochs with an O)
     pi             = sum over segments of gamma at the segment's first epoch, normalised
 
-(pi is a nuisance parameter: the configuration has no initial distribution.) Each family can
-be held fixed at the base configuration's value. The log likelihood never decreases; the fit
+(pi is a nuisance parameter unless the person prior is fitted, below.) Each family can be held
+fixed at the base configuration's value.
+
+The person prior (`prior=True`, hrc-fit --prior; MODEL.md 6.1). pi is then the distribution of
+h where a person starts, written as `observation.prior`, and only the segments that start an
+episode at its first epoch (`FIRST_EPOCH`, epoch 1: an epoch count restarting, a new
+recording; `FitData.true_starts`) start from it; the pieces cut from an episode (a gap, a
+transition the model cannot produce) and recordings that begin mid-run are not new people,
+so they start from a separate nuisance distribution pi_cut (`Params.pi_cut`, the packed rows'
+last 9 entries, its M-step the same sum over those segments). Without `prior` every segment
+starts from pi and the packed rows are as they always were, so the fit's numbers are too.
+Its bootstrap interval is that of pi over the resamples; its support is the number of episode
+starts (each informs the whole distribution). The log likelihood never decreases; the fit
 stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
 the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
 an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation; or,
