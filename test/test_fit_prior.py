@@ -206,3 +206,19 @@ def test_hrc_fit_prior_refuses_recordings_where_no_person_starts(tmp_path, defau
     assert not out.exists()
     # the same recordings fit without --prior
     assert main([str(path), '-o', str(out), '--bootstrap', '0', '--starts', '1', '-q']) == 0
+
+
+def test_the_quasi_newton_em_fits_the_same_prior(world, policy, tmp_path):
+    """--method newton moves pi and the cut pieces' pi_cut in its log-ratio coordinates too:
+    from the same recordings (with cut pieces) it reaches SQUAREM's maximum."""
+    from hrc_ros.core.learning.recordings import read_csv
+    recordings, _ = recorded(world, policy.policy, 150, seed=9)
+    path = write_csv(tmp_path / 'runs.csv', recordings, drop=lambda episode, i: i == 30)
+    data = fit.prepare(read_csv(path, world.rho, world.sigma))
+    assert data.segments == 300 and data.true_starts.sum() == 150
+    squarem = fit.fit(data, world, n_init=1, bootstrap=0, prior=True)
+    newton = fit.fit(data, world, n_init=1, bootstrap=0, prior=True, method=fit.NEWTON)
+    assert newton.converged and squarem.converged
+    assert newton.loglik >= squarem.loglik - 1e-6 * data.epochs
+    np.testing.assert_allclose(newton.params.pi, squarem.params.pi, atol=2e-3)
+    np.testing.assert_allclose(newton.params.pi_cut, squarem.params.pi_cut, atol=2e-3)
