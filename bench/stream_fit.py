@@ -1,6 +1,6 @@
 """The task stream (MODEL.md 8) fitted on recorded runs of hrc-evaluate's scenarios.
 
-    .venv/bin/python bench/stream_fit.py [--episodes 500] [--seed 0]
+    .venv/bin/python bench/stream_fit.py [--episodes 500] [--seed 0] [--prior [--bootstrap 200]]
 
 Records `--episodes` runs of each scenario hrc-evaluate runs (the random streams: 50 epochs,
 task rate 0.2; the paper's case study at its 20 epochs and at 150) with the default
@@ -8,6 +8,12 @@ configuration's policy and the paper selector, the posterior belief (the robot's
 recordings hold no emotions), and prints the stream that `core.learning.stream` (hrc-fit
 --stream) counts from each, with bootstrap 95% intervals: the numbers of config/stream.yaml
 (random) and config/case_study_stream.yaml (the case study's 20 epochs).
+
+`--prior` also fits the person prior (hrc-fit --prior: every family of the model free, the
+default configuration as the base, `--bootstrap` resamples of the episodes) on the recordings
+of each case-study scenario, whose person always starts at em = ea = 0, and prints it with
+its bootstrap 95% intervals and as the `observation.prior` line of a configuration (the
+random streams' people are uniform by construction: not fitted).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hrc_ros.core.config import load_config  # noqa: E402
+from hrc_ros.core.learning import fit as fitting  # noqa: E402
 from hrc_ros.core.learning.stream import fit_stream  # noqa: E402
 from hrc_ros.core.mdp.policy import load_policy  # noqa: E402
 from hrc_ros.core.model import HRCModel  # noqa: E402
@@ -34,13 +41,18 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     parser.add_argument('--episodes', type=int, default=500)
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--prior', action='store_true',
+                        help='also fit the person prior on the case-study recordings')
+    parser.add_argument('--bootstrap', type=int, default=fitting.BOOTSTRAP,
+                        help='resamples for the prior\'s intervals (with --prior)')
     args = parser.parse_args(argv)
     config = load_config(ROOT / 'config' / 'default.yaml')
     model = HRCModel(config)
     policy = load_policy(ROOT / 'policies' / 'default.npz', config).policy
     print(f'stream_fit: {args.episodes} recorded episodes per scenario, seed {args.seed}; '
           f'command: .venv/bin/python bench/stream_fit.py --episodes {args.episodes} '
-          f'--seed {args.seed}')
+          f'--seed {args.seed}'
+          + (f' --prior --bootstrap {args.bootstrap}' if args.prior else ''))
     for scenario, epochs, rate in SCENARIOS:
         scenarios, seeds = episodes_of(model, scenario, args.episodes, epochs, args.seed, rate)
         run = BatchSimulator(model, policy, mode='posterior').run(scenarios, seeds, 'paper',
@@ -50,7 +62,31 @@ def main(argv=None) -> int:
               f'{np.mean(run.tasks_completed):.2f} tasks completed per episode')
         print('\n'.join(fitted.lines()))
         print(f'  section: {fitted.section()}')
+        if args.prior and scenario == 'case-study':
+            print_prior(run.recordings(model), config, args)
     return 0
+
+
+def print_prior(recordings, config, args) -> None:
+    """hrc-fit --prior on `recordings`, printed: the prior with its intervals."""
+    data = fitting.prepare(recordings)
+    result = fitting.fit(data, config, seed=args.seed, bootstrap=args.bootstrap, prior=True)
+    print(f'  person prior (hrc-fit --prior, {result.prior_starts} episode starts, '
+          f'{result.epochs} epochs, {len(result.issues)} rows or transitions cut or left '
+          f'out; EM {result.iterations} iterations, '
+          f'{"converged" if result.converged else "NOT converged"}; '
+          f'{result.seconds.get("fit", 0) + result.seconds.get("bootstrap", 0):.0f} s):')
+    for h in range(len(result.params.pi)):
+        low, high = ((np.nan, np.nan) if result.prior_interval is None
+                     else result.prior_interval[:, h])
+        effective = ('-' if result.prior_effective is None
+                     else f'{min(result.prior_effective[h], 1e12):.0f}')
+        print(f'    h={h} (em={h // 3}, ea={h % 3}): {result.params.pi[h]:.6f}  95% '
+              f'[{low:.6f}, {high:.6f}]  effective {effective}')
+    print(f'  observation.prior: {fitting._row(result.params.pi)}')
+    for warning in result.warnings:
+        if warning.startswith('observation.prior'):
+            print(f'  warning: {warning}')
 
 
 if __name__ == '__main__':

@@ -75,9 +75,18 @@ def random_params(rng) -> fit.Params:
 
 def empty_counts() -> dict:
     """The counts of `fit.Expected`, zero: what the reference forms below add up."""
-    return {'loglik': 0.0, 'first': np.zeros(9), 'accept': np.zeros((2, 3)),
+    return {'loglik': 0.0, 'first': np.zeros(9), 'first_cut': np.zeros(9),
+            'accept': np.zeros((2, 3)),
             'delta': np.zeros((3, 3)), 'transitions': np.zeros((3, 2, 3, 3)),
             'observed': np.zeros((3, 9)), 'unique_moves': np.zeros((3, 3))}
+
+
+def start_of(params: fit.Params, data: fit.FitData, s: int) -> tuple[str, np.ndarray]:
+    """Segment s's start: ('first', pi), or with a split start (`Params.split_start`) for a
+    piece cut from an episode ('first_cut', pi_cut)."""
+    if params.split_start and not data.true_starts[s]:
+        return 'first_cut', params.pi_cut
+    return 'first', params.pi
 
 
 def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
@@ -88,14 +97,15 @@ def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
     for s, w in enumerate(weights):
         a, b = data.seg_start[s], data.seg_start[s + 1]
         paths = np.array(list(itertools.product(range(9), repeat=b - a)))
-        p = params.pi[paths[:, 0]] * e[a, paths[:, 0]]
+        first, pi = start_of(params, data, s)
+        p = pi[paths[:, 0]] * e[a, paths[:, 0]]
         for t in range(1, b - a):
             p = p * transition[data.group[a + t - 1], paths[:, t - 1], paths[:, t]]
             p = p * e[a + t, paths[:, t]]
         z = p.sum()
         post = w * p / z
         out['loglik'] += w * np.log(z)
-        np.add.at(out['first'], paths[:, 0], post)
+        np.add.at(out[first], paths[:, 0], post)
         for t in range(b - a):
             h = paths[:, t]
             em, ea = h // 3, h % 3
@@ -118,22 +128,31 @@ def brute_force(params: fit.Params, data: fit.FitData, weights) -> dict:
     return out
 
 
-def test_the_e_step_equals_the_sum_over_every_hidden_path():
+@pytest.mark.parametrize('split', [False, True])
+def test_the_e_step_equals_the_sum_over_every_hidden_path(split):
+    """With a split start (a person prior) the second segment, a piece cut from an episode,
+    starts from pi_cut and is counted in first_cut; without, every segment from pi."""
     rng = np.random.default_rng(3)
     data = random_data(rng, [3, 4])
+    data.seg_true_start = np.array([True, False])
     params = random_params(rng)
+    if split:
+        params.pi_cut = rng.dirichlet(np.ones(9))
     weights = np.array([2.0, 1.0])        # a bootstrap multiplicity counts as repeats
     stats = fit.e_step(params, data, weights)
     truth = brute_force(params, data, weights)
     assert stats.loglik == pytest.approx(truth['loglik'], rel=1e-12)
-    counts = ('first', 'accept', 'delta', 'transitions', 'observed', 'unique_moves')
+    counts = ('first', 'first_cut', 'accept', 'delta', 'transitions', 'observed',
+              'unique_moves')
     assert set(counts) == set(vars(stats)) - {'loglik'}        # every count the E-step gives
     # the data exercise every count: moves whose Delta is told apart uniquely, and moves that
     # leave it to p_delta
     moves = data.move[data.has_move].sum(axis=1)
     assert (moves == 1).any() and (moves == 2).any() and data.unique_delta.any()
+    assert stats.first.sum() == pytest.approx(2.0 if split else 3.0)   # weighted segments
+    assert stats.first_cut.sum() == pytest.approx(1.0 if split else 0.0)
     for name in counts:
-        assert truth[name].sum() > 0, name
+        assert truth[name].sum() > 0 or (name == 'first_cut' and not split), name
         np.testing.assert_allclose(getattr(stats, name), truth[name], rtol=1e-9, atol=1e-12,
                                    err_msg=name)
 
@@ -151,8 +170,9 @@ def plain_forward_backward(params: fit.Params, data: fit.FitData, weights) -> di
             continue
         n = b - a
         alpha, scale, beta = np.zeros((n, 9)), np.zeros(n), np.ones((n, 9))
+        first, pi = start_of(params, data, s)
         for t in range(n):
-            alpha[t] = (params.pi if t == 0 else alpha[t - 1] @ transition[data.group[a + t - 1]])
+            alpha[t] = (pi if t == 0 else alpha[t - 1] @ transition[data.group[a + t - 1]])
             alpha[t] *= e[a + t]
             scale[t] = alpha[t].sum()
             alpha[t] /= scale[t]
@@ -160,7 +180,7 @@ def plain_forward_backward(params: fit.Params, data: fit.FitData, weights) -> di
             beta[t] = transition[data.group[a + t]] @ (e[a + t + 1] * beta[t + 1]) / scale[t + 1]
         gamma = w * alpha * beta / (alpha * beta).sum(axis=1, keepdims=True)
         out['loglik'] += w * np.log(scale).sum()
-        out['first'] += gamma[0]
+        out[first] += gamma[0]
         for t in range(n):
             em, ea = gamma[t].reshape(3, 3).sum(axis=1), gamma[t].reshape(3, 3).sum(axis=0)
             o = data.observation[a + t]
@@ -182,15 +202,20 @@ def plain_forward_backward(params: fit.Params, data: fit.FitData, weights) -> di
     return out
 
 
-def test_the_e_step_of_a_batch_equals_the_plain_forward_backward_of_each_lane():
+@pytest.mark.parametrize('split', [False, True])
+def test_the_e_step_of_a_batch_equals_the_plain_forward_backward_of_each_lane(split):
     """Long segments (60-120 epochs, where the scaling matters), lanes with their own
     parameters and weights in one kernel call: each lane's counts are the plain per-epoch
-    forward-backward's to float precision."""
+    forward-backward's to float precision; with a split start (a person prior) too, the
+    second and fourth segments pieces cut from episodes."""
     rng = np.random.default_rng(8)
     data = random_data(rng, [60, 1, 120, 75], missing=0.25)
+    data.seg_true_start = np.array([True, False, True, False])
     kinds = fit.epoch_kinds(data)
     assert len(kinds[1]) < data.epochs // 2           # epochs do share kinds
     lanes = [random_params(rng) for _ in range(3)]
+    for params in lanes if split else ():
+        params.pi_cut = rng.dirichlet(np.ones(9))
     weights = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 0.0, 1.0, 3.0], [0.0, 4.0, 2.0, 0.0]])
     stats, impossible = fit.e_step_batch(np.stack([fit._pack(p) for p in lanes]), data,
                                          weights)
@@ -198,8 +223,9 @@ def test_the_e_step_of_a_batch_equals_the_plain_forward_backward_of_each_lane():
     for lane, params in enumerate(lanes):
         truth = plain_forward_backward(params, data, weights[lane])
         assert stats.loglik[lane] == pytest.approx(truth['loglik'], rel=1e-12)
-        for name in ('first', 'accept', 'delta', 'transitions', 'observed', 'unique_moves'):
-            assert truth[name].sum() > 0, name
+        for name in ('first', 'first_cut', 'accept', 'delta', 'transitions', 'observed',
+                     'unique_moves'):
+            assert truth[name].sum() > 0 or (name == 'first_cut' and not split), name
             np.testing.assert_allclose(getattr(stats, name)[lane], truth[name], rtol=1e-9,
                                        atol=1e-9, err_msg=f'lane {lane}: {name}')
 

@@ -1,7 +1,7 @@
 """hrc-fit: learn the cell's model from its recordings (core.learning.fit; docs/LEARNING.md).
 
     hrc-fit INPUT... -o OUT.yaml [--base CONFIG] [--hold FAMILY,...] [--bootstrap 200] [--plot]
-            [--stream]
+            [--stream] [--prior]
 
 INPUT: bag folders, .mcap files (recorded from the node suite) or trajectory .csv files.
 Writes OUT.yaml, a complete configuration (the base's with the fitted families), and
@@ -9,6 +9,8 @@ OUT.report.json; prints the report: every parameter with its bootstrap 95% inter
 support, the log likelihood at every 10th iteration and the last (the JSON report has every
 iteration), the epochs used and the warnings. `--stream` also counts the task stream's
 arrivals (MODEL.md 8, core.learning.stream) and writes them as OUT.yaml's `stream` section.
+`--prior` also fits the person prior, the distribution of h = 3*em + ea where an episode starts
+(MODEL.md 6.1), from the episodes recorded from epoch 1, and writes it as `observation.prior`.
 
 Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
 in an input bag folder, is the base configuration or is another output. Output folders are
@@ -73,6 +75,10 @@ def main(argv=None) -> int:
     parser.add_argument('--stream', action='store_true',
                         help='also fit the task stream (arrival_idle, arrival_complete, q; '
                         'MODEL.md 8) and write it as the stream section')
+    parser.add_argument('--prior', action='store_true',
+                        help='also fit the person prior (where h = 3*em + ea starts, from the '
+                        'episodes recorded from epoch 1; MODEL.md 6.1) and write it as '
+                        'observation.prior')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
@@ -97,7 +103,8 @@ def main(argv=None) -> int:
     try:
         result = fit(data, base, hold, n_init=args.starts, seed=args.seed, tol=args.tol,
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
-                     min_support=args.min_support, progress=say, method=args.method)
+                     min_support=args.min_support, progress=say, method=args.method,
+                     prior=args.prior)
         stream = (fit_stream(recordings, bootstrap=args.bootstrap, seed=args.seed)
                   if args.stream else None)
         text = config_yaml(result, base, args.inputs, stream)

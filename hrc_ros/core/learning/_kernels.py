@@ -5,11 +5,15 @@ One pass per segment (a run of epochs whose transitions are all usable), t = a .
 h = 3*em + ea:
 
     e_t(h)   = L[O_t, h] * acc_t(em) * sum_D move[t, D] p_delta[ea, D]     (module `fit`)
-    alpha_a  = pi * e_a / c_a,          alpha_t = (alpha_{t-1} E_{g(t-1)}) * e_t / c_t
+    alpha_a  = pi_k * e_a / c_a,        alpha_t = (alpha_{t-1} E_{g(t-1)}) * e_t / c_t
     beta_{b-1} = 1,                     beta_t  = E_{g(t)} (e_{t+1} * beta_{t+1}) / c_{t+1}
     gamma_t  = alpha_t * beta_t,        xi_t(h, h') = alpha_t(h) E(h, h') e_{t+1}(h')
                                                       beta_{t+1}(h') / c_{t+1}
     log P(segment) = sum_t log c_t      (Rabiner's scaling: no underflow at any length)
+
+where pi_k is the start distribution of the segment's kind k = `seg_kind[s]`: 0 for every
+segment unless the fit has a person prior (`fit --prior`), then 0 for the segments that start
+an episode (the prior) and 1 for the pieces cut from one (a nuisance distribution).
 
 Two things make it cheaper than the formulas read (docs/LEARNING.md, "Time"):
 
@@ -26,7 +30,7 @@ Two things make it cheaper than the formulas read (docs/LEARNING.md, "Time"):
 The counts the M-step needs, each weighted by the segment's multiplicity `seg_weight`
 (1, or how often a bootstrap resample drew its episode; 0 skips the segment):
 
-    first[h]          sum of gamma at the segments' first epochs
+    first[k, h]       sum of gamma at the first epochs of the segments of kind k
     accept[0|1, em]   sum of gamma_t(em) over accepted | refused eligible requests
     delta[ea, D]      sum of gamma_t(ea) r_t(D | ea) over known moves, r the posterior of D
     moves[g, v, i, j] expected moves of variable v (em, ea) from level i to j under group g
@@ -40,12 +44,12 @@ across lanes, was tried: numba's code for it was no faster per lane on this mach
 several times longer to compile.)
 
 Arguments (T epochs, K kinds of epoch, S segments, B lanes, 9 = `model.N_HIDDEN`): per lane
-`likelihood` (B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 9), `chain`
+`likelihood` (B, 3, 9), `p_accept` (B, 3), `p_delta` (B, 3, 3), `pi` (B, 2, 9), `chain`
 (B, 3, 2, 3, 3) the bounded chain matrices [group, variable, i, j]; per epoch `group` (T,)
 the emotion group of a_t and `code` (T,) its kind; per kind `code_observation` (K,) O - 1 or 3
 for none, `code_answer` (K,) 0 none, 1 accepted, 2 refused, `code_move` (K, 3) 1 where Delta
 fits the move (all 1 when it is unknown), `code_has_move` (K,), `code_unique` (K, 3);
-`seg_start` (S + 1,), `seg_weight` (B, S); outputs (overwritten) `loglik` (B, S)
+`seg_start` (S + 1,), `seg_kind` (S,), `seg_weight` (B, S); outputs (overwritten) `loglik` (B, S)
 (unweighted, -inf for evidence impossible under the parameters, 0 where the weight is 0) and
 the counts above with a leading lane axis.
 """
@@ -63,8 +67,8 @@ from ..parallel import parallel_kernel
 
 def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, chain,
               group, code, code_observation, code_answer, code_move, code_has_move,
-              code_unique, seg_start, seg_weight, alpha, pushed, scale, evidence, posterior,
-              loglik, first, accept, delta, moves, observed, unique):
+              code_unique, seg_start, seg_kind, seg_weight, alpha, pushed, scale, evidence,
+              posterior, loglik, first, accept, delta, moves, observed, unique):
     """The segments first_segment .. last_segment - 1, counts added into the given arrays.
     `evidence` (C, 9) and `posterior` (C, 9) are scratch: the evidence of each epoch kind and
     the posterior summed over the epochs of each kind."""
@@ -101,6 +105,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
         a = seg_start[s]
         b = seg_start[s + 1]
         w = seg_weight[s]
+        kind_s = seg_kind[s]
         if w == 0.0:
             loglik[s] = 0.0
             continue
@@ -113,7 +118,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
             c = 0.0
             if t == a:
                 for j in range(n_h):
-                    v = pi[j] * e[j]
+                    v = pi[kind_s, j] * e[j]
                     alpha[0, j] = v
                     c += v
             else:
@@ -188,7 +193,7 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
                 gamma[h] *= z
             if t == a:
                 for h in range(n_h):
-                    first[h] += gamma[h]
+                    first[kind_s, h] += gamma[h]
             kind = posterior[code[t]]
             for h in range(n_h):
                 kind[h] += gamma[h]
@@ -222,8 +227,8 @@ def _segments(first_segment, last_segment, likelihood, p_accept, p_delta, pi, ch
 
 
 def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, code, code_observation,
-                  code_answer, code_move, code_has_move, code_unique, seg_start, seg_weight,
-                  loglik, first, accept, delta, moves, observed, unique):
+                  code_answer, code_move, code_has_move, code_unique, seg_start, seg_kind,
+                  seg_weight, loglik, first, accept, delta, moves, observed, unique):
     longest = 1
     for s in range(seg_start.shape[0] - 1):
         longest = max(longest, seg_start[s + 1] - seg_start[s])
@@ -242,7 +247,7 @@ def _e_step_batch(likelihood, p_accept, p_delta, pi, chain, group, code, code_ob
         unique[lane] = 0.0
         _segments_jit(0, seg_start.shape[0] - 1, likelihood[lane], p_accept[lane],
                       p_delta[lane], pi[lane], chain[lane], group, code, code_observation,
-                      code_answer, code_move, code_has_move, code_unique, seg_start,
+                      code_answer, code_move, code_has_move, code_unique, seg_start, seg_kind,
                       seg_weight[lane], alpha, pushed, scale, evidence, posterior,
                       loglik[lane], first[lane], accept[lane], delta[lane], moves[lane],
                       observed[lane], unique[lane])

@@ -30,8 +30,19 @@ chain; their log likelihood is a sum of multinomial terms, so every M-step is cl
     L[O, h]        = sum_k gamma_k(h) [O_k = O] / sum_k gamma_k(h)          (epochs with an O)
     pi             = sum over segments of gamma at the segment's first epoch, normalised
 
-(pi is a nuisance parameter: the configuration has no initial distribution.) Each family can
-be held fixed at the base configuration's value. The log likelihood never decreases; the fit
+(pi is a nuisance parameter unless the person prior is fitted, below.) Each family can be held
+fixed at the base configuration's value.
+
+The person prior (`prior=True`, hrc-fit --prior; MODEL.md 6.1). pi is then the distribution of
+h where a person starts, written as `observation.prior`, and only the segments that start an
+episode at its first epoch (`FIRST_EPOCH`, epoch 1: an epoch count restarting, a new
+recording; `FitData.true_starts`) start from it; the pieces cut from an episode (a gap, a
+transition the model cannot produce) and recordings that begin mid-run are not new people,
+so they start from a separate nuisance distribution pi_cut (`Params.pi_cut`, the packed rows'
+last 9 entries, its M-step the same sum over those segments). Without `prior` every segment
+starts from pi and the packed rows are as they always were, so the fit's numbers are too.
+Its bootstrap interval is that of pi over the resamples; its support is the number of episode
+starts (each informs the whole distribution). The log likelihood never decreases; the fit
 stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
 the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
 an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation; or,
@@ -106,6 +117,7 @@ DEFAULT_METHOD = SQUAREM   # hrc-fit's (bench/README.md "hrc-fit's bootstrap, si
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
 UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
+FIRST_EPOCH = 1            # the epoch count's first value: where a person's run starts
 _ACCEPTED, _REFUSED = 1, 2
 
 
@@ -139,6 +151,13 @@ class Params:
     p_delta: np.ndarray
     chains: np.ndarray
     likelihood: np.ndarray
+    pi_cut: np.ndarray | None = None   # (9,) with a person prior: where cut pieces start
+
+    @property
+    def split_start(self) -> bool:
+        """Whether the episodes' starts (pi, the person prior) and the pieces cut from them
+        (pi_cut) start from separate distributions (`fit(prior=True)`)."""
+        return self.pi_cut is not None
 
     @classmethod
     def from_config(cls, config: Config) -> 'Params':
@@ -151,7 +170,8 @@ class Params:
                    config.p_delta.copy(), chains, np.array(likelihood))
 
     def copy(self) -> 'Params':
-        return Params(*(np.array(getattr(self, f)) for f in _PARAM_FIELDS))
+        return Params(*(np.array(getattr(self, f)) for f in _PARAM_FIELDS),
+                      pi_cut=None if self.pi_cut is None else np.array(self.pi_cut))
 
     def family(self, name: str) -> np.ndarray:
         """The array of one family (a view)."""
@@ -198,6 +218,8 @@ def _parameter_names() -> tuple[list[str], list[str]]:
 
 
 PARAMETER_NAMES, PARAMETER_FAMILIES = _parameter_names()
+# the person prior's entries (`fit(prior=True)`), reported after the 57
+PRIOR_NAMES = tuple(f'prior[h={h}]' for h in range(N_HIDDEN))
 
 
 # -- data -------------------------------------------------------------------------------------
@@ -216,6 +238,16 @@ class FitData:
     episodes: list             # episode names
     issues: list               # what was left out or cut, and why
     rows_read: int = 0
+    seg_true_start: np.ndarray | None = None   # (S,) the segment starts its episode at epoch 1
+
+    @property
+    def true_starts(self) -> np.ndarray:
+        """(S,) bool: the segments that start where a person starts, an episode's first
+        recorded epoch when that is epoch `FIRST_EPOCH` (not a piece cut from an episode, nor
+        a recording that began mid-run); all False when `prepare` did not say."""
+        if self.seg_true_start is None:
+            return np.zeros(self.segments, dtype=bool)
+        return np.asarray(self.seg_true_start, dtype=bool)
 
     @property
     def epochs(self) -> int:
@@ -335,6 +367,9 @@ def prepare(recordings: list[Recording]) -> FitData:
     ends = np.flatnonzero(~link[kept]) + 1          # every segment ends at an unusable link
     starts = np.concatenate([[0], ends[:-1]])
     used = np.unique(episode[kept])
+    opens = np.ones(n, dtype=bool)                   # the first row of its recording
+    opens[1:] = episode[1:] != episode[:-1]
+    first_row = kept[starts]
     renumber = np.full(len(recordings), -1)
     renumber[used] = np.arange(len(used))
     return FitData(
@@ -345,7 +380,8 @@ def prepare(recordings: list[Recording]) -> FitData:
         has_move=has_move, unique_delta=np.ascontiguousarray(distinct & has_move[:, None]),
         seg_start=np.concatenate([[0], ends]).astype(np.int64),
         seg_episode=renumber[episode[kept][starts]],
-        episodes=[recordings[e].name for e in used], issues=issues, rows_read=n)
+        episodes=[recordings[e].name for e in used], issues=issues, rows_read=n,
+        seg_true_start=opens[first_row] & (epoch[first_row] == FIRST_EPOCH))
 
 
 # -- E-step and M-step ------------------------------------------------------------------------
@@ -365,6 +401,8 @@ class Expected:
     transitions: np.ndarray    # (3, 2, 3, 3) [group, variable, level i, level j]
     observed: np.ndarray       # (3, 9) [O - 1, h]
     unique_moves: np.ndarray   # (3, 3) [ea, Delta]: moves telling Delta apart from the others
+    first_cut: np.ndarray      # (9,) the same of the pieces cut from episodes, with a split
+                               # start (`Params.split_start`); else 0 (they are in `first`)
 
     def lane(self, i) -> 'Expected':
         """Lane(s) `i` of a batch (an int: one lane's counts; an index array: a batch)."""
@@ -380,12 +418,18 @@ for _f in ('pi', 'p_accept', 'p_delta', 'chains', 'likelihood'):
     _SLICES[_f] = slice(_at, _at + _n)
     _at += _n
 N_PACKED = _at
+# With a person prior (`Params.split_start`) the cut pieces' start distribution follows, so
+# the rows of a fit without one are as they always were.
+_SIZES['pi_cut'] = (N_HIDDEN,)
+_SLICES['pi_cut'] = slice(N_PACKED, N_PACKED + N_HIDDEN)
+N_PACKED_SPLIT = N_PACKED + N_HIDDEN
 SPLIT = 2    # a batch of fewer lanes runs each lane as this many halves of the segments
 SPLIT_EPOCHS = 10_000   # ... when the data have at least this many epochs (else the overhead wins)
 
 
 def _field(x: np.ndarray, name: str) -> np.ndarray:
-    """The view of one field in packed rows x (B, N_PACKED): (B,) + its shape."""
+    """The view of one field in packed rows x (B, N_PACKED or N_PACKED_SPLIT): (B,) + its
+    shape."""
     return x[:, _SLICES[name]].reshape((len(x),) + _SIZES[name])
 
 
@@ -439,9 +483,16 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     """The E-step (`_fit_kernels.e_step_batch`) at each packed row of `x` (B, N_PACKED), with
     segment weights (B, S) (None: all 1). Returns the batch's counts and, per lane, the first
     segment whose evidence is impossible under its parameters (-1 for none; that lane's
-    counts and log likelihood are then not to be used)."""
+    counts and log likelihood are then not to be used). Rows of `N_PACKED_SPLIT` entries have
+    a split start: the segments that start an episode (`FitData.true_starts`) from pi, the
+    others from pi_cut; rows of `N_PACKED`, every segment from pi."""
     x = np.atleast_2d(x)
     used = len(x)
+    split_start = x.shape[1] == N_PACKED_SPLIT
+    pi = _field(x, 'pi')
+    pi = np.stack([pi, _field(x, 'pi_cut') if split_start else pi], axis=1)   # (B, 2, 9)
+    seg_kind = (np.where(data.true_starts, 0, 1) if split_start
+                else np.zeros(data.segments)).astype(np.int64)
     weight = np.broadcast_to(1.0 if seg_weight is None else np.asarray(seg_weight, dtype=float),
                              (used, data.segments))
     # Fewer lanes than SPLIT (a single fit of SPLIT_EPOCHS epochs or more): each lane is run
@@ -454,10 +505,11 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
         part = np.minimum(np.arange(data.segments) * split // data.segments, split - 1)
         weight = np.concatenate([np.where(part == k, weight, 0.0) for k in range(split)])
         x = np.concatenate([x] * split)
+        pi = np.concatenate([pi] * split)
     weight = np.ascontiguousarray(weight)
     n_lanes = len(x)
     loglik = np.empty((n_lanes, data.segments))
-    first = np.empty((n_lanes, N_HIDDEN))
+    first = np.empty((n_lanes, 2, N_HIDDEN))
     accept = np.empty((n_lanes, 2, 3))
     delta = np.empty((n_lanes, 3, 3))
     transitions = np.empty((n_lanes, len(EMOTION_GROUPS), len(EMOTION_VARIABLES), 3, 3))
@@ -466,10 +518,10 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     _fit_kernels.e_step_batch(
         np.ascontiguousarray(_field(x, 'likelihood')),
         np.ascontiguousarray(_field(x, 'p_accept')),
-        np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(_field(x, 'pi')),
+        np.ascontiguousarray(_field(x, 'p_delta')), np.ascontiguousarray(pi),
         np.ascontiguousarray(_chain_matrices(_field(x, 'chains'))), data.group,
-        *epoch_kinds(data), data.seg_start, weight, loglik, first, accept, delta, transitions,
-        observed, unique,
+        *epoch_kinds(data), data.seg_start, seg_kind, weight, loglik, first, accept, delta,
+        transitions, observed, unique,
         work=max(1.0, float(((weight > 0) @ np.diff(data.seg_start)).sum())))
     if split > 1:
         def joined(a):
@@ -480,8 +532,8 @@ def e_step_batch(x: np.ndarray, data: FitData, seg_weight: np.ndarray | None = N
     finite = np.isfinite(loglik)
     impossible = np.where(finite.all(axis=1), -1, np.argmax(~finite, axis=1))
     ll = np.einsum('ls,ls->l', np.where(finite, loglik, 0.0), weight)
-    return Expected(np.where(impossible < 0, ll, -np.inf), first, accept, delta, transitions,
-                    observed, unique), impossible
+    return Expected(np.where(impossible < 0, ll, -np.inf), first[:, 0], accept, delta,
+                    transitions, observed, unique, first[:, 1]), impossible
 
 
 def _impossible(data: FitData, segment: int) -> FitError:
@@ -535,6 +587,8 @@ def m_step_batch(stats: Expected, x: np.ndarray, hold: tuple = ()) -> np.ndarray
     """The closed-form M-step (module docstring) of every lane: packed rows (B, N_PACKED)."""
     new = x.copy()
     _field(new, 'pi')[:] = _normalised(stats.first, _field(x, 'pi'))
+    if x.shape[1] == N_PACKED_SPLIT:
+        _field(new, 'pi_cut')[:] = _normalised(stats.first_cut, _field(x, 'pi_cut'))
     if 'p_accept' not in hold:
         answered = stats.accept.sum(axis=1)
         _field(new, 'p_accept')[:] = np.where(
@@ -576,12 +630,14 @@ class EMRun:
 
 
 def _pack(params: Params) -> np.ndarray:
-    return np.concatenate([np.ravel(getattr(params, f)) for f in _PARAM_FIELDS])
+    """The packed row: `_PARAM_FIELDS` in order, then pi_cut with a split start."""
+    names = _PARAM_FIELDS + (('pi_cut',) if params.split_start else ())
+    return np.concatenate([np.ravel(getattr(params, f)) for f in names])
 
 
 def _unpack(vector: np.ndarray, like: Params) -> Params:
     out, at = like.copy(), 0
-    for f in _PARAM_FIELDS:
+    for f in _PARAM_FIELDS + (('pi_cut',) if like.split_start else ()):
         shape = getattr(like, f).shape
         size = int(np.prod(shape))
         setattr(out, f, vector[at:at + size].reshape(shape).copy())
@@ -787,6 +843,8 @@ class Curvature:
         their E-step's counts (Fisher's identity: n_i - N x_i per distribution)."""
         counts = np.zeros_like(x)
         _field(counts, 'pi')[:] = stats.first
+        if x.shape[1] == N_PACKED_SPLIT:
+            _field(counts, 'pi_cut')[:] = stats.first_cut
         _field(counts, 'p_accept')[:] = stats.accept[:, 0]
         _field(counts, 'p_delta')[:] = stats.delta
         chains = _field(x, 'chains')
@@ -818,6 +876,8 @@ def curvature_at(data: FitData, params: Params, hold: tuple = ()) -> Curvature:
                 index.append(i)
                 reference.append(-1)
     distributions = [np.arange(_SLICES['pi'].start, _SLICES['pi'].stop)]
+    if params.split_start and not data.true_starts.all():   # pieces cut from episodes
+        distributions.append(np.arange(_SLICES['pi_cut'].start, _SLICES['pi_cut'].stop))
     offsets = {name: _SLICES[name].start for name in ('p_delta', 'chains', 'likelihood')}
     if 'p_delta' not in hold:
         distributions += [offsets['p_delta'] + 3 * ea + np.arange(3) for ea in range(3)]
@@ -965,6 +1025,8 @@ def relabel(params: Params, flip_em: bool, flip_ea: bool) -> Params:
     ea = np.arange(3)[::-1] if flip_ea else np.arange(3)
     h = (3 * em[:, None] + ea[None, :]).ravel()        # new h -> old h
     out.pi = params.pi[h]
+    if params.split_start:
+        out.pi_cut = params.pi_cut[h]
     out.likelihood = params.likelihood[:, h]
     if flip_em:
         out.p_accept = params.p_accept[::-1].copy()
@@ -1016,6 +1078,13 @@ class FitResult:
     sample_logliks: np.ndarray | None = None   # (B,) the log likelihood of each resample's fit
     resample_counts: np.ndarray | None = None  # (B, episodes) how often each resample drew each
     resample_points: np.ndarray | None = None  # (B, N_PACKED) each resample's fit, packed (pi too)
+    # with a person prior (`fit(prior=True)`): params.pi is it, written as observation.prior
+    prior: bool = False
+    prior_base: np.ndarray | None = None       # (9,) the base's prior (uniform if it has none)
+    prior_starts: int = 0                      # segments that start an episode at epoch 1
+    prior_interval: np.ndarray | None = None   # (2, 9) bootstrap 2.5 and 97.5 percentiles
+    prior_samples: np.ndarray | None = None    # (B, 9)
+    prior_effective: np.ndarray | None = None  # (9,) p (1 - p) / bootstrap variance
 
     @property
     def iterations(self) -> int:
@@ -1037,6 +1106,14 @@ class FitResult:
     @property
     def free(self) -> list[str]:
         return _free(self.hold)
+
+    @property
+    def prior_weak(self) -> np.ndarray:
+        """(9,) bool: a prior entry below `min_support` episode starts or effective events."""
+        low = np.full(N_HIDDEN, self.prior_starts < self.min_support)
+        if self.prior_effective is not None:
+            low |= self.prior_effective < self.min_support
+        return low & self.prior
 
 
 NO_SPREAD_VARIANCE = 1e-18
@@ -1107,14 +1184,22 @@ def _warnings(support: np.ndarray, effective: np.ndarray | None, hold: tuple,
 
 def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         tol: float = TOL, max_iter: int = MAX_ITER, bootstrap: int = BOOTSTRAP,
-        min_support: float = MIN_SUPPORT, progress=None, method: str = DEFAULT_METHOD
-        ) -> FitResult:
+        min_support: float = MIN_SUPPORT, progress=None, method: str = DEFAULT_METHOD,
+        prior: bool = False) -> FitResult:
     """EM from `n_init` starts (the base first), then the bootstrap (module docstring).
     `method` `SQUAREM`: the chosen start and every resample by SQUAREM; `NEWTON`: the chosen
     start by SQUAREM, then (if it left any of `max_iter`) the quasi-Newton EM
     (`run_em_batch`) from there with the `curvature_at` the estimate, and every resample by
-    the quasi-Newton EM with that curvature."""
+    the quasi-Newton EM with that curvature. `prior`: fit the person prior (module
+    docstring, "The person prior"): pi from the segments that start an episode at epoch 1
+    only, starting from the base's `observation.prior` (or uniform), the pieces cut from
+    episodes from a nuisance pi_cut; FitError when no segment starts an episode."""
     hold = expand_hold(hold)
+    if prior and not data.true_starts.any():
+        raise FitError('--prior: no episode in the recordings starts at epoch '
+                       f'{FIRST_EPOCH} (each begins mid-run, or its first epoch was left out), '
+                       'so nothing shows how a person starts; record from the start of a run, '
+                       'or fit without --prior')
     if n_init < 1:
         raise FitError(f'n_init must be >= 1, got {n_init}')
     if bootstrap < 0:
@@ -1124,9 +1209,17 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     say = progress or (lambda message: None)
     t0, cpu0 = time.perf_counter(), time.process_time()
     base_params = Params.from_config(base)
+    if prior:
+        given = base.observation_prior
+        base_params.pi = (np.full(N_HIDDEN, 1.0 / N_HIDDEN) if given is None
+                          else given / given.sum())
+        base_params.pi_cut = np.full(N_HIDDEN, 1.0 / N_HIDDEN)
     rng = np.random.default_rng(seed)
     starts = [_smoothed(base_params, hold)]
     starts += [_random_start(base_params, hold, rng) for _ in range(n_init - 1)]
+    if prior:    # EM cannot move a probability off 0: the base prior mixed with uniform too
+        for start in starts:
+            start.pi = (1 - INIT_FLOOR) * start.pi + INIT_FLOOR / N_HIDDEN
     runs = run_em_batch(data, starts, hold, tol, min(SHORT_RUN, max_iter), method=EM)
     start_logliks = [r.trace[-1] for r in runs]
     chosen = int(np.argmax(start_logliks))
@@ -1151,6 +1244,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
     say(f'EM: {best.iterations} iterations, log likelihood {best.trace[-1]:.4f}'
         f'{"" if best.converged else " (not converged)"}; {seconds["fit"]:.2f} s')
     interval = samples = effective = sample_logliks = counts = points = None
+    prior_samples = prior_interval = prior_effective = None
     if bootstrap:
         t1 = time.perf_counter()
         n_episodes = len(data.episodes)
@@ -1172,8 +1266,15 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         points = np.stack([_pack(run.params) for run in runs])
         interval = np.percentile(samples, [2.5, 97.5], axis=0)
         effective = effective_support(params.vector(), samples)
+        if prior:
+            prior_samples = np.stack([run.params.pi for run in runs])
+            prior_interval = np.percentile(prior_samples, [2.5, 97.5], axis=0)
+            prior_effective = effective_support(params.pi, prior_samples)
         seconds['bootstrap'] = time.perf_counter() - t1
     warnings = _warnings(support, effective, hold, min_support, len(data.episodes), bootstrap)
+    prior_starts = int(data.true_starts.sum())
+    if prior:
+        warnings += _prior_warnings(prior_starts, prior_effective, min_support)
     if 'likelihood' not in hold:
         warnings += [f'no epoch observed O={o + 1}: the configuration gives it P(O | h) = '
                      f'{UNSEEN_FLOOR:g} for every h so that a filter can take it'
@@ -1182,7 +1283,27 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      best.converged, relabelled, support, interval, samples, effective,
                      warnings,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
-                     data.issues, seconds, min_support, sample_logliks, counts, points)
+                     data.issues, seconds, min_support, sample_logliks, counts, points,
+                     prior, base_params.pi.copy() if prior else None, prior_starts,
+                     prior_interval, prior_samples, prior_effective)
+
+
+def _prior_warnings(starts: int, effective, min_support: float) -> list[str]:
+    """The person prior's warnings: few episode starts, entries the bootstrap says little
+    about."""
+    out = []
+    if starts < min_support:
+        out.append(f'observation.prior: poorly supported, only {starts} episode'
+                   f'{"s" if starts != 1 else ""} start at epoch {FIRST_EPOCH} (fewer than '
+                   f'{min_support:g})')
+    if effective is not None:
+        vague = (effective < min_support) & (starts >= min_support)
+        if vague.any():
+            names = np.array([f'prior[h={h}]' for h in range(N_HIDDEN)])
+            out.append(f'observation.prior: poorly determined, the data weigh less than '
+                       f'{min_support:g} observed events (bootstrap): '
+                       f'{_listed(names, effective, vague, np.ones(N_HIDDEN, dtype=bool))}')
+    return out
 
 
 def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:
@@ -1229,6 +1350,8 @@ def fitted_data(result: FitResult, base: Config) -> dict:
         columns = [_row(likelihood[:, h], digits=7) for h in range(N_HIDDEN)]
         data['observation']['likelihood'] = [[columns[h][o] for h in range(N_HIDDEN)]
                                              for o in range(N_OBSERVATIONS)]
+    if result.prior:
+        data['observation']['prior'] = _row(p.pi)
     return validate(data)
 
 
@@ -1265,7 +1388,8 @@ def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
         f'{len(sources)} input(s): {", ".join(sources)}.',
         f'{result.epochs} epochs in {result.episodes} episode(s) ({result.segments} segment(s); '
         f'{len(result.issues)} rows or transitions left out, see the report).',
-        f'Base configuration: {base.source}. Fitted: {", ".join(result.free) or "none"}. '
+        f'Base configuration: {base.source}. Fitted: '
+        f'{", ".join(result.free + (["observation.prior"] if result.prior else [])) or "none"}. '
         f'Held at the base values: {", ".join(result.hold) or "none"}.',
         f'EM: {result.iterations} iterations, log likelihood {result.loglik:.4f}'
         f'{"" if result.converged else " (NOT converged)"}, start {result.chosen_start} of '
@@ -1308,10 +1432,32 @@ def report_text(result: FitResult, trace_every: int = 10) -> str:
                      else f'{result.effective[i]:.0f}')
         lines.append(f'{name:<30}{_fmt(p[i]):>9}{_fmt(b[i]):>9}{interval:>20}'
                      f'{result.support[i]:>10.0f}{effective:>11}{flag}')
+    if result.prior:
+        for h, name in enumerate(PRIOR_NAMES):
+            interval = ('-' if result.prior_interval is None else
+                        f'[{_fmt(result.prior_interval[0, h])}, '
+                        f'{_fmt(result.prior_interval[1, h])}]')
+            effective = ('' if result.prior_effective is None
+                         else 'no spread' if not np.isfinite(result.prior_effective[h])
+                         else f'{result.prior_effective[h]:.0f}')
+            flag = '  !' if result.prior_weak[h] else ''
+            lines.append(f'{name:<30}{_fmt(result.params.pi[h]):>9}'
+                         f'{_fmt(result.prior_base[h]):>9}{interval:>20}'
+                         f'{result.prior_starts:>10}{effective:>11}{flag}')
     trace = result.trace
     shown = [(i, v) for i, v in enumerate(trace) if i % trace_every == 0 or i == len(trace) - 1]
-    lines += ['', 'initial hidden state (nuisance, not in the configuration): '
-              + ' '.join(f'{v:.3f}' for v in result.params.pi),
+    if result.prior:
+        cut = result.segments - result.prior_starts
+        start = [f'observation.prior (the person prior, h = 3*em + ea) from the '
+                 f'{result.prior_starts} episode starts at epoch {FIRST_EPOCH}; '
+                 + (f'the {cut} pieces cut from episodes or recorded from mid-run start from '
+                    'their own distribution (nuisance, not in the configuration): '
+                    + ' '.join(f'{v:.3f}' for v in result.params.pi_cut) if cut else
+                    'no piece cut from an episode')]
+    else:
+        start = ['initial hidden state (nuisance, not in the configuration): '
+                 + ' '.join(f'{v:.3f}' for v in result.params.pi)]
+    lines += [''] + start + [
               'log likelihood by iteration: '
               + ', '.join(f'{i}: {v:.4f}' for i, v in shown),
               f'{result.iterations} EM iterations '
@@ -1348,8 +1494,21 @@ def report_dict(result: FitResult) -> dict:
             else float(min(result.effective[i], 1e12)),
             'ci95': None if held or result.interval is None
             else [float(result.interval[0, i]), float(result.interval[1, i])]})
+    extra = {}
+    if result.prior:
+        for h, name in enumerate(PRIOR_NAMES):
+            parameters.append({
+                'name': name, 'family': 'observation.prior',
+                'fitted': float(result.params.pi[h]), 'base': float(result.prior_base[h]),
+                'held': False, 'support': float(result.prior_starts),
+                'effective_support': None if result.prior_effective is None
+                else float(min(result.prior_effective[h], 1e12)),
+                'ci95': None if result.prior_interval is None
+                else [float(result.prior_interval[0, h]), float(result.prior_interval[1, h])]})
+        extra = {'prior': _row(result.params.pi), 'prior_episode_starts': result.prior_starts,
+                 'cut_initial_state': result.params.pi_cut.tolist()}
     return {'parameters': parameters, 'initial_hidden_state': result.params.pi.tolist(),
-            'loglik_trace': list(result.trace), 'iterations': result.iterations,
+            **extra, 'loglik_trace': list(result.trace), 'iterations': result.iterations,
             'converged': result.converged, 'start_logliks': result.start_logliks,
             'chosen_start': result.chosen_start, 'relabelled': result.relabelled,
             'hold': list(result.hold), 'epochs': result.epochs,

@@ -64,19 +64,33 @@ def human_seed(seed: int, episode: int) -> list:
 
 
 def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
-                     task_rate: float = 0.2) -> list:
+                     task_rate: float = 0.2, prior=None) -> list:
     """Seeded episodes: random (em, ea) in 0..2, d in 1..3, an idle cell, a task at epoch 1
     and then a new random task (tp 1..rho, tc 1..sigma, tx 0..3) with probability
-    `task_rate` per epoch; released tasks queue until the cell is idle."""
+    `task_rate` per epoch; released tasks queue until the cell is idle.
+
+    (em, ea) are uniform, or with `prior` (9 probabilities of h = 3*em + ea, a
+    configuration's `observation_prior`: the cell's people, MODEL.md 6.1) h is drawn from it
+    (one draw of the episode's generator in place of the two uniform integers, so the rest of
+    the episode differs from the uniform one's). Without it, the episodes are as always."""
     for name, v, lo in (('episodes', episodes, 1), ('epochs', epochs, 1), ('seed', seed, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
             raise ValueError(f'{name} must be an integer >= {lo}, got {v!r}')
     if not 0.0 <= task_rate <= 1.0:
         raise ValueError(f'task_rate must be a probability in [0, 1], got {task_rate!r}')
+    if prior is not None:
+        prior = np.asarray(prior, dtype=float)
+        if (prior.shape != (N_HIDDEN,) or not np.all(prior >= 0)
+                or not abs(prior.sum() - 1.0) < 1e-9):
+            raise ValueError(f'prior must be {N_HIDDEN} probabilities of h = 3*em + ea summing '
+                             f'to 1, got {prior.tolist()!r}')
     scenarios = []
     for e in range(episodes):
         rng = np.random.default_rng([seed, e, 1])
-        em, ea = (int(v) for v in rng.integers(0, 3, size=2))
+        if prior is None:
+            em, ea = (int(v) for v in rng.integers(0, 3, size=2))
+        else:
+            em, ea = divmod(int(rng.choice(N_HIDDEN, p=prior)), 3)
         d = int(rng.integers(1, 4))
         release = rng.random(epochs) < task_rate
         release[0] = True
@@ -91,15 +105,16 @@ def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
 
 
 def episodes_of(model: HRCModel, scenario: str, episodes: int, epochs: int, seed: int = 0,
-                task_rate: float = 0.2) -> tuple[list, list]:
+                task_rate: float = 0.2, prior=None) -> tuple[list, list]:
     """(scenarios, human seeds) of `episodes` episodes.
 
-    ``random``: `random_scenarios`, human seed ``(seed, e)``. ``case-study``: the paper's case
+    ``random``: `random_scenarios` (its people drawn from `prior` if given), human seed
+    ``(seed, e)``. ``case-study``: the paper's case
     study (MODEL.md 7) every time, with `epochs` epochs and human seed ``seed + e``, so that
     episode e is ``hrc-simulate --seed <seed + e>``.
     """
     if scenario == 'random':
-        return (random_scenarios(model, episodes, epochs, seed, task_rate),
+        return (random_scenarios(model, episodes, epochs, seed, task_rate, prior),
                 [human_seed(seed, e) for e in range(episodes)])
     if scenario == 'case-study':
         base = case_study()
