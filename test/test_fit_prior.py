@@ -2,7 +2,9 @@
 
 - Without --prior hrc-fit writes what it wrote before the option existed: the configuration,
   the printed report and the JSON report of a fixed recording (test/data/fit_no_prior, with
-  pieces cut at gaps) are byte for byte the ones the code before --prior wrote.
+  pieces cut at gaps) are the ones the code before --prior wrote: every word the same, every
+  number within a unit of its last printed digit (JSON floats within 1e-9 relative), so that
+  another CPU's floating-point rounding does not count as a change.
 - `prepare` marks the segments that start where a person starts (an episode's first epoch,
   epoch 1) and no other: not pieces cut at a gap or a bad transition, not a recording that
   began mid-run or whose first epoch was left out.
@@ -21,6 +23,7 @@ import contextlib
 import csv
 import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +57,35 @@ def write_csv(path: Path, recordings, drop=lambda episode, i: False) -> Path:
     return path
 
 
+_NUMBER = re.compile(r'[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?')
+
+
+def assert_same_text(got: str, want: str) -> None:
+    """The same words and layout; each number within one unit of its last printed digit."""
+    assert _NUMBER.split(got) == _NUMBER.split(want), 'the words differ'
+    for g, w in zip(_NUMBER.findall(got), _NUMBER.findall(want)):
+        mantissa = w.lower().split('e')[0]
+        digits = len(mantissa.split('.')[1]) if '.' in mantissa else 0
+        exponent = int(w.lower().split('e')[1]) if 'e' in w.lower() else 0
+        assert abs(float(g) - float(w)) <= 1.0001 * 10.0 ** (exponent - digits), (g, w)
+
+
+def assert_same_json(got, want, where='report') -> None:
+    """The same structure; floats within 1e-9 relative (1e-12 absolute), the rest equal."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and list(got) == list(want), where
+        for key in want:
+            assert_same_json(got[key], want[key], f'{where}.{key}')
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), where
+        for i, (g, w) in enumerate(zip(got, want)):
+            assert_same_json(g, w, f'{where}[{i}]')
+    elif isinstance(want, float) and not isinstance(got, bool):
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-12), where
+    else:
+        assert got == want, where
+
+
 def run_fit(*argv) -> tuple[int, str]:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
@@ -74,17 +106,17 @@ def test_without_prior_hrc_fit_writes_what_it_wrote_before(tmp_path, monkeypatch
     lines = stdout.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith('parameter'))
     stop = next(i for i, line in enumerate(lines) if line.startswith('wrote '))
-    assert '\n'.join(lines[start:stop]) + '\n' == (DATA / 'expected.txt').read_text()
+    assert_same_text('\n'.join(lines[start:stop]) + '\n', (DATA / 'expected.txt').read_text())
     assert 'initial hidden state (nuisance, not in the configuration)' in stdout
     assert 'the episode is cut at the gap' in stdout           # the data have cut pieces
     body = ''.join(line for line in (tmp_path / 'fitted.yaml').read_text().splitlines(True)
                    if not line.startswith('#'))
-    assert body == (DATA / 'expected.yaml').read_text()
+    assert_same_text(body, (DATA / 'expected.yaml').read_text())
     assert 'prior' not in body
     report = json.loads((tmp_path / 'fitted.report.json').read_text())
     for volatile in ('seconds', 'inputs', 'output', 'base'):
         report.pop(volatile)
-    assert json.dumps(report, indent=1) + '\n' == (DATA / 'expected.report.json').read_text()
+    assert_same_json(report, json.loads((DATA / 'expected.report.json').read_text()))
 
 
 def _recording(epochs, name='e') -> Recording:

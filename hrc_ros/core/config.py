@@ -66,8 +66,8 @@ _SCHEMA: dict[str, dict[str, str]] = {
     'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null'},
 }
 # Keys that may be left out (they then read as null).
-_OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'), ('model', 'robot_paused_by'),
-             ('model', 'retreat_reach')}
+_OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'),
+             ('model', 'robot_paused_by'), ('model', 'retreat_reach')}
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
 PAUSED_MAY = ('dp', 'dm')
