@@ -79,8 +79,9 @@ def print_prior(recordings, config, args) -> None:
     for h in range(len(result.params.pi)):
         low, high = ((np.nan, np.nan) if result.prior_interval is None
                      else result.prior_interval[:, h])
-        effective = ('-' if result.prior_effective is None
-                     else f'{min(result.prior_effective[h], 1e12):.0f}')
+        value = None if result.prior_effective is None else result.prior_effective[h]
+        effective = ('-' if value is None else 'no spread' if value >= 1e12
+                     else f'{value:.0f}')
         print(f'    h={h} (em={h // 3}, ea={h % 3}): {result.params.pi[h]:.6f}  95% '
               f'[{low:.6f}, {high:.6f}]  effective {effective}')
     print(f'  observation.prior: {fitting._row(result.params.pi)}')

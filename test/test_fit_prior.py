@@ -254,3 +254,19 @@ def test_the_quasi_newton_em_fits_the_same_prior(world, policy, tmp_path):
     assert newton.loglik >= squarem.loglik - 1e-6 * data.epochs
     np.testing.assert_allclose(newton.params.pi, squarem.params.pi, atol=2e-3)
     np.testing.assert_allclose(newton.params.pi_cut, squarem.params.pi_cut, atol=2e-3)
+
+
+def test_a_prior_entry_every_resample_keeps_near_zero_is_well_determined():
+    """An h no episode starts in: estimate 0, the resamples at 0 but one at 1e-6. Its
+    effective support is large (the bootstrap pins it), not 0 (p (1 - p) = 0 at the bound),
+    so no 'poorly determined' warning names it; a share the resamples spread is unchanged."""
+    samples = np.zeros((200, 2))
+    samples[5, 0] = 1e-6
+    samples[:, 1] = np.random.default_rng(0).normal(0.5, 0.05, 200)
+    estimate = np.array([0.0, 0.5])
+    plain = fit.effective_support(estimate, samples)
+    bounded = fit.effective_support(estimate, samples, at_bounds=True)
+    assert plain[0] == 0.0 and bounded[0] > 1e5
+    assert bounded[1] == plain[1] == pytest.approx(0.25 / samples[:, 1].var(ddof=1))
+    assert fit._prior_warnings(500, np.r_[bounded[0], np.full(8, 1e6)], 100.0) == []
+    assert fit._prior_warnings(500, np.r_[plain[0], np.full(8, 1e6)], 100.0)

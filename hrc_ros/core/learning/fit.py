@@ -1119,12 +1119,19 @@ class FitResult:
 NO_SPREAD_VARIANCE = 1e-18
 
 
-def effective_support(estimate: np.ndarray, samples: np.ndarray) -> np.ndarray:
+def effective_support(estimate: np.ndarray, samples: np.ndarray,
+                      at_bounds: bool = False) -> np.ndarray:
     """p (1 - p) / var: how many fully observed events would pin each parameter down as well
-    as the data do (the bootstrap variance of a binomial share is p (1 - p) / n)."""
+    as the data do (the bootstrap variance of a binomial share is p (1 - p) / n). With
+    `at_bounds`, an estimate at 0 or 1 (p (1 - p) below 1e-12: a person prior's h that no
+    episode starts in) reads p as the resamples' mean, so that a share pinned at the bound by
+    every resample counts as well determined rather than as 0 events."""
     variance = samples.var(axis=0, ddof=1) if len(samples) > 1 else np.full(samples.shape[1],
                                                                              np.inf)
     share = np.clip(estimate, 0.0, 1.0)
+    if at_bounds and len(samples):
+        share = np.where(share * (1 - share) < 1e-12,
+                         np.clip(samples.mean(axis=0), 0.0, 1.0), share)
     with np.errstate(divide='ignore', invalid='ignore'):
         # a spread at rounding level (sd < 1e-9: the EM's fixed point, not the data) is none
         return np.where(variance > NO_SPREAD_VARIANCE, share * (1 - share) / variance, np.inf)
@@ -1269,7 +1276,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         if prior:
             prior_samples = np.stack([run.params.pi for run in runs])
             prior_interval = np.percentile(prior_samples, [2.5, 97.5], axis=0)
-            prior_effective = effective_support(params.pi, prior_samples)
+            prior_effective = effective_support(params.pi, prior_samples, at_bounds=True)
         seconds['bootstrap'] = time.perf_counter() - t1
     warnings = _warnings(support, effective, hold, min_support, len(data.episodes), bootstrap)
     prior_starts = int(data.true_starts.sum())
