@@ -220,3 +220,28 @@ def test_cli_true_config_must_describe_the_same_cell(tmp_path, capsys, default_c
     assert 'they must describe the same cell' in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(['--true-policy', 'x.npz', '--out', str(tmp_path)])
+
+
+def test_random_people_come_from_the_worlds_person_prior_and_never_from_the_plans(
+        model, policy, default_config):
+    """A world with a person prior (observation.prior) draws the random episodes' people from
+    it: evaluate's run is the batch run of `random_scenarios(..., prior=)` episode by episode,
+    and not the uniform people's. A world without one, and a planning model with one, keep
+    the uniform people (a plan's prior changes only what the robot believes)."""
+    from hrc_ros.core.model import HRCModel
+    at_zero = {'observation': {'prior': [1.0] + [0.0] * 8}}
+    plain = evaluate(model, policy, 300, 30, 5, selectors=('paper',))['paper']
+    same = evaluate(model, policy, 300, 30, 5, selectors=('paper',),
+                    world=HRCModel(default_config))['paper']
+    np.testing.assert_array_equal(same.discounted_cost, plain.discounted_cost)
+    world = HRCModel(default_config.with_overrides(at_zero))
+    drawn = evaluate(model, policy, 300, 30, 5, selectors=('paper',), world=world)['paper']
+    people = random_scenarios(model, 300, 30, seed=5, prior=world.config.observation_prior)
+    assert all(tuple(s.initial_state[:2]) == (0, 0) for s in people)
+    direct = BatchSimulator(model, policy, world=world).run(
+        people, [human_seed(5, e) for e in range(300)], 'paper')
+    np.testing.assert_array_equal(drawn.discounted_cost, direct.discounted_cost)
+    assert not np.array_equal(drawn.discounted_cost, plain.discounted_cost)
+    believing = HRCModel(default_config.with_overrides(at_zero))
+    believed = evaluate(believing, policy, 300, 30, 5, selectors=('paper',))['paper']
+    np.testing.assert_array_equal(believed.tasks_released, plain.tasks_released)

@@ -484,12 +484,16 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
 
     `world`: the model the human and the costs are drawn from when it is not the one the
     robot plans with (`model`: its policy and belief filter); the episodes and the human's
-    uniforms do not depend on either, so runs with different planning models are paired."""
+    uniforms do not depend on either, so runs with different planning models are paired. The
+    random scenario's people are uniform, or drawn from the world's person prior when a
+    `world` with one is given (`observation.prior`, MODEL.md 6.1); the planning model's prior
+    never changes who the people are, only what the robot believes of them."""
     for s in selectors:
         if s not in SIMULATION_SELECTORS:
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(SIMULATION_SELECTORS)}')
-    scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate)
+    people = None if world is None else world.config.observation_prior
+    scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate, people)
     sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, pomdp=pomdp,
                          world=world)
     results = {}
