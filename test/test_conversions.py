@@ -181,9 +181,25 @@ def test_task_state_without_layout_is_accepted():
     assert conv.task_state_from_msg(msg)['tx'] == 3
 
 
+def test_task_state_with_the_queue_length_round_trips():
+    """MODEL.md 8.1: a ninth labelled value `queued` (the tasks waiting), capped at 255; read
+    back with the eight, labelled or hand-typed; eight values read as before (no queued)."""
+    state = {'tp': 1, 'tc': 2, 'tx': 3, 'ty': 0, 'hp': 0, 'hc': 0, 'bp': 1, 'bc': 1}
+    msg = conv.task_state_to_msg({**state, 'queued': 3})
+    assert [d.label for d in msg.layout.dim] == list(TASK_VARIABLES) + ['queued']
+    assert conv.task_state_from_msg(msg, rho=2, sigma=2) == {**state, 'queued': 3}
+    assert conv.task_state_to_msg({**state, 'queued': 1000}).data[-1] == 255
+    assert conv.task_state_from_msg(UInt8MultiArray(data=[1, 2, 3, 0, 0, 0, 1, 1, 4])) == \
+        {**state, 'queued': 4}
+    plain = conv.task_state_to_msg({**state, 'queued': None})
+    assert len(plain.data) == 8 and 'queued' not in conv.task_state_from_msg(plain)
+
+
 @pytest.mark.parametrize('data, labels, reason', [
     ([1, 1, 3, 0, 0, 0, 0], None, 'must hold 8 values'),
-    ([1, 1, 3, 0, 0, 0, 0, 0, 0], None, 'must hold 8 values'),
+    ([1, 1, 3, 0, 0, 0, 0, 0, 0, 0], None, 'must hold 8 values'),
+    ([1, 1, 3, 0, 0, 0, 0, 0, 2], list('tp tc tx ty hp hc bp bc waiting'.split()),
+     'layout labels'),
     ([3, 1, 3, 0, 0, 0, 0, 0], None, r'tp = 3 is out of its domain 0..2'),
     ([1, 1, 4, 0, 0, 0, 0, 0], None, r'tx = 4 is out of its domain 0..3'),
     ([1, 1, 3, 0, 0, 0, 0, 9], None, r'bc = 9'),

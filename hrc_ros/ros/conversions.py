@@ -20,7 +20,8 @@ Wire formats (INTERFACES.md, plus the decisions below):
   range is malformed, never "far"). Orientations are ignored.
 - `hrc/task_state` (std_msgs/UInt8MultiArray): ``[tp, tc, tx, ty, hp, hc, bp, bc]`` with one
   layout dimension per variable, labelled by its name (size 1, stride 1): a labelled record,
-  not a tensor. An empty layout is accepted (a hand-typed message); a layout with other labels
+  not a tensor; a task manager whose model has a queue (MODEL.md 8.1) appends ``queued``, the
+  tasks waiting (capped at 255), as a ninth labelled value. An empty layout is accepted (a hand-typed message); a layout with other labels
   is refused. `hrc/sim/true_state` is the same with the 11 state variables ``em .. d``.
 - `hrc/task_request` (std_msgs/UInt8MultiArray): ``[tp, tc, tx]``; the layout is not read.
 - `hrc/task_request_result` (diagnostic_msgs/DiagnosticStatus): the task manager's report on
@@ -77,6 +78,11 @@ ROBOT_BASE_FRAME = 'base_link'
 BELIEF_DIMS = (('motivation', 3, 9), ('aggression', 3, 3))
 # Domain of each task variable besides the priorities / counters (whose top is rho / sigma).
 _NATURE_COMMITMENT_TOP = 3
+# hrc/task_state's optional ninth value: the tasks waiting in the task manager's queue (MODEL.md
+# 8.1), published by a task manager whose model has a queue; a UInt8, so capped
+QUEUED = 'queued'
+QUEUED_LABELS = TASK_VARIABLES + (QUEUED,)
+MAX_QUEUED = 255
 
 LEVEL_NAMES = {DiagnosticStatus.OK: 'OK', DiagnosticStatus.WARN: 'WARN',
                DiagnosticStatus.ERROR: 'ERROR', DiagnosticStatus.STALE: 'STALE'}
@@ -397,13 +403,23 @@ def task_domain(rho: int, sigma: int) -> tuple:
 
 
 def task_state_to_msg(state: Mapping[str, int]) -> UInt8MultiArray:
-    return _labelled_record([state[name] for name in TASK_VARIABLES], TASK_VARIABLES)
+    """The eight task variables, and `queued` (the tasks waiting) as a ninth labelled value
+    when `state` holds it (a task manager whose model has a queue, MODEL.md 8.1), capped at
+    `MAX_QUEUED`."""
+    values = [state[name] for name in TASK_VARIABLES]
+    if state.get(QUEUED) is None:
+        return _labelled_record(values, TASK_VARIABLES)
+    return _labelled_record(values + [min(int(state[QUEUED]), MAX_QUEUED)], QUEUED_LABELS)
 
 
 def task_state_from_msg(msg: UInt8MultiArray, rho: int | None = None,
                         sigma: int | None = None) -> dict:
-    """The eight task variables; with rho and sigma, each is checked against its domain."""
+    """The eight task variables, and `queued` when the message holds a ninth value (labelled
+    `queued`, or an empty layout); with rho and sigma, each is checked against its domain."""
     tops = None if rho is None or sigma is None else task_domain(rho, sigma)
+    if len(msg.data) == len(QUEUED_LABELS):
+        return _record_from_msg(msg, QUEUED_LABELS, 'task state',
+                                None if tops is None else tops + (MAX_QUEUED,))
     return _record_from_msg(msg, TASK_VARIABLES, 'task state', tops)
 
 

@@ -244,8 +244,11 @@ def _decoders(rho: int, sigma: int) -> dict:
     def task_state(msg):
         values = [int(v) for v in bytes(msg.data)] if isinstance(msg.data, (bytes, bytearray)) \
             else [int(v) for v in msg.data]
+        if len(values) == len(TASK_VARIABLES) + 1:
+            values = values[:-1]        # `queued` (MODEL.md 8.1): the queue is not fitted here
         if len(values) != len(TASK_VARIABLES):
-            raise ValueError(f'{len(values)} values, not the 8 {" ".join(TASK_VARIABLES)}')
+            raise ValueError(f'{len(values)} values, not the 8 {" ".join(TASK_VARIABLES)} '
+                             '(and optionally queued)')
         tops = (rho, sigma, 3, 3, rho, sigma, rho, sigma)
         for name, v, top in zip(TASK_VARIABLES, values, tops):
             if not 0 <= v <= top:
