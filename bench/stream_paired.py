@@ -90,7 +90,8 @@ def main(argv=None) -> int:
                 raise SystemExit(f'{selector} of run {label}: not the same episodes')
             mean, half = paired(r['cost'], base['cost'])
             line = (f'  {label} {selector:<6} cost {r["cost"].mean():8.3f}  minus baseline '
-                    f'{mean:+7.3f} ± {half:.3f}  tasks completed {r["tasks_completed"].mean():.2f}')
+                    f'{mean:+7.3f} ± {half:.3f}  tasks completed '
+                    f'{r["tasks_completed"].mean():.2f}')
             if r['plain'] is not None and base['plain'] is not None:
                 mean, half = paired(r['plain'], base['plain'])
                 line += (f'  epochs per task {np.nanmean(r["epochs_to_complete"]):.2f}  waiting '

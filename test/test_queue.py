@@ -10,7 +10,7 @@ from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.decision.selection import ActionSelector
 from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
 from hrc_ros.core.mdp.solver import FactoredBellman, solve
-from hrc_ros.core.model import ACTIONS, CT, DN, DP, NW, RH1, RH2, TASK_VARIABLES, HRCModel
+from hrc_ros.core.model import ACTIONS, DN, DP, NW, TASK_VARIABLES, HRCModel
 from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
 from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of, evaluate
 from hrc_ros.core.study.simulation import Scenario
@@ -68,7 +68,7 @@ def test_a_bad_queue_section_is_refused_naming_the_field(stream, message):
 
 
 # -- the queue step, rule by rule -------------------------------------------------------------
-def scalar_queue_step(model, l, s0, action):
+def scalar_queue_step(model, level, s0, action):
     """The queue's epoch of MODEL.md 8.1 for one state, in plain Python: {(l', y'): P} of the
     task and queue part (before the emotion and distance steps) and P(a task is dropped)."""
     queue = model.queue
@@ -86,7 +86,7 @@ def scalar_queue_step(model, l, s0, action):
             p = p_a * p_r
             if p == 0:
                 continue
-            waiting = l + released
+            waiting = level + released
             if nxt['tp'] == 0 and waiting > 0:          # the head enters the idle cell
                 for (tp, tc, tx), q_k in zip(tasks, queue.arrivals.q):
                     entered = dict(nxt, tp=int(tp), tc=int(tc), tx=int(tx), ty=0)

@@ -27,6 +27,9 @@ Sections:
   and the simulated cell use it as it is, and epsilon applies to the Table 5 form only. It is
   the one optional key: a file written before it existed stays valid.
 
+- `stream` (optional, MODEL.md 8): arrival_idle, arrival_complete, q; with `queue` (L, 1..4,
+  MODEL.md 8.1) instead arrival_idle, arrival_busy, waiting_cost, q (arrival_complete refused).
+
 The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
 sections that determine the policy (`model`, `cost`, `solver`, and `stream` when present, so
 the hash of a configuration without a stream is what it always was). Observation settings do not

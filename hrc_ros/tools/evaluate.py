@@ -2,6 +2,7 @@
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
+                 [--waiting-cost W]
     hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp]
                  [--baseline ssm_only]
 
@@ -15,6 +16,12 @@ under dp and dm, MODEL.md 3.2), and its shipped policy.
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
 `episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
 paired difference to S (same episodes) with its 95% interval (`paired.csv`).
+
+The queue (MODEL.md 8.1): with a configuration whose stream has a queue the robot observes the
+queue length (up to L) and the cost charges every waiting task its stream.waiting_cost per
+epoch; `--waiting-cost W` charges W in any configuration (so a model without a queue is scored
+the same way; its decisions do not change). Then the table has the waiting task-epochs and
+episodes.csv `waiting_epochs` and `discounted_waiting` (the charge is W times the latter).
 
 Model mismatch: with `--true-config` the human and the costs are drawn from that
 configuration (the world) while the robot plans with `--config` and its policy (policy and

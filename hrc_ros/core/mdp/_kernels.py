@@ -31,11 +31,17 @@ stream (MODEL.md 8; empty
 states a task k makes of them, `arrive_q` (K,), `p_idle`, `p_complete`; `value` V (9, n_y, 4);
 `w` (3, 9, n_w, 4) scratch for the emotion step (n_w = n_y, or 2 n_y with a stream: rows
 n_y + y hold the arrival_idle mix, and the task maps of idle sources point there); `out`
-receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
+receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y; `w_given`: skip
+steps 1 and 1b, w holds the continuations already (the queue's, below).
 
 1b. (a stream only) at the idle y: W[y] <- (1 - p_complete) W[y] + p_complete sum_k q_k
 W[enter(y, k)], and W[n_y + y] the same with p_idle; the entered rows are busy, so never
 written in this pass.
+
+`queue_continuations` (the queue, MODEL.md 8.1): the emotion step of every queue level into
+`z` (L+1, 3, 9, n_y, 4), then per source level l the release-and-entry mix along (l, y') into
+`w` (L+1, 3, 9, 2 n_y, 4) (rows y: busy sources, p = arrival_busy; rows n_y + y: idle sources,
+p = arrival_idle); `sweep` then runs its step 2 on each level's w (``w_given``).
 """
 
 from __future__ import annotations

@@ -36,6 +36,13 @@ n_y into the second copy). The arrival is independent of h and d, so it commutes
 emotion and distance steps. Without a stream nothing of this runs and the sweep is the one it
 always was, bit for bit.
 
+With a queue (MODEL.md 8.1, `HRCModel.queue`) V is (L + 1) copies of the paper's layout, the
+queue length l outermost. The release and the head's entry act on (l, y') only, so they too
+commute with the emotion and distance steps: the continuation of every level is mixed
+(`_queue_arrive`, `_kernels.queue_continuations`) into a busy-source and an idle-source copy
+per source level (the offsets above), the drop charge subtracted where a release meets a full
+queue, and the gather and max run per level with the cost J + w l.
+
 Solvers, in the shape of QuantEcon's ``ddp.py``: `value_iteration` (MODEL.md 5: from V_0 = 0
 until ``max|V_{t+1} - V_t| < eta``, or a fixed number of sweeps) and `policy_iteration`
 (Howard's: exact evaluation by a sparse linear solve, greedy improvement, until the policy is
