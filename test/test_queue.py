@@ -9,7 +9,7 @@ from reference import rule_q
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.decision.selection import ActionSelector
 from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
-from hrc_ros.core.mdp.solver import FactoredBellman, solve
+from hrc_ros.core.mdp.solver import FactoredBellman, evaluate_policy, solve
 from hrc_ros.core.model import ACTIONS, DN, DP, NW, TASK_VARIABLES, HRCModel
 from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
 from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of, evaluate
@@ -190,6 +190,15 @@ def test_without_releases_the_empty_queue_is_the_papers_model():
     a, b = solve(zero), solve(plain)
     np.testing.assert_allclose(a.value[:zero.n_base], b.value, atol=1e-9)
     np.testing.assert_array_equal(a.policy[:zero.n_base], b.policy)
+
+
+def test_the_solved_value_is_the_exact_value_of_its_policy(small_queue):
+    """Policy evaluation by the sparse rule-by-rule matrix (`HRCModel.transition`,
+    `flat_cost` with the drop charge) gives value iteration's value back, within its bound."""
+    result = solve(small_queue)
+    exact = evaluate_policy(small_queue, result.policy)
+    bound = small_queue.config.eta * small_queue.gamma / (1 - small_queue.gamma)
+    assert np.max(np.abs(exact - result.value)) < 2 * bound
 
 
 def test_waiting_costs_and_a_full_queue_costs_more(small_queue):

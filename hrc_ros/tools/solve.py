@@ -76,10 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     counts = ' '.join(f'{a}={int((result.policy == i).sum())}' for i, a in enumerate(ACTIONS))
     print(f'hrc-solve: {"converged" if result.converged else "stopped"} after '
           f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '
-          f'{result.timings["total"]:.2f} s')
+          f'{result.timings["total"]:.2f} s, peak memory {peak_megabytes():.0f} MB')
     print(f'hrc-solve: actions {counts}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
     return 0
+
+
+def peak_megabytes() -> float:
+    """The process's peak resident memory so far (MB; ru_maxrss is in KiB on Linux)."""
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _solve_pomdp(args, config, model, output) -> int:
