@@ -316,3 +316,39 @@ def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys
     a, _ = episodes_of(small_queue, 'random', 3, 10)
     b, _ = episodes_of(HRCModel(load_config(CONFIG, overrides=SMALL)), 'random', 3, 10)
     assert a == b
+
+
+def test_the_nodes_refuse_a_queue_at_startup_and_on_a_live_swap():
+    from hrc_ros.core.swap import check_swap
+    from hrc_ros.ros.node_support import StartupError, load_node_config
+    path = str(shipped_config_path('stream_queue'))
+    with pytest.raises(StartupError, match=r'bad model configuration: .*stream.queue'):
+        load_node_config(path)
+    verdict = check_swap(2, 2, '', path, running_policy='', policy_value='')
+    assert verdict.refused and 'stream.queue' in verdict.reason
+    assert not check_swap(2, 2, '', str(shipped_config_path('stream'))).refused
+
+
+def test_hrc_evaluate_writes_the_waiting_columns_only_where_waiting_is_charged(tmp_path):
+    """Without a queue and without --waiting-cost the files have the columns they always had."""
+    import csv
+
+    from hrc_ros.tools import evaluate as evaluate_tool
+    old = ['selector', 'episode', 'discounted_cost', 'epochs_to_complete', 'collision_epochs',
+           'collision_stuck', 'refused_requests', 'tasks_completed', 'longest_collision_run',
+           'requests', 'tasks_released']
+    runs = {'plain': [], 'charged': ['--waiting-cost', '1.5'],
+            'queue': ['--config', str(shipped_config_path('stream_queue'))]}
+    headers, metrics = {}, {}
+    for name, extra in runs.items():
+        out = tmp_path / name
+        assert evaluate_tool.main(['--episodes', '4', '--epochs', '12', '--selectors',
+                                   'paper,mdp', '--out', str(out)] + extra) == 0
+        with open(out / 'episodes.csv') as f:
+            headers[name] = next(csv.reader(f))
+        with open(out / 'summary.csv') as f:
+            metrics[name] = {row['metric'] for row in csv.DictReader(f)}
+    assert headers['plain'] == old and 'waiting_epochs' not in metrics['plain']
+    for name in ('charged', 'queue'):
+        assert headers[name] == old + ['waiting_epochs', 'discounted_waiting']
+        assert 'waiting_epochs' in metrics[name]
