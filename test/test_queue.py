@@ -251,6 +251,7 @@ def test_the_evaluation_reads_the_policy_at_the_observed_queue_length(small_queu
             d = r.trajectory['d'][0]
             expected = np.where(np.minimum(waiting, 2) == 2, DP, DN)
             np.testing.assert_array_equal(r.actions[0][d > 0], expected[d > 0])
+            np.testing.assert_array_equal(r.trajectory['waiting'][0], waiting)
             assert r.waiting_epochs[0] == waiting.sum()
             np.testing.assert_allclose(r.discounted_waiting[0],
                                        (m.gamma ** np.arange(10) * waiting).sum())

@@ -277,8 +277,9 @@ class BatchSimulator:
         uniformly from the eight instead of the selector's (before the fail-safe), from a
         stream of its own per episode (spawned from the human's seed), so the human's draws
         stay common to every run. `record`: keep per epoch the task index `y`, `d`,
-        `observation` O_k, `action`, `accepted` (1 / 0 for an eligible request, else -1) and
-        the hidden `em`, `ea` in `BatchResult.trajectory` ((E, K) arrays)."""
+        `observation` O_k, `action`, `accepted` (1 / 0 for an eligible request, else -1),
+        the tasks `waiting` in the task book (MODEL.md 8.1) and the hidden `em`, `ea` in
+        `BatchResult.trajectory` ((E, K) arrays)."""
         if not 0.0 <= explore <= 1.0:
             raise ValueError(f'explore must be a probability in [0, 1], got {explore!r}')
         if selector not in SIMULATION_SELECTORS:
@@ -338,7 +339,7 @@ class BatchSimulator:
             exploring = np.stack([np.random.default_rng(np.random.SeedSequence(
                 seed).spawn(1)[0]).random(2 * epochs) for seed in seeds]).reshape(n, epochs, 2)
         kept = ({name: np.zeros((n, epochs), dtype=np.int64) for name in
-                 ('y', 'd', 'observation', 'action', 'accepted', 'em', 'ea')} if record
+                 ('y', 'd', 'observation', 'action', 'accepted', 'em', 'ea', 'waiting')} if record
                 else None)
 
         cost = np.zeros(n)
@@ -407,6 +408,7 @@ class BatchSimulator:
             refused += eligible & ~accepted
             if kept is not None:
                 for name, value in (('y', y), ('d', d), ('observation', observation),
+                                    ('waiting', waiting),
                                     ('action', action), ('em', em), ('ea', ea),
                                     ('accepted', np.where(eligible, accepted, -1))):
                     kept[name][:, k - 1] = value
