@@ -9,12 +9,12 @@ def rule_q(model, value, sources):
     """Q(s, a) = -J(s, a) + gamma * E[V(s')] of a few states, from `HRCModel.transition` (the
     model enumerated rule by rule), shape (len(sources), 8)."""
     sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
-    states = model.state(sources)
+    states = model.state(model.split(sources)[1])     # the queue level aside (MODEL.md 8.1)
     q = np.empty((len(sources), len(ACTIONS)))
     for a in range(len(ACTIONS)):
         t = model.transition(sources, a)
         expected = np.bincount(t.source, weights=t.probability * value[t.target],
                                minlength=len(sources))
-        q[:, a] = -model.cost(states, a) + model.gamma * expected
+        q[:, a] = -model.flat_cost(sources, a) + model.gamma * expected
     q[~model.availability[:, states[:, 10]].T] = -np.inf      # an action not available there
     return q

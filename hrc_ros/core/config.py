@@ -27,6 +27,9 @@ Sections:
   and the simulated cell use it as it is, and epsilon applies to the Table 5 form only. It is
   the one optional key: a file written before it existed stays valid.
 
+- `stream` (optional, MODEL.md 8): arrival_idle, arrival_complete, q; with `queue` (L, 1..4,
+  MODEL.md 8.1) instead arrival_idle, arrival_busy, waiting_cost, q (arrival_complete refused).
+
 The configuration hash (`Config.policy_hash`) is the SHA-256 of the canonical JSON of the
 sections that determine the policy (`model`, `cost`, `solver`, and `stream` when present, so
 the hash of a configuration without a stream is what it always was). Observation settings do not
@@ -63,11 +66,19 @@ _SCHEMA: dict[str, dict[str, str]] = {
                'fail_safe_aware': 'bool'},
     'observation': {'table': 'rows[3x9]', 'epsilon': 'prob', 'mode': 'belief_mode',
                     'likelihood': 'columns[3x9]|null', 'prior': 'prior[9]|null'},
-    'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null'},
+    'stream': {'arrival_idle': 'prob', 'arrival_complete': 'prob', 'q': 'tasks|null',
+               'queue': 'queue', 'arrival_busy': 'prob', 'waiting_cost': 'weight'},
 }
+# stream keys of the two forms (MODEL.md 8 and 8.1): without `queue`, arrival_complete; with it,
+# arrival_busy and waiting_cost (arrival_complete belongs to the queue-less form)
+STREAM_PLAIN_KEYS = ('arrival_complete',)
+STREAM_QUEUE_KEYS = ('arrival_busy', 'waiting_cost')
+MAX_QUEUE = 4
 # Keys that may be left out (they then read as null).
 _OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'),
-             ('model', 'robot_paused_by'), ('model', 'retreat_reach')}
+             ('model', 'robot_paused_by'), ('model', 'retreat_reach'), ('stream', 'queue'),
+             # required by one form of the stream, refused by the other (`_check_stream_form`)
+             *(('stream', k) for k in STREAM_PLAIN_KEYS + STREAM_QUEUE_KEYS)}
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
 PAUSED_MAY = ('dp', 'dm')
@@ -186,9 +197,23 @@ class Config:
         return 'stream' in self.data
 
     @property
+    def queue(self) -> int | None:
+        """L, the most tasks that wait in the stream's queue (MODEL.md 8.1); None without a
+        queue (no stream, or the queue-less stream of MODEL.md 8)."""
+        body = self.data.get('stream')
+        return None if body is None or 'queue' not in body else int(body['queue'])
+
+    @property
+    def waiting_cost(self) -> float:
+        """w, the cost per waiting task per epoch (MODEL.md 8.1); 0 without a queue."""
+        return float(self.data['stream']['waiting_cost']) if self.queue else 0.0
+
+    @property
     def stream(self) -> tuple[float, float, np.ndarray, np.ndarray] | None:
         """(arrival_idle, arrival_complete, tasks (K, 3) int (tp, tc, tx), q (K,)) of the
-        stream section, None without one. q null: every task of the model equally likely."""
+        stream section, None without one. q null: every task of the model equally likely.
+        With a queue (MODEL.md 8.1) the second number is arrival_busy (P(a task is released
+        in an epoch that started with a task))."""
         body = self.data.get('stream')
         if body is None:
             return None
@@ -200,7 +225,8 @@ class Config:
         else:
             tasks = np.array([row[:3] for row in rows], dtype=np.int64)
             q = np.array([row[3] for row in rows], dtype=float)
-        return float(body['arrival_idle']), float(body['arrival_complete']), tasks, q
+        second = body['arrival_busy'] if 'queue' in body else body['arrival_complete']
+        return float(body['arrival_idle']), float(second), tasks, q
 
     # -- identity ------------------------------------------------------------------------
     @property
@@ -324,10 +350,34 @@ def validate(data: Any) -> dict:
                 if (section, key) in _OPTIONAL:
                     continue
                 raise ConfigError(f'missing key {name}')
+            if section == 'stream' and key in STREAM_PLAIN_KEYS + STREAM_QUEUE_KEYS:
+                _check_stream_form(body, key)
             out[section][key] = _check(name, kind, body[key])
+        if section == 'stream':
+            for key in STREAM_PLAIN_KEYS + STREAM_QUEUE_KEYS:
+                if key not in body:
+                    _check_stream_form(body, key, missing=True)
     if 'stream' in out:
         _check_stream_tasks(out['stream'].get('q'), out['model']['rho'], out['model']['sigma'])
     return out
+
+
+def _check_stream_form(body: dict, key: str, missing: bool = False) -> None:
+    """A stream with `queue` (MODEL.md 8.1) takes arrival_busy and waiting_cost, one without
+    it (MODEL.md 8) arrival_complete: a key of the other form is refused, one of its own form
+    that is missing is named."""
+    queued = 'queue' in body
+    own = key in (STREAM_QUEUE_KEYS if queued else STREAM_PLAIN_KEYS)
+    if missing and own:
+        raise ConfigError(f'missing key stream.{key}'
+                          + (' (a stream with a queue needs it, MODEL.md 8.1)' if queued else ''))
+    if not missing and not own:
+        if queued:
+            raise ConfigError(f'stream.{key} belongs to the stream without a queue (MODEL.md 8); '
+                              'with stream.queue give arrival_busy (P(a task is released in an '
+                              'epoch that started with a task)) instead')
+        raise ConfigError(f'stream.{key} needs stream.queue (the queue of waiting tasks, '
+                          'MODEL.md 8.1); without a queue the stream takes arrival_complete')
 
 
 def _check_stream_tasks(rows, rho: int, sigma: int) -> None:
@@ -443,6 +493,11 @@ def _check(name: str, kind: str, value: Any) -> Any:
         if abs(total - 1.0) > PROBABILITY_TOLERANCE:
             raise ConfigError(f'{name} (P(h) over h = 3*em + ea) sums to {total:.12g}, not 1')
         return row
+    if kind == 'queue':
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_QUEUE:
+            raise ConfigError(f'{name} (the most tasks that wait) must be an integer in '
+                              f'1..{MAX_QUEUE}, got {quote(value)}')
+        return int(value)
     if kind == 'tasks|null':
         if value is None:
             return None

@@ -37,6 +37,14 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
    leaves the cell without a task (tp' = 0), a task (tp, tc, tx) ~ q enters it, uncommitted,
    with probability ``arrival_complete`` if the epoch started with a task (it just completed)
    and ``arrival_idle`` if it started idle (`arrivals`). Without a stream no task arrives.
+6. The queue (MODEL.md 8.1, only with ``stream.queue: L``): the state gets the number l = 0..L
+   of released tasks waiting (not the current one) as its outermost index, s = l * N0 + s0
+   (N0 = 9 * n_task * 4, `n_base`). After the task step a task is released with probability
+   ``arrival_busy`` (the epoch started with a task) or ``arrival_idle``; l_tmp = l + a; if the
+   step left the cell idle and l_tmp > 0 the head of the queue enters (as in 5) and l_tmp -= 1;
+   l' = min(l_tmp, L), a task beyond L is dropped and charged ``drop_cost`` = w / (1 - gamma).
+   The cost is J + w * l plus the expected drop charge (`flat_cost`). `queue` holds the pieces;
+   `arrivals` is None for such a configuration (it is the queue-less stream's).
 
 Cost (MODEL.md 4): ``J(s, a) = k1*f1(s) + k2*f2(s) + g(a)``; see `state_cost`.
 """
@@ -236,6 +244,19 @@ class Arrivals:
 
 
 @dataclass(frozen=True)
+class Queue:
+    """The stream with a queue (MODEL.md 8.1). `levels` = L (l = 0..L); `arrivals` the task
+    part's pieces (its `p_idle` = arrival_idle, `p_complete` = arrival_busy: P(a task is
+    released | the epoch started with a task)); `waiting_cost` w per waiting task per epoch;
+    `drop_cost` = w / (1 - gamma), the charge of a task released into a full queue."""
+
+    levels: int
+    arrivals: Arrivals
+    waiting_cost: float
+    drop_cost: float
+
+
+@dataclass(frozen=True)
 class Transition:
     """Sparse rows of P(. | s, a) for a batch of source states (flat indices)."""
 
@@ -255,7 +276,12 @@ class HRCModel:
         self.dims = (3, 3, p, c, 4, 4, p, c, p, c, N_DISTANCE)
         self.task_dims = (p, c, 4, 4, p, c, p, c)
         self.n_task = int(np.prod(self.task_dims))
-        self.n_states = N_HIDDEN * self.n_task * N_DISTANCE
+        # the paper's states N0; with a queue (MODEL.md 8.1) one copy per queue length l = 0..L,
+        # l outermost: s = l * N0 + s0
+        self.n_base = N_HIDDEN * self.n_task * N_DISTANCE
+        self.queue_length = config.queue
+        self.n_levels = 1 if self.queue_length is None else self.queue_length + 1
+        self.n_states = self.n_levels * self.n_base
         self.gamma = config.gamma
         # the actions under which the robot's counter is paused (MODEL.md 3.2)
         self.paused = tuple(ACTION_INDEX[a] for a in config.robot_paused_by)
@@ -291,9 +317,31 @@ class HRCModel:
             return tuple(int(v) for v in parts)
         return np.stack(parts, axis=-1)
 
+    def split(self, index):
+        """(l, s0) of flat indices: the queue length and the index of the paper's state
+        (l = 0, s0 = index without a queue)."""
+        index = np.asarray(index, dtype=np.int64)
+        if np.any((index < 0) | (index >= self.n_states)):
+            raise ValueError(f'state index must lie in 0..{self.n_states - 1}')
+        return index // self.n_base, index % self.n_base
+
     @cached_property
     def arrivals(self) -> Arrivals | None:
-        """The configuration's task stream on the task part, None without one."""
+        """The configuration's task stream on the task part, None without one (and None for
+        a stream with a queue: `queue`)."""
+        if self.queue_length is not None:
+            return None
+        return self._arrivals()
+
+    @cached_property
+    def queue(self) -> Queue | None:
+        """The stream with a queue (MODEL.md 8.1), None without one."""
+        if self.queue_length is None:
+            return None
+        w = self.config.waiting_cost
+        return Queue(self.queue_length, self._arrivals(), w, w / (1.0 - self.gamma))
+
+    def _arrivals(self) -> Arrivals | None:
         stream = self.config.stream
         if stream is None:
             return None
@@ -443,6 +491,8 @@ class HRCModel:
         """
         action = action_index(action)
         sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
+        if self.queue is not None:
+            return self._queue_transition(sources, action)
         s = self.state(sources)
         em, ea, d = s[:, 0], s[:, 1], s[:, 10]
         task = {name: s[:, 2 + k] for k, name in enumerate(TASK_VARIABLES)}
@@ -475,6 +525,68 @@ class HRCModel:
                         tgt.append(flat)
                         prob.append(p[keep])
         return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
+
+    def _queue_steps(self, sources: np.ndarray, action: int):
+        """The queue's epoch (MODEL.md 8.1) rule by rule: per source (flat indices) the
+        branches [(l', y', P(l', y' | s, a) without the emotion and distance steps)], and the
+        probability that a task is dropped; plus the source states."""
+        queue = self.queue
+        arr, top = queue.arrivals, queue.levels
+        level, base = self.split(sources)
+        s = self.state(base)
+        em = s[:, 0]
+        task = {name: s[:, 2 + k] for k, name in enumerate(TASK_VARIABLES)}
+        p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
+        p_release = np.where(task['tp'] > 0, arr.p_complete, arr.p_idle)
+        branches, dropped = [], np.zeros(len(sources))
+        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
+            nxt = self.step_task(task, action, accepted)
+            y_step = np.asarray(self.task_index(nxt), dtype=np.intp)
+            idle = nxt['tp'] == 0
+            for released, p_r in ((1, p_release), (0, 1.0 - p_release)):
+                waiting = level + released
+                enters = idle & (waiting > 0)
+                stays = p_a * p_r * ~enters
+                branches.append((np.minimum(waiting, top), y_step, stays))
+                dropped += stays * (waiting > top)
+                for j, q_j in enumerate(arr.q):
+                    entered = np.where(enters, arr.enter[y_step, j], y_step)
+                    branches.append((np.minimum(waiting - 1, top), entered,
+                                     p_a * p_r * enters * q_j))
+        return branches, dropped, s
+
+    def _queue_transition(self, sources: np.ndarray, action: int) -> Transition:
+        branches, _, s = self._queue_steps(sources, action)
+        em, ea, d = s[:, 0], s[:, 1], s[:, 10]
+        emotion = self.action_emotion_matrix(action)
+        p_delta = self.config.p_delta
+        batch = np.arange(len(sources))
+        src, tgt, prob = [], [], []
+        for l_next, y_next, p_y in branches:
+            for k, delta in enumerate(DELTAS):
+                d_next = self.next_distance(d, action, delta)
+                p_ad = p_y * p_delta[ea, k]
+                for h_next in range(N_HIDDEN):
+                    p = p_ad * emotion[3 * em + ea, h_next]
+                    keep = p > 0
+                    flat = (l_next[keep] * self.n_base
+                            + (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep])
+                    src.append(batch[keep])
+                    tgt.append(flat)
+                    prob.append(p[keep])
+        return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
+
+    def flat_cost(self, sources, action: int) -> np.ndarray:
+        """The expected cost of action `action` at the flat states `sources`: J(s, a), and with
+        a queue (MODEL.md 8.1) w * l plus drop_cost * P(a task is dropped | s, a)."""
+        action = action_index(action)
+        sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
+        if self.queue is None:
+            return self.cost(self.state(sources), action)
+        level, base = self.split(sources)
+        _, dropped, s = self._queue_steps(sources, action)
+        return (self.cost(s, action) + self.queue.waiting_cost * level
+                + self.queue.drop_cost * dropped)
 
     def sparse_matrices(self, chunk: int = 1 << 16):
         """The 8 explicit N x N transition matrices (scipy.sparse CSR), rows = s."""

@@ -50,7 +50,19 @@ def policy_path(value: str, config: Config) -> str:
 
 def load_node_config(value: str) -> Config:
     """The configuration a `config` parameter names; ConfigError says why it does not load."""
-    return load_config(config_path(value))
+    return check_node_config(load_config(config_path(value)))
+
+
+def check_node_config(config: Config) -> Config:
+    """`config`, if the nodes can run it; ConfigError for a stream with a queue (MODEL.md 8.1):
+    the task manager does not publish the queue length and the decision node does not read
+    it, so its policy (one row per queue length) cannot be followed on the ROS graph yet."""
+    if config.queue is not None:
+        raise ConfigError(f'{config.source}: stream.queue (the queue length in the state, '
+                          'MODEL.md 8.1) is not carried by the nodes yet (the task manager and '
+                          'the decision node know no queue length): use it with hrc-solve and '
+                          'hrc-evaluate, or leave out stream.queue')
+    return config
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
+                 [--waiting-cost W]
     hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp]
                  [--baseline ssm_only]
 
@@ -15,6 +16,12 @@ under dp and dm, MODEL.md 3.2), and its shipped policy.
 Prints the table of means with 95% intervals and writes `summary.csv`, `summary.json`,
 `episodes.csv` and `summary.png` into `--out`. With `--baseline S`, also every selector's
 paired difference to S (same episodes) with its 95% interval (`paired.csv`).
+
+The queue (MODEL.md 8.1): with a configuration whose stream has a queue the robot observes the
+queue length (up to L) and the cost charges every waiting task its stream.waiting_cost per
+epoch; `--waiting-cost W` charges W in any configuration (so a model without a queue is scored
+the same way; its decisions do not change). Then the table has the waiting task-epochs and
+episodes.csv `waiting_epochs` and `discounted_waiting` (the charge is W times the latter).
 
 Model mismatch: with `--true-config` the human and the costs are drawn from that
 configuration (the world) while the robot plans with `--config` and its policy (policy and
@@ -34,8 +41,9 @@ import sys
 import time
 
 from ..core.config import BELIEF_MODES, ConfigError, load_config
-from ..core.study.evaluation import (METRICS, SCENARIOS, evaluate, format_paired, format_regret,
-                                     format_table, paired_difference, summarize)
+from ..core.study.evaluation import (METRICS, QUEUE_METRICS, SCENARIOS, charged_waiting_cost,
+                                     evaluate, format_paired, format_regret, format_table,
+                                     paired_difference, summarize)
 from ..core.model import HRCModel
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.paths import arm_config_path, write_text, written
@@ -209,8 +217,14 @@ def main(argv=None) -> int:
     parser.add_argument('--true-policy', default=None,
                         help="policy solved for --true-config (default: the shipped one, else "
                         'solved here, about 2 s)')
+    parser.add_argument('--waiting-cost', type=bounded_float(0.0, 1e6), default=None,
+                        help='charge this per waiting task per epoch (MODEL.md 8.1) and report '
+                             "the waiting task-epochs (default: the configuration's "
+                             'stream.waiting_cost with a queue, else nothing is charged)')
     parser.add_argument('--out', default='out/evaluate', help='output folder')
     args = parser.parse_args(argv)
+    if args.cell == 'arm' and args.waiting_cost is not None:
+        parser.error('--waiting-cost is for the model\'s cell; --cell arm does not take it')
     if args.cell == 'arm':
         return evaluate_arm_cell(args, parser)
     if args.episodes is None:
@@ -235,6 +249,10 @@ def main(argv=None) -> int:
                      f'{MAX_EPISODE_EPOCHS:,} epochs per selector (about an hour)')
     try:
         config, model, policy = load_model(args)
+        if config.queue is not None and {'pomdp', 'fib'} & set(selectors):
+            raise ToolError(f'{config.source}: selectors pomdp and fib read a POMDP policy, and '
+                            'the POMDP does not take a stream with a queue (stream.queue, '
+                            'MODEL.md 8.1) yet: choose from paper, qmdp, mls, mdp')
         pomdp = load_pomdp(args, config, selectors)
         world = true_policy = None
         if args.true_config:
@@ -249,16 +267,20 @@ def main(argv=None) -> int:
               flush=True)
         true_policy = solve(world)
     progress = lambda m: print(m, flush=True)   # noqa: E731
+    waiting_cost = charged_waiting_cost(model, args.waiting_cost)
+    metrics = METRICS if waiting_cost is None else QUEUE_METRICS
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe, progress=progress,
-                       scenario=args.scenario, pomdp=pomdp, world=world)
+                       scenario=args.scenario, pomdp=pomdp, world=world,
+                       waiting_cost=waiting_cost)
     true_results = None
     if world is not None:
         true_results = evaluate(world, true_policy, args.episodes, args.epochs, args.seed,
                                 args.task_rate, selectors, args.mode, not args.no_fail_safe,
-                                progress=progress, scenario=args.scenario, world=world)
+                                progress=progress, scenario=args.scenario, world=world,
+                                waiting_cost=waiting_cost)
     elapsed = time.perf_counter() - t0
-    summaries = {s: summarize(r) for s, r in results.items()}
+    summaries = {s: summarize(r, metrics) for s, r in results.items()}
     differences = ({s: paired_difference(r, results['mdp']) for s, r in results.items()}
                    if 'mdp' in results else {})
     mode = args.mode or config.belief_mode
@@ -270,7 +292,11 @@ def main(argv=None) -> int:
           f'{args.seed}' + (f', task rate {args.task_rate}' if args.scenario == 'random' else '')
           + f', belief {mode}, fail-safe {"off" if args.no_fail_safe else "on"}, gamma '
           f'{config.gamma}; {elapsed:.1f} s')
-    print(format_table(summaries, differences))
+    if waiting_cost is not None:
+        print(f'the cost includes {waiting_cost:g} per waiting task per epoch (MODEL.md 8.1)'
+              + ('' if config.queue is None else f'; the robot observes the queue length up to '
+                 f'{config.queue}'))
+    print(format_table(summaries, differences, metrics))
     paired = {}
     if args.baseline is not None:
         print(format_paired(results, args.baseline))
@@ -284,11 +310,13 @@ def main(argv=None) -> int:
               f'{getattr(true_policy, "path", "solved here")}), same episodes')
         print(format_regret(results, true_results))
 
-    write_summary_csv(out / 'summary.csv', summaries, METRICS)
+    write_summary_csv(out / 'summary.csv', summaries, metrics)
     with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
         fields = ([m for m, _ in METRICS]
                   + ['longest_collision_run', 'requests', 'tasks_released'])
+        if waiting_cost is not None:   # the charge is waiting_cost * discounted_waiting
+            fields += ['waiting_epochs', 'discounted_waiting']
         writer.writerow(['selector', 'episode'] + fields)
         for s, r in results.items():
             for e in range(args.episodes):
@@ -300,6 +328,8 @@ def main(argv=None) -> int:
                 'seed': args.seed, 'task_rate': args.task_rate, 'belief_mode': mode,
                 'fail_safe': not args.no_fail_safe, 'gamma': config.gamma,
                 'seconds': round(elapsed, 3)}
+    if waiting_cost is not None:
+        settings['waiting_cost'] = waiting_cost
     report = {'settings': settings, 'selectors': summaries, 'cost_minus_mdp_cost': differences,
               **({'baseline': args.baseline, 'cost_minus_baseline_cost': paired}
                  if args.baseline else {})}
@@ -307,7 +337,7 @@ def main(argv=None) -> int:
         settings.update(true_config=world.config.source,
                         true_config_sha256=world.config.policy_hash,
                         true_policy=getattr(true_policy, 'path', None))
-        report.update(true_model={s: summarize(r) for s, r in true_results.items()},
+        report.update(true_model={s: summarize(r, metrics) for s, r in true_results.items()},
                       regret=regret)
     write_text(out / 'summary.json', json.dumps(report, indent=2) + '\n')
     outputs = [out / 'summary.csv', out / 'summary.json', out / 'episodes.csv',

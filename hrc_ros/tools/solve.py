@@ -53,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     except ToolError as exc:
         return fail('hrc-solve', exc)
     if args.method == POMDP:
+        if config.queue is not None:
+            return fail('hrc-solve', f'{config.source}: --method pomdp does not take a stream '
+                        'with a queue (stream.queue, MODEL.md 8.1) yet: solve its MDP '
+                        '(--method value_iteration) or leave out stream.queue')
         return _solve_pomdp(args, config, model, output)
     sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '
@@ -72,10 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     counts = ' '.join(f'{a}={int((result.policy == i).sum())}' for i, a in enumerate(ACTIONS))
     print(f'hrc-solve: {"converged" if result.converged else "stopped"} after '
           f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '
-          f'{result.timings["total"]:.2f} s')
+          f'{result.timings["total"]:.2f} s, peak memory {peak_megabytes():.0f} MB')
     print(f'hrc-solve: actions {counts}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
     return 0
+
+
+def peak_megabytes() -> float:
+    """The process's peak resident memory so far (MB; ru_maxrss is in KiB on Linux)."""
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _solve_pomdp(args, config, model, output) -> int:

@@ -73,6 +73,10 @@ class ActionSelector:
 
     def __init__(self, model, policy, value=None, method: str = 'paper', pomdp=None):
         policy, value = policy_arrays(policy, value)
+        if model.queue is not None:
+            raise ValueError(f'{model.config.source}: ActionSelector reads no queue length '
+                             '(stream.queue, MODEL.md 8.1) yet; the evaluation reads it '
+                             '(hrc-evaluate)')
         self.model = model
         n = model.n_states
         pi = np.ascontiguousarray(policy)

@@ -31,11 +31,17 @@ stream (MODEL.md 8; empty
 states a task k makes of them, `arrive_q` (K,), `p_idle`, `p_complete`; `value` V (9, n_y, 4);
 `w` (3, 9, n_w, 4) scratch for the emotion step (n_w = n_y, or 2 n_y with a stream: rows
 n_y + y hold the arrival_idle mix, and the task maps of idle sources point there); `out`
-receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y.
+receives T V; `residual` (n_y,) receives max over h, d of |T V - V| per y; `w_given`: skip
+steps 1 and 1b, w holds the continuations already (the queue's, below).
 
 1b. (a stream only) at the idle y: W[y] <- (1 - p_complete) W[y] + p_complete sum_k q_k
 W[enter(y, k)], and W[n_y + y] the same with p_idle; the entered rows are busy, so never
 written in this pass.
+
+`queue_continuations` (the queue, MODEL.md 8.1): the emotion step of every queue level into
+`z` (L+1, 3, 9, n_y, 4), then per source level l the release-and-entry mix along (l, y') into
+`w` (L+1, 3, 9, 2 n_y, 4) (rows y: busy sources, p = arrival_busy; rows n_y + y: idle sources,
+p = arrival_idle); `sweep` then runs its step 2 on each level's w (``w_given``).
 """
 
 from __future__ import annotations
@@ -56,39 +62,40 @@ def _mix(c, x0, x1, x2, x3):
 
 def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
            fail_safe_aware, dp_paused, dm_paused, arrive_y, arrive_enter, arrive_q, p_idle,
-           p_complete, value, w, out, residual):
+           p_complete, value, w, out, residual, w_given):
     n_y = value.shape[1]
-    # 1. emotion step for the three groups (one parallel region)
-    for y in numba.prange(n_y):
-        for grp in range(3):
-            for h in range(N_HIDDEN):
-                a0 = 0.0
-                a1 = 0.0
-                a2 = 0.0
-                a3 = 0.0
-                for k in range(N_HIDDEN):
-                    e = gamma_e[grp, h, k]
-                    a0 += e * value[k, y, 0]
-                    a1 += e * value[k, y, 1]
-                    a2 += e * value[k, y, 2]
-                    a3 += e * value[k, y, 3]
-                w[grp, h, y, 0] = a0
-                w[grp, h, y, 1] = a1
-                w[grp, h, y, 2] = a2
-                w[grp, h, y, 3] = a3
-    # 1b. the stream's arrivals at the idle y (nothing without a stream)
-    n_k = arrive_q.shape[0]
-    for j in numba.prange(arrive_y.shape[0]):
-        y = arrive_y[j]
-        for grp in range(3):
-            for h in range(N_HIDDEN):
-                for d in range(4):
-                    mixed = 0.0
-                    for k in range(n_k):
-                        mixed += arrive_q[k] * w[grp, h, arrive_enter[j, k], d]
-                    stay = w[grp, h, y, d]
-                    w[grp, h, n_y + y, d] = (1.0 - p_idle) * stay + p_idle * mixed
-                    w[grp, h, y, d] = (1.0 - p_complete) * stay + p_complete * mixed
+    if not w_given:   # the queue (MODEL.md 8.1) forms w itself (`queue_continuations`)
+        # 1. emotion step for the three groups (one parallel region)
+        for y in numba.prange(n_y):
+            for grp in range(3):
+                for h in range(N_HIDDEN):
+                    a0 = 0.0
+                    a1 = 0.0
+                    a2 = 0.0
+                    a3 = 0.0
+                    for k in range(N_HIDDEN):
+                        e = gamma_e[grp, h, k]
+                        a0 += e * value[k, y, 0]
+                        a1 += e * value[k, y, 1]
+                        a2 += e * value[k, y, 2]
+                        a3 += e * value[k, y, 3]
+                    w[grp, h, y, 0] = a0
+                    w[grp, h, y, 1] = a1
+                    w[grp, h, y, 2] = a2
+                    w[grp, h, y, 3] = a3
+        # 1b. the stream's arrivals at the idle y (nothing without a stream)
+        n_k = arrive_q.shape[0]
+        for j in numba.prange(arrive_y.shape[0]):
+            y = arrive_y[j]
+            for grp in range(3):
+                for h in range(N_HIDDEN):
+                    for d in range(4):
+                        mixed = 0.0
+                        for k in range(n_k):
+                            mixed += arrive_q[k] * w[grp, h, arrive_enter[j, k], d]
+                        stay = w[grp, h, y, d]
+                        w[grp, h, n_y + y, d] = (1.0 - p_idle) * stay + p_idle * mixed
+                        w[grp, h, y, d] = (1.0 - p_complete) * stay + p_complete * mixed
     # 2. distance step at the successors, max over actions, cost, residual
     g_rh = g[1]
     g_dp = g[4]
@@ -186,5 +193,62 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             out_h[y, 3] = b3
 
 
+def _queue_continuations(gamma_e, busy_y, arrive_y, arrive_enter, arrive_q, p_idle, p_busy,
+                         drop, value, z, w):
+    """The queue's continuations (MODEL.md 8.1): z[l] the emotion step of V[l], then per
+    source level l the busy-source (copy 0, rows y) and idle-source (copy 1, rows n_y + y)
+    mixes of the release and the head's entry along (l, y')."""
+    n_l = value.shape[0]
+    n_y = value.shape[2]
+    top = n_l - 1
+    for y in numba.prange(n_y):
+        for lv in range(n_l):
+            for grp in range(3):
+                for h in range(N_HIDDEN):
+                    a0 = 0.0
+                    a1 = 0.0
+                    a2 = 0.0
+                    a3 = 0.0
+                    for k in range(N_HIDDEN):
+                        e = gamma_e[grp, h, k]
+                        a0 += e * value[lv, k, y, 0]
+                        a1 += e * value[lv, k, y, 1]
+                        a2 += e * value[lv, k, y, 2]
+                        a3 += e * value[lv, k, y, 3]
+                    z[lv, grp, h, y, 0] = a0
+                    z[lv, grp, h, y, 1] = a1
+                    z[lv, grp, h, y, 2] = a2
+                    z[lv, grp, h, y, 3] = a3
+    # y' with a task: a release waits (l + 1), or is dropped at L (charged drop)
+    for j in numba.prange(busy_y.shape[0]):
+        y = busy_y[j]
+        for lv in range(n_l):
+            up = lv + 1 if lv < top else top
+            charge = 0.0 if lv < top else drop
+            for grp in range(3):
+                for h in range(N_HIDDEN):
+                    for d in range(4):
+                        stay = z[lv, grp, h, y, d]
+                        more = z[up, grp, h, y, d] - charge
+                        w[lv, grp, h, y, d] = (1.0 - p_busy) * stay + p_busy * more
+                        w[lv, grp, h, n_y + y, d] = (1.0 - p_idle) * stay + p_idle * more
+    # y' idle: the head enters when a task waits (l - 1 without a release, l with one)
+    n_k = arrive_q.shape[0]
+    for j in numba.prange(arrive_y.shape[0]):
+        y = arrive_y[j]
+        for grp in range(3):
+            for h in range(N_HIDDEN):
+                for d in range(4):
+                    below = z[0, grp, h, y, d]    # l = 0, no release: the cell stays idle
+                    for lv in range(n_l):
+                        mixed = 0.0
+                        for k in range(n_k):
+                            mixed += arrive_q[k] * z[lv, grp, h, arrive_enter[j, k], d]
+                        w[lv, grp, h, y, d] = (1.0 - p_busy) * below + p_busy * mixed
+                        w[lv, grp, h, n_y + y, d] = (1.0 - p_idle) * below + p_idle * mixed
+                        below = mixed
+
+
 _mix_inline = numba.njit(inline='always')(_mix)
 sweep = parallel_kernel(_sweep, cache=True, nogil=True)
+queue_continuations = parallel_kernel(_queue_continuations, cache=True, nogil=True)

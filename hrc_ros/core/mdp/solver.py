@@ -36,6 +36,13 @@ n_y into the second copy). The arrival is independent of h and d, so it commutes
 emotion and distance steps. Without a stream nothing of this runs and the sweep is the one it
 always was, bit for bit.
 
+With a queue (MODEL.md 8.1, `HRCModel.queue`) V is (L + 1) copies of the paper's layout, the
+queue length l outermost. The release and the head's entry act on (l, y') only, so they too
+commute with the emotion and distance steps: the continuation of every level is mixed
+(`_queue_arrive`, `_kernels.queue_continuations`) into a busy-source and an idle-source copy
+per source level (the offsets above), the drop charge subtracted where a release meets a full
+queue, and the gather and max run per level with the cost J + w l.
+
 Solvers, in the shape of QuantEcon's ``ddp.py``: `value_iteration` (MODEL.md 5: from V_0 = 0
 until ``max|V_{t+1} - V_t| < eta``, or a fixed number of sweeps) and `policy_iteration`
 (Howard's: exact evaluation by a sparse linear solve, greedy improvement, until the policy is
@@ -151,6 +158,9 @@ class FactoredBellman:
         # The stream (MODEL.md 8): the continuation is mixed over the arrivals at the idle y'
         # (`_arrive`); the idle sources read the arrival_idle copy, offset by n_y.
         arrivals = self.arrivals = model.arrivals
+        queue = self.queue = model.queue
+        if queue is not None:   # MODEL.md 8.1: the same two copies, per queue level
+            arrivals = queue.arrivals
         if arrivals is None:
             offset = np.zeros(n_y, dtype=np.intp)
             self.arrive_y = np.zeros(0, dtype=np.intp)
@@ -164,6 +174,12 @@ class FactoredBellman:
             self.arrive_q = np.asarray(arrivals.q, dtype=float)
             self.arrive_p = (arrivals.p_idle, arrivals.p_complete)
         self.n_w = n_y if arrivals is None else 2 * n_y
+        self.n_levels = model.n_levels
+        if queue is not None:
+            self.busy_y = np.flatnonzero(~arrivals.idle).astype(np.intp)
+            w_wait = queue.waiting_cost
+            self.level_cost = np.stack([self.cost + w_wait * lv for lv in range(self.n_levels)])
+            self._z = None
         self.g_default = self.t_default + offset
         self.g_pause = self.t_pause + offset
         self.g_dp = self.t_dp + offset
@@ -184,6 +200,31 @@ class FactoredBellman:
         request = np.matmul(w[2], self.dist_other)
         return self._arrive(base), self._arrive(motivate), self._arrive(request)
 
+    def _queue_arrive(self, units: list) -> list:
+        """The queue's mix (MODEL.md 8.1) of the continuations U[l'] (9, n_y, m), one per queue
+        level l': per source level l the [busy-source, idle-source] copies along y (9, 2 n_y,
+        m). A release has probability p (arrival_busy, arrival_idle by the copy); at y' with a
+        task it waits (l + 1; at L it is dropped and charged drop_cost); at an idle y' the head
+        enters (sum_k q_k U[enter(y', k)] at l - 1 without a release, at l with one) or, with no
+        task waiting, the cell stays idle."""
+        queue, top = self.queue, self.n_levels - 1
+        rows, busy = self.arrive_y, self.busy_y
+        p_idle, p_busy = self.arrive_p
+        entered = [np.einsum('hykm,k->hym', u[:, self.arrive_enter], self.arrive_q) for u in units]
+        out = []
+        for lv in range(self.n_levels):
+            copies = []
+            for p in (p_busy, p_idle):
+                c = np.empty_like(units[lv])
+                more = (units[lv + 1][:, busy] if lv < top
+                        else units[top][:, busy] - queue.drop_cost)
+                c[:, busy] = (1.0 - p) * units[lv][:, busy] + p * more
+                below = entered[lv - 1] if lv > 0 else units[0][:, rows]
+                c[:, rows] = (1.0 - p) * below + p * entered[lv]
+                copies.append(c)
+            out.append(np.concatenate(copies, axis=1))
+        return out
+
     def _arrive(self, u: np.ndarray) -> np.ndarray:
         """U (9, n_y, m) with the stream's arrival at the idle y': [arrival_complete form,
         arrival_idle form] along y (9, 2 n_y, m); U itself without a stream."""
@@ -199,7 +240,24 @@ class FactoredBellman:
 
     def q(self, value: np.ndarray) -> np.ndarray:
         """Full Q(s, a) = -J(s, a) + gamma E[V(s') | s, a], shape (8, N): the reference form."""
+        if self.queue is not None:
+            return self._queue_q(value)
         base, motivate, request = self._continuations(value)
+        return self._gather(base, motivate, request, self.cost).reshape(len(ACTIONS), -1)
+
+    def _queue_q(self, value: np.ndarray) -> np.ndarray:
+        """`q` with the queue (MODEL.md 8.1): the continuations of every level, mixed along
+        (l, y') by `_queue_arrive`, then the gather of each source level with its cost."""
+        value = np.asarray(value).reshape(self.n_levels, -1)
+        parts = [self._continuations(v) for v in value]   # unmixed (self.arrivals is None)
+        mixed = [self._queue_arrive([p[i] for p in parts]) for i in range(3)]
+        q = [self._gather(mixed[0][lv], mixed[1][lv], mixed[2][lv], self.level_cost[lv])
+             for lv in range(self.n_levels)]
+        return np.concatenate([x.reshape(len(ACTIONS), -1) for x in q], axis=1)
+
+    def _gather(self, base, motivate, request, cost) -> np.ndarray:
+        """Q (8, 9, n_y, 4) from the continuations along y' (the task maps, per action) and
+        the state cost."""
         nw = base[..., 0:4]
         q = np.empty((len(ACTIONS),) + self.shape)
         q[NW] = nw[:, self.g_default]
@@ -218,27 +276,54 @@ class FactoredBellman:
         rh2 = self.request_is_rh2
         q[RH1][:, ry[~rh2]] = mixed[:, ~rh2]
         q[RH2][:, ry[rh2]] = mixed[:, rh2]
-        q -= self.cost
+        q -= cost
         q -= self.g[:, None, None, None]
         unavailable = ~self.model.availability                     # (8, 4): by action and d
         q[np.broadcast_to(unavailable[:, None, None, :], q.shape)] = -np.inf
-        return q.reshape(len(ACTIONS), -1)
+        return q
 
     def apply(self, value: np.ndarray, out: np.ndarray | None = None
               ) -> tuple[np.ndarray, float]:
         """(T V, max |T V - V|): one sweep by the fused kernel (`_kernels.sweep`)."""
-        if self._w is None:
-            self._w = np.empty((3, N_HIDDEN, self.n_w, N_DISTANCE))
         if out is None:
             out = np.empty(self.model.n_states)
+        if self.queue is not None:
+            return self._queue_apply(value, out)
+        if self._w is None:
+            self._w = np.empty((3, N_HIDDEN, self.n_w, N_DISTANCE))
         _kernels.sweep(self.gamma_emotion, self.g_default, self.g_pause, self.g_commit_full,
                        self.g_accept_full, self.p_accept_vector, self.mix, self.g, self.cost,
                        self.fail_safe_aware, self.dp_paused, self.dm_paused,
                        self.arrive_y, self.arrive_enter, self.arrive_q,
                        self.arrive_p[0], self.arrive_p[1],
                        np.ascontiguousarray(value).reshape(self.shape),
-                       self._w, out.reshape(self.shape), self._residual)
+                       self._w, out.reshape(self.shape), self._residual, False)
         return out, float(self._residual.max())
+
+    def _queue_apply(self, value: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, float]:
+        """`apply` with the queue (MODEL.md 8.1): `_kernels.queue_continuations` forms the
+        mixed continuations of every source level, then the sweep's action pass runs per level
+        on them (its emotion and arrival steps skipped)."""
+        n_l = self.n_levels
+        if self._z is None:
+            self._z = np.empty((n_l, 3, N_HIDDEN, self.n_y, N_DISTANCE))
+            self._w = np.empty((n_l, 3, N_HIDDEN, self.n_w, N_DISTANCE))
+            self._level_residual = np.empty((n_l, self.n_y))
+        levels = (n_l,) + self.shape
+        value = np.ascontiguousarray(value).reshape(levels)
+        result = out.reshape(levels)
+        p_idle, p_busy = self.arrive_p
+        _kernels.queue_continuations(self.gamma_emotion, self.busy_y, self.arrive_y,
+                                     self.arrive_enter, self.arrive_q, p_idle, p_busy,
+                                     self.queue.drop_cost, value, self._z, self._w)
+        for lv in range(n_l):
+            _kernels.sweep(self.gamma_emotion, self.g_default, self.g_pause, self.g_commit_full,
+                           self.g_accept_full, self.p_accept_vector, self.mix, self.g,
+                           self.level_cost[lv], self.fail_safe_aware, self.dp_paused,
+                           self.dm_paused, self.arrive_y, self.arrive_enter, self.arrive_q,
+                           p_idle, p_busy, value[lv], self._w[lv], result[lv],
+                           self._level_residual[lv], True)
+        return out, float(self._level_residual.max())
 
     def residual(self, value: np.ndarray) -> float:
         """The Bellman residual max |T V - V| of a value function."""
@@ -253,7 +338,8 @@ RUNTIME_BYTES = 150 * 2**20  # python, numpy, scipy, numba
 def memory_estimate(model: HRCModel) -> int:
     """Peak bytes of a value-iteration solve of `model`: about BYTES_PER_STATE per state plus
     the runtime (bench/solve_bench.py measures 227 MB at 0.42 M states, 1.6 GB at 9 M)."""
-    per_state = BYTES_PER_STATE + (STREAM_BYTES_PER_STATE if model.arrivals is not None else 0)
+    streamed = model.arrivals is not None or model.queue is not None
+    per_state = BYTES_PER_STATE + (STREAM_BYTES_PER_STATE if streamed else 0)
     return per_state * model.n_states + RUNTIME_BYTES
 
 
@@ -276,7 +362,7 @@ def policy_matrix(model: HRCModel, policy: np.ndarray):
         rows.append(sources[t.source])
         cols.append(t.target)
         vals.append(t.probability)
-        cost[sources] = model.cost(model.state(sources), a)
+        cost[sources] = model.flat_cost(sources, a)
     p = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(model.n_states, model.n_states))
     p.sum_duplicates()

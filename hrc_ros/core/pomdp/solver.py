@@ -213,6 +213,10 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     """The MixedPOMDP of `model` over the closure of the task states the task book produces:
     the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
     reach from them, at every distance."""
+    if model.queue is not None:
+        raise ValueError(f'{model.config.source}: the POMDP solver does not take a stream with a '
+                         'queue (stream.queue, MODEL.md 8.1) yet; solve its MDP (hrc-solve) or '
+                         'leave out stream.queue')
     op = operator or FactoredBellman(model)
     outcomes = _task_outcomes(op)
     grid = model.task_grid

@@ -20,6 +20,14 @@ Metrics per episode (then mean and a 95% normal confidence interval over episode
 - epochs in collision (d_k = 0), requests refused (eligible rh1/rh2 answered no), tasks
   completed.
 
+The queue (MODEL.md 8.1): with a configuration whose stream has a queue, the robot observes
+l = min(tasks waiting in the task book, L) (released, not yet in the cell) and every selector
+reads the policy / Q at that l; the discounted cost then includes w * (every waiting task, not
+capped at L) per epoch, for every selector alike, and the table gains the waiting task-epochs
+(`QUEUE_METRICS`). `waiting_cost=` charges a w in any configuration (so that a run planning
+without a queue is scored the same way, `hrc-evaluate --waiting-cost`); without a queue and
+without it nothing is charged and the output is what it always was.
+
 For speed the episodes run side by side: `BatchSimulator` is the epoch protocol of
 `simulator.simulate` written over arrays of episodes (task steps as lookup tables, the human's
 draws by inverse CDF from the same uniforms, belief and selection as array arithmetic with the
@@ -53,6 +61,8 @@ METRICS = (
     ('refused_requests', 'requests refused'),
     ('tasks_completed', 'tasks completed'),
 )
+# where waiting tasks are charged (MODEL.md 8.1): also the waiting task-epochs
+QUEUE_METRICS = METRICS + (('waiting_epochs', 'waiting task-epochs'),)
 STUCK_EPOCHS = 3    # more epochs than this in a row at d = 0: the cell is stuck in collision
 SCENARIOS = ('random', 'case-study')
 Z95 = 1.959963984540054
@@ -136,6 +146,8 @@ class BatchResult:
     requests: np.ndarray
     tasks_completed: np.ndarray
     tasks_released: np.ndarray
+    waiting_epochs: np.ndarray        # sum over the epochs of the tasks waiting (uncapped)
+    discounted_waiting: np.ndarray    # sum_k gamma^(k-1) (tasks waiting at epoch k)
     actions: np.ndarray | None = None   # (E, K) action indices
     trajectory: dict | None = None      # with run(record=True): (E, K) arrays, see `run`
 
@@ -164,7 +176,8 @@ class BatchSimulator:
     """`simulator.simulate` over an array of episodes (see the module docstring)."""
 
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
-                 fail_safe: bool = True, pomdp=None, world: HRCModel | None = None):
+                 fail_safe: bool = True, pomdp=None, world: HRCModel | None = None,
+                 waiting_cost: float | None = None):
         self.policy, value = policy_arrays(policy, value)
         self.model = model
         world = model if world is None else world
@@ -181,7 +194,14 @@ class BatchSimulator:
         self.mode = self.filter.mode
         n_y = model.n_task
         self.columns = n_y * N_DISTANCE
-        self.by_h = self.policy.reshape(N_HIDDEN, self.columns)
+        # the queue (MODEL.md 8.1): the policy's rows per level l, as columns l * columns + c
+        self.levels, self.top, self.n_base = model.n_levels, model.queue_length or 0, model.n_base
+        if self.levels == 1:
+            self.by_h = self.policy.reshape(N_HIDDEN, self.columns)
+        else:
+            self.by_h = np.ascontiguousarray(self.policy.reshape(
+                self.levels, N_HIDDEN, self.columns).transpose(1, 0, 2).reshape(N_HIDDEN, -1))
+        self.waiting_cost = charged_waiting_cost(model, waiting_cost)
         self.state_cost = world.state_cost_vector
         self.action_cost = world.action_cost
         grid = model.task_grid
@@ -242,8 +262,9 @@ class BatchSimulator:
         h = np.argmax(belief >= belief.max(axis=1, keepdims=True) - VOTE_TOLERANCE, axis=1)
         return self.by_h[h, column]
 
-    def _qmdp(self, belief, column):
-        candidates = np.arange(N_HIDDEN)[None, :] * self.columns + column[:, None]
+    def _qmdp(self, belief, column, level):
+        candidates = (np.arange(N_HIDDEN)[None, :] * self.columns + column[:, None]
+                      + (level * self.n_base)[:, None])
         scores = np.einsum('eh,eha->ea', belief, self.q_table[candidates])
         return safest_best(scores)
 
@@ -256,8 +277,9 @@ class BatchSimulator:
         uniformly from the eight instead of the selector's (before the fail-safe), from a
         stream of its own per episode (spawned from the human's seed), so the human's draws
         stay common to every run. `record`: keep per epoch the task index `y`, `d`,
-        `observation` O_k, `action`, `accepted` (1 / 0 for an eligible request, else -1) and
-        the hidden `em`, `ea` in `BatchResult.trajectory` ((E, K) arrays)."""
+        `observation` O_k, `action`, `accepted` (1 / 0 for an eligible request, else -1),
+        the tasks `waiting` in the task book (MODEL.md 8.1) and the hidden `em`, `ea` in
+        `BatchResult.trajectory` ((E, K) arrays)."""
         if not 0.0 <= explore <= 1.0:
             raise ValueError(f'explore must be a probability in [0, 1], got {explore!r}')
         if selector not in SIMULATION_SELECTORS:
@@ -270,6 +292,9 @@ class BatchSimulator:
             raise ValueError('the scenarios of one batch must have the same number of epochs')
         if selector == 'qmdp' and self.value is None:     # fail early, before any work
             raise ValueError("selector 'qmdp' needs the solved value function")
+        if selector in POMDP_SELECTORS and self.levels > 1:
+            raise ValueError(f'selector {selector!r} reads a POMDP policy, and the POMDP does '
+                             'not take a stream with a queue (MODEL.md 8.1) yet')
         if selector in POMDP_SELECTORS:
             self.alphas                                    # noqa: B018 - load it now
         model, n = self.model, len(scenarios)
@@ -314,10 +339,12 @@ class BatchSimulator:
             exploring = np.stack([np.random.default_rng(np.random.SeedSequence(
                 seed).spawn(1)[0]).random(2 * epochs) for seed in seeds]).reshape(n, epochs, 2)
         kept = ({name: np.zeros((n, epochs), dtype=np.int64) for name in
-                 ('y', 'd', 'observation', 'action', 'accepted', 'em', 'ea')} if record
+                 ('y', 'd', 'observation', 'action', 'accepted', 'em', 'ea', 'waiting')} if record
                 else None)
 
         cost = np.zeros(n)
+        waiting_epochs = np.zeros(n, dtype=np.int64)
+        discounted_waiting = np.zeros(n)
         collisions = np.zeros(n, dtype=np.int64)
         run = np.zeros(n, dtype=np.int64)
         longest_run = np.zeros(n, dtype=np.int64)
@@ -337,21 +364,25 @@ class BatchSimulator:
                 y[take] = np.ravel_multi_index(tuple(parts), model.task_dims)
                 current[take] = slot[take]
                 next_task[take] += 1
+            # the tasks released and waiting (not the current one); l = min(waiting, L)
+            waiting = (task[:, :, 0] <= k).sum(axis=1) - next_task
+            level = np.minimum(waiting, self.top)
             # 2-3. decide from (belief, observable); fail-safe at d = 0.
             column = y * N_DISTANCE + d
             h = 3 * em + ea
             if selector == 'mdp':
-                action = self.policy[h * self.columns + column].astype(np.intp)
+                action = self.policy[level * self.n_base + h * self.columns
+                                     + column].astype(np.intp)
             elif selector == 'paper':
-                action = self._paper(belief, column)
+                action = self._paper(belief, level * self.columns + column)
             elif selector == 'mls':
-                action = self._mls(belief, column).astype(np.intp)
+                action = self._mls(belief, level * self.columns + column).astype(np.intp)
             elif selector == 'pomdp':
                 action = self.alphas.pomdp_many(belief, column)
             elif selector == 'fib':
                 action = self.alphas.fib_many(belief, column)
             else:
-                action = self._qmdp(belief, column)
+                action = self._qmdp(belief, column, level)
             if exploring is not None:
                 other = exploring[:, k - 1, 0] < explore
                 action = np.where(other, (exploring[:, k - 1, 1] * len(ACTIONS)).astype(np.intp),
@@ -362,6 +393,10 @@ class BatchSimulator:
                 actions_kept[:, k - 1] = action
             cost += self.world.gamma ** (k - 1) * (self.state_cost[h * self.columns + column]
                                               + self.action_cost[action])
+            waiting_epochs += waiting
+            discounted_waiting += self.world.gamma ** (k - 1) * waiting
+            if self.waiting_cost is not None:
+                cost += self.world.gamma ** (k - 1) * self.waiting_cost * waiting
             collisions += d == 0
             run = np.where(d == 0, run + 1, 0)
             np.maximum(longest_run, run, out=longest_run)
@@ -373,6 +408,7 @@ class BatchSimulator:
             refused += eligible & ~accepted
             if kept is not None:
                 for name, value in (('y', y), ('d', d), ('observation', observation),
+                                    ('waiting', waiting),
                                     ('action', action), ('em', em), ('ea', ea),
                                     ('accepted', np.where(eligible, accepted, -1))):
                     kept[name][:, k - 1] = value
@@ -398,14 +434,26 @@ class BatchSimulator:
         with np.errstate(invalid='ignore', divide='ignore'):
             mean_latency = np.where(n_done > 0, latency.sum(axis=1) / n_done, np.nan)
         return BatchResult(selector, cost, mean_latency, collisions, longest_run, refused,
-                           requests, n_done, released, actions_kept, kept)
+                           requests, n_done, released, waiting_epochs, discounted_waiting,
+                           actions_kept, kept)
+
+
+def charged_waiting_cost(model: HRCModel, waiting_cost: float | None = None) -> float | None:
+    """w charged per waiting task per epoch: `waiting_cost` when given, else the
+    configuration's stream.waiting_cost with a queue (MODEL.md 8.1), else None (not charged)."""
+    if waiting_cost is not None:
+        w = float(waiting_cost)
+        if not (w >= 0 and np.isfinite(w)):
+            raise ValueError(f'waiting_cost must be a finite number >= 0, got {waiting_cost!r}')
+        return w
+    return model.config.waiting_cost if model.queue is not None else None
 
 
 # -- statistics and outputs ------------------------------------------------------------------
-def summarize(result: BatchResult) -> dict:
+def summarize(result: BatchResult, metrics=METRICS) -> dict:
     """metric -> {n, mean, half_width, low, high} (95% normal interval over episodes)."""
     out = {}
-    for metric, _ in METRICS:
+    for metric, _ in metrics:
         x = np.asarray(getattr(result, metric), dtype=float)
         x = x[np.isfinite(x)]
         mean = float(x.mean()) if x.size else float('nan')
@@ -425,6 +473,7 @@ def paired_difference(result: BatchResult, reference: BatchResult) -> dict:
 
 TABLE_LABELS = ('discounted cost', 'epochs per task', 'collision epochs', 'stuck > 3 at d=0',
                 'refused requests', 'tasks completed', 'cost - mdp cost')
+QUEUE_TABLE_LABELS = TABLE_LABELS[:-1] + ('waiting epochs',) + TABLE_LABELS[-1:]
 
 
 def format_regret(planned: dict, true: dict) -> str:
@@ -443,14 +492,15 @@ def format_regret(planned: dict, true: dict) -> str:
     return '\n'.join(lines)
 
 
-def format_table(summaries: dict, differences: dict) -> str:
+def format_table(summaries: dict, differences: dict, metrics=METRICS) -> str:
     """Mean ± 95% half-width per selector and metric; the last column is paired (CRN)."""
     width = 19
-    head = f'{"selector":<9}' + ''.join(f'{n:>{width}}' for n in TABLE_LABELS)
+    labels = TABLE_LABELS if metrics is METRICS else QUEUE_TABLE_LABELS
+    head = f'{"selector":<9}' + ''.join(f'{n:>{width}}' for n in labels)
     lines = [head, '-' * len(head)]
     for selector, summary in summaries.items():
         cells = []
-        for metric, _ in METRICS:
+        for metric, _ in metrics:
             s = summary[metric]
             cells.append(f'{s["mean"]:.3f} ± {s["half_width"]:.3f}')
         diff = differences.get(selector)
@@ -479,7 +529,7 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
              task_rate: float = 0.2, selectors=('paper', 'qmdp', 'mls', 'mdp'),
              mode: str | None = None, fail_safe: bool = True, chunk: int = 250,
              progress=None, scenario: str = 'random', pomdp=None,
-             world: HRCModel | None = None) -> dict:
+             world: HRCModel | None = None, waiting_cost: float | None = None) -> dict:
     """selector -> BatchResult over the same seeded episodes (common random numbers).
 
     `world`: the model the human and the costs are drawn from when it is not the one the
@@ -495,7 +545,7 @@ def evaluate(model: HRCModel, policy, episodes: int = 1000, epochs: int = 50, se
     people = None if world is None else world.config.observation_prior
     scenarios, seeds = episodes_of(model, scenario, episodes, epochs, seed, task_rate, people)
     sim = BatchSimulator(model, policy, mode=mode, fail_safe=fail_safe, pomdp=pomdp,
-                         world=world)
+                         world=world, waiting_cost=waiting_cost)
     results = {}
     for selector in selectors:
         t0 = time.perf_counter()

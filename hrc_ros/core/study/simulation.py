@@ -159,6 +159,9 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
         raise ValueError(f'unknown selector {selector!r}; expected one of '
                          f'{", ".join(SIMULATION_SELECTORS)}')
     pi, value = policy_arrays(policy, value)
+    if model.queue is not None:
+        raise ValueError(f'{model.config.source}: the epoch-by-epoch simulation does not track '
+                         'the queue length (stream.queue, MODEL.md 8.1) yet: use hrc-evaluate')
     if pi.shape != (model.n_states,):
         raise ValueError(f'the policy has {pi.size} states, the model {model.n_states}')
     model.index(scenario.initial_state)            # range check, names the variable

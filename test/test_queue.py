@@ -1,0 +1,355 @@
+"""The task stream with a queue (MODEL.md 8.1): configuration, the queue step rule by rule, the
+factored solver and the fused sweep against it, policy files, the evaluation reading the queue
+length, and the refusals where the queue is not built yet (POMDP, nodes)."""
+
+import numpy as np
+import pytest
+from reference import rule_q
+
+from hrc_ros.core.config import ConfigError, load_config
+from hrc_ros.core.decision.selection import ActionSelector
+from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
+from hrc_ros.core.mdp.solver import FactoredBellman, evaluate_policy, solve
+from hrc_ros.core.model import ACTIONS, DN, DP, NW, TASK_VARIABLES, HRCModel
+from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
+from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of, evaluate
+from hrc_ros.core.study.simulation import Scenario
+from hrc_ros.core.swap import check_node_config
+
+CONFIG = default_config_path()
+SMALL = {'model': {'rho': 1, 'sigma': 1}}
+QUEUE = {'queue': 2, 'arrival_idle': 0.3, 'arrival_busy': 0.6, 'waiting_cost': 0.7,
+         'q': [[1, 1, 0, 0.5], [1, 1, 3, 0.2], [1, 1, 2, 0.3]]}
+
+
+def queue_config(stream=QUEUE, **sections):
+    return load_config(CONFIG, overrides={**SMALL, 'stream': stream, **sections})
+
+
+@pytest.fixture(scope='module')
+def small_queue():
+    return HRCModel(queue_config())
+
+
+# -- configuration ----------------------------------------------------------------------------
+def test_a_queue_multiplies_the_states_and_keeps_the_other_configurations_as_they_were():
+    plain = load_config(CONFIG)
+    model = HRCModel(plain)
+    assert plain.queue is None and model.queue is None and model.n_levels == 1
+    assert model.n_states == model.n_base == 419_904
+    full = load_config(shipped_config_path('stream_queue'))
+    m = HRCModel(full)
+    assert full.queue == 2 and m.n_states == 3 * 419_904 and m.n_base == 419_904
+    assert m.arrivals is None       # the queue-less stream's arrivals do not apply
+    assert m.queue.drop_cost == pytest.approx(full.waiting_cost / (1 - full.gamma))
+    # the queue is part of the policy hash: another L, another policy
+    other = load_config(shipped_config_path('stream_queue'),
+                        overrides={'stream': {'queue': 3}})
+    assert other.policy_hash != full.policy_hash
+
+
+@pytest.mark.parametrize('stream, message', [
+    ({**QUEUE, 'arrival_complete': 0.5}, 'stream.arrival_complete belongs to the stream '
+                                         'without a queue'),
+    ({k: v for k, v in QUEUE.items() if k != 'arrival_busy'}, 'missing key stream.arrival_busy'),
+    ({k: v for k, v in QUEUE.items() if k != 'waiting_cost'}, 'missing key stream.waiting_cost'),
+    ({**QUEUE, 'queue': 0}, r'stream.queue .* integer in 1..4'),
+    ({**QUEUE, 'queue': 5}, r'stream.queue .* integer in 1..4'),
+    ({**QUEUE, 'queue': True}, r'stream.queue .* integer in 1..4'),
+    ({**QUEUE, 'waiting_cost': -1.0}, 'stream.waiting_cost'),
+    ({'arrival_idle': 0.2, 'arrival_complete': 0.5, 'arrival_busy': 0.2},
+     'stream.arrival_busy needs stream.queue'),
+    ({'arrival_idle': 0.2, 'arrival_complete': 0.5, 'waiting_cost': 1.0},
+     'stream.waiting_cost needs stream.queue'),
+])
+def test_a_bad_queue_section_is_refused_naming_the_field(stream, message):
+    with pytest.raises(ConfigError, match=message):
+        queue_config(stream)
+
+
+# -- the queue step, rule by rule -------------------------------------------------------------
+def scalar_queue_step(model, level, s0, action):
+    """The queue's epoch of MODEL.md 8.1 for one state, in plain Python: {(l', y'): P} of the
+    task and queue part (before the emotion and distance steps) and P(a task is dropped)."""
+    queue = model.queue
+    state = model.state(s0)
+    em = state[0]
+    task = {n: np.array([v]) for n, v in zip(TASK_VARIABLES, state[2:10])}
+    p_acc = float(model.acceptance_probability(action, em, task['tp'], task['tx'],
+                                               task['ty'])[0])
+    p_release = queue.arrivals.p_complete if state[2] > 0 else queue.arrivals.p_idle
+    tasks = model.config.stream[2]
+    out, dropped = {}, 0.0
+    for accepted, p_a in ((True, p_acc), (False, 1 - p_acc)):
+        nxt = {n: int(v[0]) for n, v in model.step_task(task, action, accepted).items()}
+        for released, p_r in ((1, p_release), (0, 1 - p_release)):
+            p = p_a * p_r
+            if p == 0:
+                continue
+            waiting = level + released
+            if nxt['tp'] == 0 and waiting > 0:          # the head enters the idle cell
+                for (tp, tc, tx), q_k in zip(tasks, queue.arrivals.q):
+                    entered = dict(nxt, tp=int(tp), tc=int(tc), tx=int(tx), ty=0)
+                    key = (min(waiting - 1, queue.levels), int(model.task_index(entered)))
+                    out[key] = out.get(key, 0.0) + p * q_k
+            else:
+                if waiting > queue.levels:
+                    dropped += p
+                key = (min(waiting, queue.levels), int(model.task_index(nxt)))
+                out[key] = out.get(key, 0.0) + p
+    return out, dropped
+
+
+def test_the_vectorised_queue_step_is_the_scalar_rule(small_queue):
+    m = small_queue
+    rng = np.random.default_rng(3)
+    sources = rng.choice(m.n_states, size=300, replace=False)
+    for a in range(len(ACTIONS)):
+        branches, dropped, _ = m._queue_steps(sources, a)
+        for i, s in enumerate(sources):
+            got = {}
+            for l_next, y_next, p in branches:
+                if p[i] > 0:
+                    key = (int(l_next[i]), int(y_next[i]))
+                    got[key] = got.get(key, 0.0) + float(p[i])
+            want, want_drop = scalar_queue_step(m, *(int(v) for v in m.split(s)), a)
+            assert got.keys() == want.keys()
+            for key in want:
+                assert got[key] == pytest.approx(want[key], abs=1e-12)
+            assert dropped[i] == pytest.approx(want_drop, abs=1e-12)
+
+
+def test_queue_cases_by_hand(small_queue):
+    """Three cases of MODEL.md 8.1 written out: a release into a busy cell waits; into a full
+    queue it is dropped and charged; an idle cell takes the head of the queue."""
+    m = small_queue
+    n0, w, drop = m.n_base, m.queue.waiting_cost, m.queue.drop_cost
+    p_busy, p_idle = m.queue.arrivals.p_complete, m.queue.arrivals.p_idle
+    # robot committed to a 1-epoch robot task it has just started (bc = 1): nw completes it
+    busy = m.index((0, 0, 1, 1, 0, 2, 0, 0, 1, 1, 3))
+    # an uncommitted task (ct not taken): under dn the cell stays busy
+    waiting_task = m.index((0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 3))
+    idle = m.index((0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 3))
+    # l = 2, busy and staying busy under dn: a release is dropped
+    _, dropped = scalar_queue_step(m, 2, waiting_task, DN)
+    assert dropped == pytest.approx(p_busy)
+    cost = m.flat_cost([2 * n0 + waiting_task], DN)[0]
+    assert cost == pytest.approx(m.cost(np.array([m.state(waiting_task)]), DN)[0]
+                                 + 2 * w + p_busy * drop)
+    # l = 0, the task completes under nw: a release enters right away, else the cell is idle
+    steps, dropped = scalar_queue_step(m, 0, busy, NW)
+    assert dropped == 0
+    assert sum(p for (lv, y), p in steps.items() if lv == 0 and m.task_grid['tp'][y] > 0) \
+        == pytest.approx(p_busy)
+    # l = 1, idle: the head enters whether or not a task is released, l' = l - 1 + release
+    steps, _ = scalar_queue_step(m, 1, idle, DN)
+    assert all(m.task_grid['tp'][y] > 0 for (lv, y) in steps)
+    assert sum(p for (lv, y), p in steps.items() if lv == 1) == pytest.approx(p_idle)
+    assert sum(p for (lv, y), p in steps.items() if lv == 0) == pytest.approx(1 - p_idle)
+
+
+@pytest.mark.parametrize('overrides', [
+    {},
+    {'solver': {'fail_safe_aware': False}},
+    {'stream': {**QUEUE, 'queue': 1, 'arrival_idle': 0.9, 'arrival_busy': 0.1, 'q': None}},
+])
+def test_factored_q_and_the_fused_sweep_equal_the_rule_by_rule_queue(overrides):
+    """On every state of the reduced model (rho = sigma = 1, L + 1 queue levels)."""
+    model = HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': QUEUE, **overrides}))
+    op = FactoredBellman(model)
+    value = np.random.default_rng(5).normal(size=model.n_states) * 20
+    q = op.q(value)
+    sources = np.arange(model.n_states)
+    for a in range(len(ACTIONS)):   # the transition rows are distributions
+        t = model.transition(sources, a)
+        np.testing.assert_allclose(np.bincount(t.source, weights=t.probability), 1.0,
+                                   atol=1e-12)
+    np.testing.assert_allclose(q.T, rule_q(model, value, sources), atol=1e-10)
+    new, residual = op.apply(value)
+    np.testing.assert_allclose(new, q.max(axis=0), atol=1e-10)
+    assert residual == pytest.approx(np.max(np.abs(q.max(axis=0) - value)), abs=1e-10)
+
+
+def test_factored_q_equals_rule_by_rule_on_sampled_full_queue_states():
+    model = HRCModel(load_config(shipped_config_path('stream_queue')))
+    rng = np.random.default_rng(17)
+    value = rng.normal(size=model.n_states) * 20
+    sample = np.concatenate([lv * model.n_base + rng.choice(model.n_base, 500, replace=False)
+                             for lv in range(model.n_levels)])
+    op = FactoredBellman(model)
+    q = op.q(value)
+    np.testing.assert_allclose(q[:, sample].T, rule_q(model, value, sample), atol=1e-10)
+    new, _ = op.apply(value)
+    np.testing.assert_allclose(new, q.max(axis=0), atol=1e-10)
+
+
+def test_without_releases_the_empty_queue_is_the_papers_model():
+    """arrival 0: at l = 0 no task ever comes, so V and the policy there are the paper's."""
+    zero = HRCModel(queue_config({**QUEUE, 'arrival_idle': 0.0, 'arrival_busy': 0.0}))
+    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
+    a, b = solve(zero), solve(plain)
+    np.testing.assert_allclose(a.value[:zero.n_base], b.value, atol=1e-9)
+    np.testing.assert_array_equal(a.policy[:zero.n_base], b.policy)
+
+
+def test_the_solved_value_is_the_exact_value_of_its_policy(small_queue):
+    """Policy evaluation by the sparse rule-by-rule matrix (`HRCModel.transition`,
+    `flat_cost` with the drop charge) gives value iteration's value back, within its bound."""
+    result = solve(small_queue)
+    exact = evaluate_policy(small_queue, result.policy)
+    bound = small_queue.config.eta * small_queue.gamma / (1 - small_queue.gamma)
+    assert np.max(np.abs(exact - result.value)) < 2 * bound
+
+
+def test_waiting_costs_and_a_full_queue_costs_more(small_queue):
+    v = solve(small_queue).value.reshape(small_queue.n_levels, -1)
+    assert np.all(v[1] < v[0] - 1e-6) and np.all(v[2] < v[1] - 1e-6)
+
+
+# -- policy files -----------------------------------------------------------------------------
+def test_a_queue_policy_round_trips_and_is_refused_by_the_queue_less_model(tmp_path,
+                                                                          small_queue):
+    cfg = small_queue.config
+    result = solve(small_queue)
+    path = save_policy(tmp_path / 'queue.npz', result, cfg)
+    loaded = load_policy(path, cfg)
+    assert loaded.policy.shape == (small_queue.n_states,)
+    np.testing.assert_array_equal(loaded.policy, result.policy)
+    plain = load_config(CONFIG, overrides=SMALL)
+    with pytest.raises(PolicyError, match='policy holds 110592 states, the configuration has '
+                                          '36864'):
+        load_policy(path, plain)
+    other_w = queue_config({**QUEUE, 'waiting_cost': 0.8})     # the same size, another model
+    with pytest.raises(PolicyError, match='solved for configuration'):
+        load_policy(path, other_w)
+
+
+def test_the_shipped_queue_policy_loads_and_is_a_fresh_solve():
+    config = load_config(shipped_config_path('stream_queue'))
+    shipped = load_policy(share_dir() / 'policies' / 'stream_queue.npz', config)
+    fresh = solve(HRCModel(config))
+    assert shipped.policy.size == 3 * 419_904
+    np.testing.assert_array_equal(fresh.policy, shipped.policy)
+
+
+# -- the evaluation reads the queue ------------------------------------------------------------
+def test_the_evaluation_reads_the_policy_at_the_observed_queue_length(small_queue):
+    """A policy that says dn at l < 2 and dp at l = 2: with the task never done (dn does not
+    commit anyone) the waiting tasks are the releases after the first, so the robot's action
+    follows min(waiting, 2), and the cost charges every waiting task, uncapped."""
+    m = small_queue
+    policy = np.full(m.n_states, DN, dtype=np.int8)
+    policy[2 * m.n_base:] = DP
+    releases = (1, 3, 4, 6, 7, 9)       # a task (1, 1, 3) at each: waiting = released - 1
+    scenario = Scenario((0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 3),
+                        tuple((k, (1, 1, 3)) for k in releases), 10, name='queue')
+    for w in (None, 0.0, 2.5):
+        sim = BatchSimulator(m, policy, mode='posterior', waiting_cost=w)
+        for selector in ('mdp', 'paper', 'mls'):
+            r = sim.run([scenario], [[0, 0]], selector, keep_actions=True, record=True)
+            waiting = np.array([sum(1 for j in releases if j <= k) - 1 for k in range(1, 11)])
+            d = r.trajectory['d'][0]
+            expected = np.where(np.minimum(waiting, 2) == 2, DP, DN)
+            np.testing.assert_array_equal(r.actions[0][d > 0], expected[d > 0])
+            np.testing.assert_array_equal(r.trajectory['waiting'][0], waiting)
+            assert r.waiting_epochs[0] == waiting.sum()
+            np.testing.assert_allclose(r.discounted_waiting[0],
+                                       (m.gamma ** np.arange(10) * waiting).sum())
+        base = BatchSimulator(m, policy, mode='posterior', waiting_cost=0.0).run(
+            [scenario], [[0, 0]], 'mdp')
+        charged = (m.config.waiting_cost if w is None else w) * base.discounted_waiting
+        np.testing.assert_allclose(sim.run([scenario], [[0, 0]], 'mdp').discounted_cost,
+                                   base.discounted_cost + charged)
+
+
+def test_qmdp_reads_q_at_the_queue_level(small_queue):
+    m = small_queue
+    result = solve(m)
+    sim = BatchSimulator(m, result.policy, value=result.value, mode='posterior')
+    rng = np.random.default_rng(2)
+    column = rng.integers(0, sim.columns, size=40)
+    level = rng.integers(0, m.n_levels, size=40)
+    h = rng.integers(0, 9, size=40)
+    belief = np.eye(9)[h]
+    got = sim._qmdp(belief, column, level)
+    want = result.policy[level * m.n_base + h * sim.columns + column]
+    np.testing.assert_array_equal(got, want)
+
+
+def test_charging_a_queue_less_run_changes_its_cost_and_nothing_else():
+    """--waiting-cost on a configuration without a queue: the same decisions (l is always 0
+    there), the cost plus w times the discounted waiting tasks."""
+    config = load_config(CONFIG, overrides=SMALL)
+    model = HRCModel(config)
+    result = solve(model)
+    plain = evaluate(model, result, episodes=60, epochs=30, selectors=('paper', 'mdp'),
+                     mode='posterior')
+    charged = evaluate(model, result, episodes=60, epochs=30, selectors=('paper', 'mdp'),
+                       mode='posterior', waiting_cost=3.0)
+    for s in ('paper', 'mdp'):
+        np.testing.assert_array_equal(plain[s].tasks_completed, charged[s].tasks_completed)
+        np.testing.assert_array_equal(plain[s].waiting_epochs, charged[s].waiting_epochs)
+        np.testing.assert_allclose(charged[s].discounted_cost,
+                                   plain[s].discounted_cost + 3.0 * plain[s].discounted_waiting)
+    assert plain['paper'].waiting_epochs.sum() > 0
+
+
+# -- where the queue is not built: refused -----------------------------------------------------
+def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys):
+    from hrc_ros.core.pomdp.solver import hrc_pomdp
+    from hrc_ros.tools import evaluate as evaluate_tool
+    from hrc_ros.tools import solve as solve_tool
+    with pytest.raises(ValueError, match='POMDP solver does not take a stream with a queue'):
+        hrc_pomdp(small_queue)
+    with pytest.raises(ConfigError, match='stream.queue .* not carried by the nodes'):
+        check_node_config(small_queue.config)
+    with pytest.raises(ValueError, match='reads no queue length'):
+        ActionSelector(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
+    path = str(shipped_config_path('stream_queue'))
+    assert solve_tool.main(['--config', path, '--method', 'pomdp', '-o', '/tmp/x.npz']) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('hrc-solve: error:') and 'stream.queue' in err and '\n' not in err
+    assert evaluate_tool.main(['--config', path, '--selectors', 'paper,pomdp', '--episodes',
+                               '2', '--out', '/tmp/hrc_queue_refused']) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('hrc-evaluate: error:') and 'stream.queue' in err and '\n' not in err
+    # the episodes the evaluation draws do not depend on the queue
+    a, _ = episodes_of(small_queue, 'random', 3, 10)
+    b, _ = episodes_of(HRCModel(load_config(CONFIG, overrides=SMALL)), 'random', 3, 10)
+    assert a == b
+
+
+def test_the_nodes_refuse_a_queue_at_startup_and_on_a_live_swap():
+    from hrc_ros.core.swap import check_swap
+    from hrc_ros.ros.node_support import StartupError, load_node_config
+    path = str(shipped_config_path('stream_queue'))
+    with pytest.raises(StartupError, match=r'bad model configuration: .*stream.queue'):
+        load_node_config(path)
+    verdict = check_swap(2, 2, '', path, running_policy='', policy_value='')
+    assert verdict.refused and 'stream.queue' in verdict.reason
+    assert not check_swap(2, 2, '', str(shipped_config_path('stream'))).refused
+
+
+def test_hrc_evaluate_writes_the_waiting_columns_only_where_waiting_is_charged(tmp_path):
+    """Without a queue and without --waiting-cost the files have the columns they always had."""
+    import csv
+
+    from hrc_ros.tools import evaluate as evaluate_tool
+    old = ['selector', 'episode', 'discounted_cost', 'epochs_to_complete', 'collision_epochs',
+           'collision_stuck', 'refused_requests', 'tasks_completed', 'longest_collision_run',
+           'requests', 'tasks_released']
+    runs = {'plain': [], 'charged': ['--waiting-cost', '1.5'],
+            'queue': ['--config', str(shipped_config_path('stream_queue'))]}
+    headers, metrics = {}, {}
+    for name, extra in runs.items():
+        out = tmp_path / name
+        assert evaluate_tool.main(['--episodes', '4', '--epochs', '12', '--selectors',
+                                   'paper,mdp', '--out', str(out)] + extra) == 0
+        with open(out / 'episodes.csv') as f:
+            headers[name] = next(csv.reader(f))
+        with open(out / 'summary.csv') as f:
+            metrics[name] = {row['metric'] for row in csv.DictReader(f)}
+    assert headers['plain'] == old and 'waiting_epochs' not in metrics['plain']
+    for name in ('charged', 'queue'):
+        assert headers[name] == old + ['waiting_epochs', 'discounted_waiting']
+        assert 'waiting_epochs' in metrics[name]
