@@ -651,6 +651,27 @@ def test_decision_fails_safe_on_malformed_input(graph, model, policy_path, case)
     assert dec.status(2).level == OK
 
 
+def test_decision_with_a_queue_policy_reads_the_tasks_waiting(graph):
+    """MODEL.md 8.1 on the graph: config/stream_queue.yaml's policy commits (ct) an
+    uncommitted 'either' task at d = 1 with a calm unmotivated person once two tasks wait,
+    and moves away (dp) while fewer do; the task state's ninth value `queued` decides which,
+    more than L = 2 reads as 2, and a task state without it is a fault (dn, named)."""
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    task = dict(zip(TASK_VARIABLES, (1, 2, 2, 0, 0, 0, 0, 0)))
+    calm = np.eye(9)[0]
+    queued = {1: 0, 2: 2, 3: 5, 4: None, 5: 1}
+
+    def respond(k):
+        dec.inputs(task={**task, 'queued': queued.get(k, 0)}, d=1, belief=calm)
+
+    dec = Decision(graph, str(share_dir() / 'policies' / 'stream_queue.npz'), respond=respond,
+                   config=str(shipped_config_path('stream_queue')))
+    assert dec.run(5)[:5] == ['dp', 'ct', 'ct', 'dn', 'dp']
+    values = conv.diagnostic_values(dec.status(4))
+    assert 'tasks waiting' in values['faults'] and dec.status(4).level == ERROR
+    assert dec.status(5).level == OK
+
+
 def test_decision_fails_safe_on_a_missing_input(graph, policy_path):
     dec = Decision(graph, policy_path, respond=lambda k: dec.inputs(belief=None))
     assert dec.run(2)[:2] == ['dn', 'dn']
@@ -886,6 +907,25 @@ def test_task_manager_follows_the_task_book(graph, model):
         assert tasks.epoch(k, action, accepted) == book.state, f'epoch {k}'
     assert tasks.states[0].layout.dim[0].label == 'tp'
     assert len(book.completed) == 1
+
+
+def test_task_manager_with_a_queue_publishes_the_tasks_waiting(graph):
+    """A configuration with a queue (MODEL.md 8.1): hrc/task_state carries `queued`, the
+    released tasks waiting behind the current one, as the task book counts them; without a
+    queue it stays the eight values (the test above)."""
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.paths import shipped_config_path
+    config = str(shipped_config_path('stream_queue'))
+    schedule = ['2:2,2,1', '2:1,1,3', '3:2,1,0']
+    tasks = Tasks(graph, config=config, initial_task=[1, 1, 3], schedule=schedule)
+    book = TaskBook(HRCModel(load_config(config)), initial_task=(1, 1, 3), schedule=schedule)
+    for k, action in enumerate([None, 'dn', 'dn', 'ct', 'nw'], start=1):
+        if k > 1:
+            book.apply(action, False)
+        book.begin_epoch(k)
+        assert tasks.epoch(k, action) == {**book.state, 'queued': len(book.queue)}, k
+    assert [d.label for d in tasks.states[-1].layout.dim][-1] == 'queued'
+    assert [conv.task_state_from_msg(m)['queued'] for m in tasks.states[:3]] == [0, 2, 3]
 
 
 def test_task_manager_takes_a_missing_action_as_dn(graph, model):

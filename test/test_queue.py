@@ -276,6 +276,42 @@ def test_qmdp_reads_q_at_the_queue_level(small_queue):
     np.testing.assert_array_equal(got, want)
 
 
+def test_the_selector_reads_the_policy_and_q_at_the_observed_queue_length(small_queue):
+    """ActionSelector (the decision node's) with a queue: the observable's tenth value l picks
+    the block l * N0 + h * n_task * 4 + (y, d) for every selector, as the evaluation does
+    (mls and qmdp against the flat arrays; the vote against its definition), more than L
+    waiting reads as L, a negative or missing l is refused by name; a model without a queue
+    does not read a tenth value."""
+    m = small_queue
+    result = solve(m)
+    selector = ActionSelector(m, result.policy, value=result.value)
+    q = FactoredBellman(m).q(result.value)
+    grid, rng = m.task_grid, np.random.default_rng(4)
+    n_columns = m.n_base // 9
+    for _ in range(60):
+        y, d, level = int(rng.integers(m.n_task)), int(rng.integers(4)), int(rng.integers(3))
+        observable = tuple(int(grid[n][y]) for n in TASK_VARIABLES) + (d, level)
+        b = rng.dirichlet(np.full(9, 0.5))
+        index = level * m.n_base + np.arange(9) * n_columns + y * 4 + d
+        np.testing.assert_array_equal(selector.candidate_indices(observable), index)
+        assert selector.select(b, observable, 'mls').action == result.policy[index[b.argmax()]]
+        np.testing.assert_allclose(selector.select(b, observable, 'qmdp').scores,
+                                   b @ q[:, index].T)
+        votes = np.bincount(result.policy[index], weights=b, minlength=8)
+        np.testing.assert_allclose(selector.select(b, observable, 'paper').scores, votes)
+    many = tuple(int(grid[n][5]) for n in TASK_VARIABLES) + (2,)
+    np.testing.assert_array_equal(selector.candidate_indices(many + (7,)),  # min(7, L = 2)
+                                  selector.candidate_indices(many + (2,)))
+    with pytest.raises(ValueError, match=r'l \(tasks waiting.*>= 0, got -1'):
+        selector.select(np.full(9, 1 / 9), (0,) * 9 + (-1,))
+    with pytest.raises(ValueError, match='the tasks waiting l >= 0 .*got 9 values'):
+        selector.select(np.full(9, 1 / 9), (0,) * 9)
+    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
+    unqueued = ActionSelector(plain, np.zeros(plain.n_states, dtype=np.int8))
+    np.testing.assert_array_equal(unqueued.candidate_indices((0,) * 9 + (4,)),
+                                  unqueued.candidate_indices((0,) * 9))
+
+
 def test_charging_a_queue_less_run_changes_its_cost_and_nothing_else():
     """--waiting-cost on a configuration without a queue: the same decisions (l is always 0
     there), the cost plus w times the discounted waiting tasks."""
@@ -301,10 +337,7 @@ def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys
     from hrc_ros.tools import solve as solve_tool
     with pytest.raises(ValueError, match='POMDP solver does not take a stream with a queue'):
         hrc_pomdp(small_queue)
-    with pytest.raises(ConfigError, match='stream.queue .* not carried by the nodes'):
-        check_node_config(small_queue.config)
-    with pytest.raises(ValueError, match='reads no queue length'):
-        ActionSelector(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
+    assert check_node_config(small_queue.config) is small_queue.config   # the nodes take it
     path = str(shipped_config_path('stream_queue'))
     assert solve_tool.main(['--config', path, '--method', 'pomdp', '-o', '/tmp/x.npz']) == 2
     err = capsys.readouterr().err.strip()
@@ -319,15 +352,23 @@ def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys
     assert a == b
 
 
-def test_the_nodes_refuse_a_queue_at_startup_and_on_a_live_swap():
+def test_the_nodes_start_with_a_queue_and_refuse_to_add_or_drop_one_live():
+    """A queue configuration loads in a node; a live swap that adds a queue, drops it or
+    changes L is refused (the task manager publishes the tasks waiting by the rule it started
+    with), one that keeps it is not."""
     from hrc_ros.core.swap import check_swap
-    from hrc_ros.ros.node_support import StartupError, load_node_config
+    from hrc_ros.ros.node_support import load_node_config
     path = str(shipped_config_path('stream_queue'))
-    with pytest.raises(StartupError, match=r'bad model configuration: .*stream.queue'):
-        load_node_config(path)
-    verdict = check_swap(2, 2, '', path, running_policy='', policy_value='')
-    assert verdict.refused and 'stream.queue' in verdict.reason
-    assert not check_swap(2, 2, '', str(shipped_config_path('stream'))).refused
+    assert load_node_config(path).queue == 2
+    verdict = check_swap(2, 2, '', path, running_policy='', policy_value='', queue=None)
+    assert verdict.refused and 'has a queue of 2, the running configuration no queue' in \
+        verdict.reason
+    back = check_swap(2, 2, path, '', running_policy='', policy_value='', queue=2)
+    assert back.refused and 'has no queue, the running configuration a queue of 2' in \
+        back.reason
+    assert not check_swap(2, 2, '', str(shipped_config_path('stream_queue_w1')),
+                          running_policy='', policy_value='', queue=2).refused
+    assert not check_swap(2, 2, '', str(shipped_config_path('stream')), queue=None).refused
 
 
 def test_hrc_evaluate_writes_the_waiting_columns_only_where_waiting_is_charged(tmp_path):

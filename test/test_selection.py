@@ -195,7 +195,7 @@ def test_bad_belief_is_rejected(model, solved, b, message):
 
 
 @pytest.mark.parametrize('x, field', [
-    ((1, 1, 3, 0, 0, 0, 0, 0), 'observable'), ((1, 1, 3, 0, 0, 0, 0, 0, 1, 0), 'observable'),
+    ((1, 1, 3, 0, 0, 0, 0, 0), 'observable'), ((1, 1, 3, 0, 0, 0, 0, 0, 1, 0, 0), 'observable'),
     ((1, 1, 3, 0, 0, 0, 0, 0, 4), 'observable d'), ((2, 1, 3, 0, 0, 0, 0, 0, 1), 'observable tp'),
     ((1, 1, 4, 0, 0, 0, 0, 0, 1), 'observable tx'),
     ((1, 1, 3, 0, 0, -1, 0, 0, 1), 'observable hc'),

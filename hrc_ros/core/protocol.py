@@ -645,6 +645,8 @@ class TaskEpochs:
         self.next_epoch, self.renumber, self.screening = None, False, False
         self.action_taken, self.action_ns, self.response = None, None, None
         step.task_state = self.book.state
+        if self.book.model.queue is not None:    # the tasks waiting (MODEL.md 8.1)
+            step.task_state = {**step.task_state, 'queued': len(self.book.queue)}
 
     def status(self) -> dict:
         """Key-values of the task manager's periodic status."""
@@ -723,7 +725,9 @@ class DecisionGate:
 
     `begin(k)` opens epoch k; the decision is taken as soon as every input has answered for
     it (a good or a malformed message), or at `input_timeout_ns` after the epoch began. Then
-    a_k = ``select(belief, x_k)``, x_k = (task state, d), unless a fault makes it dn:
+    a_k = ``select(belief, x_k)``, x_k = (task state, d) and, when the task state carries it,
+    the tasks waiting (`queued`, MODEL.md 8.1: a queue policy's selector raises without it,
+    which makes it dn below), unless a fault makes it dn:
 
     - an input never received (missing), older than `stale_timeout_ns` (stale), or whose last
       message was malformed;
@@ -825,7 +829,9 @@ class DecisionGate:
             if not faults:
                 task = self.slots['task_state'].value
                 d = self.slots['distance_level'].value
-                observable = tuple(task[n] for n in TASK_VARIABLES) + (d,)
+                # with the tasks waiting when the task manager sends them (MODEL.md 8.1)
+                observable = tuple(task[n] for n in TASK_VARIABLES) + (d,) + (
+                    (task['queued'],) if task.get('queued') is not None else ())
                 selection = self.select(self.slots['belief'].value, observable)
                 if d == 0:
                     collision = True

@@ -54,14 +54,9 @@ def load_node_config(value: str) -> Config:
 
 
 def check_node_config(config: Config) -> Config:
-    """`config`, if the nodes can run it; ConfigError for a stream with a queue (MODEL.md 8.1):
-    the task manager does not publish the queue length and the decision node does not read
-    it, so its policy (one row per queue length) cannot be followed on the ROS graph yet."""
-    if config.queue is not None:
-        raise ConfigError(f'{config.source}: stream.queue (the queue length in the state, '
-                          'MODEL.md 8.1) is not carried by the nodes yet (the task manager and '
-                          'the decision node know no queue length): use it with hrc-solve and '
-                          'hrc-evaluate, or leave out stream.queue')
+    """`config`, if the nodes can run it (every valid configuration, a stream with a queue
+    too: the task manager publishes the tasks waiting, MODEL.md 8.1, and the decision node
+    reads them); the one place a node's configuration is checked beyond its validity."""
     return config
 
 
@@ -82,11 +77,12 @@ class SwapCheck:
 def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                running_policy: str | None = None, policy_value: str | None = None,
                load: Callable[[str], Config] = load_node_config,
-               paused: tuple | None = None) -> SwapCheck:
+               paused: tuple | None = None, queue: int | None | bool = False) -> SwapCheck:
     """The swap rule (module docstring) for a running cell of size (rho, sigma) whose node runs
     the parameter values `running_config` (and `running_policy`: the decision node; None for a
     node without a policy) and is asked for `config_value` (and `policy_value`); `paused`: the
-    running configuration's `robot_paused_by` (the decision node; None: not checked)."""
+    running configuration's `robot_paused_by` (the decision node; None: not checked);
+    `queue`: its `stream.queue` (None: no queue; False: not checked)."""
     with_policy = running_policy is not None
     if config_value == running_config and (not with_policy or policy_value == running_policy):
         return SwapCheck(SAME)
@@ -105,6 +101,13 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                          f'configuration under {", ".join(paused)} (MODEL.md 3.2), and the task '
                          'manager keeps it by the rule it started with: restart the nodes',
                          config)
+    if queue is not False and config.queue != queue:
+        def said(length):
+            return 'no queue' if length is None else f'a queue of {length}'
+        return SwapCheck(REFUSED, f'config refused: {config.source} has {said(config.queue)}, '
+                         f'the running configuration {said(queue)} (stream.queue, MODEL.md '
+                         '8.1), and the task manager publishes the tasks waiting by the rule '
+                         'it started with: restart the nodes', config)
     if not with_policy:
         return SwapCheck(ACCEPTED, config=config)
     try:

@@ -73,10 +73,6 @@ class ActionSelector:
 
     def __init__(self, model, policy, value=None, method: str = 'paper', pomdp=None):
         policy, value = policy_arrays(policy, value)
-        if model.queue is not None:
-            raise ValueError(f'{model.config.source}: ActionSelector reads no queue length '
-                             '(stream.queue, MODEL.md 8.1) yet; the evaluation reads it '
-                             '(hrc-evaluate)')
         self.model = model
         n = model.n_states
         pi = np.ascontiguousarray(policy)
@@ -86,7 +82,12 @@ class ActionSelector:
         if pi.min() < 0 or pi.max() >= N_ACTIONS:
             raise ValueError(f'policy holds action indices outside 0..{N_ACTIONS - 1}')
         self.policy = pi
-        self._by_h = pi.reshape(N_HIDDEN, n // N_HIDDEN)   # row h, column (y, d)
+        # the queue (MODEL.md 8.1): one block of N0 states per queue length l, outermost
+        self.levels, self.n_base = model.n_levels, model.n_base
+        self.n_columns = self.n_base // N_HIDDEN             # (y, d) per level
+        # row h, column l * n_columns + (y, d)
+        self._by_h = np.ascontiguousarray(pi.reshape(self.levels, N_HIDDEN, self.n_columns)
+                                          .transpose(1, 0, 2).reshape(N_HIDDEN, -1))
         if value is not None:
             if value.shape != (n,) or not np.all(np.isfinite(value)):
                 raise ValueError(f'value must be a finite float array of shape ({n},), got '
@@ -95,7 +96,7 @@ class ActionSelector:
         self._q = None   # Q (8, N) for qmdp, formed once from value (27 MB at full size)
         self.pomdp = pomdp
         self.set_method(method)
-        self._h_offsets = np.arange(N_HIDDEN) * (n // N_HIDDEN)
+        self._h_offsets = np.arange(N_HIDDEN) * self.n_columns
         dims = model.dims[2:]
         strides = np.cumprod((1,) + tuple(dims[:0:-1]))[::-1]
         self._observable = tuple(zip(OBSERVABLE_VARIABLES, (int(v) for v in dims),
@@ -128,16 +129,29 @@ class ActionSelector:
 
     # -- inputs ------------------------------------------------------------------------
     def column(self, observable) -> int:
-        """Column (y * 4 + d) of the candidates; index(s_h) = h * n_task * 4 + column."""
+        """Column of the candidates: y * 4 + d, and with a queue (MODEL.md 8.1) l * n_task * 4
+        + y * 4 + d for l = min(the observable's tenth value, L), the tasks waiting as the
+        robot observes them (the task manager's `queued`); a candidate's index is
+        l * N0 + h * n_task * 4 + y * 4 + d (`candidate_indices`). Without a queue a tenth
+        value (a cell that publishes its queue to a policy without one) is not read."""
+        nine = 'the 9 integers (tp, tc, tx, ty, hp, hc, bp, bc, d)'
+        want = nine + (' and the tasks waiting l >= 0 (the model has a queue, MODEL.md 8.1)'
+                       if self.levels > 1 else ', optionally the tasks waiting')
         try:
             values = tuple(observable)
         except TypeError:
-            raise ValueError('observable must be the 9 integers (tp, tc, tx, ty, hp, hc, bp, '
-                             f'bc, d), got {observable!r}') from None
-        if len(values) != len(self._observable):
-            raise ValueError('observable must be the 9 integers (tp, tc, tx, ty, hp, hc, bp, '
-                             f'bc, d), got {len(values)} values')
+            raise ValueError(f'observable must be {want}, got {observable!r}') from None
+        n = len(self._observable)
+        if len(values) not in ((n + 1,) if self.levels > 1 else (n, n + 1)):
+            raise ValueError(f'observable must be {want}, got {len(values)} values')
         column = 0
+        if len(values) > n:
+            level, values = values[-1], values[:-1]
+            if isinstance(level, bool) or not isinstance(level, (int, np.integer)) \
+                    or level < 0:
+                raise ValueError('observable l (tasks waiting, MODEL.md 8.1) must be an '
+                                 f'integer >= 0, got {level!r}')
+            column = min(int(level), self.levels - 1) * self.n_columns
         for v, (name, size, stride) in zip(values, self._observable):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
                 raise ValueError(f'observable {name} must be an integer, got {v!r}')
@@ -148,7 +162,11 @@ class ActionSelector:
 
     def candidate_indices(self, observable) -> np.ndarray:
         """Flat indices of the nine full states (h, x), h = 0..8."""
-        return self._h_offsets + self.column(observable)
+        return self._indices(self.column(observable))
+
+    def _indices(self, column: int) -> np.ndarray:
+        level, within = divmod(column, self.n_columns)
+        return level * self.n_base + self._h_offsets + within
 
     # -- selection ---------------------------------------------------------------------
     def select(self, belief, observable, method: str | None = None) -> Selection:
@@ -159,7 +177,7 @@ class ActionSelector:
         if method == 'paper':
             return self._paper(b, self._by_h[:, column])
         if method == 'qmdp':
-            return self._qmdp(b, self._h_offsets + column)
+            return self._qmdp(b, self._indices(column))
         if method in POMDP_SELECTORS:
             action, scores = getattr(self._alphas(), method)(b, column)
             return Selection(action, scores, method)

@@ -259,7 +259,8 @@ class DecisionNode(Node):
             return done[1]
         verdict = check_swap(running.model.rho, running.model.sigma, running.config_value,
                              values['config'], running.policy_value, values['policy'],
-                             paused=running.model.config.robot_paused_by)
+                             paused=running.model.config.robot_paused_by,
+                             queue=running.model.config.queue)
         self._checked = None if checked else (key, verdict)
         return verdict
 
