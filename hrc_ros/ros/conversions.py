@@ -21,8 +21,9 @@ Wire formats (INTERFACES.md, plus the decisions below):
 - `hrc/task_state` (std_msgs/UInt8MultiArray): ``[tp, tc, tx, ty, hp, hc, bp, bc]`` with one
   layout dimension per variable, labelled by its name (size 1, stride 1): a labelled record,
   not a tensor; a task manager whose model has a queue (MODEL.md 8.1) appends ``queued``, the
-  tasks waiting (capped at 255), as a ninth labelled value. An empty layout is accepted (a hand-typed message); a layout with other labels
-  is refused. `hrc/sim/true_state` is the same with the 11 state variables ``em .. d``.
+  tasks waiting (capped at 255), as a ninth labelled value. An empty layout is accepted (a
+  hand-typed message); a layout with other labels is refused. `hrc/sim/true_state` is the same
+  with the 11 state variables ``em .. d``.
 - `hrc/task_request` (std_msgs/UInt8MultiArray): ``[tp, tc, tx]``; the layout is not read.
 - `hrc/task_request_result` (diagnostic_msgs/DiagnosticStatus): the task manager's report on
   each request, key-values `accepted`, `tp`, `tc`, `tx`, `request`, `reason`, `published_ns`

@@ -23,14 +23,14 @@ epoch; `--waiting-cost W` charges W in any configuration (so a model without a q
 the same way; its decisions do not change). Then the table has the waiting task-epochs and
 episodes.csv `waiting_epochs` and `discounted_waiting` (the charge is W times the latter).
 
-Model mismatch: with `--true-config` the human and the costs are drawn from that
-configuration (the world) while the robot plans with `--config` and its policy (policy and
-belief filter); in random episodes the people start from the world's person prior when it
-has one (`observation.prior`), uniformly otherwise and always without `--true-config`. The same episodes are also run planning with the true configuration (its
-`--true-policy`, else the shipped one solved for it, else solved here), and the regret of each
-selector is the paired difference of the two costs, with its 95% interval. The POMDP
-selectors (pomdp, fib) are left out of that comparison: they would need a POMDP policy solved
-for the true configuration too.
+Model mismatch: with `--true-config` the human and the costs are drawn from that configuration
+(the world) while the robot plans with `--config` and its policy (policy and belief filter); in
+random episodes the people start from the world's person prior when it has one
+(`observation.prior`), uniformly otherwise and always without `--true-config`. The same
+episodes are also run planning with the true configuration (its `--true-policy`, else the
+shipped one solved for it, else solved here), and the regret of each selector is the paired
+difference of the two costs, with its 95% interval. The POMDP selectors (pomdp, fib) are left
+out of that comparison: they would need a POMDP policy solved for the true configuration too.
 """
 
 from __future__ import annotations
