@@ -1383,7 +1383,8 @@ def _yaml_lines(value, indent: int = 0) -> list[str]:
 
 def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
     """The fitted configuration as a complete YAML file with a header saying what it is;
-    with `stream` (a `stream.StreamFit` or `QueueStreamFit`) its `stream` section is the fitted one."""
+    with `stream` (a `stream.StreamFit` or `QueueStreamFit`) its `stream` section is the
+    fitted one."""
     import textwrap
     data = fitted_data(result, base)
     if stream is not None:

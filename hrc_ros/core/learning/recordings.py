@@ -9,15 +9,16 @@ A record of epoch k is what the robot saw and did, never the hidden emotions:
 
 Two sources give the same `Recording` (one per episode):
 
-Trajectory CSV (`read_csv`; docs/LEARNING.md): one row per epoch with the columns `epoch`,
-`tp tc tx ty hp hc bp bc d` (x_k), `O` (1..3; empty or 0 when the epoch had no observation),
+Trajectory CSV (`read_csv`; docs/LEARNING.md): one row per epoch with the columns `epoch`, `tp
+tc tx ty hp hc bp bc d` (x_k), `O` (1..3; empty or 0 when the epoch had no observation),
 `action` (a name, `nw` .. `dn`) and `accepted` (1 or 0, empty when a_k was not an answered
 request; `true` / `false` are read too), and optionally `episode` (any text; without it the
 file is one episode), and optionally `queued` (the tasks released and waiting behind the
-current one at the epoch's start, MODEL.md 8.1; empty where unknown). Every other column is ignored, in particular `em`, `ea` and the belief
-columns that `hrc-simulate` and `hrc-case-study` write: real data has no hidden state. A missing
-column, an unreadable or out-of-range value or epochs going backwards within an episode stop
-the reading with one line naming the file, the line and what is wrong (`RecordingError`).
+current one at the epoch's start, MODEL.md 8.1; empty where unknown). Every other column is
+ignored, in particular `em`, `ea` and the belief columns that `hrc-simulate` and
+`hrc-case-study` write: real data has no hidden state. A missing column, an unreadable or
+out-of-range value or epochs going backwards within an episode stop the reading with one line
+naming the file, the line and what is wrong (`RecordingError`).
 
 Bags (`read_bag_recording`): the topics `hrc/epoch`, `hrc/task_state`, `hrc/distance_level`,
 `hrc/observation`, `hrc/action` and, if present, `hrc/human_response` of one cell (a namespace;
@@ -31,11 +32,10 @@ not continue the count is left out and reported. Of each epoch's task state, dis
 observation and action the first one counts; the answer to a request is the latest
 `hrc/human_response` published after the action in its window (the task manager's rule,
 docs/DESIGN.md). The task state's optional ninth value, `queued` (a task manager with a queue,
-MODEL.md 8.1), is kept as `Recording.queued`. A message that cannot be read (CDR bytes its schema does not decode, a value
-out of range) is reported and left out (`Recording.issues`), the rest of the bag is read; an
-epoch left without its task state or action goes too, reported. A bag without one of the needed
-topics is refused.
-"""
+MODEL.md 8.1), is kept as `Recording.queued`. A message that cannot be read (CDR bytes its
+schema does not decode, a value out of range) is reported and left out (`Recording.issues`),
+the rest of the bag is read; an epoch left without its task state or action goes too, reported.
+A bag without one of the needed topics is refused. """
 
 from __future__ import annotations
 

@@ -253,9 +253,10 @@ class QueueStreamFit:
         if not self.counts.sum():
             out.append('no task entered: q is the model\'s (every task equally likely)')
         if self.multiple:
-            out.append(f'{self.multiple} epoch(s) released two or more tasks ({self.multiple_tasks}'
-                       ' in all), each counted as one release: the model releases at most one '
-                       'per epoch, so the rate is underestimated (shorten the epoch)')
+            out.append(f'{self.multiple} epoch(s) released two or more tasks '
+                       f'({self.multiple_tasks} in all), each counted as one release: the model '
+                       'releases at most one per epoch, so the rate is underestimated '
+                       '(shorten the epoch)')
         return out
 
     def report(self) -> dict:
