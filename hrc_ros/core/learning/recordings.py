@@ -35,7 +35,8 @@ docs/DESIGN.md). The task state's optional ninth value, `queued` (a task manager
 MODEL.md 8.1), is kept as `Recording.queued`. A message that cannot be read (CDR bytes its
 schema does not decode, a value out of range) is reported and left out (`Recording.issues`),
 the rest of the bag is read; an epoch left without its task state or action goes too, reported.
-A bag without one of the needed topics is refused. """
+A bag without one of the needed topics is refused.
+"""
 
 from __future__ import annotations
 
