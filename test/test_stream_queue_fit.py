@@ -30,7 +30,7 @@ def generated(episodes, epochs, p_idle, p_busy, seed):
         x = dict.fromkeys(TASK_VARIABLES, 0)
         queue = []
         rows = []
-        for k in range(1, epochs + 1):
+        for _ in range(epochs):
             action = CT if x['tp'] and x['ty'] == 0 else NW
             rows.append(([x[n] for n in TASK_VARIABLES], action, len(queue)))
             p = p_busy if x['tp'] else p_idle
