@@ -256,3 +256,33 @@ def test_the_default_base_still_fits_the_queue_less_stream_from_queue_recordings
     a, b = fit_stream(recordings, bootstrap=50), fit_stream(stripped, bootstrap=50)
     assert a.report() == b.report() and a.section() == b.section()
     assert load_config(default_config_path()).queue is None
+
+
+def test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream(tmp_path,
+                                                                          ros_domain_id):
+    """The whole path on the ROS graph: hrc-case-study runs the nodes with
+    config/stream_queue.yaml and records a bag; its task states carry the ninth value, and
+    hrc-fit --stream on that base counts the case study's two scheduled releases (tasks 2 and
+    3, after epoch 1's) from it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = Path(sys.executable).parent / 'hrc-case-study'
+    result = subprocess.run(
+        [str(script), '--out', str(tmp_path / 'run'), '--config', str(QUEUE_CONFIG),
+         '--policy', str(REPO / 'policies' / 'stream_queue.npz'), '--epochs', '24',
+         '--epoch-period', '0.25', '--seed', '3', '--no-view'],
+        capture_output=True, text=True, timeout=240)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr
+    bag = tmp_path / 'run' / 'bag'
+    rec, = read_recordings([bag], 2, 2)
+    assert rec.queued is not None and len(rec) == 24 and (rec.queued >= 0).all()
+    out = tmp_path / 'fitted.yaml'
+    from hrc_ros.tools.fit import main
+    assert main([str(bag), '-o', str(out), '--base', str(QUEUE_CONFIG), '--stream',
+                 '--bootstrap', '20', '--starts', '1', '-q']) == 0
+    report = json.loads((tmp_path / 'fitted.report.json').read_text())['stream']
+    assert report['idle_trials'] + report['busy_trials'] == 23 and report['left_out'] == 0
+    assert report['idle_releases'] + report['busy_releases'] == 2
+    assert sorted(tuple(r[:3]) for r in load_config(out).data['stream']['q']) == [
+        (2, 2, 1), (2, 2, 2)]
