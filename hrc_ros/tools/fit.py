@@ -8,7 +8,11 @@ Writes OUT.yaml, a complete configuration (the base's with the fitted families),
 OUT.report.json; prints the report: every parameter with its bootstrap 95% interval and its
 support, the log likelihood at every 10th iteration and the last (the JSON report has every
 iteration), the epochs used and the warnings. `--stream` also counts the task stream's
-arrivals (MODEL.md 8, core.learning.stream) and writes them as OUT.yaml's `stream` section.
+arrivals (MODEL.md 8, core.learning.stream) and writes them as OUT.yaml's `stream` section;
+on a base with `stream.queue` (MODEL.md 8.1) it counts the releases from the tasks waiting per
+epoch (`queued`: the task state's ninth value, a CSV's queued column) and writes arrival_idle,
+arrival_busy and q with the base's queue and waiting_cost; recordings without `queued` are
+refused in one line.
 `--prior` also fits the person prior, the distribution of h = 3*em + ea where an episode starts
 (MODEL.md 6.1), from the episodes recorded from epoch 1, and writes it as `observation.prior`.
 
@@ -32,7 +36,7 @@ from ..core.learning.fit import (BOOTSTRAP, DEFAULT_METHOD, FAMILIES, MAX_ITER, 
                                  prepare, report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
-from ..core.learning.stream import fit_stream
+from ..core.learning.stream import StreamError, check_queued, fit_queue_stream, fit_stream
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
                      output_file)
 
@@ -74,7 +78,9 @@ def main(argv=None) -> int:
                         help='also plot fitted vs base parameters (default: OUT with .png)')
     parser.add_argument('--stream', action='store_true',
                         help='also fit the task stream (arrival_idle, arrival_complete, q; '
-                        'MODEL.md 8) and write it as the stream section')
+                        'MODEL.md 8; with a base that has stream.queue: arrival_idle, '
+                        'arrival_busy, q from the tasks waiting, MODEL.md 8.1) and write it as '
+                        'the stream section')
     parser.add_argument('--prior', action='store_true',
                         help='also fit the person prior (where h = 3*em + ea starts, from the '
                         'episodes recorded from epoch 1; MODEL.md 6.1) and write it as '
@@ -91,11 +97,14 @@ def main(argv=None) -> int:
         hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
+        queue = base.queue if args.stream else None
+        if queue is not None:
+            check_queued(recordings)
         data = prepare(recordings)
         for path in outputs.values():      # folders are made once the inputs have been read
             if path is not None:
                 output_file(path)
-    except (ToolError, ConfigError, RecordingError, FitError) as exc:
+    except (ToolError, ConfigError, RecordingError, FitError, StreamError) as exc:
         return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episode(s) from '
@@ -105,8 +114,11 @@ def main(argv=None) -> int:
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say, method=args.method,
                      prior=args.prior)
-        stream = (fit_stream(recordings, bootstrap=args.bootstrap, seed=args.seed)
-                  if args.stream else None)
+        stream = (None if not args.stream else
+                  fit_stream(recordings, bootstrap=args.bootstrap, seed=args.seed)
+                  if queue is None else
+                  fit_queue_stream(recordings, queue, base.data['stream']['waiting_cost'],
+                                   bootstrap=args.bootstrap, seed=args.seed))
         text = config_yaml(result, base, args.inputs, stream)
     except FitError as exc:
         return fail('hrc-fit', exc)

@@ -1383,7 +1383,8 @@ def _yaml_lines(value, indent: int = 0) -> list[str]:
 
 def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
     """The fitted configuration as a complete YAML file with a header saying what it is;
-    with `stream` (a `stream.StreamFit`) its `stream` section is the fitted one."""
+    with `stream` (a `stream.StreamFit` or `QueueStreamFit`) its `stream` section is the
+    fitted one."""
     import textwrap
     data = fitted_data(result, base)
     if stream is not None:
@@ -1406,9 +1407,7 @@ def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
         "base's. Solve it before use: hrc-solve --config <this file> -o <policy.npz>",
     ]
     if stream is not None:
-        header.insert(-1, f'Stream (MODEL.md 8) counted: arrival_idle from {stream.idle_trials} '
-                      f'idle epochs, arrival_complete from {stream.complete_trials} completions, '
-                      f'q from {int(stream.counts.sum())} arrivals; intervals in the report.')
+        header.insert(-1, stream.header())
     lines = [f'# {line}' for paragraph in header
              for line in textwrap.wrap(paragraph, 97, break_on_hyphens=False)]
     return '\n'.join(lines + [''] + _yaml_lines(data)) + '\n'

@@ -9,14 +9,16 @@ A record of epoch k is what the robot saw and did, never the hidden emotions:
 
 Two sources give the same `Recording` (one per episode):
 
-Trajectory CSV (`read_csv`; docs/LEARNING.md): one row per epoch with the columns `epoch`,
-`tp tc tx ty hp hc bp bc d` (x_k), `O` (1..3; empty or 0 when the epoch had no observation),
+Trajectory CSV (`read_csv`; docs/LEARNING.md): one row per epoch with the columns `epoch`, `tp
+tc tx ty hp hc bp bc d` (x_k), `O` (1..3; empty or 0 when the epoch had no observation),
 `action` (a name, `nw` .. `dn`) and `accepted` (1 or 0, empty when a_k was not an answered
 request; `true` / `false` are read too), and optionally `episode` (any text; without it the
-file is one episode). Every other column is ignored, in particular `em`, `ea` and the belief
-columns that `hrc-simulate` and `hrc-case-study` write: real data has no hidden state. A missing
-column, an unreadable or out-of-range value or epochs going backwards within an episode stop
-the reading with one line naming the file, the line and what is wrong (`RecordingError`).
+file is one episode), and optionally `queued` (the tasks released and waiting behind the
+current one at the epoch's start, MODEL.md 8.1; empty where unknown). Every other column is
+ignored, in particular `em`, `ea` and the belief columns that `hrc-simulate` and
+`hrc-case-study` write: real data has no hidden state. A missing column, an unreadable or
+out-of-range value or epochs going backwards within an episode stop the reading with one line
+naming the file, the line and what is wrong (`RecordingError`).
 
 Bags (`read_bag_recording`): the topics `hrc/epoch`, `hrc/task_state`, `hrc/distance_level`,
 `hrc/observation`, `hrc/action` and, if present, `hrc/human_response` of one cell (a namespace;
@@ -29,10 +31,11 @@ count after the source fell silent (a restart) begins a new episode, a stray epo
 not continue the count is left out and reported. Of each epoch's task state, distance level,
 observation and action the first one counts; the answer to a request is the latest
 `hrc/human_response` published after the action in its window (the task manager's rule,
-docs/DESIGN.md). A message that cannot be read (CDR bytes its schema does not decode, a value
-out of range) is reported and left out (`Recording.issues`), the rest of the bag is read; an
-epoch left without its task state or action goes too, reported. A bag without one of the needed
-topics is refused.
+docs/DESIGN.md). The task state's optional ninth value, `queued` (a task manager with a queue,
+MODEL.md 8.1), is kept as `Recording.queued`. A message that cannot be read (CDR bytes its
+schema does not decode, a value out of range) is reported and left out (`Recording.issues`),
+the rest of the bag is read; an epoch left without its task state or action goes too, reported.
+A bag without one of the needed topics is refused.
 """
 
 from __future__ import annotations
@@ -51,10 +54,12 @@ from ..protocol import EpochFollower, InputError, Stamp
 from ..quoting import QUOTE_LIMIT, cap, quote
 
 COLUMNS = ('epoch',) + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
-OPTIONAL_COLUMNS = ('episode',)
+OPTIONAL_COLUMNS = ('episode', 'queued')
 NO_OBSERVATION = 0
 UNANSWERED = -1
 UNKNOWN_DISTANCE = -1
+UNKNOWN_QUEUED = -1
+MAX_QUEUED = 255        # the task state's ninth value is capped there (ros/conversions.py)
 BAG_TOPICS = ('hrc/epoch', 'hrc/task_state', 'hrc/distance_level', 'hrc/observation',
               'hrc/action')
 OPTIONAL_BAG_TOPICS = ('hrc/human_response',)
@@ -71,7 +76,10 @@ class Recording:
     """One episode: per-epoch arrays of equal length T (see the module docstring).
 
     `task` is (T, 8) in TASK_VARIABLES order; `d` is -1 and `action` -1 where a bag had none
-    for that epoch; `line` is the CSV line (or the epoch number for a bag) for reports."""
+    for that epoch; `line` is the CSV line (or the epoch number for a bag) for reports.
+    `queued` (T,) is the tasks waiting behind the current one at each epoch's start (MODEL.md
+    8.1), -1 where an epoch's record has none; None when no epoch of the recording has it (a
+    cell without a queue, a CSV without the column)."""
 
     source: str
     episode: str
@@ -83,6 +91,7 @@ class Recording:
     accepted: np.ndarray
     line: np.ndarray
     issues: list = field(default_factory=list)
+    queued: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.epoch.size)
@@ -93,12 +102,15 @@ class Recording:
 
 
 def _recording(source: str, episode: str, rows: list, issues: list) -> Recording:
-    """rows: (epoch, task (8), d, O, action, accepted, line) tuples."""
+    """rows: (epoch, task (8), d, O, action, accepted, line[, queued or None]) tuples."""
     def column(i, dtype=np.int64):
         return np.array([r[i] for r in rows], dtype=dtype)
     task = np.array([r[1] for r in rows], dtype=np.int64).reshape(len(rows), len(TASK_VARIABLES))
+    queued = [r[7] if len(r) > 7 else None for r in rows]
+    kept = (None if all(v is None for v in queued) else
+            np.array([UNKNOWN_QUEUED if v is None else v for v in queued], dtype=np.int64))
     return Recording(source, episode, column(0), task, column(2), column(3), column(4),
-                     column(5), column(6), issues)
+                     column(5), column(6), issues, kept)
 
 
 # -- CSV --------------------------------------------------------------------------------------
@@ -169,12 +181,15 @@ def read_csv(path, rho: int, sigma: int) -> list[Recording]:
         else:
             raise RecordingError(f'{path}:{line}: column accepted must be 1, 0 or empty, got '
                                  f'{quote(answer)}')
+        queued = None
+        if 'queued' in header and row['queued'].strip() != '':
+            queued = _integer(path, line, 'queued', row['queued'], 0, 2 ** 31)
         rows = episodes.setdefault(episode, [])
         if rows and epoch <= rows[-1][0]:
             raise RecordingError(f'{path}:{line}: epochs out of order in episode '
                                  f'{cap(episode, QUOTE_LIMIT)}: epoch {epoch} after epoch '
                                  f'{rows[-1][0]}')
-        rows.append((epoch, task, d, observation, action_index(name), accepted, line))
+        rows.append((epoch, task, d, observation, action_index(name), accepted, line, queued))
     if not episodes:
         raise RecordingError(f'{path}: no rows (a trajectory CSV has one row per epoch)')
     return [_recording(str(path), episode, rows, []) for episode, rows in episodes.items()]
@@ -244,8 +259,9 @@ def _decoders(rho: int, sigma: int) -> dict:
     def task_state(msg):
         values = [int(v) for v in bytes(msg.data)] if isinstance(msg.data, (bytes, bytearray)) \
             else [int(v) for v in msg.data]
+        queued = None
         if len(values) == len(TASK_VARIABLES) + 1:
-            values = values[:-1]        # `queued` (MODEL.md 8.1): the queue is not fitted here
+            queued = values.pop()       # `queued` (MODEL.md 8.1): the tasks waiting
         if len(values) != len(TASK_VARIABLES):
             raise ValueError(f'{len(values)} values, not the 8 {" ".join(TASK_VARIABLES)} '
                              '(and optionally queued)')
@@ -253,7 +269,7 @@ def _decoders(rho: int, sigma: int) -> dict:
         for name, v, top in zip(TASK_VARIABLES, values, tops):
             if not 0 <= v <= top:
                 raise ValueError(f'{name} = {v} is out of range 0..{top}')
-        return tuple(values)
+        return tuple(values), queued
 
     def action(msg):
         return action_index(str(msg.data))
@@ -339,7 +355,8 @@ def _bag_row(source: str, placed: dict, w: int, k: int, issues: list):
     def first(topic):
         values = placed.get((topic, w))
         return values[0] if values else (None, None)
-    _, task = first('hrc/task_state')
+    _, state = first('hrc/task_state')
+    task, queued = (None, None) if state is None else state
     action_t, action = first('hrc/action')
     if task is None or action is None:
         what = ' and '.join(n for n, v in (('task state', task), ('action', action))
@@ -351,7 +368,7 @@ def _bag_row(source: str, placed: dict, w: int, k: int, issues: list):
     answers = [v for t, v in placed.get(('hrc/human_response', w), []) if t > action_t]
     accepted = UNANSWERED if not answers else int(answers[-1])
     return (k, task, UNKNOWN_DISTANCE if d is None else d,
-            NO_OBSERVATION if observation is None else observation, action, accepted, k)
+            NO_OBSERVATION if observation is None else observation, action, accepted, k, queued)
 
 
 def read_recordings(paths, rho: int, sigma: int, namespace: str | None = None

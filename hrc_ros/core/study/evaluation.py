@@ -152,7 +152,8 @@ class BatchResult:
     trajectory: dict | None = None      # with run(record=True): (E, K) arrays, see `run`
 
     def recordings(self, model: HRCModel) -> list:
-        """The recorded episodes as `recordings.Recording`s (what a robot sees: no em, ea)."""
+        """The recorded episodes as `recordings.Recording`s (what a robot sees: no em, ea),
+        with `queued` the tasks waiting per epoch (MODEL.md 8.1; the task book's, uncapped)."""
         from ..learning.recordings import Recording
         t = self.trajectory
         if t is None:
@@ -163,7 +164,8 @@ class BatchResult:
         for e in range(t['action'].shape[0]):
             task = np.stack([grid[n][t['y'][e]] for n in TASK_VARIABLES], axis=1)
             out.append(Recording('simulation', str(e), epochs, task, t['d'][e],
-                                 t['observation'][e], t['action'][e], t['accepted'][e], epochs))
+                                 t['observation'][e], t['action'][e], t['accepted'][e], epochs,
+                                 queued=t['waiting'][e].copy()))
         return out
 
     @property
