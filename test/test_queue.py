@@ -2,6 +2,8 @@
 factored solver and the fused sweep against it, policy files, the evaluation reading the queue
 length, and the refusals where the queue is not built yet (POMDP, nodes)."""
 
+import json
+
 import numpy as np
 import pytest
 from reference import rule_q
@@ -394,3 +396,36 @@ def test_hrc_evaluate_writes_the_waiting_columns_only_where_waiting_is_charged(t
     for name in ('charged', 'queue'):
         assert headers[name] == old + ['waiting_epochs', 'discounted_waiting']
         assert 'waiting_epochs' in metrics[name]
+
+
+def test_waiting_is_charged_by_the_world_in_a_mismatch(small_queue):
+    """--true-config: the costs are the world's, the waiting charge too. A plan without a queue
+    in a world with one is charged the world's w (as the true run planning with that world
+    is), a queue plan in a world without one is not charged: the regret compares costs
+    measured the same way."""
+    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
+    plain_policy = np.zeros(plain.n_states, dtype=np.int8)
+    queue_policy = np.zeros(small_queue.n_states, dtype=np.int8)
+    w = small_queue.config.waiting_cost
+    assert BatchSimulator(plain, plain_policy, world=small_queue).waiting_cost == w
+    assert BatchSimulator(small_queue, queue_policy, world=small_queue).waiting_cost == w
+    assert BatchSimulator(small_queue, queue_policy, world=plain).waiting_cost is None
+    assert BatchSimulator(small_queue, queue_policy, world=plain,
+                          waiting_cost=1.5).waiting_cost == 1.5
+
+
+def test_hrc_evaluate_charges_both_runs_of_a_mismatch_the_worlds_waiting(tmp_path):
+    """hrc-evaluate --config default --true-config stream_queue: the regret with no flag is
+    the one with the world's w given explicitly (both runs charged w = 4), not a comparison of
+    an uncharged plan with a charged truth."""
+    from hrc_ros.tools import evaluate as evaluate_tool
+    regrets = []
+    for extra in ([], ['--waiting-cost', str(load_config(
+            shipped_config_path('stream_queue')).waiting_cost)]):
+        out = tmp_path / f'run{len(regrets)}'
+        assert evaluate_tool.main(['--config', str(shipped_config_path('default')),
+                                   '--true-config', str(shipped_config_path('stream_queue')),
+                                   '--episodes', '30', '--epochs', '10', '--selectors', 'paper',
+                                   '--out', str(out), *extra]) == 0
+        regrets.append(json.loads((out / 'summary.json').read_text())['regret']['paper'])
+    assert regrets[0] == regrets[1]

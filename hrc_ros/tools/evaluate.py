@@ -267,7 +267,8 @@ def main(argv=None) -> int:
               flush=True)
         true_policy = solve(world)
     progress = lambda m: print(m, flush=True)   # noqa: E731
-    waiting_cost = charged_waiting_cost(model, args.waiting_cost)
+    # the world's charge, for both runs: the regret compares costs measured the same way
+    waiting_cost = charged_waiting_cost(world or model, args.waiting_cost)
     metrics = METRICS if waiting_cost is None else QUEUE_METRICS
     results = evaluate(model, policy, args.episodes, args.epochs, args.seed, args.task_rate,
                        selectors, args.mode, not args.no_fail_safe, progress=progress,

@@ -203,7 +203,8 @@ class BatchSimulator:
         else:
             self.by_h = np.ascontiguousarray(self.policy.reshape(
                 self.levels, N_HIDDEN, self.columns).transpose(1, 0, 2).reshape(N_HIDDEN, -1))
-        self.waiting_cost = charged_waiting_cost(model, waiting_cost)
+        # what waiting costs is the world's (the costs are drawn from it), not the plan's
+        self.waiting_cost = charged_waiting_cost(world, waiting_cost)
         self.state_cost = world.state_cost_vector
         self.action_cost = world.action_cost
         grid = model.task_grid
