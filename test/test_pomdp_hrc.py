@@ -403,3 +403,18 @@ def test_cli_refuses_a_baseline_not_evaluated_and_a_missing_pomdp_policy(tmp_pat
                           str(tmp_path / 'none.npz'), '--out', str(tmp_path)])
     assert code == 2
     assert 'does not exist' in capsys.readouterr().err
+
+
+def test_sampled_beliefs_stay_probabilities_when_the_prior_rules_the_evidence_out(reduced):
+    """epsilon 0 and a person prior all on h = 4 (review): the case study's start keeps its
+    true h = 0, whose first observation the prior calls impossible; the gathered beliefs
+    restart from the evidence alone (as BeliefFilter does) instead of becoming NaN."""
+    from hrc_ros.core.pomdp.solver import _starts, q_policy, fib_q, sample_beliefs
+    model = HRCModel(reduced.config.with_overrides({'observation': {
+        'epsilon': 0.0, 'prior': [0, 0, 0, 0, 1, 0, 0, 0, 0]}}))
+    hrc = hrc_pomdp(model)
+    q_fib, _ = fib_q(hrc.pomdp, tol=1e-6)
+    xs, bs = sample_beliefs(hrc.pomdp, hrc.likelihood, _starts(hrc), q_policy(hrc.pomdp, q_fib),
+                            episodes=400, epochs=20, seed=1, enter=hrc.enter)
+    assert np.all(np.isfinite(bs))
+    np.testing.assert_allclose(bs.sum(axis=1), 1.0)

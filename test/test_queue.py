@@ -429,3 +429,21 @@ def test_hrc_evaluate_charges_both_runs_of_a_mismatch_the_worlds_waiting(tmp_pat
                                    '--out', str(out), *extra]) == 0
         regrets.append(json.loads((out / 'summary.json').read_text())['regret']['paper'])
     assert regrets[0] == regrets[1]
+
+
+def test_the_arm_cell_and_hrc_simulate_refuse_a_queue_in_one_line(small_queue, capsys):
+    """Where the tasks waiting are not followed yet (review): the arm's batch cell and
+    hrc-simulate refuse a queue configuration in one line instead of reading l = 0 or raising
+    a traceback mid-run."""
+    from hrc_ros.core.robot.cell import ArmCell
+    from hrc_ros.tools import evaluate as evaluate_tool
+    from hrc_ros.tools import simulate as simulate_tool
+    with pytest.raises(ValueError, match='stream.queue'):
+        ArmCell(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
+    path = str(shipped_config_path('stream_queue'))
+    for tool, argv in ((evaluate_tool, ['--cell', 'arm', '--config', path, '--selectors',
+                                        'ssm_only,mdp', '--episodes', '2', '--epochs', '5']),
+                       (simulate_tool, ['--config', path])):
+        assert tool.main(argv + ['--out', '/tmp/hrc_queue_refused']) == 2
+        err = capsys.readouterr().err.strip()
+        assert 'stream.queue' in err and '\n' not in err, err

@@ -421,7 +421,7 @@ def task_state_from_msg(msg: UInt8MultiArray, rho: int | None = None,
     if len(msg.data) == len(QUEUED_LABELS):
         return _record_from_msg(msg, QUEUED_LABELS, 'task state',
                                 None if tops is None else tops + (MAX_QUEUED,))
-    return _record_from_msg(msg, TASK_VARIABLES, 'task state', tops)
+    return _record_from_msg(msg, TASK_VARIABLES, 'task state (or 9 with queued)', tops)
 
 
 def true_state_to_msg(state: Mapping[str, int]) -> UInt8MultiArray:

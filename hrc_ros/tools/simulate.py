@@ -38,6 +38,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         config, model, policy = load_model(args)
+        if config.queue is not None:
+            raise ToolError(f'{config.source}: hrc-simulate does not follow the tasks waiting '
+                            '(stream.queue, MODEL.md 8.1) yet: use hrc-evaluate, or '
+                            'hrc-case-study (the nodes carry it)')
         pomdp = load_pomdp(args, config, (args.selector,))
         out = output_folder(args.out)
     except ToolError as exc:

@@ -396,8 +396,8 @@ def sample_beliefs(pomdp: MixedPOMDP, likelihood: np.ndarray, starts: Starts, po
     x = starts.x[s].astype(np.intp)
     h = _draw(rng, starts.truth[s])
     o = _draw(rng, likelihood.T[h])
-    b = starts.prior[s] * likelihood[o]
-    b /= b.sum(axis=1, keepdims=True)
+    evidence = likelihood / likelihood.sum(axis=1, keepdims=True)    # L[o] alone, normalised
+    b = _normalised(starts.prior[s] * likelihood[o], evidence[o])
     xs, bs = [], []
     for _ in range(epochs):
         xs.append(x.copy())
@@ -415,8 +415,7 @@ def sample_beliefs(pomdp: MixedPOMDP, likelihood: np.ndarray, starts: Starts, po
         joint = pomdp.kernel[g, :, h, :].reshape(episodes, -1)       # (E, O*H')
         oh = _draw(rng, joint)
         o, h = oh // n_h, oh % n_h
-        b = np.einsum('eh,ehk->ek', b * lik, pomdp.kernel[g, o])
-        b /= b.sum(axis=1, keepdims=True)
+        b = _normalised(np.einsum('eh,ehk->ek', b * lik, pomdp.kernel[g, o]), evidence[o])
         x = x_next
         if enter is not None:
             can = enter[x, 0] >= 0
@@ -425,6 +424,17 @@ def sample_beliefs(pomdp: MixedPOMDP, likelihood: np.ndarray, starts: Starts, po
                 j = rng.integers(0, enter.shape[1], size=int(arrive.sum()))
                 x[arrive] = enter[x[arrive], j]
     return np.concatenate(xs), np.concatenate(bs)
+
+
+def _normalised(b: np.ndarray, restart: np.ndarray) -> np.ndarray:
+    """Rows of b normalised; a row whose mass is below the smallest normal float (evidence the
+    belief called impossible: a person prior or epsilon 0 that rules it out) restarts from
+    `restart`, the evidence alone, as `BeliefFilter` does."""
+    total = b.sum(axis=1, keepdims=True)
+    lost = total[:, 0] < np.finfo(float).tiny
+    out = b / np.where(lost[:, None], 1.0, total)
+    out[lost] = restart[lost]
+    return out
 
 
 def _draw(rng, p: np.ndarray) -> np.ndarray:
@@ -661,8 +671,9 @@ def _starts(hrc: HRCPomdp) -> Starts:
 
 
 def _fixed_points(hrc: HRCPomdp) -> tuple[np.ndarray, np.ndarray]:
-    """At every x: the 9 corners, the filter's first beliefs L[O] / sum L[O] and the Table 5
-    rows."""
+    """At every x: the 9 corners, the filter's first beliefs under a uniform prior L[O] / sum
+    L[O] and the Table 5 rows (with a person prior its first beliefs are among the case-study
+    targets, which `_with_fixed` adds, and the sampled starts begin from it)."""
     n_x = hrc.pomdp.n_x
     lik = hrc.likelihood
     rows = np.vstack([np.eye(N_HIDDEN), lik / lik.sum(axis=1, keepdims=True),

@@ -184,6 +184,10 @@ class ArmCell:
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
                  pomdp=None, description=None, programs=None,
                  settings: ArmCellSettings | None = None):
+        if model.queue is not None:
+            raise ValueError(f'{model.config.source}: the cell with the arm does not observe '
+                             'the tasks waiting (stream.queue, MODEL.md 8.1) yet: leave out '
+                             'stream.queue, or evaluate it in the model\'s cell')
         self.model = model
         self.policy, self.value = policy_arrays(policy, value)
         self.pomdp = pomdp
