@@ -494,13 +494,10 @@ class HRCModel:
         if self.queue is not None:
             return self._queue_transition(sources, action)
         s = self.state(sources)
-        em, ea, d = s[:, 0], s[:, 1], s[:, 10]
+        em = s[:, 0]
         task = {name: s[:, 2 + k] for k, name in enumerate(TASK_VARIABLES)}
         p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
-        emotion = self.action_emotion_matrix(action)
-        p_delta = self.config.p_delta
-        batch = np.arange(len(sources))
-        src, tgt, prob = [], [], []
+        out = []
         arrivals = self.arrivals
         for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
             nxt = self.step_task(task, action, accepted)
@@ -513,17 +510,29 @@ class HRCModel:
                 for j, q_j in enumerate(arrivals.q):
                     entered = np.where(nxt['tp'] == 0, arrivals.enter[y_step, j], y_step)
                     branches.append((entered, p_a * p_arrive * q_j))
-            for y_next, p_y in branches:
-                for k, delta in enumerate(DELTAS):
-                    d_next = self.next_distance(d, action, delta)
-                    p_ad = p_y * p_delta[ea, k]
-                    for h_next in range(N_HIDDEN):
-                        p = p_ad * emotion[3 * em + ea, h_next]
-                        keep = p > 0
-                        flat = (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep]
-                        src.append(batch[keep])
-                        tgt.append(flat)
-                        prob.append(p[keep])
+            out += [(0, y_next, p_y) for y_next, p_y in branches]
+        return self._spread(out, s, action)
+
+    def _spread(self, branches, s: np.ndarray, action: int) -> Transition:
+        """The task branches [(l', y', P)] of sources with states `s` (l' 0 without a queue)
+        through the distance and emotion steps, as sparse rows."""
+        em, ea, d = s[:, 0], s[:, 1], s[:, 10]
+        emotion = self.action_emotion_matrix(action)
+        p_delta = self.config.p_delta
+        batch = np.arange(len(s))
+        src, tgt, prob = [], [], []
+        for l_next, y_next, p_y in branches:
+            for k, delta in enumerate(DELTAS):
+                d_next = self.next_distance(d, action, delta)
+                p_ad = p_y * p_delta[ea, k]
+                for h_next in range(N_HIDDEN):
+                    p = p_ad * emotion[3 * em + ea, h_next]
+                    keep = p > 0
+                    flat = (np.asarray(l_next)[keep] * self.n_base if np.ndim(l_next) else 0) \
+                        + (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep]
+                    src.append(batch[keep])
+                    tgt.append(flat)
+                    prob.append(p[keep])
         return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
 
     def _queue_steps(self, sources: np.ndarray, action: int):
@@ -557,24 +566,7 @@ class HRCModel:
 
     def _queue_transition(self, sources: np.ndarray, action: int) -> Transition:
         branches, _, s = self._queue_steps(sources, action)
-        em, ea, d = s[:, 0], s[:, 1], s[:, 10]
-        emotion = self.action_emotion_matrix(action)
-        p_delta = self.config.p_delta
-        batch = np.arange(len(sources))
-        src, tgt, prob = [], [], []
-        for l_next, y_next, p_y in branches:
-            for k, delta in enumerate(DELTAS):
-                d_next = self.next_distance(d, action, delta)
-                p_ad = p_y * p_delta[ea, k]
-                for h_next in range(N_HIDDEN):
-                    p = p_ad * emotion[3 * em + ea, h_next]
-                    keep = p > 0
-                    flat = (l_next[keep] * self.n_base
-                            + (h_next * self.n_task + y_next[keep]) * N_DISTANCE + d_next[keep])
-                    src.append(batch[keep])
-                    tgt.append(flat)
-                    prob.append(p[keep])
-        return Transition(np.concatenate(src), np.concatenate(tgt), np.concatenate(prob))
+        return self._spread(branches, s, action)
 
     def flat_cost(self, sources, action: int) -> np.ndarray:
         """The expected cost of action `action` at the flat states `sources`: J(s, a), and with

@@ -37,8 +37,37 @@ from .recordings import MAX_QUEUED, Recording
 BOOTSTRAP = 1000
 
 
+class _Counted:
+    """What the two counted streams share: q from the entered tasks' counts, the printed
+    estimate lines and the q lines (`tasks`, `counts`, `intervals` are the subclass's)."""
+
+    @staticmethod
+    def share(hits: int, trials: int) -> float | None:
+        return hits / trials if trials else None
+
+    @property
+    def q(self) -> np.ndarray:
+        total = self.counts.sum()
+        return self.counts / total if total else self.counts.astype(float)
+
+    def estimate_line(self, name: str, value, n: int) -> str:
+        lo, hi = self.intervals.get(name, (float('nan'), float('nan')))
+        shown = 'n/a' if value is None else f'{value:.4f}'
+        return f'  {name}: {shown} [{lo:.4f}, {hi:.4f}] from {n} trials'
+
+    def q_lines(self) -> list[str]:
+        out = []
+        for t, p in zip(self.tasks, self.q):
+            lo, hi = self.intervals.get(f'q{tuple(int(v) for v in t)}', (np.nan, np.nan))
+            out.append(f'  q{tuple(int(v) for v in t)}: {p:.4f} [{lo:.4f}, {hi:.4f}]')
+        return out
+
+    def q_report(self) -> list:
+        return [[*map(int, t), float(p)] for t, p in zip(self.tasks, self.q)]
+
+
 @dataclass
-class StreamFit:
+class StreamFit(_Counted):
     """The counted trials, the estimates and their intervals (see the module docstring)."""
 
     idle_trials: int
@@ -53,16 +82,11 @@ class StreamFit:
 
     @property
     def arrival_idle(self) -> float | None:
-        return self.idle_arrivals / self.idle_trials if self.idle_trials else None
+        return self.share(self.idle_arrivals, self.idle_trials)
 
     @property
     def arrival_complete(self) -> float | None:
-        return self.complete_arrivals / self.complete_trials if self.complete_trials else None
-
-    @property
-    def q(self) -> np.ndarray:
-        total = self.counts.sum()
-        return self.counts / total if total else self.counts.astype(float)
+        return self.share(self.complete_arrivals, self.complete_trials)
 
     def section(self) -> dict:
         """The configuration's `stream` section (q null when nothing arrived: the model's
@@ -92,20 +116,15 @@ class StreamFit:
                 'idle_trials': self.idle_trials, 'idle_arrivals': self.idle_arrivals,
                 'complete_trials': self.complete_trials,
                 'complete_arrivals': self.complete_arrivals,
-                'q': [[*map(int, t), float(p)] for t, p in zip(self.tasks, self.q)],
+                'q': self.q_report(),
                 'intervals': {k: list(v) for k, v in self.intervals.items()},
                 'left_out': self.left_out, 'gaps': self.gaps, 'warnings': self.warnings()}
 
     def lines(self) -> list[str]:
-        def est(name, value, n):
-            lo, hi = self.intervals.get(name, (float('nan'), float('nan')))
-            shown = 'n/a' if value is None else f'{value:.4f}'
-            return f'  {name}: {shown} [{lo:.4f}, {hi:.4f}] from {n} trials'
+        est = self.estimate_line
         out = ['stream (MODEL.md 8):', est('arrival_idle', self.arrival_idle, self.idle_trials),
                est('arrival_complete', self.arrival_complete, self.complete_trials)]
-        for t, p in zip(self.tasks, self.q):
-            lo, hi = self.intervals.get(f'q{tuple(int(v) for v in t)}', (np.nan, np.nan))
-            out.append(f'  q{tuple(int(v) for v in t)}: {p:.4f} [{lo:.4f}, {hi:.4f}]')
+        out += self.q_lines()
         out.append(f'  {self.left_out} pair(s) the task step cannot explain, {self.gaps} skipped '
                    '(epoch gap or no action)')
         out += [f'  warning: {w}' for w in self.warnings()]
@@ -199,7 +218,7 @@ def check_queued(recordings: list[Recording]) -> None:
 
 
 @dataclass
-class QueueStreamFit:
+class QueueStreamFit(_Counted):
     """The counted release trials of the queue's stream, the estimates and their intervals
     (the module docstring); `queue`, `waiting_cost` are the base's, written as they are."""
 
@@ -219,16 +238,11 @@ class QueueStreamFit:
 
     @property
     def arrival_idle(self) -> float | None:
-        return self.idle_releases / self.idle_trials if self.idle_trials else None
+        return self.share(self.idle_releases, self.idle_trials)
 
     @property
     def arrival_busy(self) -> float | None:
-        return self.busy_releases / self.busy_trials if self.busy_trials else None
-
-    @property
-    def q(self) -> np.ndarray:
-        total = self.counts.sum()
-        return self.counts / total if total else self.counts.astype(float)
+        return self.share(self.busy_releases, self.busy_trials)
 
     def section(self) -> dict:
         """The configuration's `stream` section with the base's queue and waiting_cost."""
@@ -265,22 +279,17 @@ class QueueStreamFit:
                 'idle_trials': self.idle_trials, 'idle_releases': self.idle_releases,
                 'busy_trials': self.busy_trials, 'busy_releases': self.busy_releases,
                 'multiple': self.multiple, 'multiple_tasks': self.multiple_tasks,
-                'q': [[*map(int, t), float(p)] for t, p in zip(self.tasks, self.q)],
+                'q': self.q_report(),
                 'intervals': {k: list(v) for k, v in self.intervals.items()},
                 'left_out': self.left_out, 'gaps': self.gaps, 'warnings': self.warnings()}
 
     def lines(self) -> list[str]:
-        def est(name, value, n):
-            lo, hi = self.intervals.get(name, (float('nan'), float('nan')))
-            shown = 'n/a' if value is None else f'{value:.4f}'
-            return f'  {name}: {shown} [{lo:.4f}, {hi:.4f}] from {n} trials'
+        est = self.estimate_line
         out = [f'stream with a queue (MODEL.md 8.1; queue {self.queue} and waiting_cost '
                f'{self.waiting_cost:g} from the base, not fitted):',
                est('arrival_idle', self.arrival_idle, self.idle_trials),
                est('arrival_busy', self.arrival_busy, self.busy_trials)]
-        for t, p in zip(self.tasks, self.q):
-            lo, hi = self.intervals.get(f'q{tuple(int(v) for v in t)}', (np.nan, np.nan))
-            out.append(f'  q{tuple(int(v) for v in t)}: {p:.4f} [{lo:.4f}, {hi:.4f}]')
+        out += self.q_lines()
         out.append(f'  {self.left_out} pair(s) the task step or the queue count cannot explain, '
                    f'{self.gaps} skipped (epoch gap, no action or queued unknown)')
         out += [f'  warning: {w}' for w in self.warnings()]
