@@ -153,10 +153,12 @@ class MixedPOMDP:
 class HRCPomdp:
     """The HRC POMDP over the observable states the task book can produce.
 
-    `columns[i]` is the observable column y * 4 + d of solved state i (the column of
-    `ActionSelector`); `column_index[c]` the solved state of column c, -1 outside the set.
-    `enter[i, j]` is the solved state after task j of `tasks` enters the idle cell of state i
-    (-1 where the cell is busy); `likelihood` is P(O | h), (3, 9).
+    `columns[i]` is the observable column l * n_task * 4 + y * 4 + d of solved state i (the
+    column of `ActionSelector`; l the queue length of MODEL.md 8.1, outermost as in the flat
+    index, 0 without a queue); `column_index[c]` the solved state of column c, -1 outside the
+    set. Solved state i = l * n_y * 4 + i_y * 4 + d (n_y task states of the closure, every l).
+    `enter[i, j]` is the solved state after task j of `tasks` enters the idle cell of state i,
+    at the same l (-1 where the cell is busy); `likelihood` is P(O | h), (3, 9).
     """
 
     model: HRCModel
@@ -167,11 +169,15 @@ class HRCPomdp:
     enter: np.ndarray
     likelihood: np.ndarray
 
-    def state(self, observable) -> int:
-        """The solved state of observable x = (tp, tc, tx, ty, hp, hc, bp, bc, d)."""
+    def state(self, observable, level: int = 0) -> int:
+        """The solved state of observable x = (tp, tc, tx, ty, hp, hc, bp, bc, d) with `level`
+        tasks waiting (the queue length l of MODEL.md 8.1; 0 without a queue)."""
         *task, d = (int(v) for v in observable)
         y = self.model.task_index({n: np.asarray(v) for n, v in zip(TASK_VARIABLES, task)})
-        i = int(self.column_index[int(y) * N_DISTANCE + d])
+        if not 0 <= int(level) < self.model.n_levels:
+            raise ValueError(f'queue length {level} outside 0..{self.model.n_levels - 1}')
+        column = int(level) * self.model.n_task * N_DISTANCE + int(y) * N_DISTANCE + d
+        i = int(self.column_index[column])
         if i < 0:
             raise ValueError(f'observable state {tuple(observable)} is not one the task book '
                              'can produce; the POMDP policy does not cover it')
@@ -209,14 +215,47 @@ def _arrival_branches(arrivals, ys: np.ndarray, branches: list) -> list:
     return out
 
 
+def _queue_branches(queue, ys: np.ndarray, level: int, branches: list) -> tuple[list, list]:
+    """The queue's epoch (MODEL.md 8.1, as `HRCModel._queue_steps`) on the task branches
+    [(y' per source, P by h)] of the sources `ys` with `level` tasks waiting: a task is
+    released with arrival_busy or arrival_idle by the source's tp (a Bernoulli of its own);
+    where the step left the cell idle and a task waits, the head (task k of q) enters and the
+    queue shortens by one; l' = min(l + released - entered, L). The release and the entry are
+    independent of h, so they scale the branch's likelihood. Returns (l' per branch, the
+    branches); branches with the same l' and the same y' everywhere are merged (at l = L a
+    busy cell's release is dropped: the same successor as no release). -1 stays -1."""
+    arr, top = queue.arrivals, queue.levels
+    p_release = np.where(arr.idle[ys], arr.p_idle, arr.p_complete)[:, None]   # by the source
+    levels, out = [], []
+
+    def add(l_next, y_next, p):
+        for i, (l_old, (y_old, p_old)) in enumerate(zip(levels, out)):
+            if l_old == l_next and np.array_equal(y_old, y_next):
+                out[i] = (y_old, p_old + p)
+                return
+        levels.append(l_next)
+        out.append((y_next, p))
+
+    for y_next, p_y in branches:
+        ends_idle = (y_next >= 0) & arr.idle[np.maximum(y_next, 0)]
+        for released, p_r in ((1, p_release), (0, 1.0 - p_release)):
+            waiting = level + released
+            enters = ends_idle & (waiting > 0)
+            add(min(waiting, top), np.where(enters, -1, y_next), p_y * p_r)
+            if waiting > 0:
+                for j, q_j in enumerate(arr.q):
+                    entered = np.where(enters, arr.enter[np.maximum(y_next, 0), j], -1)
+                    add(min(waiting - 1, top), entered, p_y * p_r * q_j)
+    return levels, out
+
+
 def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
     """The MixedPOMDP of `model` over the closure of the task states the task book produces:
     the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
-    reach from them, at every distance."""
-    if model.queue is not None:
-        raise ValueError(f'{model.config.source}: the POMDP solver does not take a stream with a '
-                         'queue (stream.queue, MODEL.md 8.1) yet; solve its MDP (hrc-solve) or '
-                         'leave out stream.queue')
+    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
+    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
+    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
+    expected drop charge)."""
     op = operator or FactoredBellman(model)
     outcomes = _task_outcomes(op)
     grid = model.task_grid
@@ -239,39 +278,64 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     n_y = ys.size
     y_index = np.full(model.n_task, -1, dtype=np.intp)
     y_index[ys] = np.arange(n_y)
-    columns = (ys[:, None] * N_DISTANCE + np.arange(N_DISTANCE)[None, :]).ravel()
-    n_x = columns.size                                              # x = i_y * 4 + d
-    column_index = np.full(model.n_task * N_DISTANCE, -1, dtype=np.intp)
+    # x = (l * n_y + i_y) * 4 + d: every l of the queue (MODEL.md 8.1; one level without one)
+    # holds the same closure, l outermost as in the flat index
+    n_levels, n_cols = model.n_levels, model.n_task * N_DISTANCE
+    n_base_x = n_y * N_DISTANCE
+    base_columns = (ys[:, None] * N_DISTANCE + np.arange(N_DISTANCE)[None, :]).ravel()
+    columns = (np.arange(n_levels)[:, None] * n_cols + base_columns[None, :]).ravel()
+    n_x = columns.size
+    column_index = np.full(n_levels * n_cols, -1, dtype=np.intp)
     column_index[columns] = np.arange(n_x)
 
     ea = np.arange(N_HIDDEN) % 3
     p_accept = op.p_accept_vector                                   # by h
     n_a = len(ACTIONS)
-    arrivals = model.arrivals
-    n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
+    arrivals, queue = model.arrivals, model.queue
+    if queue is None:
+        n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
+    else:                     # (accepted, released) x (stays, or the head's K kinds) x 3 d'
+        n_k = 2 * 2 * 3 * (1 + len(queue.arrivals.q))
     succ_x = np.full((n_x, n_a, n_k), -1, dtype=np.intp)
     succ_l = np.zeros((n_x, n_a, n_k, N_HIDDEN))
     d_of_x = np.tile(np.arange(N_DISTANCE), n_y)
-    for a, (refused, accepted, eligible) in enumerate(outcomes):
-        dist = model.distance_matrix(a)[ea]                         # (9, d, d')
-        branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
-        branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
-        if arrivals is not None:
-            branches = _arrival_branches(arrivals, ys, branches)
-        k = np.zeros(n_x, dtype=np.intp)
-        for y_next, p_y in branches:
-            has = y_next >= 0
-            for d_next in range(N_DISTANCE):
-                p_d = dist[:, :, d_next].T                          # (d, 9)
-                lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_x, 9)
-                use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
-                rows = np.flatnonzero(use)
-                target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
-                succ_x[rows, a, k[rows]] = target * N_DISTANCE + d_next
-                succ_l[rows, a, k[rows]] = lik[rows]
-                k[rows] += 1
-    cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)
-    reward = -(cost[:, None, :] + op.g[None, :, None])
+    for level in range(n_levels):
+        first = level * n_base_x                                    # this level's rows
+        for a, (refused, accepted, eligible) in enumerate(outcomes):
+            dist = model.distance_matrix(a)[ea]                     # (9, d, d')
+            branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
+            branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
+            if arrivals is not None:
+                branches = _arrival_branches(arrivals, ys, branches)
+            levels = [0] * len(branches)
+            if queue is not None:
+                levels, branches = _queue_branches(queue, ys, level, branches)
+            k = np.zeros(n_base_x, dtype=np.intp)
+            for l_next, (y_next, p_y) in zip(levels, branches):
+                has = y_next >= 0
+                for d_next in range(N_DISTANCE):
+                    p_d = dist[:, :, d_next].T                      # (d, 9)
+                    lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_y * 4, 9)
+                    use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
+                    rows = np.flatnonzero(use)
+                    target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
+                    succ_x[first + rows, a, k[rows]] = ((l_next * n_y + target) * N_DISTANCE
+                                                        + d_next)
+                    succ_l[first + rows, a, k[rows]] = lik[rows]
+                    k[rows] += 1
+    d_of_x = np.tile(np.arange(N_DISTANCE), n_y * n_levels)
+    if queue is None:
+        cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)
+        reward = -(cost[:, None, :] + op.g[None, :, None])
+    else:
+        # the MDP's cost of the queue (J + w l + the expected drop charge), by (x, h)
+        used = int((succ_x >= 0).sum(axis=2).max())
+        succ_x, succ_l = succ_x[:, :, :used].copy(), succ_l[:, :, :used].copy()
+        flat = (np.repeat(np.arange(n_levels), n_base_x)[:, None] * model.n_base
+                + np.arange(N_HIDDEN)[None, :] * n_cols
+                + np.tile(base_columns, n_levels)[:, None])                  # (x, h)
+        reward = -np.stack([model.flat_cost(flat.ravel(), a).reshape(n_x, N_HIDDEN)
+                            for a in range(n_a)], axis=1)
     available = model.availability[:, d_of_x].T.copy()             # (x, a)
     likelihood = BeliefFilter(model).likelihood
     emotion = np.stack([model.emotion_matrices[g] for g in EMOTION_GROUPS])
@@ -280,11 +344,13 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     pomdp = MixedPOMDP(succ_x=succ_x, succ_l=succ_l, reward=reward, available=available,
                        group=group, kernel=np.ascontiguousarray(kernel), gamma=model.gamma,
                        order=np.array(SAFETY_ORDER))
-    idle_x = np.repeat(grid['tp'][ys] == 0, N_DISTANCE)
+    idle_x = np.tile(np.repeat(grid['tp'][ys] == 0, N_DISTANCE), n_levels)
+    level_of_x = np.repeat(np.arange(n_levels), n_base_x)
     enter = np.full((n_x, len(tasks)), -1, dtype=np.intp)
-    for j, t in enumerate(tasks):
-        entered = y_index[entering_task(model, ys, *t)]
-        enter[:, j] = np.where(idle_x, np.repeat(entered, N_DISTANCE) * N_DISTANCE + d_of_x, -1)
+    for j, t in enumerate(tasks):                   # the task enters, the queue stays
+        entered = np.tile(np.repeat(y_index[entering_task(model, ys, *t)], N_DISTANCE),
+                          n_levels)
+        enter[:, j] = np.where(idle_x, (level_of_x * n_y + entered) * N_DISTANCE + d_of_x, -1)
     return HRCPomdp(model, pomdp, columns, column_index, tasks, enter, likelihood)
 
 
@@ -632,7 +698,12 @@ class PomdpResult:
         pomdp = self.hrc.pomdp
         return AlphaPolicy(self.hrc.columns, self.alphas.alpha, self.alphas.action,
                            self.alphas.offsets, self.upper.q_fib, pomdp.available,
-                           self.hrc.model.n_task * N_DISTANCE)
+                           _n_columns(self.hrc.model))
+
+
+def _n_columns(model: HRCModel) -> int:
+    """The observable columns l * n_task * 4 + y * 4 + d of a model (l < 1 without a queue)."""
+    return model.n_levels * model.n_task * N_DISTANCE
 
 
 def case_study_targets(hrc: HRCPomdp) -> tuple[list, np.ndarray, np.ndarray]:
@@ -651,7 +722,8 @@ def _starts(hrc: HRCPomdp) -> Starts:
     """The case study's start (true h = (0, 0)) and every task entering the idle cell at
     d = 1..3 with a human drawn from the person prior (`observation.prior`, else uniform: the
     humans of `hrc-evaluate`); every belief starts from that prior (b_1 ∝ prior * L[O_1], as
-    `BeliefFilter.initial`)."""
+    `BeliefFilter.initial`). With a queue (MODEL.md 8.1) every start has none waiting (l = 0),
+    as `hrc-evaluate`'s episodes; the queue fills by the model's releases."""
     prior = BeliefFilter(hrc.model, mode='bayes').prior
     _, tx, _ = case_study_targets(hrc)
     idle = hrc.column_index[np.arange(N_DISTANCE)]          # y = 0: the idle cell
@@ -718,9 +790,10 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     for r in range(rounds + 1):
         policy = (q_policy(pomdp, q_fib) if r == 0
                   else AlphaPolicy.from_set(alphas, q_fib, pomdp.available, hrc).act)
-        # A stream model's successors hold its arrivals; the paper's model gets the
-        # hrc-evaluate task stream from outside.
-        enter = None if model.arrivals is not None else hrc.enter
+        # A stream model's successors hold its arrivals (and its queue's); the paper's model
+        # gets the hrc-evaluate task stream from outside.
+        streamed = model.arrivals is not None or model.queue is not None
+        enter = None if streamed else hrc.enter
         xs, bs = sample_beliefs(pomdp, hrc.likelihood, starts, policy, episodes, epochs,
                                 seed=seed + r, explore=explore, enter=enter)
         points_x, points = thin_points(np.concatenate([points_x, xs]), np.vstack([points, bs]),
@@ -791,7 +864,9 @@ def _with_fixed(points_x, points, fixed_x, fixed_b):
 class AlphaPolicy:
     """The solved POMDP over its observable states, for selection (pomdp and fib).
 
-    `columns[i]` is the observable column (y * 4 + d) of solved state i; Gamma(i) =
+    `columns[i]` is the observable column (l * n_task * 4 + y * 4 + d, l the queue length of
+    MODEL.md 8.1, 0 without a queue: `ActionSelector`'s column offset by l times the columns of
+    a level, as the flat index is) of solved state i; Gamma(i) =
     `alpha[offsets[i]:offsets[i+1]]` with `action`; `q_fib[i]` (A, H) the fast informed
     bound's Q. pomdp: the action of the best vector for (x, b), vectors within the tie
     tolerance of the best go to the first action of the safety order; scores[a] = the best
@@ -826,7 +901,7 @@ class AlphaPolicy:
     @classmethod
     def from_set(cls, alphas: AlphaSet, q_fib, available, hrc: HRCPomdp) -> 'AlphaPolicy':
         return cls(hrc.columns, alphas.alpha, alphas.action, alphas.offsets, q_fib, available,
-                   hrc.model.n_task * N_DISTANCE)
+                   _n_columns(hrc.model))
 
     def state(self, column: int) -> int:
         i = int(self.column_index[column])

@@ -1,0 +1,189 @@
+"""The POMDP of the stream with a queue (MODEL.md 8.1, docs/POMDP.md): the solved states carry
+the queue length l, the successors split by the release and the head's entry as the rule-by-
+rule model does, the MDP over the solved states is the factored MDP's, the bounds bracket and
+stay below the MDP, the policy file finds (l, x); and without a queue the POMDP is exactly
+what it was (the shipped policies' fast informed bound recomputed to the bit)."""
+
+import numpy as np
+import pytest
+
+from hrc_ros.core.config import load_config
+from hrc_ros.core.mdp.policy import PolicyError
+from hrc_ros.core.mdp.solver import FactoredBellman, solve
+from hrc_ros.core.model import N_HIDDEN, HRCModel
+from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
+from hrc_ros.core.pomdp.solver import fib_q, hrc_pomdp, mdp_q, solve_pomdp
+
+CONFIG = default_config_path()
+SMALL = {'model': {'rho': 1, 'sigma': 1}}
+QUEUE = {'arrival_idle': 0.3, 'arrival_busy': 0.25, 'waiting_cost': 2.0,
+         'q': [[1, 1, 0, 0.5], [1, 1, 3, 0.2], [1, 1, 2, 0.3]]}
+
+
+def queue_model(levels, **solver):
+    overrides = {**SMALL, 'stream': {**QUEUE, 'queue': levels}}
+    if solver:
+        overrides['solver'] = solver
+    return HRCModel(load_config(CONFIG, overrides=overrides))
+
+
+@pytest.fixture(scope='module', params=[1, 2])
+def small(request):
+    model = queue_model(request.param)
+    return model, hrc_pomdp(model)
+
+
+def flat_states(model, hrc):
+    """(x, h) -> the flat index l * N0 + (h * n_task + y) * 4 + d of the model."""
+    n_cols = model.n_task * 4
+    level, column = np.divmod(hrc.columns, n_cols)
+    return (level[:, None] * model.n_base + np.arange(N_HIDDEN)[None, :] * n_cols
+            + column[:, None])
+
+
+def test_the_solved_states_are_every_queue_length_of_the_closure(small):
+    model, hrc = small
+    plain = hrc_pomdp(HRCModel(load_config(CONFIG, overrides=SMALL)))
+    n_cols = model.n_task * 4
+    assert len(hrc.columns) == model.n_levels * len(plain.columns)
+    for level in range(model.n_levels):
+        block = hrc.columns[level * len(plain.columns):(level + 1) * len(plain.columns)]
+        np.testing.assert_array_equal(block, level * n_cols + plain.columns)
+    # the observable state with l tasks waiting is found there, and l outside 0..L is refused
+    observable = (1, 1, 3, 0, 0, 0, 0, 0, 1)
+    for level in range(model.n_levels):
+        i = hrc.state(observable, level)
+        assert hrc.columns[i] == level * n_cols + plain.columns[plain.state(observable)]
+    with pytest.raises(ValueError, match='queue length'):
+        hrc.state(observable, model.n_levels)
+
+
+def test_queue_pomdp_successors_are_the_rule_by_rule_transition(small):
+    """P((l', x') | (l, x), h, a) of the POMDP equals the model's explicit transition summed
+    over h', at every solved state, every action, h = 0, 4, 8."""
+    model, hrc = small
+    pomdp = hrc.pomdp
+    n_cols = model.n_task * 4
+    n_keys = model.n_levels * n_cols
+    flat = flat_states(model, hrc)
+    queued = 0
+    for i in range(pomdp.n_x):
+        for h in (0, 4, 8):
+            for a in range(8):
+                t = model.transition([flat[i, h]], a)
+                level, base = model.split(t.target)
+                key = level * n_cols + base % n_cols
+                expected = np.bincount(key, weights=t.probability, minlength=n_keys)
+                got = np.zeros(n_keys)
+                for k in np.flatnonzero(pomdp.succ_x[i, a] >= 0):
+                    got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
+                np.testing.assert_allclose(got, expected, atol=1e-12)
+                queued += int(np.any(got[n_cols:] > 0))
+    assert queued > 0          # some successors have tasks waiting
+
+
+def test_queue_pomdp_successors_are_distinct(small):
+    """No two successors of one (x, a) are the same observed state (the top level's dropped
+    release is merged into its 'no release'), so a backup does no work twice."""
+    _, hrc = small
+    succ = hrc.pomdp.succ_x
+    for i in range(succ.shape[0]):
+        for a in range(succ.shape[1]):
+            row = succ[i, a][succ[i, a] >= 0]
+            assert len(np.unique(row)) == len(row)
+
+
+@pytest.mark.parametrize('aware', [True, False])
+def test_queue_pomdp_mdp_is_the_factored_queue_q(aware):
+    """reward + gamma E[V] over the solved states equals `FactoredBellman.q` of the queue model
+    (its own mix along (l, y') and its waiting and drop charges), for a random V."""
+    for levels in (1, 2):
+        model = queue_model(levels, fail_safe_aware=aware)
+        hrc = hrc_pomdp(model)
+        pomdp = hrc.pomdp
+        value = np.random.default_rng(levels).normal(size=model.n_states) * 20
+        flat = flat_states(model, hrc)
+        q = FactoredBellman(model).q(value)[:, flat]             # (8, x, h)
+        mine = pomdp.reward + pomdp.gamma * pomdp.expected_next(value[flat])
+        available = pomdp.available[..., None]
+        np.testing.assert_allclose(np.where(available, mine, 0.0),
+                                   np.where(available, q.transpose(1, 0, 2), 0.0), atol=1e-10)
+    # the waiting charge is in: below the top level (L = 2, where nothing is dropped) the same
+    # x and h cost w more per waiting task
+    n_base_x = pomdp.n_x // model.n_levels
+    np.testing.assert_allclose(pomdp.reward[n_base_x:2 * n_base_x],
+                               pomdp.reward[:n_base_x] - QUEUE['waiting_cost'], atol=1e-12)
+
+
+def test_the_queue_pomdp_mdp_value_is_the_mdp_solve(small):
+    """The POMDP's fully observed MDP over the solved states converges to the MDP's value."""
+    model, hrc = small
+    value = solve(model).value[flat_states(model, hrc)]
+    q = mdp_q(hrc.pomdp, tol=1e-10)
+    best = np.where(hrc.pomdp.available[..., None], q, -np.inf).max(axis=1)
+    np.testing.assert_allclose(best, value, atol=1e-4)   # the solve stops at eta = 1e-6
+
+
+def test_the_queue_pomdp_bounds_bracket_and_sit_below_the_mdp():
+    model = queue_model(1)
+    result = solve_pomdp(model, episodes=100, per_state=12, rounds=0, seed=3, tol=1e-2)
+    assert result.report['observable_states'] == 2 * 4 * 27 == len(result.hrc.columns)
+    for target in result.report['targets']:
+        assert target['lower'] <= target['upper'] + 1e-9
+        assert target['relative_gap'] < 0.05
+    mdp = solve(model).value[flat_states(model, result.hrc)]           # (x, h)
+    alphas = result.alphas
+    levels = result.points_x // (len(result.hrc.columns) // model.n_levels)
+    assert set(np.unique(levels)) == {0, 1}       # points were gathered with tasks waiting
+    lower = np.array([(alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
+                      for x, b in zip(result.points_x, result.points)])
+    upper = result.upper.evaluate(result.points_x, result.points)
+    assert np.all(lower <= upper + 1e-9)
+    assert np.all(lower <= np.einsum('ph,ph->p', mdp[result.points_x], result.points) + 1e-9)
+
+
+def test_the_queue_pomdp_policy_file_finds_the_queue_length(tmp_path):
+    from hrc_ros.core.pomdp.policy import load_pomdp_policy, save_pomdp_policy
+    model = queue_model(2)
+    config = model.config
+    result = solve_pomdp(model, episodes=60, per_state=8, rounds=0, seed=4, tol=5e-2)
+    path = save_pomdp_policy(tmp_path / 'queue.npz', result, config)
+    loaded = load_pomdp_policy(path, config).policy
+    mine = result.policy()
+    hrc = result.hrc
+    np.testing.assert_array_equal(loaded.columns, hrc.columns)
+    n_cols = model.n_task * 4
+    b = np.full(N_HIDDEN, 1 / N_HIDDEN)
+    observable = (1, 1, 3, 0, 0, 0, 0, 0, 1)
+    column = hrc.columns[hrc.state(observable)]
+    values = []
+    for level in range(3):
+        i = hrc.state(observable, level)
+        assert loaded.state(level * n_cols + column) == i
+        assert loaded.pomdp(b, level * n_cols + column)[0] == mine.pomdp(b, hrc.columns[i])[0]
+        values.append(loaded.pomdp(b, level * n_cols + column)[1].max())
+    assert values[0] > values[1] > values[2]    # tasks waiting cost
+    many = loaded.pomdp_many(np.tile(b, (3, 1)), np.arange(3) * n_cols + column)
+    assert list(many) == [loaded.pomdp(b, lv * n_cols + column)[0] for lv in range(3)]
+    with pytest.raises(ValueError, match='does not cover it'):
+        loaded.state(int(np.setdiff1d(np.arange(3 * n_cols), hrc.columns)[-1]))
+    # the queue's policy is refused for the same model without the queue
+    plain = load_config(CONFIG, overrides={**SMALL, 'stream': {
+        'arrival_idle': 0.3, 'arrival_complete': 0.25, 'q': QUEUE['q']}})
+    with pytest.raises(PolicyError, match='solved for configuration'):
+        load_pomdp_policy(path, plain)
+
+
+@pytest.mark.parametrize('name', ['default', 'case_study_stream'])
+def test_without_a_queue_the_pomdp_is_the_shipped_one_to_the_bit(name):
+    """The queue code leaves a configuration without a queue exactly as it was: its solved
+    states are the shipped policy's, and the fast informed bound recomputed from its successors
+    and rewards is the shipped file's q_fib, bit for bit (paper's model and queue-less
+    stream)."""
+    from hrc_ros.core.pomdp.policy import load_pomdp_policy
+    config = load_config(shipped_config_path(name))
+    shipped = load_pomdp_policy(share_dir() / 'policies' / 'pomdp' / f'{name}.npz', config)
+    hrc = hrc_pomdp(HRCModel(config))
+    np.testing.assert_array_equal(hrc.columns, shipped.policy.columns)
+    q_fib, _ = fib_q(hrc.pomdp, tol=1e-9, start=mdp_q(hrc.pomdp, tol=1e-9))
+    assert np.array_equal(q_fib, shipped.policy.q_fib)
