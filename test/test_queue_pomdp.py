@@ -187,3 +187,19 @@ def test_without_a_queue_the_pomdp_is_the_shipped_one_to_the_bit(name):
     np.testing.assert_array_equal(hrc.columns, shipped.policy.columns)
     q_fib, _ = fib_q(hrc.pomdp, tol=1e-9, start=mdp_q(hrc.pomdp, tol=1e-9))
     assert np.array_equal(q_fib, shipped.policy.q_fib)
+
+
+@pytest.mark.parametrize('stream', ['queue', 'plain'])
+def test_the_sparse_bounds_equal_the_reference_forms(small, stream):
+    """The sparse kernels the queue's solve uses (`fast`) give the reference forms' MDP Q, FIB
+    step and blind vectors, on the queue model and on a queue-less stream."""
+    from hrc_ros.core.pomdp.solver import blind_alphas, fib_step
+    model, hrc = small
+    if stream == 'plain':
+        hrc = hrc_pomdp(HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': {
+            'arrival_idle': 0.3, 'arrival_complete': 0.25, 'q': QUEUE['q']}})))
+    pomdp = hrc.pomdp
+    np.testing.assert_allclose(mdp_q(pomdp, fast=True), mdp_q(pomdp), atol=1e-9)
+    q = pomdp.reward + np.random.default_rng(7).normal(size=pomdp.reward.shape)
+    np.testing.assert_allclose(fib_step(pomdp, q, fast=True), fib_step(pomdp, q), atol=1e-12)
+    np.testing.assert_allclose(blind_alphas(pomdp, fast=True), blind_alphas(pomdp), atol=1e-9)

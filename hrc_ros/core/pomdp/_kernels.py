@@ -206,3 +206,29 @@ def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, 
 
 
 ub_values = parallel_kernel(_ub_values, cache=True, nogil=True)
+
+
+def _successor_sums(succ_x, succ_l, rows, table, pick, out):
+    """out[x, m, h] = sum_k succ_l[x, a, k, h] table[pick[x, m], succ_x[x, a, k], h] with
+    a = rows[x, m], over the successors of (x, a) up to the first -1 (the padding is never
+    read): the expectation over x' of a table of values by successor, in the sparse form (a
+    queue's (x, a) has 12 successors on average and up to 96). The fast form of
+    `MixedPOMDP.expected_next`, of the FIB's gather and of the blind policies' evaluation."""
+    n_x, n_m = rows.shape
+    n_k = succ_x.shape[2]
+    n_h = succ_l.shape[3]
+    for x in numba.prange(n_x):
+        for m in range(n_m):
+            a = rows[x, m]
+            t = pick[x, m]
+            for h in range(n_h):
+                out[x, m, h] = 0.0
+            for k in range(n_k):
+                xn = succ_x[x, a, k]
+                if xn < 0:
+                    break
+                for h in range(n_h):
+                    out[x, m, h] += succ_l[x, a, k, h] * table[t, xn, h]
+
+
+successor_sums = parallel_kernel(_successor_sums, cache=True, nogil=True)

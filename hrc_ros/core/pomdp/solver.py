@@ -359,26 +359,58 @@ def _greedy_value(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
     return np.where(pomdp.available[..., None], q, -np.inf).max(axis=1)
 
 
-def mdp_q(pomdp: MixedPOMDP, tol: float = 1e-9, max_sweeps: int = 100_000) -> np.ndarray:
-    """Q of the fully observed MDP over (x, h), (X, A, H), by value iteration to `tol`."""
+def _successor_sums(pomdp: MixedPOMDP, table: np.ndarray, pick: np.ndarray,
+                    rows: np.ndarray | None = None) -> np.ndarray:
+    """(X, M, H): sum_k l_k(h) table[pick[x, m], x'_k, h] over the successors of (x, rows[x, m])
+    (rows: every action, M = A, by default), by the sparse kernel (`_kernels.successor_sums`)."""
+    n_x, n_a = pomdp.n_x, pomdp.n_actions
+    if rows is None:
+        rows = np.broadcast_to(np.arange(n_a), (n_x, n_a))
+    rows = np.ascontiguousarray(rows, dtype=np.intp)
+    out = np.empty(rows.shape + (pomdp.n_hidden,))
+    kernels.successor_sums(np.ascontiguousarray(pomdp.succ_x, dtype=np.intp), pomdp.succ_l,
+                           rows, np.ascontiguousarray(table, dtype=float),
+                           np.ascontiguousarray(pick, dtype=np.intp), out, work=rows.size)
+    return out
+
+
+def _expected_next(pomdp: MixedPOMDP, value: np.ndarray, fast: bool) -> np.ndarray:
+    """`MixedPOMDP.expected_next`, or with `fast` its sparse form (the same sums, another order
+    of adding them up: equal to rounding, a test holds them so)."""
+    if not fast:
+        return pomdp.expected_next(value)
+    stepped = np.einsum('ghk,xk->gxh', pomdp.hidden_transition, value)   # (G, X', H)
+    return _successor_sums(pomdp, stepped, np.broadcast_to(pomdp.group, (pomdp.n_x,
+                                                                        pomdp.n_actions)))
+
+
+def mdp_q(pomdp: MixedPOMDP, tol: float = 1e-9, max_sweeps: int = 100_000,
+          fast: bool = False) -> np.ndarray:
+    """Q of the fully observed MDP over (x, h), (X, A, H), by value iteration to `tol`.
+    `fast`: the successors' sums by the sparse kernel (`solve_pomdp` uses it for a queue)."""
     value = np.zeros((pomdp.n_x, pomdp.n_hidden))
     for _ in range(max_sweeps):
-        q = pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+        q = pomdp.reward + pomdp.gamma * _expected_next(pomdp, value, fast)
         new = _greedy_value(pomdp, q)
         change = np.max(np.abs(new - value))
         value = new
         if change < tol:
             break
-    return pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+    return pomdp.reward + pomdp.gamma * _expected_next(pomdp, value, fast)
 
 
-def fib_step(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
-    """One fast-informed-bound backup of Q (X, A, H)."""
+def fib_step(pomdp: MixedPOMDP, q: np.ndarray, fast: bool = False) -> np.ndarray:
+    """One fast-informed-bound backup of Q (X, A, H) (`fast`: the gather by the sparse
+    kernel)."""
     masked = np.where(pomdp.available[..., None], q, -np.inf)       # (X, A', H')
     # w[x', g, o, h] = max_a' sum_h' kernel[g, o, h, h'] q[x', a', h']
     proj = np.einsum('gohk,xak->xgoha', pomdp.kernel, np.where(np.isfinite(masked), q, 0.0))
     proj = np.where(pomdp.available[:, None, None, None, :], proj, -np.inf)
     w = proj.max(axis=4).sum(axis=2)                                 # (X, G, H)
+    if fast:
+        table = w.transpose(1, 0, 2)                                 # (G, X', H)
+        pick = np.broadcast_to(pomdp.group, (pomdp.n_x, pomdp.n_actions))
+        return pomdp.reward + pomdp.gamma * _successor_sums(pomdp, table, pick)
     nxt = np.maximum(pomdp.succ_x, 0)
     gathered = w[nxt, pomdp.group[None, :, None], :]                # (X, A, K, H)
     gathered = np.where((pomdp.succ_x >= 0)[..., None], gathered, 0.0)
@@ -386,12 +418,12 @@ def fib_step(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
 
 
 def fib_q(pomdp: MixedPOMDP, tol: float = 1e-9, start: np.ndarray | None = None,
-          max_sweeps: int = 100_000) -> tuple[np.ndarray, int]:
+          max_sweeps: int = 100_000, fast: bool = False) -> tuple[np.ndarray, int]:
     """The fast informed bound's Q, (X, A, H), iterated from the MDP's Q (an upper bound, so
     every iterate is one); returns (Q, sweeps)."""
-    q = mdp_q(pomdp, tol) if start is None else start
+    q = mdp_q(pomdp, tol, fast=fast) if start is None else start
     for n in range(1, max_sweeps + 1):
-        new = fib_step(pomdp, q)
+        new = fib_step(pomdp, q, fast)
         change = np.max(np.abs(np.where(pomdp.available[..., None], new - q, 0.0)))
         q = np.minimum(q, new)     # a valid upper bound stays one; guards rounding drift
         if change < tol:
@@ -399,14 +431,29 @@ def fib_q(pomdp: MixedPOMDP, tol: float = 1e-9, start: np.ndarray | None = None,
     return q, max_sweeps
 
 
-def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9) -> np.ndarray:
+def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9, fast: bool = False) -> np.ndarray:
     """Values (A, X, H) of the blind policies 'always a (where a is unavailable, the first
-    available action of the tie order)': executable whatever the belief, so lower bounds."""
+    available action of the tie order)': executable whatever the belief, so lower bounds.
+    `fast`: the successors' sums by the sparse kernel."""
     n_a, n_x = pomdp.n_actions, pomdp.n_x
     first = pomdp.order[np.argmax(pomdp.available[:, pomdp.order], axis=1)]   # (X,)
     act = np.where(pomdp.available.T, np.arange(n_a)[:, None], first[None, :])  # (A, X)
     rows = np.arange(n_x)[None, :]
     reward = pomdp.reward[rows, act]                                # (A, X, H)
+    if fast:
+        n_g = pomdp.hidden_transition.shape[0]
+        # table[b * G + g, x'] = E_g applied to policy b's value at x'; policy b at x reads
+        # its action's successors and group
+        pick = (np.arange(n_a)[:, None] * n_g + pomdp.group[act]).T   # (X, A)
+        value = np.zeros((n_a, n_x, pomdp.n_hidden))
+        while True:
+            table = np.einsum('ghj,bxj->bgxh', pomdp.hidden_transition, value)
+            future = _successor_sums(pomdp, table.reshape(n_a * n_g, n_x, -1), pick, act.T)
+            new = reward + pomdp.gamma * future.transpose(1, 0, 2)
+            change = np.max(np.abs(new - value))
+            value = new
+            if change < tol:
+                return value
     e = pomdp.hidden_transition[pomdp.group[act]]                   # (A, X, H, H')
     succ_x = pomdp.succ_x[rows, act]                                # (A, X, K)
     succ_l = pomdp.succ_l[rows, act]                                # (A, X, K, H)
@@ -760,15 +807,20 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     op = FactoredBellman(model)
     hrc = hrc_pomdp(model, op)
     pomdp = hrc.pomdp
-    q_mdp = mdp_q(pomdp, tol=1e-9)
-    q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp)
-    blind = blind_alphas(pomdp, tol=1e-9)
+    # A queue's successors are many (up to 96 per action where the cell goes idle, 12 on
+    # average): the bounds' sums by the sparse kernels. Without a queue the arithmetic that
+    # solved the shipped policies, bit for bit.
+    fast = model.queue is not None
+    q_mdp = mdp_q(pomdp, tol=1e-9, fast=fast)
+    q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp, fast=fast)
+    blind = blind_alphas(pomdp, tol=1e-9, fast=fast)
     n_x, n_a = pomdp.n_x, pomdp.n_actions
     alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, N_HIDDEN),
                             np.repeat(np.arange(n_a), n_x), n_x)
     t_bounds = time.perf_counter()
-    say(f'{n_x} observable states ({n_x // N_DISTANCE} task states x {N_DISTANCE} '
-        f'distances), FIB {fib_sweeps} sweeps, {t_bounds - t0:.1f} s')
+    levels = '' if model.queue is None else f' x {model.n_levels} queue lengths'
+    say(f'{n_x} observable states ({n_x // N_DISTANCE // model.n_levels} task states x '
+        f'{N_DISTANCE} distances{levels}), FIB {fib_sweeps} sweeps, {t_bounds - t0:.1f} s')
     names, tx, tb = case_study_targets(hrc)
     starts = _starts(hrc)
     fixed_x, fixed_b = _with_fixed(tx, tb, *_fixed_points(hrc))
