@@ -79,7 +79,7 @@ ub_value = numba.njit(cache=True)(_ub_value)
 
 
 def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order, proj,
-               offsets, gamma, out_vec, out_act, out_val):
+               offsets, gamma, same_as, out_vec, out_act, out_val):
     n_points, n_h = points.shape
     n_a = reward.shape[1]
     n_k = succ_x.shape[2]
@@ -94,6 +94,14 @@ def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
             if not available[x, a]:
                 continue
             g = group[a]
+            a0 = same_as[x, a]
+            if a0 >= 0:     # the successors and group of the earlier a0: only r differs
+                v = 0.0
+                for h in range(n_h):
+                    vec[a, h] = reward[x, a, h] + (vec[a0, h] - reward[x, a0, h])
+                    v += vec[a, h] * b[h]
+                val[a] = v
+                continue
             for h in range(n_h):
                 vec[a, h] = reward[x, a, h]
             for k in range(n_k):
@@ -131,7 +139,8 @@ lb_backup = parallel_kernel(_lb_backup, cache=True, nogil=True)
 
 
 def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order, kernel,
-               gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, out_val, out_act):
+               gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, same_as, out_val,
+               out_act):
     n_points, n_h = points.shape
     n_a = reward.shape[1]
     n_k = succ_x.shape[2]
@@ -142,6 +151,7 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
         bl = np.empty(n_h)
         nb = np.empty(n_h)
         val = np.full(n_a, -np.inf)
+        future = np.zeros(n_a)
         for a in range(n_a):
             if not available[x, a]:
                 continue
@@ -149,6 +159,12 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
             q = 0.0
             for h in range(n_h):
                 q += b[h] * reward[x, a, h]
+            a0 = same_as[x, a]
+            if a0 >= 0:     # the successors and group of the earlier a0: only r differs
+                future[a] = future[a0]
+                val[a] = q + future[a0]
+                continue
+            r = q
             for k in range(n_k):
                 xn = succ_x[x, a, k]
                 if xn < 0:
@@ -169,6 +185,7 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
                         nb[h2] /= total
                     q += gamma * total * _ub_value_inline(
                         xn, nb, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets)
+            future[a] = q - r
             val[a] = q
         out_act[p] = _safest_best(val, order)
         out_val[p] = val.max()
