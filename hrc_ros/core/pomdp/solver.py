@@ -721,7 +721,8 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
     (`shared_actions`; the same values to rounding, a quarter less work for a queue).
     `perseus`: the lower bound's sweep is Perseus's randomised one (`_perseus_lower`): only
     the points no new vector has improved yet are backed up, so a sweep costs a fraction of
-    a full one and the sets stay smaller (the queue's solve, 3 x the states).
+    a full one and the sets stay smaller (the queue's solve, 3 x the states); and once it
+    moves by less than `tol` it is left as it is while the upper bound's sweeps go on.
     """
     n_x, n_h = pomdp.n_x, pomdp.n_hidden
     order = np.ascontiguousarray(pomdp.order, dtype=np.intp)
@@ -741,39 +742,44 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
     t0 = time.perf_counter()
     history = []
     ub_change = np.inf
+    lower_done = False
     for sweep in range(1, max_sweeps + 1):
-        proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
         kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx,
                           work=n_p)
-
-        def backup(rows, proj=proj, alphas=alphas):
-            """(vectors, actions, values) of the points `rows` backed up from the current
-            set, each point's current best vector where the backup is not better (Perseus's
-            rule)."""
-            out_vec, out_act, out_val = vec[:len(rows)], act[:len(rows)], val[:len(rows)]
-            kernels.lb_backup(points[rows], points_x[rows], succ_x, pomdp.succ_l,
-                              pomdp.reward, pomdp.available, group, order, proj,
-                              alphas.offsets, pomdp.gamma, same_as, out_vec, out_act, out_val,
-                              work=len(rows))
-            better = out_val > old_val[rows]
-            return (np.where(better[:, None], out_vec, alphas.alpha[old_idx[rows]]),
-                    np.where(better, out_act, alphas.action[old_idx[rows]]),
-                    np.maximum(out_val, old_val[rows]))
-
-        if perseus:
-            keep_x, keep_vec, keep_act, lower_now = _perseus_lower(
-                backup, points, points_x, old_val, n_x, np.random.default_rng(sweep))
+        if lower_done:     # Perseus's runs: the lower bound has converged, the upper goes on
+            lower_now, lb_change = old_val.copy(), 0.0
         else:
-            keep_vec, keep_act, lower_now = backup(np.arange(n_p))
-            keep_x = points_x
-        lb_change = float(np.max(lower_now - old_val))
-        # states without points keep their vectors
-        lonely = np.ones(n_x, dtype=bool)
-        lonely[points_x] = False
-        held = lonely[alphas.owner]
-        alphas = AlphaSet.build(np.concatenate([keep_x, alphas.owner[held]]),
-                                np.vstack([keep_vec, alphas.alpha[held]]),
-                                np.concatenate([keep_act, alphas.action[held]]), n_x)
+            proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
+
+            def backup(rows, proj=proj, alphas=alphas):
+                """(vectors, actions, values) of the points `rows` backed up from the current
+                set, each point's current best vector where the backup is not better (Perseus's
+                rule)."""
+                out_vec, out_act, out_val = vec[:len(rows)], act[:len(rows)], val[:len(rows)]
+                kernels.lb_backup(points[rows], points_x[rows], succ_x, pomdp.succ_l,
+                                  pomdp.reward, pomdp.available, group, order, proj,
+                                  alphas.offsets, pomdp.gamma, same_as, out_vec, out_act, out_val,
+                                  work=len(rows))
+                better = out_val > old_val[rows]
+                return (np.where(better[:, None], out_vec, alphas.alpha[old_idx[rows]]),
+                        np.where(better, out_act, alphas.action[old_idx[rows]]),
+                        np.maximum(out_val, old_val[rows]))
+
+            if perseus:
+                keep_x, keep_vec, keep_act, lower_now = _perseus_lower(
+                    backup, points, points_x, old_val, n_x, np.random.default_rng(sweep))
+            else:
+                keep_vec, keep_act, lower_now = backup(np.arange(n_p))
+                keep_x = points_x
+            lb_change = float(np.max(lower_now - old_val))
+            # states without points keep their vectors
+            lonely = np.ones(n_x, dtype=bool)
+            lonely[points_x] = False
+            held = lonely[alphas.owner]
+            alphas = AlphaSet.build(np.concatenate([keep_x, alphas.owner[held]]),
+                                    np.vstack([keep_vec, alphas.alpha[held]]),
+                                    np.concatenate([keep_act, alphas.action[held]]), n_x)
+            lower_done = perseus and lb_change < tol
 
         last = lb_change < tol or sweep == max_sweeps or (
             time_limit is not None and time.perf_counter() - t0 > time_limit)
