@@ -296,19 +296,12 @@ def test_charging_a_queue_less_run_changes_its_cost_and_nothing_else():
 
 # -- where the queue is not built: refused -----------------------------------------------------
 def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys):
-    from hrc_ros.core.pomdp.solver import hrc_pomdp
     from hrc_ros.tools import evaluate as evaluate_tool
-    from hrc_ros.tools import solve as solve_tool
-    with pytest.raises(ValueError, match='POMDP solver does not take a stream with a queue'):
-        hrc_pomdp(small_queue)
     with pytest.raises(ConfigError, match='stream.queue .* not carried by the nodes'):
         check_node_config(small_queue.config)
     with pytest.raises(ValueError, match='reads no queue length'):
         ActionSelector(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
     path = str(shipped_config_path('stream_queue'))
-    assert solve_tool.main(['--config', path, '--method', 'pomdp', '-o', '/tmp/x.npz']) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith('hrc-solve: error:') and 'stream.queue' in err and '\n' not in err
     assert evaluate_tool.main(['--config', path, '--selectors', 'paper,pomdp', '--episodes',
                                '2', '--out', '/tmp/hrc_queue_refused']) == 2
     err = capsys.readouterr().err.strip()
