@@ -141,17 +141,19 @@ def pomdp_units():
     vec, val, old = np.empty((n, alpha.shape[1])), np.empty(n), np.empty(n)
     act, idx = np.empty(n, dtype=np.intp), np.empty(n, dtype=np.intp)
     saw = upper.sawtooth()
+    same_as = s.shared_actions(pomdp, share=False)
 
     def lb():
         for _ in range(8):
             k.lb_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward, pomdp.available,
-                        group, order, proj, policy.offsets, pomdp.gamma, vec, act, val, work=n)
+                        group, order, proj, policy.offsets, pomdp.gamma, same_as, vec, act, val,
+                        work=n)
 
     def ub():
         for _ in range(3):
             k.ub_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward, pomdp.available,
                         group, order, pomdp.kernel, pomdp.gamma, upper.q_fib, upper.corner,
-                        *saw, val, act, work=n)
+                        *saw, same_as, val, act, work=n)
 
     def lb_values():
         for _ in range(200):

@@ -6,7 +6,7 @@ import pytest
 
 from hrc_ros.core.pomdp import _kernels as kernels
 from hrc_ros.core.pomdp.solver import (AlphaSet, MixedPOMDP, backup_sweeps, fib_q, initial_bounds,
-                                       mdp_q)
+                                       mdp_q, shared_actions)
 
 GAMMA = 0.95
 LISTEN, OPEN_LEFT, OPEN_RIGHT = range(3)
@@ -82,7 +82,7 @@ def point_backups(pomdp: MixedPOMDP, points: np.ndarray, sweeps: int) -> np.ndar
         proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
         kernels.lb_backup(points, x, pomdp.succ_x, pomdp.succ_l, pomdp.reward,
                           pomdp.available, pomdp.group, pomdp.order, proj, alphas.offsets,
-                          pomdp.gamma, vec, act, val)
+                          pomdp.gamma, shared_actions(pomdp, share=False), vec, act, val)
         alphas = AlphaSet.build(x, vec.copy(), act.copy(), 1)
     return val
 

@@ -332,23 +332,9 @@ def test_charging_a_queue_less_run_changes_its_cost_and_nothing_else():
     assert plain['paper'].waiting_epochs.sum() > 0
 
 
-# -- where the queue is not built: refused -----------------------------------------------------
-def test_the_pomdp_the_nodes_and_the_selector_refuse_a_queue(small_queue, capsys):
-    from hrc_ros.core.pomdp.solver import hrc_pomdp
-    from hrc_ros.tools import evaluate as evaluate_tool
-    from hrc_ros.tools import solve as solve_tool
-    with pytest.raises(ValueError, match='POMDP solver does not take a stream with a queue'):
-        hrc_pomdp(small_queue)
-    assert check_node_config(small_queue.config) is small_queue.config   # the nodes take it
-    path = str(shipped_config_path('stream_queue'))
-    assert solve_tool.main(['--config', path, '--method', 'pomdp', '-o', '/tmp/x.npz']) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith('hrc-solve: error:') and 'stream.queue' in err and '\n' not in err
-    assert evaluate_tool.main(['--config', path, '--selectors', 'paper,pomdp', '--episodes',
-                               '2', '--out', '/tmp/hrc_queue_refused']) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith('hrc-evaluate: error:') and 'stream.queue' in err and '\n' not in err
-    # the episodes the evaluation draws do not depend on the queue
+# -- the nodes take it ---------------------------------------------------------------------------
+def test_the_nodes_take_a_queue_and_the_episodes_do_not_depend_on_it(small_queue):
+    assert check_node_config(small_queue.config) is small_queue.config
     a, _ = episodes_of(small_queue, 'random', 3, 10)
     b, _ = episodes_of(HRCModel(load_config(CONFIG, overrides=SMALL)), 'random', 3, 10)
     assert a == b

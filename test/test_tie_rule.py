@@ -128,15 +128,16 @@ def test_the_pomdp_backups_choose_by_the_rule(mode):
         proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
         vec, act, val = np.empty((2, 2)), np.empty(2, np.intp), np.empty(2)
         ub_val, ub_act = np.empty(2), np.empty(2, np.intp)
+        none = np.full((1, len(rewards)), -1, dtype=np.intp)   # no shared backups
         with parallel.mode(mode):
             pomdp_kernels.lb_backup(points, x, pomdp.succ_x, pomdp.succ_l, pomdp.reward,
                                     pomdp.available, pomdp.group, pomdp.order, proj,
-                                    alphas.offsets, pomdp.gamma, vec, act, val)
+                                    alphas.offsets, pomdp.gamma, none, vec, act, val)
             pomdp_kernels.ub_backup(points, x, pomdp.succ_x, pomdp.succ_l, pomdp.reward,
                                     pomdp.available, pomdp.group, pomdp.order, pomdp.kernel,
                                     pomdp.gamma, np.zeros((1, len(rewards), 2)),
                                     np.zeros((1, 2)), np.zeros((0, 2)), np.zeros(0),
-                                    np.zeros(2, np.int64), ub_val, ub_act)
+                                    np.zeros(2, np.int64), none, ub_val, ub_act)
         assert act.tolist() == [expected, expected]
         assert ub_act.tolist() == [expected, expected]
         np.testing.assert_array_equal(val, rewards[expected])   # the chosen vector's value
@@ -154,7 +155,8 @@ def test_the_batch_simulator_and_the_selector_break_qmdp_ties_alike():
     belief = np.random.default_rng(1).dirichlet(np.ones(N_HIDDEN), size=n)
     sim = BatchSimulator.__new__(BatchSimulator)
     sim.columns, sim._q = 0, scores                  # candidates h * 0 + e: row e for every h
-    batch = sim._qmdp(belief, np.arange(n))
+    sim.n_base = 0                                   # one queue level (MODEL.md 8.1): l = 0
+    batch = sim._qmdp(belief, np.arange(n), np.zeros(n, dtype=np.intp))
     selector = ActionSelector.__new__(ActionSelector)
     selector._q = np.ascontiguousarray(scores.T)
     for e in range(n):

@@ -253,10 +253,6 @@ def main(argv=None) -> int:
                      f'{MAX_EPISODE_EPOCHS:,} epochs per selector (about an hour)')
     try:
         config, model, policy = load_model(args)
-        if config.queue is not None and {'pomdp', 'fib'} & set(selectors):
-            raise ToolError(f'{config.source}: selectors pomdp and fib read a POMDP policy, and '
-                            'the POMDP does not take a stream with a queue (stream.queue, '
-                            'MODEL.md 8.1) yet: choose from paper, qmdp, mls, mdp')
         pomdp = load_pomdp(args, config, selectors)
         world = true_policy = None
         if args.true_config:

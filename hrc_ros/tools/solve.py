@@ -53,10 +53,6 @@ def main(argv: list[str] | None = None) -> int:
     except ToolError as exc:
         return fail('hrc-solve', exc)
     if args.method == POMDP:
-        if config.queue is not None:
-            return fail('hrc-solve', f'{config.source}: --method pomdp does not take a stream '
-                        'with a queue (stream.queue, MODEL.md 8.1) yet: solve its MDP '
-                        '(--method value_iteration) or leave out stream.queue')
         return _solve_pomdp(args, config, model, output)
     sweeps = args.sweeps or config.sweeps
     print(f'hrc-solve: {config.source}: {model.n_states:,} states x {len(ACTIONS)} actions, '

@@ -51,6 +51,18 @@ VOTE_TOLERANCE = 1e-12
 N_ACTIONS = len(ACTIONS)
 
 
+def check_alpha_columns(alphas, model) -> None:
+    """A POMDP policy must cover the model's columns, l * n_task * 4 + y * 4 + d for every
+    queue length l (MODEL.md 8.1): ValueError for one solved for another state space."""
+    want = model.n_levels * model.n_task * N_DISTANCE
+    have = getattr(alphas, 'column_index', None)
+    if have is not None and len(have) != want:
+        raise ValueError(f'the POMDP policy covers {len(have)} observable columns, the model '
+                         f'{model.config.source} has {want} (queue length L = '
+                         f'{model.queue_length}): solve it for this configuration '
+                         '(hrc-solve --method pomdp)')
+
+
 @dataclass(frozen=True)
 class Selection:
     action: int          # action index (ACTIONS order)
@@ -189,7 +201,9 @@ class ActionSelector:
         if self.pomdp is None:
             from ..pomdp.policy import load_shipped_pomdp_policy
             self.pomdp = load_shipped_pomdp_policy(self.model.config)
-        return getattr(self.pomdp, 'policy', self.pomdp)
+        alphas = getattr(self.pomdp, 'policy', self.pomdp)
+        check_alpha_columns(alphas, self.model)
+        return alphas
 
     def _paper(self, b: np.ndarray, actions: np.ndarray) -> Selection:
         scores = np.bincount(actions, weights=b, minlength=N_ACTIONS)

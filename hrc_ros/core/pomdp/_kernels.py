@@ -79,7 +79,7 @@ ub_value = numba.njit(cache=True)(_ub_value)
 
 
 def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order, proj,
-               offsets, gamma, out_vec, out_act, out_val):
+               offsets, gamma, same_as, out_vec, out_act, out_val):
     n_points, n_h = points.shape
     n_a = reward.shape[1]
     n_k = succ_x.shape[2]
@@ -94,6 +94,14 @@ def _lb_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
             if not available[x, a]:
                 continue
             g = group[a]
+            a0 = same_as[x, a]
+            if a0 >= 0:     # the successors and group of the earlier a0: only r differs
+                v = 0.0
+                for h in range(n_h):
+                    vec[a, h] = reward[x, a, h] + (vec[a0, h] - reward[x, a0, h])
+                    v += vec[a, h] * b[h]
+                val[a] = v
+                continue
             for h in range(n_h):
                 vec[a, h] = reward[x, a, h]
             for k in range(n_k):
@@ -131,7 +139,8 @@ lb_backup = parallel_kernel(_lb_backup, cache=True, nogil=True)
 
 
 def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order, kernel,
-               gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, out_val, out_act):
+               gamma, q_fib, corner, ub_inverse, ub_slope, ub_offsets, same_as, out_val,
+               out_act):
     n_points, n_h = points.shape
     n_a = reward.shape[1]
     n_k = succ_x.shape[2]
@@ -142,6 +151,7 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
         bl = np.empty(n_h)
         nb = np.empty(n_h)
         val = np.full(n_a, -np.inf)
+        future = np.zeros(n_a)
         for a in range(n_a):
             if not available[x, a]:
                 continue
@@ -149,6 +159,12 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
             q = 0.0
             for h in range(n_h):
                 q += b[h] * reward[x, a, h]
+            a0 = same_as[x, a]
+            if a0 >= 0:     # the successors and group of the earlier a0: only r differs
+                future[a] = future[a0]
+                val[a] = q + future[a0]
+                continue
+            r = q
             for k in range(n_k):
                 xn = succ_x[x, a, k]
                 if xn < 0:
@@ -169,6 +185,7 @@ def _ub_backup(points, point_x, succ_x, succ_l, reward, available, group, order,
                         nb[h2] /= total
                     q += gamma * total * _ub_value_inline(
                         xn, nb, q_fib, available, corner, ub_inverse, ub_slope, ub_offsets)
+            future[a] = q - r
             val[a] = q
         out_act[p] = _safest_best(val, order)
         out_val[p] = val.max()
@@ -206,3 +223,29 @@ def _ub_values(points, point_x, q_fib, available, corner, ub_inverse, ub_slope, 
 
 
 ub_values = parallel_kernel(_ub_values, cache=True, nogil=True)
+
+
+def _successor_sums(succ_x, succ_l, rows, table, pick, out):
+    """out[x, m, h] = sum_k succ_l[x, a, k, h] table[pick[x, m], succ_x[x, a, k], h] with
+    a = rows[x, m], over the successors of (x, a) up to the first -1 (the padding is never
+    read): the expectation over x' of a table of values by successor, in the sparse form (a
+    queue's (x, a) has 12 successors on average and up to 96). The fast form of
+    `MixedPOMDP.expected_next`, of the FIB's gather and of the blind policies' evaluation."""
+    n_x, n_m = rows.shape
+    n_k = succ_x.shape[2]
+    n_h = succ_l.shape[3]
+    for x in numba.prange(n_x):
+        for m in range(n_m):
+            a = rows[x, m]
+            t = pick[x, m]
+            for h in range(n_h):
+                out[x, m, h] = 0.0
+            for k in range(n_k):
+                xn = succ_x[x, a, k]
+                if xn < 0:
+                    break
+                for h in range(n_h):
+                    out[x, m, h] += succ_l[x, a, k, h] * table[t, xn, h]
+
+
+successor_sums = parallel_kernel(_successor_sums, cache=True, nogil=True)

@@ -3,7 +3,9 @@
 A POMDP policy file holds the solved alpha vectors and the fast informed bound over the
 observable states the task book can produce (`pomdp.hrc_pomdp`):
 
-- ``columns`` int64 (X,): the observable column y * 4 + d of each solved state, increasing;
+- ``columns`` int64 (X,): the observable column l * n_task * 4 + y * 4 + d of each solved
+  state, increasing (l the queue length of MODEL.md 8.1, outermost; l = 0 and so y * 4 + d,
+  as before, without a queue);
 - ``alpha`` float64 (n, 9), ``alpha_action`` int8 (n,), ``alpha_offsets`` int64 (X + 1,):
   Gamma(x_i) = alpha[offsets[i]:offsets[i + 1]], every set non-empty;
 - ``q_fib`` float64 (X, 8, 9): the fast informed bound's Q (the `fib` selector);
@@ -119,7 +121,7 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
     n_columns = None
     if config is not None:
         model = HRCModel(config)
-        n_columns = model.n_task * N_DISTANCE
+        n_columns = model.n_levels * model.n_task * N_DISTANCE   # l outermost (MODEL.md 8.1)
     with open_policy(path, how, 'POMDP policy file') as stream:
         headers = _headers(stream, path, how)
         _check_headers(path, headers, n_columns, how)   # before any array is read

@@ -153,10 +153,12 @@ class MixedPOMDP:
 class HRCPomdp:
     """The HRC POMDP over the observable states the task book can produce.
 
-    `columns[i]` is the observable column y * 4 + d of solved state i (the column of
-    `ActionSelector`); `column_index[c]` the solved state of column c, -1 outside the set.
-    `enter[i, j]` is the solved state after task j of `tasks` enters the idle cell of state i
-    (-1 where the cell is busy); `likelihood` is P(O | h), (3, 9).
+    `columns[i]` is the observable column l * n_task * 4 + y * 4 + d of solved state i (the
+    column of `ActionSelector`; l the queue length of MODEL.md 8.1, outermost as in the flat
+    index, 0 without a queue); `column_index[c]` the solved state of column c, -1 outside the
+    set. Solved state i = l * n_y * 4 + i_y * 4 + d (n_y task states of the closure, every l).
+    `enter[i, j]` is the solved state after task j of `tasks` enters the idle cell of state i,
+    at the same l (-1 where the cell is busy); `likelihood` is P(O | h), (3, 9).
     """
 
     model: HRCModel
@@ -167,11 +169,15 @@ class HRCPomdp:
     enter: np.ndarray
     likelihood: np.ndarray
 
-    def state(self, observable) -> int:
-        """The solved state of observable x = (tp, tc, tx, ty, hp, hc, bp, bc, d)."""
+    def state(self, observable, level: int = 0) -> int:
+        """The solved state of observable x = (tp, tc, tx, ty, hp, hc, bp, bc, d) with `level`
+        tasks waiting (the queue length l of MODEL.md 8.1; 0 without a queue)."""
         *task, d = (int(v) for v in observable)
         y = self.model.task_index({n: np.asarray(v) for n, v in zip(TASK_VARIABLES, task)})
-        i = int(self.column_index[int(y) * N_DISTANCE + d])
+        if not 0 <= int(level) < self.model.n_levels:
+            raise ValueError(f'queue length {level} outside 0..{self.model.n_levels - 1}')
+        column = int(level) * self.model.n_task * N_DISTANCE + int(y) * N_DISTANCE + d
+        i = int(self.column_index[column])
         if i < 0:
             raise ValueError(f'observable state {tuple(observable)} is not one the task book '
                              'can produce; the POMDP policy does not cover it')
@@ -209,14 +215,47 @@ def _arrival_branches(arrivals, ys: np.ndarray, branches: list) -> list:
     return out
 
 
+def _queue_branches(queue, ys: np.ndarray, level: int, branches: list) -> tuple[list, list]:
+    """The queue's epoch (MODEL.md 8.1, as `HRCModel._queue_steps`) on the task branches
+    [(y' per source, P by h)] of the sources `ys` with `level` tasks waiting: a task is
+    released with arrival_busy or arrival_idle by the source's tp (a Bernoulli of its own);
+    where the step left the cell idle and a task waits, the head (task k of q) enters and the
+    queue shortens by one; l' = min(l + released - entered, L). The release and the entry are
+    independent of h, so they scale the branch's likelihood. Returns (l' per branch, the
+    branches); branches with the same l' and the same y' everywhere are merged (at l = L a
+    busy cell's release is dropped: the same successor as no release). -1 stays -1."""
+    arr, top = queue.arrivals, queue.levels
+    p_release = np.where(arr.idle[ys], arr.p_idle, arr.p_complete)[:, None]   # by the source
+    levels, out = [], []
+
+    def add(l_next, y_next, p):
+        for i, (l_old, (y_old, p_old)) in enumerate(zip(levels, out)):
+            if l_old == l_next and np.array_equal(y_old, y_next):
+                out[i] = (y_old, p_old + p)
+                return
+        levels.append(l_next)
+        out.append((y_next, p))
+
+    for y_next, p_y in branches:
+        ends_idle = (y_next >= 0) & arr.idle[np.maximum(y_next, 0)]
+        for released, p_r in ((1, p_release), (0, 1.0 - p_release)):
+            waiting = level + released
+            enters = ends_idle & (waiting > 0)
+            add(min(waiting, top), np.where(enters, -1, y_next), p_y * p_r)
+            if waiting > 0:
+                for j, q_j in enumerate(arr.q):
+                    entered = np.where(enters, arr.enter[np.maximum(y_next, 0), j], -1)
+                    add(min(waiting - 1, top), entered, p_y * p_r * q_j)
+    return levels, out
+
+
 def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
     """The MixedPOMDP of `model` over the closure of the task states the task book produces:
     the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
-    reach from them, at every distance."""
-    if model.queue is not None:
-        raise ValueError(f'{model.config.source}: the POMDP solver does not take a stream with a '
-                         'queue (stream.queue, MODEL.md 8.1) yet; solve its MDP (hrc-solve) or '
-                         'leave out stream.queue')
+    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
+    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
+    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
+    expected drop charge)."""
     op = operator or FactoredBellman(model)
     outcomes = _task_outcomes(op)
     grid = model.task_grid
@@ -239,39 +278,64 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     n_y = ys.size
     y_index = np.full(model.n_task, -1, dtype=np.intp)
     y_index[ys] = np.arange(n_y)
-    columns = (ys[:, None] * N_DISTANCE + np.arange(N_DISTANCE)[None, :]).ravel()
-    n_x = columns.size                                              # x = i_y * 4 + d
-    column_index = np.full(model.n_task * N_DISTANCE, -1, dtype=np.intp)
+    # x = (l * n_y + i_y) * 4 + d: every l of the queue (MODEL.md 8.1; one level without one)
+    # holds the same closure, l outermost as in the flat index
+    n_levels, n_cols = model.n_levels, model.n_task * N_DISTANCE
+    n_base_x = n_y * N_DISTANCE
+    base_columns = (ys[:, None] * N_DISTANCE + np.arange(N_DISTANCE)[None, :]).ravel()
+    columns = (np.arange(n_levels)[:, None] * n_cols + base_columns[None, :]).ravel()
+    n_x = columns.size
+    column_index = np.full(n_levels * n_cols, -1, dtype=np.intp)
     column_index[columns] = np.arange(n_x)
 
     ea = np.arange(N_HIDDEN) % 3
     p_accept = op.p_accept_vector                                   # by h
     n_a = len(ACTIONS)
-    arrivals = model.arrivals
-    n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
+    arrivals, queue = model.arrivals, model.queue
+    if queue is None:
+        n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
+    else:                     # (accepted, released) x (stays, or the head's K kinds) x 3 d'
+        n_k = 2 * 2 * 3 * (1 + len(queue.arrivals.q))
     succ_x = np.full((n_x, n_a, n_k), -1, dtype=np.intp)
     succ_l = np.zeros((n_x, n_a, n_k, N_HIDDEN))
     d_of_x = np.tile(np.arange(N_DISTANCE), n_y)
-    for a, (refused, accepted, eligible) in enumerate(outcomes):
-        dist = model.distance_matrix(a)[ea]                         # (9, d, d')
-        branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
-        branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
-        if arrivals is not None:
-            branches = _arrival_branches(arrivals, ys, branches)
-        k = np.zeros(n_x, dtype=np.intp)
-        for y_next, p_y in branches:
-            has = y_next >= 0
-            for d_next in range(N_DISTANCE):
-                p_d = dist[:, :, d_next].T                          # (d, 9)
-                lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_x, 9)
-                use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
-                rows = np.flatnonzero(use)
-                target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
-                succ_x[rows, a, k[rows]] = target * N_DISTANCE + d_next
-                succ_l[rows, a, k[rows]] = lik[rows]
-                k[rows] += 1
-    cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)
-    reward = -(cost[:, None, :] + op.g[None, :, None])
+    for level in range(n_levels):
+        first = level * n_base_x                                    # this level's rows
+        for a, (refused, accepted, eligible) in enumerate(outcomes):
+            dist = model.distance_matrix(a)[ea]                     # (9, d, d')
+            branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
+            branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
+            if arrivals is not None:
+                branches = _arrival_branches(arrivals, ys, branches)
+            levels = [0] * len(branches)
+            if queue is not None:
+                levels, branches = _queue_branches(queue, ys, level, branches)
+            k = np.zeros(n_base_x, dtype=np.intp)
+            for l_next, (y_next, p_y) in zip(levels, branches):
+                has = y_next >= 0
+                for d_next in range(N_DISTANCE):
+                    p_d = dist[:, :, d_next].T                      # (d, 9)
+                    lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_y * 4, 9)
+                    use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
+                    rows = np.flatnonzero(use)
+                    target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
+                    succ_x[first + rows, a, k[rows]] = ((l_next * n_y + target) * N_DISTANCE
+                                                        + d_next)
+                    succ_l[first + rows, a, k[rows]] = lik[rows]
+                    k[rows] += 1
+    d_of_x = np.tile(np.arange(N_DISTANCE), n_y * n_levels)
+    if queue is None:
+        cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)
+        reward = -(cost[:, None, :] + op.g[None, :, None])
+    else:
+        # the MDP's cost of the queue (J + w l + the expected drop charge), by (x, h)
+        used = int((succ_x >= 0).sum(axis=2).max())
+        succ_x, succ_l = succ_x[:, :, :used].copy(), succ_l[:, :, :used].copy()
+        flat = (np.repeat(np.arange(n_levels), n_base_x)[:, None] * model.n_base
+                + np.arange(N_HIDDEN)[None, :] * n_cols
+                + np.tile(base_columns, n_levels)[:, None])                  # (x, h)
+        reward = -np.stack([model.flat_cost(flat.ravel(), a).reshape(n_x, N_HIDDEN)
+                            for a in range(n_a)], axis=1)
     available = model.availability[:, d_of_x].T.copy()             # (x, a)
     likelihood = BeliefFilter(model).likelihood
     emotion = np.stack([model.emotion_matrices[g] for g in EMOTION_GROUPS])
@@ -280,11 +344,13 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
     pomdp = MixedPOMDP(succ_x=succ_x, succ_l=succ_l, reward=reward, available=available,
                        group=group, kernel=np.ascontiguousarray(kernel), gamma=model.gamma,
                        order=np.array(SAFETY_ORDER))
-    idle_x = np.repeat(grid['tp'][ys] == 0, N_DISTANCE)
+    idle_x = np.tile(np.repeat(grid['tp'][ys] == 0, N_DISTANCE), n_levels)
+    level_of_x = np.repeat(np.arange(n_levels), n_base_x)
     enter = np.full((n_x, len(tasks)), -1, dtype=np.intp)
-    for j, t in enumerate(tasks):
-        entered = y_index[entering_task(model, ys, *t)]
-        enter[:, j] = np.where(idle_x, np.repeat(entered, N_DISTANCE) * N_DISTANCE + d_of_x, -1)
+    for j, t in enumerate(tasks):                   # the task enters, the queue stays
+        entered = np.tile(np.repeat(y_index[entering_task(model, ys, *t)], N_DISTANCE),
+                          n_levels)
+        enter[:, j] = np.where(idle_x, (level_of_x * n_y + entered) * N_DISTANCE + d_of_x, -1)
     return HRCPomdp(model, pomdp, columns, column_index, tasks, enter, likelihood)
 
 
@@ -293,26 +359,58 @@ def _greedy_value(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
     return np.where(pomdp.available[..., None], q, -np.inf).max(axis=1)
 
 
-def mdp_q(pomdp: MixedPOMDP, tol: float = 1e-9, max_sweeps: int = 100_000) -> np.ndarray:
-    """Q of the fully observed MDP over (x, h), (X, A, H), by value iteration to `tol`."""
+def _successor_sums(pomdp: MixedPOMDP, table: np.ndarray, pick: np.ndarray,
+                    rows: np.ndarray | None = None) -> np.ndarray:
+    """(X, M, H): sum_k l_k(h) table[pick[x, m], x'_k, h] over the successors of (x, rows[x, m])
+    (rows: every action, M = A, by default), by the sparse kernel (`_kernels.successor_sums`)."""
+    n_x, n_a = pomdp.n_x, pomdp.n_actions
+    if rows is None:
+        rows = np.broadcast_to(np.arange(n_a), (n_x, n_a))
+    rows = np.ascontiguousarray(rows, dtype=np.intp)
+    out = np.empty(rows.shape + (pomdp.n_hidden,))
+    kernels.successor_sums(np.ascontiguousarray(pomdp.succ_x, dtype=np.intp), pomdp.succ_l,
+                           rows, np.ascontiguousarray(table, dtype=float),
+                           np.ascontiguousarray(pick, dtype=np.intp), out, work=rows.size)
+    return out
+
+
+def _expected_next(pomdp: MixedPOMDP, value: np.ndarray, fast: bool) -> np.ndarray:
+    """`MixedPOMDP.expected_next`, or with `fast` its sparse form (the same sums, another order
+    of adding them up: equal to rounding, a test holds them so)."""
+    if not fast:
+        return pomdp.expected_next(value)
+    stepped = np.einsum('ghk,xk->gxh', pomdp.hidden_transition, value)   # (G, X', H)
+    return _successor_sums(pomdp, stepped, np.broadcast_to(pomdp.group, (pomdp.n_x,
+                                                                        pomdp.n_actions)))
+
+
+def mdp_q(pomdp: MixedPOMDP, tol: float = 1e-9, max_sweeps: int = 100_000,
+          fast: bool = False) -> np.ndarray:
+    """Q of the fully observed MDP over (x, h), (X, A, H), by value iteration to `tol`.
+    `fast`: the successors' sums by the sparse kernel (`solve_pomdp` uses it for a queue)."""
     value = np.zeros((pomdp.n_x, pomdp.n_hidden))
     for _ in range(max_sweeps):
-        q = pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+        q = pomdp.reward + pomdp.gamma * _expected_next(pomdp, value, fast)
         new = _greedy_value(pomdp, q)
         change = np.max(np.abs(new - value))
         value = new
         if change < tol:
             break
-    return pomdp.reward + pomdp.gamma * pomdp.expected_next(value)
+    return pomdp.reward + pomdp.gamma * _expected_next(pomdp, value, fast)
 
 
-def fib_step(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
-    """One fast-informed-bound backup of Q (X, A, H)."""
+def fib_step(pomdp: MixedPOMDP, q: np.ndarray, fast: bool = False) -> np.ndarray:
+    """One fast-informed-bound backup of Q (X, A, H) (`fast`: the gather by the sparse
+    kernel)."""
     masked = np.where(pomdp.available[..., None], q, -np.inf)       # (X, A', H')
     # w[x', g, o, h] = max_a' sum_h' kernel[g, o, h, h'] q[x', a', h']
     proj = np.einsum('gohk,xak->xgoha', pomdp.kernel, np.where(np.isfinite(masked), q, 0.0))
     proj = np.where(pomdp.available[:, None, None, None, :], proj, -np.inf)
     w = proj.max(axis=4).sum(axis=2)                                 # (X, G, H)
+    if fast:
+        table = w.transpose(1, 0, 2)                                 # (G, X', H)
+        pick = np.broadcast_to(pomdp.group, (pomdp.n_x, pomdp.n_actions))
+        return pomdp.reward + pomdp.gamma * _successor_sums(pomdp, table, pick)
     nxt = np.maximum(pomdp.succ_x, 0)
     gathered = w[nxt, pomdp.group[None, :, None], :]                # (X, A, K, H)
     gathered = np.where((pomdp.succ_x >= 0)[..., None], gathered, 0.0)
@@ -320,12 +418,12 @@ def fib_step(pomdp: MixedPOMDP, q: np.ndarray) -> np.ndarray:
 
 
 def fib_q(pomdp: MixedPOMDP, tol: float = 1e-9, start: np.ndarray | None = None,
-          max_sweeps: int = 100_000) -> tuple[np.ndarray, int]:
+          max_sweeps: int = 100_000, fast: bool = False) -> tuple[np.ndarray, int]:
     """The fast informed bound's Q, (X, A, H), iterated from the MDP's Q (an upper bound, so
     every iterate is one); returns (Q, sweeps)."""
-    q = mdp_q(pomdp, tol) if start is None else start
+    q = mdp_q(pomdp, tol, fast=fast) if start is None else start
     for n in range(1, max_sweeps + 1):
-        new = fib_step(pomdp, q)
+        new = fib_step(pomdp, q, fast)
         change = np.max(np.abs(np.where(pomdp.available[..., None], new - q, 0.0)))
         q = np.minimum(q, new)     # a valid upper bound stays one; guards rounding drift
         if change < tol:
@@ -333,14 +431,29 @@ def fib_q(pomdp: MixedPOMDP, tol: float = 1e-9, start: np.ndarray | None = None,
     return q, max_sweeps
 
 
-def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9) -> np.ndarray:
+def blind_alphas(pomdp: MixedPOMDP, tol: float = 1e-9, fast: bool = False) -> np.ndarray:
     """Values (A, X, H) of the blind policies 'always a (where a is unavailable, the first
-    available action of the tie order)': executable whatever the belief, so lower bounds."""
+    available action of the tie order)': executable whatever the belief, so lower bounds.
+    `fast`: the successors' sums by the sparse kernel."""
     n_a, n_x = pomdp.n_actions, pomdp.n_x
     first = pomdp.order[np.argmax(pomdp.available[:, pomdp.order], axis=1)]   # (X,)
     act = np.where(pomdp.available.T, np.arange(n_a)[:, None], first[None, :])  # (A, X)
     rows = np.arange(n_x)[None, :]
     reward = pomdp.reward[rows, act]                                # (A, X, H)
+    if fast:
+        n_g = pomdp.hidden_transition.shape[0]
+        # table[b * G + g, x'] = E_g applied to policy b's value at x'; policy b at x reads
+        # its action's successors and group
+        pick = (np.arange(n_a)[:, None] * n_g + pomdp.group[act]).T   # (X, A)
+        value = np.zeros((n_a, n_x, pomdp.n_hidden))
+        while True:
+            table = np.einsum('ghj,bxj->bgxh', pomdp.hidden_transition, value)
+            future = _successor_sums(pomdp, table.reshape(n_a * n_g, n_x, -1), pick, act.T)
+            new = reward + pomdp.gamma * future.transpose(1, 0, 2)
+            change = np.max(np.abs(new - value))
+            value = new
+            if change < tol:
+                return value
     e = pomdp.hidden_transition[pomdp.group[act]]                   # (A, X, H, H')
     succ_x = pomdp.succ_x[rows, act]                                # (A, X, K)
     succ_l = pomdp.succ_l[rows, act]                                # (A, X, K, H)
@@ -541,10 +654,71 @@ def initial_bounds(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
     return alphas, UpperBound.from_fib(q_fib, pomdp.available, points_x, points)
 
 
+def shared_actions(pomdp: MixedPOMDP, share: bool = True) -> np.ndarray:
+    """(X, A) intp: for each (x, a) the first available a0 < a with the same successors,
+    likelihoods and action group, whose backup differs from a's by the reward alone (nw and an
+    ineffective ct, rh1 and rh2 where neither is eligible, dn where the robot has no work: a
+    quarter of a queue's backup work), else -1; all -1 with `share` False (the kernels then
+    back every action up in full)."""
+    out = np.full((pomdp.n_x, pomdp.n_actions), -1, dtype=np.intp)
+    if not share:
+        return out
+    for x in range(pomdp.n_x):
+        seen = []
+        for a in range(pomdp.n_actions):
+            if not pomdp.available[x, a]:
+                continue
+            for a0 in seen:
+                if (pomdp.group[a0] == pomdp.group[a]
+                        and np.array_equal(pomdp.succ_x[x, a0], pomdp.succ_x[x, a])
+                        and np.array_equal(pomdp.succ_l[x, a0], pomdp.succ_l[x, a])):
+                    out[x, a] = a0
+                    break
+            else:
+                seen.append(a)
+    return out
+
+
+def _perseus_lower(backup, points, points_x, old_val, n_x: int, rng, share: int = 16):
+    """One Perseus sweep of the lower bound (Spaan and Vlassis 2005), in parallel batches:
+    back up a random batch of the points not yet improved (about 1/`share` of them, at
+    least 64), add the vectors, and drop from the rest every point the new vectors already
+    lift to its old value; until none is left. Every point ends at least at its old value
+    (`backup` keeps a point's old best vector where its backup is not better). Returns (x,
+    vectors, actions) of the new set and its value at every point."""
+    n_p = len(points)
+    todo = np.ones(n_p, dtype=bool)
+    value = np.full(n_p, -np.inf)
+    xs, vecs, acts = [], [], []
+    while True:
+        rows = np.flatnonzero(todo)
+        if rows.size == 0:
+            break
+        size = min(rows.size, max(64, -(-rows.size // share)))
+        pick = np.sort(rng.choice(rows, size=size, replace=False))
+        v, a, got = backup(pick)
+        xs.append(points_x[pick])
+        vecs.append(v)
+        acts.append(a)
+        value[pick] = np.maximum(value[pick], got)
+        todo[pick] = False
+        rows = np.flatnonzero(todo)
+        if rows.size:          # what the batch's vectors give the points still to do
+            batch = AlphaSet.build(points_x[pick], v, a, n_x)
+            lifted = np.empty(rows.size)
+            index = np.empty(rows.size, dtype=np.intp)
+            kernels.lb_values(points[rows], points_x[rows], batch.alpha, batch.offsets, lifted,
+                              index, work=rows.size)
+            value[rows] = np.maximum(value[rows], lifted)
+            todo[rows[value[rows] >= old_val[rows]]] = False
+    return np.concatenate(xs), np.vstack(vecs), np.concatenate(acts), value
+
+
 def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
                   alphas: AlphaSet, upper: UpperBound, max_sweeps: int, tol: float,
                   targets=None, progress: Callable[[dict], None] | None = None,
-                  time_limit: float | None = None, ub_every: int = 25
+                  time_limit: float | None = None, ub_every: int = 25,
+                  share: bool = False, perseus: bool = False
                   ) -> tuple[AlphaSet, UpperBound, list]:
     """Full point-based sweeps of both bounds until neither moves by `tol` at any point.
 
@@ -553,11 +727,18 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
     decreases at a point; the new set is the vectors the points hold. Upper bound: every point
     backed up through min(FIB, sawtooth) (`ub_backup`), keeping the smaller value; the corners
     (points e_h) lower the corner values. `targets` = (x, b) rows whose gap is reported.
+    `share`: an action with another's successors and group is backed up from that one's
+    (`shared_actions`; the same values to rounding, a quarter less work for a queue).
+    `perseus`: the lower bound's sweep is Perseus's randomised one (`_perseus_lower`): only
+    the points no new vector has improved yet are backed up, so a sweep costs a fraction of
+    a full one and the sets stay smaller (the queue's solve, 3 x the states); and once it
+    moves by less than `tol` it is left as it is while the upper bound's sweeps go on.
     """
     n_x, n_h = pomdp.n_x, pomdp.n_hidden
     order = np.ascontiguousarray(pomdp.order, dtype=np.intp)
     group = np.ascontiguousarray(pomdp.group, dtype=np.intp)
     succ_x = np.ascontiguousarray(pomdp.succ_x, dtype=np.intp)
+    same_as = shared_actions(pomdp, share)
     n_p = len(points)
     vec = np.empty((n_p, n_h))
     act = np.empty(n_p, dtype=np.intp)
@@ -571,39 +752,58 @@ def backup_sweeps(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
     t0 = time.perf_counter()
     history = []
     ub_change = np.inf
+    lower_done = False
     for sweep in range(1, max_sweeps + 1):
-        proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
-        kernels.lb_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
-                          pomdp.available, group, order, proj, alphas.offsets, pomdp.gamma,
-                          vec, act, val, work=n_p)
         kernels.lb_values(points, points_x, alphas.alpha, alphas.offsets, old_val, old_idx,
                           work=n_p)
-        better = val > old_val
-        keep_vec = np.where(better[:, None], vec, alphas.alpha[old_idx])
-        keep_act = np.where(better, act, alphas.action[old_idx])
-        lb_change = float(np.max(np.maximum(val - old_val, 0.0)))
-        # states without points keep their vectors
-        lonely = np.ones(n_x, dtype=bool)
-        lonely[points_x] = False
-        held = lonely[alphas.owner]
-        alphas = AlphaSet.build(np.concatenate([points_x, alphas.owner[held]]),
-                                np.vstack([keep_vec, alphas.alpha[held]]),
-                                np.concatenate([keep_act, alphas.action[held]]), n_x)
+        if lower_done:     # Perseus's runs: the lower bound has converged, the upper goes on
+            lower_now, lb_change = old_val.copy(), 0.0
+        else:
+            proj = np.ascontiguousarray(np.einsum('gohk,ik->goih', pomdp.kernel, alphas.alpha))
+
+            def backup(rows, proj=proj, alphas=alphas):
+                """(vectors, actions, values) of the points `rows` backed up from the current
+                set, each point's current best vector where the backup is not better (Perseus's
+                rule)."""
+                out_vec, out_act, out_val = vec[:len(rows)], act[:len(rows)], val[:len(rows)]
+                kernels.lb_backup(points[rows], points_x[rows], succ_x, pomdp.succ_l,
+                                  pomdp.reward, pomdp.available, group, order, proj,
+                                  alphas.offsets, pomdp.gamma, same_as, out_vec, out_act, out_val,
+                                  work=len(rows))
+                better = out_val > old_val[rows]
+                return (np.where(better[:, None], out_vec, alphas.alpha[old_idx[rows]]),
+                        np.where(better, out_act, alphas.action[old_idx[rows]]),
+                        np.maximum(out_val, old_val[rows]))
+
+            if perseus:
+                keep_x, keep_vec, keep_act, lower_now = _perseus_lower(
+                    backup, points, points_x, old_val, n_x, np.random.default_rng(sweep))
+            else:
+                keep_vec, keep_act, lower_now = backup(np.arange(n_p))
+                keep_x = points_x
+            lb_change = float(np.max(lower_now - old_val))
+            # states without points keep their vectors
+            lonely = np.ones(n_x, dtype=bool)
+            lonely[points_x] = False
+            held = lonely[alphas.owner]
+            alphas = AlphaSet.build(np.concatenate([keep_x, alphas.owner[held]]),
+                                    np.vstack([keep_vec, alphas.alpha[held]]),
+                                    np.concatenate([keep_act, alphas.action[held]]), n_x)
+            lower_done = perseus and lb_change < tol
 
         last = lb_change < tol or sweep == max_sweeps or (
             time_limit is not None and time.perf_counter() - t0 > time_limit)
         if sweep == 1 or sweep % ub_every == 0 or last:
             kernels.ub_backup(points, points_x, succ_x, pomdp.succ_l, pomdp.reward,
                               pomdp.available, group, order, pomdp.kernel, pomdp.gamma,
-                              upper.q_fib, upper.corner, *upper.sawtooth(), ub_new, ub_act,
-                              work=n_p)
+                              upper.q_fib, upper.corner, *upper.sawtooth(), same_as, ub_new,
+                              ub_act, work=n_p)
             ub_change = float(np.max(np.maximum(upper.values - ub_new, 0.0)))
             upper.values = np.minimum(upper.values, ub_new)
             c = upper.corner.copy()
             np.minimum.at(c, (points_x[is_corner], corner_h[is_corner]),
                           upper.values[is_corner])
             upper.corner = c
-        lower_now = np.maximum(val, old_val)
         gap = upper.values - lower_now
         row = {'sweep': sweep, 'vectors': len(alphas), 'lb_change': lb_change,
                'ub_change': ub_change, 'gap_max': float(gap.max()),
@@ -642,7 +842,12 @@ class PomdpResult:
         pomdp = self.hrc.pomdp
         return AlphaPolicy(self.hrc.columns, self.alphas.alpha, self.alphas.action,
                            self.alphas.offsets, self.upper.q_fib, pomdp.available,
-                           self.hrc.model.n_task * N_DISTANCE)
+                           _n_columns(self.hrc.model))
+
+
+def _n_columns(model: HRCModel) -> int:
+    """The observable columns l * n_task * 4 + y * 4 + d of a model (l < 1 without a queue)."""
+    return model.n_levels * model.n_task * N_DISTANCE
 
 
 def case_study_targets(hrc: HRCPomdp) -> tuple[list, np.ndarray, np.ndarray]:
@@ -661,7 +866,8 @@ def _starts(hrc: HRCPomdp) -> Starts:
     """The case study's start (true h = (0, 0)) and every task entering the idle cell at
     d = 1..3 with a human drawn from the person prior (`observation.prior`, else uniform: the
     humans of `hrc-evaluate`); every belief starts from that prior (b_1 ∝ prior * L[O_1], as
-    `BeliefFilter.initial`)."""
+    `BeliefFilter.initial`). With a queue (MODEL.md 8.1) every start has none waiting (l = 0),
+    as `hrc-evaluate`'s episodes; the queue fills by the model's releases."""
     prior = BeliefFilter(hrc.model, mode='bayes').prior
     _, tx, _ = case_study_targets(hrc)
     idle = hrc.column_index[np.arange(N_DISTANCE)]          # y = 0: the idle cell
@@ -699,15 +905,20 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     op = FactoredBellman(model)
     hrc = hrc_pomdp(model, op)
     pomdp = hrc.pomdp
-    q_mdp = mdp_q(pomdp, tol=1e-9)
-    q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp)
-    blind = blind_alphas(pomdp, tol=1e-9)
+    # A queue's successors are many (up to 96 per action where the cell goes idle, 12 on
+    # average): the bounds' sums by the sparse kernels. Without a queue the arithmetic that
+    # solved the shipped policies, bit for bit.
+    fast = model.queue is not None
+    q_mdp = mdp_q(pomdp, tol=1e-9, fast=fast)
+    q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp, fast=fast)
+    blind = blind_alphas(pomdp, tol=1e-9, fast=fast)
     n_x, n_a = pomdp.n_x, pomdp.n_actions
     alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, N_HIDDEN),
                             np.repeat(np.arange(n_a), n_x), n_x)
     t_bounds = time.perf_counter()
-    say(f'{n_x} observable states ({n_x // N_DISTANCE} task states x {N_DISTANCE} '
-        f'distances), FIB {fib_sweeps} sweeps, {t_bounds - t0:.1f} s')
+    levels = '' if model.queue is None else f' x {model.n_levels} queue lengths'
+    say(f'{n_x} observable states ({n_x // N_DISTANCE // model.n_levels} task states x '
+        f'{N_DISTANCE} distances{levels}), FIB {fib_sweeps} sweeps, {t_bounds - t0:.1f} s')
     names, tx, tb = case_study_targets(hrc)
     starts = _starts(hrc)
     fixed_x, fixed_b = _with_fixed(tx, tb, *_fixed_points(hrc))
@@ -723,15 +934,17 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     # Warm start: the fixed points alone (corners, first beliefs, Table 5 rows at every x)
     # converge in a fraction of the time and lift the blind vectors for the sampled points.
     alphas, upper, history = backup_sweeps(pomdp, points_x, points, alphas, upper, max_sweeps,
-                                           tol, (tx, tb), lambda row: show(row, 'fixed'))
+                                           tol, (tx, tb), lambda row: show(row, 'fixed'),
+                                           share=fast, perseus=fast)
     sweeps.append(len(history))
     say(f'fixed points: {len(points_x)} points, {len(history)} sweeps, {len(alphas)} vectors')
     for r in range(rounds + 1):
         policy = (q_policy(pomdp, q_fib) if r == 0
                   else AlphaPolicy.from_set(alphas, q_fib, pomdp.available, hrc).act)
-        # A stream model's successors hold its arrivals; the paper's model gets the
-        # hrc-evaluate task stream from outside.
-        enter = None if model.arrivals is not None else hrc.enter
+        # A stream model's successors hold its arrivals (and its queue's); the paper's model
+        # gets the hrc-evaluate task stream from outside.
+        streamed = model.arrivals is not None or model.queue is not None
+        enter = None if streamed else hrc.enter
         xs, bs = sample_beliefs(pomdp, hrc.likelihood, starts, policy, episodes, epochs,
                                 seed=seed + r, explore=explore, enter=enter)
         points_x, points = thin_points(np.concatenate([points_x, xs]), np.vstack([points, bs]),
@@ -741,7 +954,8 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
                            upper.evaluate(points_x, points))
         alphas, upper, history = backup_sweeps(pomdp, points_x, points, alphas, upper,
                                                max_sweeps, tol, (tx, tb),
-                                               lambda row, r=r: show(row, f'round {r}'))
+                                               lambda row, r=r: show(row, f'round {r}'),
+                                               share=fast, perseus=fast)
         sweeps.append(len(history))
         say(f'round {r}: {len(points_x)} points, {len(history)} sweeps, {len(alphas)} '
             f'vectors, gap at the case study {100 * history[-1]["target_gap"]:.3f}%')
@@ -802,7 +1016,9 @@ def _with_fixed(points_x, points, fixed_x, fixed_b):
 class AlphaPolicy:
     """The solved POMDP over its observable states, for selection (pomdp and fib).
 
-    `columns[i]` is the observable column (y * 4 + d) of solved state i; Gamma(i) =
+    `columns[i]` is the observable column (l * n_task * 4 + y * 4 + d, l the queue length of
+    MODEL.md 8.1, 0 without a queue: `ActionSelector`'s column offset by l times the columns of
+    a level, as the flat index is) of solved state i; Gamma(i) =
     `alpha[offsets[i]:offsets[i+1]]` with `action`; `q_fib[i]` (A, H) the fast informed
     bound's Q. pomdp: the action of the best vector for (x, b), vectors within the tie
     tolerance of the best go to the first action of the safety order; scores[a] = the best
@@ -837,7 +1053,7 @@ class AlphaPolicy:
     @classmethod
     def from_set(cls, alphas: AlphaSet, q_fib, available, hrc: HRCPomdp) -> 'AlphaPolicy':
         return cls(hrc.columns, alphas.alpha, alphas.action, alphas.offsets, q_fib, available,
-                   hrc.model.n_task * N_DISTANCE)
+                   _n_columns(hrc.model))
 
     def state(self, column: int) -> int:
         i = int(self.column_index[column])

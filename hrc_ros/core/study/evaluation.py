@@ -50,7 +50,7 @@ from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HI
                      TASK_VARIABLES, HRCModel, first_in_safety_order,
                      request_eligible, safest_best)
 from ..mdp.policy import policy_arrays
-from ..decision.selection import POMDP_SELECTORS, VOTE_TOLERANCE
+from ..decision.selection import POMDP_SELECTORS, VOTE_TOLERANCE, check_alpha_columns
 from .simulation import SIMULATION_SELECTORS, Scenario, case_study
 
 METRICS = (
@@ -247,7 +247,9 @@ class BatchSimulator:
         if self.pomdp is None:
             from ..pomdp.policy import load_shipped_pomdp_policy
             self.pomdp = load_shipped_pomdp_policy(self.model.config)
-        return getattr(self.pomdp, 'policy', self.pomdp)
+        alphas = getattr(self.pomdp, 'policy', self.pomdp)
+        check_alpha_columns(alphas, self.model)
+        return alphas
 
     # -- selection, vectorised with ActionSelector's tie rules ---------------------------
     def _paper(self, belief, column):
@@ -295,9 +297,6 @@ class BatchSimulator:
             raise ValueError('the scenarios of one batch must have the same number of epochs')
         if selector == 'qmdp' and self.value is None:     # fail early, before any work
             raise ValueError("selector 'qmdp' needs the solved value function")
-        if selector in POMDP_SELECTORS and self.levels > 1:
-            raise ValueError(f'selector {selector!r} reads a POMDP policy, and the POMDP does '
-                             'not take a stream with a queue (MODEL.md 8.1) yet')
         if selector in POMDP_SELECTORS:
             self.alphas                                    # noqa: B018 - load it now
         model, n = self.model, len(scenarios)
@@ -380,10 +379,10 @@ class BatchSimulator:
                 action = self._paper(belief, level * self.columns + column)
             elif selector == 'mls':
                 action = self._mls(belief, level * self.columns + column).astype(np.intp)
-            elif selector == 'pomdp':
-                action = self.alphas.pomdp_many(belief, column)
+            elif selector == 'pomdp':     # the policy's columns carry l (MODEL.md 8.1)
+                action = self.alphas.pomdp_many(belief, level * self.columns + column)
             elif selector == 'fib':
-                action = self.alphas.fib_many(belief, column)
+                action = self.alphas.fib_many(belief, level * self.columns + column)
             else:
                 action = self._qmdp(belief, column, level)
             if exploring is not None:
