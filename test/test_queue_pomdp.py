@@ -270,7 +270,7 @@ def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_lengt
     actions reproduce the selector's), and a POMDP policy of another state space is refused."""
     from hrc_ros.core.decision.selection import ActionSelector
     from hrc_ros.core.model import TASK_VARIABLES
-    from hrc_ros.core.study.evaluation import BatchSimulator, human_seed, random_scenarios
+    from hrc_ros.core.study.evaluation import BatchSimulator, human_seed
     model = queue_model(2)
     result = solve_pomdp(model, episodes=60, per_state=8, rounds=0, seed=4, tol=5e-2)
     alphas = result.policy()
