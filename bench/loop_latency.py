@@ -195,8 +195,10 @@ def rss_kib(pid: int) -> int:
 
 # -- phase 1 ----------------------------------------------------------------------------------
 class LoopBench:
-    def __init__(self, node, executor):
+    def __init__(self, node, executor, queued: int | None = None):
         self.node, self.executor = node, executor
+        # a configuration with a queue (MODEL.md 8.1): the task state carries the tasks waiting
+        self.task_state = TASK_STATE if queued is None else {**TASK_STATE, 'queued': queued}
         self.task_pub = node.create_publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
         self.ping_pub = node.create_publisher(String, 'bench/ping', qos.RELIABLE)
         self.epoch = 0
@@ -226,7 +228,7 @@ class LoopBench:
         if not self.awaiting_belief:
             return
         self.awaiting_belief = False
-        task = conv.task_state_to_msg(TASK_STATE)
+        task = conv.task_state_to_msg(self.task_state)
         self.t_in = time.perf_counter()
         self.task_pub.publish(task)
 
@@ -260,7 +262,8 @@ def phase_loop(args, processes: Processes, policy: str) -> dict:
     node = rclpy.create_node('bench_loop', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    bench = LoopBench(node, executor)
+    queue = load_config(args.config).queue
+    bench = LoopBench(node, executor, queued=None if queue is None else queue)
     sensors = SensorThread(node, 100.0, skeleton_every=1)
     pictures = []
     node.create_subscription(MarkerArray, 'hrc/markers', lambda m: pictures.append(1),
