@@ -184,20 +184,28 @@ def fit_stream(recordings: list[Recording], bootstrap: int = BOOTSTRAP, seed: in
     fitted = StreamFit(int((kinds == 0).sum()), int((arrived & (kinds == 0)).sum()),
                        int((kinds == 1).sum()), int((arrived & (kinds == 1)).sum()),
                        unique, counts, left_out, gaps)
-    if bootstrap:
-        rng = np.random.default_rng(seed)
-        for name, kind in (('arrival_idle', 0), ('arrival_complete', 1)):
-            trials = arrived[kinds == kind].astype(float)
-            if trials.size:
-                means = rng.choice(trials, size=(bootstrap, trials.size)).mean(axis=1)
-                fitted.intervals[name] = tuple(float(v) for v in
-                                               np.quantile(means, [0.025, 0.975]))
-        if counts.sum():
-            draws = rng.multinomial(counts.sum(), fitted.q, size=bootstrap) / counts.sum()
-            for j, t in enumerate(unique):
-                fitted.intervals[f'q{tuple(int(v) for v in t)}'] = tuple(
-                    float(v) for v in np.quantile(draws[:, j], [0.025, 0.975]))
+    _bootstrap(fitted, ('arrival_idle', 'arrival_complete'), arrived, kinds, unique, counts,
+               bootstrap, seed)
     return fitted
+
+
+def _bootstrap(fitted, names, hits, kinds, unique, counts, bootstrap: int, seed: int) -> None:
+    """Percentile intervals into `fitted.intervals`: each rate (`names` for the trial kinds
+    0 and 1) by resampling its trials, q by multinomial draws of the entered tasks."""
+    if not bootstrap:
+        return
+    rng = np.random.default_rng(seed)
+    for kind, name in enumerate(names):
+        trials = hits[kinds == kind].astype(float)
+        if trials.size:
+            means = rng.choice(trials, size=(bootstrap, trials.size)).mean(axis=1)
+            fitted.intervals[name] = tuple(float(v) for v in
+                                           np.quantile(means, [0.025, 0.975]))
+    if counts.sum():
+        draws = rng.multinomial(counts.sum(), fitted.q, size=bootstrap) / counts.sum()
+        for j, t in enumerate(unique):
+            fitted.intervals[f'q{tuple(int(v) for v in t)}'] = tuple(
+                float(v) for v in np.quantile(draws[:, j], [0.025, 0.975]))
 
 
 # -- the stream with a queue (MODEL.md 8.1) ---------------------------------------------------
@@ -355,17 +363,6 @@ def fit_queue_stream(recordings: list[Recording], queue: int, waiting_cost: floa
                             int((kinds == 1).sum()), int((success & (kinds == 1)).sum()),
                             unique, counts, left_out, gaps, int(many.sum()),
                             int(released[many].sum()))
-    if bootstrap:
-        rng = np.random.default_rng(seed)
-        for name, kind in (('arrival_idle', 0), ('arrival_busy', 1)):
-            trials = success[kinds == kind].astype(float)
-            if trials.size:
-                means = rng.choice(trials, size=(bootstrap, trials.size)).mean(axis=1)
-                fitted.intervals[name] = tuple(float(v) for v in
-                                               np.quantile(means, [0.025, 0.975]))
-        if counts.sum():
-            draws = rng.multinomial(counts.sum(), fitted.q, size=bootstrap) / counts.sum()
-            for j, t in enumerate(unique):
-                fitted.intervals[f'q{tuple(int(v) for v in t)}'] = tuple(
-                    float(v) for v in np.quantile(draws[:, j], [0.025, 0.975]))
+    _bootstrap(fitted, ('arrival_idle', 'arrival_busy'), success, kinds, unique, counts,
+               bootstrap, seed)
     return fitted
