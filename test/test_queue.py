@@ -16,7 +16,6 @@ from hrc_ros.core.model import ACTIONS, DN, DP, NW, TASK_VARIABLES, HRCModel
 from hrc_ros.core.paths import default_config_path, share_dir, shipped_config_path
 from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of, evaluate
 from hrc_ros.core.study.simulation import Scenario
-from hrc_ros.core.swap import check_node_config
 
 CONFIG = default_config_path()
 SMALL = {'model': {'rho': 1, 'sigma': 1}}
@@ -334,7 +333,8 @@ def test_charging_a_queue_less_run_changes_its_cost_and_nothing_else():
 
 # -- the nodes take it ---------------------------------------------------------------------------
 def test_the_nodes_take_a_queue_and_the_episodes_do_not_depend_on_it(small_queue):
-    assert check_node_config(small_queue.config) is small_queue.config
+    from hrc_ros.core.swap import load_node_config
+    assert load_node_config(str(shipped_config_path('stream_queue'))).queue == 2
     a, _ = episodes_of(small_queue, 'random', 3, 10)
     b, _ = episodes_of(HRCModel(load_config(CONFIG, overrides=SMALL)), 'random', 3, 10)
     assert a == b

@@ -50,14 +50,7 @@ def policy_path(value: str, config: Config) -> str:
 
 def load_node_config(value: str) -> Config:
     """The configuration a `config` parameter names; ConfigError says why it does not load."""
-    return check_node_config(load_config(config_path(value)))
-
-
-def check_node_config(config: Config) -> Config:
-    """`config`, if the nodes can run it (every valid configuration, a stream with a queue
-    too: the task manager publishes the tasks waiting, MODEL.md 8.1, and the decision node
-    reads them); the one place a node's configuration is checked beyond its validity."""
-    return config
+    return load_config(config_path(value))
 
 
 @dataclass(frozen=True)

@@ -431,8 +431,7 @@ def _main(argv: list[str] | None) -> int:
             return 2
         shutil.rmtree(bag_dir)
     try:
-        from ..core.swap import check_node_config
-        config = check_node_config(load_config(args.config or default_config_path()))
+        config = load_config(args.config or default_config_path())
         model = HRCModel(config)
         load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
         if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one

@@ -181,10 +181,9 @@ def node_setup(node: Node, specs: Sequence[ParamSpec], check: Check,
 
 def load_node_config(value: str):
     """The model configuration named by a node's `config` parameter ('' = shipped default)."""
-    from ..core.swap import check_node_config
     path = config_path(value)
     try:
-        return check_node_config(load_config(path))
+        return load_config(path)
     except ConfigError as exc:
         raise StartupError(f'bad model configuration: {exc}') from None
 
