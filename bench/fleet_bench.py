@@ -53,6 +53,7 @@ os.environ.setdefault('RAY_worker_niceness', '0')
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hrc_ros.core import parallel  # noqa: E402
 from hrc_ros.core.parallel import descendants  # noqa: E402
 from hrc_ros.core.plant.pipeline import run_serially  # noqa: E402
 from hrc_ros.core.plant.spec import load_plant  # noqa: E402
@@ -135,6 +136,8 @@ def run_plant_bench(args) -> None:
     if not args.skip_serial:
         import numba
         numba.set_num_threads(args.serial_threads or numba.config.NUMBA_NUM_THREADS)
+        if args.serial_threads:   # core.parallel's kernels set numba's threads themselves
+            parallel.set_mode(parallel.SERIAL if args.serial_threads < 2 else args.serial_threads)
         pipelines, objects = fleet.prepare(plant, folder / 'serial')
         with PeakMemory() as memory:
             t0 = time.perf_counter()
@@ -142,7 +145,8 @@ def run_plant_bench(args) -> None:
             seconds = time.perf_counter() - t0
         report = fleet.plant_report(plant, pipelines, '', seconds, 'serial')
         results['serial'] = (seconds, memory.peak, report)
-        print(f'  (serial: numba {numba.get_num_threads()} threads in the solves)')
+        print(f'  (serial: numba {numba.get_num_threads()} threads in the solves, core.parallel '
+              f'mode {parallel.current_mode()})')
     print(f'load average before and after: {LOAD[0]} / {os.getloadavg()[0]:.1f}')
     print(f'plant of {args.cells} cells (full-size model, 1000 epochs each, run: always), '
           f'Ray on {args.cpus} CPUs vs one process')

@@ -625,3 +625,36 @@ def test_progress_redraws_one_line_on_a_terminal_and_logs_changes_otherwise(tmp_
     assert terminal.text.count('\r') == 3 and terminal.text.endswith('\n')
     assert '0/1 cells' in terminal.text and 'a: drift' in terminal.text
     assert log.text.splitlines() == ['hrc-fleet: [0/1] a: read', 'hrc-fleet: [0/1] a: drift']
+
+
+@pytest.mark.parametrize('cpus, mode', [(1, 'serial'), (2, 2)])
+def test_a_ray_task_keeps_the_kernels_to_the_cpus_it_was_given(cpus, mode):
+    """core.parallel's kernels set numba's thread count themselves (every core in the auto
+    mode), which undid the task's numba.set_num_threads: two one-CPU tasks on two cores ran
+    two threads each. The task's CPUs now bound the kernels' mode too."""
+    import numba
+
+    from hrc_ros.core import parallel
+    from hrc_ros.tools import fleet
+
+    class Context:
+        def get_assigned_resources(self):
+            return {'CPU': float(cpus)}
+
+    class FakeRay:
+        def get_runtime_context(self):
+            return Context()
+
+    threads = numba.get_num_threads()
+    try:
+        parallel.set_mode(None)
+        fleet._threads_as_assigned(FakeRay())
+        assert parallel.current_mode() == mode
+        kernel = parallel.ParallelKernel('probe', lambda: numba.get_num_threads(),
+                                         lambda: 1)
+        # a kernel asked to run parallel gets no more threads than the task's CPUs
+        used = max(kernel() for _ in range(8))
+        assert used <= cpus
+    finally:
+        parallel.set_mode(None)
+        numba.set_num_threads(threads)
