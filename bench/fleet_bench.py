@@ -134,10 +134,7 @@ def run_plant_bench(args) -> None:
     finally:
         ray.shutdown()
     if not args.skip_serial:
-        import numba
-        numba.set_num_threads(args.serial_threads or numba.config.NUMBA_NUM_THREADS)
-        if args.serial_threads:   # core.parallel's kernels set numba's threads themselves
-            parallel.set_mode(parallel.SERIAL if args.serial_threads < 2 else args.serial_threads)
+        parallel.limit_threads(args.serial_threads or None)
         pipelines, objects = fleet.prepare(plant, folder / 'serial')
         with PeakMemory() as memory:
             t0 = time.perf_counter()
@@ -145,8 +142,8 @@ def run_plant_bench(args) -> None:
             seconds = time.perf_counter() - t0
         report = fleet.plant_report(plant, pipelines, '', seconds, 'serial')
         results['serial'] = (seconds, memory.peak, report)
-        print(f'  (serial: numba {numba.get_num_threads()} threads in the solves, core.parallel '
-              f'mode {parallel.current_mode()})')
+        print(f'  (serial: at most {parallel.machine_threads()} threads in the kernels, '
+              f'core.parallel mode {parallel.current_mode()})')
     print(f'load average before and after: {LOAD[0]} / {os.getloadavg()[0]:.1f}')
     print(f'plant of {args.cells} cells (full-size model, 1000 epochs each, run: always), '
           f'Ray on {args.cpus} CPUs vs one process')

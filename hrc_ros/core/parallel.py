@@ -52,6 +52,7 @@ PROBE_RATIO = 20.0  # re-probe the other variant after this many times its expec
 
 _lock = threading.Lock()
 _override: str | int | None = None   # set_mode's value; None: the environment's
+_limit: int | None = None            # limit_threads's value; None: no limit
 
 
 def machine_threads() -> int:
@@ -61,7 +62,17 @@ def machine_threads() -> int:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
-    return max(1, min(cores, numba.config.NUMBA_NUM_THREADS))
+    return max(1, min(cores, numba.config.NUMBA_NUM_THREADS, _limit or cores))
+
+
+def limit_threads(threads: int | None) -> None:
+    """At most `threads` threads for every kernel of this process (None: no limit), e.g. the
+    CPUs a scheduler gave a task; the mode (auto, serial, N) stays, and one thread means
+    serial. Sets numba's thread count to match: the kernels reset it on a parallel call, so
+    `numba.set_num_threads` alone does not hold."""
+    global _limit
+    _limit = None if threads is None else max(1, int(threads))
+    numba.set_num_threads(machine_threads())
 
 
 def available_memory() -> int | None:

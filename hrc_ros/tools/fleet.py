@@ -152,18 +152,8 @@ def _remote_stage():
 def _threads_as_assigned(ray) -> None:
     """numba's parallel kernels (the solves) on the CPUs Ray gave the task, not on every core
     of the node: two tasks on two CPUs must not run four threads."""
-    cpus = ray.get_runtime_context().get_assigned_resources().get('CPU', 1)
-    try:
-        import numba
-        threads = max(1, min(int(cpus), numba.config.NUMBA_NUM_THREADS))
-        numba.set_num_threads(threads)
-    except (ImportError, ValueError):
-        return
-    # core.parallel's kernels set numba's thread count themselves (to the machine's cores in
-    # the auto mode): the task's CPUs are the limit there too, or two one-CPU tasks on two
-    # cores run four threads
     from ..core import parallel
-    parallel.set_mode(parallel.SERIAL if threads < 2 else threads)
+    parallel.limit_threads(int(ray.get_runtime_context().get_assigned_resources().get('CPU', 1)))
 
 
 def _died(exc: Exception, stage: str, retries: int) -> str:
