@@ -683,14 +683,22 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
     start): the gradient from the lane's own E-step counts (Fisher's identity), the inverse
     Hessian starting from `curvature.inverse` (minus the Hessian at the full-data fit: each
     bootstrap resample's is near it) and improved by BFGS updates from the lane's own steps;
-    the step's largest log ratio change at most `NEWTON_CAP`. A step that lowers the
-    likelihood (or makes the evidence impossible) is halved, at most `NEWTON_HALVINGS` times;
+    the step maximises the quadratic model within the lane's trust radius (`_trust_steps`:
+    Newton's step where it is shorter, else damped Levenberg-Marquardt style, so a flat
+    direction whose Newton step is long is cut and the well-curved ones keep theirs; the old
+    rule shrank the whole step, and one flat direction held every other to its pace). The
+    radius starts at `NEWTON_RADIUS`, is cut to a quarter of the step where the likelihood rose
+    by less than a quarter of the model's promise and doubled where the model held
+    (`NEWTON_GROW`) at the radius's edge. A step that lowers the likelihood (or makes the
+    evidence impossible) is retried with the smaller radius, at most `NEWTON_RETRIES` times;
     then the lane takes EM's step (which never lowers it) and starts again from
     `curvature.inverse`. So the likelihood never decreases, and the fixed points are EM's:
     the points where the gradient is 0. The stopping rule is the same, with one addition: an
-    iteration that fell back to EM's step ends the run only if the quasi-Newton step it
-    refused also predicted a rise below `tol` per epoch (EM's own step is short where it
-    crawls).
+    iteration whose step was shorter than the full quasi-Newton step (cut to the radius, or
+    EM's) ends the run only if that full step also predicted a rise below `tol` per epoch, or
+    after `NEWTON_PATIENCE` iterations in a row below it (a rise that is small only because
+    the step was cut is not convergence: it stopped a resample 4.8 log likelihood units below
+    its maximum, test_fit).
 
     The returned parameters' E-step is `stats` (the trace's last entry). `progress(lanes
     done)` is called after every iteration."""
@@ -726,11 +734,13 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
         stats = Expected(*(np.stack([np.asarray(getattr(r.stats, f.name)) for r in runs])
                            for f in fields(Expected)))
     converged = np.zeros(n_lanes, dtype=bool)
+    stalled = np.zeros(n_lanes, dtype=int)     # iterations in a row that rose by < tol
     step_max = np.ones(n_lanes)
     if method == NEWTON:
         if curvature is None:
             curvature = curvature_at(data, _unpack(x[0], like), hold)
         inverse = np.repeat(curvature.inverse[None], n_lanes, axis=0)
+        radius = np.full(n_lanes, NEWTON_RADIUS)
     while True:
         lanes = np.flatnonzero(~converged & (np.array([len(t) for t in traces]) <= max_iter))
         if lanes.size == 0:
@@ -738,8 +748,8 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
         x0, s0 = x[lanes], stats.lane(lanes)
         ahead = np.zeros(len(lanes))
         if method == NEWTON:
-            x_new, s_new, ahead = _quasi_newton_step(curvature, inverse, lanes, x0, s0, hold,
-                                                     expect)
+            x_new, s_new, ahead = _quasi_newton_step(curvature, inverse, radius, lanes, x0,
+                                                     s0, hold, expect)
         else:
             x1 = m_step_batch(s0, x0, hold)
             s1 = expect(x1, lanes)
@@ -796,7 +806,9 @@ def run_em_batch(data: FitData, starts: list, hold: tuple = (), tol: float = TOL
         stats = _merged(stats, lanes, s_new)
         for i, lane in enumerate(lanes):
             traces[lane].append(float(s_new.loglik[i]))
-            if max(abs(traces[lane][-1] - traces[lane][-2]), ahead[i]) < tol * n[lane]:
+            small = abs(traces[lane][-1] - traces[lane][-2]) < tol * n[lane]
+            stalled[lane] = stalled[lane] + 1 if small else 0
+            if small and (ahead[i] < tol * n[lane] or stalled[lane] >= NEWTON_PATIENCE):
                 converged[lane] = True
         if progress is not None:
             progress(int(np.sum(converged | (np.array([len(t) for t in traces]) > max_iter))))
@@ -860,8 +872,10 @@ class Curvature:
 
 CURVATURE_STEP = 1e-4     # central differences of the gradient, in log ratio
 CURVATURE_FLOOR = 1e-6    # eigenvalues of -H are raised to at least this share of the largest
-NEWTON_CAP = 1.0          # the largest change of a log ratio in one step
-NEWTON_HALVINGS = 2       # a step that lowers the likelihood is halved this often, then EM
+NEWTON_RADIUS = 1.0       # a lane's first trust radius (length of a step in log ratios)
+NEWTON_RETRIES = 2        # a step that lowers the likelihood is retried this often, then EM
+NEWTON_GROW = 0.75        # a step at the trust radius that rose this share of the model's doubles it
+NEWTON_PATIENCE = 3       # iterations in a row below tol that end a run whose model promised more
 
 
 def curvature_at(data: FitData, params: Params, hold: tuple = ()) -> Curvature:
@@ -915,37 +929,88 @@ def curvature_at(data: FitData, params: Params, hold: tuple = ()) -> Curvature:
     return curvature
 
 
-def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, lanes: np.ndarray,
-                       x0: np.ndarray, s0: Expected, hold: tuple, expect):
+def _trust_steps(values: np.ndarray, along: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """The steps (in the eigenbasis of each lane's inverse Hessian: `values` its eigenvalues,
+    `along` the gradient's components) that maximise the quadratic model within `radius`:
+    the Newton step values * along where it is shorter, else the damped step values / (1 +
+    mu values) * along with mu > 0 such that its length is the radius (Levenberg-Marquardt:
+    the flat directions, whose Newton step is long, are cut the most; the well-curved ones
+    keep their full step)."""
+    step = values * along
+    over = np.linalg.norm(step, axis=1) > radius
+    if not over.any():
+        return step
+    v, g, r = values[over], along[over], radius[over]
+
+    def length(mu):
+        return np.linalg.norm(v / (1.0 + mu[:, None] * v) * g, axis=1)
+
+    low, high = np.zeros(len(r)), np.ones(len(r))
+    for _ in range(60):                       # bracket: the length falls towards 0 in mu
+        long = length(high) > r
+        if not long.any():
+            break
+        high[long] *= 10.0
+    for _ in range(50):                       # bisection to a relative 1e-15 of the bracket
+        mid = (low + high) / 2
+        long = length(mid) > r
+        low, high = np.where(long, mid, low), np.where(long, high, mid)
+    step[over] = v / (1.0 + high[:, None] * v) * g
+    return step
+
+
+def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, radius: np.ndarray,
+                       lanes: np.ndarray, x0: np.ndarray, s0: Expected, hold: tuple, expect):
     """One `NEWTON` iteration of `lanes` (see `run_em_batch`); updates `inverse` (the
-    lanes' inverse Hessian estimates) in place. Returns the new packed rows, their E-steps
-    and, per lane, the rise its quasi-Newton step predicted if EM's step was taken instead
-    (else 0)."""
+    lanes' inverse Hessian estimates) and `radius` (their trust radii) in place. Returns the
+    new packed rows, their E-steps and, per lane, the rise its full quasi-Newton step
+    predicted where the step taken was shorter (cut to the trust radius, or EM's), else 0."""
+    n = len(lanes)
     eta0 = curvature.coordinates(x0)
     g0 = curvature.gradient(s0, x0)
-    step = np.einsum('lij,lj->li', inverse[lanes], g0)
-    predicted = np.einsum('li,li->l', g0, step) / 2
-    largest = np.abs(step).max(axis=1, initial=0.0)
-    step *= np.minimum(1.0, NEWTON_CAP / np.where(largest > 0, largest, 1.0))[:, None]
+    values, vectors = np.linalg.eigh(inverse[lanes])
+    values = np.maximum(values, 1e-12 * np.maximum(values.max(axis=1, keepdims=True), 1e-300))
+    along = np.einsum('lji,lj->li', vectors, g0)
+
+    predicted = np.einsum('li,li->l', along, values * along) / 2   # the full step's rise
+    r = radius[lanes].copy()
     x_new, s_new = x0.copy(), s0
-    pending = np.flatnonzero(largest > 0)
-    for _ in range(NEWTON_HALVINGS + 1):
+    cut = np.zeros(n, dtype=bool)
+    taken = np.zeros(n, dtype=bool)
+    pending = np.flatnonzero(predicted > 0)
+    for _ in range(NEWTON_RETRIES + 1):
         if pending.size == 0:
             break
-        xt = curvature.packed(eta0[pending] + step[pending], x0[pending])
+        limit = r[pending]
+        step = _trust_steps(values[pending], along[pending], limit)
+        length = np.linalg.norm(step, axis=1)
+        cut[pending] = length < np.linalg.norm(values[pending] * along[pending], axis=1)
+        expected = (np.einsum('li,li->l', along[pending], step)
+                    - np.einsum('li,li->l', step, step / values[pending]) / 2)
+        xt = curvature.packed(eta0[pending] + np.einsum('lij,lj->li', vectors[pending], step),
+                              x0[pending])
         st = expect(xt, lanes[pending], guarded=True)
-        better = np.isfinite(st.loglik) & (st.loglik >= s0.loglik[pending])
+        rise = np.where(np.isfinite(st.loglik), st.loglik - s0.loglik[pending], -np.inf)
+        better = rise >= 0
+        ratio = np.where(expected > 0, rise / np.maximum(expected, 1e-300), 0.0)
+        # the trust radius: cut to a quarter of the step where the model overpromised,
+        # doubled where it held at the radius's edge
+        r[pending] = np.where(better & (ratio >= 0.25), r[pending], length / 4)
+        grow = better & (ratio > NEWTON_GROW) & (length >= 0.99 * limit)
+        r[pending[grow]] = 2 * length[grow]
         x_new[pending[better]] = xt[better]
         s_new = _merged(s_new, pending[better], st.lane(np.flatnonzero(better)))
+        taken[pending[better]] = True
         pending = pending[~better]
-        step[pending] /= 2
-    fallback = np.union1d(pending, np.flatnonzero(largest == 0))
+    radius[lanes] = np.maximum(r, NEWTON_RADIUS * 1e-9)
+    fallback = np.flatnonzero(~taken)
     if fallback.size:            # EM's step never lowers the likelihood
         xf = m_step_batch(s0.lane(fallback), x0[fallback], hold)
         x_new[fallback] = xf
         s_new = _merged(s_new, fallback, expect(xf, lanes[fallback]))
         inverse[lanes[fallback]] = curvature.inverse
-    moved = np.setdiff1d(np.arange(len(lanes)), fallback)
+        radius[lanes[fallback]] = NEWTON_RADIUS
+    moved = np.flatnonzero(taken)
     if moved.size:               # BFGS on minus the log likelihood
         with np.errstate(invalid='ignore'):   # a probability at 0: -inf - -inf, skipped below
             s = curvature.coordinates(x_new[moved]) - eta0[moved]
@@ -960,9 +1025,8 @@ def _quasi_newton_step(curvature: Curvature, inverse: np.ndarray, lanes: np.ndar
             inverse[lanes[moved[i]]] = (h - rho * (np.outer(s[i], hy) + np.outer(hy, s[i]))
                                         + (rho ** 2 * (y[i] @ hy) + rho)
                                         * np.outer(s[i], s[i]))
-    unsettled = np.zeros(len(lanes), dtype=bool)
-    unsettled[fallback] = True
-    return x_new, s_new, np.where(unsettled, predicted, 0.0)
+    unsettled = cut | ~taken
+    return x_new, s_new, np.where(unsettled, np.maximum(predicted, 0.0), 0.0)
 
 
 def _merged(stats: Expected, lanes: np.ndarray, new: Expected) -> Expected:
