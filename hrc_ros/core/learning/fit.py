@@ -874,7 +874,7 @@ CURVATURE_STEP = 1e-4     # central differences of the gradient, in log ratio
 CURVATURE_FLOOR = 1e-6    # eigenvalues of -H are raised to at least this share of the largest
 NEWTON_RADIUS = 1.0       # a lane's first trust radius (length of a step in log ratios)
 NEWTON_RETRIES = 2        # a step that lowers the likelihood is retried this often, then EM
-NEWTON_GROW = 0.75        # a step at the trust radius that rose this share of the model's doubles it
+NEWTON_GROW = 0.75        # a step at the radius rising by this share of the model's doubles it
 NEWTON_PATIENCE = 3       # iterations in a row below tol that end a run whose model promised more
 
 
