@@ -65,9 +65,11 @@ def main(argv=None) -> int:
                         help=f'resamples of the episodes for the 95%% intervals (default '
                         f'{BOOTSTRAP}; 0: none)')
     parser.add_argument('--method', choices=(SQUAREM, NEWTON), default=DEFAULT_METHOD,
-                        help='how EM is accelerated: squarem (default) or newton, a '
-                        "quasi-Newton step with the full-data fit's curvature for the last "
-                        'iterations and every resample (docs/LEARNING.md)')
+                        help='how EM is accelerated: newton (default), SQUAREM and then '
+                        "trust-region quasi-Newton steps with the full-data fit's curvature "
+                        'for the last iterations and every resample; or squarem alone, which '
+                        'stops short of the resamples\' maxima along flat directions '
+                        '(docs/LEARNING.md)')
     parser.add_argument('--min-support', type=bounded_float(0.0, 1e12), default=MIN_SUPPORT,
                         help='warn below this many informative epochs per parameter')
     parser.add_argument('--namespace', default=None,

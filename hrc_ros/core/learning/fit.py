@@ -45,9 +45,12 @@ Its bootstrap interval is that of pi over the resamples; its support is the numb
 starts (each informs the whole distribution). The log likelihood never decreases; the fit
 stops when it rises by less than `tol` per epoch in an iteration, or after `max_iter`. Where
 the hidden state is hard to tell EM crawls (its rate is the share of missing information), so
-an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation; or,
-with `method=NEWTON`, a quasi-Newton step with the curvature of the full-data fit, checked
-(`run_em_batch`).
+an iteration is a SQUAREM cycle (`run_em`): two EM steps and a checked extrapolation; and
+then, with `method=NEWTON` (`fit`'s default), a trust-region quasi-Newton step with the
+curvature of the full-data fit, checked (`run_em_batch`): for the estimate's last iterations
+and for every bootstrap resample, which it takes to its maximum in a third of SQUAREM's
+E-steps where SQUAREM stops short along flat directions (bench/README.md, "hrc-fit's
+bootstrap, side by side").
 
 Initialisations. EM finds a local maximum. The first start is the base configuration (mixed
 with `INIT_FLOOR` of uniform, because EM can never move a probability away from exactly 0 or
@@ -113,7 +116,7 @@ TOL = 1e-8                 # stop when the log likelihood rises by less than thi
 MAX_ITER = 1000
 EM, SQUAREM, NEWTON = 'em', 'squarem', 'newton'   # run_em_batch's methods
 METHODS = (EM, SQUAREM, NEWTON)
-DEFAULT_METHOD = SQUAREM   # hrc-fit's (bench/README.md "hrc-fit's bootstrap, side by side")
+DEFAULT_METHOD = NEWTON    # hrc-fit's (bench/README.md "hrc-fit's bootstrap, side by side")
 BOOTSTRAP = 200
 MIN_SUPPORT = 100.0        # expected informative epochs below which a parameter is flagged
 UNSEEN_FLOOR = 1e-6        # P(O | h) written for a level O that no epoch observed
@@ -1149,6 +1152,8 @@ class FitResult:
     prior_interval: np.ndarray | None = None   # (2, 9) bootstrap 2.5 and 97.5 percentiles
     prior_samples: np.ndarray | None = None    # (B, 9)
     prior_effective: np.ndarray | None = None  # (9,) p (1 - p) / bootstrap variance
+    # NEWTON: the curvature at the estimate that its resamples start from (core.plant reuses it)
+    curvature: 'Curvature | None' = None
 
     @property
     def iterations(self) -> int:
@@ -1356,7 +1361,7 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
                      data.epochs, data.segments, len(data.episodes), data.rows_read,
                      data.issues, seconds, min_support, sample_logliks, counts, points,
                      prior, base_params.pi.copy() if prior else None, prior_starts,
-                     prior_interval, prior_samples, prior_effective)
+                     prior_interval, prior_samples, prior_effective, curvature)
 
 
 def _prior_warnings(starts: int, effective, min_support: float) -> list[str]:

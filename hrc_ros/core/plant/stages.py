@@ -215,14 +215,18 @@ def bootstrap_counts(n_episodes: int, seed) -> np.ndarray:
 
 def resample_fits(data: fitting.FitData, point: fitting.FitResult, settings: dict, seeds
                   ) -> list[fitting.Params]:
-    """The fit of one resample of the episodes per seed, by EM from the estimate."""
-    out = []
-    for seed in seeds:
-        counts = bootstrap_counts(len(data.episodes), seed)
-        out.append(fitting.run_em(data, point.params, point.hold, settings['tol'],
-                                  settings['max_iter'],
-                                  seg_weight=counts[data.seg_episode].astype(float)).params)
-    return out
+    """The fit of one resample of the episodes per seed, from the estimate and by the method
+    `point` was fitted with (hrc-fit's bootstrap: the quasi-Newton EM with the estimate's
+    curvature, all resamples of the call in one batch; SQUAREM where `point` has none)."""
+    if not len(seeds):
+        return []
+    weights = np.stack([bootstrap_counts(len(data.episodes), seed)[data.seg_episode]
+                        for seed in seeds]).astype(float)
+    method = fitting.SQUAREM if point.curvature is None else fitting.NEWTON
+    runs = fitting.run_em_batch(data, [point.params] * len(seeds), point.hold, settings['tol'],
+                                settings['max_iter'], weights, method=method,
+                                curvature=point.curvature)
+    return [run.params for run in runs]
 
 
 def bootstrap(data: dict, point: fitting.FitResult, settings: dict, seeds
