@@ -34,23 +34,23 @@ and each size:
    true configuration's policy, with its 95% interval.
 
 `--timing` (issue 21, "faster single-cell learning"): `hrc-fit`'s defaults on 100k epochs of
-one world (200 resamples unless --bootstrap says otherwise), fitted twice on the same data
-with the same seed (so the same starts and the same resample multiplicities): by SQUAREM
-(`method=squarem`, today's default) and by the quasi-Newton EM (`method=newton`). For each:
-wall and CPU time, CPU / 2 (the wall time two free cores would take: the machine is shared),
-the E-step lanes run and the load average. Then the paired check of newton against squarem:
-the point estimates' largest difference; per parameter the two 2.5% and 97.5% endpoints and
-their difference in units of the Monte Carlo standard error of a bootstrap percentile,
-se(q_p) = sqrt(p (1 - p) / B) * sd / phi(z_p) (the normal approximation with the squarem
-bootstrap's sd; about 0.19 sd for p = 0.025 and B = 200). "Within Monte Carlo error" is taken
-as every endpoint within 1 se. And, per resample, the log likelihood each method's fit reached
-on the same multiplicities (which is nearer the resample's maximum). Target: fit + bootstrap
-< 30 s. `--reference` then continues every resample of both methods from where it stopped to
-REFERENCE_TOL per epoch (the quasi-Newton EM, at most MAX_ITER more iterations) and compares
-both methods' intervals with those of the converged resamples, every parameter's endpoints
-printed: the reference a "same intervals" check needs when the methods stop short of their
-resamples' maxima. (Expensive: on 100k epochs squarem's 200 resamples did not finish in
-5 min of CPU, bench/README.md.)
+one world (200 resamples unless --bootstrap says otherwise), fitted twice on the same data with
+the same seed (so the same starts and the same resample multiplicities): by SQUAREM
+(`method=squarem`, the old default) and by the quasi-Newton EM (`method=newton`, the default).
+For each: wall and CPU time, CPU / 2 (the wall time two free cores would take: the machine is
+shared), the E-step lanes run and the load average. Then the paired check of newton against
+squarem: the point estimates' largest difference; per parameter the two 2.5% and 97.5%
+endpoints and their difference in units of the Monte Carlo standard error of a bootstrap
+percentile, se(q_p) = sqrt(p (1 - p) / B) * sd / phi(z_p) (the normal approximation with the
+squarem bootstrap's sd; about 0.19 sd for p = 0.025 and B = 200). "Within Monte Carlo error" is
+taken as every endpoint within 1 se. And, per resample, the log likelihood each method's fit
+reached on the same multiplicities (which is nearer the resample's maximum). Target: fit +
+bootstrap < 30 s; then `hrc-fit` itself, in a new process on the same recordings written as a
+CSV, timed from the command to its outputs. `--reference` then fits the converged bootstrap:
+every resample from the estimate to REFERENCE_TOL per epoch (the quasi-Newton EM, at most
+MAX_ITER iterations), and compares both methods' resamples and intervals with it, every
+parameter's endpoints printed: the reference a "same intervals" check needs when a method stops
+short of its resamples' maxima (about 60 s of CPU on 100k epochs).
 
 Targets (issue 10), at 100k epochs: every well-supported parameter within 0.03 of the truth,
 at least 90% interval coverage, fitted regret at most a tenth of the default's, the fit (not
@@ -274,8 +274,9 @@ def timing(args) -> int:
     base = load_config(ROOT / 'config' / 'default.yaml')
     default = HRCModel(base)
     world = HRCModel(true_config(base, name))
-    data = fitting.prepare(record(world, default, load_policy(default_policy_path(base), base),
-                                  size, seed=10_000 + size + args.seed))
+    recordings = record(world, default, load_policy(default_policy_path(base), base), size,
+                        seed=10_000 + size + args.seed)
+    data = fitting.prepare(recordings)
     print(f'{name}: {data.epochs} epochs, {len(data.episodes)} episodes; load average '
           f'{os.getloadavg()[0]:.2f}', flush=True)
     e_steps = [0]
@@ -325,12 +326,44 @@ def timing(args) -> int:
           f'{int(np.sum(np.abs(gain) <= step))}, lower in {int(np.sum(gain < -step))} of '
           f'{bootstrap}; median {np.median(gain):+.4f}, from {gain.min():+.4f} to '
           f'{gain.max():+.4f}', flush=True)
-    if args.reference:
-        reference(data, old, new, e_steps)
     fitting.e_step_batch = e_step_batch
+    cli(recordings, bootstrap, args.seed)
+    if args.reference:
+        fitting.e_step_batch = counted
+        reference(data, old, new, e_steps)
+        fitting.e_step_batch = e_step_batch
     print(f'\nreproduce: .venv/bin/python bench/fit_bench.py --timing --worlds {name} '
           f'--bootstrap {bootstrap} --seed {args.seed}{" --reference" if args.reference else ""}')
     return 0
+
+
+def cli(recordings, bootstrap: int, seed: int) -> None:
+    """`hrc-fit` as a user runs it, in a new process: the same recordings as a trajectory CSV,
+    its defaults (the default method), timed from the command to its outputs written."""
+    import os
+    import subprocess
+    import tempfile
+
+    from hrc_ros.core.plant.stages import recordings_csv
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / 'runs.csv'
+        path.write_text(recordings_csv(recordings))
+        command = [str(Path(sys.executable).parent / 'hrc-fit'), str(path), '-o',
+                   str(Path(tmp) / 'fitted.yaml'), '--bootstrap', str(bootstrap), '--seed',
+                   str(seed), '-q']
+        load = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if done.returncode != 0:
+            print(f'hrc-fit failed ({done.returncode}): {done.stderr.strip()[-2000:]}')
+            return
+        written = (Path(tmp) / 'fitted.yaml').is_file() and (Path(tmp) / 'fitted.report.json'
+                                                               ).is_file()
+    print(f'hrc-fit (a new process, {len(recordings)} episodes as CSV, its defaults, '
+          f'{bootstrap} resamples): {wall:.1f} s wall from the command to its outputs'
+          f'{" written" if written else " MISSING"}; load average {load:.2f} before; target '
+          f'< 30 s {"MET" if wall < 30 and written else "MISSED"}', flush=True)
 
 
 REFERENCE_TOL = 1e-12    # per epoch: "fitted to convergence" (--reference)
