@@ -1329,6 +1329,8 @@ def fit(data: FitData, base: Config, hold=(), n_init: int = 4, seed: int = 0,
         weights = counts[:, data.seg_episode].astype(float)
         step = max(1, bootstrap // 10)
         shown = [0]
+        say(f'bootstrap: {bootstrap} resamples of the {n_episodes} episodes from the estimate, '
+            f'side by side ({method}); each line: resamples done')
 
         def show(done):
             if done // step > shown[0] // step:
