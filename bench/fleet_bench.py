@@ -10,12 +10,19 @@
    drift test with 99 simulations, fit with 50 bootstrap resamples, value iteration, each half
    fitted and solved, the shadow check over 1000 paired episodes in-sample and held out,
    outputs). The same plant runs (a) on an embedded Ray with `--cpus` CPUs (hrc-fleet's
-   scheduler, numba's threads per task as Ray assigns CPUs) and (b) serially in this one
-   process (`pipeline.run_serially`, numba free to use every core in the solves). Printed: wall
+   scheduler, numba's threads per task as Ray assigns CPUs) and (b) serially in one new
+   process (`pipeline.run_serially`, numba free to use every core in the solves unless
+   `--serial-threads 1`; a new process each time, so that it pays the imports and numba's
+   cache loads as Ray's new workers do). `--repeat N` runs N pairs, alternating, and gives the
+   speed-up as the mean log ratio of the pairs with a 95% t interval, and whether the goal
+   (1.7x) is met (interval above it), missed (below) or not settled. Printed per run: wall
    time of each, the speed-up, per-stage CPU seconds, and the peak memory: the largest sum of
    the proportional set sizes (PSS, shared pages split between the processes that map them) of
    this process and every process it started (Ray's workers, raylet, GCS, object store),
-   sampled every 0.2 s; the serial run's is this process's alone. Both runs must reach the same
+   sampled every 0.2 s; the serial run's is its process's alone; the CPU seconds the machine
+   was busy and those the hypervisor stole (/proc/stat), since the runs are only comparable
+   on a machine that gives them the same CPUs. `--timeline JSON` writes Ray's task timeline
+   (chrome://tracing) and prints how full the CPUs were kept. Both runs must reach the same
    decisions and the same figures (the seeds do not depend on the scheduling); the script
    checks it.
 
@@ -117,45 +124,161 @@ def summary(report: dict) -> list:
 LOAD = []
 
 
+def cpu_times() -> tuple[float, float]:
+    """(busy, stolen) seconds of every CPU so far, from /proc/stat: the hypervisor's steal
+    is time this VM's vCPUs wanted to run and could not (another guest had the core)."""
+    try:
+        fields = [int(x) for x in Path('/proc/stat').read_text().split('\n')[0].split()[1:]]
+    except (OSError, ValueError):
+        return math.nan, math.nan
+    hz = os.sysconf('SC_CLK_TCK')
+    user, nice, system, idle, iowait, irq, softirq, steal = (fields + [0] * 8)[:8]
+    return (user + nice + system + irq + softirq) / hz, steal / hz
+
+
+def timed(name: str, run) -> tuple:
+    """(wall seconds, peak PSS KiB, report, busy CPU s, stolen CPU s) of `run()`."""
+    busy0, stolen0 = cpu_times()
+    with PeakMemory() as memory:
+        t0 = time.perf_counter()
+        report = run()
+        seconds = time.perf_counter() - t0
+    busy1, stolen1 = cpu_times()
+    print(f'  {name:<7} wall {seconds:7.1f} s   peak memory (PSS, all processes) '
+          f'{memory.peak / 1024:7.0f} MiB   CPU busy {busy1 - busy0:6.1f} s, stolen by the '
+          f'hypervisor {stolen1 - stolen0:4.1f} s   decisions {report["decisions"]}',
+          flush=True)
+    return seconds, memory.peak, report, busy1 - busy0, stolen1 - stolen0
+
+
+def ray_run(plant, folder: Path, args) -> dict:
+    import ray
+    ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level='warning',
+             object_store_memory=args.object_store_mb * 2 ** 20)
+    try:
+        result = timed('ray', lambda: fleet.run_plant(plant, folder,
+                                                      progress=fleet.Progress(quiet=True)))
+        if args.timeline:
+            ray.timeline(filename=args.timeline)
+            occupancy(args.timeline, args.cpus, result[0])
+    finally:
+        ray.shutdown()
+    return result
+
+
+def serial_child(plant_path: str, folder: str, threads: int) -> tuple:
+    """The serial run in a new process (`serial_run`)."""
+    parallel.limit_threads(threads or None)
+    plant = load_plant(Path(plant_path))
+    pipelines, objects = fleet.prepare(plant, Path(folder))
+
+    def run():
+        t0 = time.perf_counter()
+        run_serially(pipelines, objects)
+        return fleet.plant_report(plant, pipelines, '', time.perf_counter() - t0, 'serial')
+    return timed('serial', run)
+
+
+def serial_run(plant_path: Path, folder: Path, args) -> tuple:
+    """The same plant serially in a new process, as Ray's workers are new processes: each
+    run pays its imports and numba's cache loads once (a second run in this process would
+    find them done and be the faster for it)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
+        return pool.submit(serial_child, str(plant_path), str(folder),
+                           args.serial_threads).result()
+
+
 def run_plant_bench(args) -> None:
     LOAD.append(f'{os.getloadavg()[0]:.1f}')
     folder = Path(tempfile.mkdtemp(prefix='fleet_bench_'))
     (folder / 'plant.yaml').write_text(plant_text(args.cells))
     plant = load_plant(folder / 'plant.yaml')
-    results = {}
-    import ray
-    ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level='warning',
-             object_store_memory=args.object_store_mb * 2 ** 20)
-    try:
-        with PeakMemory() as memory:
-            t0 = time.perf_counter()
-            report = fleet.run_plant(plant, folder / 'ray', progress=fleet.Progress(quiet=True))
-            results['ray'] = (time.perf_counter() - t0, memory.peak, report)
-    finally:
-        ray.shutdown()
-    if not args.skip_serial:
-        parallel.limit_threads(args.serial_threads or None)
-        pipelines, objects = fleet.prepare(plant, folder / 'serial')
-        with PeakMemory() as memory:
-            t0 = time.perf_counter()
-            run_serially(pipelines, objects)
-            seconds = time.perf_counter() - t0
-        report = fleet.plant_report(plant, pipelines, '', seconds, 'serial')
-        results['serial'] = (seconds, memory.peak, report)
-        print(f'  (serial: at most {parallel.machine_threads()} threads in the kernels, '
-              f'core.parallel mode {parallel.current_mode()})')
-    print(f'load average before and after: {LOAD[0]} / {os.getloadavg()[0]:.1f}')
     print(f'plant of {args.cells} cells (full-size model, 1000 epochs each, run: always), '
-          f'Ray on {args.cpus} CPUs vs one process')
-    for name, (seconds, peak, report) in results.items():
-        print(f'  {name:<7} wall {seconds:7.1f} s   peak memory (PSS, all processes) '
-              f'{peak / 1024:7.0f} MiB   decisions {report["decisions"]}')
-    if 'serial' in results:
-        speedup = results['serial'][0] / results['ray'][0]
-        same = summary(results['serial'][2]) == summary(results['ray'][2])
-        print(f'  speed-up {speedup:.2f}x (goal >= 1.7x: {"met" if speedup >= 1.7 else "MISSED"}'
-              f'); same decisions and figures both ways: {same}')
-    scaling(results['ray'][2], args)
+          f'Ray on {args.cpus} CPUs vs one process; {args.repeat} pair(s) of runs, '
+          f'alternating', flush=True)
+    pairs = []
+    for i in range(args.repeat):
+        ray_result = ray_run(plant, folder / f'ray{i}', args)
+        if args.skip_serial:
+            pairs.append((ray_result, None))
+            continue
+        serial_result = serial_run(folder / 'plant.yaml', folder / f'serial{i}', args)
+        pairs.append((ray_result, serial_result))
+        same = summary(serial_result[2]) == summary(ray_result[2])
+        print(f'  pair {i + 1}: speed-up {serial_result[0] / ray_result[0]:.2f}x; same '
+              f'decisions and figures both ways: {same}', flush=True)
+    if not args.skip_serial:
+        print(f'  (serial: in a new process each time, at most '
+              f'{args.serial_threads or parallel.machine_threads()} thread(s) in the kernels)')
+    print(f'load average before and after: {LOAD[0]} / {os.getloadavg()[0]:.1f}')
+    if not args.skip_serial:
+        ratios = np.array([s[0] / r[0] for r, s in pairs])
+        if len(ratios) > 1:
+            # a t interval of the mean log ratio (each pair run back to back, so a slow
+            # stretch of the machine shows in both halves of a pair rather than in one)
+            logs = np.log(ratios)
+            half = T975.get(len(logs) - 1, 1.96) * logs.std(ddof=1) / math.sqrt(len(logs))
+            low, high = np.exp(logs.mean() - half), np.exp(logs.mean() + half)
+            centre = f'{np.exp(logs.mean()):.2f}x [95% t interval {low:.2f}, {high:.2f}]'
+        else:
+            low = high = float(ratios[0])
+            centre = f'{low:.2f}x'
+        verdict = 'met' if low >= 1.7 else ('missed' if high < 1.7 else
+                                            'not settled: the interval holds 1.7')
+        each = ', '.join(f'{r:.2f}' for r in ratios)
+        print(f'  speed-up {centre} over {len(ratios)} pair(s) (each {each}); goal >= 1.7x: '
+              f'{verdict}')
+        compare_stages(pairs[-1][0][2], pairs[-1][1][2])
+    scaling(pairs[-1][0][2], args)
+
+
+T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306,
+        9: 2.262}
+
+
+def stage_means(report: dict) -> dict:
+    stages: dict = {}
+    for e in report['cells']:
+        for k, v in e['seconds'].items():
+            stages.setdefault(k, []).append(v)
+    return {k: float(np.mean(v)) for k, v in stages.items()}
+
+
+def compare_stages(ray_report: dict, serial_report: dict) -> None:
+    """Each stage's seconds per cell on Ray against the same stage in the serial run: where
+    a task on one of two busy CPUs runs slower than the same work alone."""
+    ray_s, serial_s = stage_means(ray_report), stage_means(serial_report)
+    print('  stage seconds per cell, Ray / serial: ' + ', '.join(
+        f'{k} {ray_s[k]:.2f}/{serial_s.get(k, float("nan")):.2f}' for k in ray_s))
+    print(f'  in all {sum(ray_s.values()):.1f} / {sum(serial_s.values()):.1f} s per cell')
+
+
+def occupancy(path: str, cpus: int, wall: float) -> None:
+    """From Ray's timeline: the seconds the workers spent in tasks (with their arguments'
+    fetching and the results' storing), the time with fewer tasks than CPUs, and the stretch
+    at the end when the last tasks run alone."""
+    events = [e for e in json.loads(Path(path).read_text()) if e.get('ph') == 'X']
+    spans = [(e['ts'] / 1e6, (e['ts'] + e['dur']) / 1e6) for e in events
+             if e.get('cat') == 'task::stage_task']
+    parts = {what: sum(e['dur'] for e in events if e.get('cat') == f'task:{what}') / 1e6
+             for what in ('deserialize_arguments', 'execute', 'store_outputs')}
+    if not spans:
+        print(f'  timeline {path}: no task spans found')
+        return
+    start, end = min(s for s, _ in spans), max(e for _, e in spans)
+    marks = sorted([(s, 1) for s, _ in spans] + [(e, -1) for _, e in spans])
+    busy, below, running, last = 0.0, 0.0, 0, start
+    for t, step in marks:
+        busy += running * (t - last)
+        if running < cpus:
+            below += t - last
+        running, last = running + step, t
+    print(f'  timeline {path}: tasks from first start to last end {end - start:.1f} s of '
+          f'{wall:.1f} s wall; task seconds {busy:.1f} ({busy / (cpus * (end - start)):.0%} '
+          f'of {cpus} CPUs); fewer tasks than CPUs for {below:.1f} s; in the tasks: '
+          + ', '.join(f'{k.replace("_", " ")} {v:.1f} s' for k, v in parts.items()))
 
 
 def scaling(report: dict, args) -> None:
@@ -243,8 +366,14 @@ def main(argv=None) -> int:
     parser.add_argument('--cpus', type=int, default=2)
     parser.add_argument('--object-store-mb', type=int, default=500)
     parser.add_argument('--skip-serial', action='store_true')
+    parser.add_argument('--repeat', type=int, default=1,
+                        help='pairs of runs (Ray then serial, alternating): the speed-up as '
+                        'the mean log ratio with a 95%% t interval')
     parser.add_argument('--serial-threads', type=int, default=0,
                         help="numba threads of the serial run (default: numba's, every core)")
+    parser.add_argument('--timeline', default=None, metavar='JSON',
+                        help="write Ray's task timeline (chrome://tracing) and print how busy "
+                        'the CPUs were')
     parser.add_argument('--drift', action='store_true', help='the drift calibration instead')
     parser.add_argument('--runs', type=int, default=200, help='--drift: runs in the default '
                         'world')
