@@ -81,6 +81,10 @@ CELL = '  - name: a\n    recordings: x.csv\n'
     ('cells:\n' + CELL + '    selector: pomdp\n', 'set solver: pomdp or both'),
     ('cells:\n' + CELL + '    namespace: bad ns\n', 'namespace must be a ROS namespace'),
     ('cells:\n' + CELL + '    fit: {hold: [p_acept]}\n', "unknown parameter family 'p_acept'"),
+    ('cells:\n' + CELL + '    fit: {prior: 3}\n', 'cells[0] (a): fit.prior must be true or false, '
+     'got 3'),
+    ('defaults:\n  fit: {stream: yes please}\ncells:\n' + CELL,
+     "defaults: fit.stream must be true or false, got 'yes please'"),
     ('defaults:\n  recordings: x\ncells:\n' + CELL, 'recordings is set per cell'),
     ('cells:\n' + CELL + '  - name: b\n    namespace: /a\n    recordings: y.csv\n',
      'namespace /a is also the namespace of cell a'),

@@ -36,7 +36,7 @@ from ..core.learning.fit import (BOOTSTRAP, DEFAULT_METHOD, FAMILIES, MAX_ITER, 
                                  prepare, report_dict, report_text)
 from ..core.paths import default_config_path, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
-from ..core.learning.stream import StreamError, check_queued, fit_queue_stream, fit_stream
+from ..core.learning.stream import StreamError, check_stream, fit_stream_for
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
                      output_file)
 
@@ -99,9 +99,8 @@ def main(argv=None) -> int:
         hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
-        queue = base.queue if args.stream else None
-        if queue is not None:
-            check_queued(recordings)
+        if args.stream:
+            check_stream(recordings, base)
         data = prepare(recordings)
         for path in outputs.values():      # folders are made once the inputs have been read
             if path is not None:
@@ -116,11 +115,8 @@ def main(argv=None) -> int:
                      max_iter=args.max_iter, bootstrap=args.bootstrap,
                      min_support=args.min_support, progress=say, method=args.method,
                      prior=args.prior)
-        stream = (None if not args.stream else
-                  fit_stream(recordings, bootstrap=args.bootstrap, seed=args.seed)
-                  if queue is None else
-                  fit_queue_stream(recordings, queue, base.data['stream']['waiting_cost'],
-                                   bootstrap=args.bootstrap, seed=args.seed))
+        stream = (fit_stream_for(recordings, base, bootstrap=args.bootstrap, seed=args.seed)
+                  if args.stream else None)
         text = config_yaml(result, base, args.inputs, stream)
     except FitError as exc:
         return fail('hrc-fit', exc)

@@ -1384,18 +1384,30 @@ def _prior_warnings(starts: int, effective, min_support: float) -> list[str]:
     return out
 
 
-def with_bootstrap(result: FitResult, samples: np.ndarray) -> FitResult:
+def with_bootstrap(result: FitResult, samples: np.ndarray,
+                   prior_samples: np.ndarray | None = None) -> FitResult:
     """`result` (a fit without the bootstrap) with the intervals, effective support and
     warnings of bootstrap estimates `samples` (B, 57) made elsewhere, by `fit`'s rules: for
-    a scheduler that runs the resamples as separate tasks (core.plant)."""
+    a scheduler that runs the resamples as separate tasks (core.plant). With a person prior
+    (`result.prior`), `prior_samples` (B, 9) are the resamples' priors (their `pi`): its
+    interval, effective support and warnings likewise."""
     samples = np.asarray(samples, dtype=float)
     interval = np.percentile(samples, [2.5, 97.5], axis=0)
     effective = effective_support(result.params.vector(), samples)
     unseen = [w for w in result.warnings if w.startswith('no epoch observed O=')]
     warnings = _warnings(result.support, effective, result.hold, result.min_support,
-                         result.episodes, len(samples)) + unseen
+                         result.episodes, len(samples))
+    prior = {}
+    if result.prior:
+        if prior_samples is None:
+            raise ValueError('a fit with a person prior needs the resamples\' priors')
+        prior_samples = np.asarray(prior_samples, dtype=float)
+        prior_effective = effective_support(result.params.pi, prior_samples, at_bounds=True)
+        prior = dict(prior_samples=prior_samples, prior_effective=prior_effective,
+                     prior_interval=np.percentile(prior_samples, [2.5, 97.5], axis=0))
+        warnings += _prior_warnings(result.prior_starts, prior_effective, result.min_support)
     return dataclasses.replace(result, interval=interval, samples=samples, effective=effective,
-                               warnings=warnings)
+                               warnings=warnings + unseen, **prior)
 
 
 # -- outputs ----------------------------------------------------------------------------------

@@ -366,3 +366,24 @@ def fit_queue_stream(recordings: list[Recording], queue: int, waiting_cost: floa
     _bootstrap(fitted, ('arrival_idle', 'arrival_busy'), success, kinds, unique, counts,
                bootstrap, seed)
     return fitted
+
+
+# -- the stream a base configuration asks for (hrc-fit --stream, the plant's fit.stream) -----
+def check_stream(recordings: list[Recording], base) -> None:
+    """StreamError (`check_queued`) when `base` has `stream.queue` and a recording lacks the
+    tasks waiting per epoch, which the queue's releases are counted from; nothing otherwise:
+    the check hrc-fit --stream makes before any work."""
+    if base.queue is not None:
+        check_queued(recordings)
+
+
+def fit_stream_for(recordings: list[Recording], base, bootstrap: int = BOOTSTRAP,
+                   seed: int = 0) -> 'StreamFit | QueueStreamFit':
+    """The stream of `recordings` in the form `base` (a Config) runs: the counted stream of
+    MODEL.md 8 (`fit_stream`), or with `stream.queue` the queue's releases (MODEL.md 8.1,
+    `fit_queue_stream`, with the base's queue and waiting_cost); StreamError when the
+    recordings cannot give it."""
+    if base.queue is None:
+        return fit_stream(recordings, bootstrap=bootstrap, seed=seed)
+    return fit_queue_stream(recordings, base.queue, base.data['stream']['waiting_cost'],
+                            bootstrap=bootstrap, seed=seed)

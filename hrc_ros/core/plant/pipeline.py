@@ -147,8 +147,9 @@ class CellPipeline:
     def _read(self) -> Job:
         self.stage = 'read'
         paths = list(self.spec.recordings) or [self.cache]
+        stream = self._object('base') if self.spec.fit['stream'] else None
         return self._job('read', 'read', paths, self.rho, self.sigma, self.spec.namespace,
-                         self.spec.drift['window'], self.spec.fit['window'],
+                         self.spec.drift['window'], self.spec.fit['window'], stream,
                          where=DRIVER_NODE)
 
     def _fit(self) -> list[Job]:
@@ -221,6 +222,8 @@ class CellPipeline:
             self.entry['moved'] = facts['moved']
             self.entry['fit'].update(bootstrap=facts['bootstrap'], warnings=facts['warnings'],
                                      config_sha256=facts['config_sha256'])
+            if 'stream' in facts:
+                self.entry['fit']['stream'] = facts['stream']
             return self._after_fit()
         if key in ('mdp', 'pomdp'):
             self.entry.setdefault('solve', {})[key] = {
@@ -253,9 +256,11 @@ class CellPipeline:
 
     def _summary(self) -> Job:
         self.stage = 'fit summary'
-        chunks = len(seeds(self.spec.seed, 2, self.spec.fit['bootstrap']))
+        s = self.spec
+        chunks = len(seeds(s.seed, 2, s.fit['bootstrap']))
         return self._job('summary', 'fit_summary', Ref('fit'), self._object('base'),
-                         self.entry['recordings'], *(Ref(f'boot.{i}') for i in range(chunks)))
+                         self.entry['recordings'], Ref('read') if s.fit['stream'] else None,
+                         s.fit, s.seed, *(Ref(f'boot.{i}') for i in range(chunks)))
 
     def _after_fit(self) -> list[Job]:
         """Solve once the fit is summarised; once the drift test says so (or run: always),

@@ -18,12 +18,19 @@
         run: on_drift              # on_drift: fit, solve and check only when drift is found;
                                    # always: every run
         drift: {window: 1000, alpha: 0.05, simulations: 199}
-        fit: {bootstrap: 50, starts: 2, tol: 1.0e-7, max_iter: 1000, hold: [], window: null}
+        fit: {bootstrap: 50, starts: 2, tol: 1.0e-7, max_iter: 1000, hold: [], window: null,
+              prior: false, stream: false}
         evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2, worlds: 0}
         pomdp: {episodes: 2000, rounds: 1}
         max_memory_mb: null        # a solve whose memory estimate is above this fails
         retries: 3                 # Ray's retries of a task whose worker died
         seed: 0
+
+`fit` is hrc-fit's: `prior: true` also fits the person prior (hrc-fit --prior, written as
+observation.prior), `stream: true` also fits the task stream from the recordings (hrc-fit
+--stream, written as the `stream` section; with a base that has stream.queue, recordings
+without the tasks waiting fail the cell when they are read); both in the halves of the
+held-out check too, so that every fit of the cell fits the same model.
 
 A generated cell has `generate:` instead of `recordings:`: the batch simulator records
 `episodes` x `epochs` of the running policy in a world whose people differ from the base
@@ -65,7 +72,8 @@ SECTIONS = {
               'max_iter': ('int:1:100000', 200)},
     'fit': {'bootstrap': ('int:0:10000', 50), 'starts': ('int:1:100', 2),
             'tol': ('float:1e-15:1', 1e-7), 'max_iter': ('int:1:100000', 1000),
-            'hold': ('families', ()), 'window': ('int_or_null:20:1000000000', None)},
+            'hold': ('families', ()), 'window': ('int_or_null:20:1000000000', None),
+            'prior': ('bool', False), 'stream': ('bool', False)},
     'evaluate': {'episodes': ('int:10:1000000', 1000), 'epochs': ('int:1:100000', 50),
                  'task_rate': ('prob', 0.2), 'worlds': ('worlds', 0)},
     'pomdp': {'episodes': ('int:1:100000', 2000), 'rounds': ('int:0:20', 1)},
@@ -138,6 +146,10 @@ def _value(where: str, key: str, kind, value):
     if isinstance(kind, tuple):
         if value not in kind:
             raise bad(' or '.join(kind))
+        return value
+    if kind == 'bool':
+        if not isinstance(value, bool):
+            raise bad('true or false')
         return value
     if kind == 'text':
         if not isinstance(value, str) or not value.strip():

@@ -27,6 +27,7 @@ The recordings are read where they are (`read` runs on the driver's node).
 
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import json
@@ -45,6 +46,7 @@ from ..config import Config, ConfigError, load_config, validate
 from ..learning import fit as fitting
 from ..learning.recordings import (NO_OBSERVATION, UNANSWERED, Recording, RecordingError,
                                    read_recordings)
+from ..learning.stream import StreamError, check_stream, fit_stream_for
 from ..model import ACTIONS, TASK_VARIABLES, HRCModel
 from . import drift
 
@@ -138,11 +140,15 @@ def halves(recordings: list[Recording]) -> tuple[list[Recording], list[Recording
 
 
 def read(paths, rho: int, sigma: int, namespace: str, window: int,
-         fit_window: int | None = None) -> tuple[dict, dict]:
+         fit_window: int | None = None, stream_base: Config | None = None
+         ) -> tuple[dict, dict]:
     """The recordings as the fit's arrays: 'all' (or the last `fit_window` epochs) for the
     fit and 'window', the last `window` epochs, for the drift test. A bag holding several
     cells is read at the cell's namespace; a corrupt or unreadable recording fails the cell
-    (a fit on what happened to be readable would hide it)."""
+    (a fit on what happened to be readable would hide it). With `stream_base` (the base of a
+    cell with fit.stream) also 'recordings', the fit's recordings themselves, which the
+    stream is counted from (the halves' are cut from them where needed, not kept twice),
+    checked as hrc-fit --stream checks them before any work (`stream.check_stream`)."""
     from .spec import recording_files
     t0 = time.perf_counter()
     files = recording_files(paths)
@@ -161,12 +167,20 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
         folds = tuple(fitting.prepare(h) for h in halves(used))
     except (RecordingError, fitting.FitError) as exc:
         raise CellError(f'recordings: {" ".join(str(exc).split())}') from None
+    if stream_base is not None:
+        try:
+            check_stream(used, stream_base)
+        except StreamError as exc:
+            raise CellError(f'fit.stream: {exc}') from None
     facts = {'files': [str(f) for f in files], 'epochs': data.epochs,
              'episodes': len(data.episodes), 'window_epochs': recent.epochs,
              'halves': [f.epochs for f in folds],
              'issues': len(data.issues), 'first_issues': data.issues[:5],
              'seconds': _seconds(t0)}
-    return facts, {'all': data, 'window': recent, 'halves': folds}
+    payload = {'all': data, 'window': recent, 'halves': folds}
+    if stream_base is not None:
+        payload['recordings'] = used
+    return facts, payload
 
 
 # -- drift ------------------------------------------------------------------------------------
@@ -190,12 +204,13 @@ def drift_null(data: dict, running: Config, pi: np.ndarray, settings: dict, seed
 # -- fit --------------------------------------------------------------------------------------
 def fit_point(data: dict, base: Config, settings: dict, seed: int
               ) -> tuple[dict, fitting.FitResult]:
-    """EM as hrc-fit runs it, without the bootstrap (that is `bootstrap`, fanned out)."""
+    """EM as hrc-fit runs it, without the bootstrap (that is `bootstrap`, fanned out); with
+    `settings['prior']` the person prior too (hrc-fit --prior)."""
     t0 = time.perf_counter()
     try:
         result = fitting.fit(data['all'], base, settings['hold'], n_init=settings['starts'],
                              seed=seed, tol=settings['tol'], max_iter=settings['max_iter'],
-                             bootstrap=0)
+                             bootstrap=0, prior=settings.get('prior', False))
     except fitting.FitError as exc:
         raise CellError(f'fit: {exc}') from None
     if not result.converged:
@@ -231,10 +246,13 @@ def resample_fits(data: fitting.FitData, point: fitting.FitResult, settings: dic
 
 def bootstrap(data: dict, point: fitting.FitResult, settings: dict, seeds
               ) -> tuple[dict, np.ndarray]:
-    """`resample_fits` of all the recordings, as rows of the 57 parameters: (n, 57)."""
+    """`resample_fits` of all the recordings, as rows of the 57 parameters: (n, 57); with a
+    person prior (`point.prior`) each row followed by the resample's prior: (n, 57 + 9)."""
     t0 = time.perf_counter()
     fits = resample_fits(data['all'], point, settings, seeds)
-    out = np.array([p.vector() for p in fits]).reshape(len(seeds), len(fitting.PARAMETER_NAMES))
+    width = len(fitting.PARAMETER_NAMES) + (len(fitting.PRIOR_NAMES) if point.prior else 0)
+    out = np.array([np.concatenate([p.vector(), p.pi]) if point.prior else p.vector()
+                    for p in fits]).reshape(len(seeds), width)
     return {'resamples': len(seeds), 'seconds': _seconds(t0)}, out
 
 
@@ -254,17 +272,29 @@ def moved_parameters(result: fitting.FitResult) -> list[dict]:
     return out
 
 
-def fit_summary(point: fitting.FitResult, base: Config, sources, *samples
-                ) -> tuple[dict, dict]:
+def fit_summary(point: fitting.FitResult, base: Config, sources, data: dict | None = None,
+                settings: dict | None = None, seed: int = 0, *samples) -> tuple[dict, dict]:
     """The bootstrap's intervals and effective support (hrc-fit's rules), the fitted
-    configuration (as its YAML reads back) and the parameters that moved."""
+    configuration (as its YAML reads back) and the parameters that moved. With
+    `settings['stream']` the task stream too, counted from `data['recordings']` as hrc-fit
+    --stream counts it (`settings['bootstrap']` resamples from `seed`) and written as the
+    configuration's `stream` section; its report is the payload's 'stream'."""
     t0 = time.perf_counter()
     result = point
     if samples:
         draws = np.vstack(samples)
-        result = fitting.with_bootstrap(point, draws)
+        n = len(fitting.PARAMETER_NAMES)
+        result = fitting.with_bootstrap(point, draws[:, :n],
+                                        draws[:, n:] if point.prior else None)
+    stream = None
+    if settings is not None and settings.get('stream'):
+        try:
+            stream = fit_stream_for(data['recordings'], base, bootstrap=settings['bootstrap'],
+                                    seed=seed)
+        except StreamError as exc:
+            raise CellError(f'fit.stream: {exc}') from None
     try:
-        text = fitting.config_yaml(result, base, sources)
+        text = fitting.config_yaml(result, base, sources, stream)
         config = Config(validate(yaml.safe_load(text)), source='fitted.yaml')
     except ConfigError as exc:
         raise CellError(f'the fitted configuration does not validate ({exc})') from None
@@ -273,7 +303,9 @@ def fit_summary(point: fitting.FitResult, base: Config, sources, *samples
              'epochs': result.epochs, 'episodes': result.episodes,
              'bootstrap': 0 if result.samples is None else len(result.samples),
              'config_sha256': config.policy_hash, 'seconds': _seconds(t0)}
-    return facts, {'result': result, 'config': config, 'yaml': text}
+    if stream is not None:
+        facts['stream'] = {'section': config.data['stream'], 'warnings': stream.warnings()}
+    return facts, {'result': result, 'config': config, 'yaml': text, 'stream': stream}
 
 
 # -- solve ------------------------------------------------------------------------------------
@@ -401,19 +433,27 @@ def fold(data: dict, half: int, base: Config, fit_settings: dict, seed: int,
     as `solve_mdp` (and, for the pomdp and fib selectors, as `solve_pomdp`) solves, the
     candidate of this fold; and `worlds` bootstrap resamples of the half's episodes refitted
     from its estimate (as `bootstrap` refits, seeds [seed, 3 + half, b]), the worlds the other
-    fold's candidate is evaluated in: what the people of this half may be, given its epochs."""
+    fold's candidate is evaluated in: what the people of this half may be, given its epochs.
+    The model is the cell's fit's (`fit.prior`: with the person prior, each world's the
+    resample's; `fit.stream`: with the stream counted from this half's recordings, the same
+    in every world: the bootstrap refits the EM's parameters only)."""
     t0 = time.perf_counter()
     which = HALVES[half]
     half_data = {'all': data['halves'][half]}
+    if fit_settings.get('stream'):
+        half_data['recordings'] = halves(data['recordings'])[half]
     try:
         point_facts, point = fit_point(half_data, base, fit_settings, seed)
-        _, summary = fit_summary(point, base, [f'{which} of the recordings'])
+        _, summary = fit_summary(point, base, [f'{which} of the recordings'], half_data,
+                                 fit_settings, seed)
         _, mdp = solve_mdp(summary, max_memory_mb)
         pomdp = (None if pomdp_settings is None else
                  solve_pomdp(summary, pomdp_settings, seed, max_memory_mb)[1]['policy'])
         draws = resample_fits(half_data['all'], point, fit_settings,
                               [[seed, 3 + half, b] for b in range(worlds)])   # none for 0
-        resampled = [Config(fitting.fitted_data(replace(point, params=params), base),
+        stream = summary['config'].data.get('stream') if summary['stream'] else None
+        resampled = [Config(_with_stream(fitting.fitted_data(replace(point, params=params),
+                                                             base), stream),
                             source=f'{which}, bootstrap world {b}')
                      for b, params in enumerate(draws)]
     except (CellError, ConfigError) as exc:
@@ -424,6 +464,13 @@ def fold(data: dict, half: int, base: Config, fit_settings: dict, seed: int,
              'seconds': _seconds(t0)}
     return facts, {'config': summary['config'], 'policy': mdp['result'], 'pomdp': pomdp,
                    'worlds': resampled}
+
+
+def _with_stream(data: dict, stream: dict | None) -> dict:
+    """A configuration's data with the fitted `stream` section, if there is one."""
+    if stream is not None:
+        data['stream'] = copy.deepcopy(stream)
+    return data
 
 
 def clustered(new: list, running: list) -> dict:
@@ -500,6 +547,8 @@ def outputs(report: dict, summary: dict | None, mdp: dict | None, pomdp: dict | 
     if summary is not None:
         files['fitted.yaml'] = summary['yaml'].encode()
         fit_report = fitting.report_dict(summary['result'])
+        if summary.get('stream') is not None:      # as hrc-fit --stream reports it
+            fit_report['stream'] = summary['stream'].report()
         files['fitted.report.json'] = (json.dumps(fit_report, indent=2) + '\n').encode()
         files['fitted.png'] = reporting.figure_bytes(reporting.plot_fit, summary['result'])
     if mdp is not None:
