@@ -35,7 +35,10 @@ held-out check too, so that every fit of the cell fits the same model.
 A generated cell has `generate:` instead of `recordings:`: the batch simulator records
 `episodes` x `epochs` of the running policy in a world whose people differ from the base
 (`world`: overrides of the base configuration, or a configuration path), with `explore` of
-uniformly drawn actions, from `seed`; the recordings go to the output folder's cache.
+uniformly drawn actions, from `seed`; the people (em, ea at each episode's start) are drawn
+from the world's person prior (`observation.prior`) when it has one, uniform otherwise; the
+recordings go to the output folder's cache, named by a hash of the settings and of the base,
+world and policy files' contents.
 
 The file is read with the project's safe YAML loader (`paths.read_yaml`: a regular file of at
 most 1 MiB, nesting and expansion bounded, one line for any loader error); a schema
@@ -58,6 +61,9 @@ from pathlib import Path
 from ..paths import read_yaml, shipped_config_path
 
 MAX_CELLS = 10_000
+# The version of what `stages.generate` records for the same settings (part of the cache's
+# key): 2 draws the people from the world's person prior (observation.prior) when it has one.
+GENERATOR = 2
 SOLVERS = ('mdp', 'pomdp', 'both')
 RUNS = ('on_drift', 'always')
 MDP_SELECTORS = ('paper', 'qmdp', 'mls')
@@ -120,10 +126,34 @@ class CellSpec:
         return self.solver in ('pomdp', 'both')
 
     def generate_key(self) -> str:
-        """A hash of what the generated recordings depend on (the cache's name)."""
-        blob = json.dumps({'generate': self.generate, 'base': self.base, 'policy': self.policy},
+        """A hash of what the generated recordings depend on (the cache's name): the
+        generator's version, the `generate` settings, and the base, world and policy files by
+        their contents, so that an edited file or a changed generator is not served from an
+        old cache."""
+        world = (self.generate or {}).get('world')
+        files = {name: _file_digest(path) for name, path in
+                 (('base', self.base), ('policy', self.policy),
+                  ('world', world if isinstance(world, str) else None))}
+        blob = json.dumps({'generator': GENERATOR, 'generate': self.generate, 'base': self.base,
+                           'policy': self.policy, 'files': files},
                           sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _file_digest(path: str | None) -> str | None:
+    """The sha256 of a regular file's bytes, read in chunks; None for no path, or a path that
+    is not a regular file or cannot be read (the stage that loads it reports that; a FIFO or a
+    device is never opened here)."""
+    if path is None or not Path(path).is_file():
+        return None
+    digest = hashlib.sha256()
+    try:
+        with open(path, 'rb') as f:
+            for chunk in iter(lambda: f.read(1 << 20), b''):
+                digest.update(chunk)
+    except OSError:
+        return None
+    return digest.hexdigest()
 
 
 @dataclass(frozen=True)

@@ -90,7 +90,9 @@ def recordings_csv(recordings: list[Recording]) -> str:
 def generate(base: Config, policy, settings: dict, selector: str) -> tuple[dict, str]:
     """`settings['episodes']` x `settings['epochs']` of the running policy (and `selector`) in
     the world `settings['world']`, with `explore` of uniformly drawn actions: hrc-evaluate's
-    random task streams and humans, recorded as a robot records them (no em, ea)."""
+    random task streams and humans, recorded as a robot records them (no em, ea). The people
+    are the world's: drawn from its person prior (`observation.prior`, MODEL.md 6.1) when it
+    has one, as hrc-evaluate --true-config draws them, uniform otherwise."""
     from ..study.evaluation import BatchSimulator, episodes_of
     t0 = time.perf_counter()
     world = HRCModel(world_config(base, settings['world']))
@@ -99,7 +101,7 @@ def generate(base: Config, policy, settings: dict, selector: str) -> tuple[dict,
         raise CellError(f'generate.world has rho {world.rho}, sigma {world.sigma}; the base '
                         f'{model.rho}, {model.sigma}: they must describe the same cell')
     scenarios, seeds = episodes_of(model, 'random', settings['episodes'], settings['epochs'],
-                                   settings['seed'])
+                                   settings['seed'], prior=world.config.observation_prior)
     sim = BatchSimulator(model, policy, world=world)
     mdp_selector = selector if selector in ('paper', 'qmdp', 'mls') else 'paper'
     result = sim.run(scenarios, seeds, mdp_selector, explore=settings['explore'], record=True)
