@@ -60,6 +60,22 @@ def _mix(c, x0, x1, x2, x3):
             c[3] * x0 + c[7] * x1 + c[11] * x2 + c[15] * x3)
 
 
+def _emotion(e, value, y):
+    """The emotion step of one row: out_d = sum_k e[k] value[k, y, d] (e = gammaE_g[h]), the
+    four d at once, k in order (the same sums bit for bit wherever it is used)."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    a3 = 0.0
+    for k in range(N_HIDDEN):
+        ek = e[k]
+        a0 += ek * value[k, y, 0]
+        a1 += ek * value[k, y, 1]
+        a2 += ek * value[k, y, 2]
+        a3 += ek * value[k, y, 3]
+    return a0, a1, a2, a3
+
+
 def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
            fail_safe_aware, dp_paused, dm_paused, arrive_y, arrive_enter, arrive_q, p_idle,
            p_complete, value, w, out, residual, w_given):
@@ -69,16 +85,7 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
         for y in numba.prange(n_y):
             for grp in range(3):
                 for h in range(N_HIDDEN):
-                    a0 = 0.0
-                    a1 = 0.0
-                    a2 = 0.0
-                    a3 = 0.0
-                    for k in range(N_HIDDEN):
-                        e = gamma_e[grp, h, k]
-                        a0 += e * value[k, y, 0]
-                        a1 += e * value[k, y, 1]
-                        a2 += e * value[k, y, 2]
-                        a3 += e * value[k, y, 3]
+                    a0, a1, a2, a3 = _emotion_inline(gamma_e[grp, h], value, y)
                     w[grp, h, y, 0] = a0
                     w[grp, h, y, 1] = a1
                     w[grp, h, y, 2] = a2
@@ -205,16 +212,7 @@ def _queue_continuations(gamma_e, busy_y, arrive_y, arrive_enter, arrive_q, p_id
         for lv in range(n_l):
             for grp in range(3):
                 for h in range(N_HIDDEN):
-                    a0 = 0.0
-                    a1 = 0.0
-                    a2 = 0.0
-                    a3 = 0.0
-                    for k in range(N_HIDDEN):
-                        e = gamma_e[grp, h, k]
-                        a0 += e * value[lv, k, y, 0]
-                        a1 += e * value[lv, k, y, 1]
-                        a2 += e * value[lv, k, y, 2]
-                        a3 += e * value[lv, k, y, 3]
+                    a0, a1, a2, a3 = _emotion_inline(gamma_e[grp, h], value[lv], y)
                     z[lv, grp, h, y, 0] = a0
                     z[lv, grp, h, y, 1] = a1
                     z[lv, grp, h, y, 2] = a2
@@ -250,5 +248,6 @@ def _queue_continuations(gamma_e, busy_y, arrive_y, arrive_enter, arrive_q, p_id
 
 
 _mix_inline = numba.njit(inline='always')(_mix)
+_emotion_inline = numba.njit(inline='always')(_emotion)
 sweep = parallel_kernel(_sweep, cache=True, nogil=True)
 queue_continuations = parallel_kernel(_queue_continuations, cache=True, nogil=True)
