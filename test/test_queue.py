@@ -1,6 +1,7 @@
 """The task stream with a queue (MODEL.md 8.1): configuration, the queue step rule by rule, the
 factored solver and the fused sweep against it, policy files, the evaluation reading the queue
-length, and the refusals where the queue is not built yet (POMDP, nodes)."""
+length, the epoch-by-epoch simulation following it as the evaluation does, and the refusals
+where the queue is not built yet (the cell with the arm)."""
 
 import json
 
@@ -417,19 +418,73 @@ def test_hrc_evaluate_charges_both_runs_of_a_mismatch_the_worlds_waiting(tmp_pat
     assert regrets[0] == regrets[1]
 
 
-def test_the_arm_cell_and_hrc_simulate_refuse_a_queue_in_one_line(small_queue, capsys):
-    """Where the tasks waiting are not followed yet (review): the arm's batch cell and
-    hrc-simulate refuse a queue configuration in one line instead of reading l = 0 or raising
-    a traceback mid-run."""
+def test_the_arm_cell_refuses_a_queue_in_one_line(small_queue, capsys):
+    """Where the tasks waiting are not followed yet (review): the arm's batch cell refuses a
+    queue configuration in one line instead of reading l = 0 or raising a traceback mid-run."""
     from hrc_ros.core.robot.cell import ArmCell
     from hrc_ros.tools import evaluate as evaluate_tool
-    from hrc_ros.tools import simulate as simulate_tool
     with pytest.raises(ValueError, match='stream.queue'):
         ArmCell(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
     path = str(shipped_config_path('stream_queue'))
-    for tool, argv in ((evaluate_tool, ['--cell', 'arm', '--config', path, '--selectors',
-                                        'ssm_only,mdp', '--episodes', '2', '--epochs', '5']),
-                       (simulate_tool, ['--config', path])):
-        assert tool.main(argv + ['--out', '/tmp/hrc_queue_refused']) == 2
-        err = capsys.readouterr().err.strip()
-        assert 'stream.queue' in err and '\n' not in err, err
+    argv = ['--cell', 'arm', '--config', path, '--selectors', 'ssm_only,mdp', '--episodes', '2',
+            '--epochs', '5', '--out', '/tmp/hrc_queue_refused']
+    assert evaluate_tool.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert 'stream.queue' in err and '\n' not in err, err
+
+
+@pytest.fixture(scope='module')
+def small_queue_solved(small_queue):
+    """The small queue model's MDP solve and a quick POMDP solve (its quality does not matter
+    here, only that the batch and `simulate` read it alike)."""
+    from hrc_ros.core.pomdp.solver import solve_pomdp
+    pomdp = solve_pomdp(small_queue, episodes=20, per_state=4, rounds=0, seed=4, tol=5e-2)
+    return solve(small_queue), pomdp.policy()
+
+
+@pytest.mark.parametrize('mode', ['bayes', 'table', 'posterior'])
+@pytest.mark.parametrize('selector', ['paper', 'qmdp', 'mls', 'mdp', 'pomdp', 'fib'])
+def test_simulate_follows_the_queue_as_the_batch_does_episode_by_episode(
+        small_queue, small_queue_solved, mode, selector):
+    """The epoch-by-epoch `simulate` with a queue: the same actions, discounted cost (every
+    waiting task charged) and tasks waiting per epoch as `BatchSimulator`, episode by episode,
+    on streams busy enough that the queue fills (more than L tasks wait)."""
+    from hrc_ros.core.study.evaluation import human_seed, random_scenarios
+    from hrc_ros.core.study.simulation import simulate
+    m = small_queue
+    result, alphas = small_queue_solved
+    scenarios = random_scenarios(m, 10, 30, seed=5, task_rate=0.6)
+    seeds = [human_seed(5, e) for e in range(10)]
+    batch = BatchSimulator(m, result, mode=mode, pomdp=alphas).run(
+        scenarios, seeds, selector, keep_actions=True, record=True)
+    assert batch.trajectory['waiting'].max() > m.queue_length       # more than L wait
+    for e, scenario in enumerate(scenarios):
+        t = simulate(m, result, scenario, selector=selector, mode=mode, seed=seeds[e],
+                     pomdp=alphas)
+        assert [ACTIONS[a] for a in batch.actions[e]] == t.actions
+        np.testing.assert_array_equal(t.column('queued'), batch.trajectory['waiting'][e])
+        assert batch.discounted_cost[e] == pytest.approx(t.discounted_cost, rel=1e-12)
+        assert batch.waiting_epochs[e] == t.column('queued').sum()
+        assert batch.tasks_completed[e] == sum(r.complete_epoch is not None for r in t.tasks)
+
+
+def test_hrc_simulate_runs_a_queue_configuration_and_writes_the_tasks_waiting(tmp_path,
+                                                                             capsys):
+    """hrc-simulate on the shipped queue configuration: the case study runs and its table and
+    CSV carry `queued` (0 throughout here: the case study's tasks are released after the
+    previous one left the cell; the test above has tasks waiting); a configuration without
+    a queue writes no such column."""
+    import csv as csv_module
+    from hrc_ros.tools import simulate as simulate_tool
+    path = str(shipped_config_path('stream_queue'))
+    assert simulate_tool.main(['--config', path, '--out', str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert 'queued' in out.splitlines()[1]
+    with open(tmp_path / 'trajectory.csv') as f:
+        rows = list(csv_module.DictReader(f))
+    assert 'queued' in rows[0] and len(rows) == 20
+    assert all(int(r['queued']) == 0 for r in rows)
+    # without a queue the trajectory is as it always was: no such column
+    assert simulate_tool.main(['--out', str(tmp_path / 'plain')]) == 0
+    with open(tmp_path / 'plain' / 'trajectory.csv') as f:
+        assert 'queued' not in next(csv_module.reader(f))

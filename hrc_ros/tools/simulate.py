@@ -4,6 +4,8 @@
                  [--seed N]
 
 Prints the run as the paper's Table 6 and writes `trajectory.csv` and the plots into `--out`.
+With a queue (stream.queue, MODEL.md 8.1) the robot reads the tasks waiting, the cost charges
+them and the table and CSV gain the column `queued`.
 """
 
 from __future__ import annotations
@@ -38,10 +40,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         config, model, policy = load_model(args)
-        if config.queue is not None:
-            raise ToolError(f'{config.source}: hrc-simulate does not follow the tasks waiting '
-                            '(stream.queue, MODEL.md 8.1) yet: use hrc-evaluate, or '
-                            'hrc-case-study (the nodes carry it)')
         pomdp = load_pomdp(args, config, (args.selector,))
         out = output_folder(args.out)
     except ToolError as exc:

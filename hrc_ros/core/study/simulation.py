@@ -22,6 +22,13 @@ order), O_k, b_k (9 values over h = 3*em + ea), a_k, the human's answer, whether
 fired, the selector's scores (8) and the cost J(s_k, a_k). `hrc-simulate` prints the rows as
 the paper's Table 6 (`Trajectory.table`), writes them as CSV and plots them in the spirit of the
 paper's Figs 9-12 (`plots.plot_trajectory`).
+
+The queue (MODEL.md 8.1): with a configuration whose stream has a queue, the robot observes
+l = min(tasks waiting in the task book, L) (released, not yet in the cell, after step 1), every
+selector reads the policy / Q at that l, the epoch's cost adds w * (every waiting task, not
+capped at L), and the rows gain the column `queued` (the tasks waiting): the rule of
+`evaluation.BatchSimulator`, which the tests hold equal episode by episode. Without a queue
+the rows, the CSV and the table are as they always were.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ BELIEF_COLUMNS = tuple(f'b{h}' for h in range(N_HIDDEN))
 SCORE_COLUMNS = tuple(f'score_{a}' for a in ACTIONS)
 COLUMNS = (('epoch',) + STATE_VARIABLES + ('O',) + BELIEF_COLUMNS
            + ('action', 'accepted', 'fail_safe') + SCORE_COLUMNS + ('cost',))
+QUEUED = 'queued'    # the tasks waiting, a column only with a queue (MODEL.md 8.1)
 
 
 @dataclass(frozen=True)
@@ -84,9 +92,17 @@ class Trajectory:
     tasks: list[TaskRecord] = field(default_factory=list)
 
     def column(self, name: str) -> np.ndarray:
-        if name not in COLUMNS:
-            raise KeyError(f'no column {name!r}; columns: {", ".join(COLUMNS)}')
+        if name not in self.columns:
+            raise KeyError(f'no column {name!r}; columns: {", ".join(self.columns)}')
         return np.array([row[name] for row in self.rows])
+
+    @property
+    def columns(self) -> tuple:
+        """The columns of the rows: `COLUMNS`, and with a queue (MODEL.md 8.1) `queued` (the
+        tasks waiting) last."""
+        if self.rows and QUEUED in self.rows[0]:
+            return COLUMNS + (QUEUED,)
+        return COLUMNS
 
     @property
     def actions(self) -> list:
@@ -109,7 +125,7 @@ class Trajectory:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with written(path) as f:
-            writer = csv.DictWriter(f, fieldnames=COLUMNS)
+            writer = csv.DictWriter(f, fieldnames=self.columns)
             writer.writeheader()
             for row in self.rows:
                 out = dict(row)
@@ -122,8 +138,10 @@ class Trajectory:
 
     def table(self) -> str:
         """The paper's Table 6: epoch, state vector, O, belief (top hidden states), action."""
+        queued = QUEUED in self.columns
         head = (f'{"epoch":>5}  {"state [em,ea,tp,tc,tx,ty,hp,hc,bp,bc,d]":<40} {"O":>1}  '
-                f'{"belief, top (em,ea):p":<30} action')
+                + (f'{"queued":>6}  ' if queued else '')
+                + f'{"belief, top (em,ea):p":<30} action')
         lines = [f'{self.scenario.name}: selector {self.selector}, belief {self.mode}, '
                  f'seed {self.seed}', head, '-' * len(head)]
         for row in self.rows:
@@ -136,7 +154,9 @@ class Trajectory:
                 action += ' (fail-safe)'
             elif row['accepted'] is not None:
                 action += ' (accepted)' if row['accepted'] else ' (refused)'
-            lines.append(f'{row["epoch"]:>5}  {state:<40} {row["O"]:>1}  {belief:<30} {action}')
+            waiting = f'{row[QUEUED]:>6}  ' if queued else ''
+            lines.append(f'{row["epoch"]:>5}  {state:<40} {row["O"]:>1}  {waiting}'
+                         f'{belief:<30} {action}')
         lines.append(f'discounted cost {self.discounted_cost:.3f} (gamma {self.gamma}); tasks '
                      f'completed {sum(r.complete_epoch is not None for r in self.tasks)}'
                      f'/{len(self.tasks)}')
@@ -153,15 +173,17 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
     `fail_safe=False` lets the selector act at d = 0 too (for studying the fail-safe only).
     `pomdp`: the POMDP policy for the pomdp and fib selectors (default: the shipped one).
     The belief update is given the epoch's observable transition (the human's answer and the
-    distance move) as evidence; only the ``posterior`` mode uses it (`belief`).
+    distance move) as evidence; only the ``posterior`` mode uses it (`belief`). With a queue
+    (MODEL.md 8.1) the selector reads l = min(tasks waiting, L) and the cost charges every
+    waiting task (module docstring).
     """
+    from .evaluation import charged_waiting_cost      # evaluation imports this module
     if selector not in SIMULATION_SELECTORS:
         raise ValueError(f'unknown selector {selector!r}; expected one of '
                          f'{", ".join(SIMULATION_SELECTORS)}')
     pi, value = policy_arrays(policy, value)
-    if model.queue is not None:
-        raise ValueError(f'{model.config.source}: the epoch-by-epoch simulation does not track '
-                         'the queue length (stream.queue, MODEL.md 8.1) yet: use hrc-evaluate')
+    waiting_cost = charged_waiting_cost(model)
+    top = model.queue_length
     if pi.shape != (model.n_states,):
         raise ValueError(f'the policy has {pi.size} states, the model {model.n_states}')
     model.index(scenario.initial_state)            # range check, names the variable
@@ -179,19 +201,25 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
         book.begin_epoch(k)
         x = book.observable(human.d)
         state = (human.em, human.ea) + x
+        waiting = len(book.queue)      # released, not yet in the cell
+        level = 0 if top is None else min(waiting, top)
         if chooser is None:
-            action = int(pi[model.index(state)])
+            action = int(pi[level * model.n_base + model.index(state)])
             scores = np.zeros(len(ACTIONS))
             scores[action] = 1.0
         else:
-            selection = chooser.select(belief, x)
+            selection = chooser.select(belief, x if top is None else x + (level,))
             action, scores = selection.action, selection.scores
         stopped = fail_safe and human.d == 0
         if stopped:
             action = DN
         cost = float(model.state_cost_vector[model.index(state)] + model.action_cost[action])
+        if waiting_cost is not None:
+            cost += waiting_cost * waiting
         reaction = human.react(action, book.state)
         row = {'epoch': k, **dict(zip(STATE_VARIABLES, state)), 'O': observation}
+        if top is not None:
+            row[QUEUED] = waiting
         row.update(zip(BELIEF_COLUMNS, (float(p) for p in belief)))
         row.update(action=ACTIONS[action], accepted=reaction.accepted, fail_safe=stopped)
         row.update(zip(SCORE_COLUMNS, (float(s) for s in scores)))
