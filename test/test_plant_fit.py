@@ -158,7 +158,7 @@ def test_fit_stream_on_a_queue_base_without_queued_fails_the_cell_as_hrc_fit_ref
     base = load_config(base_path)
     p = CellPipeline(spec, '/nonexistent/out', rho=base.rho, sigma=base.sigma)
     job = p.start()[0]
-    assert job.key == 'read' and job.args[-1] == Ref('@base:a')
+    assert job.key == 'read' and job.args[-2:] == (Ref('@base:a'), False)
     facts, _ = run_stage(job.stage, *resolve(job.args, {'@base:a': base}, 'a'))
     capsys.readouterr()
     assert main([str(recordings_csv), '-o', str(tmp_path / 'x.yaml'), '--stream', '--base',

@@ -4,7 +4,10 @@ world's, and its cache follows what the recordings depend on.
 - a world with a person prior (observation.prior) records people drawn from that prior, as
   hrc-evaluate --true-config draws them (`episodes_of(..., prior=)`), not uniform ones;
 - the cache's key changes when the generator, the settings or a world file's contents change,
-  and not otherwise.
+  and not otherwise, and follows the shipped policy a cell without one runs;
+- generated recordings carry the tasks waiting, and cuts (halves, windows) cut them too, so a
+  queue base's stream can be fitted from them; fit.prior refuses at read recordings whose
+  half starts no episode (review of the plant's fit.prior / fit.stream).
 """
 
 from __future__ import annotations
@@ -63,3 +66,60 @@ def test_generate_key_follows_the_generator_and_the_world_files(tmp_path, monkey
     assert edited != key
     monkeypatch.setattr(plant_spec, 'GENERATOR', plant_spec.GENERATOR + 1)
     assert load_plant(plant).cells[0].generate_key() not in (key, edited)
+
+
+def test_generated_recordings_carry_the_tasks_waiting_and_a_queue_base_fits_their_stream(
+        tmp_path):
+    """A generated cell on a queue base (stream.queue) records the tasks waiting, so that
+    fit.stream can count the queue's releases from it (it failed the cell at read: no
+    `queued`); halves and windows that cut an episode cut its tasks waiting with it, so the
+    folds count the stream of their own epochs (they raised a broadcast error)."""
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.learning.stream import fit_stream_for
+    from hrc_ros.core.paths import shipped_config_path
+    base = load_config(shipped_config_path('stream_queue'))
+    policy = load_policy(default_policy_path(base), base)
+    _, text = stages.generate(base, policy, {'world': {}, 'episodes': 5, 'epochs': 41,
+                                             'seed': 4, 'explore': 0.2}, 'paper')
+    assert text.splitlines()[0].endswith(',queued')
+    path = tmp_path / 'q.csv'
+    path.write_text(text)
+    facts, data = stages.read([str(path)], base.rho, base.sigma, '/', 100, 150, base)
+    assert facts['epochs'] == 150 and sum(len(r) for r in data['recordings']) == 150
+    for r in data['recordings'] + [r for h in stages.halves(data['recordings']) for r in h]:
+        assert len(r.queued) == len(r)
+    halves = stages.halves(data['recordings'])
+    assert {len(halves[0][-1]), len(halves[1][0])} != {41}      # an episode was cut
+    for part in halves:
+        fit_stream_for(part, base, bootstrap=0)                   # no error
+
+
+def test_fit_prior_refuses_recordings_with_a_half_without_an_episode_start(tmp_path,
+                                                                           default_config,
+                                                                           policy):
+    """fit.prior fits the person prior in each half too (the held-out check), so recordings
+    of one long run (its later half starts no episode) fail the cell when they are read,
+    with one line naming fit.prior and the half, not after the whole fit in a fold."""
+    _, text = stages.generate(default_config, policy, {'world': {}, 'episodes': 1,
+                                                       'epochs': 200, 'seed': 2,
+                                                       'explore': 0.2}, 'paper')
+    path = tmp_path / 'long.csv'
+    path.write_text(text)
+    args = ([str(path)], default_config.rho, default_config.sigma, '/', 100, None, None)
+    stages.read(*args)                                            # without the prior: fine
+    with pytest.raises(stages.CellError, match='fit.prior: no episode in the later half'):
+        stages.read(*args, True)
+
+
+def test_the_cache_follows_the_shipped_policy_a_cell_without_one_runs(tmp_path, monkeypatch):
+    """`policy: null` runs the shipped policy of its base: the cache's key follows that file
+    (it hashed the None)."""
+    plant = tmp_path / 'plant.yaml'
+    plant.write_text('cells:\n  - name: a\n    generate: {world: {}, episodes: 4, epochs: 20, '
+                     'seed: 1}\n')
+    cell = load_plant(plant).cells[0]
+    key = cell.generate_key()
+    other = tmp_path / 'other.npz'
+    other.write_bytes(b'not the shipped policy')
+    monkeypatch.setattr(plant_spec, '_shipped_policy', lambda base: str(other))
+    assert cell.generate_key() != key

@@ -150,7 +150,7 @@ class CellPipeline:
         stream = self._object('base') if self.spec.fit['stream'] else None
         return self._job('read', 'read', paths, self.rho, self.sigma, self.spec.namespace,
                          self.spec.drift['window'], self.spec.fit['window'], stream,
-                         where=DRIVER_NODE)
+                         self.spec.fit['prior'], where=DRIVER_NODE)
 
     def _fit(self) -> list[Job]:
         """The fit of all the recordings and, beside it, of each half (the held-out check's

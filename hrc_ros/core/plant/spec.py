@@ -128,16 +128,28 @@ class CellSpec:
     def generate_key(self) -> str:
         """A hash of what the generated recordings depend on (the cache's name): the
         generator's version, the `generate` settings, and the base, world and policy files by
-        their contents, so that an edited file or a changed generator is not served from an
-        old cache."""
+        their contents (the policy: the cell's, or with `policy: null` the shipped one its
+        base runs), so that an edited file or a changed generator is not served from an old
+        cache."""
         world = (self.generate or {}).get('world')
         files = {name: _file_digest(path) for name, path in
-                 (('base', self.base), ('policy', self.policy),
+                 (('base', self.base), ('policy', self.policy or _shipped_policy(self.base)),
                   ('world', world if isinstance(world, str) else None))}
         blob = json.dumps({'generator': GENERATOR, 'generate': self.generate, 'base': self.base,
                            'policy': self.policy, 'files': files},
                           sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _shipped_policy(base: str) -> str | None:
+    """The policy a cell with `policy: null` runs (the shipped one for its base, by the base's
+    hash), None when the base does not load (the cell's stages report that)."""
+    from ..config import ConfigError, load_config
+    from ..mdp.policy import default_policy_path
+    try:
+        return str(default_policy_path(load_config(base)))
+    except (ConfigError, OSError, ValueError):
+        return None
 
 
 def _file_digest(path: str | None) -> str | None:

@@ -44,8 +44,8 @@ import yaml
 from .. import parallel
 from ..config import Config, ConfigError, load_config, validate
 from ..learning import fit as fitting
-from ..learning.recordings import (NO_OBSERVATION, UNANSWERED, Recording, RecordingError,
-                                   read_recordings)
+from ..learning.recordings import (NO_OBSERVATION, UNANSWERED, UNKNOWN_QUEUED, Recording,
+                                   RecordingError, read_recordings)
 from ..learning.stream import StreamError, check_stream, fit_stream_for
 from ..model import ACTIONS, TASK_VARIABLES, HRCModel
 from . import drift
@@ -73,18 +73,27 @@ def world_config(base: Config, world) -> Config:
 
 
 def recordings_csv(recordings: list[Recording]) -> str:
-    """Recordings as a trajectory CSV (docs/LEARNING.md): what `read_csv` reads back."""
+    """Recordings as a trajectory CSV (docs/LEARNING.md): what `read_csv` reads back; with
+    the column `queued` (the tasks waiting, MODEL.md 8.1) when every recording has it."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator='\n')
-    writer.writerow(('episode', 'epoch') + TASK_VARIABLES + ('d', 'O', 'action', 'accepted'))
+    queued = bool(recordings) and all(r.queued is not None for r in recordings)
+    writer.writerow(('episode', 'epoch') + TASK_VARIABLES + ('d', 'O', 'action', 'accepted')
+                    + (('queued',) if queued else ()))
     for r in recordings:
         for k in range(len(r)):
             o = int(r.observation[k])
             accepted = int(r.accepted[k])
             writer.writerow([r.episode, int(r.epoch[k]), *map(int, r.task[k]), int(r.d[k]),
                              '' if o == NO_OBSERVATION else o, ACTIONS[int(r.action[k])],
-                             '' if accepted == UNANSWERED else accepted])
+                             '' if accepted == UNANSWERED else accepted]
+                            + ([_queued(r.queued[k])] if queued else []))
     return out.getvalue()
+
+
+def _queued(value) -> int | str:
+    """A recording's tasks waiting as its CSV cell: '' where it is not known."""
+    return '' if int(value) == UNKNOWN_QUEUED else int(value)
 
 
 def generate(base: Config, policy, settings: dict, selector: str) -> tuple[dict, str]:
@@ -123,7 +132,8 @@ def span(recordings: list[Recording], start: int, stop: int) -> list[Recording]:
             out.append(r)
             continue
         cut = slice(low, high)
-        out.append(replace(r, **{f: getattr(r, f)[cut] for f in FIT_TASK_FIELDS}))
+        fields = FIT_TASK_FIELDS + (('queued',) if r.queued is not None else ())
+        out.append(replace(r, **{f: getattr(r, f)[cut] for f in fields}))
     return out
 
 
@@ -142,15 +152,17 @@ def halves(recordings: list[Recording]) -> tuple[list[Recording], list[Recording
 
 
 def read(paths, rho: int, sigma: int, namespace: str, window: int,
-         fit_window: int | None = None, stream_base: Config | None = None
-         ) -> tuple[dict, dict]:
+         fit_window: int | None = None, stream_base: Config | None = None,
+         prior: bool = False) -> tuple[dict, dict]:
     """The recordings as the fit's arrays: 'all' (or the last `fit_window` epochs) for the
     fit and 'window', the last `window` epochs, for the drift test. A bag holding several
     cells is read at the cell's namespace; a corrupt or unreadable recording fails the cell
     (a fit on what happened to be readable would hide it). With `stream_base` (the base of a
     cell with fit.stream) also 'recordings', the fit's recordings themselves, which the
     stream is counted from (the halves' are cut from them where needed, not kept twice),
-    checked as hrc-fit --stream checks them before any work (`stream.check_stream`)."""
+    checked as hrc-fit --stream checks them before any work (`stream.check_stream`). With
+    `prior` (fit.prior) each half must hold an episode that starts at epoch 1, since the
+    held-out check fits the prior on each half (checked here, before any work)."""
     from .spec import recording_files
     t0 = time.perf_counter()
     files = recording_files(paths)
@@ -169,6 +181,13 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
         folds = tuple(fitting.prepare(h) for h in halves(used))
     except (RecordingError, fitting.FitError) as exc:
         raise CellError(f'recordings: {" ".join(str(exc).split())}') from None
+    if prior:
+        for which, f in zip(HALVES, folds):
+            if not f.true_starts.any():
+                raise CellError(f'fit.prior: no episode in {which} of the recordings starts '
+                                f'at epoch {fitting.FIRST_EPOCH}, and the held-out check fits '
+                                'the person prior on each half; record the runs from their '
+                                'start (more episodes), or set fit.prior: false')
     if stream_base is not None:
         try:
             check_stream(used, stream_base)
