@@ -154,6 +154,10 @@ def test_fit_stream_on_a_queue_base_without_queued_fails_the_cell_as_hrc_fit_ref
         tmp_path, recordings_csv, capsys):
     from hrc_ros.tools.fit import main
     base_path = shipped_config_path('stream_queue')
+    lines = recordings_csv.read_text().splitlines()    # the same epochs without `queued`
+    assert lines[0].endswith(',queued')
+    recordings_csv = tmp_path / 'no_queued.csv'
+    recordings_csv.write_text(''.join(line.rsplit(',', 1)[0] + '\n' for line in lines))
     spec = cell(tmp_path, recordings_csv, '{stream: true}', base=str(base_path))
     base = load_config(base_path)
     p = CellPipeline(spec, '/nonexistent/out', rho=base.rho, sigma=base.sigma)
