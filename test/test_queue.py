@@ -470,20 +470,33 @@ def test_simulate_follows_the_queue_as_the_batch_does_episode_by_episode(
 
 def test_hrc_simulate_runs_a_queue_configuration_and_writes_the_tasks_waiting(tmp_path,
                                                                              capsys):
-    """hrc-simulate on the shipped queue configuration: the case study runs and its table and
-    CSV carry `queued` (0 throughout here: the case study's tasks are released after the
-    previous one left the cell; the test above has tasks waiting); a configuration without
-    a queue writes no such column."""
+    """hrc-simulate on the shipped queue configuration with a human (seed 29) slow enough that
+    the case study's next task is released while one is still in the cell (tasks wait at
+    epochs 9, 16 and 17): its table and CSV carry `queued`, and each epoch's cost is
+    J(s, a) + w * queued, the discounted sum the one printed; a configuration without a queue
+    writes no such column."""
     import csv as csv_module
     from hrc_ros.tools import simulate as simulate_tool
     path = str(shipped_config_path('stream_queue'))
-    assert simulate_tool.main(['--config', path, '--out', str(tmp_path)]) == 0
+    assert simulate_tool.main(['--config', path, '--seed', '29', '--out', str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert 'queued' in out.splitlines()[1]
     with open(tmp_path / 'trajectory.csv') as f:
         rows = list(csv_module.DictReader(f))
-    assert 'queued' in rows[0] and len(rows) == 20
-    assert all(int(r['queued']) == 0 for r in rows)
+    assert len(rows) == 20
+    queued = np.array([int(r['queued']) for r in rows])
+    assert queued.sum() > 0, 'seed 29 no longer has a task waiting: pick a seed that does'
+    model = HRCModel(load_config(path))
+    columns = ('em', 'ea', 'tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc', 'd')
+    for r, waiting in zip(rows, queued):
+        state = tuple(int(r[c]) for c in columns)
+        a = ACTIONS.index(r['action'])
+        want = (model.state_cost_vector[model.index(state)] + model.action_cost[a]
+                + model.config.waiting_cost * waiting)
+        assert float(r['cost']) == pytest.approx(want, rel=1e-5), r['epoch']
+    discounted = float(np.sum(np.array([float(r['cost']) for r in rows])
+                              * model.gamma ** np.arange(20)))
+    assert f'discounted cost {discounted:.3f}' in out
     # without a queue the trajectory is as it always was: no such column
     assert simulate_tool.main(['--out', str(tmp_path / 'plain')]) == 0
     with open(tmp_path / 'plain' / 'trajectory.csv') as f:
