@@ -1,30 +1,41 @@
 """The plant on Ray against the same work in one process, and the drift test's calibration.
 
-    .venv/bin/python bench/fleet_bench.py                    # 8 cells on 2 CPUs, both ways
+    .venv/bin/python bench/fleet_bench.py --repeat 4 --control  # 8 cells on 2 CPUs, every way
     .venv/bin/python bench/fleet_bench.py --drift            # false-alarm rate and power
     .venv/bin/python bench/fleet_bench.py --cells 4 --cpus 2 --skip-serial
+    .venv/bin/python bench/fleet_bench.py --repeat 3 --serial-threads 1
 
 1. Plant (`--cells 8 --cpus 2`). Cells of the full-size model, each with recordings generated
    by the batch simulator (1000 epochs: 20 episodes x 50; half in the default world, half in
    the `reluctant` world of fit_bench.py), `run: always` so every cell runs every stage (read,
    drift test with 99 simulations, fit with 50 bootstrap resamples, value iteration, each half
    fitted and solved, the shadow check over 1000 paired episodes in-sample and held out,
-   outputs). The same plant runs (a) on an embedded Ray with `--cpus` CPUs (hrc-fleet's
-   scheduler, numba's threads per task as Ray assigns CPUs) and (b) serially in one new
-   process (`pipeline.run_serially`, numba free to use every core in the solves unless
-   `--serial-threads 1`; a new process each time, so that it pays the imports and numba's
-   cache loads as Ray's new workers do). `--repeat N` runs N pairs, alternating, and gives the
-   speed-up as the mean log ratio of the pairs with a 95% t interval, and whether the goal
-   (1.7x) is met (interval above it), missed (below) or not settled. Printed per run: wall
-   time of each, the speed-up, per-stage CPU seconds, and the peak memory: the largest sum of
-   the proportional set sizes (PSS, shared pages split between the processes that map them) of
-   this process and every process it started (Ray's workers, raylet, GCS, object store),
-   sampled every 0.2 s; the serial run's is its process's alone; the CPU seconds the machine
-   was busy and those the hypervisor stole (/proc/stat), since the runs are only comparable
-   on a machine that gives them the same CPUs. `--timeline JSON` writes Ray's task timeline
-   (chrome://tracing) and prints how full the CPUs were kept. Both runs must reach the same
-   decisions and the same figures (the seeds do not depend on the scheduling); the script
-   checks it.
+   outputs). A round runs the same plant (a) on an embedded Ray with `--cpus` CPUs (hrc-fleet's
+   scheduler, numba's threads per task as Ray assigns CPUs), then (b) serially in one new
+   process, `hrc-fleet run --serial`'s call, once on one CPU (`--serial-threads 1`: numba's
+   kernels serial and numpy's BLAS on one thread, as Ray's one-CPU tasks run: T_1, the run time
+   on one processor that a speed-up is measured against) and once with numba's and BLAS's
+   threads free to use every core (`0`: the solves' parallel kernels on both CPUs, so that
+   process is itself partly parallel). Each serial run is a new process, so that it pays
+   numba's cache loads as Ray's new workers do. All are timed over the same call
+   (`fleet.run_plant`: prepare, run, report, write the plant report); Ray's start is not in it
+   (the cluster exists). `--repeat N` runs N rounds and gives each speed-up as the mean log
+   ratio of the rounds with a 95% t interval, and whether the goal (1.7x) is met (interval
+   above it), missed (below) or not settled. Printed per run: wall time, peak memory (the
+   largest sum of the proportional set sizes, PSS, shared pages split between the processes
+   that map them, of this process and every process it started: Ray's workers, raylet, GCS,
+   object store; sampled once a second, `PeakMemory`: faster sampling took CPU from the Ray
+   run's busy CPUs; a serial run's is its process's alone), the CPU seconds the machine was
+   busy and those the hypervisor stole (/proc/stat: the runs are only comparable on a machine
+   that gives them the same CPUs); per serial mode the CPUs it kept busy; per stage the seconds
+   per cell. `--timeline JSON` writes Ray's task timeline (chrome://tracing) and prints how
+   full the CPUs were kept. Every run must reach the same decisions and figures (the seeds do
+   not depend on the scheduling); the script checks it. `--control` adds a last run to each
+   round: the plant in two halves (cells 0..3 and 4..7), each serially in its own new one-CPU
+   process, both at once, no Ray: what two CPUs of this machine give this work with nothing
+   shared but the machine, so `serial / control` is the machine's ceiling for any scheduler
+   against that serial run and `control / Ray` what Ray itself costs; the halves must reach
+   Ray's decisions and figures.
 
 2. Scaling model. From the per-stage seconds of the plant run: T_cell = the CPU seconds of
    one cell's stages (one CPU each), so a cluster of C cores works through
@@ -62,7 +73,6 @@ sys.path.insert(0, str(ROOT))
 
 from hrc_ros.core import parallel  # noqa: E402
 from hrc_ros.core.parallel import descendants  # noqa: E402
-from hrc_ros.core.plant.pipeline import run_serially  # noqa: E402
 from hrc_ros.core.plant.spec import load_plant  # noqa: E402
 from hrc_ros.tools import fleet  # noqa: E402
 
@@ -72,11 +82,13 @@ RELUCTANT = {'model': {'p_accept': [0.05, 0.35, 0.7],
 MILD = {'model': {'p_accept': [0.2, 0.65, 0.95]}}     # the default's [0.3, 0.8, 0.99]
 
 
-def plant_text(cells: int) -> str:
+def plant_text(cells: int, first: int = 0) -> str:
+    """The bench's plant: cells `first` .. `first + cells - 1` (a cell's work depends on its
+    index only, so two halves are the whole plant's work)."""
     lines = ['plant: bench', 'defaults:', '  run: always',
              '  drift: {window: 1000, simulations: 99}', '  fit: {bootstrap: 50}',
              '  evaluate: {episodes: 1000}', 'cells:']
-    for i in range(cells):
+    for i in range(first, first + cells):
         world = json.dumps(RELUCTANT if i % 2 else {})
         lines += [f'  - name: cell{i}',
                   f'    generate: {{world: {world}, episodes: 20, epochs: 50, seed: {i}}}']
@@ -94,15 +106,23 @@ def pss_kib(pid: int) -> int:
 
 
 class PeakMemory:
-    """The largest PSS sum over this process and its descendants, sampled in a thread."""
+    """The largest PSS sum over this process and its descendants, sampled in a thread once a
+    `period`. Sampling costs CPU (about 7 ms a sample beside Ray's nine processes: /proc walked
+    for the descendants, smaps_rollup read per process), taken from whatever runs: at the 5 Hz
+    this bench first sampled, 3.7% of a CPU, which fell on Ray's two busy CPUs but on the idle
+    second core of a one-thread serial run; once a second it is 0.7%, and the process list is
+    walked every `walk` samples only."""
 
-    def __init__(self, period: float = 0.2):
-        self.period, self.peak, self._stop = period, 0, threading.Event()
+    def __init__(self, period: float = 1.0, walk: int = 5):
+        self.period, self.walk, self.peak, self._stop = period, walk, 0, threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self):
+        pids, samples = set(), 0
         while not self._stop.is_set():
-            pids = {os.getpid()} | descendants(os.getpid())
+            if samples % self.walk == 0:
+                pids = {os.getpid()} | descendants(os.getpid())
+            samples += 1
             self.peak = max(self.peak, sum(pss_kib(p) for p in pids))
             self._stop.wait(self.period)
 
@@ -144,7 +164,7 @@ def timed(name: str, run) -> tuple:
         report = run()
         seconds = time.perf_counter() - t0
     busy1, stolen1 = cpu_times()
-    print(f'  {name:<7} wall {seconds:7.1f} s   peak memory (PSS, all processes) '
+    print(f'  {name:<15} wall {seconds:7.1f} s   peak memory (PSS, all processes) '
           f'{memory.peak / 1024:7.0f} MiB   CPU busy {busy1 - busy0:6.1f} s, stolen by the '
           f'hypervisor {stolen1 - stolen0:4.1f} s   decisions {report["decisions"]}',
           flush=True)
@@ -166,28 +186,85 @@ def ray_run(plant, folder: Path, args) -> dict:
     return result
 
 
-def serial_child(plant_path: str, folder: str, threads: int) -> tuple:
-    """The serial run in a new process (`serial_run`)."""
+def serial_child(plant_path: str, folder: str, threads: int, name: str | None = None) -> tuple:
+    """The serial run in a new process (`serial_run`): `hrc-fleet run --serial`'s call, timed
+    over the same span as the Ray run's (`fleet.run_plant`: the cells prepared, run, reported
+    and the plant report written); its result ends with the epoch times of its start and end."""
     parallel.limit_threads(threads or None)
     plant = load_plant(Path(plant_path))
-    pipelines, objects = fleet.prepare(plant, Path(folder))
-
-    def run():
-        t0 = time.perf_counter()
-        run_serially(pipelines, objects)
-        return fleet.plant_report(plant, pipelines, '', time.perf_counter() - t0, 'serial')
-    return timed('serial', run)
+    start = time.time()
+    result = timed('serial' if name is None else name,
+                   lambda: fleet.run_plant(plant, Path(folder), serial=True,
+                                           progress=fleet.Progress(quiet=True)))
+    return result + (start, time.time())
 
 
-def serial_run(plant_path: Path, folder: Path, args) -> tuple:
+BLAS_THREADS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+
+
+class one_blas_thread:
+    """With `on`, new processes started meanwhile run numpy's BLAS (OpenBLAS) on one thread,
+    as Ray's one-CPU workers do (Ray sets OMP_NUM_THREADS to a task's CPUs): a process told
+    to use one thread in the kernels but left two in BLAS keeps both CPUs busy (OpenBLAS's
+    threads wait spinning), which is not one CPU's work."""
+
+    def __init__(self, on: bool):
+        self.on, self.saved = on, {}
+
+    def __enter__(self):
+        if self.on:
+            self.saved = {k: os.environ.get(k) for k in BLAS_THREADS}
+            os.environ.update({k: '1' for k in BLAS_THREADS})
+
+    def __exit__(self, *exc):
+        for k, v in self.saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def serial_run(plant_path: Path, folder: Path, threads: int) -> tuple:
     """The same plant serially in a new process, as Ray's workers are new processes: each
     run pays its imports and numba's cache loads once (a second run in this process would
-    find them done and be the faster for it)."""
+    find them done and be the faster for it). `threads`: 1 is one CPU (numba's kernels
+    serial, numpy's BLAS on one thread), 0 numba's and BLAS's threads on every core."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
-        return pool.submit(serial_child, str(plant_path), str(folder),
-                           args.serial_threads).result()
+    with one_blas_thread(threads == 1), \
+            ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn')) as pool:
+        name = 'serial, one CPU' if threads == 1 else 'serial, threads'
+        return pool.submit(serial_child, str(plant_path), str(folder), threads,
+                           name).result()[:5]
+
+
+def control_run(folder: Path, args) -> tuple:
+    """The control (`--control`): the plant split in two halves, each run serially in its
+    own new process, one thread each, both at once. No scheduler, no object store, no
+    messages between them: what two CPUs of this machine give the same work when nothing
+    but the work itself is shared. Returns (wall from the first start to the last end, the
+    two halves' reports)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    half = args.cells // 2
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, (first, count) in enumerate(((0, half), (half, args.cells - half))):
+        paths.append(folder / f'half{k}.yaml')
+        paths[-1].write_text(plant_text(count, first))
+    with one_blas_thread(True), \
+            ProcessPoolExecutor(2, mp_context=multiprocessing.get_context('spawn')) as pool:
+        futures = [pool.submit(serial_child, str(path), str(folder / path.stem), 1,
+                               f'half {k + 1}') for k, path in enumerate(paths)]
+        results = [f.result() for f in futures]
+    wall = max(r[6] for r in results) - min(r[5] for r in results)
+    print(f'  control wall {wall:5.1f} s   (two halves of {half} cells in two processes '
+          f'at once, one thread each: no Ray)', flush=True)
+    return wall, [r[2] for r in results]
+
+
+SERIAL_NAMES = {1: 'one CPU (T_1: numba serial, BLAS on one thread)',
+                0: "one process with numba's and BLAS's threads on every core"}
 
 
 def run_plant_bench(args) -> None:
@@ -195,43 +272,60 @@ def run_plant_bench(args) -> None:
     folder = Path(tempfile.mkdtemp(prefix='fleet_bench_'))
     (folder / 'plant.yaml').write_text(plant_text(args.cells))
     plant = load_plant(folder / 'plant.yaml')
+    modes = [] if args.skip_serial else args.serial_threads
     print(f'plant of {args.cells} cells (full-size model, 1000 epochs each, run: always), '
-          f'Ray on {args.cpus} CPUs vs one process; {args.repeat} pair(s) of runs, '
-          f'alternating', flush=True)
-    pairs = []
+          f'Ray on {args.cpus} CPUs against the same plant serially in one process ('
+          + '; '.join(SERIAL_NAMES[m] for m in modes) + f'); {args.repeat} round(s), '
+          'alternating', flush=True)
+    rays, serials, controls = [], {m: [] for m in modes}, []
     for i in range(args.repeat):
         ray_result = ray_run(plant, folder / f'ray{i}', args)
-        if args.skip_serial:
-            pairs.append((ray_result, None))
-            continue
-        serial_result = serial_run(folder / 'plant.yaml', folder / f'serial{i}', args)
-        pairs.append((ray_result, serial_result))
-        same = summary(serial_result[2]) == summary(ray_result[2])
-        print(f'  pair {i + 1}: speed-up {serial_result[0] / ray_result[0]:.2f}x; same '
-              f'decisions and figures both ways: {same}', flush=True)
-    if not args.skip_serial:
-        print(f'  (serial: in a new process each time, at most '
-              f'{args.serial_threads or parallel.machine_threads()} thread(s) in the kernels)')
+        rays.append(ray_result)
+        for m in modes:
+            result = serial_run(folder / 'plant.yaml', folder / f'serial{m}_{i}', m)
+            serials[m].append(result)
+            same = summary(result[2]) == summary(ray_result[2])
+            print(f'  round {i + 1}: speed-up {result[0] / ray_result[0]:.2f}x over '
+                  f'{SERIAL_NAMES[m]}; same decisions and figures: {same}', flush=True)
+        if args.control:
+            wall, halves = control_run(folder / f'control{i}', args)
+            controls.append(wall)
+            same = summary(ray_result[2]) == sum((summary(h) for h in halves), [])
+            print(f'  control {i + 1}: Ray {wall / ray_result[0]:.2f}x the control; the same '
+                  f'decisions and figures: {same}', flush=True)
     print(f'load average before and after: {LOAD[0]} / {os.getloadavg()[0]:.1f}')
-    if not args.skip_serial:
-        ratios = np.array([s[0] / r[0] for r, s in pairs])
-        if len(ratios) > 1:
-            # a t interval of the mean log ratio (each pair run back to back, so a slow
-            # stretch of the machine shows in both halves of a pair rather than in one)
-            logs = np.log(ratios)
-            half = T975.get(len(logs) - 1, 1.96) * logs.std(ddof=1) / math.sqrt(len(logs))
-            low, high = np.exp(logs.mean() - half), np.exp(logs.mean() + half)
-            centre = f'{np.exp(logs.mean()):.2f}x [95% t interval {low:.2f}, {high:.2f}]'
-        else:
-            low = high = float(ratios[0])
-            centre = f'{low:.2f}x'
+    for m in modes:
+        ratios = [s[0] / r[0] for r, s in zip(rays, serials[m])]
+        low, high, text = interval_of(ratios)
         verdict = 'met' if low >= 1.7 else ('missed' if high < 1.7 else
                                             'not settled: the interval holds 1.7')
-        each = ', '.join(f'{r:.2f}' for r in ratios)
-        print(f'  speed-up {centre} over {len(ratios)} pair(s) (each {each}); goal >= 1.7x: '
-              f'{verdict}')
-        compare_stages(pairs[-1][0][2], pairs[-1][1][2])
-    scaling(pairs[-1][0][2], args)
+        print(f'  speed-up over {SERIAL_NAMES[m]}: {text} (each '
+              + ', '.join(f'{r:.2f}' for r in ratios) + f'); goal >= 1.7x: {verdict}')
+        if controls:
+            print(f'    the machine\'s ceiling for any scheduler (that serial run / the '
+                  f'control): {interval_of([s[0] / c for s, c in zip(serials[m], controls)])[2]}')
+        busy = [s[3] / s[0] for s in serials[m]]
+        print(f'    CPUs the serial run kept busy on average: {np.mean(busy):.2f}')
+    if controls:
+        print('  Ray against the control (what Ray itself costs): '
+              + interval_of([c / r[0] for r, c in zip(rays, controls)])[2])
+    if modes:
+        compare_stages(rays[-1][2], serials[modes[0]][-1][2])
+    scaling(rays[-1][2], args)
+
+
+def interval_of(ratios: list) -> tuple[float, float, str]:
+    """(low, high, text): the mean log ratio as a ratio with its 95% t interval (each round
+    run back to back, so a slow stretch of the machine shows in both sides of a ratio rather
+    than in one); one ratio is its own interval."""
+    logs = np.log(np.asarray(ratios, dtype=float))
+    if len(logs) < 2:
+        value = float(np.exp(logs[0]))
+        return value, value, f'{value:.2f}x (one round)'
+    half = T975.get(len(logs) - 1, 1.96) * logs.std(ddof=1) / math.sqrt(len(logs))
+    low, high = float(np.exp(logs.mean() - half)), float(np.exp(logs.mean() + half))
+    return low, high, (f'{np.exp(logs.mean()):.2f}x [95% t interval {low:.2f}, {high:.2f}] '
+                       f'over {len(logs)} rounds')
 
 
 T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306,
@@ -360,6 +454,13 @@ def run_drift_bench(args) -> None:
           f'{args.cpus} CPUs)')
 
 
+def serial_modes(text: str) -> list[int]:
+    modes = [int(v) for v in text.split(',') if v.strip()]
+    if not modes or any(m not in SERIAL_NAMES for m in modes):
+        raise argparse.ArgumentTypeError(f'a comma list of 1 and 0, got {text!r}')
+    return modes
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--cells', type=int, default=8)
@@ -367,10 +468,15 @@ def main(argv=None) -> int:
     parser.add_argument('--object-store-mb', type=int, default=500)
     parser.add_argument('--skip-serial', action='store_true')
     parser.add_argument('--repeat', type=int, default=1,
-                        help='pairs of runs (Ray then serial, alternating): the speed-up as '
-                        'the mean log ratio with a 95%% t interval')
-    parser.add_argument('--serial-threads', type=int, default=0,
-                        help="numba threads of the serial run (default: numba's, every core)")
+                        help='rounds of runs (Ray, then each serial run, then the control): '
+                        'each speed-up as the mean log ratio with a 95%% t interval')
+    parser.add_argument('--serial-threads', type=serial_modes, default=[1, 0],
+                        help="the serial runs of a round: 1 one CPU (T_1), 0 numba's and "
+                        "BLAS's threads on every core (default: 1,0, both)")
+    parser.add_argument('--control', action='store_true',
+                        help='in each round, the control: the plant in two halves, two '
+                        'one-thread processes at once, no Ray (what the machine gives the '
+                        'work on two CPUs)')
     parser.add_argument('--timeline', default=None, metavar='JSON',
                         help="write Ray's task timeline (chrome://tracing) and print how busy "
                         'the CPUs were')
