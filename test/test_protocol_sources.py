@@ -268,3 +268,51 @@ def test_the_swap_rule(default_config, policy_path):
     assert check_swap(2, 2, '', 'other.yaml', policy_path, policy_path, load=load,
                       paused=('dn',)).verdict == STAGED
     assert verdict('arm.yaml', policy_path, policy_path) == STAGED   # the estimator's rule
+
+
+def test_the_swap_rule_checks_the_pomdp_policy_the_selector_reads(default_config, policy_path,
+                                                                  tmp_path):
+    """pomdp_policy (the decision node's POMDP policy, for the pomdp and fib selectors): set
+    in the change and wrong, refused; unchanged and no longer matching, staged; checked by
+    the configuration's hash and the observation model's; '' finds the shipped one."""
+    import shutil
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    from hrc_ros.core.swap import ACCEPTED, REFUSED, SAME, STAGED, check_swap
+    unaware = load_config(shipped_config_path('fail_safe_unaware'))
+    unaware_policy = str(share_dir() / 'policies' / 'fail_safe_unaware.npz')
+    copy = tmp_path / 'unaware_pomdp.npz'      # not in policies/pomdp/: found by its path only
+    shutil.copyfile(share_dir() / 'policies' / 'pomdp' / 'fail_safe_unaware.npz', copy)
+    default_pomdp = str(share_dir() / 'policies' / 'pomdp' / 'default.npz')
+    # the same cell with a person prior: the configuration and the observation hashes move
+    prior = default_config.with_overrides({'observation': {'prior': [1.0] + [0.0] * 8}})
+    files = {'': default_config, 'unaware.yaml': unaware, 'prior.yaml': prior}
+
+    def check(config, policy, pomdp, running_pomdp='', needed=True):
+        return check_swap(2, 2, '', config, policy_path, policy, load=files.__getitem__,
+                          running_pomdp=running_pomdp, pomdp_value=pomdp, pomdp_needed=needed)
+
+    assert check('', policy_path, '').verdict == SAME
+    assert check('', policy_path, default_pomdp).verdict == ACCEPTED    # the same file, named
+    assert check('unaware.yaml', unaware_policy, str(copy)).verdict == ACCEPTED
+    # '' is the shipped POMDP policy solved for the configuration set: there is one for it
+    assert check('unaware.yaml', unaware_policy, '').verdict == ACCEPTED
+    refused = check('unaware.yaml', unaware_policy, default_pomdp)
+    assert refused.verdict == REFUSED and refused.reason.startswith('pomdp_policy refused: ')
+    assert 'was solved for configuration' in refused.reason
+    missing = check('', policy_path, str(tmp_path / 'none.npz'))
+    assert missing.verdict == REFUSED and 'does not exist' in missing.reason
+    not_pomdp = check('', policy_path, policy_path)               # an MDP policy file
+    assert not_pomdp.verdict == REFUSED and 'is not a POMDP policy file' in not_pomdp.reason
+    # the running pomdp_policy unchanged, no longer solved for the new configuration: staged
+    staged = check('unaware.yaml', unaware_policy, default_pomdp, running_pomdp=default_pomdp)
+    assert staged.verdict == STAGED and 'set pomdp_policy' in staged.reason
+    # a person prior leaves the MDP's hash as it is, not the observation model's: no shipped
+    # POMDP policy is solved for it, so '' (unchanged) stages it until one is named
+    staged = check('prior.yaml', policy_path, '')
+    assert staged.verdict == STAGED and 'another observation model' in staged.reason
+    # a selector that reads no POMDP policy: an unchanged one is not checked, a new one is
+    assert check('unaware.yaml', unaware_policy, default_pomdp, running_pomdp=default_pomdp,
+                 needed=False).verdict == ACCEPTED
+    assert check('', policy_path, str(tmp_path / 'none.npz'),
+                 needed=False).verdict == REFUSED

@@ -16,6 +16,11 @@ rule, for both nodes alike (`check_swap`):
   the configuration set with it: `REFUSED`; a configuration set alone while the policy in use
   was not solved for it: `STAGED` (the old pair keeps deciding until a policy for it is set,
   so one-at-a-time `ros2 param set` can change both);
+- for the decision node, the POMDP policy (`pomdp_policy`: '' is the shipped one solved for
+  the configuration, `policies/pomdp/`) when its selector reads one (pomdp, fib) or when
+  the value was just set: checked as the policy is, by the configuration's and the
+  observation model's hashes: set in this change and wrong, `REFUSED`; unchanged and no
+  longer matching the configuration set, `STAGED` (set `pomdp_policy` next);
 - otherwise `ACCEPTED`: the node loads the new pair off its executor and swaps it in at the
   next epoch boundary.
 
@@ -70,14 +75,20 @@ class SwapCheck:
 def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                running_policy: str | None = None, policy_value: str | None = None,
                load: Callable[[str], Config] = load_node_config,
-               paused: tuple | None = None, queue: int | None | bool = False) -> SwapCheck:
+               paused: tuple | None = None, queue: int | None | bool = False,
+               running_pomdp: str | None = None, pomdp_value: str | None = None,
+               pomdp_needed: bool = False) -> SwapCheck:
     """The swap rule (module docstring) for a running cell of size (rho, sigma) whose node runs
     the parameter values `running_config` (and `running_policy`: the decision node; None for a
     node without a policy) and is asked for `config_value` (and `policy_value`); `paused`: the
     running configuration's `robot_paused_by` (the decision node; None: not checked);
-    `queue`: its `stream.queue` (None: no queue; False: not checked)."""
+    `queue`: its `stream.queue` (None: no queue; False: not checked); `running_pomdp` and
+    `pomdp_value`: the decision node's `pomdp_policy` in use and asked for (None: a node
+    without one), `pomdp_needed`: its selector reads the POMDP policy."""
     with_policy = running_policy is not None
-    if config_value == running_config and (not with_policy or policy_value == running_policy):
+    pomdp_changed = running_pomdp is not None and pomdp_value != running_pomdp
+    if config_value == running_config and not pomdp_changed \
+            and (not with_policy or policy_value == running_policy):
         return SwapCheck(SAME)
     try:
         config = load(config_value)
@@ -113,4 +124,17 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
         return SwapCheck(REFUSED, cap(f'policy refused: {exc} (the configuration set is '
                                        f'{config.source}; to change both, set config first, '
                                        'then policy)'), config)
+    if running_pomdp is not None and (pomdp_needed or (pomdp_changed and pomdp_value)):
+        from .pomdp.policy import peek_pomdp_policy, pomdp_policy_path   # the POMDP's, lazily
+        try:
+            peek_pomdp_policy(pomdp_policy_path(pomdp_value, config), config)
+        except Exception as exc:  # noqa: BLE001 - PolicyError, or whatever a damaged file raises
+            if not isinstance(exc, PolicyError):
+                exc = f'{type(exc).__name__}: {exc}'
+            elif not pomdp_changed:
+                return SwapCheck(STAGED, cap(f'{exc} (set pomdp_policy to a POMDP policy '
+                                             'solved for it)'), config)
+            return SwapCheck(REFUSED, cap(f'pomdp_policy refused: {exc} (the configuration set '
+                                           f'is {config.source}; to change both, set config '
+                                           'first, then pomdp_policy and policy)'), config)
     return SwapCheck(ACCEPTED, config=config)

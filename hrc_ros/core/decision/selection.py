@@ -80,10 +80,12 @@ class ActionSelector:
     `policy` is the (N,) array of action indices, or an object with `.policy` (a loaded
     `Policy` or a `SolveResult`); then its `.value` serves qmdp when `value` is not given.
     `pomdp` is a loaded `PomdpPolicy` (or its `AlphaPolicy`) for pomdp and fib; without it
-    the shipped one solved for the configuration is loaded when such a method is chosen.
+    the file `pomdp_path` names (a node's `pomdp_policy` parameter: '' or None is the shipped
+    one solved for the configuration) is loaded when such a method is chosen.
     """
 
-    def __init__(self, model, policy, value=None, method: str = 'paper', pomdp=None):
+    def __init__(self, model, policy, value=None, method: str = 'paper', pomdp=None,
+                 pomdp_path: str | None = None):
         policy, value = policy_arrays(policy, value)
         self.model = model
         n = model.n_states
@@ -107,6 +109,7 @@ class ActionSelector:
         self.value = value
         self._q = None   # Q (8, N) for qmdp, formed once from value (27 MB at full size)
         self.pomdp = pomdp
+        self.pomdp_path = pomdp_path
         self.set_method(method)
         self._h_offsets = np.arange(N_HIDDEN) * self.n_columns
         dims = model.dims[2:]
@@ -196,11 +199,13 @@ class ActionSelector:
         return self._mls(b, self._by_h[:, column])
 
     def _alphas(self):
-        """The POMDP policy's `AlphaPolicy` (the shipped one for the configuration, loaded
-        once, when none was given); `PolicyError` when there is none."""
+        """The POMDP policy's `AlphaPolicy` (when none was given, the file `pomdp_path` names,
+        loaded once and checked against the configuration); `PolicyError` when there is
+        none."""
         if self.pomdp is None:
-            from ..pomdp.policy import load_shipped_pomdp_policy
-            self.pomdp = load_shipped_pomdp_policy(self.model.config)
+            from ..pomdp.policy import load_pomdp_policy, pomdp_policy_path
+            self.pomdp = load_pomdp_policy(pomdp_policy_path(self.pomdp_path, self.model.config),
+                                           self.model.config)
         alphas = getattr(self.pomdp, 'policy', self.pomdp)
         check_alpha_columns(alphas, self.model)
         return alphas

@@ -92,6 +92,33 @@ def default_pomdp_policy_path(config: Config) -> Path:
     return folder / 'default.npz'
 
 
+def pomdp_policy_path(value: str | None, config: Config) -> Path:
+    """The file a `pomdp_policy` value names for `config`: the path itself, or for '' (and
+    None) the shipped POMDP policy solved for it (`default_pomdp_policy_path`)."""
+    return Path(value) if value else default_pomdp_policy_path(config)
+
+
+def peek_pomdp_policy(path: str | Path, config: Config) -> dict:
+    """The quick half of `load_pomdp_policy`, for a check that must not stall its caller (a
+    node's parameter callback): the file exists, is a POMDP policy file and its meta says it
+    was solved for `config` (both hashes). Reads the meta only (milliseconds); the loader then
+    reads and checks the arrays. PolicyError, saying what to solve, as the loader's."""
+    path = Path(path)
+    if not path.exists():
+        raise PolicyError(f'POMDP policy file {cap(path, PATH_QUOTE)} does not exist. Solve '
+                          f'one: hrc-solve --method pomdp --config {config.source} -o <file>')
+    meta = _check_meta_only(path)
+    if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
+        raise PolicyError(f'{path} is not a POMDP policy file (its meta has no POMDP kind and '
+                          'observation hash): hrc-solve --method pomdp writes one')
+    check_config_hash(path, meta, config, solve=' --method pomdp')
+    if meta['observation_sha256'] != observation_hash(config):
+        raise PolicyError(f'POMDP policy {path} was solved for another observation model '
+                          f'(Table 5, epsilon or the person prior) than {config.source}. Solve '
+                          f'it again: hrc-solve --method pomdp --config {config.source}')
+    return meta
+
+
 def load_shipped_pomdp_policy(config: Config) -> PomdpPolicy:
     """The shipped POMDP policy solved for `config` (`PolicyError`, saying what to solve,
     when there is none)."""
