@@ -247,3 +247,48 @@ def test_the_decision_node_and_the_estimator_agree_on_every_swap(graph, policy_p
         assert verdicts[0] == verdicts[1], (case, verdicts)
         assert verdicts[0][0] == (case in ('same cell, other model', 'the one in use')), case
     assert estimator.model.rho == decision.model.rho == default_config.rho
+
+
+def test_a_pomdp_selector_swaps_in_the_pomdp_policy_named_with_the_pair(graph, policy_path,
+                                                                       tmp_path):
+    """pomdp_policy: the POMDP policy of the pomdp and fib selectors, by path, set live with
+    config and policy (hrc-fleet --apply's order: config, pomdp_policy, policy); staged until
+    the set is whole, swapped in at an epoch boundary, and reported by the decision status;
+    one solved for another configuration, or missing, is refused and the old one decides."""
+    import shutil
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    config_path = str(shipped_config_path('fail_safe_unaware'))
+    new_policy = str(share_dir() / 'policies' / 'fail_safe_unaware.npz')
+    new_pomdp = tmp_path / 'fitted_pomdp.npz'     # a file of its own, not policies/pomdp/'s
+    shutil.copyfile(share_dir() / 'policies' / 'pomdp' / 'fail_safe_unaware.npz', new_pomdp)
+    new_pomdp = str(new_pomdp)
+    default_pomdp = str(share_dir() / 'policies' / 'pomdp' / 'default.npz')
+    dec = Decision(graph, policy_path, selector='pomdp')
+    dec.run(1)
+    node = dec.node
+    assert node.selector.pomdp.path == default_pomdp       # '': the shipped one for config
+    for name, value in (('config', config_path), ('pomdp_policy', new_pomdp)):
+        assert node.set_parameters([Parameter(name, value=value)])[0].successful, name
+        assert node.config.source != config_path           # staged: not whole yet
+    assert node.set_parameters([Parameter('policy', value=new_policy)])[0].successful
+
+    def swapped():
+        return [s for s in statuses(graph, 'policy') if s.level == conv.DiagnosticStatus.OK]
+    assert graph.spin_until(swapped)
+    values = conv.diagnostic_values(swapped()[-1])
+    assert values['policy_file'] == new_policy and values['pomdp_policy_file'] == new_pomdp
+    assert node.selector.pomdp.path == new_pomdp and node.selector.method == 'pomdp'
+    first = int(values['epoch'])
+    assert graph.spin_until(lambda: node.epoch >= first + 2)
+    decided = conv.diagnostic_values(dec.status(first + 1))
+    assert decided['pomdp_policy_file'] == new_pomdp and decided['faults'] == 'none'
+    # one solved for another configuration, or none at all: refused, the parameter kept
+    for value, reason in ((default_pomdp, 'was solved for configuration'),
+                          (str(tmp_path / 'none.npz'), 'does not exist')):
+        result = node.set_parameters([Parameter('pomdp_policy', value=value)])[0]
+        assert not result.successful and result.reason.startswith('pomdp_policy refused: ')
+        assert reason in result.reason
+        assert node.get_parameter('pomdp_policy').value == new_pomdp
+    count = len(dec.actions)
+    dec.run(count + 1)
+    assert node.selector.pomdp.path == new_pomdp

@@ -73,6 +73,10 @@ PARAMETERS = (
               'default.npz); settable at run time: swapped in at the next epoch boundary'),
     ParamSpec('selector', T.STRING, 'paper', 'action selection from the belief: '
               + ', '.join(SELECTORS), constraints=' or '.join(SELECTORS)),
+    ParamSpec('pomdp_policy', T.STRING, '', "POMDP policy file the pomdp and fib selectors "
+              "read, solved for the configuration ('' = the shipped one in policies/pomdp/ "
+              'solved for config); settable at run time with config and policy: swapped in '
+              'at the next epoch boundary'),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
               range=(0.01, 3600.0)),
     ParamSpec('input_timeout', T.DOUBLE, 0.0, "seconds to wait for an epoch's inputs; 0 = "
@@ -113,6 +117,7 @@ class Running:
     model: HRCModel
     policy: Policy
     selector: ActionSelector
+    pomdp_value: str = ''    # pomdp_policy as set
 
 
 @dataclass(frozen=True)
@@ -122,16 +127,20 @@ class Staged:
     config_value: str
     policy_value: str
     reason: str
+    pomdp_value: str = ''
 
 
-def load_pair(config_value: str, policy_value: str, method: str) -> Running:
+def load_pair(config_value: str, policy_value: str, method: str, pomdp_value: str = ''
+              ) -> Running:
     """Load and fully check a (configuration, policy) pair the swap rule accepted
-    (`core.swap.check_swap`); StartupError / PolicyError when a file turns out bad."""
+    (`core.swap.check_swap`), and for the pomdp and fib selectors the POMDP policy
+    `pomdp_value` names; StartupError / PolicyError when a file turns out bad."""
     config = load_node_config(config_value)
     model = HRCModel(config)
     policy = load_policy(policy_path(policy_value, config), config)
     return Running(config_value, policy_value, config, model, policy,
-                   ActionSelector(model, policy, method=method))
+                   ActionSelector(model, policy, method=method, pomdp_path=pomdp_value),
+                   pomdp_value)
 
 
 def timeouts_ns(values) -> tuple[int, int]:
@@ -156,8 +165,9 @@ class DecisionNode(Node):
             raise StartupError(
                 f'{exc} (expected a policy for configuration {config_path(values["config"])}, '
                 f'sha256 {config.policy_hash})') from None
-        try:   # pomdp and fib read the shipped POMDP policy solved for the configuration
-            selector = ActionSelector(model, policy, method=values['selector'])
+        try:   # pomdp and fib read the POMDP policy (pomdp_policy; '': the shipped one)
+            selector = ActionSelector(model, policy, method=values['selector'],
+                                      pomdp_path=values['pomdp_policy'])
         except PolicyError as exc:
             raise StartupError(f'selector {values["selector"]}: {exc}') from None
         self.loader = BackgroundLoad('decision')
@@ -167,7 +177,7 @@ class DecisionNode(Node):
         self.min_epoch_subscribers = values['min_epoch_subscribers']
         self.clock = control_clock(self)   # epochs, waits and input ages
         self.running = Running(values['config'], values['policy'], config, model, policy,
-                               selector)
+                               selector, values['pomdp_policy'])
         input_ns, stale_ns = timeouts_ns(values)
         self.gate = DecisionGate(self.selector.select, stale_ns, input_ns,
                                  fresh_at_epoch=self.epoch_source == 'timer')
@@ -212,9 +222,11 @@ class DecisionNode(Node):
             subscribe_epochs(self.inputs, lambda: self.epochs, self._on_epoch)
         self.inputs.subscribe(String, 'hrc/estimator_config', qos.STATE_INPUT,
                               conv.config_identity_from_msg, self._on_estimator_config)
+        pomdp = getattr(self.selector.pomdp, 'path', None)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
-            f'{self.config.policy_hash[:12]}), selector {values["selector"]}, epochs from '
+            f'{self.config.policy_hash[:12]}), selector {values["selector"]}'
+            + (f' (POMDP policy {pomdp})' if pomdp else '') + f', epochs from '
             f'{self.epoch_source}')
 
     @property
@@ -241,32 +253,42 @@ class DecisionNode(Node):
     def _check_parameters(self, values) -> str | None:
         reason = check_parameters(values)
         if reason is None and self.running is not None \
-                and values.get('selector') in POMDP_SELECTORS:
+                and values.get('selector') in POMDP_SELECTORS \
+                and not self._pomdp_changed(values):    # else the swap rule checks the new one
             try:
                 self.selector.prepare(values['selector'])    # loads the POMDP policy
             except PolicyError as exc:
                 return f'selector {values["selector"]}: {exc}'
         return reason or self._check_swap(values)
 
+    def _pomdp_changed(self, values) -> bool:
+        return values.get('pomdp_policy', self.running.pomdp_value) != self.running.pomdp_value
+
     def _verdict(self, values, checked: bool = False):
         """The swap rule's verdict on the (config, policy) in `values` (`core.swap`). With
         `checked` (the post-set callback), the verdict the parameter callback just reached on
         the same values, so the files are read once per change."""
         running = self.running
-        key = (running.config_value, running.policy_value, values['config'], values['policy'])
+        key = (running.config_value, running.policy_value, running.pomdp_value,
+               values['config'], values['policy'], values['pomdp_policy'],
+               values['selector'] in POMDP_SELECTORS)
         done, self._checked = self._checked, None
         if checked and done is not None and done[0] == key:
             return done[1]
         verdict = check_swap(running.model.rho, running.model.sigma, running.config_value,
                              values['config'], running.policy_value, values['policy'],
                              paused=running.model.config.robot_paused_by,
-                             queue=running.model.config.queue)
+                             queue=running.model.config.queue,
+                             running_pomdp=running.pomdp_value,
+                             pomdp_value=values['pomdp_policy'],
+                             pomdp_needed=values['selector'] in POMDP_SELECTORS)
         self._checked = None if checked else (key, verdict)
         return verdict
 
     def _check_swap(self, values) -> str | None:
         """The quick check of a new (config, policy) pair, in the parameter callback."""
-        if self.running is None or 'config' not in values or 'policy' not in values:
+        if self.running is None or any(name not in values
+                                       for name in ('config', 'policy', 'pomdp_policy')):
             return None            # start-up: __init__ loads and checks the pair itself
         verdict = self._verdict(values)
         return verdict.reason if verdict.refused else None
@@ -276,13 +298,17 @@ class DecisionNode(Node):
             verdict = self._verdict(values, checked=True)
             method = values['selector']
             if verdict.verdict == STAGED:    # config set alone: until a policy for it is set
-                staged = Staged(values['config'], values['policy'], verdict.reason)
+                staged = Staged(values['config'], values['policy'], verdict.reason,
+                                values['pomdp_policy'])
                 self.loader.start(lambda: staged)
             elif verdict.verdict == SAME:    # back to the pair in use: nothing pending
                 self.loader.start(lambda: None)
             elif not verdict.refused:
-                self.loader.start(lambda: load_pair(values['config'], values['policy'], method))
-        self.selector.set_method(values['selector'])   # qmdp's Q table is built here
+                self.loader.start(lambda: load_pair(values['config'], values['policy'], method,
+                                                    values['pomdp_policy']))
+        if values['selector'] not in POMDP_SELECTORS or not self._pomdp_changed(values):
+            self.selector.set_method(values['selector'])   # qmdp's Q table is built here
+        # else the pair loading meanwhile reads the new POMDP policy and takes the method
         self.gate.input_timeout_ns, self.gate.stale_timeout_ns = timeouts_ns(values)
         self.stale_timeout = values['stale_timeout']
         self.clock_start.stale_timeout_ns = self._graph_wait_ns()
@@ -373,14 +399,17 @@ class DecisionNode(Node):
                 f'(configuration {loaded.config.source}, sha256 '
                 f'{loaded.config.policy_hash[:12]}); before: {old.policy.path}',
                 {'epoch': k, 'policy_file': loaded.policy.path, 'config': loaded.config.source,
-                 'previous_policy_file': old.policy.path}, kind='swap'))
+                 'previous_policy_file': old.policy.path,
+                 **({'pomdp_policy_file': loaded.selector.pomdp.path}
+                    if getattr(loaded.selector.pomdp, 'path', None) else {})}, kind='swap'))
             return loaded.selector.select
         if isinstance(loaded, Staged):
             self.staged = loaded
             self.inputs.report(Report(
                 WARN, 'policy', f'configuration {config_path(loaded.config_value)} is set but '
                 f'not in use: {loaded.reason}; still deciding with {old.policy.path} '
-                f'({old.config.source}). Set policy to a file solved for it.',
+                f'({old.config.source}). Set policy (and for the pomdp and fib selectors '
+                'pomdp_policy) to files solved for it.',
                 {'config_staged': config_path(loaded.config_value),
                  'policy_file': old.policy.path}, kind='staged'))
             return None
@@ -389,7 +418,8 @@ class DecisionNode(Node):
             f'with {old.policy.path} ({old.config.source})',
             {'policy_file': old.policy.path, 'error': str(error)}, kind='refused'))
         self.set_parameters([Parameter('config', value=old.config_value),
-                             Parameter('policy', value=old.policy_value)])
+                             Parameter('policy', value=old.policy_value),
+                             Parameter('pomdp_policy', value=old.pomdp_value)])
         return None
 
     def _on_estimator_config(self, identity: tuple[str, str]) -> None:
