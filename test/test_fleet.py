@@ -2,11 +2,15 @@
 pipeline's state machine and the drift test's pieces without Ray; then `hrc-fleet run` on the
 session's embedded Ray (one per test session, 2 CPUs, a small object store, no dashboard):
 
-- a plant of three small cells (generated recordings at full model size: one whose people
-  decline most requests and drift closer, one unchanged; one whose bag is corrupt), with
-  `--apply` against a real decision node running in the drifted cell's namespace: the drifted
-  cell is detected and promoted, the unchanged one kept, the corrupt one reported, every
-  output there and loadable, and the node reports the new policy;
+- a plant of four small cells (generated recordings at full model size: one whose people
+  decline most requests and drift closer, one unchanged; one whose bag is corrupt; and a
+  cell of one-priority, one-duration tasks (rho = sigma = 1) whose people drift the same way
+  and which plans with the POMDP: solver both, selector pomdp, running the POMDP policy its
+  `pomdp_policy` names), with `--apply` against real decision nodes running in the two
+  drifted cells' namespaces: both drifted cells are detected and promoted, the unchanged one
+  kept, the corrupt one reported, every output there and loadable, and each node reports the
+  new policy (and the POMDP cell's node the new POMDP policy); the POMDP cell is small
+  because a full-size POMDP solve takes half a minute and the cell solves three;
 - a worker SIGKILLed in the middle of a drift simulation (its pid recorded from inside the
   task): Ray retries it on another worker and the report is the one of the run without kill.
 """
@@ -57,6 +61,15 @@ cells:
   - name: corrupt
     namespace: /fleet_corrupt
     recordings: corrupt
+  - name: pomdp
+    namespace: /fleet_pomdp
+    base: {small_base}
+    policy: {small_policy}
+    pomdp_policy: {small_pomdp}
+    solver: both
+    selector: pomdp
+    pomdp: {{episodes: 30, rounds: 0}}
+    generate: {{world: {world}, episodes: 20, epochs: 50, seed: 3}}
 """
 
 
@@ -79,6 +92,8 @@ CELL = '  - name: a\n    recordings: x.csv\n'
     ('cells:\n' + CELL + '    drift: {windw: 500}\n', "unknown key drift.windw"),
     ('cells:\n' + CELL + '    solver: sarsop\n', 'solver must be mdp or pomdp or both'),
     ('cells:\n' + CELL + '    selector: pomdp\n', 'set solver: pomdp or both'),
+    ('cells:\n' + CELL + '    pomdp_policy: p.npz\n', 'pomdp_policy is the running POMDP '
+     'policy of a cell whose selector is pomdp or fib; this one runs paper'),
     ('cells:\n' + CELL + '    namespace: bad ns\n', 'namespace must be a ROS namespace'),
     ('cells:\n' + CELL + '    fit: {hold: [p_acept]}\n', "unknown parameter family 'p_acept'"),
     ('cells:\n' + CELL + '    fit: {prior: 3}\n', 'cells[0] (a): fit.prior must be true or false, '
@@ -124,6 +139,31 @@ def test_defaults_and_paths_resolve_against_the_plant_file(tmp_path):
     assert a.recordings == (str(tmp_path / 'x.csv'),)
     assert b.recordings == (str(tmp_path / 'one.csv'), '/abs/two')
     assert b.base.endswith('config/paper.yaml')
+
+
+def test_a_pomdp_cell_runs_the_pomdp_policy_it_names_and_a_wrong_one_fails_that_cell(tmp_path):
+    """`pomdp_policy`: the POMDP policy a pomdp / fib cell runs now (the shadow check's running
+    side), by default the shipped one solved for its base; one solved for another
+    configuration fails that cell, with the reason, and not the others."""
+    import shutil
+    from hrc_ros.core.paths import share_dir
+    from hrc_ros.tools.fleet import prepare
+    shipped = share_dir() / 'policies' / 'pomdp'
+    shutil.copyfile(shipped / 'fail_safe_unaware.npz', tmp_path / 'unaware.npz')
+    shutil.copyfile(shipped / 'default.npz', tmp_path / 'running.npz')
+    pomdp_cell = '    solver: both\n    selector: pomdp\n'
+    path = write_plant(tmp_path, 'cells:\n' + CELL + pomdp_cell
+                       + '  - name: b\n    recordings: x.csv\n' + pomdp_cell
+                       + '    pomdp_policy: running.npz\n'
+                       + '  - name: c\n    recordings: x.csv\n' + pomdp_cell
+                       + '    pomdp_policy: unaware.npz\n')
+    (tmp_path / 'x.csv').write_text('')
+    pipelines, objects = prepare(load_plant(path), tmp_path / 'out')
+    assert objects['@running:a']['pomdp'].path == str(shipped / 'default.npz')
+    assert objects['@running:b']['pomdp'].path == str(tmp_path / 'running.npz')
+    a, b, c = pipelines
+    assert a.error is None and b.error is None
+    assert c.error.startswith('running policy: ') and 'was solved for configuration' in c.error
 
 
 # -- the promotion rule -----------------------------------------------------------------------
@@ -375,14 +415,38 @@ def ray_session():
         assert not left, f'Ray processes left after shutdown: {left}'
 
 
+SMALL = {'model': {'rho': 1, 'sigma': 1}}
+
+
 @pytest.fixture(scope='module')
-def plant_dir(tmp_path_factory, policy_path):
+def small_cell(tmp_path_factory, default_config):
+    """The POMDP cell's running files: a configuration of one-priority, one-duration tasks,
+    its MDP policy and its POMDP policy (solved here: no shipped one is solved for it)."""
+    import yaml
+    from hrc_ros.core.mdp.policy import save_policy
+    from hrc_ros.core.mdp.solver import solve
+    from hrc_ros.core.pomdp.policy import save_pomdp_policy
+    from hrc_ros.core.pomdp.solver import solve_pomdp
+    folder = tmp_path_factory.mktemp('small_cell')
+    base = folder / 'small.yaml'
+    base.write_text(yaml.safe_dump(default_config.with_overrides(SMALL).data))
+    config = load_config(base)
+    model = HRCModel(config)
+    policy = save_policy(folder / 'small.npz', solve(model), config)
+    pomdp = save_pomdp_policy(folder / 'small_pomdp.npz',
+                              solve_pomdp(model, episodes=30, rounds=0), config)
+    return {'base': str(base), 'policy': str(policy), 'pomdp': str(pomdp)}
+
+
+@pytest.fixture(scope='module')
+def plant_dir(tmp_path_factory, policy_path, small_cell):
     folder = tmp_path_factory.mktemp('plant')
     (folder / 'corrupt').mkdir()
     shipped = (REPO / 'bags' / 'case_study' / 'case_study_0.mcap').read_bytes()
     (folder / 'corrupt' / 'shift1.mcap').write_bytes(shipped[:len(shipped) // 2])
-    (folder / 'plant.yaml').write_text(PLANT.format(policy=policy_path,
-                                                    world=json.dumps(DRIFTED_WORLD)))
+    (folder / 'plant.yaml').write_text(PLANT.format(
+        policy=policy_path, world=json.dumps(DRIFTED_WORLD), small_base=small_cell['base'],
+        small_policy=small_cell['policy'], small_pomdp=small_cell['pomdp']))
     return folder
 
 
@@ -393,11 +457,19 @@ DECISION_PARAMS = """\
     selector: paper
     epoch_period: 0.5
     stale_timeout: 1.0
+/fleet_pomdp/decision:
+  ros__parameters:
+    config: '{small_base}'
+    policy: '{small_policy}'
+    pomdp_policy: '{small_pomdp}'
+    selector: pomdp
+    epoch_period: 0.5
+    stale_timeout: 1.0
 """
 
 
 @pytest.fixture(scope='module')
-def plant_run(ray_session, plant_dir, policy_path, ros_domain_id):
+def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
     """`hrc-fleet run plant.yaml --apply` with a decision node running in the drifted cell's
     namespace; then a listener of our own waits for that node to report the new policy."""
     from test_suite_multiprocess import Listener
@@ -405,35 +477,48 @@ def plant_run(ray_session, plant_dir, policy_path, ros_domain_id):
     from hrc_ros.ros.processes import NodeProcesses
     from hrc_ros.tools.fleet import main
     params = plant_dir / 'decision.yaml'
-    params.write_text(DECISION_PARAMS.format(policy=policy_path))
+    params.write_text(DECISION_PARAMS.format(policy=policy_path, small_base=small_cell['base'],
+                                             small_policy=small_cell['policy'],
+                                             small_pomdp=small_cell['pomdp']))
     (plant_dir / 'logs').mkdir()
     suite = NodeProcesses(plant_dir / 'logs', [params])
-    suite.start('decision_node', remappings=[('__ns', '/fleet_drifted')])
+    for namespace in ('/fleet_drifted', '/fleet_pomdp'):
+        suite.start('decision_node', remappings=[('__ns', namespace)],
+                    name=f'decision{namespace.replace("/", "_")}')
     out = plant_dir / 'out'
     try:
         code = main(['run', str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
                      '--apply-timeout', '30', '-q'])
-        new_policy = str(out / 'cells' / 'drifted' / 'policy.npz')
+        files = {cell: {name: str(out / 'cells' / cell / f'{name}.npz')
+                        for name in ('policy', 'pomdp')} for cell in ('drifted', 'pomdp')}
         listener = Listener()
-        seen: list = []
+        seen: dict = {'drifted': [], 'pomdp': []}
 
         def reported():
-            return any(v.get('policy_file') == new_policy for v in seen)
+            return (any(v.get('policy_file') == files['drifted']['policy']
+                        for v in seen['drifted'])
+                    and any(v.get('policy_file') == files['pomdp']['policy']
+                            and v.get('pomdp_policy_file') == files['pomdp']['pomdp']
+                            for v in seen['pomdp']))
+
+        def on_diagnostics(msg):
+            for status in msg.status:
+                for cell in seen:
+                    if status.name == f'fleet_{cell}/decision: decision':
+                        seen[cell].append(conv.diagnostic_values(status))
         from diagnostic_msgs.msg import DiagnosticArray
         from hrc_ros.ros import qos
-        listener.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda msg: seen.extend(conv.diagnostic_values(s) for s in msg.status
-                                    if s.name == 'fleet_drifted/decision: decision'),
-            qos.RELIABLE)
+        listener.node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics,
+                                          qos.RELIABLE)
         listener.spin_until(lambda: reported() or suite.dead(), 15.0)
         listener.close()
         alive = not suite.dead()
     finally:
         suite.stop(10.0)
     report = json.loads((out / 'plant_report.json').read_text())
-    return {'code': code, 'out': out, 'report': report, 'seen': seen,
-            'new_policy': new_policy, 'alive': alive, 'logs': suite.logs()}
+    return {'code': code, 'out': out, 'report': report, 'seen': seen, 'files': files,
+            'new_policy': files['drifted']['policy'], 'alive': alive, 'logs': suite.logs(),
+            'pomdp_log': suite.log('decision_fleet_pomdp', 10 ** 6)}
 
 
 def entry_of(report, cell):
@@ -444,8 +529,8 @@ def test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the
         plant_run):
     report, out = plant_run['report'], plant_run['out']
     assert plant_run['code'] == 1                    # a cell failed: the exit status says so
-    assert [e['cell'] for e in report['cells']] == ['drifted', 'unchanged', 'corrupt']
-    assert report['decisions'] == {'promote': 1, 'keep': 1, 'failed': 1}
+    assert [e['cell'] for e in report['cells']] == ['drifted', 'unchanged', 'corrupt', 'pomdp']
+    assert report['decisions'] == {'promote': 2, 'keep': 1, 'failed': 1}
     for e in report['cells']:
         assert {'cell', 'decision', 'reason', 'drift_p', 'cost_difference'} <= set(e)
 
@@ -478,12 +563,13 @@ def test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the
     fitted = load_config(cells / 'drifted' / 'fitted.yaml')
     assert fitted.policy_hash == drifted['fit']['config_sha256']
     load_policy(cells / 'drifted' / 'policy.npz', fitted)
-    for cell, decision in (('drifted', PROMOTE), ('unchanged', KEEP), ('corrupt', FAILED)):
+    for cell, decision in (('drifted', PROMOTE), ('unchanged', KEEP), ('corrupt', FAILED),
+                           ('pomdp', PROMOTE)):
         written = json.loads((cells / cell / 'cell_report.json').read_text())
         assert written['decision'] == decision and written['cell'] == cell
     assert not list(out.rglob('*.tmp*'))
     markdown = (out / 'plant_report.md').read_text()
-    for cell in ('drifted', 'unchanged', 'corrupt'):
+    for cell in ('drifted', 'unchanged', 'corrupt', 'pomdp'):
         assert f'| {cell} |' in markdown
     assert (out / 'plant_costs.png').stat().st_size > 1000
 
@@ -496,13 +582,40 @@ def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(p
     # independently of the applier: the node itself reports deciding with the new policy
     fitted_sha = drifted['fit']['config_sha256']
     assert any(v.get('policy_file') == plant_run['new_policy']
-               and v.get('config_sha256') == fitted_sha for v in plant_run['seen']), (
-        plant_run['seen'][-3:], plant_run['logs'])
+               and v.get('config_sha256') == fitted_sha for v in plant_run['seen']['drifted']), (
+        plant_run['seen']['drifted'][-3:], plant_run['logs'])
     from hrc_ros.ros.fleet_apply import apply_promoted
     elsewhere = {**drifted, 'cell': 'elsewhere', 'namespace': '/fleet_nobody_here'}
     result = apply_promoted([elsewhere], timeout=5.0)['elsewhere']
     assert result['status'] == 'not running' and '/fleet_nobody_here/decision' in \
         result['detail']
+
+
+def test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy(
+        plant_run, small_cell):
+    """The POMDP cell: both policies solved (the POMDP with the cell's settings), the shadow
+    check run with the pomdp selector against the running POMDP policy its pomdp_policy names,
+    and --apply sets config, pomdp_policy and policy: the node reports all three."""
+    entry, files = entry_of(plant_run['report'], 'pomdp'), plant_run['files']['pomdp']
+    assert entry['decision'] == PROMOTE and entry['drift']['drifted'], entry['reason']
+    assert entry['selector'] == 'pomdp' and entry['shadow']['selector'] == 'pomdp'
+    assert set(entry['solve']) == {'mdp', 'pomdp'}
+    folder = plant_run['out'] / 'cells' / 'pomdp'
+    assert {'policy.npz', 'pomdp.npz', 'fitted.yaml'} <= {p.name for p in folder.iterdir()}
+    from hrc_ros.core.pomdp.policy import load_pomdp_policy
+    fitted = load_config(folder / 'fitted.yaml')
+    assert (fitted.rho, fitted.sigma) == (1, 1)
+    solved = load_pomdp_policy(folder / 'pomdp.npz', fitted)
+    assert solved.meta['report']['rounds'] == 0 and solved.meta['report']['episodes'] == 30
+    assert entry['applied']['status'] == 'swapped', entry['applied']
+    assert files['pomdp'] in entry['applied']['detail']
+    started = plant_run['pomdp_log']         # it ran the POMDP policy its cell names
+    assert f'selector pomdp (POMDP policy {small_cell["pomdp"]})' in started
+    assert any(v.get('policy_file') == files['policy']
+               and v.get('pomdp_policy_file') == files['pomdp']
+               and v.get('config_sha256') == entry['fit']['config_sha256']
+               for v in plant_run['seen']['pomdp']), (plant_run['seen']['pomdp'][-3:],
+                                                      plant_run['logs'])
 
 
 def kill_me_once(marker: str, stage: str, cell: str) -> None:

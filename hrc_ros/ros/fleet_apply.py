@@ -2,11 +2,13 @@
 
 The existing live swap (docs/LEARNING.md 4), done as `ros2 param set` does it, through the
 parameter services of the cell's nodes in its namespace: the belief estimator's `config` (when
-it runs), then the decision node's `config`, then its `policy` (the node checks the pair at
-once and swaps it in at the next epoch boundary). Then the swap is verified from what the node
-publishes, not from what was set: a decision status of `<namespace>/decision` on /diagnostics
-whose `policy_file` is the new policy and whose `config_sha256` is the fitted configuration's
-(the policy identity every decision status carries).
+it runs), then the decision node's `config`, for a cell whose selector is pomdp or fib its
+`pomdp_policy` (the POMDP policy the plant solved), then its `policy` (the node checks the set
+at once and swaps it in at the next epoch boundary). Then the swap is verified from what the
+node publishes, not from what was set: a decision status of `<namespace>/decision` on
+/diagnostics whose `policy_file` is the new policy, whose `config_sha256` is the fitted
+configuration's (the policy identity every decision status carries) and, for pomdp and fib,
+whose `pomdp_policy_file` is the new POMDP policy.
 
 Per cell the result is one of `swapped` (verified), `not running` (no decision node answers
 in the namespace: reported, the other cells go on), `refused` (a parameter was refused: the
@@ -78,7 +80,7 @@ class Applier:
 
     # -- one cell ------------------------------------------------------------------------
     def apply(self, namespace: str, config: str, policy: str, config_sha256: str,
-              timeout: float) -> dict:
+              timeout: float, pomdp: str | None = None) -> dict:
         prefix = namespace.rstrip('/')
         decision = self.client(f'{prefix}/decision')
         if decision is None:
@@ -93,7 +95,9 @@ class Applier:
             ok, reason = self.set(estimator, 'config', config)
             if not ok:
                 return {'status': 'refused', 'detail': f'belief_estimator config: {reason}'}
-        for name, value in (('config', config), ('policy', policy)):
+        for name, value in (('config', config), ('pomdp_policy', pomdp), ('policy', policy)):
+            if value is None:
+                continue
             ok, reason = self.set(decision, name, value)
             if not ok:
                 return {'status': 'refused', 'detail': f'decision {name}: {reason}'}
@@ -102,14 +106,16 @@ class Applier:
         def reported() -> bool:
             return any(name.startswith(who) and values.get('policy_file') == policy
                        and values.get('config_sha256') == config_sha256
+                       and (pomdp is None or values.get('pomdp_policy_file') == pomdp)
                        for name, values in self.statuses)
         if not self.spin_until(reported, timeout):
             return {'status': 'not verified', 'detail': f'{policy} was accepted, but no status '
                     f'of {prefix}/decision named it within {timeout:g} s'}
         epoch = next(values.get('epoch') for name, values in self.statuses
                      if name.startswith(who) and values.get('policy_file') == policy)
+        both = '' if pomdp is None else f' and POMDP policy {pomdp}'
         return {'status': 'swapped', 'detail': '; '.join(
-            [f'{prefix}/decision reports policy {policy} (config sha256 '
+            [f'{prefix}/decision reports policy {policy}{both} (config sha256 '
              f'{config_sha256[:12]}) from epoch {epoch}'] + notes)}
 
 
@@ -122,16 +128,12 @@ def apply_promoted(entries: list[dict], timeout: float = 30.0) -> dict:
     try:
         out = {}
         for entry in promoted:
-            if entry.get('selector') in ('pomdp', 'fib'):
-                out[entry['cell']] = {'status': 'not applied', 'detail': (
-                    f"selector {entry['selector']}: the decision node reads POMDP policies "
-                    "only from the package's policies/pomdp/ (docs/POMDP.md), so a fitted one "
-                    'cannot be swapped in live; install pomdp.npz there and restart the cell')}
-                continue
             folder = Path(entry['folder']).resolve()
+            pomdp = (str(folder / 'pomdp.npz') if entry.get('selector') in ('pomdp', 'fib')
+                     else None)
             out[entry['cell']] = applier.apply(
                 entry['namespace'], str(folder / 'fitted.yaml'), str(folder / 'policy.npz'),
-                entry['fit']['config_sha256'], timeout)
+                entry['fit']['config_sha256'], timeout, pomdp)
         return out
     finally:
         applier.close()

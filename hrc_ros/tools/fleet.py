@@ -70,12 +70,14 @@ def prepare(plant: Plant, out: Path) -> tuple[list[CellPipeline], dict]:
             policy = once(('policy', spec.base, policy_path), load_policy, policy_path, base)
             pomdp = None
             if spec.selector in ('pomdp', 'fib'):
-                from ..core.pomdp.policy import load_shipped_pomdp_policy
-                pomdp = once(('pomdp', spec.base), load_shipped_pomdp_policy, base)
+                from ..core.pomdp.policy import load_pomdp_policy, pomdp_policy_path
+                pomdp_path = str(pomdp_policy_path(spec.pomdp_policy, base))
+                pomdp = once(('pomdp', spec.base, pomdp_path), load_pomdp_policy, pomdp_path,
+                             base)
             objects[f'@base:{spec.name}'] = base
             objects[f'@policy:{spec.name}'] = policy
             objects[f'@running:{spec.name}'] = once(
-                ('running', spec.base, policy_path, pomdp is not None), dict, config=base,
+                ('running', spec.base, policy_path, pomdp and pomdp.path), dict, config=base,
                 policy=policy, pomdp=pomdp)
             missing = [p for p in spec.recordings if not Path(p).exists()]
             if missing:

@@ -13,6 +13,8 @@
                                    # the running side of the shadow check)
         policy: null               # the policy it runs now (default: the shipped one solved
                                    # for base, else solved by the plant)
+        pomdp_policy: null         # the POMDP policy it runs now, for the pomdp and fib
+                                   # selectors (default: the shipped one solved for base)
         solver: mdp                # mdp, pomdp or both: which policies are solved
         selector: paper            # the cell's selector (pomdp, fib need solver pomdp/both)
         run: on_drift              # on_drift: fit, solve and check only when drift is found;
@@ -88,6 +90,7 @@ SECTIONS = {
                  'seed': ('int:0:2147483647', 0)},
 }
 SCALARS = {'base': ('text', 'default'), 'policy': ('text_or_null', None),
+           'pomdp_policy': ('text_or_null', None),
            'solver': (SOLVERS, 'mdp'), 'selector': ('selector', None), 'run': (RUNS, 'on_drift'),
            'max_memory_mb': ('int_or_null:1:100000000', None), 'retries': ('int:0:100', 3),
            'seed': ('int:0:2147483647', 0)}
@@ -109,6 +112,7 @@ class CellSpec:
     generate: dict | None      # the generate section, with `world` as given
     base: str                  # resolved configuration path
     policy: str | None
+    pomdp_policy: str | None
     solver: str
     selector: str
     run: str
@@ -365,11 +369,15 @@ def load_plant(path: str | Path) -> Plant:
         if selector in MDP_SELECTORS and solver == 'pomdp':
             raise PlantError(f'{where}: selector {selector} reads the MDP policy; with solver: '
                              'pomdp the cell runs pomdp or fib (or set solver: both)')
-        policy = settings.get('policy')
+        policy, pomdp_policy = settings.get('policy'), settings.get('pomdp_policy')
+        if pomdp_policy is not None and selector not in POMDP_SELECTORS:
+            raise PlantError(f'{where}: pomdp_policy is the running POMDP policy of a cell '
+                             f'whose selector is pomdp or fib; this one runs {selector}')
         out.append(CellSpec(
             name=label, namespace=namespace, recordings=recordings, generate=generate,
             base=_base_path(folder, settings.get('base', SCALARS['base'][1])),
             policy=None if policy is None else _resolve(folder, policy),
+            pomdp_policy=None if pomdp_policy is None else _resolve(folder, pomdp_policy),
             solver=solver, selector=selector, run=settings.get('run', SCALARS['run'][1]),
             drift=_section(settings, 'drift'), fit=_section(settings, 'fit'),
             evaluate=_section(settings, 'evaluate'), pomdp=_section(settings, 'pomdp'),
