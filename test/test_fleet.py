@@ -591,6 +591,51 @@ def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(p
         result['detail']
 
 
+def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused(
+        tmp_path, ros_domain_id):
+    """--apply against running nodes (processes): a node that runs another selector than the
+    plant checked the cell with is `not applied`, nothing set; a set the decision node refuses
+    (a policy.npz solved for another configuration) is refused whole, in one atomic set, so
+    its configuration is not left staged, and the belief estimator's configuration goes back
+    to what it ran."""
+    import shutil
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    from hrc_ros.ros.fleet_apply import Applier, apply_promoted
+    from hrc_ros.ros.processes import NodeProcesses
+    params = tmp_path / 'params.yaml'
+    params.write_text('/fleet_checks/decision:\n  ros__parameters:\n    selector: paper\n'
+                      '    epoch_period: 0.5\n    stale_timeout: 1.0\n')
+    folder = tmp_path / 'cells' / 'checks'
+    folder.mkdir(parents=True)
+    shutil.copyfile(shipped_config_path('fail_safe_unaware'), folder / 'fitted.yaml')
+    shutil.copyfile(share_dir() / 'policies' / 'default.npz', folder / 'policy.npz')  # wrong
+    entry = {'cell': 'checks', 'decision': 'promote', 'namespace': '/fleet_checks',
+             'folder': str(folder), 'fit': {'config_sha256': 'x' * 64}}
+    suite = NodeProcesses(tmp_path, [params])
+    for node in ('decision_node', 'belief_estimator_node'):
+        suite.start(node, remappings=[('__ns', '/fleet_checks')])
+    try:
+        other = apply_promoted([{**entry, 'selector': 'pomdp'}], timeout=5.0)['checks']
+        refused = apply_promoted([{**entry, 'selector': 'paper'}], timeout=5.0)['checks']
+        applier = Applier()
+        try:
+            decision = applier.client('/fleet_checks/decision')
+            estimator = applier.client('/fleet_checks/belief_estimator')
+            after = (applier.get(decision, ['config', 'policy', 'selector']),
+                     applier.get(estimator, ['config']))
+        finally:
+            applier.close()
+        dead = suite.dead()
+    finally:
+        suite.stop(10.0)
+    assert not dead, suite.logs()
+    assert other['status'] == 'not applied' and 'runs selector paper' in other['detail']
+    assert refused['status'] == 'refused', refused
+    assert 'policy refused' in refused['detail'] and 'was solved for configuration' in \
+        refused['detail']
+    assert after == ({'config': '', 'policy': '', 'selector': 'paper'}, {'config': ''})
+
+
 def test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy(
         plant_run, small_cell):
     """The POMDP cell: both policies solved (the POMDP with the cell's settings), the shadow

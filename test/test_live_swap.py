@@ -292,3 +292,55 @@ def test_a_pomdp_selector_swaps_in_the_pomdp_policy_named_with_the_pair(graph, p
     count = len(dec.actions)
     dec.run(count + 1)
     assert node.selector.pomdp.path == new_pomdp
+
+
+def test_a_set_refused_at_the_boundary_goes_back_whole_with_the_selector(graph, policy_path,
+                                                                         tmp_path):
+    """selector pomdp and a pomdp_policy whose meta is right but whose arrays are damaged, in
+    one set: accepted by the quick check, refused by the full load at the boundary; the
+    parameters go back in one atomic set to the set in use and the selector it decides with
+    (set back one at a time, each was checked against the others not yet back: the node
+    restarted the failed load every epoch, an ERROR each time, and kept selector pomdp)."""
+    from hrc_ros.core.paths import share_dir
+    shipped = share_dir() / 'policies' / 'pomdp' / 'default.npz'
+    with np.load(shipped) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    arrays['alpha_action'] = arrays['alpha_action'].copy()
+    arrays['alpha_action'][5] = 9           # no such action: only reading the array shows it
+    damaged = tmp_path / 'damaged_pomdp.npz'
+    np.savez_compressed(damaged, **arrays)
+    dec = Decision(graph, policy_path)
+    dec.run(1)
+    node = dec.node
+    since = len(graph.statuses)
+    result = node.set_parameters_atomically([Parameter('selector', value='pomdp'),
+                                             Parameter('pomdp_policy', value=str(damaged))])
+    assert result.successful, result.reason
+
+    def errors():
+        return [s for s in statuses(graph, 'policy', since)
+                if s.level == conv.DiagnosticStatus.ERROR]
+    assert graph.spin_until(errors)
+    assert 'alpha_action holds action indices outside' in errors()[0].message
+    epoch = node.epoch
+    assert graph.spin_until(lambda: node.epoch >= epoch + 3)
+    assert len(errors()) == 1                  # refused once, not again every epoch
+    assert node.get_parameter('selector').value == 'paper'
+    assert node.get_parameter('pomdp_policy').value == ''
+    assert node.selector.method == 'paper' and node.selector.pomdp is None
+    values = conv.diagnostic_values(dec.status(epoch + 2))
+    assert values['selector'] == 'paper' and values['policy_file'] == policy_path
+
+
+def test_a_pomdp_policy_named_at_start_up_is_checked_whatever_the_selector(graph, policy_path):
+    """Set live, a pomdp_policy for another configuration (or not a POMDP policy at all) is
+    refused with the selector paper too; at start-up it was taken silently and found wrong
+    only when the selector was switched."""
+    from hrc_ros.core.paths import share_dir
+    from hrc_ros.ros.node_support import StartupError
+    from hrc_ros.ros.nodes.decision_node import DecisionNode
+    for value, reason in ((policy_path, 'is not a POMDP policy file'),
+                          (str(share_dir() / 'policies' / 'pomdp' / 'fail_safe_unaware.npz'),
+                           'was solved for configuration')):
+        with pytest.raises(StartupError, match=f'pomdp_policy: .*{reason}'):
+            graph.start(DecisionNode, policy=policy_path, pomdp_policy=value)

@@ -304,13 +304,20 @@ def test_the_swap_rule_checks_the_pomdp_policy_the_selector_reads(default_config
     assert missing.verdict == REFUSED and 'does not exist' in missing.reason
     not_pomdp = check('', policy_path, policy_path)               # an MDP policy file
     assert not_pomdp.verdict == REFUSED and 'is not a POMDP policy file' in not_pomdp.reason
+    # set while the configuration waits for its MDP policy (staged), a wrong one is refused
+    # at once, on its own set, not when the policy comes (hrc-fleet --apply's order)
+    for wrong in (default_pomdp, str(tmp_path / 'none.npz'), unaware_policy):
+        early = check('unaware.yaml', policy_path, wrong)
+        assert early.verdict == REFUSED and early.reason.startswith('pomdp_policy refused: ')
+    assert check('unaware.yaml', policy_path, str(copy)).verdict == STAGED    # right: waits
     # the running pomdp_policy unchanged, no longer solved for the new configuration: staged
     staged = check('unaware.yaml', unaware_policy, default_pomdp, running_pomdp=default_pomdp)
     assert staged.verdict == STAGED and 'set pomdp_policy' in staged.reason
     # a person prior leaves the MDP's hash as it is, not the observation model's: no shipped
     # POMDP policy is solved for it, so '' (unchanged) stages it until one is named
     staged = check('prior.yaml', policy_path, '')
-    assert staged.verdict == STAGED and 'another observation model' in staged.reason
+    assert staged.verdict == STAGED and 'no POMDP policy in' in staged.reason
+    assert 'name it in pomdp_policy' in staged.reason
     # a selector that reads no POMDP policy: an unchanged one is not checked, a new one is
     assert check('unaware.yaml', unaware_policy, default_pomdp, running_pomdp=default_pomdp,
                  needed=False).verdict == ACCEPTED

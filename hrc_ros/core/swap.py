@@ -114,16 +114,21 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                          'it started with: restart the nodes', config)
     if not with_policy:
         return SwapCheck(ACCEPTED, config=config)
+    staged = None
     try:
         peek_policy(Path(policy_path(policy_value, config)), config)
     except Exception as exc:  # noqa: BLE001 - PolicyError, or whatever a damaged file raises
         if not isinstance(exc, PolicyError):
             exc = f'{type(exc).__name__}: {exc}'
         elif policy_value == running_policy:
-            return SwapCheck(STAGED, cap(str(exc)), config)
-        return SwapCheck(REFUSED, cap(f'policy refused: {exc} (the configuration set is '
-                                       f'{config.source}; to change both, set config first, '
-                                       'then policy)'), config)
+            staged = SwapCheck(STAGED, cap(str(exc)), config)
+        else:
+            return SwapCheck(REFUSED, cap(f'policy refused: {exc} (the configuration set is '
+                                           f'{config.source}; to change both, set config '
+                                           'first, then policy)'), config)
+    # the POMDP policy: one just set is checked against the configuration set (refused when
+    # wrong, even while the set waits for its MDP policy), one left as it was only when the
+    # selector reads it (staged when it no longer matches)
     if running_pomdp is not None and (pomdp_needed or (pomdp_changed and pomdp_value)):
         from .pomdp.policy import peek_pomdp_policy, pomdp_policy_path   # the POMDP's, lazily
         try:
@@ -132,9 +137,11 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
             if not isinstance(exc, PolicyError):
                 exc = f'{type(exc).__name__}: {exc}'
             elif not pomdp_changed:
-                return SwapCheck(STAGED, cap(f'{exc} (set pomdp_policy to a POMDP policy '
-                                             'solved for it)'), config)
+                return staged or SwapCheck(STAGED, cap(f'{exc} (set pomdp_policy to a POMDP '
+                                                       'policy solved for it)'), config)
             return SwapCheck(REFUSED, cap(f'pomdp_policy refused: {exc} (the configuration set '
                                            f'is {config.source}; to change both, set config '
                                            'first, then pomdp_policy and policy)'), config)
+    if staged is not None:
+        return staged
     return SwapCheck(ACCEPTED, config=config)

@@ -1,18 +1,22 @@
 """`hrc-fleet run --apply`: swap each promoted cell's policy on its running nodes.
 
-The existing live swap (docs/LEARNING.md 4), done as `ros2 param set` does it, through the
-parameter services of the cell's nodes in its namespace: the belief estimator's `config` (when
-it runs), then the decision node's `config`, for a cell whose selector is pomdp or fib its
-`pomdp_policy` (the POMDP policy the plant solved), then its `policy` (the node checks the set
-at once and swaps it in at the next epoch boundary). Then the swap is verified from what the
+The existing live swap (docs/LEARNING.md 4), through the parameter services of the cell's
+nodes in its namespace: first the decision node's `selector` is read (a node running another
+selector than the plant checked the cell with is `not applied`, nothing changed); then the
+belief estimator's `config` (when it runs), then the decision node's `config`, for a cell
+whose selector is pomdp or fib its `pomdp_policy` (the POMDP policy the plant solved) and its
+`policy` in one atomic set (as `ros2 param load` sets a file), so the node checks the set
+whole and takes it whole, swapping it in at the next epoch boundary, or refuses it whole (the
+estimator's `config` is then set back). Then the swap is verified from what the
 node publishes, not from what was set: a decision status of `<namespace>/decision` on
 /diagnostics whose `policy_file` is the new policy, whose `config_sha256` is the fitted
 configuration's (the policy identity every decision status carries) and, for pomdp and fib,
 whose `pomdp_policy_file` is the new POMDP policy.
 
 Per cell the result is one of `swapped` (verified), `not running` (no decision node answers
-in the namespace: reported, the other cells go on), `refused` (a parameter was refused: the
-node's reason) or `not verified` (set, but no status named the new policy within the timeout).
+in the namespace: reported, the other cells go on), `not applied` (the node runs another
+selector), `refused` (a parameter was refused: the node's reason) or `not verified` (set, but
+no status named the new policy within the timeout).
 The files must be readable by the nodes: the paths are absolute, on this machine.
 """
 
@@ -73,6 +77,22 @@ class Applier:
         result = future.result().results[0]
         return result.successful, result.reason
 
+    def set_atomically(self, client: AsyncParameterClient, values: dict):
+        """Every (name, value) in one set: checked together, taken together or not at all."""
+        future = client.set_parameters_atomically(
+            [Parameter(name, value=value) for name, value in values.items()])
+        if not self.spin_until(future.done, SET_TIMEOUT):
+            return False, f'setting {", ".join(values)} timed out after {SET_TIMEOUT:g} s'
+        result = future.result().result
+        return result.successful, result.reason
+
+    def get(self, client: AsyncParameterClient, names: list[str]) -> dict | None:
+        """The string parameters `names` of a node (None when it does not answer)."""
+        future = client.get_parameters(names)
+        if not self.spin_until(future.done, SET_TIMEOUT):
+            return None
+        return {name: value.string_value for name, value in zip(names, future.result().values)}
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
@@ -80,27 +100,41 @@ class Applier:
 
     # -- one cell ------------------------------------------------------------------------
     def apply(self, namespace: str, config: str, policy: str, config_sha256: str,
-              timeout: float, pomdp: str | None = None) -> dict:
+              timeout: float, pomdp: str | None = None, selector: str = 'paper') -> dict:
         prefix = namespace.rstrip('/')
         decision = self.client(f'{prefix}/decision')
         if decision is None:
             return {'status': 'not running', 'detail': f'no decision node answers at '
                     f'{prefix}/decision; nothing changed'}
+        running = self.get(decision, ['selector'])
+        if running is None:
+            return {'status': 'not verified', 'detail': f'{prefix}/decision did not answer '
+                    f'for its selector within {SET_TIMEOUT:g} s; nothing changed'}
+        if running['selector'] != selector:
+            return {'status': 'not applied', 'detail': (
+                f'{prefix}/decision runs selector {running["selector"]}, the plant checked '
+                f'the cell with {selector}: nothing changed (set the cell\'s selector in the '
+                'plant file to the one it runs)')}
         notes = []
         estimator = self.client(f'{prefix}/belief_estimator')
-        if estimator is None:
-            notes.append(f'no belief estimator at {prefix}/belief_estimator, its configuration '
-                         'was not set')
+        before = None if estimator is None else self.get(estimator, ['config'])
+        if estimator is None or before is None:
+            notes.append(f'no belief estimator answers at {prefix}/belief_estimator, its '
+                         'configuration was not set')
+            estimator = None
         else:
             ok, reason = self.set(estimator, 'config', config)
             if not ok:
                 return {'status': 'refused', 'detail': f'belief_estimator config: {reason}'}
-        for name, value in (('config', config), ('pomdp_policy', pomdp), ('policy', policy)):
-            if value is None:
-                continue
-            ok, reason = self.set(decision, name, value)
-            if not ok:
-                return {'status': 'refused', 'detail': f'decision {name}: {reason}'}
+        # the decision node's set in one atomic set: checked whole, taken whole or not at all
+        # (one at a time, a refusal would leave the configuration staged)
+        wanted = {'config': config, **({} if pomdp is None else {'pomdp_policy': pomdp}),
+                  'policy': policy}
+        ok, reason = self.set_atomically(decision, wanted)
+        if not ok:
+            if estimator is not None:        # back to what it ran, as the decision node is
+                self.set(estimator, 'config', before['config'])
+            return {'status': 'refused', 'detail': f'decision {", ".join(wanted)}: {reason}'}
         who = f'{prefix.lstrip("/")}/decision: ' if prefix else 'decision: '
 
         def reported() -> bool:
@@ -133,7 +167,8 @@ def apply_promoted(entries: list[dict], timeout: float = 30.0) -> dict:
                      else None)
             out[entry['cell']] = applier.apply(
                 entry['namespace'], str(folder / 'fitted.yaml'), str(folder / 'policy.npz'),
-                entry['fit']['config_sha256'], timeout, pomdp)
+                entry['fit']['config_sha256'], timeout, pomdp,
+                entry.get('selector') or 'paper')
         return out
     finally:
         applier.close()

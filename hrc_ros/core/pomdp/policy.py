@@ -28,6 +28,7 @@ meets them); `default_pomdp_policy_path(config)` finds the one solved for a conf
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +37,7 @@ import numpy as np
 from ..config import Config, config_hash
 from ..model import ACTIONS, N_DISTANCE, N_HIDDEN, HRCModel
 from ..paths import PATH_QUOTE, replace_file, share_dir
-from ..quoting import cap
+from ..quoting import cap, quote
 from ..mdp.policy import (MAX_META_CHARS, MAX_STATES, PolicyError, _check_meta_only, _headers,
                           _parse_meta, _read_members, check_config_hash, open_policy,
                           policy_meta, write_npz)
@@ -77,25 +78,39 @@ def pomdp_folder() -> Path:
     return share_dir() / 'policies' / KIND
 
 
-def default_pomdp_policy_path(config: Config) -> Path:
-    """The shipped POMDP policy solved for `config` (by both hashes); when none matches,
-    `policies/pomdp/default.npz`, whose check then says what to solve."""
-    folder = pomdp_folder()
+def shipped_pomdp_policy_path(config: Config) -> Path | None:
+    """The shipped POMDP policy solved for `config` (by both hashes), or None."""
     want = (config.policy_hash, observation_hash(config))
-    for path in sorted(folder.glob('*.npz')):
+    for path in sorted(pomdp_folder().glob('*.npz')):
         try:
             meta = _check_meta_only(path)                # reads and bounds `meta` only
         except PolicyError:   # a damaged shipped file is reported when it is loaded
             continue
         if (meta.get('config_sha256'), meta.get('observation_sha256')) == want:
             return path
-    return folder / 'default.npz'
+    return None
+
+
+def default_pomdp_policy_path(config: Config) -> Path:
+    """The shipped POMDP policy solved for `config` (by both hashes); when none matches,
+    `policies/pomdp/default.npz`, whose check then says what to solve."""
+    return shipped_pomdp_policy_path(config) or pomdp_folder() / 'default.npz'
 
 
 def pomdp_policy_path(value: str | None, config: Config) -> Path:
     """The file a `pomdp_policy` value names for `config`: the path itself, or for '' (and
-    None) the shipped POMDP policy solved for it (`default_pomdp_policy_path`)."""
-    return Path(value) if value else default_pomdp_policy_path(config)
+    None) the shipped POMDP policy solved for it; PolicyError, saying what to do, when no
+    shipped one is."""
+    if value:
+        return Path(value)
+    path = shipped_pomdp_policy_path(config)
+    if path is None:
+        raise PolicyError(
+            f'no POMDP policy in {pomdp_folder()} is solved for {quote(str(config.source))} '
+            f'(configuration sha256 {config.policy_hash[:12]}, observation sha256 '
+            f'{observation_hash(config)[:12]}): solve one (hrc-solve --method pomdp --config '
+            '<that configuration> -o <file>) and name it in pomdp_policy')
+    return path
 
 
 def peek_pomdp_policy(path: str | Path, config: Config) -> dict:
@@ -104,18 +119,20 @@ def peek_pomdp_policy(path: str | Path, config: Config) -> dict:
     was solved for `config` (both hashes). Reads the meta only (milliseconds); the loader then
     reads and checks the arrays. PolicyError, saying what to solve, as the loader's."""
     path = Path(path)
-    if not path.exists():
-        raise PolicyError(f'POMDP policy file {cap(path, PATH_QUOTE)} does not exist. Solve '
-                          f'one: hrc-solve --method pomdp --config {config.source} -o <file>')
+    shown = quote(str(path))
+    if not os.path.lexists(path):
+        raise PolicyError(f'POMDP policy file {shown} does not exist. Solve one: hrc-solve '
+                          '--method pomdp --config <the configuration> -o <file>')
     meta = _check_meta_only(path)
     if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
-        raise PolicyError(f'{path} is not a POMDP policy file (its meta has no POMDP kind and '
+        raise PolicyError(f'{shown} is not a POMDP policy file (its meta has no POMDP kind and '
                           'observation hash): hrc-solve --method pomdp writes one')
-    check_config_hash(path, meta, config, solve=' --method pomdp')
+    check_config_hash(shown, meta, config, solve=' --method pomdp')
     if meta['observation_sha256'] != observation_hash(config):
-        raise PolicyError(f'POMDP policy {path} was solved for another observation model '
-                          f'(Table 5, epsilon or the person prior) than {config.source}. Solve '
-                          f'it again: hrc-solve --method pomdp --config {config.source}')
+        raise PolicyError(f'POMDP policy {shown} was solved for another observation model '
+                          '(Table 5, epsilon or the person prior) than the configuration in '
+                          'use. Solve one for it: hrc-solve --method pomdp --config <the '
+                          'configuration> -o <file>')
     return meta
 
 
@@ -143,8 +160,10 @@ def save_pomdp_policy(path: str | Path, result: PomdpResult, config: Config) -> 
 def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPolicy:
     """Load and check a POMDP policy file; with `config`, also check it was solved for it."""
     path = Path(path)
-    how = ('Solve it: hrc-solve --method pomdp --config <your config.yaml> -o '
-           f'{cap(path, PATH_QUOTE)}')
+    # the shipped folder's own file may be solved again in place; any other path may be
+    # something else (an MDP policy named by mistake) that this advice must not overwrite
+    target = cap(path, PATH_QUOTE) if path.parent == pomdp_folder() else '<file>'
+    how = f'Solve it: hrc-solve --method pomdp --config <your config.yaml> -o {target}'
     n_columns = None
     if config is not None:
         model = HRCModel(config)

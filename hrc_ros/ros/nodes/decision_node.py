@@ -170,6 +170,12 @@ class DecisionNode(Node):
                                       pomdp_path=values['pomdp_policy'])
         except PolicyError as exc:
             raise StartupError(f'selector {values["selector"]}: {exc}') from None
+        if values['pomdp_policy'] and values['selector'] not in POMDP_SELECTORS:
+            from ...core.pomdp.policy import peek_pomdp_policy
+            try:   # not read yet, but named: it must be one for config, as when set live
+                peek_pomdp_policy(values['pomdp_policy'], config)
+            except Exception as exc:  # noqa: BLE001 - PolicyError, or what a damaged file raises
+                raise StartupError(f'pomdp_policy: {exc}') from None
         self.loader = BackgroundLoad('decision')
         self.staged: Staged | None = None
         self.estimator_config: tuple[str, str] | None = None   # (belief sha256, source)
@@ -417,9 +423,16 @@ class DecisionNode(Node):
             ERROR, 'policy', f'refused the new configuration / policy: {error}; still deciding '
             f'with {old.policy.path} ({old.config.source})',
             {'policy_file': old.policy.path, 'error': str(error)}, kind='refused'))
-        self.set_parameters([Parameter('config', value=old.config_value),
-                             Parameter('policy', value=old.policy_value),
-                             Parameter('pomdp_policy', value=old.pomdp_value)])
+        # back to the set in use, in one atomic set (one at a time, each would be checked
+        # against the others not yet back), with the selector it decides with
+        result = self.set_parameters_atomically([
+            Parameter('config', value=old.config_value),
+            Parameter('policy', value=old.policy_value),
+            Parameter('pomdp_policy', value=old.pomdp_value),
+            Parameter('selector', value=old.selector.method)])
+        if not result.successful:
+            self.get_logger().error(f'could not set the parameters back to the set in use: '
+                                    f'{result.reason}')
         return None
 
     def _on_estimator_config(self, identity: tuple[str, str]) -> None:
