@@ -2,7 +2,8 @@
 the HMI, the robot bridge and a simulated arm.
 
     ros2 launch hrc_ros hrc.launch.py [params_file:=FILE] [config:=YAML] [policy:=NPZ]
-        [selector:=paper|qmdp|mls|pomdp|fib] [belief_mode:=bayes|table|posterior]
+        [selector:=paper|qmdp|mls|pomdp|fib] [pomdp_policy:=NPZ]
+        [belief_mode:=bayes|table|posterior]
         [namespace:=cell1] [use_sim:=true|false]
         [view:=auto|true|false] [body_tracking:=false|true]
         [hmi:=false|true|answers] [robot:=none|sim]

@@ -389,8 +389,8 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
 # --- the launch file ------------------------------------------------------------------------
 
 LAUNCH_FILE = REPO / 'launch' / 'hrc.launch.py'
-LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'belief_mode', 'namespace',
-                    'use_sim', 'view', 'body_tracking', 'hmi', 'robot'}
+LAUNCH_ARGUMENTS = {'params_file', 'config', 'policy', 'selector', 'pomdp_policy', 'belief_mode',
+                    'namespace', 'use_sim', 'view', 'body_tracking', 'hmi', 'robot'}
 
 
 def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
@@ -421,6 +421,12 @@ def test_launch_plan_starts_the_cell_with_the_users_arguments(tmp_path):
     assert by_name['belief_estimator'].parameters == [base, {'config': 'c.yaml',
                                                              'belief_mode': 'posterior'}]
     assert by_name['decision'].parameters[-1] == {'config': 'c.yaml', 'selector': 'pomdp'}
+    # a POMDP policy of its own (a fitted configuration's): the decision node's alone
+    by_name = {n.name: n for n in cell_nodes(share, config='c.yaml', selector='pomdp',
+                                             pomdp_policy='q.npz')}
+    assert by_name['decision'].parameters[-1] == {'config': 'c.yaml', 'selector': 'pomdp',
+                                                  'pomdp_policy': 'q.npz'}
+    assert by_name['belief_estimator'].parameters[-1] == {'config': 'c.yaml'}
     assert {n.name for n in cell_nodes(share, use_sim='false', view='true')} == \
         {'belief_estimator', 'decision', 'task_manager', 'cell_view'}
     assert 'cell_view' not in {n.name for n in cell_nodes(share, view='false')}

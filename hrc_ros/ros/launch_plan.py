@@ -60,6 +60,8 @@ ARGUMENTS = (
                    'else the shipped policy solved for config)'),
     LaunchArgument('selector', '', "action selection from the belief ('' = the params files', "
                    'else paper)', ('',) + SELECTORS),
+    LaunchArgument('pomdp_policy', '', "POMDP policy file of the pomdp and fib selectors ('' = "
+                   "the params files', else the shipped one solved for config)"),
     LaunchArgument('belief_mode', '', "the belief estimator's filter ('' = the params files', "
                    "else the configuration's observation.mode); posterior is the exact posterior "
                    'the pomdp and fib selectors plan with', ('',) + BELIEF_MODES),
@@ -139,6 +141,7 @@ def _flag(name: str, value, choices=('true', 'false')) -> str:
 
 def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = '',
                config: str = '', policy: str = '', selector: str = '', belief_mode: str = '',
+               pomdp_policy: str = '',
                use_sim: str | bool = 'true', view: str | bool = 'auto',
                body_tracking: str | bool = 'false',
                hmi: str | bool = 'false', robot: str = 'none') -> list[NodeLaunch]:
@@ -173,6 +176,8 @@ def cell_nodes(share_dir: str | Path, params_file: str = '', namespace: str = ''
         decision['policy'] = policy
     if selector:
         decision['selector'] = selector
+    if pomdp_policy:
+        decision['pomdp_policy'] = pomdp_policy
     overrides = {'decision': decision}
     if belief_mode:
         overrides['belief_estimator'] = {**common, 'belief_mode': belief_mode}
