@@ -281,6 +281,30 @@ def test_the_quasi_newton_gradient_is_the_log_likelihoods_own():
     assert np.abs(gradient).max() > 1.0        # not at a maximum: the check has teeth
 
 
+def test_a_far_quasi_newton_step_maps_to_probabilities_without_numpy_warnings():
+    """A trial step far out in a log ratio (a flat direction before the trust region cuts it)
+    maps to a probability of 0 or 1, rows summing to 1, and warns nothing: an overflow in the
+    p_accept entries' logistic printed 'RuntimeWarning: overflow encountered in exp' from
+    every Ray worker of an hrc-fleet run."""
+    rng = np.random.default_rng(7)
+    data = random_data(rng, [30, 25, 40])
+    params = random_params(rng)
+    curvature = fit.curvature_at(data, params)
+    x = fit._pack(params)[None]
+    eta = curvature.coordinates(x)
+    far = np.concatenate([eta - 800.0, eta + 800.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        lanes = curvature.packed(far, np.repeat(x, 2, axis=0))
+    binary = curvature.index[curvature.reference < 0]
+    assert len(binary) > 0
+    np.testing.assert_array_equal(lanes[0, binary], 0.0)
+    np.testing.assert_array_equal(lanes[1, binary], 1.0)
+    assert np.all(np.isfinite(lanes)) and np.all((lanes >= 0.0) & (lanes <= 1.0))
+    for row, _ in curvature.rows:
+        np.testing.assert_allclose(lanes[:, row].sum(axis=1), 1.0, rtol=1e-12)
+
+
 def test_the_quasi_newton_em_reaches_ems_maximum_in_fewer_e_steps(base, policy):
     """From the same start on the same recordings, SQUAREM and the quasi-Newton EM run to a
     tight tolerance reach the same maximum (log likelihood and parameters), so the method

@@ -843,7 +843,8 @@ class Curvature:
         """Packed rows with the coordinates `eta` (B, d) in place of `like`'s free entries."""
         out = like.copy()
         binary = self.reference < 0
-        out[:, self.index[binary]] = 1.0 / (1.0 + np.exp(-eta[:, binary]))
+        with np.errstate(over='ignore'):    # a far step: exp -> inf, the entry 0, as it should
+            out[:, self.index[binary]] = 1.0 / (1.0 + np.exp(-eta[:, binary]))
         for row, members in self.rows:
             top = np.maximum(0.0, eta[:, members].max(axis=1, initial=0.0))
             weight = np.exp(eta[:, members] - top[:, None])
