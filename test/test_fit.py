@@ -259,16 +259,22 @@ def test_em_never_lowers_the_likelihood(method):
     assert run.trace[-1] > run.trace[0] + 1.0
 
 
-def test_the_quasi_newton_gradient_is_the_log_likelihoods_own():
-    """Fisher's identity: the gradient `NEWTON` steps along, made from one E-step's counts,
-    equals central differences of the log likelihood in the same coordinates, and the
-    coordinates map back to the same parameters."""
+def curvature_case():
+    """Random recordings, random parameters, the curvature there, the parameters packed
+    (1, N_PACKED) and in its coordinates."""
     rng = np.random.default_rng(7)
     data = random_data(rng, [30, 25, 40])
     params = random_params(rng)
     curvature = fit.curvature_at(data, params)
     x = fit._pack(params)[None]
-    eta = curvature.coordinates(x)
+    return data, curvature, x, curvature.coordinates(x)
+
+
+def test_the_quasi_newton_gradient_is_the_log_likelihoods_own():
+    """Fisher's identity: the gradient `NEWTON` steps along, made from one E-step's counts,
+    equals central differences of the log likelihood in the same coordinates, and the
+    coordinates map back to the same parameters."""
+    data, curvature, x, eta = curvature_case()
     np.testing.assert_allclose(curvature.packed(eta, x), x, rtol=1e-12, atol=1e-15)
     assert len(eta[0]) == 47       # 8 + 3 + 6 + 12 + 18: every free probability but one a row
     gradient = curvature.gradient(fit.e_step_batch(x, data)[0], x)[0]
@@ -286,12 +292,7 @@ def test_a_far_quasi_newton_step_maps_to_probabilities_without_numpy_warnings():
     maps to a probability of 0 or 1, rows summing to 1, and warns nothing: an overflow in the
     p_accept entries' logistic printed 'RuntimeWarning: overflow encountered in exp' from
     every Ray worker of an hrc-fleet run."""
-    rng = np.random.default_rng(7)
-    data = random_data(rng, [30, 25, 40])
-    params = random_params(rng)
-    curvature = fit.curvature_at(data, params)
-    x = fit._pack(params)[None]
-    eta = curvature.coordinates(x)
+    _, curvature, x, eta = curvature_case()
     far = np.concatenate([eta - 800.0, eta + 800.0])
     with warnings.catch_warnings():
         warnings.simplefilter('error')
