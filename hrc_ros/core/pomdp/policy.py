@@ -120,20 +120,28 @@ def peek_pomdp_policy(path: str | Path, config: Config) -> dict:
     reads and checks the arrays. PolicyError, saying what to solve, as the loader's."""
     path = Path(path)
     shown = quote(str(path))
+    how = 'Solve one: hrc-solve --method pomdp --config <the configuration> -o <file>'
     if not os.path.lexists(path):
-        raise PolicyError(f'POMDP policy file {shown} does not exist. Solve one: hrc-solve '
-                          '--method pomdp --config <the configuration> -o <file>')
+        raise PolicyError(f'POMDP policy file {shown} does not exist. {how}')
     meta = _check_meta_only(path)
+    _check_pomdp_meta(shown, meta, config, how)
+    return meta
+
+
+def _check_pomdp_meta(shown: str, meta: dict, config: Config | None, how: str) -> None:
+    """A POMDP policy file's meta (parsed): its kind and observation hash, and with `config`
+    that it was solved for it (both hashes); PolicyError ending with `how` to solve one. The
+    peek and the loader alike."""
     if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
-        raise PolicyError(f'{shown} is not a POMDP policy file (its meta has no POMDP kind and '
-                          'observation hash): hrc-solve --method pomdp writes one')
+        raise PolicyError(f'{shown} is not a POMDP policy file (no POMDP meta: kind, '
+                          f'configuration and observation hashes). {how}')
+    if config is None:
+        return
     check_config_hash(shown, meta, config, solve=' --method pomdp')
     if meta['observation_sha256'] != observation_hash(config):
         raise PolicyError(f'POMDP policy {shown} was solved for another observation model '
                           '(Table 5, epsilon or the person prior) than the configuration in '
-                          'use. Solve one for it: hrc-solve --method pomdp --config <the '
-                          'configuration> -o <file>')
-    return meta
+                          f'use ({config.source}). {how}')
 
 
 def load_shipped_pomdp_policy(config: Config) -> PomdpPolicy:
@@ -173,18 +181,10 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
         _check_headers(path, headers, n_columns, how)   # before any array is read
         arrays = _read_members(stream, path, headers, ARRAYS, how, 'a POMDP policy file')
     meta = _parse_meta(path, str(arrays.pop('meta')), how)
-    if meta.get('kind') != KIND or not isinstance(meta.get('observation_sha256'), str):
-        raise PolicyError(f'{path} has no POMDP meta (kind, configuration and observation '
-                          f'hashes). {how}')
+    _check_pomdp_meta(str(path), meta, config, how)
     _check_arrays(path, arrays, how)
     columns = arrays['columns']
     if config is not None:
-        check_config_hash(path, meta, config, solve=' --method pomdp')
-        if meta['observation_sha256'] != observation_hash(config):
-            raise PolicyError(
-                f'POMDP policy {path} was solved for another observation model (Table 5 or '
-                f'epsilon) than the configuration in use ({config.source}). Solve it again: '
-                f'hrc-solve --method pomdp --config {config.source} -o {path}')
         if int(columns.max()) >= n_columns:
             raise PolicyError(f'{path}: observable columns beyond the configuration\'s '
                               f'{n_columns}. {how}')
