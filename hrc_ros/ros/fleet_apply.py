@@ -31,6 +31,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
+from ..core.plant.spec import POMDP_SELECTORS
 from . import conversions as conv
 from . import qos
 from .node_support import DIAGNOSTICS_TOPIC
@@ -163,7 +164,7 @@ def apply_promoted(entries: list[dict], timeout: float = 30.0) -> dict:
         out = {}
         for entry in promoted:
             folder = Path(entry['folder']).resolve()
-            pomdp = (str(folder / 'pomdp.npz') if entry.get('selector') in ('pomdp', 'fib')
+            pomdp = (str(folder / 'pomdp.npz') if entry.get('selector') in POMDP_SELECTORS
                      else None)
             out[entry['cell']] = applier.apply(
                 entry['namespace'], str(folder / 'fitted.yaml'), str(folder / 'policy.npz'),

@@ -38,7 +38,7 @@ from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.paths import replace_file
 from ..core.plant import report as reporting
 from ..core.plant.pipeline import DRIVER, DRIVER_NODE, CellPipeline, Ref, run_serially, run_stage
-from ..core.plant.spec import Plant, PlantError, load_plant
+from ..core.plant.spec import POMDP_SELECTORS, Plant, PlantError, load_plant
 from .common import Parser, ToolError, bounded_int, command, fail, output_folder
 
 PROGRESS_WIDTH = 110
@@ -69,7 +69,7 @@ def prepare(plant: Plant, out: Path) -> tuple[list[CellPipeline], dict]:
             policy_path = str(spec.policy or default_policy_path(base))
             policy = once(('policy', spec.base, policy_path), load_policy, policy_path, base)
             pomdp = None
-            if spec.selector in ('pomdp', 'fib'):
+            if spec.selector in POMDP_SELECTORS:
                 from ..core.pomdp.policy import load_pomdp_policy, pomdp_policy_path
                 pomdp_path = str(pomdp_policy_path(spec.pomdp_policy, base))
                 pomdp = once(('pomdp', spec.base, pomdp_path), load_pomdp_policy, pomdp_path,
