@@ -63,6 +63,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import t as student_t
 
 # Ray starts its workers at nice 15 (RAY_worker_niceness) so that the node stays responsive;
 # on a machine shared with other work that starves them against this one nice-0 process, and
@@ -322,14 +323,10 @@ def interval_of(ratios: list) -> tuple[float, float, str]:
     if len(logs) < 2:
         value = float(np.exp(logs[0]))
         return value, value, f'{value:.2f}x (one round)'
-    half = T975.get(len(logs) - 1, 1.96) * logs.std(ddof=1) / math.sqrt(len(logs))
+    half = student_t.ppf(0.975, len(logs) - 1) * logs.std(ddof=1) / math.sqrt(len(logs))
     low, high = float(np.exp(logs.mean() - half)), float(np.exp(logs.mean() + half))
     return low, high, (f'{np.exp(logs.mean()):.2f}x [95% t interval {low:.2f}, {high:.2f}] '
                        f'over {len(logs)} rounds')
-
-
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306,
-        9: 2.262}
 
 
 def stage_means(report: dict) -> dict:
