@@ -342,6 +342,30 @@ def test_policy_file_refuses_damage(reduced, reduced_file, tmp_path):
             load_pomdp_policy(path, reduced.config)
 
 
+def test_policy_file_refuses_a_wide_state_before_the_dense_copy(default_config, tmp_path):
+    """A small file whose one state holds 4,096 vectors (within the per-state and total caps)
+    among 596 states: its dense copy (states x widest x 9) would take 2.4 M slots, more than
+    MAX_VECTORS; refused before it is allocated (with 46,656 states such a 200 kB file asked
+    for 13 GiB and ended the node that loaded it)."""
+    from hrc_ros.core.pomdp import policy as pomdp_policy
+    shipped = pomdp_policy.default_pomdp_policy_path(default_config)
+    with np.load(shipped) as archive:
+        arrays = {k: archive[k] for k in archive.files}
+    offsets = arrays['alpha_offsets']
+    extra = 4096 - int(offsets[1] - offsets[0])
+    arrays['alpha'] = np.concatenate([np.repeat(arrays['alpha'][:1], extra, axis=0),
+                                      arrays['alpha']])
+    arrays['alpha_action'] = np.concatenate([np.repeat(arrays['alpha_action'][:1], extra),
+                                             arrays['alpha_action']])
+    arrays['alpha_offsets'] = np.concatenate([[0], offsets[1:] + extra])
+    assert len(arrays['alpha']) < pomdp_policy.MAX_VECTORS
+    assert len(offsets) - 1 == 596 and 596 * 4096 > pomdp_policy.MAX_VECTORS
+    wide = tmp_path / 'wide.npz'
+    np.savez(wide, **arrays)
+    with pytest.raises(PolicyError, match='slots the loaded policy may take'):
+        load_pomdp_policy(wide, default_config)
+
+
 def test_shipped_pomdp_policies_are_found_by_configuration():
     for name in ('default', 'fail_safe_unaware'):
         config = load_config(shipped_config_path(name))

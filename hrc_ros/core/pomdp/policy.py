@@ -48,7 +48,10 @@ ARRAYS = ('columns', 'alpha', 'alpha_action', 'alpha_offsets', 'q_fib', 'meta')
 # Alpha vectors a file may hold, checked on the headers before anything is allocated: at most
 # MAX_VECTORS_PER_STATE per observable state it solves (the solver keeps one per belief point,
 # at most 100 a round per state and 21 rounds; the shipped files hold at most 107) and at most
-# MAX_VECTORS in all (144 MB; the shipped files hold about 11,000).
+# MAX_VECTORS in all (144 MB; the shipped files hold about 11,000). The loaded policy also
+# keeps a dense (states x most vectors of a state x 9) copy (AlphaPolicy.dense): its slots are
+# bounded by MAX_VECTORS too (the shipped files need at most 202,044), else a 200 kB file
+# with one wide state among 46,656 asks for 13 GiB.
 MAX_VECTORS_PER_STATE = 4096
 MAX_VECTORS = 2_000_000
 
@@ -249,6 +252,9 @@ def _check_arrays(path: Path, a: dict, how: str) -> None:
     if offsets[0] != 0 or offsets[-1] != alpha.shape[0] or np.any(np.diff(offsets) < 1):
         bad('alpha_offsets must run from 0 to the number of vectors, every state holding one '
             'or more')
+    if n_x * int(np.diff(offsets).max()) > MAX_VECTORS:
+        bad(f'{n_x:,} states by {int(np.diff(offsets).max()):,} vectors in the widest is more '
+            f'than the {MAX_VECTORS:,} slots the loaded policy may take')
     if q_fib.dtype != np.float64 or q_fib.shape != (n_x, len(ACTIONS), N_HIDDEN):
         bad(f'q_fib must be float64 of shape ({n_x}, {len(ACTIONS)}, {N_HIDDEN})')
     if not (np.all(np.isfinite(alpha)) and np.all(np.isfinite(q_fib))):
