@@ -1526,3 +1526,27 @@ def test_state_inputs_take_ordinary_publishers_and_name_an_incompatible_one(grap
                                                       ERROR))
     status = graph.diagnostics('task_manager: human_response input', ERROR)[0]
     assert 'RELIABILITY' in status.message and 'hrc/human_response' in status.message
+
+
+def test_a_parameter_check_that_fails_refuses_the_change_and_the_node_lives_on(graph):
+    """A node's check that raises something other than TypeError / ValueError (MemoryError:
+    loading a file too large) refuses the set with the error as its reason; it was raised out
+    of rclpy's parameter callback, which ended the node."""
+    from rclpy.parameter import Parameter as RclParameter
+    from hrc_ros.ros.node_support import NodeParameters, ParamSpec
+
+    def check(values):
+        if values['size'] > 10:
+            raise MemoryError(f'cannot allocate {values["size"]} GiB')
+        return None
+    node = rclpy.create_node('checked', context=graph.context)
+    try:
+        NodeParameters(node, [ParamSpec('size', RclParameter.Type.INTEGER, 1, 'a size')], check)
+        result = node.set_parameters([RclParameter('size', value=20)])[0]
+        assert not result.successful
+        assert result.reason == 'MemoryError: cannot allocate 20 GiB'
+        assert node.get_parameter('size').value == 1
+        assert node.set_parameters([RclParameter('size', value=5)])[0].successful
+        assert node.get_parameter('size').value == 5
+    finally:
+        node.destroy_node()

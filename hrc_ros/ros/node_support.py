@@ -159,6 +159,9 @@ class NodeParameters:
             reason = self._check(merged)
         except (TypeError, ValueError) as exc:
             reason = cap(str(exc))
+        except Exception as exc:  # noqa: BLE001 - a check that fails (a file too large to load:
+            # MemoryError) refuses the change; raised out of this callback it ends the node
+            reason = cap(f'{type(exc).__name__}: {exc}')
         if reason:
             return SetParametersResult(successful=False, reason=cap(reason))
         return SetParametersResult(successful=True)
