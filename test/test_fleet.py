@@ -489,7 +489,11 @@ def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
     try:
         code = main(['run', str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
                      '--apply-timeout', '30', '-q'])
-        files = {cell: {name: str(out / 'cells' / cell / f'{name}.npz')
+        # the files set are copies named by their content (fleet_apply.live_copy), one set
+        # per cell here: the test checks they are the cell's files
+        lives = {cell: sorted((out / 'cells' / cell / 'live').iterdir())
+                 for cell in ('drifted', 'pomdp')}
+        files = {cell: {name: str(lives[cell][-1] / f'{name}.npz')
                         for name in ('policy', 'pomdp')} for cell in ('drifted', 'pomdp')}
         listener = Listener()
         seen: dict = {'drifted': [], 'pomdp': []}
@@ -517,6 +521,7 @@ def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
         suite.stop(10.0)
     report = json.loads((out / 'plant_report.json').read_text())
     return {'code': code, 'out': out, 'report': report, 'seen': seen, 'files': files,
+            'lives': lives,
             'new_policy': files['drifted']['policy'], 'alive': alive, 'logs': suite.logs(),
             'pomdp_log': suite.log('decision_fleet_pomdp', 10 ** 6)}
 
@@ -558,7 +563,7 @@ def test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the
     cells = out / 'cells'
     assert sorted(p.name for p in (cells / 'drifted').iterdir()) == sorted(
         ['cell_report.json', 'fitted.png', 'fitted.report.json', 'fitted.yaml', 'policy.npz',
-         'shadow.png'])
+         'shadow.png', 'live'])           # live: the files --apply set (fleet_apply.live_copy)
     from hrc_ros.core.mdp.policy import load_policy
     fitted = load_config(cells / 'drifted' / 'fitted.yaml')
     assert fitted.policy_hash == drifted['fit']['config_sha256']
@@ -578,6 +583,11 @@ def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(p
     drifted = entry_of(plant_run['report'], 'drifted')
     assert plant_run['alive'], plant_run['logs']
     assert drifted['applied']['status'] == 'swapped', drifted['applied']
+    assert len(plant_run['lives']['drifted']) == 1
+    live, cell = plant_run['lives']['drifted'][0], plant_run['out'] / 'cells' / 'drifted'
+    for name in ('fitted.yaml', 'policy.npz'):
+        assert (live / name).read_bytes() == (cell / name).read_bytes(), name
+    assert plant_run['new_policy'] in drifted['applied']['detail']
     assert 'applied' not in entry_of(plant_run['report'], 'unchanged')
     # independently of the applier: the node itself reports deciding with the new policy
     fitted_sha = drifted['fit']['config_sha256']
@@ -629,11 +639,111 @@ def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_
     finally:
         suite.stop(10.0)
     assert not dead, suite.logs()
-    assert other['status'] == 'not applied' and 'runs selector paper' in other['detail']
+    assert other['status'] == 'not applied' and 'runs selector paper' in other['detail'], other
     assert refused['status'] == 'refused', refused
     assert 'policy refused' in refused['detail'] and 'was solved for configuration' in \
         refused['detail']
     assert after == ({'config': '', 'policy': '', 'selector': 'paper'}, {'config': ''})
+
+
+def test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary(tmp_path,
+                                                                            ros_domain_id):
+    """--apply against running nodes, from the same OUT night after night: the second
+    night's files, written over the first's at the same paths, are swapped in too (the node
+    compares parameter values: the same paths again were the set in use, and it kept the
+    first night's pair, 'not verified'); a set the node takes and then refuses at the epoch
+    boundary (a policy whose meta is right and whose arrays are not) is `refused` with the
+    node's reason and the belief estimator's configuration goes back (it was left on the
+    refused one)."""
+    import shutil
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    from hrc_ros.ros.fleet_apply import Applier, apply_promoted
+    from hrc_ros.ros.processes import NodeProcesses
+    params = tmp_path / 'params.yaml'
+    params.write_text('/fleet_nights/decision:\n  ros__parameters:\n    selector: paper\n'
+                      '    epoch_period: 0.5\n    stale_timeout: 1.0\n')
+    folder = tmp_path / 'cells' / 'nights'
+    folder.mkdir(parents=True)
+    entry = {'cell': 'nights', 'decision': 'promote', 'namespace': '/fleet_nights',
+             'folder': str(folder), 'selector': 'paper'}
+
+    def night(name: str, policy: Path) -> dict:
+        shutil.copyfile(shipped_config_path(name), folder / 'fitted.yaml')
+        shutil.copyfile(policy, folder / 'policy.npz')
+        sha = load_config(folder / 'fitted.yaml').policy_hash
+        return {**entry, 'fit': {'config_sha256': sha}}
+    damaged = tmp_path / 'damaged.npz'
+    with np.load(share_dir() / 'policies' / 'fail_safe_unaware.npz') as archive:
+        arrays = {k: archive[k] for k in archive.files}
+    arrays['policy'] = arrays['policy'].copy()
+    arrays['policy'][7] = 99                   # no such action: only the full load sees it
+    np.savez(damaged, **arrays)
+    suite = NodeProcesses(tmp_path, [params])
+    for node in ('decision_node', 'belief_estimator_node'):
+        suite.start(node, remappings=[('__ns', '/fleet_nights')])
+    try:
+        first = apply_promoted([night('fail_safe_unaware',
+                                      share_dir() / 'policies' / 'fail_safe_unaware.npz')],
+                               timeout=20.0)['nights']
+        second = apply_promoted([night('default', share_dir() / 'policies' / 'default.npz')],
+                                timeout=20.0)['nights']
+        lives = sorted((folder / 'live').iterdir(), key=lambda p: p.stat().st_mtime)
+        refused = apply_promoted([night('fail_safe_unaware', damaged)], timeout=20.0)['nights']
+        applier = Applier()
+        try:
+            after = (applier.get(applier.client('/fleet_nights/decision'), ['config', 'policy']),
+                     applier.get(applier.client('/fleet_nights/belief_estimator'), ['config']))
+        finally:
+            applier.close()
+        dead = suite.dead()
+    finally:
+        suite.stop(10.0)
+    assert not dead, suite.logs()
+    assert first['status'] == 'swapped', (first, suite.logs())
+    assert second['status'] == 'swapped', (second, suite.logs())
+    assert len(lives) == 2 and str(lives[1] / 'policy.npz') in second['detail']
+    assert refused['status'] == 'refused', (refused, suite.logs())
+    assert 'refused it at the epoch boundary' in refused['detail']
+    assert "the belief estimator's configuration was set back" in refused['detail']
+    night_two = {'config': str(lives[1] / 'fitted.yaml'), 'policy': str(lives[1] / 'policy.npz')}
+    assert after == (night_two, {'config': night_two['config']})
+
+
+def test_apply_reports_a_namespace_whose_decision_node_is_not_ours_and_goes_on(tmp_path,
+                                                                               ros_domain_id):
+    """A node named decision without a selector parameter (not an hrc_ros decision node) is
+    `not applied` and the next cell is tried; the get-parameters service answers no value for
+    an undeclared name, and a KeyError ended the whole --apply (no plant report written)."""
+    import shutil
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    from hrc_ros.ros.fleet_apply import apply_promoted
+    folder = tmp_path / 'cell'
+    folder.mkdir()
+    shutil.copyfile(shipped_config_path('default'), folder / 'fitted.yaml')
+    shutil.copyfile(share_dir() / 'policies' / 'default.npz', folder / 'policy.npz')
+    entry = {'decision': 'promote', 'folder': str(folder), 'selector': 'paper',
+             'fit': {'config_sha256': 'x' * 64}}
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('decision', namespace='/fleet_impostor', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        results = apply_promoted([{**entry, 'cell': 'impostor', 'namespace': '/fleet_impostor'},
+                                  {**entry, 'cell': 'nobody', 'namespace': '/fleet_nobody'}],
+                                 timeout=5.0)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        spinner.join(10.0)
+    assert results['impostor']['status'] == 'not applied', results
+    assert 'no selector parameter' in results['impostor']['detail']
+    assert results['nobody']['status'] == 'not running', results
 
 
 def test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy(

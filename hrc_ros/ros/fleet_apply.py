@@ -2,26 +2,33 @@
 
 The existing live swap (docs/LEARNING.md 4), through the parameter services of the cell's
 nodes in its namespace: first the decision node's `selector` is read (a node running another
-selector than the plant checked the cell with is `not applied`, nothing changed); then the
-belief estimator's `config` (when it runs), then the decision node's `config`, for a cell
-whose selector is pomdp or fib its `pomdp_policy` (the POMDP policy the plant solved) and its
-`policy` in one atomic set (as `ros2 param load` sets a file), so the node checks the set
-whole and takes it whole, swapping it in at the next epoch boundary, or refuses it whole (the
-estimator's `config` is then set back). Then the swap is verified from what the
-node publishes, not from what was set: a decision status of `<namespace>/decision` on
-/diagnostics whose `policy_file` is the new policy, whose `config_sha256` is the fitted
-configuration's (the policy identity every decision status carries) and, for pomdp and fib,
-whose `pomdp_policy_file` is the new POMDP policy.
+selector than the plant checked the cell with, or one without a selector parameter, is `not
+applied`, nothing changed). The files set are copies of the cell's in
+`cells/<cell>/live/<digest>/`, named by their content (`live_copy`): the node compares
+parameter values, so the next night's files written over the same paths would be the set in
+use to it. Then the belief estimator's `config` (when it runs), then the decision node's
+`config`, for a cell whose selector is pomdp or fib its `pomdp_policy` (the POMDP policy the
+plant solved) and its `policy` in one atomic set (as `ros2 param load` sets a file), so the
+node checks the set whole and takes it whole, swapping it in at the next epoch boundary, or
+refuses it whole. Then the swap is verified from what the node publishes, not from what was
+set: a decision status of `<namespace>/decision` on /diagnostics whose `policy_file` is the
+new policy, whose `config_sha256` is the fitted configuration's (the policy identity every
+decision status carries) and, for pomdp and fib, whose `pomdp_policy_file` is the new POMDP
+policy; or its status that it refused the set at the boundary (its full load found what the
+quick check could not). Whenever the swap did not happen, the estimator's `config` is set
+back.
 
 Per cell the result is one of `swapped` (verified), `not running` (no decision node answers
-in the namespace: reported, the other cells go on), `not applied` (the node runs another
-selector), `refused` (a parameter was refused: the node's reason) or `not verified` (set, but
-no status named the new policy within the timeout).
+in the namespace: reported, the other cells go on), `not applied` (not the cell's node),
+`refused` (the node's reason, at the set or at the boundary) or `not verified` (set, but no
+status named the new policy within the timeout; or applying stopped on an error, named).
 The files must be readable by the nodes: the paths are absolute, on this machine.
 """
 
 from __future__ import annotations
 
+import hashlib
+import shutil
 import time
 from pathlib import Path
 
@@ -30,8 +37,11 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rcl_interfaces.msg import ParameterType
 
+from ..core.paths import replace_file
 from ..core.plant.spec import POMDP_SELECTORS
+from ..core.quoting import cap
 from . import conversions as conv
 from . import qos
 from .node_support import DIAGNOSTICS_TOPIC
@@ -88,11 +98,16 @@ class Applier:
         return result.successful, result.reason
 
     def get(self, client: AsyncParameterClient, names: list[str]) -> dict | None:
-        """The string parameters `names` of a node (None when it does not answer)."""
+        """The string parameters `names` of a node that it has (None when it does not
+        answer; a name it does not declare is left out: the service answers no value)."""
         future = client.get_parameters(names)
         if not self.spin_until(future.done, SET_TIMEOUT):
             return None
-        return {name: value.string_value for name, value in zip(names, future.result().values)}
+        values = future.result().values
+        if len(values) != len(names):     # one undeclared: which is unknown, none is trusted
+            return {}
+        return {name: value.string_value for name, value in zip(names, values)
+                if value.type == ParameterType.PARAMETER_STRING}
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -100,8 +115,11 @@ class Applier:
         rclpy.try_shutdown(context=self.context)
 
     # -- one cell ------------------------------------------------------------------------
-    def apply(self, namespace: str, config: str, policy: str, config_sha256: str,
-              timeout: float, pomdp: str | None = None, selector: str = 'paper') -> dict:
+    def apply(self, namespace: str, folder: Path, config_sha256: str, timeout: float,
+              selector: str = 'paper') -> dict:
+        """One promoted cell whose files (fitted.yaml, policy.npz and for pomdp and fib
+        pomdp.npz) are in `folder`; they are set as copies named by their content
+        (`live_copy`) once the node is found to be the cell's."""
         prefix = namespace.rstrip('/')
         decision = self.client(f'{prefix}/decision')
         if decision is None:
@@ -111,15 +129,22 @@ class Applier:
         if running is None:
             return {'status': 'not verified', 'detail': f'{prefix}/decision did not answer '
                     f'for its selector within {SET_TIMEOUT:g} s; nothing changed'}
+        if 'selector' not in running:
+            return {'status': 'not applied', 'detail': (
+                f'{prefix}/decision has no selector parameter: not an hrc_ros decision node; '
+                'nothing changed')}
         if running['selector'] != selector:
             return {'status': 'not applied', 'detail': (
                 f'{prefix}/decision runs selector {running["selector"]}, the plant checked '
                 f'the cell with {selector}: nothing changed (set the cell\'s selector in the '
                 'plant file to the one it runs)')}
+        live = live_copy(folder, ('fitted.yaml', 'policy.npz')
+                         + (('pomdp.npz',) if selector in POMDP_SELECTORS else ()))
+        config, policy, pomdp = live['fitted.yaml'], live['policy.npz'], live.get('pomdp.npz')
         notes = []
         estimator = self.client(f'{prefix}/belief_estimator')
         before = None if estimator is None else self.get(estimator, ['config'])
-        if estimator is None or before is None:
+        if estimator is None or not before:
             notes.append(f'no belief estimator answers at {prefix}/belief_estimator, its '
                          'configuration was not set')
             estimator = None
@@ -131,21 +156,40 @@ class Applier:
         # (one at a time, a refusal would leave the configuration staged)
         wanted = {'config': config, **({} if pomdp is None else {'pomdp_policy': pomdp}),
                   'policy': policy}
+        who = f'{prefix.lstrip("/")}/decision: ' if prefix else 'decision: '
+        since = len(self.statuses)
+
+        def undone(result: dict) -> dict:
+            """The swap did not happen: the estimator back to what it ran, as the decision
+            node is (it sets its own parameters back on a refusal)."""
+            if estimator is not None:
+                ok, reason = self.set(estimator, 'config', before['config'])
+                result['detail'] += ('; the belief estimator\'s configuration was set back' if ok
+                                     else f'; setting the belief estimator\'s configuration '
+                                     f'back failed: {reason}')
+            return result
         ok, reason = self.set_atomically(decision, wanted)
         if not ok:
-            if estimator is not None:        # back to what it ran, as the decision node is
-                self.set(estimator, 'config', before['config'])
-            return {'status': 'refused', 'detail': f'decision {", ".join(wanted)}: {reason}'}
-        who = f'{prefix.lstrip("/")}/decision: ' if prefix else 'decision: '
+            return undone({'status': 'refused',
+                           'detail': f'decision {", ".join(wanted)}: {reason}'})
 
         def reported() -> bool:
             return any(name.startswith(who) and values.get('policy_file') == policy
                        and values.get('config_sha256') == config_sha256
                        and (pomdp is None or values.get('pomdp_policy_file') == pomdp)
                        for name, values in self.statuses)
-        if not self.spin_until(reported, timeout):
-            return {'status': 'not verified', 'detail': f'{policy} was accepted, but no status '
-                    f'of {prefix}/decision named it within {timeout:g} s'}
+
+        def refusal() -> str | None:
+            """The node's error when it took the set and refused it at the boundary (its
+            full load found what the quick check could not)."""
+            return next((values['error'] for name, values in self.statuses[since:]
+                         if name == who + 'policy' and 'error' in values), None)
+        if not self.spin_until(lambda: reported() or refusal() is not None, timeout):
+            return undone({'status': 'not verified', 'detail': f'{policy} was accepted, but no '
+                           f'status of {prefix}/decision named it within {timeout:g} s'})
+        if not reported():
+            return undone({'status': 'refused', 'detail': f'{prefix}/decision took the set and '
+                           f'refused it at the epoch boundary: {refusal()}'})
         epoch = next(values.get('epoch') for name, values in self.statuses
                      if name.startswith(who) and values.get('policy_file') == policy)
         both = '' if pomdp is None else f' and POMDP policy {pomdp}'
@@ -163,13 +207,31 @@ def apply_promoted(entries: list[dict], timeout: float = 30.0) -> dict:
     try:
         out = {}
         for entry in promoted:
-            folder = Path(entry['folder']).resolve()
-            pomdp = (str(folder / 'pomdp.npz') if entry.get('selector') in POMDP_SELECTORS
-                     else None)
-            out[entry['cell']] = applier.apply(
-                entry['namespace'], str(folder / 'fitted.yaml'), str(folder / 'policy.npz'),
-                entry['fit']['config_sha256'], timeout, pomdp,
-                entry.get('selector') or 'paper')
+            try:
+                out[entry['cell']] = applier.apply(
+                    entry['namespace'], Path(entry['folder']).resolve(),
+                    entry['fit']['config_sha256'], timeout, entry.get('selector') or 'paper')
+            except Exception as exc:  # noqa: BLE001 - one cell's surprise is its own result
+                out[entry['cell']] = {'status': 'not verified', 'detail': (
+                    f'applying stopped: {type(exc).__name__}: {cap(str(exc))}')}
         return out
     finally:
         applier.close()
+
+
+def live_copy(folder: Path, names: tuple) -> dict[str, str]:
+    """name -> path of a copy of each file in `folder/live/<digest of them all>/`. The swap
+    rule compares parameter values, so a node that runs last night's `cells/<cell>/policy.npz`
+    would take tonight's, written over it at the same path, as the set in use and keep the
+    old one it holds; each set of files gets its own paths, and the same files again the same
+    paths (nothing to swap). Each copy is written whole or not at all."""
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update(name.encode() + b'\0' + (folder / name).read_bytes())
+    target = folder / 'live' / digest.hexdigest()[:16]
+    target.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        if not (target / name).is_file():
+            replace_file(target / name, lambda temporary, source=folder / name:
+                         shutil.copyfile(source, temporary))
+    return {name: str(target / name) for name in names}
