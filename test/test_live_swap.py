@@ -277,6 +277,8 @@ def test_a_pomdp_selector_swaps_in_the_pomdp_policy_named_with_the_pair(graph, p
     assert graph.spin_until(swapped)
     values = conv.diagnostic_values(swapped()[-1])
     assert values['policy_file'] == new_policy and values['pomdp_policy_file'] == new_pomdp
+    assert f'and POMDP policy {new_pomdp} (' in swapped()[-1].message      # the new one named
+    assert swapped()[-1].message.endswith(f'and POMDP policy {default_pomdp}')
     assert node.selector.pomdp.path == new_pomdp and node.selector.method == 'pomdp'
     first = int(values['epoch'])
     assert graph.spin_until(lambda: node.epoch >= first + 2)

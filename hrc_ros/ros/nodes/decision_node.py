@@ -400,14 +400,17 @@ class DecisionNode(Node):
             if loaded.selector.method != self.params.value('selector'):
                 loaded.selector.set_method(self.params.value('selector'))
             self.running, self.staged = loaded, None
+            pomdp = getattr(loaded.selector.pomdp, 'path', None)
+            before = getattr(old.selector.pomdp, 'path', None)
             self.inputs.report(Report(
-                OK, 'policy', f'epoch {k}: now deciding with policy {loaded.policy.path} '
-                f'(configuration {loaded.config.source}, sha256 '
-                f'{loaded.config.policy_hash[:12]}); before: {old.policy.path}',
+                OK, 'policy', f'epoch {k}: now deciding with policy {loaded.policy.path}'
+                + (f' and POMDP policy {pomdp}' if pomdp else '')
+                + f' (configuration {loaded.config.source}, sha256 '
+                f'{loaded.config.policy_hash[:12]}); before: {old.policy.path}'
+                + (f' and POMDP policy {before}' if before else ''),
                 {'epoch': k, 'policy_file': loaded.policy.path, 'config': loaded.config.source,
                  'previous_policy_file': old.policy.path,
-                 **({'pomdp_policy_file': loaded.selector.pomdp.path}
-                    if getattr(loaded.selector.pomdp, 'path', None) else {})}, kind='swap'))
+                 **({'pomdp_policy_file': pomdp} if pomdp else {})}, kind='swap'))
             return loaded.selector.select
         if isinstance(loaded, Staged):
             self.staged = loaded
