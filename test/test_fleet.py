@@ -601,6 +601,18 @@ def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(p
         result['detail']
 
 
+def parameters_now(namespace: str, decision: list[str]) -> tuple:
+    """(the decision node's parameters `decision`, the belief estimator's config) of the nodes
+    in `namespace`, read through their parameter services."""
+    from hrc_ros.ros.fleet_apply import Applier
+    applier = Applier()
+    try:
+        return (applier.get(applier.client(f'{namespace}/decision'), decision),
+                applier.get(applier.client(f'{namespace}/belief_estimator'), ['config']))
+    finally:
+        applier.close()
+
+
 def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused(
         tmp_path, ros_domain_id):
     """--apply against running nodes (processes): a node that runs another selector than the
@@ -610,7 +622,7 @@ def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_
     to what it ran."""
     import shutil
     from hrc_ros.core.paths import share_dir, shipped_config_path
-    from hrc_ros.ros.fleet_apply import Applier, apply_promoted
+    from hrc_ros.ros.fleet_apply import apply_promoted
     from hrc_ros.ros.processes import NodeProcesses
     params = tmp_path / 'params.yaml'
     params.write_text('/fleet_checks/decision:\n  ros__parameters:\n    selector: paper\n'
@@ -627,14 +639,7 @@ def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_
     try:
         other = apply_promoted([{**entry, 'selector': 'pomdp'}], timeout=5.0)['checks']
         refused = apply_promoted([{**entry, 'selector': 'paper'}], timeout=5.0)['checks']
-        applier = Applier()
-        try:
-            decision = applier.client('/fleet_checks/decision')
-            estimator = applier.client('/fleet_checks/belief_estimator')
-            after = (applier.get(decision, ['config', 'policy', 'selector']),
-                     applier.get(estimator, ['config']))
-        finally:
-            applier.close()
+        after = parameters_now('/fleet_checks', ['config', 'policy', 'selector'])
         dead = suite.dead()
     finally:
         suite.stop(10.0)
@@ -657,7 +662,7 @@ def test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary(tmp_
     refused one)."""
     import shutil
     from hrc_ros.core.paths import share_dir, shipped_config_path
-    from hrc_ros.ros.fleet_apply import Applier, apply_promoted
+    from hrc_ros.ros.fleet_apply import apply_promoted
     from hrc_ros.ros.processes import NodeProcesses
     params = tmp_path / 'params.yaml'
     params.write_text('/fleet_nights/decision:\n  ros__parameters:\n    selector: paper\n'
@@ -689,12 +694,7 @@ def test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary(tmp_
                                 timeout=20.0)['nights']
         lives = sorted((folder / 'live').iterdir(), key=lambda p: p.stat().st_mtime)
         refused = apply_promoted([night('fail_safe_unaware', damaged)], timeout=20.0)['nights']
-        applier = Applier()
-        try:
-            after = (applier.get(applier.client('/fleet_nights/decision'), ['config', 'policy']),
-                     applier.get(applier.client('/fleet_nights/belief_estimator'), ['config']))
-        finally:
-            applier.close()
+        after = parameters_now('/fleet_nights', ['config', 'policy'])
         dead = suite.dead()
     finally:
         suite.stop(10.0)
