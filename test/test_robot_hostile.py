@@ -36,6 +36,13 @@ FAR = np.array([2.5, -1.5, 1.0])
 NEAR = np.array([0.4, -0.3, 0.8])     # S 0.18 m to the arm at home: no speed is safe there
 BODY = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0.15, 0, 0.3], [-0.15, 0, 0.3],
                  [0, 0.1, -0.4], [0, -0.1, -0.4]])
+NOISE = np.random.default_rng(33)
+
+
+def body_at(place) -> np.ndarray:
+    """7 keypoints at `place` with a tracker's millimetres of noise (an exact repeat is a
+    frozen tracker to the bridge)."""
+    return np.asarray(place, dtype=float)[None] + BODY + NOISE.normal(0.0, 0.0015, BODY.shape)
 DESCRIPTION = load_robot_description()
 JOINTS = DESCRIPTION.joint_names
 DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000,
@@ -86,11 +93,11 @@ class Feeder(SpunNode):
             self.forged_joints.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, forged_q,
                                                                self._now()))
         if forged_person is not None:       # 100 Hz, 40 ms ahead (FUTURE_SLACK is 50 ms)
-            self.forged_skeleton.publish(conv.keypoints_to_msg(forged_person[None] + BODY,
+            self.forged_skeleton.publish(conv.keypoints_to_msg(body_at(forged_person),
                                                                self._now(0.04)))
 
     def _tracker(self):
-        self.skeleton.publish(conv.keypoints_to_msg(self.person[None] + BODY, self._now(-0.03)))
+        self.skeleton.publish(conv.keypoints_to_msg(body_at(self.person), self._now(-0.03)))
 
     def status(self, contains: str, since: int = 0):
         for status in reversed(self.statuses[since:]):
@@ -105,7 +112,9 @@ def feeder(tmp_path_factory, ros_domain_id):
     suite = NodeProcesses(tmp_path_factory.mktemp('robot_hostile'), [])
     driver = Feeder()
     try:
-        suite.start('robot_bridge_node', [('__ns', NS)])
+        suite.start('robot_bridge_node', ros_args=[
+            '-r', f'__ns:={NS}', '-p', 'action_source:=/robot_hostile_test',
+            '-p', 'task_state_source:=/robot_hostile_test'])
         driver.wait(lambda: driver.status('below the protective distance') or suite.dead(),
                     'the bridge to stop for the person near the arm', START_TIMEOUT)
         assert not suite.dead(), suite.logs()

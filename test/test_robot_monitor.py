@@ -279,3 +279,18 @@ def test_a_second_writer_of_the_actions_or_task_states_holds_the_arm(setup):
     bridge.graph_hold('action', '')
     cell.run(0.5)
     assert not cell.commands[-1][0].stop
+
+
+def test_a_goal_the_controller_dropped_is_sent_again_from_where_the_arm_stands(setup):
+    """A controller that refused a forged goal holds the arm until a valid goal comes (as
+    cobot_sim does): the bridge, commanding motion on an unfinished goal of its own while the
+    arm stands for STALL_RESEND s, sends its goal again, and the program goes on."""
+    cell = Cell(setup)
+    program_running(cell)
+    cell.follower.trajectory = None               # the controller dropped the goal: it holds
+    sent = len([c for c, _, _ in cell.commands if c.trajectory is not None])
+    steps = cell.run(2.0)
+    again = [c.trajectory for c, _, _ in steps if c.trajectory is not None]
+    assert len(again) == 1 and again[0].kind == 'program'
+    assert sent >= 1 and cell.bridge.counts['goals_resent'] == 1
+    assert np.max(np.abs(cell.follower.qd)) > 0.05        # moving again

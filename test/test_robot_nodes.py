@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import yaml
 from builtin_interfaces.msg import Time
+from rclpy.duration import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -45,6 +46,20 @@ FAR = np.array([2.5, -1.5, 1.0])
 NEAR = np.array([0.4, -0.3, 0.8])     # S 0.19-0.29 m to the arm: no speed is safe there
 BODY = np.array([[0, 0, 0], [0, 0, 0.3], [0, 0, 0.6], [0.15, 0, 0.3], [-0.15, 0, 0.3],
                  [0, 0.1, -0.4], [0, -0.1, -0.4]])     # 7 keypoints around the person's place
+NOISE = np.random.default_rng(18)
+
+
+def body_at(place) -> np.ndarray:
+    """The 7 keypoints at `place` as a tracker reports them: with millimetres of noise (the
+    bridge takes a skeleton that repeats the last one exactly as a frozen tracker's)."""
+    return np.asarray(place, dtype=float)[None] + BODY + NOISE.normal(0.0, 0.0015, BODY.shape)
+
+
+def bridge_args(namespace: str = '') -> list[str]:
+    """The bridge's ROS arguments: this test's node owns the actions and task states."""
+    return ((['-r', f'__ns:={namespace}'] if namespace else [])
+            + ['-p', 'action_source:=/robot_nodes_test', '-p',
+               'task_state_source:=/robot_nodes_test'])
 DESCRIPTION = load_robot_description()
 PROGRAMS = load_programs(DESCRIPTION)
 JOINTS = DESCRIPTION.joint_names
@@ -116,7 +131,7 @@ class Cell(SpunNode):
             person = self.person.copy()
         if self.skeleton_on:
             self.skeleton_pub.publish(conv.keypoints_to_msg(
-                person[None] + BODY, self.node.get_clock().now().to_msg()))
+                body_at(person), self.node.get_clock().now().to_msg()))
 
     def walk_to(self, target) -> None:
         with self.lock:
@@ -164,7 +179,7 @@ def cell(tmp_path_factory, ros_domain_id):
     driver = Cell()
     try:
         suite.start('cobot_sim_node')
-        suite.start('robot_bridge_node')
+        suite.start('robot_bridge_node', ros_args=bridge_args())
         driver.wait(lambda: driver.stops and driver.stops[-1] is False or suite.dead(),
                     'the bridge to see the arm and the person and clear its stop',
                     START_TIMEOUT)
@@ -367,6 +382,108 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     assert_alive(suite)
 
 
+def forger(name: str, msg_type, topic: str, matches: int = 1):
+    """Another node on the cell (a stray script, an attacker): its publisher of `topic`, once
+    `matches` subscriptions have matched it."""
+    node = SpunNode(name)
+    publisher = node.node.create_publisher(msg_type, topic, qos.RELIABLE)
+    node.start()
+    node.wait(lambda: publisher.get_subscription_count() >= matches,
+              f'{topic} to match the forger', START_TIMEOUT)
+    return node, publisher
+
+
+def test_a_forged_transient_goal_beyond_the_limits_is_refused_and_the_arm_stays(cell):
+    """Issue 33's first attack: a publisher appears on the goal topic, sends one goal and is
+    gone: its first segment 0.02 rad in 0.3 s, its second the shoulder 2.5 rad in 5 ms.
+    cobot_sim, as a joint_trajectory_controller, refuses a goal with any segment beyond the
+    joint limits (it checked the first only, and the shoulder swung at 42 rad/s)."""
+    driver, suite = cell
+    driver.wait(lambda: driver.at_rest() and driver.stops[-1] is False, 'the arm to stand')
+    since, held, states = len(driver.statuses), driver.q, len(driver.joint_states)
+    first = held + [0, 0.02, 0, 0, 0, 0]
+    swing = held + [0, 2.5, 0, 0, 0, 0]
+    goal = conv.trajectory_to_msg(JOINTS, [held, first, swing, first], [0.3, 0.005, 0.005])
+    node, publisher = forger('transient_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
+    publisher.publish(goal)
+    publisher.wait_for_all_acked(Duration(seconds=5))
+    node.close()                                   # gone at once
+    status = driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'segment 2 moves',
+                                              since), 'cobot_sim to refuse the forged goal')
+    assert 'faster than the joint speed and acceleration limits' in \
+        conv.diagnostic_values(status)['held']
+    driver.wait(lambda: len(driver.joint_states) > states + 100, '100 more joint states')
+    assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
+    assert_alive(suite)
+
+
+def test_a_forged_goal_within_the_limits_only_stops_the_arm(cell):
+    """A goal the bridge did not send, within every limit, loaded while the bridge holds (dn),
+    turns wrist 2 by 1 rad (no program turns it). While the bridge holds, its override 0 keeps
+    it still; when the bridge lets its program go on (nw), the goal runs on the override, and
+    the bridge's monitor (the arm moves across its path) stops it and sends its own goal."""
+    driver, suite = cell
+    driver.wait(lambda: driver.at_rest() and driver.stops[-1] is False, 'the arm to stand')
+    since, held, states = len(driver.statuses), driver.q, len(driver.joint_states)
+    goal = conv.trajectory_to_msg(JOINTS, [held, held + [0, 0, 0, 0, 1.0, 0]], [3.0])
+    goals = len(driver.trajectories)
+    node, publisher = forger('slow_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
+    try:
+        publisher.publish(goal)
+        publisher.wait_for_all_acked(Duration(seconds=5))
+        driver.wait(lambda: len(driver.trajectories) > goals, 'the forged goal to be sent')
+    finally:
+        node.close()
+    driver.wait(lambda: driver.value('cobot_sim: arm', 'goals_accepted', '', since)
+                and driver.stops[-1] is False, 'cobot_sim to take it, the bridge to let go')
+    marks = len(driver.joint_states)
+    driver.epoch('nw', task(tp=2, tc=120, ty=2, bc=120))
+    status = driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'did not send',
+                                               since), 'the monitor to stop the arm')
+    assert 'across the bridge\'s path' in status.message or 'off the bridge' in status.message
+    driver.wait(driver.moving, 'the program to run again, on the bridge\'s own goal')
+    turned = max(abs(q[4] - held[4]) for _, q, _ in driver.joint_states[marks:])
+    assert turned < 0.05
+    driver.wait(lambda: driver.value('robot_bridge: bridge', 'monitor_foreign_motion', '1',
+                                     since), 'the count of motions the bridge did not send')
+    assert len(driver.joint_states) > states
+    assert_alive(suite)
+
+
+def test_a_second_writer_of_the_actions_only_holds_the_arm(cell):
+    """Issue 33's second attack: the decision node publishes dn (here: this test's node, the
+    owner the bridge follows); another node publishes dm and dp once a second. The bridge
+    refuses the forger's actions, holds the arm while two write, reports it, and lets go once
+    the owner is the only writer again."""
+    driver, suite = cell
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
+    driver.wait(lambda: driver.at_rest() and driver.stops[-1] is False, 'the arm to stand')
+    since, held, states = len(driver.statuses), driver.q, len(driver.joint_states)
+    node, publisher = forger('action_forger', String, 'hrc/action')
+    try:
+        for action in ('dm', 'dp', 'dm', 'dp'):
+            driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
+            publisher.publish(String(data=action))
+            ticks = len(driver.overrides)
+            driver.wait(lambda t=ticks: len(driver.overrides) > t + 100, "a second of ticks")
+        status = driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'hrc/action',
+                                                   since), 'the hold for the second writer')
+        assert 'publishers of /hrc/action' in status.message \
+            or 'second writer of hrc/action' in status.message
+        assert driver.status('robot_bridge: action input', WARN, 'refused', since)
+    finally:
+        node.close()
+    moved = max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:])
+    assert moved < 0.05
+    # the forger gone and silent for the hold: the owner's actions count again
+    driver.wait(lambda: driver.stops[-1] is False, 'the hold to end', TIMEOUT)
+    driver.epoch('nw', task(tp=2, tc=120, ty=2, bc=120))
+    driver.wait(driver.moving, 'the arm to run the program again')
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))      # held, as the next tests expect
+    driver.wait(driver.at_rest, 'the arm to stand on dn')
+    assert_alive(suite)
+
+
 @pytest.mark.parametrize('position', [[float('nan'), 0, 0, 0, 0, 0], [0, 0, 4.0, 0, 0, 0]],
                          ids=['nan', 'out-of-limit'])
 def test_a_bad_joint_state_is_refused(cell, position):
@@ -392,14 +509,14 @@ def test_a_skeleton_far_outside_the_cell_is_refused(cell):
     driver, suite = cell
     since = len(driver.statuses)
     driver.skeleton_pub.publish(conv.keypoints_to_msg(
-        np.array([[50.0, 0.0, 1.0]]) + BODY, driver.node.get_clock().now().to_msg()))
+        body_at([50.0, 0.0, 1.0]), driver.node.get_clock().now().to_msg()))
     for status in ('robot_bridge: bridge', 'cobot_sim: arm'):
         driver.wait(lambda name=status: driver.value(name, 'last_refused_skeleton',
                                                      'farther than 20 m', since),
                     f'{status} to refuse the skeleton 50 m away')
     # a skeleton from a clock 2 s ahead would look fresh for 2 s after its source stopped
     ahead = driver.node.get_clock().now().nanoseconds + 2_000_000_000
-    driver.skeleton_pub.publish(conv.keypoints_to_msg(FAR[None] + BODY, Time(
+    driver.skeleton_pub.publish(conv.keypoints_to_msg(body_at(FAR), Time(
         sec=ahead // 1_000_000_000, nanosec=ahead % 1_000_000_000)))
     driver.wait(lambda: driver.value('robot_bridge: bridge', 'last_refused_skeleton',
                                      'ahead of this clock', since),
@@ -424,12 +541,12 @@ def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
     skeleton = node.create_publisher(PoseArray, '/solo/human/skeleton', qos.SENSOR_DATA)
     home = DESCRIPTION.poses['home']
     try:
-        solo.start('robot_bridge_node', [('__ns', '/solo')])
+        solo.start('robot_bridge_node', ros_args=bridge_args('/solo'))
 
         def feed(position=home):
             stamp = node.get_clock().now().to_msg()
             joints.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, position, stamp))
-            skeleton.publish(conv.keypoints_to_msg(FAR[None] + BODY, stamp))
+            skeleton.publish(conv.keypoints_to_msg(body_at(FAR), stamp))
             time.sleep(0.01)
             return (stops and stops[-1] is False) or solo.dead()
         driver.wait(feed, 'the solo bridge to clear its stop on fresh data', START_TIMEOUT)
@@ -510,7 +627,7 @@ def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, 
     driver.node.create_subscription(JointTrajectory,
                                     f'/lonely/{DEFAULT_TRAJECTORY_TOPIC}', goals.append, DEEP)
     try:
-        lonely.start('robot_bridge_node', [('__ns', '/lonely')])
+        lonely.start('robot_bridge_node', ros_args=bridge_args('/lonely'))
         status = driver.wait(lambda: driver.status('lonely/robot_bridge: speed override',
                                                    ERROR) or lonely.dead(),
                              'the ERROR for an override nobody listens to', START_TIMEOUT)
@@ -533,7 +650,7 @@ def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, 
             stamp = driver.node.get_clock().now().to_msg()
             pub.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6,
                                                 DESCRIPTION.poses['home'], stamp))
-            skeleton.publish(conv.keypoints_to_msg(FAR[None] + BODY, stamp))
+            skeleton.publish(conv.keypoints_to_msg(body_at(FAR), stamp))
             return driver.value('lonely/robot_bridge: bridge', 'last_action', 'ct', since)
         status = driver.wait(feed, 'the lonely bridge to take the ct')
         assert conv.diagnostic_values(status)['trajectories_sent'] == '0'

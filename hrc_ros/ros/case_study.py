@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from ..core.cell.scenarios import SCENARIOS as PERSON_SCENARIOS
 from ..core.config import BELIEF_MODES, ConfigError, load_config
 from ..core.cell.faults import parse_faults
 from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
@@ -86,6 +87,7 @@ ROBOT_TOPICS = {
     'hrc/speed_override': 'std_msgs/msg/Float64',
     'hrc/protective_stop': 'std_msgs/msg/Bool',
     'hrc/robot_progress': 'std_msgs/msg/UInt8MultiArray',
+    'hrc/sim/true_skeleton': 'geometry_msgs/msg/PoseArray',
 }
 ROBOT_EPOCH_PERIOD = 1.0    # s, the batch cell's physical epoch (ArmCellSettings)
 # The case study with the arm (docs/ROBOT.md 6): the robot's share of a task advances only by
@@ -180,6 +182,8 @@ def write_run_params(path: Path, args) -> Path:
         for name, values in ROBOT_OVERRIDES.items():
             key = f'/**/{name}'
             params.setdefault(key, {'ros__parameters': {}})['ros__parameters'].update(values)
+        params['/**/cell_sim']['ros__parameters'].update(
+            person_scenario=args.person, scenario_window=args.epochs * args.epoch_period)
     write_text(path, yaml.safe_dump(params, sort_keys=False))
     return path
 
@@ -406,7 +410,14 @@ def _main(argv: list[str] | None) -> int:
     parser.add_argument('--robot', default='none', choices=ROBOTS,
                         help='sim: the cell with the arm, robot_bridge_node and cobot_sim_node '
                         '(a simulated UR5e under speed and separation monitoring; docs/ROBOT.md)')
+    parser.add_argument('--person', default='honest', choices=PERSON_SCENARIOS,
+                        help="with --robot sim: who is in the cell, 'honest' (the model's "
+                        'person) or a scenario that tests SSM (walk_in, run_in, appear, reach, '
+                        'frozen_tracker, lost_tracker; docs/ROBOT.md 4), drawn in the run\'s '
+                        'epochs; the run ends with SSM checked against the true bodies')
     args = parser.parse_args(argv)
+    if args.person != 'honest' and args.robot != 'sim':
+        parser.error('--person needs --robot sim (a person walking at the arm)')
     if args.epoch_period is None:
         args.epoch_period = ROBOT_EPOCH_PERIOD if args.robot == 'sim' else 0.5
     if args.epochs is None:
@@ -496,6 +507,15 @@ def _main(argv: list[str] | None) -> int:
     bag_file = next(bag_dir.glob('*.mcap'))
     print(f'wrote {bag_file} ({info.message_count} messages, '
           f'{format_size(bag_file.stat().st_size)}); play it with: hrc-bag play {bag_dir}')
+    if args.robot == 'sim':
+        import json
+        from ..core.robot.bridge import load_robot_description
+        from ..core.robot.check import format_ssm_check, ssm_check_of_bag
+        check = ssm_check_of_bag(bag_dir, load_robot_description())
+        print(format_ssm_check(check))
+        write_text(out / 'ssm_check.json', json.dumps({'person': args.person, **check},
+                                                      indent=2) + '\n')
+        print(f'wrote {out / "ssm_check.json"}')
     print(f'node logs in {out / "logs"}; {time.monotonic() - started:.1f} s')
     return 0
 

@@ -425,6 +425,20 @@ def peak_link_speed(arm: Arm, q0, q1, duration: float, samples: int = 9) -> floa
     return 1.05 * best
 
 
+def warm_up(*arms: Arm) -> None:
+    """Run every numba kernel of the arm once (kinematics, separation with its closest
+    points, distance, link speed, a segment's peak), so that a node's first real call does not
+    compile them on its control thread (9 s on a fresh install) or load them from numba's
+    cache (about 0.5 s)."""
+    body = body_capsules(np.array([[1.5, 0.0, 0.5], [1.5, 0.2, 0.9]]))
+    q0 = np.array([1.4, -1.9, 1.9, -1.57, -1.57, 0.0])
+    for arm in arms:
+        arm.separation(q0, body)
+        arm.distance(q0, body)
+        arm.link_speed(q0, np.full(N_JOINTS, 0.1))
+        peak_link_speed(arm, q0, q0 + 0.1, 1.0, samples=1)
+
+
 @dataclass
 class FollowerState:
     q: np.ndarray

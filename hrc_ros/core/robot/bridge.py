@@ -98,6 +98,7 @@ FUTURE_SLACK = 0.05                # s a sample's stamp may lie ahead of the bri
 SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the arm after its last
 OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
+STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
 DESCRIPTION_DEFAULTS = {
     'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
     'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
@@ -379,6 +380,26 @@ def load_programs(description: RobotDescription, path=None) -> dict:
 
 
 # -- the bridge -------------------------------------------------------------------------------
+def writers_reason(topic: str, publishers, owner: str) -> str:
+    """Why the arm holds for what the graph shows of an input that must have one writer, the
+    node that owns the cell (`owner`, a fully qualified node name; '' takes any one):
+    `publishers` are the publishers' node names (None: not named by the graph yet). '' when
+    it need not hold."""
+    publishers = list(publishers)
+    if len(publishers) > 1:
+        names = ', '.join(p or 'a node the graph does not name yet' for p in publishers)
+        return (f'{len(publishers)} publishers of {topic} ({names}): the arm holds while more '
+                'than one can write (one cell, one decider)')
+    if len(publishers) == 1 and owner:
+        if publishers[0] is None:
+            return (f'the graph does not name the publisher of {topic} yet: the arm holds until '
+                    f'it is known to be {owner}')
+        if publishers[0] != owner:
+            return (f'{topic} is published by {publishers[0]}, not by {owner} (the owner this '
+                    'bridge follows): the arm holds')
+    return ''
+
+
 def check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
     """InputError for a sample stamped more than FUTURE_SLACK ahead of the clock: its source's
     clock runs ahead, and the sample would still look fresh after its source stopped."""
@@ -479,13 +500,19 @@ class Bridge:
     clock; `period` is the control period (s) the override is held for."""
 
     def __init__(self, description: RobotDescription, programs: Mapping, arm: Arm | None = None,
-                 period: float = 0.01):
+                 period: float = 0.01, latency: float | None = None):
         self.description = d = description
         self.programs = dict(programs)
         self.arm = arm if arm is not None else Arm()
-        # SSM commands for the control period plus the way to the controller; the monitor
-        # checks what is measured against SSM at the instant (module docstring, "The monitor").
-        self.monitor = SpeedSeparationMonitor(d.ssm, period + d.command_latency)
+        # SSM commands for the control period plus the way to the controller (`latency`, the
+        # description's command_latency unless given: the batch's controller takes each
+        # override in the step it is sent); the monitor checks what is measured against SSM at
+        # the instant (module docstring, "The monitor").
+        latency = d.command_latency if latency is None else float(latency)
+        if not (math.isfinite(latency) and latency >= 0):
+            raise ValueError(f'latency must be a finite number of seconds >= 0, got {latency!r}')
+        self.latency = latency
+        self.monitor = SpeedSeparationMonitor(d.ssm, period + latency)
         self.index = {name: i for i, name in enumerate(d.joint_names)}
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
@@ -513,13 +540,14 @@ class Bridge:
         self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
         # The monitor (core/robot/guard.py).
         self.measured = MeasuredSpeed(self.arm, max_dt=d.joint_state_timeout)
-        self.envelope = SpeedEnvelope(d.ssm.deceleration, d.command_latency + period)
+        self.envelope = SpeedEnvelope(d.ssm.deceleration, latency + period)
         self.skeleton_check = SkeletonCheck(d.frozen_tolerance, d.max_body_speed)
         self.fault = ''               # the monitor's protective stop ('' = none)
         self._fault_clear_since: int | None = None
         self._replace = False         # a goal of the bridge's must replace the controller's
         self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
-                       'frozen_skeletons': 0}
+                       'frozen_skeletons': 0, 'goals_resent': 0}
+        self._still_since: int | None = None    # the arm at rest on an unfinished goal
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
@@ -698,6 +726,7 @@ class Bridge:
             override, stop, reason = 0.0, True, fault
         elif stop:
             reason = self._frozen_reason(now_ns, reason)
+        self._stalled(now_ns, override * nominal)
         self.envelope.command(now_ns, override * nominal)
         if stop:
             self._note_stop(reason, reports)
@@ -777,6 +806,23 @@ class Bridge:
             if (now_ns - self._fault_clear_since) * 1e-9 >= p.resume_time:
                 self.fault = ''
         return self.fault
+
+    def _stalled(self, now_ns: int, bound: float) -> None:
+        """The arm stands still on an unfinished goal of the bridge's while it commands motion
+        (at least SSM's min_speed) for STALL_RESEND s: the controller dropped or refused the
+        goal (a forged goal it refused holds it until a valid one comes). The goal is sent
+        again from where the arm stands."""
+        active = self.active
+        running = (active is not None and self._next < len(active.durations)
+                   and self.pending is None and bound >= self.monitor.p.min_speed)
+        if not running or not self._at_rest():
+            self._still_since = None
+            return
+        if self._still_since is None:
+            self._still_since = now_ns
+        elif (now_ns - self._still_since) * 1e-9 >= STALL_RESEND:
+            self.pending, self._still_since = self.motion, None
+            self.counts['goals_resent'] += 1
 
     def _frozen_reason(self, now_ns: int, reason: str) -> str:
         """SSM's stop for old data, named for what it is when the followed skeleton's stamps
@@ -905,4 +951,4 @@ class Bridge:
 
 __all__ = ['ACTIONS', 'Bridge', 'BridgeCommand', 'Program', 'ProgramRun', 'Progress',
            'RobotDescription', 'RobotDescriptionError', 'load_programs',
-           'load_robot_description', 'programs_from', 'robot_description']
+           'load_robot_description', 'programs_from', 'robot_description', 'writers_reason']

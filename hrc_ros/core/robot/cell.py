@@ -108,6 +108,10 @@ class ArmCellSettings:
     # clears after resume_time. A graph's bridge is up before the decision node's first epoch
     # (docs/ROBOT.md, "the graph with the arm"): compare with one with a pre-roll of 1 s.
     pre_roll: float = 0.0
+    # s from the bridge's override to the controller's motion, which the bridge plans for: the
+    # batch's controller takes each override in the step it is sent (0); the graph's cobot_sim
+    # over DDS, up to its override watchdog (the description's command_latency).
+    command_latency: float = 0.0
 
     def __post_init__(self):
         for name in ('epoch_period', 'control_period', 'skeleton_rate'):
@@ -116,6 +120,10 @@ class ArmCellSettings:
                 raise ValueError(f'{name} must be a positive number, got {value!r}')
         if not (isinstance(self.pre_roll, (int, float)) and 0 <= self.pre_roll <= 60.0):
             raise ValueError(f'pre_roll must lie in [0, 60] s, got {self.pre_roll!r}')
+        if not (isinstance(self.command_latency, (int, float))
+                and 0 <= self.command_latency < 1.0):
+            raise ValueError(f'command_latency must lie in [0, 1) s, got '
+                             f'{self.command_latency!r}')
         if not 0 <= self.skeleton_latency < 1.0:
             raise ValueError(f'skeleton_latency must lie in [0, 1) s, got '
                              f'{self.skeleton_latency!r}')
@@ -133,7 +141,8 @@ class ArmCellSettings:
 # docs/ROBOT.md "the graph with the arm"): cell_sim streams skeletons at its sensor_rate, 50 Hz,
 # that reach the bridge over one DDS hop (a few ms on one host), and the bridge is up before
 # the decision node's first epoch. The agreement test compares a graph run with this.
-GRAPH_SETTINGS = ArmCellSettings(skeleton_rate=50.0, skeleton_latency=0.005, pre_roll=1.0)
+GRAPH_SETTINGS = ArmCellSettings(skeleton_rate=50.0, skeleton_latency=0.005, pre_roll=1.0,
+                                 command_latency=load_robot_description().command_latency)
 
 
 @dataclass
@@ -240,7 +249,8 @@ class ArmCell:
         human = SimulatedHuman(model, seed=human_seed, em=em, ea=ea, d=d0)
         scene = make_scene(self.person, d0, person_seed, em=em, ea=ea, radii=cfg.safety_radii,
                            duration=scenario.epochs * cfg.epoch_period)
-        bridge = Bridge(desc, self.programs, self.arm, cfg.control_period)
+        bridge = Bridge(desc, self.programs, self.arm, cfg.control_period,
+                        latency=cfg.command_latency)
         bridge._peaks = self._peaks
         follower = TrajectoryFollower(desc.poses['home'], desc.ssm.deceleration)
         arm, names, ssm = self.arm, desc.joint_names, desc.ssm

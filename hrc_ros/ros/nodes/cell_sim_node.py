@@ -28,6 +28,8 @@ the model's O (the observation is the model's event, which the walk does not sim
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
@@ -37,11 +39,13 @@ from std_msgs.msg import Bool, Float64MultiArray, String, UInt8MultiArray
 
 from ...core.cell import faults
 from ...core.cell.human import SimulatedHuman
-from ...core.cell.person import SimulatedPerson
+from ...core.cell.scenarios import SCENARIOS, make_scene
+from ...core.cell.tracking import K4ABT_JOINTS
 from ...core.model import ACTIONS, RH1, RH2, TASK_VARIABLES
 from ...core.decision.observation import (level_of_distance, synthesize_joint_velocities,
                                           synthesize_skeleton)
-from ...core.protocol import CELL_HOLD, ActionPairing, PeriodEstimate
+from ...core.protocol import CELL_HOLD, ActionPairing, InputError, PeriodEstimate
+from ...core.robot.arm import JOINT_NAMES, Arm, body_capsules, warm_up
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
@@ -81,13 +85,35 @@ PARAMETERS = (
               'joints walking around the arm, its approach relative to the separation on '
               'hrc/separation; the cell with the arm)', read_only=True,
               constraints="'point' or '3d'"),
+    ParamSpec('person_scenario', T.STRING, 'honest', 'with person 3d: who is in the cell and what '
+              "the tracker reports: 'honest' (the model's person) or a scenario that tests SSM: "
+              + ', '.join(SCENARIOS[1:]) + ' (docs/ROBOT.md 4); the others read the arm\'s '
+              'joint_states to walk at it', read_only=True,
+              constraints=' or '.join(SCENARIOS)),
+    ParamSpec('scenario_window', T.DOUBLE, 20.0, 'seconds from the first action in which a '
+              "person scenario's event is drawn (in [2 s, half of it]), as the batch draws it in "
+              'an episode of that length', read_only=True, range=(4.0, 3600.0)),
 )
+
+
+def arm_configuration(msg: JointState) -> np.ndarray | None:
+    """The UR5e's six angles (arm.JOINT_NAMES) of a joint state, None without them or NaN."""
+    where = {name: i for i, name in enumerate(msg.name)}
+    if any(name not in where for name in JOINT_NAMES) or len(msg.position) != len(msg.name):
+        return None
+    q = np.array([msg.position[where[name]] for name in JOINT_NAMES], dtype=float)
+    return q if np.isfinite(q).all() else None
 
 
 def check_parameters(values) -> str | None:
     person = values.get('person', PERSONS[0])
     if person not in PERSONS:
         return f"person must be {' or '.join(PERSONS)}, got {person!r}"
+    scenario = values.get('person_scenario', SCENARIOS[0])
+    if scenario not in SCENARIOS:
+        return f"person_scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}"
+    if scenario != SCENARIOS[0] and person != '3d':
+        return f"person_scenario {scenario} needs person '3d' (a body walking at the arm)"
     if 'faults' in values:
         try:
             parsed = faults.parse_faults(values['faults'])
@@ -125,13 +151,20 @@ class CellSimNode(Node):
         self._position = np.zeros(len(conv.HUMAN_JOINTS))
         self._last_sample_ns: int | None = None
         self._apply_motion(values)
-        self.person = None
+        self.person = self.scene = None
         self.separation: float | None = None    # S on hrc/separation (person 3d)
         self._walked_ns: int | None = None
+        self._scene_start_ns: int | None = None  # the first action: the scene's clock starts
+        self.arm = self.arm_q = None
         if values['person'] == '3d':
-            self.person = SimulatedPerson(values['initial_distance'],
-                                          seed=[values['seed'], PERSON_STREAM], em=em, ea=ea,
-                                          radii=self.safety_radii)
+            self.scene = make_scene(values['person_scenario'], values['initial_distance'],
+                                    [values['seed'], PERSON_STREAM], em=em, ea=ea,
+                                    radii=self.safety_radii,
+                                    duration=values['scenario_window'])
+            self.person = self.scene.person
+            if values['person_scenario'] != SCENARIOS[0]:
+                self.arm = Arm()       # the scripted people walk at the arm's true links
+                warm_up(self.arm)
 
         self.joint_pub = self.create_publisher(JointState, 'human/joint_states',
                                                qos.SENSOR_DATA)
@@ -139,6 +172,10 @@ class CellSimNode(Node):
         self.response_pub = self.create_publisher(Bool, 'hrc/human_response', qos.RELIABLE)
         self.true_state_pub = self.create_publisher(UInt8MultiArray, 'hrc/sim/true_state',
                                                     qos.LATCHED)
+        # The truth the sensors may not tell (person 3d): every body in the cell now, for the
+        # SSM check against the true position (docs/ROBOT.md 4).
+        self.true_skeleton_pub = self.create_publisher(PoseArray, 'hrc/sim/true_skeleton',
+                                                       qos.RELIABLE) if self.scene else None
         self.inputs = Inputs(self)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
                               self._on_action, with_published=True)
@@ -147,6 +184,9 @@ class CellSimNode(Node):
         if self.person is not None:
             self.inputs.subscribe(Float64MultiArray, 'hrc/separation', qos.SENSOR_DATA,
                                   conv.separation_from_msg, self._on_separation)
+        if self.arm is not None:
+            self.inputs.subscribe(JointState, 'joint_states', qos.SENSOR_DATA, lambda msg: msg,
+                                  self._on_arm, name='arm joint_states')
         self.sensor_timer = self.create_timer(1.0 / values['sensor_rate'], self._stream)
         self.hold = DeadlineTimer(self, lambda now: self._react(self.pairing.expire(now)))
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
@@ -189,6 +229,22 @@ class CellSimNode(Node):
     def _on_separation(self, separation: dict) -> None:
         self.separation = separation['S']
 
+    def _on_arm(self, msg: JointState) -> None:
+        """The arm's configuration, which the scripted people walk at (the simulator knows it;
+        a real person sees the arm)."""
+        q = arm_configuration(msg)
+        if q is None:
+            raise InputError('arm joint_states without the UR5e\'s six joints or not finite')
+        self.arm_q = q
+
+    def _probe(self, keypoints):
+        """(S m, the arm's closest point) of a body of `keypoints` to the arm now; before any
+        joint state, far away."""
+        if self.arm_q is None:
+            return math.inf, np.zeros(3)
+        sep = self.arm.separation(self.arm_q, body_capsules(keypoints, K4ABT_JOINTS))
+        return sep.distance, sep.arm_point
+
     def _person_separation(self) -> float:
         """The separation the 3D person walks by: the latest on hrc/separation, before any
         the middle of the band they start in."""
@@ -224,9 +280,11 @@ class CellSimNode(Node):
             self.get_logger().warning('no task state received yet; reacting as in an idle '
                                       'cell', throttle_duration_sec=WARNING_THROTTLE_SEC)
         reaction = self.human.react(action, task_state)
-        if self.person is not None:
-            self.person.begin_epoch(reaction.delta, reaction.em, reaction.ea,
-                                    self._person_separation())
+        if self.scene is not None:
+            if self._scene_start_ns is None:
+                self._scene_start_ns = self.get_clock().now().nanoseconds
+            self.scene.begin_epoch(reaction.delta, reaction.em, reaction.ea,
+                                   self._person_separation())
         accepted = reaction.accepted is True and not self._fault('decline')
         if action in (RH1, RH2) and self.answer_requests:
             if reaction.accepted and not accepted:
@@ -240,15 +298,22 @@ class CellSimNode(Node):
 
     # -- outputs ---------------------------------------------------------------------------
     def _walk(self, now_ns: int) -> None:
-        """The 3D person walks up to now (also while the sensors drop out)."""
+        """The 3D person walks up to now (also while the sensors drop out); a scene's clock
+        runs from the first action."""
         dt = 0.0 if self._walked_ns is None else max(0.0, (now_ns - self._walked_ns) * 1e-9)
         self._walked_ns = now_ns
-        self.person.step(dt, self._person_separation())
+        t = -1.0 if self._scene_start_ns is None else (now_ns - self._scene_start_ns) * 1e-9
+        if self.arm is None:
+            self.scene.step(dt, t, None, self._person_separation())
+        else:
+            self.scene.step(dt, t, self._probe)
 
     def _stream(self) -> None:
         now = self.get_clock().now()
         if self.person is not None:
             self._walk(now.nanoseconds)
+            self.true_skeleton_pub.publish(conv.keypoints_to_msg(
+                self.scene.bodies(), now.to_msg(), self.robot_frame))   # also in a dropout
         if self._fault('dropout'):
             return
         dt = 0.0 if self._last_sample_ns is None else (now.nanoseconds
@@ -257,17 +322,20 @@ class CellSimNode(Node):
         velocity = synthesize_joint_velocities(self.human.observation, len(conv.HUMAN_JOINTS),
                                                self.velocity_thresholds, self.sensor_rng)
         self._position += velocity * dt
+        stamp = now.to_msg()
         if self.person is None:
             keypoints = synthesize_skeleton(self.human.d, self.safety_radii,
                                             self.robot_reference_point, self.sensor_rng)
         else:
-            keypoints = self.person.keypoints()
-        stamp = now.to_msg()
+            t = -1.0 if self._scene_start_ns is None else \
+                (now.nanoseconds - self._scene_start_ns) * 1e-9
+            keypoints = self.scene.frame(t)      # what the tracker reports: None, nothing
         if self._fault('nan_velocity'):
             velocity = np.full_like(velocity, np.nan)
         self.joint_pub.publish(conv.joint_state_to_msg(conv.HUMAN_JOINTS, velocity,
                                                        self._position, stamp))
-        self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp, self.robot_frame))
+        if keypoints is not None:
+            self.skeleton_pub.publish(conv.keypoints_to_msg(keypoints, stamp, self.robot_frame))
 
     def true_state(self) -> dict:
         task = self.task_state or IDLE_TASK

@@ -47,6 +47,7 @@ checked against the arm's configuration and taken as one step), and a goal is ch
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 import traceback
@@ -60,7 +61,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from ...core.protocol import InputError, SingleWriter, Stamp
-from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed
+from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed, warm_up
 from ...core.robot.arm import segment_duration
 from ...core.robot.bridge import SECOND_WRITER_HOLD
 from ...core.robot.ssm import protective_distance
@@ -74,7 +75,10 @@ from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTI
 
 T = Parameter.Type
 MAX_STEP_SEC = 0.05      # a longer pause of the timer is stepped as this (the arm does not jump)
-TIME_SLACK = 1e-3        # s (and relative): a first segment may be this much faster than computed
+TIME_SLACK = 1e-3        # s (and relative): a segment may be this much faster than computed
+MAX_GOAL_POINTS = 1000   # points of a goal this controller takes (timing them costs ~1 ms each)
+REST_CREEP = 1e-3        # rad an arm at rest may creep while its next goal is checked
+GIL_SWITCH = 0.001       # s: the interpreter's thread switch interval in this node
 # The controller's watchdog on the monitor's override (docs/ROBOT.md 5): the bridge sends one
 # each joint state (8 ms at 125 Hz) and plans each to hold for its control_period (0.01 s);
 # an override older than 3 of those is taken as 0, so the arm brakes rather than run on at a
@@ -109,6 +113,7 @@ class CobotSimNode(Node):
                                f'the limits, got {q0.tolist()} ({d.outside(q0) or "wrong size"})')
         self.arm = Arm()              # the motion thread's (separation)
         self.goal_arm = Arm()         # the executor's (goal checks)
+        warm_up(self.arm, self.goal_arm)   # compiled (or loaded) before anything is published
         self._lock = threading.Lock()   # the follower, between the two threads
         self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
         self.override = 0.0
@@ -142,6 +147,9 @@ class CobotSimNode(Node):
                               self._on_skeleton, name='skeleton')
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self._halt = threading.Event()
+        # The motion thread waits for the GIL while the executor runs a callback: at most the
+        # switch interval (5 ms by default, half a joint-state period), here 1 ms.
+        sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH))
         self._motion_thread = threading.Thread(target=self._motion, name='cobot_sim motion',
                                                daemon=True)
         self._motion_thread.start()
@@ -159,22 +167,38 @@ class CobotSimNode(Node):
 
     # -- inputs ------------------------------------------------------------------------------
     def _on_trajectory(self, msg: JointTrajectory) -> None:
-        """A goal; anything refused (the conversion's refusals too) holds the arm."""
-        with self._lock:              # checked against the arm where it is, taken there
-            try:
-                trajectory = self._goal(*conv.trajectory_from_msg(msg))
-            except InputError as exc:
+        """A goal; anything refused (the conversion's refusals too) holds the arm. It is checked
+        and timed outside the follower's lock (the motion thread keeps stepping and publishing
+        meanwhile), then taken under the lock if the arm still stands where it was checked."""
+        try:
+            with self._lock:
+                q, qd = self.follower.q.copy(), self.follower.qd.copy()
+            trajectory = self._goal(*conv.trajectory_from_msg(msg), q=q, qd=qd)
+            with self._lock:
+                moved = float(np.max(np.abs(self.follower.q - q)))
+                if moved > REST_CREEP:
+                    raise InputError(f'trajectory refused, the arm holds: the arm moved '
+                                     f'{moved:.4f} rad while the goal was checked (a goal '
+                                     'while the arm moves)')
+                positions = trajectory.positions.copy()
+                positions[0] = self.follower.q      # the last creep of a stop, below rest_speed
+                self.follower.follow(Trajectory(trajectory.joint_names, positions,
+                                                trajectory.durations, trajectory.nominal_speed,
+                                                trajectory.marks, trajectory.kind))
+        except InputError as exc:
+            with self._lock:
                 self.refused += 1
                 self.held = str(exc)
-                raise
-            self.follower.follow(trajectory)
-            self.accepted += 1
-            self.held = ''
+            raise
+        self.accepted += 1
+        self.held = ''
 
-    def _goal(self, names, positions, times) -> Trajectory:
-        """The core trajectory of a goal from the arm's configuration; InputError (the arm
-        then holds) for what the module docstring lists."""
+    def _goal(self, names, positions, times, q=None, qd=None) -> Trajectory:
+        """The core trajectory of a goal from the arm's configuration `q` (moving at `qd`);
+        InputError (the arm then holds) for what the module docstring lists."""
         d = self.description
+        q = self.follower.q if q is None else q
+        qd = self.follower.qd if qd is None else qd
         index = {name: i for i, name in enumerate(names)}
         unknown = [n for n in names if n not in d.joint_names]
         lack = [n for n in d.joint_names if n not in index]
@@ -184,16 +208,18 @@ class CobotSimNode(Node):
                                 f'no {", ".join(lack)}')
                              + f' (the arm\'s joints are {", ".join(d.joint_names)})')
         points = positions[:, [index[n] for n in d.joint_names]]
-        for i, q in enumerate(points):
-            why = d.outside(q)
+        for i, point in enumerate(points):
+            why = d.outside(point)
             if why:
                 raise InputError(f'trajectory refused, the arm holds: point {i}: {why}')
-        fastest = float(np.max(np.abs(self.follower.qd)))
+        if len(points) > MAX_GOAL_POINTS:
+            raise InputError(f'trajectory refused, the arm holds: {len(points)} points, more than '
+                             f'the {MAX_GOAL_POINTS} this controller takes')
+        fastest = float(np.max(np.abs(qd)))
         if fastest > d.rest_speed:
             raise InputError(f'trajectory refused, the arm holds: a goal while the arm moves '
                              f'({fastest:.3f} rad/s, rest_speed {d.rest_speed}); goals replace '
                              'each other at rest only')
-        q = self.follower.q
         if len(points) == 1 and times[0] == 0.0:
             away = float(np.max(np.abs(points[0] - q)))
             if away > d.waypoint_tolerance:
@@ -208,6 +234,16 @@ class CobotSimNode(Node):
                 f'{shortest:.3f} s within the joint limits, given {times[0]:.3f} s)')
         path = np.vstack([q[None], points])
         durations = np.diff(np.concatenate([[0.0], times]))
+        # Every segment within the joint speed and acceleration limits, as ros2_control's
+        # controller would hold it (a later segment beyond them ran at 42 rad/s before).
+        for i in range(1, len(durations)):
+            shortest = segment_duration(path[i], path[i + 1], d.velocity, d.acceleration)
+            if shortest > durations[i] * (1.0 + TIME_SLACK) + TIME_SLACK:
+                raise InputError(
+                    f'trajectory refused, the arm holds: segment {i + 1} moves '
+                    f'{float(np.max(np.abs(path[i + 1] - path[i]))):.3f} rad in '
+                    f'{durations[i]:.3f} s, faster than the joint speed and acceleration limits '
+                    f'allow ({shortest:.3f} s at least)')
         nominal = max(peak_link_speed(self.goal_arm, a, b, t)
                       for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
@@ -267,9 +303,11 @@ class CobotSimNode(Node):
             return
         sep = self.arm.separation(state.q, body)
         speed = state.speed_bound
+        # S_p as the bridge computes it: the person may have moved for the skeleton's age.
+        age = max(0.0, (clock.nanoseconds - self._body_stamp) * 1e-9)
         self.separation_pub.publish(conv.separation_to_msg(
             sep.distance, sep.arm_point, sep.human_point,
-            float(protective_distance(speed, sep.distance, self.description.ssm)), speed))
+            float(protective_distance(speed, sep.distance, self.description.ssm, age)), speed))
 
     def _publish_status(self) -> None:
         follower = self.follower

@@ -55,13 +55,15 @@ from ...core.cell.tracking import joint_indices
 from ...core.model import ACTIONS
 from ...core.protocol import (CELL_HOLD, ERROR, OK, WARN, ActionPairing, PeriodEstimate, Report,
                               Stamp)
-from ...core.robot.arm import Arm, body_capsules
-from ...core.robot.bridge import (Bridge, RobotDescriptionError, load_programs,
-                                  load_robot_description)
+from ...core.protocol import InputError
+from ...core.robot.arm import Arm, body_capsules, warm_up
+from ...core.robot.bridge import (WRITER_HOLD, Bridge, RobotDescriptionError, load_programs,
+                                  load_robot_description, writers_reason)
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
                             NodeParameters, ParamSpec, StartupError, check_core, run)
+from ..sources import endpoints
 
 T = Parameter.Type
 DEFAULT_TRAJECTORY_TOPIC = 'joint_trajectory_controller/joint_trajectory'
@@ -101,7 +103,14 @@ PARAMETERS = (
     ParamSpec('task_state_timeout', T.DOUBLE, 0.0, 'seconds an action waits for its epoch\'s '
               'hrc/task_state before the bridge takes it with the latest one; 0 = '
               f'{CELL_HOLD.fraction:g} x the epoch period seen on hrc/action', range=(0.0, 60.0)),
+    ParamSpec('action_source', T.STRING, 'decision', 'the node that owns the cell\'s actions: '
+              'hrc/action is taken only while it is the topic\'s one publisher (a name relative '
+              "to this node's namespace, or absolute; '' = any one publisher); another "
+              'publisher or a second writer holds the arm (docs/ROBOT.md 5)', read_only=True),
+    ParamSpec('task_state_source', T.STRING, 'task_manager', 'the node that owns '
+              "hrc/task_state, as action_source ('' = any one publisher)", read_only=True),
 )
+OVERRIDE_GRACE_SEC = 5.0      # a start-up without the override's subscriber is a WARN this long
 
 
 def check_names(values) -> str | None:
@@ -156,7 +165,12 @@ class RobotBridgeNode(Node):
             programs = load_programs(self.description, values['motion_programs'] or None)
         except RobotDescriptionError as exc:
             raise StartupError(str(exc)) from None
-        self.bridge = Bridge(self.description, programs, Arm(), values['control_period'])
+        arm = Arm()
+        warm_up(arm)                  # compiled (or loaded) before the first joint state
+        self.bridge = Bridge(self.description, programs, arm, values['control_period'])
+        self.owners = {'action': self._owner(values['action_source']),
+                       'task_state': self._owner(values['task_state_source'])}
+        self.started = time.monotonic()
         self.period = PeriodEstimate()
         self.task_state_timeout = values['task_state_timeout']
         self.pairing = ActionPairing(self._hold_ns())
@@ -188,9 +202,9 @@ class RobotBridgeNode(Node):
                                                  values['keypoint_joints'] or None),
                               self._on_skeleton, name='skeleton', with_stamp=True)
         self.inputs.subscribe(UInt8MultiArray, 'hrc/task_state', qos.STATE_INPUT,
-                              conv.task_state_from_msg, self._on_task_state)
+                              conv.task_state_from_msg, self._on_task_state, with_stamp=True)
         self.inputs.subscribe(String, 'hrc/action', qos.RELIABLE, conv.action_from_msg,
-                              self._on_action, with_published=True)
+                              self._on_action, with_stamp=True)
         self.hold = DeadlineTimer(self, lambda now: self._react(self.pairing.expire(now)))
         self.watchdog = self.create_timer(self.description.joint_state_timeout / 2,
                                           self._watchdog)
@@ -208,6 +222,32 @@ class RobotBridgeNode(Node):
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
+    def _owner(self, name: str) -> str:
+        """A node name of action_source / task_state_source, fully qualified ('' stays '')."""
+        if not name or name.startswith('/'):
+            return name
+        return f'{self.get_namespace().rstrip("/")}/{name}'
+
+    def _writers(self, kind: str) -> str:
+        """The graph's publishers of hrc/<kind> against its owner (`writers_reason`); the
+        bridge holds while the reason is not ''."""
+        topic = f'hrc/{kind}'
+        reason = writers_reason(self.resolve_topic_name(topic),
+                                [e.node for e in endpoints(self, topic, skip_own=False)],
+                                self.owners[kind])
+        self.bridge.graph_hold(kind, reason)
+        return reason
+
+    def _check_source(self, kind: str, source: Stamp) -> None:
+        """InputError (the message is refused, the arm holds) for a message of hrc/<kind>
+        while the graph shows a publisher other than its owner, or from a writer other than the
+        one followed (publication sequence numbers: a short-lived publisher the graph no longer
+        shows is still another line)."""
+        reason = self._writers(kind)
+        if reason:
+            raise InputError(f'refused: {reason}')
+        self.bridge.check_writer(kind, source.sequence, self._now())
+
     # -- inputs ------------------------------------------------------------------------------
     def _on_joint_state(self, msg: JointState, source: Stamp) -> None:
         started = time.perf_counter()
@@ -221,13 +261,20 @@ class RobotBridgeNode(Node):
         body, stamp = converted
         self.bridge.skeleton(body, stamp, self._now(), source.sequence)
 
-    def _on_task_state(self, task_state: dict) -> None:
+    def _on_task_state(self, task_state: dict, source: Stamp) -> None:
+        self._check_source('task_state', source)
         self.bridge.task_state(task_state, self._now())
         self._react(self.pairing.task_state_received(task_state, self._now()))
 
-    def _on_action(self, action: int, published_ns: int) -> None:
-        self.period.observe(published_ns)
+    def _on_action(self, action: int, source: Stamp) -> None:
+        self._check_source('action', source)
+        self.period.observe(source.published_ns)
         self.pairing.timeout_ns = self._hold_ns()
+        if self.period.period_ns:
+            # two writers interleaving once an epoch keep the arm held: a hold longer than it
+            hold = max(WRITER_HOLD, 2.5 * self.period.period_ns * 1e-9)
+            for writer in self.bridge.writers.values():
+                writer.hold = writer.silence = hold
         self._react(self.pairing.action_received(action, self._now()))
 
     def _react(self, pairings) -> None:
@@ -247,6 +294,8 @@ class RobotBridgeNode(Node):
         """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops). Also
         tells the bridge how many publishers the goal topic has (another one: a stop)."""
         self.bridge.goal_publishers(self.count_publishers(self.trajectory_pub.topic_name))
+        for kind in self.owners:
+            self._writers(kind)
         if time.monotonic() - self._last_tick > self.description.joint_state_timeout:
             self._tick(time.perf_counter())
 
@@ -295,17 +344,25 @@ class RobotBridgeNode(Node):
                 {'reason': reason if stop else ''}, kind='stop'))
 
     def _report_listening(self) -> None:
+        """OK once someone listens; until then WARN for OVERRIDE_GRACE_SEC after the start
+        (the controller may start after the bridge), then ERROR."""
+        topic = self.override_pub.topic_name
         if self._listening:
-            self.inputs.report(Report(OK, 'speed override', f'the speed override on '
-                                      f'{self.override_pub.topic_name} has subscribers',
-                                      {'topic': self.override_pub.topic_name}, log=False))
-        else:
+            self.inputs.report(Report(OK, 'speed override', f'the speed override on {topic} '
+                                      'has subscribers', {'topic': topic}, log=False))
+            return
+        waited = time.monotonic() - self.started
+        if waited < OVERRIDE_GRACE_SEC:
             self.inputs.report(Report(
-                ERROR, 'speed override', f'nobody subscribes to the speed override on '
-                f'{self.override_pub.topic_name}: the arm is held (protective stop, no '
-                'trajectory sent) until its controller or adapter listens',
-                {'topic': self.override_pub.topic_name, 'subscribers': 0},
-                kind='no_subscriber'))
+                WARN, 'speed override', f'waiting for the controller or adapter to subscribe to '
+                f'the speed override on {topic} ({waited:.1f} s of a {OVERRIDE_GRACE_SEC:g} s '
+                'start-up grace); the arm is held until it does',
+                {'topic': topic, 'subscribers': 0}, kind='no_subscriber', log=False))
+            return
+        self.inputs.report(Report(
+            ERROR, 'speed override', f'nobody subscribes to the speed override on {topic}: the '
+            'arm is held (protective stop, no trajectory sent) until its controller or adapter '
+            'listens', {'topic': topic, 'subscribers': 0}, kind='no_subscriber'))
 
     def _publish_progress(self) -> None:
         progress = self.bridge.progress
@@ -338,6 +395,11 @@ class RobotBridgeNode(Node):
             'compute_p99_ms': (round(float(np.percentile(compute, 99)), 3) if compute.size
                                else None),
             'override_subscribers': self.override_pub.get_subscription_count(),
+            'measured_speed_m_s': round(self.bridge.measured.speed, 4),
+            'monitor': self.bridge.fault,
+            **{f'monitor_{k}': v for k, v in self.bridge.counts.items()},
+            'action_source': self.owners['action'] or '(any one publisher)',
+            'task_state_source': self.owners['task_state'] or '(any one publisher)',
             **last_refusals(self.inputs),
         }
         self.inputs.publish_health('bridge', values)
