@@ -20,7 +20,12 @@ Contract: one core `Bridge` (`core.robot.bridge`, every rule there) fed from
 Both sensor inputs pass the writer's publication sequence number to the core: a second writer's
 skeletons count beside the first's (SSM takes the nearest body), a second writer's joint states
 hold the arm (`core.robot.bridge`, "One arm, every person"); so does another publisher of the
-goal topic, which the watchdog timer counts every `joint_state_timeout / 2`.
+goal topic, which the watchdog timer counts every `joint_state_timeout / 2`. `hrc/action` and
+`hrc/task_state` have one owner each (`action_source`, `task_state_source`): while the graph
+shows another publisher (checked by the watchdog and on every message), or a message comes off
+the followed writer's sequence numbers, the message is refused and the arm holds (docs/ROBOT.md
+7, "One action source"). The core's monitor checks the arm's measured speed and path on every
+joint state, whoever sent its goal (`core.robot.guard`).
 
 It publishes the `JointTrajectory` goals on `joint_trajectory_topic`, the speed override
 (std_msgs/Float64, 0..1) on `speed_override_topic` every tick, `hrc/protective_stop`
@@ -31,8 +36,10 @@ second the separation, S_p, the allowed speed, the motion and the compute time p
 refused inputs (node_support.Inputs: throttled, size-capped).
 
 Nobody subscribed to the speed override: SSM cannot act on the arm, so the bridge does not tick
-(no new trajectory goes out), publishes override 0 and a protective stop, and reports ERROR
-`robot_bridge: speed override` naming the topic, once a second until someone listens.
+(no new trajectory goes out), publishes override 0 and a protective stop, and reports
+`robot_bridge: speed override` naming the topic once a second until someone listens: WARN for
+OVERRIDE_GRACE_SEC after the start (the controller may come up after the bridge), then ERROR;
+OK once someone listens.
 
 Times: the stamps of the joint states and skeletons are compared with this node's ROS clock
 (the system clock, or /clock under use_sim_time), the clock their publishers stamp with.
