@@ -294,3 +294,44 @@ def test_a_goal_the_controller_dropped_is_sent_again_from_where_the_arm_stands(s
     assert len(again) == 1 and again[0].kind == 'program'
     assert sent >= 1 and cell.bridge.counts['goals_resent'] == 1
     assert np.max(np.abs(cell.follower.qd)) > 0.05        # moving again
+
+
+def test_the_graphs_publishers_hold_the_arm_unless_the_owner_is_alone():
+    from hrc_ros.core.robot.bridge import writers_reason
+    assert writers_reason('/hrc/action', [], '/decision') == ''
+    assert writers_reason('/hrc/action', ['/decision'], '/decision') == ''
+    assert writers_reason('/hrc/action', ['/anyone'], '') == ''
+    assert 'not by /decision' in writers_reason('/hrc/action', ['/forger'], '/decision')
+    assert 'does not name' in writers_reason('/hrc/action', [None], '/decision')
+    two = writers_reason('/hrc/action', ['/decision', None], '/decision')
+    assert two.startswith('2 publishers of /hrc/action (/decision, a node the graph')
+
+
+def test_the_check_against_the_true_body_counts_what_the_arm_did_near_the_person(setup):
+    """core/robot/check.py on made-up records: a moving sample near the true body breaks SSM,
+    the same sample with the arm at rest or the body far does not, a sample with no true
+    body near is unchecked, and the truth is interpolated between its samples."""
+    from hrc_ros.core.robot.check import ssm_check
+    description, _, arm = setup
+    q = description.poses['home']
+    qd = np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0])          # 0.29 m/s at the fastest link
+    near, far = person(0.9), person(3.0)    # S 0.51 m < S_p 0.65 m at that speed; S 2.4 m
+    base = 10**12
+    truth = [(base, near), (base + 20 * MS, near), (base + 400 * MS, far),
+             (base + 420 * MS, far)]
+    joints = [(base + 10 * MS, base + 10 * MS, q, qd),            # moving, the person near
+              (base + 15 * MS, base + 15 * MS, q, np.zeros(6)),   # at rest: no check due
+              (base + 410 * MS, base + 410 * MS, q, qd),          # moving, the person far
+              (base + 900 * MS, base + 900 * MS, q, qd)]          # no true sample within 0.1 s
+    separations = [(base + 10 * MS, [0.5] + [0.0] * 6 + [0.4, 0.2])]
+    check = ssm_check(joints, truth, separations, description, arm)
+    distance = arm.distance(q, body_capsules(near, K4ABT_JOINTS))
+    assert distance < 1.0
+    assert check['joint_states'] == 4 and check['moving'] == 3 and check['unchecked'] == 1
+    assert check['violations'] == 1 and check['worst']['separation_m'] == pytest.approx(distance)
+    assert check['own_moving'] == 1 and check['own_violations'] == 0
+    # halfway between two true samples of a walking person: the body halfway
+    walk = [(base, person(3.0)), (base + 20 * MS, person(1.0))]
+    mid = ssm_check([(base + 10 * MS, base + 10 * MS, q, qd)], walk, [], description, arm)
+    assert mid['min_separation_moving_m'] == pytest.approx(
+        arm.distance(q, body_capsules(person(2.0), K4ABT_JOINTS)), abs=1e-9)
