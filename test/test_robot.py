@@ -80,10 +80,31 @@ def test_ssm_protective_stop_worked_example():
 
 
 def test_ssm_data_age_and_control_period_add_to_the_persons_time():
-    # S = 2.0 m, data 0.1 s old, held 0.02 s: T_hum = 0.22, T_rob = 0.12. B = 0.8 + 0.12 = 0.92,
-    # K = 1.6 * 0.22 + 0.11 - 2.0 = -1.538; v = 2 (-0.92 + sqrt(0.8464 + 1.538)) = 2 (-0.92 +
-    # 1.5441502) = 1.2483004 (v_w = 2 (0.9375 - 0.22) = 1.435: walking regime).
-    assert ssm.max_speed(2.0, P, age=0.1, period=0.02) == pytest.approx(1.2483004, abs=1e-6)
+    # S = 2.0 m, data 0.1 s old, held 0.02 s: the person may have reached R = 2.0 (0.1 + 0.02)
+    # = 0.24 m nearer unseen, S' = 1.76; T_hum = 0.1, T_rob = 0.12. B = 0.8 + 0.12 = 0.92,
+    # K = 1.6 * 0.1 + 0.11 - 1.76 = -1.49; v = 2 (-0.92 + sqrt(0.8464 + 1.49)) = 2 (-0.92 +
+    # 1.5285287) = 1.2170574 (v_w = 2 (1.26 / 1.6 - 0.1) = 1.375: walking regime).
+    assert ssm.max_speed(2.0, P, age=0.1, period=0.02) == pytest.approx(1.2170574, abs=1e-6)
+    assert ssm.protective_distance(1.2170574, 2.0, P, 0.1, 0.02) == pytest.approx(2.0, abs=1e-6)
+    # A person measured coming at 2.4 m/s is planned for at that speed (ISO/TS 15066 5.5.4.2.2)
+    fast = ssm.directed_speeds(P, 2.4)
+    assert (fast.human_speed, fast.human_speed_near) == (2.4, 2.4)
+    assert ssm.directed_speeds(P, 1.2) is P
+    assert ssm.max_speed(2.0, fast) < ssm.max_speed(2.0, P)
+
+
+def test_ssm_braking_speed_keeps_the_robot_able_to_follow_the_allowed_speed_down():
+    # Far away the allowed speed falls slower than the robot brakes: max_speed itself.
+    assert ssm.braking_speed(2.0, P) == pytest.approx(ssm.max_speed(2.0, P))
+    # Near 0.5 m it falls faster (the person's assumed travel grows as S falls): the command
+    # is one the robot can brake from at a to every later separation a 2.0 m/s approach gives.
+    for s in np.linspace(0.33, 0.9, 40):
+        v = ssm.braking_speed(s, P)
+        assert v <= ssm.max_speed(s, P) + 1e-12
+        for k in range(1, 21):
+            later = ssm.max_speed(s - 2.0 * 0.02 * k, P) or 0.0
+            assert v <= later + 2.0 * 0.02 * k + 1e-9
+    assert ssm.braking_speed(0.3, P) is None
 
 
 def test_ssm_closed_form_matches_a_bisection_and_has_no_jump_at_half_a_metre():

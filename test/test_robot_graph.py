@@ -271,20 +271,23 @@ def test_the_batch_pre_roll_starts_the_first_epoch_out_of_ssms_start_up_stop(mod
     meanwhile (no action yet)."""
     from hrc_ros.core.mdp.policy import default_policy_path, load_policy
     from hrc_ros.core.robot.cell import ArmCell, ArmCellSettings
-    from hrc_ros.core.study.simulation import Scenario, case_study
+    from hrc_ros.core.study.simulation import Scenario
     policy = load_policy(default_policy_path(), model.config)
-    scenario = case_study()
-    one = Scenario(scenario.initial_state, scenario.schedule, 1, 'epoch 1')
+    # a robot task waiting (2 epochs at its own station), the person in the outer circle: SSM's
+    # start-up stop is its resume_time alone (a person at the table has their hands at the
+    # arm's protective distance at the slowest motion, and the tracker's jitter holds the arm
+    # on and off), and ssm_only commits to the task at once
+    one = Scenario((0, 0, 1, 2, 0, 0, 0, 0, 0, 0, 3), (), 1, 'epoch 1')
     home = load_robot_description().poses['home']
     runs = {}
     for pre_roll in (0.0, 1.0):
         cell = ArmCell(model, policy, settings=ArmCellSettings(pre_roll=pre_roll))
-        runs[pre_roll] = cell.episode(one, SEED, [SEED, 2], 'paper', record=True)
-    assert runs[0.0].actions == runs[1.0].actions == ['dp']
+        runs[pre_roll] = cell.episode(one, SEED, [SEED, 2], 'ssm_only', record=True)
+    assert runs[0.0].actions == runs[1.0].actions == ['ct']
     assert runs[0.0].stop_time == pytest.approx(0.2)         # resume_time, in epoch 1
     assert runs[1.0].stop_time == 0.0
     assert np.array_equal(runs[1.0].arm_path[0][1], home)     # it held through the pre-roll
-    # so the retreat starts earlier: 0.3 s in, the arm has gone farther
+    # so the program starts earlier: 0.3 s in, the arm has gone farther
     moved = {p: np.abs(r.arm_path[15][1] - home).max() for p, r in runs.items()}
     assert moved[1.0] > moved[0.0] > 0
     with pytest.raises(ValueError, match='pre_roll'):

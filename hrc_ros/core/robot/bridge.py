@@ -87,7 +87,8 @@ from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import segment_duration
 from .guard import MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path, nearest_on_path
-from .ssm import MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState, max_speed
+from .ssm import (MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState,
+                  directed_speeds, max_speed)
 
 POSES = ('home', 'retreat', 'collaboration')
 LIMITS = ('lower', 'upper', 'velocity', 'acceleration')
@@ -99,6 +100,8 @@ SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the ar
 OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
+APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
+APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
     'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
     'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
@@ -113,6 +116,8 @@ DESCRIPTION_DEFAULTS = {
     'frozen_tolerance': 0.0005,    # m: a skeleton that moved less is the same data (frozen)
     'max_body_speed': 3.0,         # m/s: a skeleton farther from the arm than this allows is
                                    # not trusted (a jump away)
+    'tracking_error': 0.01,        # m the tracker's keypoints may lie from the body's (SSM takes
+                                   # the person this much nearer: docs/ROBOT.md 7)
 }
 
 
@@ -176,6 +181,7 @@ class RobotDescription:
     path_tolerance: float = DESCRIPTION_DEFAULTS['path_tolerance']
     frozen_tolerance: float = DESCRIPTION_DEFAULTS['frozen_tolerance']
     max_body_speed: float = DESCRIPTION_DEFAULTS['max_body_speed']
+    tracking_error: float = DESCRIPTION_DEFAULTS['tracking_error']
     ssm: SsmParameters = field(default_factory=SsmParameters)
     source: str = ''
 
@@ -520,6 +526,8 @@ class Bridge:
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
         self._content_stamp: int | None = None   # the stamp of the last skeleton that changed
+        self._frames: deque = deque(maxlen=64)   # (stamp, body) of the followed, as they changed
+        self.approach = 0.0           # m/s: the person's measured directed speed toward the arm
         self.task: dict | None = None
         self.last_action: int | None = None
         self.paused = True            # nothing asked yet: hold
@@ -583,6 +591,8 @@ class Bridge:
             return
         if body is None:
             self.body, self._body_stamp, self._content_stamp = None, None, None
+            self._frames.clear()
+            self.approach = 0.0
             return
         held = self.body
         live = held is not None and \
@@ -599,6 +609,27 @@ class Bridge:
             self.counts['frozen_skeletons'] += 1
             return
         self.body, self._body_stamp, self._content_stamp = body, int(stamp_ns), int(stamp_ns)
+        self._measure_approach(body, int(stamp_ns))
+
+    def _measure_approach(self, body: BodyCapsules, stamp_ns: int) -> None:
+        """The person's directed speed toward the arm (m/s) from the followed tracker's
+        skeletons over APPROACH_WINDOW: the fall of their separation, both at the arm's current
+        configuration (the arm's own motion left out), plus APPROACH_NOISE (the tracker's
+        jitter over the window). SSM plans for it where it exceeds ISO 13855's speeds
+        (`ssm.directed_speeds`)."""
+        history = self._frames
+        while history and history[-1][0] >= stamp_ns:
+            history.pop()
+        history.append((stamp_ns, body))
+        while len(history) > 2 and stamp_ns - history[1][0] >= APPROACH_WINDOW * 1e9:
+            history.popleft()
+        then, old = history[0]
+        dt = (stamp_ns - then) * 1e-9
+        if self.q is None or dt < APPROACH_WINDOW / 2:
+            self.approach = 0.0
+            return
+        fall = self.arm.distance(self.q, old) - self.arm.distance(self.q, body)
+        self.approach = max(0.0, fall / dt) + APPROACH_NOISE if fall > 0 else 0.0
 
     def _nearest(self, now_ns: int) -> tuple[Separation | None, int | None]:
         """The separation SSM takes: the nearest of the bodies held (the followed writer's
@@ -681,6 +712,7 @@ class Bridge:
     # -- the tick ------------------------------------------------------------------------------
     def tick(self, now_ns: int) -> BridgeCommand:
         """What to send now (see the module docstring)."""
+        d = self.description
         reports = []
         fresh = (self.q is not None and self._joint_stamp is not None
                  and (now_ns - self._joint_stamp) * 1e-9 <= self.description.joint_state_timeout)
@@ -709,8 +741,10 @@ class Bridge:
             self.active, self._next = trajectory, 0
         own = self.active is not None and len(self.active.durations) > 0
         nominal = self.active.nominal_speed if own else 0.0
-        state = self.monitor.update(None if sep is None else sep.distance, human_stamp,
-                                    now_ns, nominal)
+        # SSM on the person as near as the tracker's error allows (the check of a run is on
+        # the true body, with ISO's Z_d whole)
+        state = self.monitor.update(None if sep is None else sep.distance - d.tracking_error,
+                                    human_stamp, now_ns, nominal, self.approach)
         # Nothing of the bridge's own to move (a stay, no goal yet): override 0, so that a goal
         # it did not send cannot run on its override.
         override = state.override if own else 0.0
@@ -786,7 +820,8 @@ class Bridge:
         if not breach and sep is not None and speed > MOVING_SPEED:
             age = max(0.0, (now_ns - human_stamp) * 1e-9)
             if age <= p.human_timeout:
-                allowed = max_speed(sep.distance, p, age) or 0.0
+                allowed = max_speed(sep.distance - d.tracking_error,
+                                    directed_speeds(p, self.approach), age) or 0.0
                 if speed > allowed + d.speed_tolerance:
                     breach = (f'the arm moves at {speed:.3f} m/s (measured), above the '
                               f'{allowed:.3f} m/s SSM allows at a separation of '

@@ -39,13 +39,19 @@ so S_h = D(S, T_r + T_s); far from the robot (v_h (T_r + T_s) <= S - 0.5) this i
 
 **Time since the data** (what a monitor fed by a sensor must add). S is measured from the
 skeleton captured at its stamp and the arm's current joint state, and the override holds until
-the next update: the person may have moved for the data's age plus one control period more,
-and the robot for one control period more. So the monitor evaluates
+the next update. In the data's age plus the hold the person may have moved in a way the data
+does not show, at up to `human_speed_near` (ISO 13855's fastest approach, a reach at 2.0 m/s:
+a hand can come at that speed from farther than 0.5 m too, faster than the 1.6 m/s walk the
+standard assumes there), so the monitor takes them nearer by that reach, R = v_near (age + dt),
+and ISO's S_p from there, the robot moving for one control period more:
 
-    S_p(v) = D(S, T_r + age + dt + T_s(v)) + v (T_r + dt) + v^2 / (2 a) + C + Z_d + Z_r,
+    S_p(v) = R + D(S - R, T_r + T_s(v)) + v (T_r + dt) + v^2 / (2 a) + C + Z_d + Z_r,
 
 and the check of a sample (`ssm_violated`: the true separation at that instant, age = dt = 0)
-is ISO/TS 15066's formula as written.
+is ISO/TS 15066's formula as written. (Before, the age and the hold were added to the
+person's time at the regime's speed, D(S, T_r + age + dt + T_s): a reach at 2.0 m/s from 0.8 m
+came 0.4 m/s x age nearer than that allowed, and the batch's reach scenario broke SSM by up to
+3.5 cm.)
 
 **Largest speed** (closed form). f(v) = S_p(v) - S is continuous and strictly increasing in
 v; in each regime of D it is the quadratic A v^2 + B v + K with A = 1 / (2 a) and
@@ -53,9 +59,9 @@ v; in each regime of D it is the quadratic A v^2 + B v + K with A = 1 / (2 a) an
     walking:  B = v_h / a + T_rob,     K = v_h T_hum + M - S
     reaching: B = v_near / a + T_rob,  K = w + v_near (T_hum - w / v_h) + M - S
 
-(T_hum = T_r + age + dt, T_rob = T_r + dt, M = C + Z_d + Z_r). The regimes meet at
-v_w = a (w / v_h - T_hum): the largest safe speed is the walking root if it is <= v_w, else the
-reaching root, v = (-B + sqrt(B^2 - 4 A K)) / (2 A); none (K > 0 at v = 0) is a stop.
+(T_hum = T_r, T_rob = T_r + dt, M = C + Z_d + Z_r, S the separation less R). The regimes
+meet at v_w = a (w / v_h - T_hum): the largest safe speed is the walking root if it is <= v_w,
+else the reaching root, v = (-B + sqrt(B^2 - 4 A K)) / (2 A); none (K > 0 at v = 0) is a stop.
 
 Parameters (metres, seconds; `SsmParameters`; docs/ROBOT.md has their sources in full):
 
@@ -77,7 +83,7 @@ Parameters (metres, seconds; `SsmParameters`; docs/ROBOT.md has their sources in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -144,6 +150,17 @@ class SsmParameters:
         return self.intrusion + self.human_uncertainty + self.robot_uncertainty
 
 
+def directed_speeds(p: SsmParameters, approach: float) -> SsmParameters:
+    """The parameters with the person's speeds raised to a measured directed speed toward the
+    robot where it exceeds them: ISO/TS 15066 5.5.4.2.2 takes v_h as the operator's directed
+    speed, ISO 13855's 1.6 m/s (2.0 m/s within 0.5 m) when it is not measured. A person
+    measured coming faster (a run at the arm, a fast reach) is planned for at that speed."""
+    if not approach > p.human_speed:           # (NaN: not measured)
+        return p
+    return replace(p, human_speed=float(approach),
+                   human_speed_near=max(p.human_speed_near, float(approach)))
+
+
 def _is_scalar(*values) -> bool:
     for v in values:
         if not isinstance(v, (int, float)):
@@ -164,13 +181,21 @@ def human_travel(separation, time, p: SsmParameters):
     return np.where(walk <= w, walk, reach)
 
 
+def unseen_reach(p: SsmParameters, age: float = 0.0, period: float = 0.0) -> float:
+    """How much nearer the person may be than the data shows (m): they may have moved at
+    `human_speed_near` (ISO 13855's fastest approach, a reach) for the data's age and the
+    command's hold (module docstring, "Time since the data")."""
+    return p.human_speed_near * (age + period)
+
+
 def protective_distance(speed, separation, p: SsmParameters, age: float = 0.0,
                         period: float = 0.0):
     """S_p (m) for robot speed `speed` (m/s) at separation `separation` (m), with the human
     data `age` s old and the command held for `period` s (module docstring). Broadcasts."""
     v = speed if _is_scalar(speed) else np.asarray(speed, dtype=float)
     stop_time = v / p.deceleration
-    return (human_travel(separation, p.reaction_time + age + period + stop_time, p)
+    reach = unseen_reach(p, age, period)
+    return (reach + human_travel(separation - reach, p.reaction_time + stop_time, p)
             + v * (p.reaction_time + period) + v * v / (2.0 * p.deceleration) + p.margin)
 
 
@@ -187,7 +212,8 @@ def max_speed(separation: float, p: SsmParameters, age: float = 0.0,
     if not math.isfinite(s):
         raise ValueError(f'separation must be a finite number of metres, got {separation!r}')
     a = p.deceleration
-    t_hum = p.reaction_time + age + period
+    s -= unseen_reach(p, age, period)      # where the person may be by the hold's end
+    t_hum = p.reaction_time
     t_rob = p.reaction_time + period
     w = max(s - p.near_distance, 0.0)
     v_switch = a * (w / p.human_speed - t_hum)
@@ -202,6 +228,33 @@ def max_speed(separation: float, p: SsmParameters, age: float = 0.0,
     if k > 0:
         return None
     return _root(a, p.human_speed_near / a + t_rob, k)
+
+
+BRAKING_STEP = 0.02      # s between the look-ahead times of `braking_speed`
+BRAKING_HORIZON = 0.4    # s: the look-ahead's last time
+
+
+def braking_speed(separation: float, p: SsmParameters, age: float = 0.0,
+                  period: float = 0.0) -> float | None:
+    """The largest speed the robot may have now so that, braking at `deceleration`, it stays
+    within `max_speed` at every separation the person can bring about while it brakes, coming
+    at `human_speed_near`: min over tau of max_speed(S - v_near tau) + a tau (0 where no speed
+    is safe). Near 0.5 m the allowed speed falls faster than the robot can brake (ISO 13855's
+    switch to 2.0 m/s makes the person's assumed travel grow as S falls); a command of
+    max_speed(S) alone then leaves the robot behind it (the batch's reach scenario: S < S_p by
+    1-2 mm). Far away it is max_speed(S) itself. None when max_speed(S) is."""
+    now = max_speed(separation, p, age, period)
+    if now is None:
+        return None
+    best = now
+    a = p.deceleration
+    for k in range(1, int(round(BRAKING_HORIZON / BRAKING_STEP)) + 1):
+        tau = k * BRAKING_STEP
+        if a * tau >= best:
+            break                       # no later separation can lower it further
+        later = max_speed(separation - p.human_speed_near * tau, p, age, period) or 0.0
+        best = min(best, later + a * tau)
+    return best
 
 
 def speed_override(allowed: float | None, nominal: float) -> float:
@@ -260,8 +313,11 @@ class SpeedSeparationMonitor:
         self._clear_since: int | None = None
 
     def update(self, separation: float | None, human_stamp_ns: int | None, now_ns: int,
-               nominal_speed: float) -> SsmState:
-        p = self.p
+               nominal_speed: float, approach: float = 0.0) -> SsmState:
+        """`approach`: the person's measured directed speed toward the arm (m/s, 0: none
+        measured); where it exceeds the parameters' speeds it takes their place
+        (`directed_speeds`)."""
+        p = directed_speeds(self.p, approach)
         allowed = bound = None
         if separation is None or human_stamp_ns is None:
             reason = 'no human data yet' if self.reason == 'no human data yet' else \
@@ -272,7 +328,7 @@ class SpeedSeparationMonitor:
                 reason = (f'human data {age:.2f} s old (human_timeout {p.human_timeout} s): '
                           'the person may be anywhere')
             else:
-                allowed = max_speed(separation, p, age, self.period)
+                allowed = braking_speed(separation, p, age, self.period)
                 reason = ''
                 if allowed is None or allowed < p.min_speed:
                     least = protective_distance(p.min_speed, separation, p, age, self.period)

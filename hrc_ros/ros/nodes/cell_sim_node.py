@@ -34,6 +34,7 @@ import numpy as np
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray, String, UInt8MultiArray
 
@@ -55,6 +56,8 @@ from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
 SENSOR_STREAM = 1   # the sensor samples' RNG stream: default_rng([seed, SENSOR_STREAM])
 PERSON_STREAM = 2   # the 3D person's walk: SimulatedPerson(seed=[seed, PERSON_STREAM])
 PERSONS = ('point', '3d')
+WALK_STEP_S = 0.02      # s: the 3D person's longest step (the truth's sample interval at most)
+MAX_WALK_STEPS = 500    # steps of one late timer call (10 s); a longer stall walks coarser
 IDLE_TASK = {name: 0 for name in TASK_VARIABLES}
 
 T = Parameter.Type
@@ -298,22 +301,28 @@ class CellSimNode(Node):
 
     # -- outputs ---------------------------------------------------------------------------
     def _walk(self, now_ns: int) -> None:
-        """The 3D person walks up to now (also while the sensors drop out); a scene's clock
-        runs from the first action."""
-        dt = 0.0 if self._walked_ns is None else max(0.0, (now_ns - self._walked_ns) * 1e-9)
-        self._walked_ns = now_ns
-        t = -1.0 if self._scene_start_ns is None else (now_ns - self._scene_start_ns) * 1e-9
-        if self.arm is None:
-            self.scene.step(dt, t, None, self._person_separation())
-        else:
-            self.scene.step(dt, t, self._probe)
+        """The 3D person walks up to now (also while the sensors drop out), in steps of at most
+        WALK_STEP_S however late the timer came (a loaded machine), each published as the truth
+        on hrc/sim/true_skeleton, stamped when it was so; a scene's clock runs from the first
+        action."""
+        last, self._walked_ns = self._walked_ns, now_ns
+        total = 0 if last is None else max(0, now_ns - last)
+        steps = min(MAX_WALK_STEPS, max(1, math.ceil(total * 1e-9 / WALK_STEP_S)))
+        for i in range(1, steps + 1):
+            at = now_ns - total + total * i // steps
+            dt = total / steps * 1e-9
+            t = -1.0 if self._scene_start_ns is None else (at - self._scene_start_ns) * 1e-9
+            if self.arm is None:
+                self.scene.step(dt, t, None, self._person_separation())
+            else:
+                self.scene.step(dt, t, self._probe)
+            self.true_skeleton_pub.publish(conv.keypoints_to_msg(
+                self.scene.bodies(), Time(nanoseconds=at).to_msg(), self.robot_frame))
 
     def _stream(self) -> None:
         now = self.get_clock().now()
         if self.person is not None:
-            self._walk(now.nanoseconds)
-            self.true_skeleton_pub.publish(conv.keypoints_to_msg(
-                self.scene.bodies(), now.to_msg(), self.robot_frame))   # also in a dropout
+            self._walk(now.nanoseconds)          # the truth too, also in a dropout
         if self._fault('dropout'):
             return
         dt = 0.0 if self._last_sample_ns is None else (now.nanoseconds

@@ -74,7 +74,7 @@ from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTI
                                 load_description, skeleton_converter)
 
 T = Parameter.Type
-MAX_STEP_SEC = 0.05      # a longer pause of the timer is stepped as this (the arm does not jump)
+MAX_STEP_SEC = 1.0       # a longer stall of the motion thread is stepped as this at most
 TIME_SLACK = 1e-3        # s (and relative): a segment may be this much faster than computed
 MAX_GOAL_POINTS = 1000   # points of a goal this controller takes (timing them costs ~1 ms each)
 REST_CREEP = 1e-3        # rad an arm at rest may creep while its next goal is checked
@@ -257,7 +257,12 @@ class CobotSimNode(Node):
         except InputError:
             self.override = 0.0
             raise
-        self.override, self._override_at = value, time.monotonic()
+        # The override counts from when the bridge sent it, not from its arrival: one that
+        # spent 25 ms on the way holds 30 ms less 25 (the bridge plans each for its period plus
+        # command_latency, the watchdog's 30 ms, from when it computed it). A sender's clock
+        # ahead of this one's cannot make it last longer than from its arrival.
+        transit = max(0.0, time.time() - source.published_ns * 1e-9)
+        self.override, self._override_at = value, time.monotonic() - transit
 
     def _on_skeleton(self, converted) -> None:
         self.body, self._body_stamp = converted
@@ -287,10 +292,17 @@ class CobotSimNode(Node):
         """One step of the follower to `now` (time.monotonic()), and the joint state (and the
         separation) it gives when `publish`."""
         clock = self.get_clock().now()    # the stamp of the state at `now`
-        dt = min(max(now - self._last_step, 0.0), MAX_STEP_SEC)
-        self._last_step = now
+        elapsed = min(max(now - self._last_step, 0.0), MAX_STEP_SEC)
+        last, self._last_step = self._last_step, now
+        # A late step (the machine stalled this thread) is stepped in step periods, each with
+        # the override the watchdog gave at its time: a real controller runs through the stall
+        # and brakes once the override is older than override_timeout, so neither does the arm
+        # stand still nor run on at a stale override for the whole stall.
+        parts = max(1, math.ceil(elapsed / self.step_period - 1e-9))
         with self._lock:
-            state = self.follower.step(dt, self._commanded(now))
+            for i in range(1, parts + 1):
+                at = now - elapsed + elapsed * i / parts if i < parts else now
+                state = self.follower.step(elapsed / parts, self._commanded(max(at, last)))
         self.steps += 1
         if not publish:
             return
