@@ -1,10 +1,11 @@
 """hmi: the person's side of the cell, a web page for the worker and one for the operator.
 
 Contract (docs/HMI.md): serves ``http://<host>:<port>/`` (the worker's page) and ``/operator``
-and keeps them live over a WebSocket. It listens to `hrc/epoch`, `hrc/action`,
-`hrc/task_state`, `hrc/belief`, `hrc/distance_level`, `hrc/human_response`,
-`hrc/task_request_result`, the decision node's and the task manager's statuses on
-/diagnostics, and the robot side's speed override and separation when they are published; it
+(the operator's console) and keeps them live over a WebSocket; the worker's access token opens
+the worker's page only. It listens to `hrc/epoch`, `hrc/action`, `hrc/task_state`,
+`hrc/belief`, `hrc/distance_level`, `hrc/human_response`, `hrc/task_request_result`, the
+decision node's, the task manager's and the robot bridge's statuses on /diagnostics, and the
+robot side's speed override, separation and protective stop when they are published; it
 publishes the worker's answers on `hrc/human_response` (std_msgs/Bool, reliable) and the
 operator's orders on `hrc/task_request` (std_msgs/UInt8MultiArray, `qos.ORDERS`, the path every
 order takes), and its health on /diagnostics. The rules (when a request is open, one answer per
@@ -16,8 +17,10 @@ The four inputs that decide a request (`hrc/epoch`, `hrc/action`, `hrc/task_stat
 `hrc/human_response`, a few messages an epoch) are ordinary subscriptions: the machine takes
 each at once, in whatever order DDS delivers them (it pairs them by source timestamp), and the
 pages follow. Everything else (the belief, the distance, /diagnostics, the reports, the robot
-side) is `SampledInputs`, taken `refresh_rate` times a second, so the node never wakes for
-those and its share of the CPU does not grow with their rates. A page's command wakes it at
+side) is `SampledInputs`, taken `refresh_rate` times a second and before each control message
+(so an epoch's row of the timeline has the belief published before its action), so the node
+never wakes for those and its share of the CPU hardly grows with their rates. A page's command
+wakes it at
 once through a guard condition (the web thread never waits for the executor, nor the executor
 for the web thread: a bounded queue between them); the executor runs the control messages
 ready with it first, so the machine decides on the latest state, then publishes and replies.
@@ -34,9 +37,11 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.hmi import AccessError, AccessPolicy, HmiMachine, is_loopback
+from ...core.hmi.access import OPERATOR, TOKEN_ENV, WORKER
 from .. import conversions as conv
 from .. import qos
 from ..hmi.server import Command, HmiServer, ServerSettings
@@ -45,9 +50,18 @@ from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, Sample
 from .cell_view_node import SAMPLED
 
 T = Parameter.Type
-TOKEN_ENV = 'HRC_HMI_TOKEN'
+LEGACY_TOKEN_ENV = 'HRC_HMI_TOKEN'
 COMMAND_QUEUE = 256        # page commands waiting for the executor; beyond: "busy"
 ORDER_REFS_KEPT = 256
+MS = 1_000_000
+# hrc/separation at the arm's joint-state rate (125 Hz) between two reads (20 Hz by default):
+# deep enough that a read late by a second loses no sample of the smallest separation
+SEPARATION_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=256,
+                            reliability=ReliabilityPolicy.BEST_EFFORT)
+# hrc/protective_stop is latched (published on change): a late HMI gets the stop in force
+STOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 PARAMETERS = (
     CONFIG,
     ParamSpec('host', T.STRING, '127.0.0.1', 'address the web server binds (loopback by '
@@ -55,10 +69,16 @@ PARAMETERS = (
               read_only=True),
     ParamSpec('port', T.INTEGER, 8080, 'TCP port of the pages; 0 = a free port (logged and on '
               '/diagnostics)', read_only=True, range=(0, 65535)),
-    ParamSpec('token', T.STRING, '', f"access token ('' = the {TOKEN_ENV} environment "
-              'variable, else none), at least 16 characters; required off loopback, and then '
-              'every HTTP and WebSocket request needs it. Prefer the environment variable: '
-              'a parameter can be read with ros2 param get', read_only=True),
+    ParamSpec('worker_token', T.STRING, '', f"the worker's access token ('' = the "
+              f'{TOKEN_ENV[WORKER]} environment variable, else none), at least 16 characters: '
+              "it opens the worker's page only; required off loopback. Prefer the environment "
+              'variable: a parameter can be read with ros2 param get', read_only=True),
+    ParamSpec('operator_token', T.STRING, '', f"the operator's access token ('' = the "
+              f'{TOKEN_ENV[OPERATOR]} environment variable, else none), at least 16 '
+              "characters, not the worker's: it opens both pages and queues tasks; required "
+              'off loopback (and whenever the worker has one)', read_only=True),
+    ParamSpec('token', T.STRING, '', "replaced by worker_token and operator_token: a "
+              'value here refuses to start rather than guess its role', read_only=True),
     ParamSpec('allowed_origins', T.STRING_ARRAY, [], 'origins besides the page itself whose '
               'pages may open the WebSocket (a reverse proxy\'s public origin, e.g. '
               'https://hmi.plant.example)', read_only=True),
@@ -90,6 +110,8 @@ PARAMETERS = (
               'status gives the fail-safe reasons', read_only=True),
     ParamSpec('task_manager_node', T.STRING, 'task_manager', 'the task manager whose '
               '/diagnostics status gives the queue', read_only=True),
+    ParamSpec('robot_bridge_node', T.STRING, 'robot_bridge', 'the robot bridge whose '
+              '/diagnostics status gives the reason of each protective stop', read_only=True),
     ParamSpec('speed_override_topic', T.STRING, 'hrc/speed_override', "the robot side's speed "
               'override (std_msgs/Float64, 0..1), shown on /operator while published',
               read_only=True),
@@ -105,9 +127,29 @@ def check_parameters(values) -> str | None:
     return None
 
 
-def _separation(msg: Float64MultiArray) -> float:
-    """S (m) of the robot side's hrc/separation (`conversions.separation_from_msg`)."""
-    return conv.separation_from_msg(msg)['S']
+def _separation(msg: Float64MultiArray) -> tuple[float, float, float]:
+    """(S, S_p, speed bound) of the robot side's hrc/separation
+    (`conversions.separation_from_msg`): metres, metres, m/s."""
+    values = conv.separation_from_msg(msg)
+    return values['S'], values['S_p'], values['speed']
+
+
+def _stopped(msg: Bool) -> bool:
+    return bool(msg.data)
+
+
+def _tokens(values) -> dict:
+    """Each role's token: its parameter, else its environment variable. The one token of
+    before (the `token` parameter, HRC_HMI_TOKEN) is refused: its role cannot be guessed, and
+    dropping it silently would open a page it protected."""
+    if values['token'] or os.environ.get(LEGACY_TOKEN_ENV):
+        raise StartupError(f'the single access token (token, {LEGACY_TOKEN_ENV}) is replaced by '
+                           f"two: the worker's (worker_token, {TOKEN_ENV[WORKER]}) opens the "
+                           "worker's page only, the operator's (operator_token, "
+                           f'{TOKEN_ENV[OPERATOR]}) the console too; set those and unset it '
+                           '(docs/HMI.md, "Roles")')
+    return {role: values[f'{role}_token'] or os.environ.get(TOKEN_ENV[role], '')
+            for role in (WORKER, OPERATOR)}
 
 
 class HmiNode(Node):
@@ -117,16 +159,17 @@ class HmiNode(Node):
         super().__init__(self.NODE_NAME, **kwargs)
         self.params, values, self.config, self.model = node_setup(
             self, PARAMETERS, check_parameters, self._apply)
-        token = values['token'] or os.environ.get(TOKEN_ENV, '')
-        self.policy = AccessPolicy(values['host'], token, values['allowed_origins'],
-                                   values['allowed_hosts'])
+        tokens = _tokens(values)
+        self.policy = AccessPolicy(values['host'], tokens[WORKER], tokens[OPERATOR],
+                                   values['allowed_origins'], values['allowed_hosts'])
         try:
             self.policy.check_start()
         except AccessError as exc:
             raise StartupError(str(exc)) from None
         self.clock = control_clock(self)
         self.machine = HmiMachine(self.model.rho, self.model.sigma, values['worker_answers'],
-                                  values['cell_timeout'], values['order_timeout'])
+                                  values['cell_timeout'], values['order_timeout'],
+                                  start_ns=time.time_ns() // MS * MS)
         self.response_pub = self.create_publisher(Bool, 'hrc/human_response', qos.RELIABLE)
         self.request_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_request',
                                                  qos.ORDERS)
@@ -135,7 +178,9 @@ class HmiNode(Node):
         namespace = self.get_namespace().strip('/')
         prefix = f'{namespace}/' if namespace else ''
         self.decision_status = f'{prefix}{values["decision_node"]}: decision'
+        self.policy_status = f'{prefix}{values["decision_node"]}: policy'
         self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
+        self.stop_status = f'{prefix}{values["robot_bridge_node"]}: ssm'
         # In causal order: rclpy runs the messages ready in one wait in subscription order
         for msg_type, topic, convert, feed in (
                 (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
@@ -157,8 +202,10 @@ class HmiNode(Node):
                   name='diagnostics')
         subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA,
                   conv.speed_override_from_msg, name='speed_override', latest_only=True)
-        subscribe(Float64MultiArray, values['separation_topic'], qos.SENSOR_DATA, _separation,
-                  name='separation', latest_only=True)
+        subscribe(Float64MultiArray, values['separation_topic'], SEPARATION_QOS, _separation,
+                  name='separation')
+        subscribe(Bool, 'hrc/protective_stop', STOP_QOS, _stopped,
+                  name='protective_stop')
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.order_refs: dict[int, tuple] = {}
         self.published = {'answers': 0, 'orders': 0}
@@ -208,7 +255,8 @@ class HmiNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------
     def _statuses(self, msg: DiagnosticArray):
-        """The decision node's and the task manager's statuses in `msg` (None: neither)."""
+        """The statuses the HMI reads in `msg` (None: none): the decision node's epoch report
+        and policy swaps, the task manager's queue, the robot bridge's protective stop."""
         found = []
         for status in msg.status:
             if status.name == self.decision_status:
@@ -220,53 +268,79 @@ class HmiNode(Node):
                                   conv.LEVEL_NAMES.get(status.level, '?')))
             elif status.name == self.task_manager_status:
                 found.append(('task_manager', conv.diagnostic_values(status)))
+            elif status.name == self.stop_status:
+                values = conv.diagnostic_values(status)
+                found.append(('stop', status.level != DiagnosticStatus.OK,
+                              values.get('reason', '')))
+            elif status.name == self.policy_status:
+                found.append(('policy', conv.LEVEL_NAMES.get(status.level, '?'),
+                              status.message, conv.diagnostic_values(status)))
         return found or None
 
     def _task_state_from_msg(self, msg):
         return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
 
     def _control(self, feed):
-        """A handler of a control input: the machine takes it at once and the pages follow."""
+        """A handler of a control input: the machine takes it at once (after the sampled
+        inputs waiting, so it sees the belief and the distance published before it) and the
+        pages follow."""
         def handle(value, published_ns: int) -> None:
             now = self._now()
+            self._take(now)
             feed(value, published_ns, now)
             self._push(now)
         return handle
 
     def _take(self, now: int) -> None:
         machine = self.machine
-        for _, name, value in self.sampled.take():
+        for published, name, value in self.sampled.take():
             if name == 'belief':
                 machine.belief_message(value)
             elif name == 'distance_level':
                 machine.distance_message(value)
             elif name == 'task_request_result':
-                self._order_done(machine.task_request_result(value))
+                self._order_done(machine.task_request_result(value, published))
             elif name == 'diagnostics' and value is not None:
                 for status in value:
                     if status[0] == 'decision':
-                        machine.decision_report(*status[1:])
-                    else:
+                        machine.decision_report(*status[1:], published)
+                    elif status[0] == 'task_manager':
                         machine.task_manager_report(status[1])
+                    elif status[0] == 'stop':
+                        machine.stop_report(*status[1:], published)
+                    else:
+                        machine.policy_report(*status[1:], published)
             elif name == 'speed_override':
                 machine.speed_override_message(value, now)
             elif name == 'separation':
-                machine.separation_message(value, now)
+                machine.separation_message(*value, published, now)
+            elif name == 'protective_stop':
+                machine.protective_stop_message(value, published)
 
     def _refresh(self) -> None:
         now = self._now()
         self._take(now)
         for order in self.machine.expire(now):
             self._order_done(order)
+        self.machine.expire_events(time.time_ns())
         self._push(now)
 
     def _push(self, now: int) -> None:
+        machine, wall = self.machine, time.time_ns()
         views = tuple(json.dumps({'type': 'view', **view}, separators=(',', ':'), default=str)
-                      for view in (self.machine.worker_view(now),
-                                   self.machine.operator_view(now)))
+                      for view in (machine.worker_view(now), machine.operator_view(now, wall)))
         if views != self._views:
             self._views = views
             self.server.publish_views({'worker': views[0], 'operator': views[1]})
+        feeds = {}
+        rows = machine.timeline.take(wall)
+        if rows is not None:
+            feeds['timeline'] = [json.dumps(rows, separators=(',', ':'))]
+        events = machine.events.take()
+        if events:
+            feeds['events'] = [json.dumps(e, separators=(',', ':')) for e in events]
+        if feeds:
+            self.server.append_feeds(feeds)
 
     # -- the pages' commands (web thread -> executor) --------------------------------------
     def _submit(self, command: Command) -> bool:
