@@ -42,6 +42,14 @@ def test_the_arms_state_holds_from_one_sample_to_the_next():
     assert f['min_separation'] == 0.4
 
 
+def test_a_message_that_arrives_after_the_figures_is_counted_at_its_time():
+    shift = ShiftFigures(T0)
+    shift.arm_sample(T0, 1.0, 0.5)
+    assert shift.figures(T0 + 2 * S, 'shift')['protective_stop_share'] == 0.0
+    shift.protective_stop(T0 + S, True)       # published at 1 s, taken after the figures
+    assert shift.figures(T0 + 2 * S, 'shift')['protective_stop_share'] == pytest.approx(50.0)
+
+
 def test_a_silent_robot_side_is_not_measured_beyond_the_hold():
     shift = ShiftFigures(T0)
     shift.arm_sample(T0, 1.0, 0.0)                  # idle, then nothing for 10 s
@@ -72,9 +80,16 @@ def test_windows_count_the_last_minutes_and_the_shift_counts_everything():
     assert shift.figures(now, 'hour')['since_ns'] == T0           # never before the shift
     assert ShiftFigures(T0).figures(now, 'shift')['fail_safe_epochs'] is None   # no report
     # what happened before the shift began (a latched message) is not counted
-    late = ShiftFigures(T0 + S)
+    late = ShiftFigures()
     late.task_completed(T0)
-    assert late.figures(T0 + 2 * S, 'shift')['tasks_completed'] == 0
+    late.arm_sample(T0, 0.1, 0.0)
+    assert late.all_windows(T0 + S) is None                    # no shift yet
+    late.begin(T0 + S)
+    late.begin(T0 + 2 * S)                                     # it began once
+    late.arm_sample(T0 + 3 * S, 0.5, 0.0)
+    f = late.figures(T0 + 4 * S, 'shift')
+    assert (f['since_ns'], f['tasks_completed'], f['min_separation']) == (T0 + S, 0, 0.5)
+    assert f['arm_seconds'] == pytest.approx(2.0)   # the state heard before, from the start on
 
 
 def test_the_figures_keep_a_fixed_memory_over_hours():

@@ -126,7 +126,7 @@ class HmiMachine:
 
     def __init__(self, rho: int, sigma: int, worker_answers: bool = True,
                  cell_timeout_s: float = 0.0, order_timeout_s: float = 3.0,
-                 instance: str | None = None, start_ns: int = 0):
+                 instance: str | None = None, start_ns: int | None = None):
         self.rho, self.sigma = rho, sigma
         self.worker_answers = worker_answers
         self.cell_timeout_s = cell_timeout_s
@@ -178,6 +178,7 @@ class HmiMachine:
             return
         self.epochs.take(k, stamp)
         self.last_cell_ns = now
+        self.shift.begin(published_ns)
         if restart is not None and self.request is not None:
             self._close(RESTARTED, 'closed: the cell restarted its epochs')
 
@@ -202,6 +203,7 @@ class HmiMachine:
 
     def action_message(self, action: int, published_ns: int, now: int) -> None:
         self.last_cell_ns = now
+        self.shift.begin(published_ns)
         if self.action_ns is not None and published_ns <= self.action_ns:
             return
         request = self.request
@@ -491,8 +493,9 @@ class HmiMachine:
         if self._figures_ns is None or self.shift.changed \
                 or wall_ns - self._figures_ns >= FIGURES_PERIOD_S * 1e9:
             self._figures_ns = wall_ns
-            self._figures = {name: rounded(figures)
-                             for name, figures in self.shift.all_windows(wall_ns).items()}
+            windows = self.shift.all_windows(wall_ns)
+            self._figures = None if windows is None else {
+                name: rounded(figures) for name, figures in windows.items()}
         return self._figures
 
     def operator_view(self, now: int, wall_ns: int) -> dict:

@@ -16,8 +16,10 @@ the cell publishes (docs/HMI.md, "The figures of the shift"):
 - fail-safe epochs: epochs whose decision report gives a fail-safe reason.
 
 Times are the messages' source timestamps (the publishers' system clock, ns) and the figures'
-`now` is the same clock. The windows end now and begin `WINDOWS[name]` seconds before (never
-before the shift began: `start_ns`, when the HMI started watching); counts are kept in bins of
+`now` is the same clock. The shift begins with the cell's first sign of life the HMI takes
+(the decision node's first epoch signal or action, `begin`), so what it counts is what it heard
+from then on (a message before is state, not counted). The windows end now and begin
+`WINDOWS[name]` seconds before, never before the shift began; counts are kept in bins of
 `BIN_S` seconds for the last `KEPT_S`, so a window's start is its bin's (a window is whole
 seconds); the shift's totals are kept whole. Nothing here grows with time: a fixed ring of
 bins and a few totals.
@@ -45,10 +47,11 @@ S = 1_000_000_000
 
 
 class ShiftFigures:
-    """The shift's counts since `start_ns` (see the module docstring)."""
+    """The shift's counts since `start_ns` (see the module docstring); None: it begins with
+    `begin`."""
 
-    def __init__(self, start_ns: int, bin_s: int = BIN_S, kept_s: int = KEPT_S):
-        self.start_ns = int(start_ns)
+    def __init__(self, start_ns: int | None = None, bin_s: int = BIN_S, kept_s: int = KEPT_S):
+        self.start_ns = None if start_ns is None else int(start_ns)
         self.bin_ns = int(bin_s) * S
         self.slots = int(kept_s) // int(bin_s) + 2
         self._bins = np.zeros((self.slots, COLUMNS))
@@ -64,6 +67,11 @@ class ShiftFigures:
         self._fail_safe_epoch: int | None = None
         self.changed = False                 # a count, a stop or a new smallest separation
 
+    def begin(self, t: int) -> None:
+        """The shift begins at `t` (if it has not begun)."""
+        if self.start_ns is None:
+            self.start_ns = int(t)
+
     # -- bins ------------------------------------------------------------------------------
     def _slot(self, t: int) -> int:
         number = t // self.bin_ns
@@ -75,7 +83,7 @@ class ShiftFigures:
         return slot
 
     def _add(self, t: int, column: int, value: float = 1.0) -> None:
-        if t < self.start_ns:
+        if self.start_ns is None or t < self.start_ns:
             return                      # before the shift (a latched message from before)
         self._bins[self._slot(t), column] += value
         self.total[column] += value
@@ -85,7 +93,9 @@ class ShiftFigures:
         """The arm's state from `_since` to `until` (cut at ARM_HOLD_S after the last
         separation), into the bins it spans; `_since` moves on to `until`."""
         since = self._since
-        if since is None or self._bound is None:
+        if since is None or self._bound is None or self.start_ns is None:
+            if since is not None:
+                self._since = max(since, until)
             return
         end = min(until, self._heard + int(ARM_HOLD_S * S))
         start = max(since, self.start_ns)
@@ -117,7 +127,7 @@ class ShiftFigures:
             self._account(t)
         self._bound = float(speed_bound)
         self._heard = t if self._heard is None else max(self._heard, t)
-        if t >= self.start_ns:
+        if self.start_ns is not None and t >= self.start_ns:
             slot = self._slot(t)
             self._min[slot] = min(self._min[slot], float(separation))
             if separation < self.total_min:
@@ -153,18 +163,21 @@ class ShiftFigures:
             return self.start_ns
         return max(self.start_ns, (int(now) - seconds * S) // self.bin_ns * self.bin_ns)
 
-    def figures(self, now: int, window: str) -> dict:
-        """The figures over `window` (a key of WINDOWS) ending at `now` (ns)."""
+    def figures(self, now: int, window: str) -> dict | None:
+        """The figures over `window` (a key of WINDOWS) ending at `now` (ns); None before the
+        shift began."""
         now = int(now)
-        self._account(now)
+        if self.start_ns is None:
+            return None
         start = self.window_start(now, window)
         if WINDOWS[window] is None:
-            sums, smallest = self.total, self.total_min
+            sums, smallest = self.total.copy(), self.total_min
         else:
             first, last = start // self.bin_ns, now // self.bin_ns
             inside = (self._stamp >= first) & (self._stamp <= last)
             sums = self._bins[inside].sum(axis=0)
             smallest = float(self._min[inside].min()) if inside.any() else math.inf
+        self._open_interval(sums, start, now)
         seconds = max(0, now - start) / S
         arm = float(sums[ARM])
         return {
@@ -179,9 +192,25 @@ class ShiftFigures:
             'fail_safe_epochs': int(round(sums[FAIL_SAFE])) if self.decisions_seen else None,
         }
 
-    def all_windows(self, now: int) -> dict:
-        """The figures of every window; `changed` is cleared."""
+    def _open_interval(self, sums: np.ndarray, start: int, now: int) -> None:
+        """Add the arm's state since its last change, up to now, to `sums` without committing
+        it: a message published before now that arrives later is still counted at its time."""
+        if self._since is None or self._bound is None:
+            return
+        begin = max(self._since, self.start_ns, start)
+        end = min(now, self._heard + int(ARM_HOLD_S * S))
+        if end > begin:
+            activity = arm_activity(self.stopped, self._bound)
+            sums[ARM] += (end - begin) / S
+            if activity in (STOP, IDLE):
+                sums[STOPPED if activity == STOP else IDLED] += (end - begin) / S
+
+    def all_windows(self, now: int) -> dict | None:
+        """The figures of every window (None before the shift began); `changed` is
+        cleared."""
         self.changed = False
+        if self.start_ns is None:
+            return None
         return {name: self.figures(now, name) for name in WINDOWS}
 
 

@@ -76,6 +76,8 @@ PAGES = {
 # two a second (core.hmi.timeline.FLUSH_S), so this holds more than its ten minutes
 FEEDS = {'timeline': 1500, 'events': 200}
 VIEWS = ('worker', 'operator')
+# the role the guard gave a request (a typed key from aiohttp 3.11 on, a string before)
+ROLE = web.RequestKey('role', str) if hasattr(web, 'RequestKey') else 'role'
 SECURITY_HEADERS = {
     'Content-Security-Policy': "default-src 'none'; script-src 'self'; style-src 'self'; "
                                "img-src 'self'; connect-src 'self'; frame-ancestors 'none'; "
@@ -313,7 +315,7 @@ class HmiServer:
             self.counts[f'refused_{verdict.status}'] += 1
             return web.Response(status=verdict.status, text=f'{verdict.status}: '
                                 f'{verdict.reason}\n')
-        request['role'] = verdict.role
+        request[ROLE] = verdict.role
         return await handler(request)
 
     async def _headers(self, request: web.Request, response: web.StreamResponse) -> None:
@@ -337,7 +339,7 @@ class HmiServer:
         ws = web.WebSocketResponse(max_msg_size=self.settings.max_frame_bytes,
                                    heartbeat=self.settings.heartbeat_s, compress=False)
         await ws.prepare(request)
-        client = Client(secrets.token_hex(8), view, request['role'], ws,
+        client = Client(secrets.token_hex(8), view, request[ROLE], ws,
                         TokenBucket(self.settings.message_rate, self.settings.message_burst,
                                     time.monotonic_ns()))
         self.clients[client.id] = client

@@ -1,7 +1,7 @@
 """hrc-hmi-shots: screenshots of the HMI's pages at phone, tablet and desktop sizes.
 
     hrc-hmi-shots [--out out/hmi_shots] [--chromium /usr/bin/chromium]
-    hrc-hmi-shots --url http://127.0.0.1:8080/ [--token TOKEN]
+    hrc-hmi-shots --url http://127.0.0.1:8080/ [--token OPERATOR_TOKEN]
 
 Without --url it serves the pages itself, on a free loopback port, from a scripted cell: the
 HMI's own machine (`core.hmi.HmiMachine`) fed with the messages of an eleven-minute shift (a
@@ -196,6 +196,11 @@ def shoot(browser, url: str, out: Path, state: str, token: str = '',
             page.wait_for_function(
                 "document.getElementById('connection').dataset.state !== 'disconnected'",
                 timeout=10_000)
+            if path:                            # the console: its charts once it has data
+                page.wait_for_function(
+                    "document.querySelector('#timeline canvas') !== null || "
+                    "document.getElementById('timeline').dataset.epochs === '0'",
+                    timeout=10_000)
             page.wait_for_timeout(300)          # the view is rendered after it arrives
             target = out / f'{page_name}_{state}_{size}.png'
             page.screenshot(path=str(target), full_page=True)
@@ -209,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--out', default='out/hmi_shots', help='folder for the PNG files')
     parser.add_argument('--url', default='', help='a running HMI (default: a scripted cell '
                         'served here)')
-    parser.add_argument('--token', default='', help="the running HMI's access token")
+    parser.add_argument('--token', default='', help="the running HMI's operator's access token "
+                        '(it opens both pages)')
     parser.add_argument('--chromium', default=None, help='the Chromium executable (default '
                         '/usr/bin/chromium)')
     args = parser.parse_args(argv)

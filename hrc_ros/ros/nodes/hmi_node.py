@@ -42,6 +42,7 @@ from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8, UInt8M
 
 from ...core.hmi import AccessError, AccessPolicy, HmiMachine, is_loopback
 from ...core.hmi.access import OPERATOR, TOKEN_ENV, WORKER
+from ...core.protocol import InputError
 from .. import conversions as conv
 from .. import qos
 from ..hmi.server import Command, HmiServer, ServerSettings
@@ -53,7 +54,6 @@ T = Parameter.Type
 LEGACY_TOKEN_ENV = 'HRC_HMI_TOKEN'
 COMMAND_QUEUE = 256        # page commands waiting for the executor; beyond: "busy"
 ORDER_REFS_KEPT = 256
-MS = 1_000_000
 # hrc/separation at the arm's joint-state rate (125 Hz) between two reads (20 Hz by default):
 # deep enough that a read late by a second loses no sample of the smallest separation
 SEPARATION_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=256,
@@ -152,6 +152,117 @@ def _tokens(values) -> dict:
             for role in (WORKER, OPERATOR)}
 
 
+class HmiInputs:
+    """What the HMI reads and how each message enters its machine, for the node and for a
+    replay of recorded messages alike (`replay`: the console's figures of a recorded run).
+
+    `topics`: input name -> (message type, topic); `convert(name, msg)` the value (MessageError
+    for a bad message); `feed(machine, name, value, published_ns, now)` hands it to the
+    machine and returns the HMI's order a task manager's report decided, if any."""
+
+    CONTROL = ('epoch', 'task_state', 'action', 'human_response')
+
+    def __init__(self, rho: int, sigma: int, namespace: str = '', decision_node='decision',
+                 task_manager_node='task_manager', robot_bridge_node='robot_bridge',
+                 speed_override_topic='hrc/speed_override', separation_topic='hrc/separation'):
+        self.rho, self.sigma = rho, sigma
+        prefix = f'{namespace.strip("/")}/' if namespace.strip('/') else ''
+        self.statuses = {f'{prefix}{decision_node}: decision': 'decision',
+                         f'{prefix}{decision_node}: policy': 'policy',
+                         f'{prefix}{task_manager_node}: tasks': 'task_manager',
+                         f'{prefix}{robot_bridge_node}: ssm': 'stop'}
+        self.topics = {
+            'epoch': (UInt32, 'hrc/epoch'), 'task_state': (UInt8MultiArray, 'hrc/task_state'),
+            'action': (String, 'hrc/action'), 'human_response': (Bool, 'hrc/human_response'),
+            'belief': (Float64MultiArray, 'hrc/belief'),
+            'distance_level': (UInt8, 'hrc/distance_level'),
+            'task_request_result': (DiagnosticStatus, 'hrc/task_request_result'),
+            'diagnostics': (DiagnosticArray, '/diagnostics'),
+            'speed_override': (Float64, speed_override_topic),
+            'separation': (Float64MultiArray, separation_topic),
+            'protective_stop': (Bool, 'hrc/protective_stop')}
+        self._convert = {
+            'epoch': conv.epoch_from_msg,
+            'task_state': lambda m: conv.task_state_from_msg(m, rho, sigma),
+            'action': conv.action_from_msg, 'human_response': conv.human_response_from_msg,
+            'belief': conv.belief_from_msg, 'distance_level': conv.distance_level_from_msg,
+            'task_request_result': conv.task_request_result_from_msg,
+            'diagnostics': self.read_statuses, 'speed_override': conv.speed_override_from_msg,
+            'separation': _separation, 'protective_stop': _stopped}
+
+    def convert(self, name: str, msg):
+        return self._convert[name](msg)
+
+    def read_statuses(self, msg: DiagnosticArray):
+        """The statuses the HMI reads in `msg` (None: none): the decision node's epoch report
+        and policy swaps, the task manager's queue, the robot bridge's protective stop."""
+        found = []
+        for status in msg.status:
+            kind = self.statuses.get(status.name)
+            if kind is None:
+                continue
+            values = conv.diagnostic_values(status)
+            level = conv.LEVEL_NAMES.get(status.level, '?')
+            if kind == 'decision':
+                epoch = values.get('epoch', '')
+                if epoch.isdigit() and int(epoch) > 0:
+                    found.append((kind, int(epoch), values.get('action', ''),
+                                  values.get('faults', ''), level))
+            elif kind == 'task_manager':
+                found.append((kind, values))
+            elif kind == 'stop':
+                found.append((kind, status.level != DiagnosticStatus.OK,
+                              values.get('reason', '')))
+            else:
+                found.append((kind, level, status.message, values))
+        return found or None
+
+    @staticmethod
+    def feed(machine: HmiMachine, name: str, value, published: int, now: int):
+        if name == 'epoch':
+            machine.epoch_signal(value, published, now)
+        elif name == 'task_state':
+            machine.task_state_message(value, published, now)
+        elif name == 'action':
+            machine.action_message(value, published, now)
+        elif name == 'human_response':
+            machine.response_message(value, published, now)
+        elif name == 'belief':
+            machine.belief_message(value)
+        elif name == 'distance_level':
+            machine.distance_message(value)
+        elif name == 'task_request_result':
+            return machine.task_request_result(value, published)
+        elif name == 'diagnostics' and value is not None:
+            for status in value:
+                if status[0] == 'decision':
+                    machine.decision_report(*status[1:], published)
+                elif status[0] == 'task_manager':
+                    machine.task_manager_report(status[1])
+                elif status[0] == 'stop':
+                    machine.stop_report(*status[1:], published)
+                else:
+                    machine.policy_report(*status[1:], published)
+        elif name == 'speed_override':
+            machine.speed_override_message(value, now)
+        elif name == 'separation':
+            machine.separation_message(*value, published, now)
+        elif name == 'protective_stop':
+            machine.protective_stop_message(value, published)
+        return None
+
+    def replay(self, machine: HmiMachine, records) -> None:
+        """Recorded messages `(published_ns, input name, message)` into `machine`, in
+        publication order (the source timestamps: the clock the machine counts with); a bad
+        message is left out, as the node drops it."""
+        for published, name, msg in sorted(records, key=lambda r: r[0]):
+            try:
+                value = self.convert(name, msg)
+            except InputError:
+                continue
+            self.feed(machine, name, value, published, published)
+
+
 class HmiNode(Node):
     NODE_NAME = 'hmi'
 
@@ -168,44 +279,29 @@ class HmiNode(Node):
             raise StartupError(str(exc)) from None
         self.clock = control_clock(self)
         self.machine = HmiMachine(self.model.rho, self.model.sigma, values['worker_answers'],
-                                  values['cell_timeout'], values['order_timeout'],
-                                  start_ns=time.time_ns() // MS * MS)
+                                  values['cell_timeout'], values['order_timeout'])
         self.response_pub = self.create_publisher(Bool, 'hrc/human_response', qos.RELIABLE)
         self.request_pub = self.create_publisher(UInt8MultiArray, 'hrc/task_request',
                                                  qos.ORDERS)
         self.inputs = Inputs(self)
         self.sampled = SampledInputs(self, self.inputs)
-        namespace = self.get_namespace().strip('/')
-        prefix = f'{namespace}/' if namespace else ''
-        self.decision_status = f'{prefix}{values["decision_node"]}: decision'
-        self.policy_status = f'{prefix}{values["decision_node"]}: policy'
-        self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
-        self.stop_status = f'{prefix}{values["robot_bridge_node"]}: ssm'
+        self.reads = HmiInputs(self.model.rho, self.model.sigma, self.get_namespace(),
+                               values['decision_node'], values['task_manager_node'],
+                               values['robot_bridge_node'], values['speed_override_topic'],
+                               values['separation_topic'])
         # In causal order: rclpy runs the messages ready in one wait in subscription order
-        for msg_type, topic, convert, feed in (
-                (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
-                (UInt8MultiArray, 'hrc/task_state', self._task_state_from_msg,
-                 self.machine.task_state_message),
-                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
-                (Bool, 'hrc/human_response', conv.human_response_from_msg,
-                 self.machine.response_message)):
-            self.inputs.subscribe(msg_type, topic, SAMPLED, convert, self._control(feed),
-                                  with_published=True)
-        subscribe = self.sampled.subscribe
-        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg,
-                  latest_only=True)
-        subscribe(UInt8, 'hrc/distance_level', SAMPLED, conv.distance_level_from_msg,
-                  latest_only=True)
-        subscribe(DiagnosticStatus, 'hrc/task_request_result', qos.REPORTS,
-                  conv.task_request_result_from_msg)
-        subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._statuses,
-                  name='diagnostics')
-        subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA,
-                  conv.speed_override_from_msg, name='speed_override', latest_only=True)
-        subscribe(Float64MultiArray, values['separation_topic'], SEPARATION_QOS, _separation,
-                  name='separation')
-        subscribe(Bool, 'hrc/protective_stop', STOP_QOS, _stopped,
-                  name='protective_stop')
+        for name in HmiInputs.CONTROL:
+            msg_type, topic = self.reads.topics[name]
+            self.inputs.subscribe(msg_type, topic, SAMPLED, self._converter(name),
+                                  self._control(name), name=name, with_published=True)
+        for name, profile, latest_only in (
+                ('belief', SAMPLED, True), ('distance_level', SAMPLED, True),
+                ('task_request_result', qos.REPORTS, False), ('diagnostics', SAMPLED, False),
+                ('speed_override', qos.SENSOR_DATA, True), ('separation', SEPARATION_QOS, False),
+                ('protective_stop', STOP_QOS, False)):
+            msg_type, topic = self.reads.topics[name]
+            self.sampled.subscribe(msg_type, topic, profile, self._converter(name), name=name,
+                                   latest_only=latest_only)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.order_refs: dict[int, tuple] = {}
         self.published = {'answers': 0, 'orders': 0}
@@ -254,68 +350,23 @@ class HmiNode(Node):
         return self.clock.now().nanoseconds
 
     # -- inputs ----------------------------------------------------------------------------
-    def _statuses(self, msg: DiagnosticArray):
-        """The statuses the HMI reads in `msg` (None: none): the decision node's epoch report
-        and policy swaps, the task manager's queue, the robot bridge's protective stop."""
-        found = []
-        for status in msg.status:
-            if status.name == self.decision_status:
-                values = conv.diagnostic_values(status)
-                epoch = values.get('epoch', '')
-                if epoch.isdigit() and int(epoch) > 0:
-                    found.append(('decision', int(epoch), values.get('action', ''),
-                                  values.get('faults', ''),
-                                  conv.LEVEL_NAMES.get(status.level, '?')))
-            elif status.name == self.task_manager_status:
-                found.append(('task_manager', conv.diagnostic_values(status)))
-            elif status.name == self.stop_status:
-                values = conv.diagnostic_values(status)
-                found.append(('stop', status.level != DiagnosticStatus.OK,
-                              values.get('reason', '')))
-            elif status.name == self.policy_status:
-                found.append(('policy', conv.LEVEL_NAMES.get(status.level, '?'),
-                              status.message, conv.diagnostic_values(status)))
-        return found or None
+    def _converter(self, name: str):
+        return lambda msg: self.reads.convert(name, msg)
 
-    def _task_state_from_msg(self, msg):
-        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
-
-    def _control(self, feed):
+    def _control(self, name: str):
         """A handler of a control input: the machine takes it at once (after the sampled
         inputs waiting, so it sees the belief and the distance published before it) and the
         pages follow."""
         def handle(value, published_ns: int) -> None:
             now = self._now()
             self._take(now)
-            feed(value, published_ns, now)
+            HmiInputs.feed(self.machine, name, value, published_ns, now)
             self._push(now)
         return handle
 
     def _take(self, now: int) -> None:
-        machine = self.machine
         for published, name, value in self.sampled.take():
-            if name == 'belief':
-                machine.belief_message(value)
-            elif name == 'distance_level':
-                machine.distance_message(value)
-            elif name == 'task_request_result':
-                self._order_done(machine.task_request_result(value, published))
-            elif name == 'diagnostics' and value is not None:
-                for status in value:
-                    if status[0] == 'decision':
-                        machine.decision_report(*status[1:], published)
-                    elif status[0] == 'task_manager':
-                        machine.task_manager_report(status[1])
-                    elif status[0] == 'stop':
-                        machine.stop_report(*status[1:], published)
-                    else:
-                        machine.policy_report(*status[1:], published)
-            elif name == 'speed_override':
-                machine.speed_override_message(value, now)
-            elif name == 'separation':
-                machine.separation_message(*value, published, now)
-            elif name == 'protective_stop':
-                machine.protective_stop_message(value, published)
+            self._order_done(HmiInputs.feed(self.machine, name, value, published, now))
 
     def _refresh(self) -> None:
         now = self._now()

@@ -38,7 +38,7 @@
     idle_share: (v) => `${v.toFixed(1)}%`,
     protective_stop_share: (v) => `${v.toFixed(1)}%`,
     refused_requests: (v) => String(v),
-    min_separation: (v) => `${v.toFixed(2)} m`,
+    min_separation: (v) => (v > 0 ? `${v.toFixed(2)} m` : `${v.toFixed(2)} m: contact`),
     fail_safe_epochs: (v) => String(v),
   };
   const NONE = {idle_share: 'no arm', protective_stop_share: 'no arm', min_separation: 'no arm',
@@ -54,6 +54,7 @@
     box.dataset.window = windowSelect.value;
     box.dataset.asOf = f ? String(f.as_of_ms) : '';
     box.dataset.since = f ? String(f.since_ms) : '';
+    box.dataset.armSeconds = f ? String(f.arm_seconds) : '';
     for (const element of box.querySelectorAll('[data-kpi]')) {
       const name = element.dataset.kpi;
       const value = f ? f[name] : null;
@@ -62,7 +63,8 @@
       const dd = element.querySelector('dd');
       if (dd.textContent !== shown) dd.textContent = shown;
     }
-    HMI.text('window-note', !f ? '' : `from ${clock(f.since_ms)} to ${clock(f.as_of_ms)}: `
+    HMI.text('window-note', !f ? 'the shift begins when the robot first decides'
+      : `from ${clock(f.since_ms)} to ${clock(f.as_of_ms)}: `
       + `${f.tasks_completed} task${f.tasks_completed === 1 ? '' : 's'} done`
       + (f.arm_seconds ? `, the arm measured for ${Math.round(f.arm_seconds)} s` : ''));
   }
