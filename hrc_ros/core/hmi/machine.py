@@ -53,6 +53,7 @@ OTHER = 'elsewhere'            # answered_by: another publisher of hrc/human_res
 CELL_TIMEOUT_PERIODS = 3.0     # cell_timeout 0: this many epoch periods ...
 CELL_TIMEOUT_MIN_S = 3.0       # ... and at least this (also before the period is known)
 ROBOT_TIMEOUT_S = 2.0          # the robot side's topics count as running this long
+ROBOT_VIEW_S = 0.25            # the arm's figures on the console change this often at most
 CLOSED_KEPT = 32               # closed requests remembered to tell a late tap what happened
 TASKS_KEPT = 20                # tasks in the operator's history
 RECENT = 8                     # task states and actions kept to pair a_k with x_k
@@ -161,6 +162,7 @@ class HmiMachine:
         self.events = EventLog()
         self._figures: dict | None = None
         self._figures_ns: int | None = None
+        self._robot: tuple | None = None            # (view, at now) of the arm, see _robot_view
         self.counts = {'answers_sent': 0, 'answers_refused': 0, 'requests_opened': 0,
                        'answered_elsewhere': 0, 'epochs_ignored': 0}
 
@@ -549,7 +551,18 @@ class HmiMachine:
         return view
 
     def _robot_view(self, now: int) -> dict | None:
-        """The arm now, while the robot side publishes (ROBOT_TIMEOUT_S)."""
+        """The arm now, while the robot side publishes (ROBOT_TIMEOUT_S). Its separation
+        changes at the arm's rate (125 Hz): the console shows it anew every ROBOT_VIEW_S (the
+        timeline has the detail), a protective stop or its end at once."""
+        stopped = None if self.stop is None else self.stop[0]
+        if self._robot is not None and now - self._robot[1] < ROBOT_VIEW_S * 1e9 \
+                and (self._robot[0] or {}).get('stopped') == stopped:
+            return self._robot[0]
+        view = self._robot_now(now)
+        self._robot = (view, now)
+        return view
+
+    def _robot_now(self, now: int) -> dict | None:
         fresh = {name: value[0] for name, value in (('speed_override', self.speed_override),
                                                     ('separation', self.separation))
                  if value is not None and now - value[1] <= ROBOT_TIMEOUT_S * 1e9}

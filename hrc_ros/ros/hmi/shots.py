@@ -118,11 +118,11 @@ def _history(machine: HmiMachine, now: int, wall: int) -> tuple[int, int, int]:
                     machine.stop_report(True, f'separation {separation:.3f} m below the '
                                         f'protective distance {protective:.3f} m at the '
                                         'slowest motion (0.05 m/s)', ts + 1000)
-            speed = 0.0 if stop or action in (ACTION_INDEX['dn'], ACTION_INDEX['mh']) else \
-                0.25 + 0.2 * (k % 3)
+            override = 0.0 if stop else 0.4 if near else 0.8 + 0.2 * np.sin(phase / 2)
+            speed = 0.0 if action in (ACTION_INDEX['dn'], ACTION_INDEX['mh']) else \
+                0.5 * override
             machine.separation_message(separation, protective, speed, ts, ts + offset)
-            machine.speed_override_message(0.0 if stop else min(1.0, speed / 0.6),
-                                           ts + offset)
+            machine.speed_override_message(override, ts + offset)
         robot_runs = action != ACTION_INDEX['dn']
         book.apply(action, accepted, robot_runs)
     return HISTORY_S - 1, t0 + (HISTORY_S - 1) * S + offset, t0 + (HISTORY_S - 1) * S
@@ -193,14 +193,13 @@ def shoot(browser, url: str, out: Path, state: str, token: str = '',
             page = context.new_page()
             query = f'?token={token}' if token else ''
             page.goto(url.rstrip('/') + '/' + path + query)
-            page.wait_for_function(
-                "document.getElementById('connection').dataset.state !== 'disconnected'",
-                timeout=10_000)
+            # waits on selectors: wait_for_function polls with eval, which the pages'
+            # Content-Security-Policy forbids
+            page.locator('#connection:not([data-state="disconnected"])').wait_for(
+                timeout=30_000)
             if path:                            # the console: its charts once it has data
-                page.wait_for_function(
-                    "document.querySelector('#timeline canvas') !== null || "
-                    "document.getElementById('timeline').dataset.epochs === '0'",
-                    timeout=10_000)
+                page.locator('#timeline canvas, #timeline[data-epochs="0"]').first.wait_for(
+                    timeout=30_000)
             page.wait_for_timeout(300)          # the view is rendered after it arrives
             target = out / f'{page_name}_{state}_{size}.png'
             page.screenshot(path=str(target), full_page=True)

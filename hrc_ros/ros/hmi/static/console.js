@@ -128,7 +128,8 @@ const CONSOLE = (() => {
       {label: 'distance level', stroke: '#6b4fa0', width: 2, dash: [6, 4], scale: 'd',
        paths: uPlot.paths.stepped({align: 1}), value: (u, v) => (v === null ? '-' : String(v))},
     ], {scales: {level: {range: [0, 2]}, d: {range: [0, 3]}},
-        list: [{...AXIS, scale: 'level', values: levels, splits: [0, 1, 2], size: 64},
+        list: [{...AXIS, scale: 'level', values: levels, splits: [0, 1, 2], size: 64,
+                label: "the worker's mood, as the robot believes"},
                {...AXIS, scale: 'd', side: 1, splits: [0, 1, 2, 3], grid: {show: false},
                 label: 'distance level', size: 50}]},
     [shadeStops]);
@@ -140,7 +141,7 @@ const CONSOLE = (() => {
       {label: 'speed (%)', stroke: '#1d7a36', width: 1.5, scale: '%',
        value: (u, v) => (v === null ? '-' : `${Math.round(v)}%`)},
     ], {scales: {m: {range: (u, min, max) => [0, Math.max(1, max || 1)]}, '%': {range: [0, 100]}},
-        list: [{...AXIS, scale: 'm', label: 'm', size: 64},
+        list: [{...AXIS, scale: 'm', label: 'separation, m', size: 64},
                {...AXIS, scale: '%', side: 1, grid: {show: false}, label: 'speed %', size: 50}]},
     [shadeStops]);
     const actions = chart(holder('actions'), 90, [

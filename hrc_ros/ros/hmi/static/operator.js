@@ -7,6 +7,14 @@
   const windowSelect = document.getElementById('window');
   let sent = 0;   // orders sent from this page; the server echoes the number as ref
   let last = null;
+  const drawn = {};   // part -> the JSON it was last drawn from: a view redraws what changed
+
+  function changed(part, value) {
+    const text = JSON.stringify(value === undefined ? null : value);
+    if (drawn[part] === text) return false;
+    drawn[part] = text;
+    return true;
+  }
 
   function item(parent, tag, words) {
     const element = document.createElement(tag);
@@ -98,25 +106,29 @@
       ? 'no report from the task manager yet'
       : `${queue.waiting} waiting; ${queue.completed} done`
         + (queue.waiting_for && queue.waiting_for !== 'none' ? `; waiting for ${queue.waiting_for}` : ''));
-    const orders = document.getElementById('orders');
-    orders.replaceChildren();
-    for (const order of v.orders || []) {
-      const li = item(orders, 'li', `${order.words}, from ${order.from}: ${order.text}`);
-      li.title = `the model's task (tp, tc, tx): (${order.task.join(', ')})`;
-    }
-    const body = document.querySelector('#history tbody');
-    body.replaceChildren();
-    for (const t of v.history || []) {
-      const row = item(body, 'tr', '');
-      row.title = `the model's task (tp, tc, tx): (${t.task.join(', ')})`;
-      for (const cell of [t.number, t.words, t.seen_epoch,
-                          t.commit_epoch === null ? '-' : t.commit_epoch,
-                          t.commit_epoch === null ? '-' : t.committed,
-                          t.done_epoch === null ? '-' : t.done_epoch]) {
-        item(row, 'td', String(cell));
+    if (changed('orders', v.orders)) {
+      const orders = document.getElementById('orders');
+      orders.replaceChildren();
+      for (const order of v.orders || []) {
+        const li = item(orders, 'li', `${order.words}, from ${order.from}: ${order.text}`);
+        li.title = `the model's task (tp, tc, tx): (${order.task.join(', ')})`;
       }
     }
-    bars(v.belief);
+    if (changed('history', v.history)) {
+      const body = document.querySelector('#history tbody');
+      body.replaceChildren();
+      for (const t of v.history || []) {
+        const row = item(body, 'tr', '');
+        row.title = `the model's task (tp, tc, tx): (${t.task.join(', ')})`;
+        for (const cell of [t.number, t.words, t.seen_epoch,
+                            t.commit_epoch === null ? '-' : t.commit_epoch,
+                            t.commit_epoch === null ? '-' : t.committed,
+                            t.done_epoch === null ? '-' : t.done_epoch]) {
+          item(row, 'td', String(cell));
+        }
+      }
+    }
+    if (changed('belief', v.belief)) bars(v.belief);
     const fail = document.getElementById('fail-safe');
     const fs = v.fail_safe;
     fail.dataset.level = fs ? fs.level : 'none';
@@ -140,8 +152,8 @@
         HMI.text(`${name}-hint`, hint);
       }
     }
-    figures(v.figures);
-    if (v.words) CONSOLE.words(v.words);
+    if (changed('figures', v.figures)) figures(v.figures);
+    if (v.words && changed('words', v.words)) CONSOLE.words(v.words);
   }
 
   function showResult(status, words) {
