@@ -129,7 +129,7 @@ const CONSOLE = (() => {
        paths: uPlot.paths.stepped({align: 1}), value: (u, v) => (v === null ? '-' : String(v))},
     ], {scales: {level: {range: [0, 2]}, d: {range: [0, 3]}},
         list: [{...AXIS, scale: 'level', values: levels, splits: [0, 1, 2], size: 64,
-                label: "the worker's mood, as the robot believes"},
+                label: 'belief, mean level'},
                {...AXIS, scale: 'd', side: 1, splits: [0, 1, 2, 3], grid: {show: false},
                 label: 'distance level', size: 50}]},
     [shadeStops]);
