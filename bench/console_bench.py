@@ -44,7 +44,6 @@ import asyncio
 import json
 import multiprocessing
 import os
-import random
 import shlex
 import sys
 import tempfile
@@ -54,19 +53,16 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from private_domain import use_private_domain
+
 if __name__ == '__main__':
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('HRC_BENCH_DOMAIN_ID',
-                                                 str(random.SystemRandom().randint(100, 199)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                          str(ROOT / 'config' / 'fastdds_fast_discovery.xml'))
+    use_private_domain()
 
 import yaml  # noqa: E402
-from std_msgs.msg import Float64, String, UInt8, UInt8MultiArray, UInt32  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_msgs.msg import Float64, Float64MultiArray, UInt8  # noqa: E402
 
-from hmi_bench import BenchNode, cpu_seconds, cpu_windows, free_port, wait  # noqa: E402
+from hmi_bench import (BenchNode, PlayedCell, cpu_seconds, cpu_windows, free_port,  # noqa: E402
+                       wait)
 from hrc_ros.core.model import TASK_VARIABLES  # noqa: E402
 from hrc_ros.core.paths import arm_config_path  # noqa: E402
 from hrc_ros.ros import conversions as conv  # noqa: E402
@@ -171,26 +167,15 @@ def latency(args, work: Path) -> None:
     from playwright.sync_api import sync_playwright
 
     from hrc_ros.ros.hmi.browser import launch
-    port = free_port()
-    params = work / 'latency.yaml'
-    params.write_text(f'hmi:\n  ros__parameters:\n    port: {port}\n    cell_timeout: 30.0\n')
-    run = NodeProcesses(work, [params])
-    bench = BenchNode()
-    node = bench.node
-    epoch = node.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-    task = node.create_publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
-    action = node.create_publisher(String, 'hrc/action', qos.RELIABLE)
-    level = node.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
-    arm = ArmStream(node)
-    url = f'http://127.0.0.1:{port}/'
+    cell = PlayedCell(work, [(UInt8, 'hrc/distance_level', qos.LATCHED)])
+    epoch, task, action, (level,) = cell.epoch, cell.task, cell.action, cell.more
+    arm = ArmStream(cell.bench.node)
+    url = cell.url
     count = args.pages - args.browsers
     context = multiprocessing.get_context('spawn')
     results = context.Queue()
     try:
-        run.start('hmi_node')
-        wait(lambda: all(p.get_subscription_count() for p in (epoch, task, action, level))
-             or run.dead(), 30, 'hmi_node to subscribe')
-        run.check_alive()
+        cell.start()
         arm.start()
         done = context.Event()
         clients = context.Process(target=run_clients, args=(url, count, done, results))
@@ -228,8 +213,7 @@ def latency(args, work: Path) -> None:
         clients.join(30)
     finally:
         arm.running = False
-        run.stop()
-        bench.close()
+        cell.close()
     # each sample: the first change to its text after its publication, before the next sample
     # of the same element (a text repeats every few samples)
     for element in ('action', 'distance'):
