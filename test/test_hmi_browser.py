@@ -233,11 +233,13 @@ def test_the_page_says_no_connection_until_the_cell_runs_then_connects(cell, pag
     page.goto(url)
     connection = page.locator('#connection')
     expect(connection).to_have_text('no connection to the cell')
+    expect(page.locator('#action-label')).to_be_hidden()     # not "The robot is / no connection"
     expect(page.locator('#request')).to_have_text('')
     expect(page.locator('#accept')).to_be_disabled()
     suite.start('decision_node')
     expect(connection).to_have_text('connected', timeout=START_TIMEOUT * MS)
     expect(page.locator('#action')).not_to_have_text('no connection to the cell')
+    expect(page.locator('#action-label')).to_have_text('The robot is')
 
 
 def test_the_worker_declines_and_the_task_manager_keeps_the_task_open(cell, pages):

@@ -84,8 +84,10 @@ def test_windows_count_the_last_minutes_and_the_shift_counts_everything():
     late.task_completed(T0)
     late.arm_sample(T0, 0.1, 0.0)
     assert late.all_windows(T0 + S) is None                    # no shift yet
-    late.begin(T0 + S)
-    late.begin(T0 + 2 * S)                                     # it began once
+    late.begin(T0 + 2 * S)
+    late.begin(T0 + S)                  # the first epoch signal, overtaken by its action
+    late.begin(T0 - 5 * S)              # a stray old message moves nothing
+    late.begin(T0 + 3 * S)                                     # it began once
     late.arm_sample(T0 + 3 * S, 0.5, 0.0)
     f = late.figures(T0 + 4 * S, 'shift')
     assert (f['since_ns'], f['tasks_completed'], f['min_separation']) == (T0 + S, 0, 0.5)

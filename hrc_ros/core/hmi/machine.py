@@ -205,9 +205,9 @@ class HmiMachine:
 
     def action_message(self, action: int, published_ns: int, now: int) -> None:
         self.last_cell_ns = now
-        self.shift.begin(published_ns)
         if self.action_ns is not None and published_ns <= self.action_ns:
             return
+        self.shift.begin(published_ns)
         request = self.request
         if request is not None and published_ns > request.published_ns:
             self._close(MOVED_ON, 'closed: the robot moved on')

@@ -34,6 +34,7 @@ import numpy as np
 from ..robot.metrics import IDLE, STOP, arm_activity, per_hour, share
 
 ARM_HOLD_S = 2.0              # the arm's state counts this long after its last separation
+REORDER_S = 1.0               # the first signs of life may arrive this far out of order
 BIN_S = 1                     # seconds per bin
 WINDOWS = {'10min': 600, 'hour': 3600, 'shift': None}
 WINDOW_WORDS = {'10min': 'last 10 minutes', 'hour': 'last hour', 'shift': 'this shift'}
@@ -52,6 +53,7 @@ class ShiftFigures:
 
     def __init__(self, start_ns: int | None = None, bin_s: int = BIN_S, kept_s: int = KEPT_S):
         self.start_ns = None if start_ns is None else int(start_ns)
+        self._first = self.start_ns
         self.bin_ns = int(bin_s) * S
         self.slots = int(kept_s) // int(bin_s) + 2
         self._bins = np.zeros((self.slots, COLUMNS))
@@ -68,9 +70,14 @@ class ShiftFigures:
         self.changed = False                 # a count, a stop or a new smallest separation
 
     def begin(self, t: int) -> None:
-        """The shift begins at `t` (if it has not begun)."""
+        """The shift begins at `t` if it has not begun; an earlier first sign of life that
+        arrives just after (the first epoch signal overtaken by its action: two topics) moves
+        the start back to it, so the start is the first by the cell's clock."""
+        t = int(t)
         if self.start_ns is None:
-            self.start_ns = int(t)
+            self.start_ns = self._first = t
+        elif self._first - REORDER_S * S <= t < self.start_ns:
+            self.start_ns = t
 
     # -- bins ------------------------------------------------------------------------------
     def _slot(self, t: int) -> int:
