@@ -733,6 +733,19 @@ def test_the_operator_view(hmi, cell):
     assert not re.search(r'\b(tp|tc|tx|ty|epoch|rh1|rh2)\b', said), said
 
 
+def test_the_console_shows_the_arm_anew_four_times_a_second_and_a_stop_at_once(hmi, cell):
+    """hrc/separation comes at 125 Hz: a view each would be a view a refresh."""
+    cell.epoch(JOINT, NW)
+    t = cell.t
+    hmi.separation_message(0.90, 0.5, 0.2, t, t)
+    assert hmi.operator_view(t, t)['robot']['separation'] == 0.9
+    hmi.separation_message(0.70, 0.5, 0.2, t + 1, t + S // 10)
+    assert hmi.operator_view(t + S // 10, t)['robot']['separation'] == 0.9      # not yet
+    assert hmi.operator_view(t + m.ROBOT_VIEW_S * S, t)['robot']['separation'] == 0.7
+    hmi.protective_stop_message(True, t + 2)
+    assert hmi.operator_view(t + m.ROBOT_VIEW_S * S + 1, t)['robot']['stopped'] is True
+
+
 def test_the_hmi_core_imports_neither_ros_nor_a_web_framework():
     """The rules are the core's: every core.hmi module imports with rclpy, the ROS messages and
     aiohttp made unimportable (test_layout's guard, with aiohttp added)."""
