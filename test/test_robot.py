@@ -378,12 +378,23 @@ def setup(arm):
     return description, load_programs(description), arm
 
 
+JITTER = np.random.default_rng(2026)
+
+
+def jitter(body, noise=0.0015):
+    """The body as a real tracker reports a person standing still: millimetres of noise on
+    every keypoint (the bridge takes a skeleton that repeats the last one exactly as a frozen
+    tracker's, guard.SkeletonCheck)."""
+    return BodyCapsules(body.segments + JITTER.normal(0.0, noise, body.segments.shape),
+                        body.radii, body.names)
+
+
 def far_body(distance=2.5):
     from hrc_ros.core.cell.person import SimulatedPerson
     from hrc_ros.core.cell.tracking import K4ABT_JOINTS
     person = SimulatedPerson(3, seed=0)
     person.rho = distance
-    return body_capsules(person.keypoints(), K4ABT_JOINTS)
+    return jitter(body_capsules(person.keypoints(), K4ABT_JOINTS))
 
 
 class Rig:
@@ -406,7 +417,7 @@ class Rig:
     def run(self, seconds, body=None):
         commands = []
         for _ in range(int(round(seconds / 0.01))):
-            self.bridge.skeleton(self.body if body is None else body, self.t, self.t)
+            self.bridge.skeleton(jitter(self.body if body is None else body), self.t, self.t)
             self.bridge.joint_state(JOINT_NAMES, self.follower.q, self.follower.qd, self.t,
                                     self.t)
             command = self.bridge.tick(self.t)

@@ -40,6 +40,7 @@ import json
 import sys
 import time
 
+from ..core.cell.scenarios import SCENARIOS as PERSON_SCENARIOS
 from ..core.config import BELIEF_MODES, ConfigError, load_config
 from ..core.study.evaluation import (METRICS, QUEUE_METRICS, SCENARIOS, charged_waiting_cost,
                                      evaluate, format_paired, format_regret, format_table,
@@ -100,8 +101,10 @@ def _selectors(parser, text: str, known) -> tuple:
 def evaluate_arm_cell(args, parser) -> int:
     """--cell arm: the selectors in the cell with the arm (core.robot.cell)."""
     from ..core.robot.bridge import RobotDescriptionError
-    from ..core.robot.cell import (CELL_SELECTORS, DEFAULT_SELECTORS, METRICS, evaluate_arm,
-                                   format_arm_paired, format_arm_table, paired_arm, summarize_arm)
+    from ..core.robot.cell import (CELL_SELECTORS, DEFAULT_SELECTORS, METRICS, ArmCellSettings,
+                                   evaluate_arm, format_arm_paired, format_arm_table,
+                                   format_scenario_figures, paired_arm, scenario_figures,
+                                   summarize_arm)
     for flag, value in (('--true-config', args.true_config), ('--true-policy', args.true_policy),
                         ('--no-fail-safe', args.no_fail_safe)):
         if value:
@@ -138,7 +141,7 @@ def evaluate_arm_cell(args, parser) -> int:
     progress = lambda m: print(m, flush=True)   # noqa: E731
     try:
         results = evaluate_arm(model, policy, episodes, epochs, args.seed, task_rate, selectors,
-                               args.mode, pomdp, progress=progress)
+                               args.mode, pomdp, progress=progress, person=args.person)
     except RobotDescriptionError as exc:
         return fail('hrc-evaluate', exc)
     elapsed = time.perf_counter() - t0
@@ -148,9 +151,11 @@ def evaluate_arm_cell(args, parser) -> int:
     print(f'the cell with the arm (UR5e, SSM, bridge; docs/ROBOT.md), {config.source}, policy '
           f'{policy.path}')
     print(f'{episodes} episodes x {epochs} epochs of 1 s, seed {args.seed}, task rate '
-          f'{task_rate}, belief {mode}; {elapsed:.1f} s ({simulated / max(cpu, 1e-9):.0f}x '
-          'real time on one core)')
+          f'{task_rate}, belief {mode}, person {args.person}; {elapsed:.1f} s '
+          f'({simulated / max(cpu, 1e-9):.0f}x real time on one core)')
     print(format_arm_table(results))
+    control_period = ArmCellSettings().control_period
+    print(format_scenario_figures(results, args.person, control_period))
     paired = {}
     if baseline is not None:
         print(format_arm_paired(results, baseline))
@@ -158,7 +163,9 @@ def evaluate_arm_cell(args, parser) -> int:
                   if s != baseline}
     summaries = {s: summarize_arm(r) for s, r in results.items()}
     write_summary_csv(out / 'summary.csv', summaries, METRICS)
-    names = [m for m, _ in METRICS] + ['contacts', 'speed_breaches', 'tasks_completed']
+    names = [m for m, _ in METRICS] + ['contacts', 'speed_breaches', 'tasks_completed',
+                                       'min_margin', 'appearance_violations',
+                                       'rest_after_event', 'stop_delay']
     with written(out / 'episodes.csv') as f:
         writer = csv.writer(f)
         writer.writerow(['selector', 'episode'] + names)
@@ -168,7 +175,8 @@ def evaluate_arm_cell(args, parser) -> int:
     report = {'settings': {'cell': 'arm', 'config': config.source, 'policy': policy.path,
                            'episodes': episodes, 'epochs': epochs, 'seed': args.seed,
                            'task_rate': task_rate, 'belief_mode': mode,
-                           'seconds': round(elapsed, 3)},
+                           'person': args.person, 'seconds': round(elapsed, 3)},
+              'person': {s: scenario_figures(r, control_period) for s, r in results.items()},
               'selectors': summaries,
               'checks': {s: {'contacts': int(r.contacts.sum()),
                              'speed_breaches': int(r.speed_breaches.sum())}
@@ -225,8 +233,15 @@ def main(argv=None) -> int:
                         help='charge this per waiting task per epoch (MODEL.md 8.1) and report '
                              "the waiting task-epochs (default: the configuration's "
                              'stream.waiting_cost with a queue, else nothing is charged)')
+    parser.add_argument('--person', default='honest', choices=PERSON_SCENARIOS,
+                        help="with --cell arm: the person in the cell: 'honest' (default, "
+                             "the model's person) or a scenario that tests SSM (walk_in, "
+                             'run_in, appear, reach, frozen_tracker, lost_tracker: docs/ROBOT.md '
+                             '4); the figures then add SSM against the true bodies')
     parser.add_argument('--out', default='out/evaluate', help='output folder')
     args = parser.parse_args(argv)
+    if args.cell != 'arm' and args.person != 'honest':
+        parser.error('--person is for the cell with the arm (--cell arm)')
     if args.cell == 'arm' and args.waiting_cost is not None:
         parser.error('--waiting-cost is for the model\'s cell; --cell arm does not take it')
     if args.cell == 'arm':

@@ -86,7 +86,8 @@ from ..paths import read_yaml, share_dir
 from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import segment_duration
-from .ssm import SpeedSeparationMonitor, SsmParameters, SsmState
+from .guard import MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path, nearest_on_path
+from .ssm import MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState, max_speed
 
 POSES = ('home', 'retreat', 'collaboration')
 LIMITS = ('lower', 'upper', 'velocity', 'acceleration')
@@ -96,12 +97,21 @@ LIMIT_SLACK = 1e-3                 # rad a joint state may lie beyond a position
 FUTURE_SLACK = 0.05                # s a sample's stamp may lie ahead of the bridge's clock
 SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the arm after its last
 OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
+WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 DESCRIPTION_DEFAULTS = {
     'collaboration_speed': 0.3,    # override cap moving to and at the collaboration pose
     'max_link_speed': 1.0,         # m/s: top link speed a planned trajectory is slowed to
     'waypoint_tolerance': 0.02,    # rad: a waypoint is reached within this on every joint
     'rest_speed': 0.01,            # rad/s: the arm is at rest below this on every joint
     'joint_state_timeout': 0.1,    # s: an older joint state is no state (protective stop)
+    # The monitor (core/robot/guard.py, docs/ROBOT.md 3): what is measured against what is
+    # allowed and commanded.
+    'command_latency': 0.03,       # s from the bridge's override to the arm's motion, at most
+    'speed_tolerance': 0.02,       # m/s a measured link speed may exceed the allowed one by
+    'path_tolerance': 0.05,        # rad the arm may lie off the bridge's own path
+    'frozen_tolerance': 0.0005,    # m: a skeleton that moved less is the same data (frozen)
+    'max_body_speed': 3.0,         # m/s: a skeleton farther from the arm than this allows is
+                                   # not trusted (a jump away)
 }
 
 
@@ -160,6 +170,11 @@ class RobotDescription:
     waypoint_tolerance: float = DESCRIPTION_DEFAULTS['waypoint_tolerance']
     rest_speed: float = DESCRIPTION_DEFAULTS['rest_speed']
     joint_state_timeout: float = DESCRIPTION_DEFAULTS['joint_state_timeout']
+    command_latency: float = DESCRIPTION_DEFAULTS['command_latency']
+    speed_tolerance: float = DESCRIPTION_DEFAULTS['speed_tolerance']
+    path_tolerance: float = DESCRIPTION_DEFAULTS['path_tolerance']
+    frozen_tolerance: float = DESCRIPTION_DEFAULTS['frozen_tolerance']
+    max_body_speed: float = DESCRIPTION_DEFAULTS['max_body_speed']
     ssm: SsmParameters = field(default_factory=SsmParameters)
     source: str = ''
 
@@ -465,16 +480,19 @@ class Bridge:
 
     def __init__(self, description: RobotDescription, programs: Mapping, arm: Arm | None = None,
                  period: float = 0.01):
-        self.description = description
+        self.description = d = description
         self.programs = dict(programs)
         self.arm = arm if arm is not None else Arm()
-        self.monitor = SpeedSeparationMonitor(description.ssm, period)
-        self.index = {name: i for i, name in enumerate(description.joint_names)}
+        # SSM commands for the control period plus the way to the controller; the monitor
+        # checks what is measured against SSM at the instant (module docstring, "The monitor").
+        self.monitor = SpeedSeparationMonitor(d.ssm, period + d.command_latency)
+        self.index = {name: i for i, name in enumerate(d.joint_names)}
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
         self._joint_stamp: int | None = None
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
+        self._content_stamp: int | None = None   # the stamp of the last skeleton that changed
         self.task: dict | None = None
         self.last_action: int | None = None
         self.paused = True            # nothing asked yet: hold
@@ -485,12 +503,23 @@ class Bridge:
         self.run: ProgramRun | None = None
         self._stop_reason = ''
         self._peaks: dict = {}
-        self.joint_states = JointStateReader(description)
-        self._joint_writer = SingleWriter('joint_states', description.joint_state_timeout,
+        self.joint_states = JointStateReader(d)
+        self._joint_writer = SingleWriter('joint_states', d.joint_state_timeout,
                                           SECOND_WRITER_HOLD)
-        self._goal_publishers = 1
+        self.writers = {kind: SingleWriter(f'hrc/{kind}', WRITER_HOLD, WRITER_HOLD)
+                        for kind in ('action', 'task_state')}
+        self._graph_holds: dict = {}
         self._skeleton_lock = StreamLock()
         self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
+        # The monitor (core/robot/guard.py).
+        self.measured = MeasuredSpeed(self.arm, max_dt=d.joint_state_timeout)
+        self.envelope = SpeedEnvelope(d.ssm.deceleration, d.command_latency + period)
+        self.skeleton_check = SkeletonCheck(d.frozen_tolerance, d.max_body_speed)
+        self.fault = ''               # the monitor's protective stop ('' = none)
+        self._fault_clear_since: int | None = None
+        self._replace = False         # a goal of the bridge's must replace the controller's
+        self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
+                       'frozen_skeletons': 0}
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
@@ -503,13 +532,16 @@ class Bridge:
         check_stamp('joint state', stamp_ns, now_ns)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
+        self.measured.update(self.q, self.qd, stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
                  sequence: int | None = None) -> None:
         """The person's capsules (None: nobody in view, which SSM treats as no data) from the
         writer of publication sequence number `sequence`; InputError for a stamp ahead of the
         clock. Another writer's, or one stamped before the newest held, counts beside it
-        (module docstring, "One arm, every person")."""
+        (module docstring, "One arm, every person"); so does one that jumped away from the arm
+        faster than a person can move, and one that repeats the held one is no new data
+        (`guard.SkeletonCheck`)."""
         if body is not None and not isinstance(body, BodyCapsules):
             raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
         if body is not None:
@@ -522,19 +554,34 @@ class Bridge:
                 self._others.append((body, int(stamp_ns)))
             return
         if body is None:
-            self.body, self._body_stamp = None, None
+            self.body, self._body_stamp, self._content_stamp = None, None, None
             return
-        self.body, self._body_stamp = body, int(stamp_ns)
+        held = self.body
+        live = held is not None and \
+            (now_ns - self._content_stamp) * 1e-9 <= self.monitor.p.human_timeout
+        if live and self.q is not None:
+            dt = (stamp_ns - self._content_stamp) * 1e-9
+            if self.skeleton_check.jumped_away(self.arm.distance(self.q, body),
+                                               self.arm.distance(self.q, held), dt):
+                self._others.append((body, int(stamp_ns)))     # it can only slow the arm
+                self.counts['implausible_skeletons'] += 1
+                return
+        if held is not None and self.skeleton_check.unchanged(body, held):
+            self.body, self._body_stamp = body, int(stamp_ns)     # no new data: it ages
+            self.counts['frozen_skeletons'] += 1
+            return
+        self.body, self._body_stamp, self._content_stamp = body, int(stamp_ns), int(stamp_ns)
 
     def _nearest(self, now_ns: int) -> tuple[Separation | None, int | None]:
         """The separation SSM takes: the nearest of the bodies held (the followed writer's
-        newest, and the others' of the last human_timeout), with the oldest of their stamps."""
+        newest, and the others' of the last human_timeout), with the oldest of their stamps
+        (the followed body's: of its last change)."""
         timeout_ns = self.monitor.p.human_timeout * 1e9
         while self._others and now_ns - self._others[0][1] > timeout_ns:
             self._others.popleft()
         held = [(b, t) for b, t in self._others if now_ns - t <= timeout_ns]
         if self.body is not None:
-            held.append((self.body, self._body_stamp))
+            held.append((self.body, self._content_stamp))
         if not held:
             return None, None
         seps = [self.arm.separation(self.q, b) for b, _ in held]
@@ -542,7 +589,22 @@ class Bridge:
 
     def goal_publishers(self, count: int) -> None:
         """How many publishers the graph shows on the goal topic (this bridge's included)."""
-        self._goal_publishers = int(count)
+        count = int(count)
+        self.graph_hold('goal', '' if count <= 1 else (
+            f'{count - 1} other publisher(s) of the goal topic: the override bounds only the '
+            'bridge\'s own goals'))
+
+    def graph_hold(self, kind: str, reason: str) -> None:
+        """Hold the arm (a protective stop with `reason`) while the graph shows what `reason`
+        says of the input `kind` (another publisher of hrc/action, of the goal topic, ...);
+        '' releases it."""
+        self._graph_holds[kind] = str(reason)
+
+    def check_writer(self, kind: str, sequence: int | None, now_ns: int) -> None:
+        """InputError for a message of `kind` ('action', 'task_state') from a writer other than
+        the one followed (publication sequence numbers, `protocol.SingleWriter`): it is
+        refused, and the arm holds until that writer has been silent for its hold."""
+        self.writers[kind].check(sequence, now_ns * 1e-9)
 
     def task_state(self, state: Mapping, now_ns: int) -> None:
         """hrc/task_state x: the eight task variables."""
@@ -594,34 +656,36 @@ class Bridge:
         reports = []
         fresh = (self.q is not None and self._joint_stamp is not None
                  and (now_ns - self._joint_stamp) * 1e-9 <= self.description.joint_state_timeout)
+        reason = ''
         if not fresh:
             reason = ('no joint state yet' if self.q is None else
                       f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
-            self._note_stop(reason, reports)
-            return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
-        reason = ''
-        if self._goal_publishers > 1:
-            reason = (f'{self._goal_publishers - 1} other publisher(s) of the goal topic: the '
-                      'override bounds only the bridge\'s own goals')
-        elif self._joint_writer.held(now_ns * 1e-9):
-            reason = self._joint_writer.reason
+        else:
+            reason = self._hold_reason(now_ns)
         if reason:
             self._note_stop(reason, reports)
+            self.envelope.command(now_ns, 0.0)
             return BridgeCommand(None, 0.0, True, reason, None, None, 'hold', tuple(reports))
         self._track_progress()
-        trajectory = None
-        at_rest = bool((np.abs(self.qd) <= self.description.rest_speed).all())
-        if self.pending is not None and at_rest and not self.paused:
-            trajectory = self._plan(self.pending)
-            self.motion = self.pending if len(trajectory.durations) else 'idle'
-            self.pending = None
-            self.active, self._next = trajectory, 0
         sep, human_stamp = self._nearest(now_ns)
-        nominal = self.active.nominal_speed if self.active is not None else 0.0
+        fault = self._watch(now_ns, sep, human_stamp)
+        trajectory = None
+        if self.pending is not None and self._at_rest() and (not self.paused or self._replace):
+            motion = 'idle' if self.paused else self.pending
+            trajectory = self._plan(motion)
+            self.motion = motion if len(trajectory.durations) else 'idle'
+            if not self.paused:
+                self.pending = None
+            self._replace = False
+            self.active, self._next = trajectory, 0
+        own = self.active is not None and len(self.active.durations) > 0
+        nominal = self.active.nominal_speed if own else 0.0
         state = self.monitor.update(None if sep is None else sep.distance, human_stamp,
                                     now_ns, nominal)
-        override = state.override
+        # Nothing of the bridge's own to move (a stay, no goal yet): override 0, so that a goal
+        # it did not send cannot run on its override.
+        override = state.override if own else 0.0
         motion = self.motion
         if self.paused:
             override, motion = 0.0, 'hold'
@@ -629,13 +693,103 @@ class Bridge:
             override, motion = 0.0, 'braking'
         elif self.motion == 'collaboration':
             override = min(override, self.description.collaboration_speed)
-        if state.stop:
-            self._note_stop(state.reason, reports)
+        stop, reason = state.stop, state.reason
+        if fault:
+            override, stop, reason = 0.0, True, fault
+        elif stop:
+            reason = self._frozen_reason(now_ns, reason)
+        self.envelope.command(now_ns, override * nominal)
+        if stop:
+            self._note_stop(reason, reports)
         elif self._stop_reason:
             reports.append(Report(OK, 'ssm', 'protective stop cleared', {}, kind='stop'))
             self._stop_reason = ''
-        return BridgeCommand(trajectory, override, state.stop, state.reason, state, sep, motion,
+        return BridgeCommand(trajectory, override, stop, reason, state, sep, motion,
                              tuple(reports))
+
+    def _hold_reason(self, now_ns: int) -> str:
+        """Why the arm holds whatever SSM says: the graph shows another writer of an input
+        (`graph_hold`), or a second writer's message came (joint states, actions, task states)."""
+        for reason in self._graph_holds.values():
+            if reason:
+                return reason
+        now = now_ns * 1e-9
+        for writer in (self._joint_writer, *self.writers.values()):
+            if writer.held(now):
+                return writer.reason
+        return ''
+
+    def _at_rest(self) -> bool:
+        """Every joint slower than rest_speed, by the reported velocities and by the
+        positions' differences."""
+        rest = self.description.rest_speed
+        return bool((np.abs(self.qd) <= rest).all()
+                    and (np.abs(self.measured.joint_rate) <= rest).all())
+
+    def _watch(self, now_ns: int, sep: Separation | None, human_stamp: int | None) -> str:
+        """The monitor (module docstring and `guard`): the arm's measured speed against what
+        the bridge commanded and against what SSM allows now, its configuration against the
+        bridge's path. A breach is a protective stop that clears once none has been seen for
+        resume_time; motion the bridge did not command also drops its path, so that a goal of
+        its own replaces the controller's at rest."""
+        d = self.description
+        p = self.monitor.p
+        speed = self.measured.speed
+        limit = self.envelope.limit(now_ns)
+        breach, foreign = '', False
+        if speed > limit + d.speed_tolerance:
+            breach, foreign = (f'the arm moves at {speed:.3f} m/s (measured), above the '
+                               f'{limit:.3f} m/s the bridge commanded: motion the bridge did '
+                               'not send'), True
+        elif self.active is not None:
+            off, direction = nearest_on_path(self.q, self.active.positions)
+            # by the reported velocities: differences of positions cut the corners of the
+            # path at its waypoints (the absolute deviation covers a driver whose velocities lie)
+            across = self.arm.link_speed(self.q, across_path(self.qd, direction))
+            if off > d.path_tolerance:
+                breach, foreign = (f'the arm is {off:.3f} rad off the bridge\'s path '
+                                   f'(path_tolerance {d.path_tolerance} rad): a goal the bridge '
+                                   'did not send'), True
+            elif across > d.speed_tolerance:
+                breach, foreign = (f'the arm moves across the bridge\'s path at {across:.3f} m/s '
+                                   f'(measured; speed_tolerance {d.speed_tolerance} m/s): a goal '
+                                   'the bridge did not send'), True
+        if not breach and sep is not None and speed > MOVING_SPEED:
+            age = max(0.0, (now_ns - human_stamp) * 1e-9)
+            if age <= p.human_timeout:
+                allowed = max_speed(sep.distance, p, age) or 0.0
+                if speed > allowed + d.speed_tolerance:
+                    breach = (f'the arm moves at {speed:.3f} m/s (measured), above the '
+                              f'{allowed:.3f} m/s SSM allows at a separation of '
+                              f'{sep.distance:.3f} m')
+        if breach:
+            if not self.fault:
+                self.counts['foreign_motion' if foreign else 'overspeed'] += 1
+            if foreign:
+                if self.active is not None:
+                    self.pending = self.pending or self.motion
+                self.active = None
+                self._replace = True
+            self.fault, self._fault_clear_since = breach, None
+        elif self.fault and not self._replace:      # cleared once the bridge's goal is back
+            if self._fault_clear_since is None:
+                self._fault_clear_since = now_ns
+            if (now_ns - self._fault_clear_since) * 1e-9 >= p.resume_time:
+                self.fault = ''
+        return self.fault
+
+    def _frozen_reason(self, now_ns: int, reason: str) -> str:
+        """SSM's stop for old data, named for what it is when the followed skeleton's stamps
+        are fresh but its content stopped changing (a frozen tracker)."""
+        if self.body is None or self._content_stamp is None \
+                or self._body_stamp == self._content_stamp:
+            return reason
+        frozen = (now_ns - self._content_stamp) * 1e-9
+        if frozen <= self.monitor.p.human_timeout:
+            return reason
+        return (f'the skeleton has not changed (by frozen_tolerance '
+                f'{self.description.frozen_tolerance} m) for {frozen:.2f} s while its stamps '
+                'advance: a frozen tracker, the person may be anywhere')
 
     # -- views ---------------------------------------------------------------------------------
     @property

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from ..cell.human import SimulatedHuman
-from ..cell.person import SimulatedPerson
+from ..cell.scenarios import check_scenario, make_scene
 from ..cell.tracking import K4ABT_JOINTS
 from ..decision.observation import DEFAULT_SAFETY_RADII, level_of_distance
 from ..decision.selection import ActionSelector
@@ -73,7 +73,7 @@ from ..tasks import TaskBook, robot_cycle_done
 from .arm import Arm, TrajectoryFollower, body_capsules
 from .bridge import Bridge, load_programs, load_robot_description
 from .metrics import IDLE, STOP, arm_activity, per_hour, request_refused, share
-from .ssm import MOVING_SPEED, ssm_violated
+from .ssm import MOVING_SPEED, protective_distance
 
 CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS
 DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp')
@@ -162,6 +162,12 @@ class EpisodeResult:
     samples: list = field(default_factory=list)         # (t, stop, speed bound, S) per sample
     completed: list = field(default_factory=list)       # tasks completed after each epoch
     arm_path: list = field(default_factory=list)        # (t, q (6,)) every control period
+    # The person scenario's figures (docs/ROBOT.md 4, "People who test SSM"):
+    min_margin: float = math.inf          # min of S - S_p(bound) over the samples the arm moved
+    appearance_violations: int = 0        # samples from a person's appearance until rest
+    event: float = math.nan               # s: when the scenario's event started
+    rest_after_event: float = math.nan    # s from the event until the arm was at rest
+    stop_delay: float = math.nan          # s from the appeared person's skeleton to the stop
 
 
 @dataclass
@@ -178,6 +184,11 @@ class ArmResult:
     contacts: np.ndarray
     speed_breaches: np.ndarray
     tasks_completed: np.ndarray
+    # The person scenario's figures per episode (EpisodeResult; NaN where none applies).
+    min_margin: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    appearance_violations: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rest_after_event: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stop_delay: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seconds: float = 0.0        # compute time of the selector's episodes
     simulated: float = 0.0      # simulated cell time (s)
 
@@ -187,7 +198,7 @@ class ArmCell:
 
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
                  pomdp=None, description=None, programs=None,
-                 settings: ArmCellSettings | None = None):
+                 settings: ArmCellSettings | None = None, person: str = 'honest'):
         if model.queue is not None:
             raise ValueError(f'{model.config.source}: the cell with the arm does not observe '
                              'the tasks waiting (stream.queue, MODEL.md 8.1) yet: leave out '
@@ -200,6 +211,7 @@ class ArmCell:
         self.description = description or load_robot_description()
         self.programs = programs or load_programs(self.description)
         self.settings = settings or ArmCellSettings()
+        self.person = check_scenario(person)
         self.arm = Arm()
         self._peaks: dict = {}
         self._choosers: dict = {}
@@ -230,7 +242,8 @@ class ArmCell:
         book = TaskBook(model, initial_task=dict(zip(TASK_VARIABLES, task_values)),
                         schedule=scenario.schedule)
         human = SimulatedHuman(model, seed=human_seed, em=em, ea=ea, d=d0)
-        person = SimulatedPerson(d0, seed=person_seed, em=em, ea=ea, radii=cfg.safety_radii)
+        scene = make_scene(self.person, d0, person_seed, em=em, ea=ea, radii=cfg.safety_radii,
+                           duration=scenario.epochs * cfg.epoch_period)
         bridge = Bridge(desc, self.programs, self.arm, cfg.control_period)
         bridge._peaks = self._peaks
         follower = TrajectoryFollower(desc.poses['home'], desc.ssm.deceleration)
@@ -241,11 +254,16 @@ class ArmCell:
         belief = self.filter.initial(human.observation)
         observation = human.observation
 
-        first = body_capsules(person.keypoints(), K4ABT_JOINTS)
+        def probe(keypoints):
+            sep = arm.separation(follower.q, body_capsules(keypoints, K4ABT_JOINTS))
+            return sep.distance, sep.arm_point
+
+        first = body_capsules(scene.frame(0.0), K4ABT_JOINTS)
         pre = int(round(cfg.pre_roll / dt))
         for n in range(-pre, 0):       # the pre-roll: the person stands, the bridge holds
             now = _ns(n * dt)
-            bridge.skeleton(first, _ns(n * dt - latency), now)
+            bridge.skeleton(body_capsules(scene.frame(n * dt), K4ABT_JOINTS),
+                            _ns(n * dt - latency), now)
             bridge.joint_state(names, follower.q, follower.qd, now, now)
             follower.step(dt, bridge.tick(now).override)
         # The skeleton the bridge holds at t = 0: captured `latency` before the start.
@@ -254,9 +272,12 @@ class ArmCell:
         frames: deque = deque()
         next_capture = frame_interval - latency
         out = EpisodeResult(0, 0, 0.0, 0.0, 0.0, math.inf, 0, 0, 0, 0, 0)
+        out.event = scene.event if self.person != 'honest' else math.nan
         true_separation = arm.distance(follower.q, first)
         last = None
         step = 0
+        appeared_frame = None         # when the first frame with the appeared person arrived
+        appearance_open = False       # from the appearance until the arm is at rest
         for k in range(1, scenario.epochs + 1):
             book.begin_epoch(k)
             t = step * dt
@@ -266,7 +287,7 @@ class ArmCell:
             action = self._decide(selector, belief, x, (human.em, human.ea))
             task_before = book.state
             reaction = human.react(action, task_before)
-            person.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)
+            scene.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)
             now = _ns(t)
             bridge.task_state(task_before, now)
             bridge.action(action, now)
@@ -282,33 +303,58 @@ class ArmCell:
             for _ in range(cfg.steps_per_epoch):
                 t = step * dt
                 now = _ns(t)
-                keypoints = person.keypoints()
-                body = body_capsules(keypoints, K4ABT_JOINTS)
+                body = body_capsules(scene.bodies(), K4ABT_JOINTS)
                 if t >= next_capture - 1e-9:
-                    frames.append((t, body))
+                    seen = scene.frame(t)
+                    if seen is not None:
+                        frames.append((t, seen))
                     next_capture += frame_interval
                 while frames and frames[0][0] + latency <= t + 1e-9:
-                    stamp, held = frames.popleft()
+                    stamp, seen = frames.popleft()
+                    held = body_capsules(seen, K4ABT_JOINTS)
                     bridge.skeleton(held, _ns(stamp), now)
+                    if appeared_frame is None and scene.appeared is not None \
+                            and len(seen) > len(K4ABT_JOINTS):
+                        # The first frame with the person who appeared: the time to the stop
+                        # counts from here when they are inside S_p(0) (no motion allowed).
+                        inside = arm.distance(follower.q, body_capsules(scene.bodies(),
+                                                                       K4ABT_JOINTS))
+                        appeared_frame = t if inside < protective_distance(0.0, inside, ssm) \
+                            else -1.0
                 if record:
                     out.arm_path.append((t, follower.q.copy()))
-                # The truth at t: the person's body now, the arm's speed bound now.
+                # The truth at t: every body in the cell now, the arm's speed bound now.
                 true_separation = arm.distance(follower.q, body)
                 bound = follower.speed_bound
                 out.min_separation = min(out.min_separation, true_separation)
+                if scene.appeared is not None and not appearance_open \
+                        and math.isnan(out.rest_after_event):
+                    appearance_open = True
                 if bound > MOVING_SPEED:
-                    if ssm_violated(true_separation, bound, ssm):
-                        out.ssm_violations += 1
-                        if record:
-                            out.violations.append((t, true_separation, bound, last))
+                    margin = true_separation - protective_distance(bound, true_separation, ssm)
+                    if not appearance_open:
+                        out.min_margin = min(out.min_margin, margin)
+                    if margin < 0.0:
+                        if appearance_open:
+                            out.appearance_violations += 1
+                        else:
+                            out.ssm_violations += 1
+                            if record:
+                                out.violations.append((t, true_separation, bound, last))
                     if true_separation <= 0.0:
                         out.contacts += 1
                     if arm.link_speed(follower.q, follower.qd) > bound + SPEED_SLACK:
                         out.speed_breaches += 1
+                elif t >= out.event and math.isnan(out.rest_after_event):
+                    out.rest_after_event = t - out.event
+                    appearance_open = False
                 bridge.joint_state(names, follower.q, follower.qd, now, now)
                 command = bridge.tick(now)
                 last = (command.separation.distance if command.separation else None,
                         command.override, command.motion, command.stop)
+                if appeared_frame is not None and appeared_frame >= 0 and command.stop \
+                        and math.isnan(out.stop_delay):
+                    out.stop_delay = t - appeared_frame
                 activity = arm_activity(command.stop, bound)
                 if activity == STOP:
                     out.stop_time += dt
@@ -319,7 +365,7 @@ class ArmCell:
                 if command.trajectory is not None:
                     follower.follow(command.trajectory)
                 follower.step(dt, command.override)
-                person.step(dt, true_separation)
+                scene.step(dt, t, probe, true_separation)
                 step += 1
             progress = bridge.progress
             bc = task_before['bc']
@@ -360,15 +406,16 @@ def evaluate_arm(model: HRCModel, policy, episodes: int = 200, epochs: int = 50,
                  seed: int = 0, task_rate: float = 0.5, selectors=DEFAULT_SELECTORS,
                  mode: str | None = None, pomdp=None, progress=None,
                  settings: ArmCellSettings | None = None, description=None,
-                 programs=None) -> dict:
-    """selector -> ArmResult over the same seeded episodes (common random numbers)."""
+                 programs=None, person: str = 'honest') -> dict:
+    """selector -> ArmResult over the same seeded episodes (common random numbers), with the
+    person of scenario `person` (`cell.scenarios`)."""
     for s in selectors:
         if s not in CELL_SELECTORS:
             raise ValueError(f'unknown selector {s!r}; expected some of '
                              f'{", ".join(CELL_SELECTORS)}')
     scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed, task_rate)
     cell = ArmCell(model, policy, mode=mode, pomdp=pomdp, description=description,
-                   programs=programs, settings=settings)
+                   programs=programs, settings=settings, person=person)
     results = {}
     for selector in selectors:
         t0 = time.process_time()
@@ -390,6 +437,11 @@ def evaluate_arm(model: HRCModel, policy, episodes: int = 200, epochs: int = 50,
             contacts=np.array([r.contacts for r in rows], dtype=float),
             speed_breaches=np.array([r.speed_breaches for r in rows], dtype=float),
             tasks_completed=np.array([r.tasks_completed for r in rows], dtype=float),
+            min_margin=np.array([r.min_margin for r in rows]),
+            appearance_violations=np.array([r.appearance_violations for r in rows],
+                                           dtype=float),
+            rest_after_event=np.array([r.rest_after_event for r in rows]),
+            stop_delay=np.array([r.stop_delay for r in rows]),
             seconds=time.process_time() - t0,
             simulated=float(np.sum(seconds)))
     return results
@@ -457,3 +509,49 @@ def format_arm_paired(results: dict, baseline: str) -> str:
 
 def arm_result_fields() -> tuple:
     return tuple(f.name for f in fields(ArmResult))[1:-2]
+
+
+def scenario_figures(result: ArmResult, control_period: float) -> dict:
+    """The person scenario's figures of one selector (docs/ROBOT.md 4, "People who test
+    SSM"): SSM violations against the true bodies, the appearance exception apart, the
+    smallest margin S - S_p while the arm moved, the time from the event to the arm at rest,
+    and the time from an appeared person's first skeleton to the protective stop."""
+    def finite(x):
+        x = np.asarray(x, dtype=float)
+        return x[np.isfinite(x)]
+    margin, rest, delay = (finite(result.min_margin), finite(result.rest_after_event),
+                           finite(result.stop_delay))
+    return {
+        'episodes': int(len(result.ssm_violations)),
+        'ssm_violations': int(result.ssm_violations.sum()),
+        'episodes_with_violations': int((result.ssm_violations > 0).sum()),
+        'appearance_violations': int(result.appearance_violations.sum()),
+        'contacts': int(result.contacts.sum()),
+        'speed_breaches': int(result.speed_breaches.sum()),
+        'min_margin_m': float(margin.min()) if margin.size else None,
+        'rest_after_event_s': ({'mean': float(rest.mean()), 'p95': float(np.percentile(rest, 95)),
+                                'max': float(rest.max()), 'n': int(rest.size)}
+                               if rest.size else None),
+        'stop_delay_periods': ({'max': float(delay.max() / control_period),
+                                'n': int(delay.size)} if delay.size else None),
+    }
+
+
+def format_scenario_figures(results: dict, person: str, control_period: float) -> str:
+    """One line per selector of `scenario_figures`."""
+    lines = [f'person {person}: SSM against the true bodies']
+    for selector, result in results.items():
+        f = scenario_figures(result, control_period)
+        rest = f['rest_after_event_s']
+        delay = f['stop_delay_periods']
+        margin = f['min_margin_m']
+        lines.append(
+            f'  {selector:<9} violations {f["ssm_violations"]} in {f["episodes"]} episodes, '
+            f'appearance {f["appearance_violations"]}, contacts {f["contacts"]}, '
+            f'smallest margin ' + ('-' if margin is None else f'{margin:+.3f} m')
+            + ', rest after the event ' + ('-' if rest is None else
+                                           f'{rest["mean"]:.2f} s (p95 {rest["p95"]:.2f}, max '
+                                           f'{rest["max"]:.2f})')
+            + ', stop after an appeared skeleton ' + ('-' if delay is None else
+                                                      f'<= {delay["max"]:.0f} control periods'))
+    return '\n'.join(lines)

@@ -1,0 +1,184 @@
+"""What the bridge checks on what is measured, not only on what it commanded (docs/ROBOT.md 3,
+"The monitor"): the arm's measured speed against SSM and against the bridge's own commands,
+the arm's configuration against the bridge's own path, and the person's skeleton for a sensor
+that froze or jumped.
+
+SSM as `ssm.SpeedSeparationMonitor` computes it is a *command*: the speed override of the
+bridge's own goal. A goal the bridge did not send (a second publisher on the controller's goal
+topic, a controller that resumes an old goal, a teach pendant) runs at its own timing, which
+the override (a fraction of that timing) does not bound, and a tracker that keeps sending the
+same skeleton with fresh stamps makes stale data look fresh. So the bridge also watches the
+result, as a cobot's safety controller supervises the measured joint and TCP speeds whoever
+commanded the motion (ISO 10218-1 5.4), and a person sensor used for SSM needs fault detection
+of its own (ISO 13849: a stuck sensor must be detected):
+
+- `MeasuredSpeed`: the arm's top link speed from its joint states, from the reported
+  velocities and from the positions' finite differences over at least `min_dt`, the larger
+  (a driver that reports zero velocities, or positions that jump, both count).
+- `SpeedEnvelope`: the speed the bridge's own commands let the arm have at each instant: the
+  commanded bound (override x its goal's top link speed at override 1), held for `latency`
+  (the command's way to the controller) and then falling at the SSM deceleration (the ramp the
+  controller follows). A measured speed above it plus `tolerance` is motion the bridge did not
+  command.
+- `path_deviation`, `across_path`: how far (rad, the largest joint) a configuration lies from
+  the bridge's own trajectory, and how fast it moves across it. Its segments are cubic in time
+  but straight in joint space (q0 + (q1 - q0) h(u)), so the path is the polyline of its
+  waypoints: a configuration off it by more than `path_tolerance`, or links moving across it
+  faster than `speed_tolerance`, are on somebody else's goal. The second catches a goal as it
+  leaves rest, long before it is far off the path.
+- `SkeletonCheck`: a frame whose every keypoint moved less than `frozen_tolerance` since the
+  last one brings no new information: the data is as old as the last frame that changed, so
+  SSM's age term grows and the arm slows and stops at `human_timeout` (a tracker that froze
+  while its stamps advance). A real body tracker jitters by millimetres even when the person
+  stands still (Azure Kinect Body Tracking: a few mm), so the default tolerance (0.5 mm) is
+  below that noise floor. A frame that puts the person farther from the arm than they can have
+  walked since the held one (`max_body_speed` plus `JUMP_SLACK`) is not trusted: it counts
+  beside the held body (the nearer wins) until the held one has aged out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from .arm import Arm, BodyCapsules
+
+JUMP_SLACK = 0.05            # m a skeleton may move away on top of max_body_speed * dt (noise)
+ENVELOPE_KEPT = 512          # commanded bounds kept for the envelope (each dominated one goes)
+
+
+class MeasuredSpeed:
+    """The arm's top link speed (m/s) from its joint states (module docstring)."""
+
+    def __init__(self, arm: Arm, min_dt: float = 0.004, max_dt: float = 0.1):
+        self.arm = arm
+        self.min_dt, self.max_dt = float(min_dt), float(max_dt)
+        self._history: deque = deque(maxlen=16)     # (stamp ns, q)
+        self.speed = 0.0
+        self.reported = 0.0
+        self.differenced = 0.0
+        self.joint_rate = np.zeros(0)     # rad/s per joint from the positions' differences
+
+    def update(self, q, qd, stamp_ns: int) -> float:
+        q = np.asarray(q, dtype=float)
+        self.reported = self.arm.link_speed(q, qd)
+        self.differenced = 0.0
+        self.joint_rate = np.zeros(0)
+        history = self._history
+        while history and history[-1][0] >= stamp_ns:     # out of order or repeated: restart
+            history.pop()
+        for then, q_then in reversed(history):
+            dt = (stamp_ns - then) * 1e-9
+            if dt > self.max_dt:
+                break
+            if dt >= self.min_dt:
+                self.joint_rate = (q - q_then) / dt
+                self.differenced = self.arm.link_speed(q, self.joint_rate)
+                break
+        history.append((int(stamp_ns), q.copy()))
+        self.speed = max(self.reported, self.differenced)
+        return self.speed
+
+    def reset(self) -> None:
+        self._history.clear()
+        self.speed = self.reported = self.differenced = 0.0
+        self.joint_rate = np.zeros(0)
+
+
+class SpeedEnvelope:
+    """The top link speed the bridge's own commands allow the arm at each instant (module
+    docstring): each commanded bound holds for `latency` s, then falls at `deceleration`."""
+
+    def __init__(self, deceleration: float, latency: float):
+        self.deceleration = float(deceleration)
+        self.latency = float(latency)
+        self._commands: deque = deque(maxlen=ENVELOPE_KEPT)    # (t ns, bound), bounds falling
+
+    def command(self, now_ns: int, bound: float) -> None:
+        """The bridge commands a top link speed `bound` (m/s) at `now_ns`."""
+        bound = max(0.0, float(bound))
+        commands = self._commands
+        while commands and commands[-1][1] <= bound:       # dominated from now on
+            commands.pop()
+        commands.append((int(now_ns), bound))
+
+    def limit(self, now_ns: int) -> float:
+        """The fastest the arm may be moving at `now_ns` (m/s)."""
+        best = 0.0
+        keep = deque(maxlen=ENVELOPE_KEPT)
+        for then, bound in self._commands:
+            late = max(0.0, (now_ns - then) * 1e-9 - self.latency)
+            value = bound - self.deceleration * late
+            if value > 0.0 or then == self._commands[-1][0]:
+                keep.append((then, bound))
+            best = max(best, value)
+        self._commands = keep
+        return best
+
+
+def path_deviation(q, positions) -> float:
+    """The largest joint's distance (rad) from `q` to the polyline through `positions`
+    (n, 6): the path of a trajectory whose segments are straight in joint space."""
+    return nearest_on_path(q, positions)[0]
+
+
+def nearest_on_path(q, positions) -> tuple[float, np.ndarray | None]:
+    """(`path_deviation`, the unit direction of the path's nearest segment in joint space, None
+    for a path of one point: a stay)."""
+    q = np.asarray(q, dtype=float)
+    points = np.asarray(positions, dtype=float)
+    if len(points) == 1:
+        return float(np.max(np.abs(q - points[0]))), None
+    start, step = points[:-1], np.diff(points, axis=0)
+    length2 = np.einsum('ij,ij->i', step, step)
+    u = np.einsum('ij,ij->i', q - start, step) / np.where(length2 > 0, length2, 1.0)
+    u = np.clip(np.where(length2 > 0, u, 0.0), 0.0, 1.0)
+    nearest = start + step * u[:, None]
+    # The projection minimises the Euclidean distance; the limit is on the largest joint, which
+    # is at most that distance: the check is conservative by at most sqrt(6).
+    off = np.max(np.abs(q - nearest), axis=1)
+    i = int(np.argmin(off))
+    direction = step[i] / math.sqrt(length2[i]) if length2[i] > 0 else None
+    return float(off[i]), direction
+
+
+def across_path(rate, direction) -> np.ndarray:
+    """The part of a joint velocity `rate` (rad/s) across a path whose local direction is
+    `direction` (unit, joint space; None: a stay, where every motion is across)."""
+    rate = np.asarray(rate, dtype=float)
+    if direction is None:
+        return rate
+    return rate - direction * float(rate @ direction)
+
+
+class SkeletonCheck:
+    """Is a skeleton of the followed tracker new information, and a plausible one (module
+    docstring)? `frozen_tolerance` m, `max_body_speed` m/s."""
+
+    def __init__(self, frozen_tolerance: float = 0.0005, max_body_speed: float = 3.0):
+        for name, value in (('frozen_tolerance', frozen_tolerance),
+                            ('max_body_speed', max_body_speed)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+        self.frozen_tolerance = float(frozen_tolerance)
+        self.max_body_speed = float(max_body_speed)
+
+    def unchanged(self, body: BodyCapsules, held: BodyCapsules) -> bool:
+        """True when `body` repeats `held` within frozen_tolerance (a frozen tracker)."""
+        if body.segments.shape != held.segments.shape or self.frozen_tolerance <= 0:
+            return False
+        return bool(np.max(np.abs(body.segments - held.segments)) < self.frozen_tolerance)
+
+    def jumped_away(self, separation_new: float, separation_held: float, dt: float) -> bool:
+        """True when a new skeleton puts the person farther from the arm (separations at the
+        arm's current configuration) than they can have moved in `dt` s since the held one."""
+        if self.max_body_speed <= 0:
+            return False
+        return separation_new - separation_held > self.max_body_speed * max(dt, 0.0) \
+            + JUMP_SLACK
+
+
+__all__ = ['JUMP_SLACK', 'MeasuredSpeed', 'SkeletonCheck', 'SpeedEnvelope', 'across_path',
+           'nearest_on_path', 'path_deviation']

@@ -1,0 +1,281 @@
+"""The bridge's monitor (core/robot/guard.py): SSM checked on what is measured, whoever sent the
+goal, and the inputs that can only stop the arm.
+
+A bridge and a simulated controller (`TrajectoryFollower`) are stepped together at 100 Hz, as
+test_robot.py's Rig does; the attacks reach the controller or the bridge as a hostile or broken
+world would send them: a goal the bridge did not send, joint states whose velocities lie, a
+tracker that freezes or jumps away, a second writer of hrc/action and hrc/task_state.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hrc_ros.core.cell.person import SimulatedPerson
+from hrc_ros.core.cell.tracking import K4ABT_JOINTS
+from hrc_ros.core.protocol import InputError
+from hrc_ros.core.robot.arm import (JOINT_NAMES, Arm, BodyCapsules, Trajectory,
+                                    TrajectoryFollower, body_capsules, peak_link_speed)
+from hrc_ros.core.robot.bridge import WRITER_HOLD, Bridge, load_programs, load_robot_description
+from hrc_ros.core.robot.guard import (MeasuredSpeed, SkeletonCheck, SpeedEnvelope,
+                                      path_deviation)
+
+MS = 1_000_000
+NOISE = np.random.default_rng(33)
+
+
+@pytest.fixture(scope='module')
+def setup():
+    description = load_robot_description()
+    return description, load_programs(description), Arm()
+
+
+def person(distance: float, theta: float = math.radians(-31)) -> np.ndarray:
+    """The 32 keypoints of a person standing `distance` m from the base, hands down."""
+    p = SimulatedPerson(3, seed=0)
+    p.rho, p.theta, p.reach = distance, theta, 0.0
+    return p.keypoints()
+
+
+def seen(keypoints, noise=0.0015) -> BodyCapsules:
+    """What a real tracker reports: millimetres of noise on every keypoint."""
+    return body_capsules(keypoints + NOISE.normal(0.0, noise, keypoints.shape), K4ABT_JOINTS)
+
+
+class Cell:
+    """A bridge and a controller at 100 Hz; `foreign(trajectory)` is a goal someone else sends
+    the controller, `lie` replaces the velocities the controller reports."""
+
+    def __init__(self, setup, distance=2.5):
+        self.description, programs, self.arm = setup
+        self.bridge = Bridge(self.description, programs, self.arm, period=0.01)
+        self.follower = TrajectoryFollower(self.description.poses['home'],
+                                           self.description.ssm.deceleration)
+        self.keypoints = person(distance)
+        self.t = 0
+        self.lie = None
+        self.commands = []
+
+    def foreign(self, target, duration):
+        q = self.follower.q
+        traj = Trajectory(JOINT_NAMES, np.array([q, target]), np.array([duration]),
+                          peak_link_speed(self.arm, q, target, duration), (-1,), 'forged')
+        self.follower.follow(traj)
+
+    def run(self, seconds, override=None, body=None):
+        out = []
+        for _ in range(int(round(seconds / 0.01))):
+            self.bridge.skeleton(seen(self.keypoints) if body is None else body(), self.t,
+                                 self.t)
+            qd = self.follower.qd if self.lie is None else self.lie
+            self.bridge.joint_state(JOINT_NAMES, self.follower.q, qd, self.t, self.t)
+            command = self.bridge.tick(self.t)
+            if command.trajectory is not None:
+                self.follower.follow(command.trajectory)
+            self.follower.step(0.01, command.override if override is None else override)
+            out.append((command, self.follower.q.copy(), self.follower.qd.copy()))
+            self.t += 10 * MS
+        self.commands += out
+        return out
+
+
+def program_running(cell):
+    cell.run(0.3)                                       # SSM's start-up stop clears
+    cell.bridge.task_state(dict(tp=1, tc=3, tx=0, ty=0, hp=0, hc=0, bp=0, bc=0), cell.t)
+    cell.bridge.action('ct', cell.t)
+    cell.run(0.6)
+    assert cell.bridge.motion == 'program' and np.max(np.abs(cell.follower.qd)) > 0.1
+
+
+# -- the parts -------------------------------------------------------------------------------
+def test_the_measured_speed_takes_the_positions_when_the_velocities_lie(setup):
+    _, _, arm = setup
+    q0 = np.array([1.4, -1.9, 1.9, -1.57, -1.57, 0.0])
+    qd = np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+    measured = MeasuredSpeed(arm)
+    measured.update(q0, np.zeros(6), 0)
+    speed = measured.update(q0 + qd * 0.008, np.zeros(6), 8 * MS)     # zeros reported
+    assert measured.reported == 0.0
+    assert speed == pytest.approx(arm.link_speed(q0 + qd * 0.008, qd), rel=1e-9)
+    # the reported velocities win when they are the larger (a position that did not move yet)
+    assert measured.update(q0 + qd * 0.008, 2 * qd, 16 * MS) == pytest.approx(
+        arm.link_speed(q0 + qd * 0.008, 2 * qd))
+    # a sample older than the one before restarts the differences (no division by <= 0)
+    assert measured.update(q0, np.zeros(6), 4 * MS) == 0.0
+
+
+def test_the_envelope_holds_each_command_for_the_latency_then_falls_at_the_deceleration():
+    envelope = SpeedEnvelope(deceleration=2.0, latency=0.04)
+    envelope.command(0, 1.0)
+    envelope.command(10 * MS, 0.0)
+    assert envelope.limit(30 * MS) == pytest.approx(1.0)            # still in the latency
+    assert envelope.limit(140 * MS) == pytest.approx(1.0 - 2.0 * 0.1)
+    assert envelope.limit(600 * MS) == 0.0
+    envelope.command(600 * MS, 0.3)
+    assert envelope.limit(600 * MS) == pytest.approx(0.3)
+
+
+def test_the_path_deviation_is_the_distance_to_the_waypoints_polyline():
+    points = np.array([[0.0] * 6, [1.0] + [0.0] * 5, [1.0, 1.0] + [0.0] * 4])
+    assert path_deviation([0.5, 0, 0, 0, 0, 0], points) == pytest.approx(0.0)
+    assert path_deviation([1.0, 0.5, 0, 0, 0, 0], points) == pytest.approx(0.0)
+    assert path_deviation([0.5, 0, 0.2, 0, 0, 0], points) == pytest.approx(0.2)
+    assert path_deviation([0.0, 0, 0, 0, 0, 0.3], points[:1]) == pytest.approx(0.3)
+
+
+def test_a_skeleton_is_frozen_within_the_tolerance_and_a_jump_away_is_too_fast():
+    check = SkeletonCheck(frozen_tolerance=0.0005, max_body_speed=3.0)
+    body = body_capsules(person(2.0), K4ABT_JOINTS)
+    assert check.unchanged(body, body)
+    assert check.unchanged(BodyCapsules(body.segments + 0.0004, body.radii, body.names), body)
+    assert not check.unchanged(seen(person(2.0)), body)
+    assert not check.jumped_away(1.0 + 0.079, 1.0, 0.01)     # within 3 m/s x 10 ms + 0.05 m
+    assert check.jumped_away(1.0 + 0.081, 1.0, 0.01)
+    assert not check.jumped_away(0.2, 1.0, 0.01)                      # toward the arm: taken
+
+
+# -- a goal the bridge did not send ----------------------------------------------------------
+def test_a_goal_the_bridge_did_not_send_cannot_run_on_an_idle_arms_override(setup):
+    """The bridge has nothing of its own to move: its override is 0, so a forged goal does not
+    move the arm at all (before: 1.0, and the goal ran at full speed)."""
+    cell = Cell(setup)
+    cell.run(0.3)
+    cell.bridge.action('nw', cell.t)
+    start = cell.follower.q.copy()
+    cell.foreign(cell.description.poses['retreat'], 1.5)
+    steps = cell.run(1.0)
+    assert all(c.override == 0.0 for c, _, _ in steps)
+    np.testing.assert_array_equal(cell.follower.q, start)
+
+
+def test_a_goal_the_bridge_did_not_send_stops_the_arm_and_is_replaced(setup):
+    """A forged goal replaces the running program in the controller (a new message replaces
+    the running trajectory): the monitor stops the arm, and at rest the bridge's own goal
+    replaces the forged one, from where the arm stands; the program then goes on."""
+    cell = Cell(setup)
+    program_running(cell)
+    start = cell.follower.q.copy()
+    cell.foreign(cell.description.poses['retreat'], 1.2)
+    steps = cell.run(1.5)
+    stops = [i for i, (c, _, _) in enumerate(steps) if c.stop]
+    assert stops and ('did not send' in steps[stops[0]][0].reason)
+    assert all(c.override == 0.0 for c, _, _ in steps[stops[0]:stops[0] + 20])
+    # it brakes at the SSM deceleration from where it was caught, and stands; there the
+    # bridge's own goal (the program, from where the arm stands) replaces the forged one
+    sent = next(i for i, (c, _, _) in enumerate(steps) if c.trajectory is not None)
+    assert sent > stops[0] and steps[sent][0].trajectory.kind == 'program'
+    np.testing.assert_allclose(steps[sent][0].trajectory.positions[0], steps[sent - 1][1],
+                               atol=1e-9)
+    travelled = max(np.max(np.abs(q - start)) for _, q, _ in steps[:sent])
+    assert travelled < 0.05
+    assert cell.bridge.counts['foreign_motion'] == 1
+    done = cell.bridge.progress.cycles_done
+    cell.run(4.0)
+    assert not cell.commands[-1][0].stop and cell.bridge.progress.cycles_done > done
+
+
+def test_a_slower_goal_off_the_bridges_path_stops_the_program(setup):
+    cell = Cell(setup)
+    program_running(cell)
+    cell.run(0.5, override=0.0)                   # the program brakes to rest ...
+    q = cell.follower.q.copy()
+    target = q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.6])    # ... a slow wrist turn elsewhere
+    cell.foreign(target, 3.0)
+    steps = cell.run(1.0)
+    reasons = [c.reason for c, _, _ in steps if c.stop]
+    assert any("off the bridge's path" in r or 'did not send' in r for r in reasons)
+    assert np.max(np.abs(cell.follower.q - q)) <= cell.description.path_tolerance + 0.02
+
+
+def test_velocities_that_lie_do_not_hide_a_forged_motion(setup):
+    """A driver that reports zero velocities: the positions' differences show the motion."""
+    cell = Cell(setup)
+    program_running(cell)
+    cell.lie = np.zeros(6)
+    start = cell.follower.q.copy()
+    path = cell.bridge.active.positions
+    cell.foreign(cell.description.poses['retreat'], 1.2)
+    steps = cell.run(2.0)
+    first = next(i for i, (c, _, _) in enumerate(steps) if c.stop)
+    assert 'did not send' in steps[first][0].reason
+    # off the bridge's path by path_tolerance (one control period's motion on top) ...
+    assert path_deviation(steps[first][1], path) < cell.description.path_tolerance + 0.01
+    # ... and held stopped until the bridge's own goal replaced the forged one at rest
+    sent = next(i for i, (c, _, _) in enumerate(steps) if c.trajectory is not None)
+    assert all(c.stop for c, _, _ in steps[first:sent + 1])
+    assert np.max(np.abs(steps[sent - 1][1] - start)) < 0.5
+
+
+def test_measured_speed_above_what_ssm_allows_is_a_protective_stop(setup):
+    """The person comes near while the arm runs at full speed on a goal whose nominal speed
+    understates it (a controller that runs faster than the timing it was given): SSM's
+    override alone would let it go on; the measured speed stops it."""
+    cell = Cell(setup)
+    program_running(cell)
+    active = cell.bridge.active
+    cell.bridge.active = Trajectory(active.joint_names, active.positions, active.durations,
+                                    active.nominal_speed / 4, active.marks, active.kind)
+    cell.keypoints = person(1.45)
+    steps = cell.run(0.4)
+    reasons = [c.reason for c, _, _ in steps if c.stop]
+    assert any('SSM allows' in r or 'did not send' in r for r in reasons), reasons[:3]
+
+
+# -- a broken or hostile tracker -------------------------------------------------------------
+def test_a_frozen_tracker_stops_the_arm_with_its_reason_and_a_live_one_does_not(setup):
+    cell = Cell(setup)
+    program_running(cell)
+    frozen = seen(cell.keypoints)
+    steps = cell.run(1.0, body=lambda: frozen)            # fresh stamps, the same keypoints
+    reasons = [c.reason for c, _, _ in steps if c.stop]
+    assert reasons and 'frozen tracker' in reasons[-1]
+    stopped_at = next(i for i, (c, _, _) in enumerate(steps) if c.stop)
+    # the data ages from the last change: SSM slows the arm and stops it at human_timeout
+    assert stopped_at * 0.01 <= cell.description.ssm.human_timeout + 0.02
+    assert np.all(steps[-1][2] == 0)
+    # a live tracker again: the arm resumes
+    steps = cell.run(1.0)
+    assert not steps[-1][0].stop
+
+
+def test_a_skeleton_that_jumps_away_is_not_trusted(setup):
+    """A person near the arm; the next frame claims they are 2 m farther 10 ms later. SSM keeps
+    the near body (aging) until it is older than human_timeout."""
+    cell = Cell(setup, distance=1.5)
+    program_running(cell)
+    near = person(0.9)
+    cell.run(0.3, body=lambda: seen(near))
+    assert cell.commands[-1][0].stop                     # the person is at the arm
+    steps = cell.run(0.3, body=lambda: seen(person(3.0)))
+    assert all(c.stop for c, _, _ in steps)              # the jump is not trusted
+    assert cell.bridge.counts['implausible_skeletons'] > 0
+    assert min(c.separation.distance for c, _, _ in steps) < 0.6
+
+
+# -- one action source -----------------------------------------------------------------------
+def test_a_second_writer_of_the_actions_or_task_states_holds_the_arm(setup):
+    cell = Cell(setup)
+    program_running(cell)
+    bridge = cell.bridge
+    bridge.check_writer('action', 10, cell.t)           # the owner's line
+    bridge.check_writer('action', 11, cell.t)
+    with pytest.raises(InputError, match='second writer'):
+        bridge.check_writer('action', 1, cell.t)        # another writer's numbers
+    steps = cell.run(0.5)
+    assert all(c.stop and 'second writer of hrc/action' in c.reason for c, _, _ in steps)
+    assert np.all(cell.follower.qd == 0)
+    cell.run(WRITER_HOLD)                               # silent for the hold: free again
+    assert not cell.commands[-1][0].stop
+    bridge.check_writer('task_state', 40, cell.t)
+    with pytest.raises(InputError, match='second writer'):
+        bridge.check_writer('task_state', 3, cell.t)
+    assert 'hrc/task_state' in cell.run(0.05)[-1][0].reason
+    cell.run(WRITER_HOLD)
+    bridge.graph_hold('action', 'hrc/action has 2 publishers (/decision, /forger)')
+    assert cell.run(0.05)[-1][0].reason == 'hrc/action has 2 publishers (/decision, /forger)'
+    bridge.graph_hold('action', '')
+    cell.run(0.5)
+    assert not cell.commands[-1][0].stop
