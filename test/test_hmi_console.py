@@ -277,25 +277,28 @@ def test_the_console_fills_as_the_cell_runs(cell, console):
 def test_a_protective_stop_is_in_the_log_with_its_reason_and_on_the_timeline(cell, console):
     suite, recorder, reads, model, url = cell
     page = console
-    at_the_arm = [[0.05, 0.0, 0.15]] * len(K4ABT_JOINTS)     # a body at the arm's base
     logged = page.locator('#events li[data-kind="protective stop"]',
                           has_text='below the protective distance')
     before = logged.count()                                   # the 3D person's, if any
-    start = time.monotonic()
+    start, frame = time.monotonic(), 0
     while logged.count() <= before or time.monotonic() < start + BODY_S:
         assert time.monotonic() < start + 20, 'no protective stop in the log'
+        frame += 1                  # a body at the arm's base, breathing (a tracker's noise:
+        wobble = 0.002 * (frame % 5)        # the bridge takes a still skeleton for a frozen one)
         recorder.skeleton.publish(conv.keypoints_to_msg(
-            at_the_arm, conv.seconds_to_stamp(time.time())))
+            [[0.05 + wobble, 0.0, 0.15]] * len(K4ABT_JOINTS),
+            conv.seconds_to_stamp(time.time())))
         time.sleep(1 / 30)
-    expect(logged.first).to_contain_text('the arm stopped for safety: separation')
+    expect(logged.first).to_contain_text(re.compile(r'the arm (stopped|stays stopped) for '
+                                                    r'safety: separation'))
     expect(logged.first.locator('time')).to_have_attribute('datetime', re.compile(r'^\d{4}-'))
     recorder.wait(lambda: number(page, '#timeline', 'data-stops') >= 1, 'the stop on the timeline')
     with page.expect_download() as download:
         page.locator('#events-csv').click()
     lines = open(download.value.path(), encoding='utf-8').read().splitlines()
     assert lines[0] == 'time,kind,what happened,detail'
-    assert any(',protective stop,the arm stopped for safety: separation' in line
-               for line in lines[1:]), lines[:5]
+    assert any(re.search(r',protective stop,the arm (stopped|stays stopped) for safety: '
+                         r'separation', line) for line in lines[1:]), lines[:5]
     assert download.value.suggested_filename.startswith('cell-events-')
 
 
@@ -362,7 +365,7 @@ def test_the_figures_are_the_cores_computation_on_the_recorded_run(cell, console
     core = machine.shift.all_windows(shown['as_of'] * 1_000_000)
     counted = core[shown['window']]
     assert counted['since_ns'] // 1_000_000 == shown['since']
-    assert counted['arm_seconds'] > 10 and counted['tasks_completed'] >= 1
+    assert counted['arm_seconds'] > 10 and counted['protective_stop_share'] > 0   # the body
     assert counted['fail_safe_epochs'] is not None   # the decision node's reports were read
     for name, value in shown['values'].items():
         expected = counted[name]

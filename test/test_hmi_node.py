@@ -280,7 +280,7 @@ def test_the_operator_sees_the_cell_the_belief_the_fail_safe_and_the_robot(graph
     cell.publish(separation, conv.separation_to_msg(0.212, [0.3, 0, 0.5], [0.5, 0, 0.5], 0.3,
                                                     0.0), 'separation')
     cell.publish(override, Float64(data=float('nan')), 'speed_override')     # dropped
-    wait_for(graph, lambda: ((page.view() or {}).get('robot') or {}).get('stopped'),
+    wait_for(graph, lambda: ((page.view() or {}).get('robot') or {}).get('separation') == 0.21,
              'the robot side and its stop')
     view = page.view()
     assert view['action'] == 'stopped: the worker is too close'

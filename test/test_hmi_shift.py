@@ -196,6 +196,15 @@ def test_a_protective_stop_is_logged_with_the_bridges_reason():
     assert stop == {'t_ms': T0 // 1_000_000, 'kind': ev.STOP, 'text': 'the arm stopped for '
                     'safety: separation 0.412 m below the protective distance 0.5 m',
                     'detail': 'separation 0.412 m below the protective distance 0.5 m'}
+    # while it holds: a new reason is logged, new figures of the same reason are not
+    log.stop_reason(T0 + S, True, 'separation 0.398 m below the protective distance 0.5 m')
+    assert log.take() == []
+    log.stop_reason(T0 + 2 * S, True, 'the skeleton has not changed for 0.6 s: a frozen tracker')
+    log.stop_reason(T0 + 2 * S + 1, True, 'the skeleton has not changed for 1.6 s: a frozen '
+                    'tracker')
+    assert [e['text'] for e in log.take()] == [
+        'the arm stays stopped for safety: the skeleton has not changed for 0.6 s: a frozen '
+        'tracker']
     log.protective_stop(T0 + 3 * S, False)
     over, = log.take()
     assert over['kind'] == ev.STOP_OVER and over['text'].endswith('over after 3.0 s')

@@ -4,7 +4,9 @@ Entries (newest last here; the page shows them newest first), at most `KEPT`:
 
 - ``protective stop``: the robot side stopped the arm (`hrc/protective_stop` true), with the
   bridge's reason (its `ssm` status on /diagnostics, which it publishes with the stop; the
-  entry waits for it at most `REASON_WAIT_S`), and ``protective stop over`` with how long;
+  entry waits for it at most `REASON_WAIT_S`); while it holds, again when the reason changes
+  in words (its figures apart: "frozen tracker" then "separation below the protective
+  distance"), and ``protective stop over`` with how long;
 - ``fail-safe``: the decision node failed safe (its epoch report gives reasons), once when it
   begins and again when the reasons change, and ``fail-safe over`` with how many epochs;
 - ``order refused``: the task manager refused an order (this HMI's or another publisher's);
@@ -17,16 +19,22 @@ the CSV). `take()` hands the entries added since the last call to the pages.
 
 from __future__ import annotations
 
+import re
 from collections import deque
 
 from . import words
 
 KEPT = 200
-REASON_WAIT_S = 1.0
+REASON_WAIT_S = 2.0         # the bridge's health (every second) has the reason too
 STOP, STOP_OVER, FAIL_SAFE, FAIL_SAFE_OVER, ORDER_REFUSED, POLICY = (
     'protective stop', 'protective stop over', 'fail-safe', 'fail-safe over', 'order refused',
     'policy')
 S = 1_000_000_000
+
+
+def _words_of(reason: str) -> str:
+    """A reason without its figures: what it says, not how much."""
+    return re.sub(r'-?\d+(\.\d+)?', '#', reason)
 
 
 def duration_words(seconds: float) -> str:
@@ -44,6 +52,7 @@ class EventLog:
         self._stop_since: int | None = None
         self._pending_stop: int | None = None        # a stop waiting for its reason
         self._stop_reason: tuple | None = None       # (t, reason) of the bridge's last report
+        self._logged_reason: str | None = None       # the words of the reason last logged
         self._fail_safe: tuple | None = None         # (first epoch, reasons) while failing safe
         self._fail_safe_last = 0
 
@@ -77,15 +86,21 @@ class EventLog:
             self.add(t, STOP_OVER, f'the arm moves again: protective stop over{took}')
 
     def stop_reason(self, t: int, stopped: bool, reason: str) -> None:
-        """The bridge's `ssm` status: stopped and why (reported with each new stop)."""
+        """The bridge's `ssm` status: stopped and why (reported with each new stop, and while
+        the reason's figures change, at most once a second)."""
         if stopped and reason:
             self._stop_reason = (int(t), reason)
             if self._pending_stop is not None and abs(t - self._pending_stop) <= \
                     REASON_WAIT_S * S:
                 self._emit_stop(reason)
+            elif self.stopped and self._pending_stop is None \
+                    and _words_of(reason) != self._logged_reason:
+                self._logged_reason = _words_of(reason)
+                self.add(t, STOP, f'the arm stays stopped for safety: {reason}', reason)
 
     def _emit_stop(self, reason: str) -> None:
         t, self._pending_stop = self._pending_stop, None
+        self._logged_reason = _words_of(reason)
         self.add(t, STOP, 'the arm stopped for safety' + (f': {reason}' if reason else
                                                           ' (the robot side gave no reason)'),
                  reason)

@@ -162,7 +162,7 @@ class HmiMachine:
         self.events = EventLog()
         self._figures: dict | None = None
         self._figures_ns: int | None = None
-        self._robot: tuple | None = None            # (view, at now) of the arm, see _robot_view
+        self._robot: tuple | None = None    # (view, at now, stop) of the arm, see _robot_view
         self.counts = {'answers_sent': 0, 'answers_refused': 0, 'requests_opened': 0,
                        'answered_elsewhere': 0, 'epochs_ignored': 0}
 
@@ -553,13 +553,12 @@ class HmiMachine:
     def _robot_view(self, now: int) -> dict | None:
         """The arm now, while the robot side publishes (ROBOT_TIMEOUT_S). Its separation
         changes at the arm's rate (125 Hz): the console shows it anew every ROBOT_VIEW_S (the
-        timeline has the detail), a protective stop or its end at once."""
-        stopped = None if self.stop is None else self.stop[0]
+        timeline has the detail), a protective stop, its reason or its end at once."""
         if self._robot is not None and now - self._robot[1] < ROBOT_VIEW_S * 1e9 \
-                and (self._robot[0] or {}).get('stopped') == stopped:
+                and self._robot[2] == self.stop:
             return self._robot[0]
         view = self._robot_now(now)
-        self._robot = (view, now)
+        self._robot = (view, now, self.stop)
         return view
 
     def _robot_now(self, now: int) -> dict | None:

@@ -170,7 +170,8 @@ class HmiInputs:
         self.statuses = {f'{prefix}{decision_node}: decision': 'decision',
                          f'{prefix}{decision_node}: policy': 'policy',
                          f'{prefix}{task_manager_node}: tasks': 'task_manager',
-                         f'{prefix}{robot_bridge_node}: ssm': 'stop'}
+                         f'{prefix}{robot_bridge_node}: ssm': 'stop',
+                         f'{prefix}{robot_bridge_node}: bridge': 'bridge'}
         self.topics = {
             'epoch': (UInt32, 'hrc/epoch'), 'task_state': (UInt8MultiArray, 'hrc/task_state'),
             'action': (String, 'hrc/action'), 'human_response': (Bool, 'hrc/human_response'),
@@ -195,7 +196,9 @@ class HmiInputs:
 
     def read_statuses(self, msg: DiagnosticArray):
         """The statuses the HMI reads in `msg` (None: none): the decision node's epoch report
-        and policy swaps, the task manager's queue, the robot bridge's protective stop."""
+        and policy swaps, the task manager's queue, the robot bridge's protective stop (its
+        `ssm` report of each stop, and its health every second, which also has the stop in
+        force: a stop reported before the HMI listened gets its reason from there)."""
         found = []
         for status in msg.status:
             kind = self.statuses.get(status.name)
@@ -213,6 +216,9 @@ class HmiInputs:
             elif kind == 'stop':
                 found.append((kind, status.level != DiagnosticStatus.OK,
                               values.get('reason', '')))
+            elif kind == 'bridge':          # its health, every second: the stop in force
+                found.append(('stop', values.get('protective_stop') == 'True',
+                              values.get('stop_reason', '')))
             else:
                 found.append((kind, level, status.message, values))
         return found or None
