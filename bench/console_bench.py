@@ -67,11 +67,11 @@ from hrc_ros.core.model import TASK_VARIABLES  # noqa: E402
 from hrc_ros.core.paths import arm_config_path  # noqa: E402
 from hrc_ros.ros import conversions as conv  # noqa: E402
 from hrc_ros.ros import qos  # noqa: E402
+from hrc_ros.ros.hmi.server import FEEDS  # noqa: E402
 from hrc_ros.ros.launch_plan import ROBOT_OVERRIDES  # noqa: E402
 from hrc_ros.ros.processes import NodeProcesses  # noqa: E402
 
 IDLE = dict.fromkeys(TASK_VARIABLES, 0)
-EVENTS_KEPT = 200          # the console's event log (server.FEEDS['events'])
 # idle task, so each action reads the same whatever the task: the console's words for them
 ACTIONS = {'nw': 'carrying on', 'dp': 'moving away to give the worker room',
            'dm': 'coming closer to work with the worker', 'mh': 'cheering the worker on'}
@@ -377,7 +377,7 @@ def memory(args, work: Path) -> None:
     data = np.array(rows)
     # the timeline holds its ten minutes from 10 min on; the event log its 200 entries once
     # that many happened (each entry a few DOM nodes): after both, nothing may grow
-    full = data[data[:, 6] >= EVENTS_KEPT, 0]
+    full = data[data[:, 6] >= FEEDS['events'], 0]
     for since in (10.0, full[0] if full.size else None):
         later = data[:, 0] >= since if since is not None else np.zeros(len(data), bool)
         if later.sum() < 3:

@@ -313,6 +313,7 @@ class HmiNode(Node):
         self.published = {'answers': 0, 'orders': 0}
         self._views: tuple | None = None
         self.wake = self.create_guard_condition(self._on_commands)
+        self.push_soon = self.create_guard_condition(lambda: self._push(self._now()))
         self.refresh = self.create_timer(1.0 / values['refresh_rate'], self._refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         settings = ServerSettings(values['host'], values['port'], values['max_connections'],
@@ -362,12 +363,13 @@ class HmiNode(Node):
     def _control(self, name: str):
         """A handler of a control input: the machine takes it at once (after the sampled
         inputs waiting, so it sees the belief and the distance published before it) and the
-        pages follow."""
+        pages follow once the control messages ready with it are taken too (an epoch's signal,
+        task state and action come together: one view for the three, not three in a row)."""
         def handle(value, published_ns: int) -> None:
             now = self._now()
             self._take(now)
             HmiInputs.feed(self.machine, name, value, published_ns, now)
-            self._push(now)
+            self.push_soon.trigger()
         return handle
 
     def _take(self, now: int) -> None:
