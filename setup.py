@@ -26,8 +26,9 @@ setup(
     name=PACKAGE,
     version='0.2.0',
     packages=find_packages(exclude=['test', 'test.*', 'bench']),
-    # The HMI's pages: static HTML, CSS and JavaScript, served from the package itself.
-    package_data={'hrc_ros.ros.hmi': ['static/*']},
+    # The HMI's pages: static HTML, CSS and JavaScript, served from the package itself, with
+    # the charting library the console draws its timeline with (uPlot, MIT, its licence beside).
+    package_data={'hrc_ros.ros.hmi': ['static/*', 'static/vendor/*']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml', 'README.md']),
@@ -40,7 +41,7 @@ setup(
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'numba', 'aiohttp', 'ray>=2.58', 'mujoco',
+                      'matplotlib', 'pillow', 'numba', 'aiohttp', 'ray>=2.58', 'mujoco',
                       'playwright'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',

@@ -47,13 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from private_domain import use_private_domain
+
 if __name__ == '__main__':
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('HRC_BENCH_DOMAIN_ID',
-                                                 str(random.SystemRandom().randint(100, 199)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                          str(ROOT / 'config' / 'fastdds_fast_discovery.xml'))
+    use_private_domain()
 
 import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -132,6 +129,37 @@ def wait(predicate, timeout: float, what: str) -> None:
         time.sleep(0.005)
 
 
+class PlayedCell:
+    """`hmi_node` as a process, and this bench playing the decision node and the task
+    manager: publishers of hrc/epoch, hrc/task_state and hrc/action, and `more` ((type, topic,
+    QoS) each); `start()` waits until the node listens on all of them."""
+
+    def __init__(self, work: Path, more=()):
+        port = free_port()
+        params = work / 'played_cell.yaml'
+        params.write_text(f'hmi:\n  ros__parameters:\n    port: {port}\n'
+                          '    cell_timeout: 30.0\n')
+        self.url = f'http://127.0.0.1:{port}/'
+        self.run = NodeProcesses(work, [params])
+        self.bench = BenchNode()
+        node = self.bench.node
+        self.epoch = node.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+        self.task = node.create_publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
+        self.action = node.create_publisher(String, 'hrc/action', qos.RELIABLE)
+        self.more = [node.create_publisher(*spec) for spec in more]
+
+    def start(self) -> None:
+        self.run.start('hmi_node')
+        publishers = [self.epoch, self.task, self.action, *self.more]
+        wait(lambda: all(p.get_subscription_count() for p in publishers) or self.run.dead(),
+             30, 'hmi_node to subscribe')
+        self.run.check_alive()
+
+    def close(self) -> None:
+        self.run.stop()
+        self.bench.close()
+
+
 # -- phase 1 -----------------------------------------------------------------------------------
 CLICK_PROBE = """() => {
   window.__clicks = [];
@@ -144,24 +172,14 @@ def latency(args, work: Path) -> None:
     from playwright.sync_api import expect, sync_playwright
 
     from hrc_ros.ros.hmi.browser import launch
-    port = free_port()
-    params = work / 'latency.yaml'
-    params.write_text(f'hmi:\n  ros__parameters:\n    port: {port}\n    cell_timeout: 30.0\n')
-    run = NodeProcesses(work, [params])
-    bench = BenchNode()
-    node = bench.node
-    epoch = node.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-    task = node.create_publisher(UInt8MultiArray, 'hrc/task_state', qos.LATCHED)
-    action = node.create_publisher(String, 'hrc/action', qos.RELIABLE)
+    cell = PlayedCell(work)
+    bench, epoch, task, action = cell.bench, cell.epoch, cell.task, cell.action
     try:
-        run.start('hmi_node')
-        wait(lambda: all(p.get_subscription_count() for p in (epoch, task, action))
-             or run.dead(), 30, 'hmi_node to subscribe')
-        run.check_alive()
+        cell.start()
         with sync_playwright() as playwright:
             browser = launch(playwright, args.chromium)
             page = browser.new_page(viewport={'width': 1280, 'height': 800})
-            page.goto(f'http://127.0.0.1:{port}/')
+            page.goto(cell.url)
             page.evaluate(CLICK_PROBE)
             accept = page.locator('#accept')
             in_page, with_driver = [], []
@@ -183,8 +201,7 @@ def latency(args, work: Path) -> None:
         print(f'  (from the bench\'s click() call, Playwright included: '
               f'{percentiles(with_driver)})')
     finally:
-        run.stop()
-        bench.close()
+        cell.close()
 
 
 # -- phase 2 -----------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ DEPENDENCIES = {
     'scipy': ('scipy', 'python3-scipy'),
     'yaml': ('pyyaml', 'python3-yaml'),
     'matplotlib': ('matplotlib', 'python3-matplotlib'),
+    'PIL': ('pillow', 'python3-pil'),
     'numba': ('numba', 'python3-numba-pip'),
     'mcap': ('mcap', 'python3-mcap-pip'),
     'mcap_ros2': ('mcap-ros2-support', 'python3-mcap-ros2-support-pip'),
@@ -66,7 +67,7 @@ DEPENDENCIES = {
 # rosdistro rosdep/python.yaml keys that resolve on Ubuntu noble and Debian (checked there:
 # python3-numba does not resolve on noble, hence the -pip key of rosdep/hrc_ros.yaml).
 ROSDISTRO_KEYS = {'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib',
-                  'python3-pytest'}
+                  'python3-pil', 'python3-pytest'}
 
 
 def third_party_imports() -> dict[str, set[str]]:

@@ -14,8 +14,8 @@ does. In order, on one running cell:
    (ty = 3 in hrc/task_state), the page says "accepted", and so does a second tab, with its
    buttons disabled (the server's refusal of a second tab's answer is test_hmi_node.py's);
 4. the operator queues a task from the form: the page shows the task manager's "accepted:
-   queued" and the task appears in hrc/task_state; an out-of-range one is refused with the
-   reason;
+   queued" and the task appears in hrc/task_state; an out-of-range one and one with letters
+   are refused with the field's range; the console's timeline has the epochs;
 5. the HMI process is stopped: the page says "no connection to the cell"; started again on the
    same port, the page reconnects by itself.
 
@@ -213,7 +213,7 @@ def test_hrc_hmi_shots_saves_both_pages(browser, tmp_path):
     try:
         page = browser.new_page()
         page.goto(url)
-        expect(page.locator('#request')).to_have_text("Let's do task 2 together")
+        expect(page.locator('#request')).to_have_text("Let's do task 74 together")
         expect(page.locator('#accept')).to_be_enabled()
         page.close()
         written = shots.shoot(browser, url, tmp_path, 'request', sizes=('phone',))
@@ -233,11 +233,13 @@ def test_the_page_says_no_connection_until_the_cell_runs_then_connects(cell, pag
     page.goto(url)
     connection = page.locator('#connection')
     expect(connection).to_have_text('no connection to the cell')
+    expect(page.locator('#action-label')).to_be_hidden()     # not "The robot is / no connection"
     expect(page.locator('#request')).to_have_text('')
     expect(page.locator('#accept')).to_be_disabled()
     suite.start('decision_node')
     expect(connection).to_have_text('connected', timeout=START_TIMEOUT * MS)
     expect(page.locator('#action')).not_to_have_text('no connection to the cell')
+    expect(page.locator('#action-label')).to_have_text('The robot is')
 
 
 def test_the_worker_declines_and_the_task_manager_keeps_the_task_open(cell, pages):
@@ -278,21 +280,28 @@ def test_the_operator_queues_a_task_and_it_enters_the_cell(cell, pages):
     page.goto(url + 'operator')
     expect(page.locator('#connection')).to_have_text('connected')
     form = page.locator('#task-form')
-    form.locator('[name=priority]').fill('9')
-    form.locator('button[type=submit]').click()
     result = page.locator('#task-result')
-    expect(result).to_have_text(re.compile(r'^refused: bad task \(9, 1, 0\): tp \(task '
-                                           r'priority\) must be an integer in 1\.\.2, got 9$'))
-    form.locator('[name=priority]').fill('2')
-    form.locator('[name=duration]').fill('1')
-    form.locator('[name=nature]').fill('0')
+    for typed, shown in (('9', '9'), ('abc', "'abc'"), ('', 'nothing')):
+        form.get_by_label('Priority').fill(typed)
+        form.locator('button[type=submit]').click()
+        expect(result).to_have_text(f'refused: priority must be a whole number from 1 to 2, '
+                                    f'got {shown}')
+    form.get_by_label('Priority').fill('2')
+    form.get_by_label('Duration').fill('1')
+    form.get_by_label('Who does it').select_option(label="the robot's job")
     form.locator('button[type=submit]').click()
     expect(result).to_have_text(re.compile(r'^accepted: queued, \d+ waiting$'))
     expect(result).to_have_attribute('data-status', 'accepted')
     listener.wait(lambda: any((s['tp'], s['tc'], s['tx']) == (2, 1, 0)
                               for s in listener.task_states), 20,
                   'the ordered task (2, 1, 0) in hrc/task_state')
-    expect(page.locator('#history')).to_contain_text('(2, 1, 0)')
+    expect(page.locator('#history')).to_contain_text("priority 2, 1 step, the robot's job")
+    timeline = page.locator('#timeline')
+    listener.wait(lambda: int(timeline.get_attribute('data-epochs')) >= 3, 10,
+                  'the timeline to have the epochs')
+    expect(timeline.locator('canvas')).to_have_count(3)
+    assert timeline.get_attribute('data-robot') == '0'           # no arm in this cell
+    expect(page.locator('[data-kpi=idle_share] dd')).to_have_text('no arm')
     page.close()
 
 

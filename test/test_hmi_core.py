@@ -7,22 +7,28 @@
 - One answer per request: double tap, second tab, late tap, stale page, another HMI instance,
   another source on hrc/human_response, show-only mode, a silent cell; each publishes nothing
   and says why.
-- The task form (the task book's rule), order rate limits, the outcome matched to the task
-  manager's report, orders without a report.
-- The access rules (binding, token, Host, Origin), the token bucket, the words and the views.
+- The task form (each field's range, stated in the refusal; the task book's rule), order rate
+  limits, the outcome matched to the task manager's report, orders without a report.
+- The access rules (binding, the worker's and the operator's tokens, Host, Origin), the token
+  bucket, the words (the worker's and the operator's) and the views.
+
+The console's figures, timeline and event log are test/test_hmi_shift.py's.
 """
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from hrc_ros.core.hmi import AccessError, AccessPolicy, HmiMachine, TokenBucket, is_loopback
+from hrc_ros.core.hmi import access
 from hrc_ros.core.hmi import machine as m
 from hrc_ros.core.hmi import orders as o
 from hrc_ros.core.hmi import words
 from hrc_ros.core.model import ACTION_INDEX, DN, MH, NW, RH1, RH2, TASK_VARIABLES
 from hrc_ros.core.protocol import Stamp, TaskEpochs
-from hrc_ros.core.tasks import TaskBook
+from hrc_ros.core.tasks import TaskBook, check_task
 
 S = 1_000_000_000       # ns in a second
 PERIOD = S
@@ -404,19 +410,51 @@ def test_the_cell_timeout_follows_the_epoch_period():
 # -- the task form and the orders --------------------------------------------------------------
 def test_the_task_form_takes_what_the_task_book_takes():
     assert o.parse_order({'priority': 2, 'duration': '1', 'nature': 3}, 2, 2) == (2, 1, 3)
-    for fields, reason in (
-            ({'priority': 3, 'duration': 1, 'nature': 0}, r'tp \(task priority\) must be an '
-             r'integer in 1..2, got 3'),
-            ({'priority': 1, 'duration': 0, 'nature': 0}, r'tc .* in 1..2, got 0'),
-            ({'priority': 1, 'duration': 1, 'nature': 4}, r'tx .* in 0..3, got 4'),
-            ({'priority': 1, 'duration': 1}, 'nature missing'),
-            ({'priority': 1.5, 'duration': 1, 'nature': 0}, 'priority must be a whole number'),
-            ({'priority': True, 'duration': 1, 'nature': 0}, 'priority must be a whole number'),
-            ({'priority': '1e3', 'duration': 1, 'nature': 0}, 'priority must be a whole'),
-            ({'priority': 'x' * 10_000, 'duration': 1, 'nature': 0}, r"got 'xxx.*\.\.\.$"),
-            ([1, 1, 0], 'has the fields')):
-        with pytest.raises(ValueError, match=reason):
-            o.parse_order(fields, 2, 2)
+    assert o.parse_order({'priority': ' 2 ', 'duration': '+1', 'nature': '0'}, 2, 2) == (2, 1, 0)
+    for tp in range(-1, 5):                  # exactly what the task book takes
+        for tx in range(-1, 5):
+            fields = {'priority': tp, 'duration': 1, 'nature': tx}
+            try:
+                check_task((tp, 1, tx), 2, 2)
+            except ValueError:
+                with pytest.raises(ValueError):
+                    o.parse_order(fields, 2, 2)
+            else:
+                assert o.parse_order(fields, 2, 2) == (tp, 1, tx)
+
+
+PRIORITY = 'priority must be a whole number from 1 to 2, got '
+
+
+@pytest.mark.parametrize('fields, refusal', [
+    ({'priority': 3, 'duration': 1, 'nature': 0}, PRIORITY + '3'),
+    ({'priority': '-1', 'duration': 1, 'nature': 0}, PRIORITY + '-1'),        # the issue's
+    ({'priority': 'abc', 'duration': 1, 'nature': 0}, PRIORITY + "'abc'"),    # letters typed
+    ({'priority': '', 'duration': 1, 'nature': 0}, PRIORITY + 'nothing'),
+    ({'priority': '\u00b2', 'duration': 1, 'nature': 0}, PRIORITY + "'\u00b2'"),   # a superscript
+    ({'priority': '\u0663', 'duration': 1, 'nature': 0}, PRIORITY + "'\u0663'"),   # Arabic-Indic 3
+    ({'priority': 1.5, 'duration': 1, 'nature': 0}, PRIORITY + '1.5'),
+    ({'priority': True, 'duration': 1, 'nature': 0}, PRIORITY + 'True'),
+    ({'priority': '1e3', 'duration': 1, 'nature': 0}, PRIORITY + "'1e3'"),
+    ({'priority': 1, 'duration': 0, 'nature': 0},
+     'duration must be a whole number from 1 to 2, got 0'),
+    ({'priority': 1, 'duration': 1, 'nature': 4},
+     "nature (who does it) must be one of 0 (the robot's job), 1 (the worker's job), 2 (either "
+     'of them), 3 (a job for both), got 4'),
+    ({'priority': 1, 'duration': 1}, 'nature (who does it) missing: a task order has a '
+     'priority, a duration and who does it'),
+    ([1, 1, 0], 'a task order has the fields priority, duration and nature'),
+])
+def test_a_refused_form_names_the_field_and_its_range_in_plain_words(fields, refusal):
+    with pytest.raises(ValueError) as refused:
+        o.parse_order(fields, 2, 2)
+    assert str(refused.value) == refusal
+    assert not any(word in refusal for word in ('tp', 'tx', 'integer', 'literal', 'int()'))
+
+
+def test_a_long_refused_value_is_cut():
+    with pytest.raises(ValueError, match=r"got 'xxx.*\.\.\.$"):
+        o.parse_order({'priority': 'x' * 10_000, 'duration': 1, 'nature': 0}, 2, 2)
 
 
 ORDER = {'priority': 1, 'duration': 2, 'nature': 0}
@@ -427,28 +465,30 @@ def test_an_order_is_sent_and_its_report_decides_it(hmi):
     assert step.publish == (1, 2, 0) and step.status == o.CHECKING
     hmi.order_sent(step.order, 100, 200)
     other = hmi.task_request_result({'accepted': True, 'task': (1, 2, 0), 'published_ns': 99,
-                                     'queued': 1})
+                                     'queued': 1}, 99)
     assert other is None                         # same content, outside the window: not ours
     mine = hmi.task_request_result({'accepted': True, 'task': (1, 2, 0), 'published_ns': 150,
-                                    'queued': 2})
+                                    'queued': 2}, 150)
     assert mine is step.order and mine.status == o.ACCEPTED
     assert mine.text == 'accepted: queued, 2 waiting'
     refused = hmi.order(ORDER, 'op', 1, listening=True)
     hmi.order_sent(refused.order, 300, 400)
     hmi.task_request_result({'accepted': False, 'task': (1, 2, 0), 'published_ns': 350,
-                             'reason': 'the queue is full'})
+                             'reason': 'task (1, 2, 0) refused: the queue is full'}, 350)
     assert refused.order.status == o.REFUSED and refused.order.text == \
         'refused: the queue is full'
-    listed = hmi.operator_view(0)['orders']
-    assert [(e['from'], e['status']) for e in listed] == [
-        ('this HMI', 'refused'), ('another publisher', 'accepted'), ('this HMI', 'accepted')]
+    listed = hmi.operator_view(0, 0)['orders']
+    assert [(e['from'], e['status'], e['words']) for e in listed] == [
+        ('this console', 'refused', "priority 1, 2 steps, the robot's job"),
+        ('another publisher', 'accepted', "priority 1, 2 steps, the robot's job"),
+        ('this console', 'accepted', "priority 1, 2 steps, the robot's job")]
 
 
 def test_orders_are_not_sent_without_a_task_manager_or_beyond_the_limits(hmi):
     step = hmi.order(ORDER, 'op', 0, listening=False)
     assert step.publish is None and 'no task manager listens' in step.text
     bad = hmi.order({'priority': 9, 'duration': 1, 'nature': 0}, 'op', 0, listening=True)
-    assert bad.publish is None and bad.text.startswith('refused: bad task (9, 1, 0)')
+    assert bad.publish is None and bad.text == f'refused: {PRIORITY}9'
     sent = [hmi.order(ORDER, 'op', 0, listening=True) for _ in range(5)]
     assert [s.publish is not None for s in sent] == [True, True, False, False, False]
     assert 'too many orders' in sent[2].text          # one bucket was spent on the refusal
@@ -484,32 +524,64 @@ def test_loopback_addresses():
     assert not any(map(is_loopback, ('0.0.0.0', '::', '', '10.0.0.5', 'hmi.local', '192.0.2.1')))
 
 
-def test_the_server_refuses_to_start_off_loopback_without_a_good_token():
+def test_the_server_refuses_to_start_off_loopback_without_both_good_tokens():
     AccessPolicy('127.0.0.1').check_start()
-    with pytest.raises(AccessError, match='not loopback.*without an access token'):
-        AccessPolicy('0.0.0.0').check_start()
-    with pytest.raises(AccessError, match='has 5 characters; use at least 16'):
-        AccessPolicy('0.0.0.0', 'short').check_start()
-    AccessPolicy('0.0.0.0', 't' * 16).check_start()
+    AccessPolicy('127.0.0.1', operator_token=OPERATOR).check_start()   # the worker's open
+    for worker, operator, reason in (
+            ('', '', "without the worker's and the operator's access token"),
+            (WORKER, '', "without the operator's access token"),
+            ('', OPERATOR, "without the worker's access token"),
+            ('short', OPERATOR, "the worker's access token has 5 characters; use at least 16"),
+            (WORKER, 'short', "the operator's access token has 5 characters"),
+            (WORKER, WORKER, "the worker's and the operator's access tokens are the same")):
+        with pytest.raises(AccessError, match=re.escape(reason)):
+            AccessPolicy('0.0.0.0', worker, operator).check_start()
+    with pytest.raises(AccessError, match="operator's console open to anyone"):
+        AccessPolicy('127.0.0.1', worker_token=WORKER).check_start()
+    AccessPolicy('0.0.0.0', WORKER, OPERATOR).check_start()
     with pytest.raises(AccessError, match='allowed_origins'):
         AccessPolicy('127.0.0.1', allowed_origins=['hmi.example.com']).check_start()
 
 
-TOKEN = 'a-good-long-token-123'
+WORKER = 'the-workers-token-123'
+OPERATOR = 'the-operators-token-45'
 
 
-def test_with_a_token_every_request_needs_it():
-    policy = AccessPolicy('0.0.0.0', TOKEN)
+def test_each_request_needs_a_token_and_the_token_gives_its_role():
+    policy = AccessPolicy('0.0.0.0', WORKER, OPERATOR)
     host = '10.0.0.5:8080'
     assert policy.check(host, None, None, None, None).status == 401
     assert 'required' in policy.check(host, None, None, None, None).reason
     assert policy.check(host, None, 'Bearer nope', None, None).reason == \
         'the access token is wrong'
-    assert policy.check(host, None, f'Bearer {TOKEN}', None, None).allowed
-    assert policy.check(host, None, None, TOKEN, None).allowed
-    by_url = policy.check(host, None, None, None, TOKEN)
-    assert by_url.allowed and by_url.remember
-    assert policy.check('evil.example', None, None, TOKEN, None).allowed   # the token decides
+    assert policy.check(host, None, f'Bearer {WORKER}', None, None).role == access.WORKER
+    assert policy.check(host, None, f'Bearer {OPERATOR}', None, None).role == access.OPERATOR
+    assert policy.check(host, None, None, WORKER, None).role == access.WORKER
+    by_url = policy.check(host, None, None, None, OPERATOR)
+    assert by_url.allowed and by_url.remember and by_url.role == access.OPERATOR
+    assert by_url.token == OPERATOR                       # the cookie the server sets
+    # a link with the worker's token makes this browser the worker's, whatever its cookie
+    switched = policy.check(host, None, None, OPERATOR, WORKER)
+    assert switched.role == access.WORKER and switched.remember and switched.token == WORKER
+    assert policy.check(host, None, f'Bearer {WORKER}', OPERATOR, None).role == access.OPERATOR
+    assert policy.check('evil.example', None, None, WORKER, None).allowed  # the token decides
+
+
+def test_the_workers_token_opens_the_workers_page_only_and_queues_nothing():
+    assert access.may_open(access.WORKER, 'worker').allowed
+    refused = access.may_open(access.WORKER, 'operator')
+    assert refused.status == 403 and "needs the operator's access token" in refused.reason
+    assert access.may_open(access.OPERATOR, 'operator').allowed
+    assert access.may_open(access.OPERATOR, 'worker').allowed
+    assert not access.may_order(access.WORKER) and access.may_order(access.OPERATOR)
+    # on loopback without tokens both pages open, as the operator
+    assert AccessPolicy('127.0.0.1').check('127.0.0.1:8080', None, None, None,
+                                           None).role == access.OPERATOR
+    # on loopback with the operator's token only, a page without a token is the worker's
+    policy = AccessPolicy('127.0.0.1', operator_token=OPERATOR)
+    assert policy.check('127.0.0.1:8080', None, None, None, None).role == access.WORKER
+    assert policy.check('evil.example', None, None, None, None).status == 403   # rebinding
+    assert policy.check('127.0.0.1:8080', None, None, OPERATOR, None).role == access.OPERATOR
 
 
 def test_on_loopback_without_a_token_the_host_must_be_this_machine():
@@ -572,39 +644,106 @@ def test_distance_band_in_the_views_colours():
     assert words.distance_band(None)['text'] == 'distance unknown'
 
 
+@pytest.mark.parametrize('action, state, d, faults, expected', [
+    (DN, JOINT, 0, [], 'stopped: the worker is too close'),
+    (NW, task(2, 2, 1, 1, hp=2, hc=2), 2, [], "waiting while the worker does task 3: the "
+     "worker's job"),
+    (NW, task(2, 2, 2, 2, bp=2, bc=2), 2, [], 'working on task 3: either of them'),
+    (ACTION_INDEX['dp'], JOINT, 1, [], 'moving away to give the worker room'),
+    (ACTION_INDEX['dm'], JOINT, 3, [], 'coming closer to work with the worker'),
+    (MH, JOINT, 2, [], 'cheering the worker on'),
+    (RH2, JOINT, 2, [], "waiting for the worker's answer")])
+def test_the_operator_reads_about_the_worker(action, state, d, faults, expected):
+    """The console speaks of the worker; "you" is the worker's page's (the issue: the operator
+    page said the robot waited for *your* answer)."""
+    said = words.action_words(action, state, 3, d, faults, True, words.OPERATOR)
+    assert said == expected and 'you' not in said.split()
+
+
+@pytest.mark.parametrize('fault, expected', [
+    ('d = 0: the human is inside the collision circle',
+     'the worker is too close (inside the collision circle)'),
+    ('hrc/belief missing (never received)', "the estimate of the worker's state never arrived"),
+    ('hrc/task_state stale (3.012 s old > stale_timeout 3 s)',
+     "the task manager's task state is out of date"),
+    ('hrc/distance_level not received for epoch 4 within input_timeout',
+     "the worker's distance did not arrive in time"),
+    ('hrc/belief malformed: 8 values, expected 9', "the estimate of the worker's state arrived "
+     'garbled'),
+    ('decision failed: ValueError: x', "the decision failed (a software error: see the decision "
+     "node's log)")])
+def test_fail_safe_reasons_in_words(fault, expected):
+    assert words.fault_words(fault) == expected
+
+
 def test_the_worker_sees_the_fail_safe_of_its_epoch(hmi, cell):
     cell.epoch(JOINT, DN)
-    hmi.decision_report(1, 'dn', 'hrc/belief missing (never received)', 'ERROR')
+    hmi.decision_report(1, 'dn', 'hrc/belief missing (never received)', 'ERROR', cell.t)
     hmi.distance_message(2)
     assert hmi.worker_view(cell.t)['action'].startswith('stopped for safety')
-    assert hmi.operator_view(cell.t)['fail_safe']['reasons'] == [
-        'hrc/belief missing (never received)']
+    fail_safe = hmi.operator_view(cell.t, cell.t)['fail_safe']
+    assert fail_safe['reasons'] == ['hrc/belief missing (never received)']
+    assert fail_safe['text'] == ("stopped for safety at step 1: the estimate of the worker's "
+                                 'state never arrived')
     cell.epoch(JOINT, MH)
+    hmi.decision_report(2, 'mh', 'none', 'OK', cell.t)
     view = hmi.worker_view(cell.t)
     assert view['action'] == 'cheering you on' and view['motivation'] in words.MOTIVATION
+    assert hmi.operator_view(cell.t, cell.t)['fail_safe']['text'] == \
+        'no safety stop at step 2: the robot cheers the worker on'
 
 
 def test_the_operator_view(hmi, cell):
     cell.epoch(JOINT, RH2)
+    assert hmi.operator_view(cell.t, cell.t)['request']['text'] == \
+        'asks the worker to do task 1 together'
     hmi.answer(hmi.request.id, True, 'p', cell.tick())
     cell.epoch(task(1, 1, 3, 3, 1, 1, 1, 1), NW)
+    view = hmi.operator_view(cell.t, cell.t)
+    assert view['last_request']['outcome_text'] == 'accepted: they do task 1 together'
+    assert hmi.worker_view(cell.t)['last_request']['outcome_text'] == \
+        'accepted: we do task 1 together'
     cell.epoch(ALONE, NW)
     hmi.belief_message([0.1, 0.0, 0.0, 0.2, 0.1, 0.0, 0.3, 0.2, 0.1])
     hmi.task_manager_report({'queued_tasks': '2', 'next_queued': '[1, 1, 0]'})
-    view = hmi.operator_view(cell.t)
+    view = hmi.operator_view(cell.t, cell.t)
     assert view['belief']['motivation'] == [0.1, 0.3, 0.6]
     assert view['belief']['aggression'] == [0.6, 0.3, 0.1]
-    assert [(t['number'], t['task'], t['commit_epoch'], t['done_epoch'])
-            for t in view['history']] == [(2, [2, 2, 1], None, None), (1, [1, 1, 3], 2, 3)]
-    assert view['task']['text'] == ('task 2: your job; priority 2, 2 epoch(s) left; '
+    assert [(t['number'], t['words'], t['commit_epoch'], t['committed'], t['done_epoch'])
+            for t in view['history']] == [
+        (2, "priority 2, 2 steps, the worker's job", None, 'not taken yet', None),
+        (1, 'priority 1, 1 step, a job for both', 2, 'both together', 3)]
+    assert view['task']['text'] == ("task 2: the worker's job; priority 2, 2 steps left; "
                                     'not taken yet')
     assert view['queue']['waiting'] == '2' and view['limits']['priority'] == [1, 2]
+    assert view['limits']['step_s'] == 1.0
     assert view['robot'] is None
     hmi.speed_override_message(0.5, cell.t)
-    hmi.separation_message(0.8123456, cell.t)
-    assert hmi.operator_view(cell.t)['robot'] == {'speed_override': 0.5,
-                                                  'separation': 0.8123}
-    assert hmi.operator_view(cell.t + 3 * S)['robot'] is None     # the robot side stopped
+    hmi.separation_message(0.8123456, 0.61, 0.2, cell.t, cell.t)
+    hmi.protective_stop_message(True, cell.t)
+    hmi.stop_report(True, 'separation 0.812 m below the protective distance 0.9 m', cell.t)
+    assert hmi.operator_view(cell.t, cell.t)['robot'] == {
+        'speed_override': 0.5, 'separation': 0.81, 'protective_distance': 0.61,
+        'stopped': True, 'stop_reason': 'separation 0.812 m below the protective distance '
+                                        '0.9 m'}
+    assert hmi.operator_view(cell.t + 3 * S, cell.t)['robot'] is None   # the robot side stopped
+    view = hmi.operator_view(cell.t, cell.t)
+    said = ' '.join([view['action'], view['task']['text'], view['fail_safe'] or '',
+                     *(t['words'] for t in view['history'])])
+    assert not re.search(r'\b(tp|tc|tx|ty|epoch|rh1|rh2)\b', said), said
+
+
+def test_the_console_shows_the_arm_anew_four_times_a_second_and_a_stop_at_once(hmi, cell):
+    """hrc/separation comes at 125 Hz: a view each would be a view a refresh."""
+    cell.epoch(JOINT, NW)
+    t = cell.t
+    hmi.separation_message(0.90, 0.5, 0.2, t, t)
+    assert hmi.operator_view(t, t)['robot']['separation'] == 0.9
+    hmi.separation_message(0.70, 0.5, 0.2, t + 1, t + S // 10)
+    assert hmi.operator_view(t + S // 10, t)['robot']['separation'] == 0.9      # not yet
+    assert hmi.operator_view(t + m.ROBOT_VIEW_S * S, t)['robot']['separation'] == 0.7
+    hmi.protective_stop_message(True, t + 2)
+    assert hmi.operator_view(t + m.ROBOT_VIEW_S * S + 1, t)['robot']['stopped'] is True
 
 
 def test_the_hmi_core_imports_neither_ros_nor_a_web_framework():

@@ -10,10 +10,12 @@ reasons, the belief and the robot side on /operator; the refusals at start-up (o
 without a token); a stalled executor fills the bounded command queue, the web server keeps
 answering ("busy") and nothing is lost once the executor runs again.
 
-As a process (`hmi_node` as a user starts it, bound off loopback with a token): 401 without
-the token for HTTP and WebSocket, the token by URL (a cookie, then redirected), by cookie and
-by header; a foreign Origin refused; a 10 MB frame closes its connection; malformed JSON,
-binary frames and a flood are refused and the flood closed; 500 pages at once are served, the
+As a process (`hmi_node` as a user starts it, bound off loopback with the worker's and the
+operator's tokens): 401 without a token for HTTP and WebSocket, the token by URL (a cookie, then
+redirected), by cookie and by header; the worker's token opens the worker's page only (403 on
+/operator and its WebSocket) and its page's orders are refused (403); a foreign Origin refused;
+a 10 MB frame closes its connection; malformed JSON, binary frames and a flood are refused and
+the flood closed; 500 pages at once are served, the
 node stays up with its memory bounded, and once they close it holds none of them (and a second
 round of 500 costs no more memory than the first).
 """
@@ -44,7 +46,8 @@ from hrc_ros.ros.nodes.hmi_node import HmiNode
 from hrc_ros.ros.nodes.task_manager_node import TaskManagerNode
 
 TIMEOUT = 10.0
-TOKEN = 'test-token-0123456789abcdef'
+TOKEN = 'test-token-0123456789abcdef'            # the operator's
+WORKER_TOKEN = 'worker-token-0123456789abcdef'
 JOINT = dict(zip(TASK_VARIABLES, (1, 1, 3, 0, 0, 0, 0, 0)))
 
 
@@ -255,12 +258,13 @@ def test_the_operator_sees_the_cell_the_belief_the_fail_safe_and_the_robot(graph
     override = graph.probe.create_publisher(Float64, 'hrc/speed_override', qos.SENSOR_DATA)
     separation = graph.probe.create_publisher(Float64MultiArray, 'hrc/separation',
                                               qos.SENSOR_DATA)
+    stop = graph.probe.create_publisher(Bool, 'hrc/protective_stop', qos.LATCHED)
     level = graph.probe.create_publisher(UInt8, 'hrc/distance_level', qos.LATCHED)
     wait_for(graph, lambda: all(p.get_subscription_count() > 0 for p in (
-        belief, diagnostics, override, separation, level)), 'the HMI to subscribe')
-    cell.epoch(JOINT, 'dn')
+        belief, diagnostics, override, separation, stop, level)), 'the HMI to subscribe')
     cell.publish(belief, conv.belief_to_msg([0.5, 0, 0, 0.25, 0, 0, 0.25, 0, 0]), 'belief')
     cell.publish(level, conv.distance_level_to_msg(0), 'distance_level')
+    cell.epoch(JOINT, 'dn')
     status = conv.diagnostic_status('decision: decision', DiagnosticStatus.WARN, 'dn', {
         'epoch': 1, 'action': 'dn', 'faults': 'd = 0: the human is inside the collision '
         'circle'})
@@ -268,15 +272,47 @@ def test_the_operator_sees_the_cell_the_belief_the_fail_safe_and_the_robot(graph
     cell.publish(override, Float64(data=0.25), 'speed_override')
     cell.publish(separation, conv.separation_to_msg(0.4, [0.3, 0, 0.5], [0.7, 0, 0.5], 0.3, 0.2),
                  'separation')
+    cell.publish(stop, Bool(data=True), 'protective_stop')
+    reason = 'separation 0.212 m below the protective distance 0.300 m at the slowest motion'
+    cell.publish(diagnostics, conv.diagnostic_array([conv.diagnostic_status(
+        'robot_bridge: ssm', DiagnosticStatus.WARN, f'protective stop: {reason}',
+        {'reason': reason})]), 'diagnostics')
+    cell.publish(separation, conv.separation_to_msg(0.212, [0.3, 0, 0.5], [0.5, 0, 0.5], 0.3,
+                                                    0.0), 'separation')
     cell.publish(override, Float64(data=float('nan')), 'speed_override')     # dropped
-    wait_for(graph, lambda: (page.view() or {}).get('robot') is not None, 'the robot side')
+    wait_for(graph, lambda: ((page.view() or {}).get('robot') or {}).get('separation') == 0.21,
+             'the robot side and its stop')
     view = page.view()
-    assert view['action'] == 'stopped: you are too close'
+    assert view['action'] == 'stopped: the worker is too close'
     assert view['distance']['text'] == 'too close: the robot stops'
     assert view['belief']['motivation'] == [0.5, 0.25, 0.25]
     assert view['fail_safe']['reasons'] == ['d = 0: the human is inside the collision circle']
-    assert view['robot'] == {'speed_override': 0.25, 'separation': 0.4}
+    assert view['robot'] == {'speed_override': 0.25, 'separation': 0.21,
+                             'protective_distance': 0.3, 'stopped': True, 'stop_reason': reason}
     assert hmi.inputs.dropped['speed_override'] == 1
+    # the event log and the timeline come as feeds; the figures in the view
+    wait_for(graph, lambda: any(m['name'] == 'timeline' and m['items'][0].get('epochs')
+                                for m in page.replies('feed'))
+             and len([e for m in page.replies('feed') if m['name'] == 'events'
+                      for e in m['items']]) >= 2, 'the timeline and the event log')
+    logged = [e for m in page.replies('feed') if m['name'] == 'events' for e in m['items']]
+    assert [(e['kind'], e['text']) for e in logged] == [
+        ('fail-safe', 'the robot stopped for safety at step 1: the worker is too close (inside '
+                      'the collision circle)'),
+        ('protective stop', f'the arm stopped for safety: {reason}')]
+    rows = [r for m in page.replies('feed') if m['name'] == 'timeline' for r in m['items']]
+    assert [row[1:3] for r in rows for row in r.get('epochs', [])] == [[1, 'dn']]
+    wait_for(graph, lambda: page.view()['figures']['shift']['min_separation'] == 0.212,
+             'the figures to count the smallest separation')
+    assert page.view()['figures']['shift']['fail_safe_epochs'] == 1
+    # a page opened later gets what the feeds hold at once (a reset)
+    later = pages.open(url, 'operator')
+    wait_for(graph, lambda: {m['name'] for m in later.replies('feed')} == {'timeline', 'events'},
+             'the late page to get the feeds')
+    assert all(m['reset'] for m in later.replies('feed'))
+    assert [e['kind'] for m in later.replies('feed') if m['name'] == 'events'
+            for e in m['items']] == ['fail-safe', 'protective stop']
+    assert not pages.open(url).replies('feed')          # the worker's page gets none
 
 
 # -- orders ------------------------------------------------------------------------------------
@@ -301,10 +337,10 @@ def test_orders_reach_the_task_manager_and_its_report_comes_back(graph, pages):
     assert tasks.book.pending == [(2, 1, 0)]
     full = order(2, priority=1, duration=2, nature=3)
     assert full[-1]['status'] == 'refused'
-    assert full[-1]['text'].startswith('refused: task (1, 2, 3) refused: the queue is full')
+    assert full[-1]['text'].startswith('refused: the queue is full')
     bad = order(3, priority=1, duration=9, nature=0)
     assert [r['status'] for r in bad] == ['refused']
-    assert 'tc (task duration in epochs) must be an integer in 1..2, got 9' in bad[0]['text']
+    assert bad[0]['text'] == 'refused: duration must be a whole number from 1 to 2, got 9'
     assert tasks.requests.accepted == 1 and tasks.requests.refused == 1
     worker.send({'type': 'order', 'priority': 1, 'duration': 1, 'nature': 0})
     wait_for(graph, lambda: worker.replies('error'), 'the worker page to be refused')
@@ -366,14 +402,26 @@ def test_the_task_manager_reports_every_request_and_counts_bad_ones_refused_not_
 
 # -- start-up and the bridge -----------------------------------------------------------------
 @pytest.mark.parametrize('parameters, reason', [
-    ({'host': '0.0.0.0'}, 'not loopback: the pages would be open to the network without an '
-     'access token'),
-    ({'host': '0.0.0.0', 'token': 'short'}, 'use at least 16'),
+    ({'host': '0.0.0.0'}, "not loopback: the pages would be open to the network without the "
+     "worker's and the operator's access token"),
+    ({'host': '0.0.0.0', 'worker_token': WORKER_TOKEN}, "without the operator's access token"),
+    ({'host': '0.0.0.0', 'worker_token': 'short', 'operator_token': TOKEN},
+     "the worker's access token has 5 characters; use at least 16"),
+    ({'worker_token': TOKEN, 'operator_token': TOKEN}, 'are the same'),
+    ({'token': TOKEN}, 'the single access token (token, HRC_HMI_TOKEN) is replaced by two'),
     ({'allowed_origins': ['hmi.example.com']}, 'allowed_origins'),
 ])
 def test_the_hmi_refuses_to_start_without_safe_settings(graph, parameters, reason):
-    with pytest.raises(StartupError, match=reason):
+    with pytest.raises(StartupError, match=re.escape(reason)):
         graph.start(HmiNode, port=0, **parameters)
+
+
+def test_the_old_single_token_in_the_environment_is_refused_not_dropped(graph, monkeypatch):
+    """HRC_HMI_TOKEN protected both pages; ignoring it would open them (on loopback) without
+    a word."""
+    monkeypatch.setenv('HRC_HMI_TOKEN', TOKEN)
+    with pytest.raises(StartupError, match='HRC_HMI_WORKER_TOKEN'):
+        graph.start(HmiNode, port=0)
 
 
 def test_the_hmi_refuses_to_start_on_a_port_in_use(graph):
@@ -435,7 +483,7 @@ def rss_kib(pid: int) -> int:
 
 @pytest.fixture(scope='module')
 def served(tmp_path_factory, ros_domain_id):
-    """hmi_node as a process bound to 0.0.0.0 with a token (its URL via loopback)."""
+    """hmi_node as a process bound to 0.0.0.0 with the two tokens (its URL via loopback)."""
     log = tmp_path_factory.mktemp('hmi') / 'hmi_node.log'
     command = [os.path.join(os.path.dirname(sys.executable), 'hmi_node'), '--ros-args',
                '-p', 'host:=0.0.0.0', '-p', 'port:=0', '-p', 'message_burst:=10',
@@ -443,7 +491,8 @@ def served(tmp_path_factory, ros_domain_id):
     with open(log, 'w') as output:
         process = subprocess.Popen(command, stdout=output, stderr=subprocess.STDOUT,
                                    stdin=subprocess.DEVNULL, start_new_session=True,
-                                   env={**os.environ, 'HRC_HMI_TOKEN': TOKEN})
+                                   env={**os.environ, 'HRC_HMI_OPERATOR_TOKEN': TOKEN,
+                                        'HRC_HMI_WORKER_TOKEN': WORKER_TOKEN})
     try:
         deadline = time.monotonic() + 30
         while not (match := re.search(r'worker page http://\[?0\.0\.0\.0\]?:(\d+)/',
@@ -518,6 +567,46 @@ def test_off_loopback_every_request_needs_the_token(served):
             ws = await s.ws_connect(url + 'ws?view=operator')
             assert json.loads((await ws.receive()).data)['view'] == 'operator'
             await ws.close()
+
+    run_async(check())
+
+
+WORKER_BEARER = {'Authorization': f'Bearer {WORKER_TOKEN}'}
+
+
+def test_the_workers_token_opens_the_workers_page_only_and_queues_nothing(served):
+    process, url = served
+
+    async def check():
+        async with session(headers=WORKER_BEARER) as s:
+            async with s.get(url) as response:
+                assert response.status == 200 and 'id="accept"' in await response.text()
+                assert 'href="/operator"' not in await response.text()    # no link to it
+            async with s.get(url + 'operator') as response:
+                assert response.status == 403
+                assert "needs the operator's access token" in await response.text()
+            with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+                await s.ws_connect(url + 'ws?view=operator')
+            assert refused.value.status == 403
+            ws = await s.ws_connect(url + 'ws?view=worker')
+            hello = json.loads((await ws.receive()).data)
+            assert hello['type'] == 'hello' and hello['role'] == 'worker'
+            await ws.send_str(json.dumps({'type': 'order', 'ref': 7, 'priority': 1,
+                                          'duration': 1, 'nature': 0}))
+            while (reply := json.loads((await ws.receive()).data))['type'] != 'order_result':
+                pass
+            assert (reply['code'], reply['status'], reply['ref']) == (403, 'refused', 7)
+            assert reply['text'].startswith('refused (403): only the operator queues tasks')
+            await ws.close()
+        # a link with the worker's token makes a browser the worker's, also for /operator
+        async with session(cookie_jar=aiohttp.CookieJar(unsafe=True)) as s:
+            async with s.get(url + f'operator?token={WORKER_TOKEN}') as response:
+                assert response.status == 403 and response.url.path == '/operator'
+                assert 'token' not in response.url.query
+        async with session(headers=BEARER) as s:          # the operator's opens both
+            for path in ('', 'operator'):
+                async with s.get(url + path) as response:
+                    assert response.status == 200, path
 
     run_async(check())
 

@@ -196,6 +196,17 @@ def test_colcon_install_ships_the_policies(prefix):
                   .glob('*.npz')) == pomdp
 
 
+def test_colcon_install_ships_the_hmis_pages_and_the_charting_library(prefix):
+    """The HMI serves its pages and the console's vendored uPlot from the package (no CDN):
+    both are package data, in the colcon install as in pip's (with uPlot's licence)."""
+    from hrc_ros.ros.hmi.server import PAGES
+    static = next((prefix / 'lib').glob('python3*/site-packages')) / PACKAGE / 'ros' / 'hmi' \
+        / 'static'
+    for name, _ in PAGES.values():
+        assert (static / name).is_file(), f'{static / name} missing'
+    assert 'MIT License' in (static / 'vendor' / 'LICENSE-uPlot.txt').read_text()
+
+
 def test_colcon_install_declares_the_setup_py_scripts(prefix):
     """The built distribution's console scripts are exactly setup.py's NODES and TOOLS."""
     entry_points = list(prefix.glob('lib/python3*/site-packages/hrc_ros-*.egg-info/'
@@ -371,6 +382,7 @@ def test_pip_install_puts_scripts_on_path_and_data_in_share(tmp_path):
     from hrc_ros.ros.hmi.server import PAGES
     for name, _ in PAGES.values():            # the HMI's pages are package data
         assert (static / name).is_file(), f'{static / name} missing'
+    assert (static / 'vendor' / 'LICENSE-uPlot.txt').is_file()     # with uPlot's licence
     assert (venv / MARKER).is_file()
 
     result = run([str(venv / 'bin' / 'hrc-solve'), '--help'], env=clean_env(), timeout=60)

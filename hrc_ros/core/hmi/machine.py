@@ -42,16 +42,25 @@ import numpy as np
 
 from ..model import ACTIONS, DN, MH, RH1, RH2, TASK_VARIABLES, request_eligible, step_task
 from ..protocol import EpochFollower, InputError, Stamp
+from ..robot.metrics import request_refused
 from . import words
+from .events import EventLog
 from .orders import Order, Orders, OrderStep
+from .shift import WINDOW_WORDS, ShiftFigures, rounded
+from .timeline import Timeline
 
 OTHER = 'elsewhere'            # answered_by: another publisher of hrc/human_response
 CELL_TIMEOUT_PERIODS = 3.0     # cell_timeout 0: this many epoch periods ...
 CELL_TIMEOUT_MIN_S = 3.0       # ... and at least this (also before the period is known)
 ROBOT_TIMEOUT_S = 2.0          # the robot side's topics count as running this long
+ROBOT_VIEW_S = 0.25            # the arm's figures on the console change this often at most
 CLOSED_KEPT = 32               # closed requests remembered to tell a late tap what happened
 TASKS_KEPT = 20                # tasks in the operator's history
 RECENT = 8                     # task states and actions kept to pair a_k with x_k
+MS = 1_000_000
+# the console's fixed words: the actions as a person names them, the figures' windows
+CONSOLE_WORDS = {'actions': words.ACTION_NAMES, 'windows': WINDOW_WORDS}
+FIGURES_PERIOD_S = 1.0         # the figures of the shift are counted again this often at least
 
 # AnswerResult codes
 SENT, ALREADY, CLOSED, STALE, NO_REQUEST, NO_CELL, SHOW_ONLY, BAD = (
@@ -118,7 +127,7 @@ class HmiMachine:
 
     def __init__(self, rho: int, sigma: int, worker_answers: bool = True,
                  cell_timeout_s: float = 0.0, order_timeout_s: float = 3.0,
-                 instance: str | None = None):
+                 instance: str | None = None, start_ns: int | None = None):
         self.rho, self.sigma = rho, sigma
         self.worker_answers = worker_answers
         self.cell_timeout_s = cell_timeout_s
@@ -144,8 +153,16 @@ class HmiMachine:
         self.decision: dict | None = None           # the decision node's last epoch report
         self.task_manager: dict | None = None       # the task manager's last status
         self.speed_override: tuple | None = None    # (value, received now)
-        self.separation: tuple | None = None
+        self.separation: tuple | None = None        # ((S, S_p, speed), received now)
+        self.stop: tuple | None = None              # (stopped, reason) of the robot side
         self.orders = Orders(rho, sigma, int(order_timeout_s * 1e9))
+        # the console: the shift's figures, the timeline, the event log (system clock, ns)
+        self.shift = ShiftFigures(start_ns)
+        self.timeline = Timeline()
+        self.events = EventLog()
+        self._figures: dict | None = None
+        self._figures_ns: int | None = None
+        self._robot: tuple | None = None    # (view, at now, stop) of the arm, see _robot_view
         self.counts = {'answers_sent': 0, 'answers_refused': 0, 'requests_opened': 0,
                        'answered_elsewhere': 0, 'epochs_ignored': 0}
 
@@ -163,6 +180,7 @@ class HmiMachine:
             return
         self.epochs.take(k, stamp)
         self.last_cell_ns = now
+        self.shift.begin(published_ns)
         if restart is not None and self.request is not None:
             self._close(RESTARTED, 'closed: the cell restarted its epochs')
 
@@ -174,13 +192,13 @@ class HmiMachine:
         self._task_states.append((published_ns, state))
         request, last = self.request, self.last_closed
         if request is not None and published_ns > request.task_ns:
-            self._close_on(state)                       # x_{k+1}
+            self._close_on(state, published_ns)         # x_{k+1}
         elif last is not None and last.outcome == MOVED_ON and last.refine \
                 and published_ns > last.task_ns:
             self.request, last.refine = last, False     # x_{k+1} came after a_{k+1} (which
-            self._close_on(state)                       # may even be published first: a
+            self._close_on(state, published_ns)         # may even be published first: a
             #                                             decision node that timed out)
-        self._see_task(state)
+        self._see_task(state, published_ns)
         self.task_state, self.task_ns = state, published_ns
         if self._pending is not None:
             self._pair(*self._pending, now)
@@ -189,12 +207,15 @@ class HmiMachine:
         self.last_cell_ns = now
         if self.action_ns is not None and published_ns <= self.action_ns:
             return
+        self.shift.begin(published_ns)
         request = self.request
         if request is not None and published_ns > request.published_ns:
             self._close(MOVED_ON, 'closed: the robot moved on')
             request.refine = True
         self._actions.append(published_ns)
         self.action, self.action_ns, self.action_epoch = action, published_ns, self.epoch
+        self.timeline.epoch(published_ns, self.epoch, ACTIONS[action], self.belief,
+                            self.distance)
         self._pending = None
         if action in (RH1, RH2):
             self._pair(action, published_ns, now)
@@ -238,23 +259,56 @@ class HmiMachine:
     def distance_message(self, d: int) -> None:
         self.distance = int(d)
 
-    def decision_report(self, epoch: int, action: str, faults: str, level: str) -> None:
+    def decision_report(self, epoch: int, action: str, faults: str, level: str,
+                        published_ns: int) -> None:
         """The decision node's per-epoch /diagnostics status."""
         reasons = [] if faults in ('', 'none') else [f.strip() for f in faults.split(';')]
         self.decision = {'epoch': epoch, 'action': action, 'faults': reasons, 'level': level}
+        self.shift.decision(published_ns, epoch, bool(reasons))
+        self.events.decision(published_ns, epoch, reasons)
+
+    def policy_report(self, level: str, message: str, values: dict, published_ns: int) -> None:
+        """The decision node's `policy` status: a swap, or a new policy staged or refused."""
+        self.events.policy(published_ns, level, message, values)
 
     def task_manager_report(self, values: dict) -> None:
         self.task_manager = dict(values)
 
     def speed_override_message(self, value: float, now: int) -> None:
         self.speed_override = (float(value), now)
+        self.timeline.override_sample(value)
 
-    def separation_message(self, metres: float, now: int) -> None:
-        self.separation = (float(metres), now)
+    def separation_message(self, separation: float, protective: float, speed: float,
+                           published_ns: int, now: int) -> None:
+        """The robot side's hrc/separation: S and S_p (m), and the arm's speed bound (m/s)."""
+        self.separation = ((float(separation), float(protective), float(speed)), now)
+        self.shift.arm_sample(published_ns, separation, speed)
+        self.timeline.arm_sample(published_ns, separation, protective)
 
-    def task_request_result(self, result: dict) -> Order | None:
+    def protective_stop_message(self, stopped: bool, published_ns: int) -> None:
+        """hrc/protective_stop (the bridge publishes it on change)."""
+        reason = self.stop[1] if self.stop is not None and stopped else ''
+        if self.stop is None or self.stop[0] != bool(stopped):
+            self.timeline.protective_stop(published_ns, stopped)
+        self.stop = (bool(stopped), reason)
+        self.shift.protective_stop(published_ns, stopped)
+        self.events.protective_stop(published_ns, stopped)
+
+    def stop_report(self, stopped: bool, reason: str, published_ns: int) -> None:
+        """The bridge's `ssm` status: the protective stop and its reason."""
+        if self.stop is not None and self.stop[0] and stopped:
+            self.stop = (True, reason)
+        self.events.stop_reason(published_ns, stopped, reason)
+
+    def task_request_result(self, result: dict, published_ns: int) -> Order | None:
         """The task manager's report on a request; the HMI's order it decides, if any."""
-        return self.orders.report(result)
+        order = self.orders.report(result)
+        if not result.get('accepted'):
+            self.events.order_refused(published_ns, result.get('task'),
+                                      self.orders.words(result),
+                                      'this console' if order is not None else
+                                      'another publisher')
+        return order
 
     # -- liveness and time -----------------------------------------------------------------
     def cell_timeout_ns(self) -> int:
@@ -275,6 +329,10 @@ class HmiMachine:
         if self.request is not None and not self.cell_alive(now):
             self._close(CELL_LOST, 'closed: no connection to the cell')
         return self.orders.expire(now)
+
+    def expire_events(self, wall_ns: int) -> None:
+        """A protective stop whose reason did not come in time is logged without it."""
+        self.events.expire(wall_ns)
 
     # -- the pages' commands ---------------------------------------------------------------
     def answer(self, request_id, accept, client: str, now: int) -> AnswerResult:
@@ -320,25 +378,32 @@ class HmiMachine:
         self.orders.forget(client)
 
     # -- requests and tasks ----------------------------------------------------------------
-    def _close_on(self, state: dict) -> None:
-        """Close the open request with x_{k+1}: how the task manager finalised it."""
+    def _close_on(self, state: dict, published_ns: int) -> None:
+        """Close the open request with x_{k+1}: how the task manager finalised it; a refusal
+        (declined, unanswered, an accept too late) counts in the shift's figures."""
         request = self.request
         task = {n: np.int64(v) for n, v in request.task.items()}
         committed = {n: int(v) for n, v in step_task(task, request.action, True).items()}
         refused = {n: int(v) for n, v in step_task(task, request.action, False).items()}
         name = f'task {request.task_number}' if request.task_number else 'the task'
         if _same_task(state, committed):
+            taken = True
             self._close(ACCEPTED, f'accepted: you do {name}' if request.action == RH1
                         else f'accepted: we do {name} together')
         elif not _same_task(state, refused):
             self._close(UNKNOWN, 'closed')
-        elif request.answer is True:
-            self._close(LATE, 'the accept reached the robot after it moved on: taken as '
-                        'declined')
-        elif request.answer is False:
-            self._close(DECLINED, 'declined: the robot carries on')
+            return
         else:
-            self._close(UNANSWERED, 'no answer in time: taken as declined')
+            taken = False
+            if request.answer is True:
+                self._close(LATE, 'the accept reached the robot after it moved on: taken as '
+                            'declined')
+            elif request.answer is False:
+                self._close(DECLINED, 'declined: the robot carries on')
+            else:
+                self._close(UNANSWERED, 'no answer in time: taken as declined')
+        if request_refused(taken):
+            self.shift.request_refused(published_ns)
 
     def _close(self, outcome: str, text: str) -> None:
         request, self.request = self.request, None
@@ -348,8 +413,9 @@ class HmiMachine:
             self.closed.popitem(last=False)
         self.last_closed = request
 
-    def _see_task(self, state: dict) -> None:
-        """Number the tasks as they enter the cell; note commitments and completions."""
+    def _see_task(self, state: dict, published_ns: int) -> None:
+        """Number the tasks as they enter the cell; note commitments and completions (a task
+        leaving the cell is completed: the task book lets a task go only when done)."""
         current = self.tasks[-1] if self.tasks and self.tasks[-1].done_epoch is None else None
         before = self.task_state
         new = state['tp'] > 0 and (
@@ -358,6 +424,7 @@ class HmiMachine:
             or (state['tp'], state['tx']) != (before['tp'], before['tx']))
         if current is not None and (new or state['tp'] == 0):
             current.done_epoch = self.epoch
+            self.shift.task_completed(published_ns)
         if new:
             self._task_count += 1
             self.tasks.append(TaskEntry(self._task_count, state['tp'], state['tc'], state['tx'],
@@ -380,25 +447,36 @@ class HmiMachine:
                 'answered_by': request.answered_by,
                 'answerable': self.worker_answers and request.answer is None}
 
-    def worker_view(self, now: int) -> dict:
+    def _present(self, now: int, who: str) -> dict:
+        """What both pages show: the robot now, its request, the distance (`who` the page's
+        reader: the worker, or the operator about the worker)."""
         alive = self.cell_alive(now)
         faults = self.decision['faults'] if self.decision is not None \
             and self.decision['epoch'] == self.action_epoch else []
         task = self.task_state
         last = self.last_closed
+        request = self._request_view() if alive else None
+        if request is not None and who == words.OPERATOR:
+            request['text'] = words.request_words(self.request.action,
+                                                  self.request.task_number, who)
         return {
-            'view': 'worker',
+            'view': who,
             'connection': words.CONNECTED if alive else words.NO_CELL,
             'cell': alive,
             'epoch': self.epoch,
             'action': (words.action_words(self.action, task, self._current_task_number(),
-                                          self.distance, faults, self.request is not None)
+                                          self.distance, faults, self.request is not None,
+                                          who)
                        if alive else words.NO_CELL),
             'action_code': ACTIONS[self.action] if self.action is not None and alive else None,
-            'request': self._request_view() if alive else None,
+            'request': request,
             'last_request': None if last is None else {
-                'id': last.id, 'text': last.text, 'outcome': last.outcome,
-                'outcome_text': last.outcome_text, 'epoch': last.epoch},
+                'id': last.id, 'outcome': last.outcome, 'epoch': last.epoch,
+                'outcome_text': (last.outcome_text if who == words.WORKER else
+                                 words.outcome_words(last.outcome, last.outcome_text,
+                                                     last.action, last.task_number)),
+                'text': last.text if who == words.WORKER else
+                words.request_words(last.action, last.task_number, who)},
             'motivation': (words.motivation_words(self.epoch)
                            if alive and self.action == MH else None),
             'distance': words.distance_band(self.distance if alive else None),
@@ -406,9 +484,28 @@ class HmiMachine:
             'stopped': alive and self.action == DN,
         }
 
-    def operator_view(self, now: int) -> dict:
-        view = self.worker_view(now)
-        view['view'] = 'operator'
+    def worker_view(self, now: int) -> dict:
+        return self._present(now, words.WORKER)
+
+    def figures(self, wall_ns: int) -> dict:
+        """The shift's figures over each window (rounded as the console shows them), counted
+        again every FIGURES_PERIOD_S or at once when one changed (a task done, a refusal, a
+        fail-safe epoch, a protective stop, a new smallest separation); times in whole ms."""
+        wall_ns = int(wall_ns) // MS * MS
+        if self._figures_ns is None or self.shift.changed \
+                or wall_ns - self._figures_ns >= FIGURES_PERIOD_S * 1e9:
+            self._figures_ns = wall_ns
+            windows = self.shift.all_windows(wall_ns)
+            self._figures = None if windows is None else {
+                name: rounded(figures) for name, figures in windows.items()}
+        return self._figures
+
+    def operator_view(self, now: int, wall_ns: int) -> dict:
+        """The console: the present, the task and the queue, the orders, the tasks seen, the
+        belief, the last decision, the arm and the figures of the shift (`wall_ns`: the
+        system clock, the figures' time). The timeline and the event log go to the pages as
+        they grow (`timeline.take`, `events.take`), not in every view."""
+        view = self._present(now, words.OPERATOR)
         task = self.task_state
         view['task'] = {'text': words.task_details(self._current_task_number(), task),
                         'state': task}
@@ -418,13 +515,16 @@ class HmiMachine:
                          'completed': manager.get('completed_tasks'),
                          'waiting_for': manager.get('waiting_for')}
         view['history'] = [
-            {'number': t.number, 'task': [t.tp, t.tc, t.tx], 'nature': words.NATURES[t.tx],
-             'seen_epoch': t.seen_epoch, 'committed': words.COMMITMENTS[t.ty],
-             'commit_epoch': t.commit_epoch, 'done_epoch': t.done_epoch}
+            {'number': t.number, 'task': [t.tp, t.tc, t.tx],
+             'words': words.task_words(t.tp, t.tc, t.tx),
+             'nature': words.OPERATOR_NATURES[t.tx], 'seen_epoch': t.seen_epoch,
+             'committed': words.OPERATOR_COMMITMENTS[t.ty], 'commit_epoch': t.commit_epoch,
+             'done_epoch': t.done_epoch}
             for t in reversed(self.tasks)]
         view['orders'] = [
             {'number': o.number, 'task': list(o.task), 'status': o.status, 'text': o.text,
-             'from': 'this HMI' if o.number else 'another publisher'}
+             'words': (words.task_words(*o.task) if len(o.task) == 3 else 'a malformed order'),
+             'from': 'this console' if o.number else 'another publisher'}
             for o in reversed(self.orders.history)]
         if self.belief is not None and self.belief.size == 9:
             grid = self.belief.reshape(3, 3)
@@ -436,16 +536,44 @@ class HmiMachine:
         decision = self.decision
         view['fail_safe'] = None if decision is None else {
             'epoch': decision['epoch'], 'action': decision['action'],
-            'reasons': decision['faults'], 'level': decision['level']}
+            'reasons': decision['faults'], 'level': decision['level'],
+            'text': (f'stopped for safety at step {decision["epoch"]}: '
+                     f'{words.fail_safe_words(decision["faults"])}' if decision['faults'] else
+                     f'no safety stop at step {decision["epoch"]}: the robot '
+                     f'{words.ACTION_NAMES.get(decision["action"], decision["action"])}')}
         view['robot'] = self._robot_view(now)
+        view['figures'] = self.figures(wall_ns)
+        period = self.epochs.period.period_ns
         view['limits'] = {'priority': [1, self.rho], 'duration': [1, self.sigma],
-                          'nature': [0, 3], 'natures': words.NATURES}
+                          'nature': [0, 3], 'natures': words.OPERATOR_NATURES,
+                          'step_s': None if period is None else round(period * 1e-9, 2)}
+        view['words'] = CONSOLE_WORDS
         return view
 
     def _robot_view(self, now: int) -> dict | None:
-        fresh = {name: value for name, value in (('speed_override', self.speed_override),
-                                                 ('separation', self.separation))
+        """The arm now, while the robot side publishes (ROBOT_TIMEOUT_S). Its separation
+        changes at the arm's rate (125 Hz): the console shows it anew every ROBOT_VIEW_S (the
+        timeline has the detail), a protective stop, its reason or its end at once."""
+        if self._robot is not None and now - self._robot[1] < ROBOT_VIEW_S * 1e9 \
+                and self._robot[2] == self.stop:
+            return self._robot[0]
+        view = self._robot_now(now)
+        self._robot = (view, now, self.stop)
+        return view
+
+    def _robot_now(self, now: int) -> dict | None:
+        fresh = {name: value[0] for name, value in (('speed_override', self.speed_override),
+                                                    ('separation', self.separation))
                  if value is not None and now - value[1] <= ROBOT_TIMEOUT_S * 1e9}
         if not fresh:
             return None
-        return {name: round(value[0], 4) for name, value in fresh.items()}
+        robot = {}
+        if 'speed_override' in fresh:
+            robot['speed_override'] = round(fresh['speed_override'], 2)
+        if 'separation' in fresh:
+            separation, protective, _ = fresh['separation']
+            robot['separation'] = round(separation, 2)
+            robot['protective_distance'] = round(protective, 2)
+        if self.stop is not None:
+            robot['stopped'], robot['stop_reason'] = self.stop
+        return robot

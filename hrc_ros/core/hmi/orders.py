@@ -1,9 +1,11 @@
 """The operator's task form, and what became of each order.
 
 An order is the form's three fields: ``priority``, ``duration``, ``nature`` (tp, tc, tx).
-Each is a whole number (a JSON integer, or a string of digits, as a form sends it), checked
-with the task book's own rule (`tasks.check_task`: tp in 1..rho, tc in 1..sigma, tx in 0..3 of
-the model's configuration), so the form accepts exactly what the task manager would queue. A
+Each is a whole number (a JSON integer, or a string of ASCII digits, as a form sends it) in its
+range (priority 1..rho, duration 1..sigma, nature 0..3 of the model's configuration), refused
+in words that name the field, state the range and show what was given ("priority must be a
+whole number from 1 to 2, got 'abc'"); the task book's own rule (`tasks.check_task`) has the
+last word, so the form accepts exactly what the task manager would queue. A
 valid order is published on `hrc/task_request` (the path every order takes) only while a task
 manager listens there, at most `rate` orders a second per page (after a `burst`), and at most
 `max_pending` orders wait for their outcome at once.
@@ -20,11 +22,13 @@ Reports of other publishers' requests (a MES, `ros2 topic pub`) join the operato
 
 from __future__ import annotations
 
+import re
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
 from ..tasks import check_task
 from .limits import TokenBucket
+from .words import FIELD_WORDS, OPERATOR_NATURES
 
 FIELDS = ('priority', 'duration', 'nature')
 CHECKING, SENT, ACCEPTED, REFUSED, UNKNOWN = 'checking', 'sent', 'accepted', 'refused', 'unknown'
@@ -55,26 +59,50 @@ class OrderStep:
     text: str
 
 
-def _whole_number(name: str, value) -> int:
-    if isinstance(value, bool):
-        raise ValueError(f'{name} must be a whole number, got {value!r}')
-    if isinstance(value, int):
-        return value
-    if isinstance(value, str) and value.strip().isdigit() and len(value.strip()) <= 6:
-        return int(value.strip())
-    shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
-    raise ValueError(f'{name} must be a whole number, got {shown}')
+TASK_PREFIX = re.compile(r'^task \(\d+, \d+, \d+\) refused: ')   # the task book's
+DIGITS = re.compile(r'[+-]?[0-9]{1,6}')    # ASCII digits only: '²' and '٣' are not numbers here
+
+
+def _limits(rho: int, sigma: int) -> dict:
+    return {'priority': (1, rho), 'duration': (1, sigma), 'nature': (0, 3)}
+
+
+def _whole_number(name: str, value, low: int, high: int) -> int:
+    """`value` as a whole number in low..high, or `ValueError` that names the field, states
+    the range and shows what was given (a person typed it: no Python in the words)."""
+    words = FIELD_WORDS[name]
+    if name == 'nature':
+        expected = (f'{words} must be one of ' + ', '.join(
+            f'{k} ({v})' for k, v in OPERATOR_NATURES.items()))
+    else:
+        expected = f'{words} must be a whole number from {low} to {high}'
+    number = None
+    if isinstance(value, int) and not isinstance(value, bool):
+        number = value
+    elif isinstance(value, str) and DIGITS.fullmatch(value.strip()):
+        number = int(value.strip())
+    if number is not None and low <= number <= high:
+        return number
+    if number is not None:
+        shown = str(number)
+    elif isinstance(value, str) and not value.strip():
+        shown = 'nothing'
+    else:
+        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
+    raise ValueError(f'{expected}, got {shown}')
 
 
 def parse_order(fields, rho: int, sigma: int) -> tuple[int, int, int]:
-    """(tp, tc, tx) of a task form, or `ValueError` saying which field is wrong and why."""
+    """(tp, tc, tx) of a task form, or `ValueError` saying which field is wrong and its range.
+    The task book's rule (`tasks.check_task`) has the last word."""
     if not isinstance(fields, dict):
         raise ValueError('a task order has the fields priority, duration and nature')
-    missing = [name for name in FIELDS if name not in fields]
+    missing = [FIELD_WORDS[name] for name in FIELDS if name not in fields]
     if missing:
-        raise ValueError(f'{", ".join(missing)} missing: a task order has the fields '
-                         'priority, duration and nature')
-    task = tuple(_whole_number(name, fields[name]) for name in FIELDS)
+        raise ValueError(f'{", ".join(missing)} missing: a task order has a priority, a '
+                         'duration and who does it')
+    limits = _limits(rho, sigma)
+    task = tuple(_whole_number(name, fields[name], *limits[name]) for name in FIELDS)
     return check_task(task, rho, sigma)
 
 
@@ -141,19 +169,21 @@ class Orders:
                 return order
         self.history.append(Order(0, '', task if task is not None else (), 0,
                                   ACCEPTED if result.get('accepted') else REFUSED,
-                                  self._words(result), None, result.get('queued')))
+                                  self.words(result), None, result.get('queued')))
         return None
 
-    def _words(self, result: dict) -> str:
+    def words(self, result: dict) -> str:
+        """A report in words: "accepted: queued, 2 waiting" or "refused: <reason>"."""
         if result.get('accepted'):
             queued = result.get('queued')
             return 'accepted: queued' + (f', {queued} waiting' if queued is not None else '')
-        return f'refused: {result.get("reason") or "no reason given"}'
+        reason = TASK_PREFIX.sub('', result.get('reason') or '') or 'no reason given'
+        return f'refused: {reason}'
 
     def _decide(self, order: Order, result: dict) -> None:
         order.status = ACCEPTED if result.get('accepted') else REFUSED
         order.queued = result.get('queued')
-        order.text = self._words(result)
+        order.text = self.words(result)
         self.counts[order.status] += 1
 
     def expire(self, now: int) -> list[Order]:

@@ -13,6 +13,8 @@ motion, safely, and the cell measured in physical units.
 - `cell`: the cell with the arm as a seeded batch (the task book, the simulated human with a
   body, the selectors, the bridge, the arm), the ssm_only baseline, its metrics and tables
   (`hrc-evaluate --cell arm`).
+- `metrics`: those figures defined once (the arm's activity per sample, tasks per hour, the
+  shares, refused requests), for `cell` and the operator's console (`core.hmi.shift`).
 
 docs/ROBOT.md describes the models, the parameters and the design of the ROS nodes around it.
 """

@@ -39,7 +39,8 @@ acceptance odds and its effect on the emotions).
 
 **Metrics per episode** (then mean, 95% interval, paired differences on common random numbers:
 episode e of every selector sees the same task stream, the same human uniforms and the same
-person's walk, `evaluation.episodes_of`): tasks completed per hour of cell time; the share of
+person's walk, `evaluation.episodes_of`; the definitions are `metrics`', which the operator's
+console counts with too): tasks completed per hour of cell time; the share of
 time the arm is idle (at rest, no protective stop) and in a protective stop; the minimum
 separation (m) over every control sample; ssm violations, samples where the arm moved (its
 speed bound s v_nominal above 1 mm/s) while the true separation (the person's body now, not
@@ -71,6 +72,7 @@ from ..study.simulation import SIMULATION_SELECTORS
 from ..tasks import TaskBook, robot_cycle_done
 from .arm import Arm, TrajectoryFollower, body_capsules
 from .bridge import Bridge, load_programs, load_robot_description
+from .metrics import IDLE, STOP, arm_activity, per_hour, request_refused, share
 from .ssm import MOVING_SPEED, protective_distance
 
 CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS
@@ -166,6 +168,8 @@ class EpisodeResult:
     accepted: list = field(default_factory=list)
     task_states: list = field(default_factory=list)     # x_k's task part (8 values)
     violations: list = field(default_factory=list)      # (t, S, bound, bridge's S, override)
+    samples: list = field(default_factory=list)         # (t, stop, speed bound, S) per sample
+    completed: list = field(default_factory=list)       # tasks completed after each epoch
     arm_path: list = field(default_factory=list)        # (t, q (6,)) every control period
     # The person scenario's figures (docs/ROBOT.md 4, "People who test SSM"):
     min_margin: float = math.inf          # min of S - S_p(bound) over the samples the arm moved
@@ -299,7 +303,7 @@ class ArmCell:
             bridge.action(action, now)
             if reaction.accepted is not None:
                 out.requests += 1
-                out.refused_requests += not reaction.accepted
+                out.refused_requests += request_refused(reaction.accepted)
             if record:
                 out.actions.append(ACTIONS[action])
                 out.distances.append(d)
@@ -361,10 +365,13 @@ class ArmCell:
                 if appeared_frame is not None and appeared_frame >= 0 and command.stop \
                         and math.isnan(out.stop_delay):
                     out.stop_delay = t - appeared_frame
-                if command.stop:
+                activity = arm_activity(command.stop, bound)
+                if activity == STOP:
                     out.stop_time += dt
-                elif bound <= MOVING_SPEED:
+                elif activity == IDLE:
                     out.idle_time += dt
+                if record:
+                    out.samples.append((t, command.stop, bound, true_separation))
                 if command.trajectory is not None:
                     follower.follow(command.trajectory)
                 follower.step(dt, command.override)
@@ -375,6 +382,8 @@ class ArmCell:
             robot_runs = progress is not None and robot_cycle_done(progress.cycles,
                                                                    progress.cycles_done, bc)
             book.apply(action, reaction.accepted, robot_runs)
+            if record:
+                out.completed.append(len(book.completed))
             evidence = None
             if self.filter.mode == 'posterior':
                 evidence = model.transition_likelihood(action, reaction.accepted is not None,
@@ -426,12 +435,12 @@ def evaluate_arm(model: HRCModel, policy, episodes: int = 200, epochs: int = 50,
             if progress and ((e + 1) % 50 == 0 or e + 1 == episodes):
                 progress(f'{selector}: {e + 1}/{episodes} episodes '
                          f'({time.process_time() - t0:.1f} s)')
-        hours = np.array([r.seconds for r in rows]) / 3600.0
+        seconds = np.array([r.seconds for r in rows])
         results[selector] = ArmResult(
             selector,
-            tasks_per_hour=np.array([r.tasks_completed for r in rows]) / hours,
-            idle_share=100.0 * np.array([r.idle_time / r.seconds for r in rows]),
-            stop_share=100.0 * np.array([r.stop_time / r.seconds for r in rows]),
+            tasks_per_hour=per_hour(np.array([r.tasks_completed for r in rows]), seconds),
+            idle_share=share(np.array([r.idle_time for r in rows]), seconds),
+            stop_share=share(np.array([r.stop_time for r in rows]), seconds),
             min_separation=np.array([r.min_separation for r in rows]),
             ssm_violations=np.array([r.ssm_violations for r in rows], dtype=float),
             refused_requests=np.array([r.refused_requests for r in rows], dtype=float),
@@ -444,7 +453,7 @@ def evaluate_arm(model: HRCModel, policy, episodes: int = 200, epochs: int = 50,
             rest_after_event=np.array([r.rest_after_event for r in rows]),
             stop_delay=np.array([r.stop_delay for r in rows]),
             seconds=time.process_time() - t0,
-            simulated=float(np.sum(hours) * 3600.0))
+            simulated=float(np.sum(seconds)))
     return results
 
 

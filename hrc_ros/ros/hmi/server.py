@@ -3,8 +3,9 @@
 It serves the pages (static HTML, CSS and JavaScript shipped in this package, read into memory
 at start: no file system access per request, nothing fetched from elsewhere) and keeps them
 live over one WebSocket per page (``/ws?view=worker`` or ``operator``). It knows no ROS: the
-HMI node hands it the views to show and takes the pages' commands from it, and
-`core.hmi.AccessPolicy` says who may come in.
+HMI node hands it the views to show and the console's growing feeds (the timeline, the event
+log), and takes the pages' commands from it; `core.hmi.AccessPolicy` says who may come in and
+as whom (the worker's token opens the worker's page only, and queues nothing).
 
 Why aiohttp: one maintained package (in Debian and rosdep as python3-aiohttp) gives the HTTP
 server, the WebSocket server with a frame size cap, heartbeats and close codes, and an
@@ -23,6 +24,10 @@ Threads. The rclpy executor and this loop never wait for each other:
   (`call_soon_threadsafe`, at most one pending); each page has one slot for the latest view
   and a short bounded deque of replies, and one sender task, so a slow page holds only its own
   latest view, never a queue that grows;
+- the console's feeds (`append_feeds`): each a ring of the last `FEEDS[name]` items the node
+  handed in, numbered; a console page gets every item after the last one it got, in one
+  message, or the whole ring when it is new or fell behind the ring (``reset``), so a page
+  opened late has the last ten minutes at once and a slow one skips, never queues;
 - `reply` delivers a command's result to the page that sent it.
 
 Bad input. Frames above `max_frame_bytes` close the connection (1009, the cap is checked
@@ -48,7 +53,7 @@ from urllib.parse import urlencode
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from ...core.hmi.access import COOKIE, AccessPolicy
+from ...core.hmi.access import COOKIE, OPERATOR, AccessPolicy, may_open, may_order
 from ...core.hmi.limits import TokenBucket
 
 STATIC_DIR = Path(__file__).resolve().parent / 'static'
@@ -60,9 +65,19 @@ PAGES = {
     '/static/hmi.js': ('hmi.js', 'text/javascript; charset=utf-8'),
     '/static/worker.js': ('worker.js', 'text/javascript; charset=utf-8'),
     '/static/operator.js': ('operator.js', 'text/javascript; charset=utf-8'),
+    '/static/console.js': ('console.js', 'text/javascript; charset=utf-8'),
     '/static/favicon.svg': ('favicon.svg', 'image/svg+xml'),
+    # uPlot (MIT, https://github.com/leeoniya/uPlot, vendor/LICENSE-uPlot.txt): the timeline
+    '/static/vendor/uPlot.iife.min.js': ('vendor/uPlot.iife.min.js',
+                                         'text/javascript; charset=utf-8'),
+    '/static/vendor/uPlot.min.css': ('vendor/uPlot.min.css', 'text/css; charset=utf-8'),
 }
+# The console's feeds and the items each keeps: the timeline's rows come in batches of at most
+# two a second (core.hmi.timeline.FLUSH_S), so this holds more than its ten minutes
+FEEDS = {'timeline': 1500, 'events': 200}
 VIEWS = ('worker', 'operator')
+# the role the guard gave a request (a typed key from aiohttp 3.11 on, a string before)
+ROLE = web.RequestKey('role', str) if hasattr(web, 'RequestKey') else 'role'
 SECURITY_HEADERS = {
     'Content-Security-Policy': "default-src 'none'; script-src 'self'; style-src 'self'; "
                                "img-src 'self'; connect-src 'self'; frame-ancestors 'none'; "
@@ -106,12 +121,13 @@ class Command:
 class Client:
     """One open page."""
 
-    __slots__ = ('id', 'view', 'ws', 'bucket', 'replies', 'wake', 'sent_version', 'refused',
-                 'last_error')
+    __slots__ = ('id', 'view', 'role', 'ws', 'bucket', 'replies', 'wake', 'sent_version',
+                 'refused', 'last_error', 'feed_seq')
 
-    def __init__(self, client_id: str, view: str, ws: web.WebSocketResponse,
+    def __init__(self, client_id: str, view: str, role: str, ws: web.WebSocketResponse,
                  bucket: TokenBucket):
-        self.id, self.view, self.ws, self.bucket = client_id, view, ws, bucket
+        self.id, self.view, self.role, self.ws, self.bucket = client_id, view, role, ws, bucket
+        self.feed_seq = dict.fromkeys(FEEDS, 0)       # the last item of each feed it got
         self.replies: deque[str] = deque(maxlen=REPLIES_KEPT)
         self.wake = asyncio.Event()
         self.sent_version = -1
@@ -138,10 +154,13 @@ class HmiServer:
                                                         'cell', 'cell': False})
                                       for view in VIEWS}
         self.versions = Counter()
+        self.feeds = {name: deque(maxlen=kept) for name, kept in FEEDS.items()}  # (seq, text)
+        self.feed_top = dict.fromkeys(FEEDS, 0)
         self.counts: Counter = Counter()
         self.port: int | None = None
         self._lock = threading.Lock()
         self._pending: dict[str, str] | None = None
+        self._pending_feeds: dict[str, list] = {name: [] for name in FEEDS}
         self._flush_scheduled = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -230,6 +249,18 @@ class HmiServer:
             self._flush_scheduled = True
         self._loop.call_soon_threadsafe(self._flush)
 
+    def append_feeds(self, items: dict[str, list[str]]) -> None:
+        """New items (JSON texts) of the console's feeds; console pages get them in order."""
+        with self._lock:
+            for name, texts in items.items():
+                pending = self._pending_feeds[name]
+                pending.extend(texts)
+                del pending[:-FEEDS[name]]
+            if self._flush_scheduled or self._loop is None:
+                return
+            self._flush_scheduled = True
+        self._loop.call_soon_threadsafe(self._flush)
+
     def reply(self, client: str, message: dict) -> None:
         """A command's result for the page that sent it."""
         if self._loop is not None:
@@ -238,13 +269,22 @@ class HmiServer:
     def _flush(self) -> None:
         with self._lock:
             pending, self._pending, self._flush_scheduled = self._pending, None, False
+            feeds = {name: texts for name, texts in self._pending_feeds.items() if texts}
+            self._pending_feeds = {name: [] for name in FEEDS}
+        woken = set()
         for view, text in (pending or {}).items():
             if view in self.views and text != self.views[view]:
                 self.views[view] = text
                 self.versions[view] += 1
-                for client in self.clients.values():
-                    if client.view == view:
-                        client.wake.set()
+                woken.add(view)
+        for name, texts in feeds.items():
+            for text in texts:
+                self.feed_top[name] += 1
+                self.feeds[name].append((self.feed_top[name], text))
+            woken.add(OPERATOR)
+        for client in self.clients.values():
+            if client.view in woken:
+                client.wake.set()
 
     def _queue_reply(self, client_id: str, text: str) -> None:
         client = self.clients.get(client_id)
@@ -260,17 +300,22 @@ class HmiServer:
                                     request.headers.get('Authorization'),
                                     request.cookies.get(COOKIE), request.query.get('token'),
                                     websocket=request.path == '/ws')
+        if verdict.allowed and verdict.remember and request.path != '/ws':
+            # the token came in the URL: keep it in a cookie and take it out of the URL
+            query = urlencode([(k, v) for k, v in request.query.items() if k != 'token'])
+            response = web.HTTPSeeOther(request.path + (f'?{query}' if query else ''))
+            response.set_cookie(COOKIE, verdict.token, httponly=True, samesite='Strict',
+                                path='/', secure=request.secure)
+            return response
+        if verdict.allowed:
+            page = request.query.get('view', 'worker') if request.path == '/ws' else \
+                OPERATOR if request.path == '/operator' else 'worker'
+            verdict = may_open(verdict.role, page)
         if not verdict.allowed:
             self.counts[f'refused_{verdict.status}'] += 1
             return web.Response(status=verdict.status, text=f'{verdict.status}: '
                                 f'{verdict.reason}\n')
-        if verdict.remember and request.path != '/ws':
-            # the token came in the URL: keep it in a cookie and take it out of the URL
-            query = urlencode([(k, v) for k, v in request.query.items() if k != 'token'])
-            response = web.HTTPSeeOther(request.path + (f'?{query}' if query else ''))
-            response.set_cookie(COOKIE, self.policy.token, httponly=True, samesite='Strict',
-                                path='/', secure=request.secure)
-            return response
+        request[ROLE] = verdict.role
         return await handler(request)
 
     async def _headers(self, request: web.Request, response: web.StreamResponse) -> None:
@@ -294,12 +339,13 @@ class HmiServer:
         ws = web.WebSocketResponse(max_msg_size=self.settings.max_frame_bytes,
                                    heartbeat=self.settings.heartbeat_s, compress=False)
         await ws.prepare(request)
-        client = Client(secrets.token_hex(8), view, ws,
+        client = Client(secrets.token_hex(8), view, request[ROLE], ws,
                         TokenBucket(self.settings.message_rate, self.settings.message_burst,
                                     time.monotonic_ns()))
         self.clients[client.id] = client
         self.counts['opened'] += 1
         client.replies.append(json.dumps({'type': 'hello', 'client': client.id, 'view': view,
+                                          'role': client.role,
                                           'max_frame_bytes': self.settings.max_frame_bytes}))
         client.wake.set()
         sender = asyncio.ensure_future(self._sender(client))
@@ -335,12 +381,30 @@ class HmiServer:
                 if version != client.sent_version:
                     client.sent_version = version
                     await asyncio.wait_for(ws.send_str(self.views[client.view]), SEND_TIMEOUT_S)
+                if client.view == OPERATOR:
+                    for text in self._feed_messages(client):
+                        await asyncio.wait_for(ws.send_str(text), SEND_TIMEOUT_S)
         except asyncio.TimeoutError:
             self.counts['closed_slow'] += 1
             await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b'the page stopped '
                            b'reading')
         except (ConnectionError, RuntimeError):
             pass         # the page went away: the receiving side cleans up
+
+    def _feed_messages(self, client: Client) -> list[str]:
+        """What of each feed this page has not had: the items after its last one, or the
+        whole ring (reset) when it is new or the ring moved past it."""
+        messages = []
+        for name, ring in self.feeds.items():
+            seen, top = client.feed_seq[name], self.feed_top[name]
+            if top == seen or not ring:
+                continue
+            reset = seen == 0 or seen < ring[0][0] - 1
+            items = [text for seq, text in ring if reset or seq > seen]
+            client.feed_seq[name] = top
+            messages.append(f'{{"type":"feed","name":"{name}","reset":'
+                            f'{"true" if reset else "false"},"items":[{",".join(items)}]}}')
+        return messages
 
     def _error(self, client: Client, text: str) -> None:
         self.counts['bad_messages'] += 1
@@ -369,6 +433,14 @@ class HmiServer:
         kind = message.get('type') if isinstance(message, dict) else None
         if kind == 'answer':
             payload = {'request': message.get('request'), 'accept': message.get('accept')}
+        elif kind == 'order' and not may_order(client.role):
+            self.counts['refused_403'] += 1
+            self._queue_reply(client.id, json.dumps({
+                'type': 'order_result', 'ok': False, 'code': 403, 'status': 'refused',
+                'ref': message.get('ref') if isinstance(message.get('ref'), int) else None,
+                'text': "refused (403): only the operator queues tasks, and this page has the "
+                        "worker's access token"}))
+            return
         elif kind == 'order' and client.view == 'operator':
             ref = message.get('ref')
             payload = {'fields': {k: message[k] for k in ('priority', 'duration', 'nature')

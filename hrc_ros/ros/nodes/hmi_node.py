@@ -1,10 +1,11 @@
 """hmi: the person's side of the cell, a web page for the worker and one for the operator.
 
 Contract (docs/HMI.md): serves ``http://<host>:<port>/`` (the worker's page) and ``/operator``
-and keeps them live over a WebSocket. It listens to `hrc/epoch`, `hrc/action`,
-`hrc/task_state`, `hrc/belief`, `hrc/distance_level`, `hrc/human_response`,
-`hrc/task_request_result`, the decision node's and the task manager's statuses on
-/diagnostics, and the robot side's speed override and separation when they are published; it
+(the operator's console) and keeps them live over a WebSocket; the worker's access token opens
+the worker's page only. It listens to `hrc/epoch`, `hrc/action`, `hrc/task_state`,
+`hrc/belief`, `hrc/distance_level`, `hrc/human_response`, `hrc/task_request_result`, the
+decision node's, the task manager's and the robot bridge's statuses on /diagnostics, and the
+robot side's speed override, separation and protective stop when they are published; it
 publishes the worker's answers on `hrc/human_response` (std_msgs/Bool, reliable) and the
 operator's orders on `hrc/task_request` (std_msgs/UInt8MultiArray, `qos.ORDERS`, the path every
 order takes), and its health on /diagnostics. The rules (when a request is open, one answer per
@@ -16,8 +17,10 @@ The four inputs that decide a request (`hrc/epoch`, `hrc/action`, `hrc/task_stat
 `hrc/human_response`, a few messages an epoch) are ordinary subscriptions: the machine takes
 each at once, in whatever order DDS delivers them (it pairs them by source timestamp), and the
 pages follow. Everything else (the belief, the distance, /diagnostics, the reports, the robot
-side) is `SampledInputs`, taken `refresh_rate` times a second, so the node never wakes for
-those and its share of the CPU does not grow with their rates. A page's command wakes it at
+side) is `SampledInputs`, taken `refresh_rate` times a second and before each control message
+(so an epoch's row of the timeline has the belief published before its action), so the node
+never wakes for those and its share of the CPU hardly grows with their rates. A page's command
+wakes it at
 once through a guard condition (the web thread never waits for the executor, nor the executor
 for the web thread: a bounded queue between them); the executor runs the control messages
 ready with it first, so the machine decides on the latest state, then publishes and replies.
@@ -34,9 +37,12 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8, UInt8MultiArray, UInt32
 
 from ...core.hmi import AccessError, AccessPolicy, HmiMachine, is_loopback
+from ...core.hmi.access import OPERATOR, TOKEN_ENV, WORKER
+from ...core.protocol import InputError
 from .. import conversions as conv
 from .. import qos
 from ..hmi.server import Command, HmiServer, ServerSettings
@@ -45,9 +51,17 @@ from ..node_support import (CONFIG, STATUS_PERIOD_SEC, Inputs, ParamSpec, Sample
 from .cell_view_node import SAMPLED
 
 T = Parameter.Type
-TOKEN_ENV = 'HRC_HMI_TOKEN'
+LEGACY_TOKEN_ENV = 'HRC_HMI_TOKEN'
 COMMAND_QUEUE = 256        # page commands waiting for the executor; beyond: "busy"
 ORDER_REFS_KEPT = 256
+# hrc/separation at the arm's joint-state rate (125 Hz) between two reads (20 Hz by default):
+# deep enough that a read late by a second loses no sample of the smallest separation
+SEPARATION_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=256,
+                            reliability=ReliabilityPolicy.BEST_EFFORT)
+# hrc/protective_stop is latched (published on change): a late HMI gets the stop in force
+STOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 PARAMETERS = (
     CONFIG,
     ParamSpec('host', T.STRING, '127.0.0.1', 'address the web server binds (loopback by '
@@ -55,10 +69,16 @@ PARAMETERS = (
               read_only=True),
     ParamSpec('port', T.INTEGER, 8080, 'TCP port of the pages; 0 = a free port (logged and on '
               '/diagnostics)', read_only=True, range=(0, 65535)),
-    ParamSpec('token', T.STRING, '', f"access token ('' = the {TOKEN_ENV} environment "
-              'variable, else none), at least 16 characters; required off loopback, and then '
-              'every HTTP and WebSocket request needs it. Prefer the environment variable: '
-              'a parameter can be read with ros2 param get', read_only=True),
+    ParamSpec('worker_token', T.STRING, '', f"the worker's access token ('' = the "
+              f'{TOKEN_ENV[WORKER]} environment variable, else none), at least 16 characters: '
+              "it opens the worker's page only; required off loopback. Prefer the environment "
+              'variable: a parameter can be read with ros2 param get', read_only=True),
+    ParamSpec('operator_token', T.STRING, '', f"the operator's access token ('' = the "
+              f'{TOKEN_ENV[OPERATOR]} environment variable, else none), at least 16 '
+              "characters, not the worker's: it opens both pages and queues tasks; required "
+              'off loopback (and whenever the worker has one)', read_only=True),
+    ParamSpec('token', T.STRING, '', "replaced by worker_token and operator_token: a "
+              'value here refuses to start rather than guess its role', read_only=True),
     ParamSpec('allowed_origins', T.STRING_ARRAY, [], 'origins besides the page itself whose '
               'pages may open the WebSocket (a reverse proxy\'s public origin, e.g. '
               'https://hmi.plant.example)', read_only=True),
@@ -90,6 +110,8 @@ PARAMETERS = (
               'status gives the fail-safe reasons', read_only=True),
     ParamSpec('task_manager_node', T.STRING, 'task_manager', 'the task manager whose '
               '/diagnostics status gives the queue', read_only=True),
+    ParamSpec('robot_bridge_node', T.STRING, 'robot_bridge', 'the robot bridge whose '
+              '/diagnostics status gives the reason of each protective stop', read_only=True),
     ParamSpec('speed_override_topic', T.STRING, 'hrc/speed_override', "the robot side's speed "
               'override (std_msgs/Float64, 0..1), shown on /operator while published',
               read_only=True),
@@ -105,9 +127,146 @@ def check_parameters(values) -> str | None:
     return None
 
 
-def _separation(msg: Float64MultiArray) -> float:
-    """S (m) of the robot side's hrc/separation (`conversions.separation_from_msg`)."""
-    return conv.separation_from_msg(msg)['S']
+def _separation(msg: Float64MultiArray) -> tuple[float, float, float]:
+    """(S, S_p, speed bound) of the robot side's hrc/separation
+    (`conversions.separation_from_msg`): metres, metres, m/s."""
+    values = conv.separation_from_msg(msg)
+    return values['S'], values['S_p'], values['speed']
+
+
+def _stopped(msg: Bool) -> bool:
+    return bool(msg.data)
+
+
+def _tokens(values) -> dict:
+    """Each role's token: its parameter, else its environment variable. The one token of
+    before (the `token` parameter, HRC_HMI_TOKEN) is refused: its role cannot be guessed, and
+    dropping it silently would open a page it protected."""
+    if values['token'] or os.environ.get(LEGACY_TOKEN_ENV):
+        raise StartupError(f'the single access token (token, {LEGACY_TOKEN_ENV}) is replaced by '
+                           f"two: the worker's (worker_token, {TOKEN_ENV[WORKER]}) opens the "
+                           "worker's page only, the operator's (operator_token, "
+                           f'{TOKEN_ENV[OPERATOR]}) the console too; set those and unset it '
+                           '(docs/HMI.md, "Roles")')
+    return {role: values[f'{role}_token'] or os.environ.get(TOKEN_ENV[role], '')
+            for role in (WORKER, OPERATOR)}
+
+
+class HmiInputs:
+    """What the HMI reads and how each message enters its machine, for the node and for a
+    replay of recorded messages alike (`replay`: the console's figures of a recorded run).
+
+    `topics`: input name -> (message type, topic); `convert(name, msg)` the value (MessageError
+    for a bad message); `feed(machine, name, value, published_ns, now)` hands it to the
+    machine and returns the HMI's order a task manager's report decided, if any."""
+
+    CONTROL = ('epoch', 'task_state', 'action', 'human_response')
+
+    def __init__(self, rho: int, sigma: int, namespace: str = '', decision_node='decision',
+                 task_manager_node='task_manager', robot_bridge_node='robot_bridge',
+                 speed_override_topic='hrc/speed_override', separation_topic='hrc/separation'):
+        self.rho, self.sigma = rho, sigma
+        prefix = f'{namespace.strip("/")}/' if namespace.strip('/') else ''
+        self.statuses = {f'{prefix}{decision_node}: decision': 'decision',
+                         f'{prefix}{decision_node}: policy': 'policy',
+                         f'{prefix}{task_manager_node}: tasks': 'task_manager',
+                         f'{prefix}{robot_bridge_node}: ssm': 'stop',
+                         f'{prefix}{robot_bridge_node}: bridge': 'bridge'}
+        self.topics = {
+            'epoch': (UInt32, 'hrc/epoch'), 'task_state': (UInt8MultiArray, 'hrc/task_state'),
+            'action': (String, 'hrc/action'), 'human_response': (Bool, 'hrc/human_response'),
+            'belief': (Float64MultiArray, 'hrc/belief'),
+            'distance_level': (UInt8, 'hrc/distance_level'),
+            'task_request_result': (DiagnosticStatus, 'hrc/task_request_result'),
+            'diagnostics': (DiagnosticArray, '/diagnostics'),
+            'speed_override': (Float64, speed_override_topic),
+            'separation': (Float64MultiArray, separation_topic),
+            'protective_stop': (Bool, 'hrc/protective_stop')}
+        self._convert = {
+            'epoch': conv.epoch_from_msg,
+            'task_state': lambda m: conv.task_state_from_msg(m, rho, sigma),
+            'action': conv.action_from_msg, 'human_response': conv.human_response_from_msg,
+            'belief': conv.belief_from_msg, 'distance_level': conv.distance_level_from_msg,
+            'task_request_result': conv.task_request_result_from_msg,
+            'diagnostics': self.read_statuses, 'speed_override': conv.speed_override_from_msg,
+            'separation': _separation, 'protective_stop': _stopped}
+
+    def convert(self, name: str, msg):
+        return self._convert[name](msg)
+
+    def read_statuses(self, msg: DiagnosticArray):
+        """The statuses the HMI reads in `msg` (None: none): the decision node's epoch report
+        and policy swaps, the task manager's queue, the robot bridge's protective stop (its
+        `ssm` report of each stop, and its health every second, which also has the stop in
+        force: a stop reported before the HMI listened gets its reason from there)."""
+        found = []
+        for status in msg.status:
+            kind = self.statuses.get(status.name)
+            if kind is None:
+                continue
+            values = conv.diagnostic_values(status)
+            level = conv.LEVEL_NAMES.get(status.level, '?')
+            if kind == 'decision':
+                epoch = values.get('epoch', '')
+                if epoch.isdigit() and int(epoch) > 0:
+                    found.append((kind, int(epoch), values.get('action', ''),
+                                  values.get('faults', ''), level))
+            elif kind == 'task_manager':
+                found.append((kind, values))
+            elif kind == 'stop':
+                found.append((kind, status.level != DiagnosticStatus.OK,
+                              values.get('reason', '')))
+            elif kind == 'bridge':          # its health, every second: the stop in force
+                found.append(('stop', values.get('protective_stop') == 'True',
+                              values.get('stop_reason', '')))
+            else:
+                found.append((kind, level, status.message, values))
+        return found or None
+
+    @staticmethod
+    def feed(machine: HmiMachine, name: str, value, published: int, now: int):
+        if name == 'epoch':
+            machine.epoch_signal(value, published, now)
+        elif name == 'task_state':
+            machine.task_state_message(value, published, now)
+        elif name == 'action':
+            machine.action_message(value, published, now)
+        elif name == 'human_response':
+            machine.response_message(value, published, now)
+        elif name == 'belief':
+            machine.belief_message(value)
+        elif name == 'distance_level':
+            machine.distance_message(value)
+        elif name == 'task_request_result':
+            return machine.task_request_result(value, published)
+        elif name == 'diagnostics' and value is not None:
+            for status in value:
+                if status[0] == 'decision':
+                    machine.decision_report(*status[1:], published)
+                elif status[0] == 'task_manager':
+                    machine.task_manager_report(status[1])
+                elif status[0] == 'stop':
+                    machine.stop_report(*status[1:], published)
+                else:
+                    machine.policy_report(*status[1:], published)
+        elif name == 'speed_override':
+            machine.speed_override_message(value, now)
+        elif name == 'separation':
+            machine.separation_message(*value, published, now)
+        elif name == 'protective_stop':
+            machine.protective_stop_message(value, published)
+        return None
+
+    def replay(self, machine: HmiMachine, records) -> None:
+        """Recorded messages `(published_ns, input name, message)` into `machine`, in
+        publication order (the source timestamps: the clock the machine counts with); a bad
+        message is left out, as the node drops it."""
+        for published, name, msg in sorted(records, key=lambda r: r[0]):
+            try:
+                value = self.convert(name, msg)
+            except InputError:
+                continue
+            self.feed(machine, name, value, published, published)
 
 
 class HmiNode(Node):
@@ -117,9 +276,9 @@ class HmiNode(Node):
         super().__init__(self.NODE_NAME, **kwargs)
         self.params, values, self.config, self.model = node_setup(
             self, PARAMETERS, check_parameters, self._apply)
-        token = values['token'] or os.environ.get(TOKEN_ENV, '')
-        self.policy = AccessPolicy(values['host'], token, values['allowed_origins'],
-                                   values['allowed_hosts'])
+        tokens = _tokens(values)
+        self.policy = AccessPolicy(values['host'], tokens[WORKER], tokens[OPERATOR],
+                                   values['allowed_origins'], values['allowed_hosts'])
         try:
             self.policy.check_start()
         except AccessError as exc:
@@ -132,38 +291,29 @@ class HmiNode(Node):
                                                  qos.ORDERS)
         self.inputs = Inputs(self)
         self.sampled = SampledInputs(self, self.inputs)
-        namespace = self.get_namespace().strip('/')
-        prefix = f'{namespace}/' if namespace else ''
-        self.decision_status = f'{prefix}{values["decision_node"]}: decision'
-        self.task_manager_status = f'{prefix}{values["task_manager_node"]}: tasks'
+        self.reads = HmiInputs(self.model.rho, self.model.sigma, self.get_namespace(),
+                               values['decision_node'], values['task_manager_node'],
+                               values['robot_bridge_node'], values['speed_override_topic'],
+                               values['separation_topic'])
         # In causal order: rclpy runs the messages ready in one wait in subscription order
-        for msg_type, topic, convert, feed in (
-                (UInt32, 'hrc/epoch', conv.epoch_from_msg, self.machine.epoch_signal),
-                (UInt8MultiArray, 'hrc/task_state', self._task_state_from_msg,
-                 self.machine.task_state_message),
-                (String, 'hrc/action', conv.action_from_msg, self.machine.action_message),
-                (Bool, 'hrc/human_response', conv.human_response_from_msg,
-                 self.machine.response_message)):
-            self.inputs.subscribe(msg_type, topic, SAMPLED, convert, self._control(feed),
-                                  with_published=True)
-        subscribe = self.sampled.subscribe
-        subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg,
-                  latest_only=True)
-        subscribe(UInt8, 'hrc/distance_level', SAMPLED, conv.distance_level_from_msg,
-                  latest_only=True)
-        subscribe(DiagnosticStatus, 'hrc/task_request_result', qos.REPORTS,
-                  conv.task_request_result_from_msg)
-        subscribe(DiagnosticArray, '/diagnostics', SAMPLED, self._statuses,
-                  name='diagnostics')
-        subscribe(Float64, values['speed_override_topic'], qos.SENSOR_DATA,
-                  conv.speed_override_from_msg, name='speed_override', latest_only=True)
-        subscribe(Float64MultiArray, values['separation_topic'], qos.SENSOR_DATA, _separation,
-                  name='separation', latest_only=True)
+        for name in HmiInputs.CONTROL:
+            msg_type, topic = self.reads.topics[name]
+            self.inputs.subscribe(msg_type, topic, SAMPLED, self._converter(name),
+                                  self._control(name), name=name, with_published=True)
+        for name, profile, latest_only in (
+                ('belief', SAMPLED, True), ('distance_level', SAMPLED, True),
+                ('task_request_result', qos.REPORTS, False), ('diagnostics', SAMPLED, False),
+                ('speed_override', qos.SENSOR_DATA, True), ('separation', SEPARATION_QOS, False),
+                ('protective_stop', STOP_QOS, False)):
+            msg_type, topic = self.reads.topics[name]
+            self.sampled.subscribe(msg_type, topic, profile, self._converter(name), name=name,
+                                   latest_only=latest_only)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.order_refs: dict[int, tuple] = {}
         self.published = {'answers': 0, 'orders': 0}
         self._views: tuple | None = None
         self.wake = self.create_guard_condition(self._on_commands)
+        self.push_soon = self.create_guard_condition(lambda: self._push(self._now()))
         self.refresh = self.create_timer(1.0 / values['refresh_rate'], self._refresh)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         settings = ServerSettings(values['host'], values['port'], values['max_connections'],
@@ -207,66 +357,49 @@ class HmiNode(Node):
         return self.clock.now().nanoseconds
 
     # -- inputs ----------------------------------------------------------------------------
-    def _statuses(self, msg: DiagnosticArray):
-        """The decision node's and the task manager's statuses in `msg` (None: neither)."""
-        found = []
-        for status in msg.status:
-            if status.name == self.decision_status:
-                values = conv.diagnostic_values(status)
-                epoch = values.get('epoch', '')
-                if epoch.isdigit() and int(epoch) > 0:
-                    found.append(('decision', int(epoch), values.get('action', ''),
-                                  values.get('faults', ''),
-                                  conv.LEVEL_NAMES.get(status.level, '?')))
-            elif status.name == self.task_manager_status:
-                found.append(('task_manager', conv.diagnostic_values(status)))
-        return found or None
+    def _converter(self, name: str):
+        return lambda msg: self.reads.convert(name, msg)
 
-    def _task_state_from_msg(self, msg):
-        return conv.task_state_from_msg(msg, self.model.rho, self.model.sigma)
-
-    def _control(self, feed):
-        """A handler of a control input: the machine takes it at once and the pages follow."""
+    def _control(self, name: str):
+        """A handler of a control input: the machine takes it at once (after the sampled
+        inputs waiting, so it sees the belief and the distance published before it) and the
+        pages follow once the control messages ready with it are taken too (an epoch's signal,
+        task state and action come together: one view for the three, not three in a row)."""
         def handle(value, published_ns: int) -> None:
             now = self._now()
-            feed(value, published_ns, now)
-            self._push(now)
+            self._take(now)
+            HmiInputs.feed(self.machine, name, value, published_ns, now)
+            self.push_soon.trigger()
         return handle
 
     def _take(self, now: int) -> None:
-        machine = self.machine
-        for _, name, value in self.sampled.take():
-            if name == 'belief':
-                machine.belief_message(value)
-            elif name == 'distance_level':
-                machine.distance_message(value)
-            elif name == 'task_request_result':
-                self._order_done(machine.task_request_result(value))
-            elif name == 'diagnostics' and value is not None:
-                for status in value:
-                    if status[0] == 'decision':
-                        machine.decision_report(*status[1:])
-                    else:
-                        machine.task_manager_report(status[1])
-            elif name == 'speed_override':
-                machine.speed_override_message(value, now)
-            elif name == 'separation':
-                machine.separation_message(value, now)
+        for published, name, value in self.sampled.take():
+            self._order_done(HmiInputs.feed(self.machine, name, value, published, now))
 
     def _refresh(self) -> None:
         now = self._now()
         self._take(now)
         for order in self.machine.expire(now):
             self._order_done(order)
+        self.machine.expire_events(time.time_ns())
         self._push(now)
 
     def _push(self, now: int) -> None:
+        machine, wall = self.machine, time.time_ns()
         views = tuple(json.dumps({'type': 'view', **view}, separators=(',', ':'), default=str)
-                      for view in (self.machine.worker_view(now),
-                                   self.machine.operator_view(now)))
+                      for view in (machine.worker_view(now), machine.operator_view(now, wall)))
         if views != self._views:
             self._views = views
             self.server.publish_views({'worker': views[0], 'operator': views[1]})
+        feeds = {}
+        rows = machine.timeline.take(wall)
+        if rows is not None:
+            feeds['timeline'] = [json.dumps(rows, separators=(',', ':'))]
+        events = machine.events.take()
+        if events:
+            feeds['events'] = [json.dumps(e, separators=(',', ':')) for e in events]
+        if feeds:
+            self.server.append_feeds(feeds)
 
     # -- the pages' commands (web thread -> executor) --------------------------------------
     def _submit(self, command: Command) -> bool:

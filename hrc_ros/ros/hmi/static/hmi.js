@@ -1,5 +1,6 @@
 // The pages' connection to the HMI node: one WebSocket, reconnected by itself.
-// No framework, no build step: this file, worker.js and operator.js are all the code.
+// No framework, no build step: this file, worker.js, operator.js and console.js are all the
+// code (the console's charts are uPlot's, vendor/).
 'use strict';
 const HMI = (() => {
   const NO_CELL = 'no connection to the cell';
@@ -10,7 +11,7 @@ const HMI = (() => {
     if (element && element.textContent !== value) element.textContent = value;
   }
 
-  // connect(view, {view(message, client), reply(message, client), down()})
+  // connect(view, {view(message, client), reply(message, client), feed(message), down()})
   function connect(view, handlers) {
     const connection = document.getElementById('connection');
     let socket = null, client = null, backoff = 250, watchdog = null;
@@ -36,6 +37,8 @@ const HMI = (() => {
         } else if (message.type === 'view') {
           show(message.cell ? 'connected' : 'no-cell', message.connection || NO_CELL);
           handlers.view(message, client);
+        } else if (message.type === 'feed') {
+          if (handlers.feed) handlers.feed(message);
         } else if (message.type !== 'tick' && handlers.reply) {
           handlers.reply(message, client);
         }

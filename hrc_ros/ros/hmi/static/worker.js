@@ -19,9 +19,17 @@
     return `answered on another screen: ${given}`;
   }
 
+  function name(button, request) {
+    // the accessible name: what the button says and what it answers
+    const words = request ? `${button.textContent}: ${request.text}`
+      : `${button.textContent} (no request open)`;
+    if (button.getAttribute('aria-label') !== words) button.setAttribute('aria-label', words);
+  }
+
   function render() {
     const v = view || {};
     const request = v.request || null;
+    document.getElementById('action-label').hidden = !v.cell;
     HMI.text('action', v.action || HMI.NO_CELL);
     HMI.band(v.distance);
     motivation.hidden = !v.motivation;
@@ -59,6 +67,8 @@
       }
     }
     HMI.text('answer-note', note);
+    name(accept, request);
+    name(decline, request);
   }
 
   const link = HMI.connect('worker', {
