@@ -628,6 +628,13 @@ def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, 
                                     f'/lonely/{DEFAULT_TRAJECTORY_TOPIC}', goals.append, DEEP)
     try:
         lonely.start('robot_bridge_node', ros_args=bridge_args('/lonely'))
+        # a start-up grace first (the controller may come up after the bridge): WARN, then ERROR
+        warned = driver.wait(lambda: driver.status('lonely/robot_bridge: speed override',
+                                                   WARN) or lonely.dead(),
+                             'the WARN while the override waits for a reader', START_TIMEOUT)
+        assert not lonely.dead(), lonely.logs()
+        assert 'start-up grace' in warned.message
+        assert driver.status('lonely/robot_bridge: speed override', ERROR) is None
         status = driver.wait(lambda: driver.status('lonely/robot_bridge: speed override',
                                                    ERROR) or lonely.dead(),
                              'the ERROR for an override nobody listens to', START_TIMEOUT)
