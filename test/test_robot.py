@@ -105,6 +105,22 @@ def test_ssm_braking_speed_keeps_the_robot_able_to_follow_the_allowed_speed_down
             later = ssm.max_speed(s - 2.0 * 0.02 * k, P) or 0.0
             assert v <= later + 2.0 * 0.02 * k + 1e-9
     assert ssm.braking_speed(0.3, P) is None
+    # The look-ahead is skipped where it cannot bind (above a quarter of v_near, with a
+    # margin): on a grid it binds only below that, and never with a directed speed.
+    for approach in (0.0, 3.0):
+        p = ssm.directed_speeds(P, approach)
+        limit = ssm.BRAKING_SKIP * p.human_speed_near
+        for s in np.linspace(0.3, 3.0, 120):
+            for age, period in ((0.0, 0.0), (0.05, 0.04), (0.2, 0.06)):
+                now = ssm.max_speed(s, p, age, period)
+                if now is None:
+                    continue
+                full = now
+                for k in range(1, 21):
+                    later = ssm.max_speed(s - p.human_speed_near * 0.02 * k, p, age, period)
+                    full = min(full, (later or 0.0) + p.deceleration * 0.02 * k)
+                assert full == pytest.approx(now) or now < limit
+                assert ssm.braking_speed(s, p, age, period) == pytest.approx(full)
 
 
 def test_ssm_closed_form_matches_a_bisection_and_has_no_jump_at_half_a_metre():

@@ -143,3 +143,49 @@ def capsule_ends(centres, xmats, half_lengths, out):
             h = half_lengths[c] * xmats[c, 3 * k + 2]
             out[c, 0, k] = centres[c, k] - h
             out[c, 1, k] = centres[c, k] + h
+
+
+@numba.njit(cache=True)
+def path_offset(q, positions, direction):
+    """(the largest joint's distance from `q` to the polyline through `positions` (n, 6), at
+    the Euclidean projection on each segment, the smallest over the segments; the index of
+    that segment, -1 for a path of one point) with the unit direction of that segment in
+    `direction` (zeros for one point). `guard.nearest_on_path` in a loop of scalars."""
+    n, m = positions.shape
+    best = np.inf
+    best_i = -1
+    if n == 1:
+        best = 0.0
+        for k in range(m):
+            d = abs(q[k] - positions[0, k])
+            if d > best:
+                best = d
+            direction[k] = 0.0
+        return best, -1
+    for i in range(n - 1):
+        length2 = 0.0
+        dot = 0.0
+        for k in range(m):
+            step = positions[i + 1, k] - positions[i, k]
+            length2 += step * step
+            dot += (q[k] - positions[i, k]) * step
+        u = 0.0
+        if length2 > 0.0:
+            u = min(max(dot / length2, 0.0), 1.0)
+        off = 0.0
+        for k in range(m):
+            d = abs(q[k] - positions[i, k] - u * (positions[i + 1, k] - positions[i, k]))
+            if d > off:
+                off = d
+        if off < best:
+            best = off
+            best_i = i
+    length2 = 0.0
+    for k in range(m):
+        step = positions[best_i + 1, k] - positions[best_i, k]
+        length2 += step * step
+    norm = math.sqrt(length2)
+    for k in range(m):
+        direction[k] = 0.0 if norm == 0.0 else \
+            (positions[best_i + 1, k] - positions[best_i, k]) / norm
+    return best, best_i

@@ -437,6 +437,8 @@ def warm_up(*arms: Arm) -> None:
         arm.distance(q0, body)
         arm.link_speed(q0, np.full(N_JOINTS, 0.1))
         peak_link_speed(arm, q0, q0 + 0.1, 1.0, samples=1)
+    from .guard import nearest_on_path
+    nearest_on_path(np.zeros(N_JOINTS), np.array([np.zeros(N_JOINTS), np.ones(N_JOINTS)]))
 
 
 @dataclass

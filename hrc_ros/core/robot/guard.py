@@ -43,6 +43,7 @@ from collections import deque
 
 import numpy as np
 
+from ._kernels import path_offset
 from .arm import Arm, BodyCapsules
 
 JUMP_SLACK = 0.05            # m a skeleton may move away on top of max_body_speed * dt (noise)
@@ -106,15 +107,15 @@ class SpeedEnvelope:
 
     def limit(self, now_ns: int) -> float:
         """The fastest the arm may be moving at `now_ns` (m/s)."""
+        commands = self._commands
         best = 0.0
-        keep = deque(maxlen=ENVELOPE_KEPT)
-        for then, bound in self._commands:
-            late = max(0.0, (now_ns - then) * 1e-9 - self.latency)
-            value = bound - self.deceleration * late
-            if value > 0.0 or then == self._commands[-1][0]:
-                keep.append((then, bound))
-            best = max(best, value)
-        self._commands = keep
+        for then, bound in commands:
+            best = max(best, bound - self.deceleration
+                       * max(0.0, (now_ns - then) * 1e-9 - self.latency))
+        # the oldest commands that have decayed to nothing count no more
+        while len(commands) > 1 and commands[0][1] - self.deceleration * max(
+                0.0, (now_ns - commands[0][0]) * 1e-9 - self.latency) <= 0.0:
+            commands.popleft()
         return best
 
 
@@ -126,22 +127,16 @@ def path_deviation(q, positions) -> float:
 
 def nearest_on_path(q, positions) -> tuple[float, np.ndarray | None]:
     """(`path_deviation`, the unit direction of the path's nearest segment in joint space, None
-    for a path of one point: a stay)."""
-    q = np.asarray(q, dtype=float)
-    points = np.asarray(positions, dtype=float)
-    if len(points) == 1:
-        return float(np.max(np.abs(q - points[0]))), None
-    start, step = points[:-1], np.diff(points, axis=0)
-    length2 = np.einsum('ij,ij->i', step, step)
-    u = np.einsum('ij,ij->i', q - start, step) / np.where(length2 > 0, length2, 1.0)
-    u = np.clip(np.where(length2 > 0, u, 0.0), 0.0, 1.0)
-    nearest = start + step * u[:, None]
-    # The projection minimises the Euclidean distance; the limit is on the largest joint, which
-    # is at most that distance: the check is conservative by at most sqrt(6).
-    off = np.max(np.abs(q - nearest), axis=1)
-    i = int(np.argmin(off))
-    direction = step[i] / math.sqrt(length2[i]) if length2[i] > 0 else None
-    return float(off[i]), direction
+    for a path of one point: a stay). The projection on each segment minimises the Euclidean
+    distance; the limit is on the largest joint, which is at most that distance: the check is
+    conservative by at most sqrt(6). A numba loop (`_kernels.path_offset`): it runs on every
+    joint state."""
+    points = np.ascontiguousarray(positions, dtype=float)
+    direction = np.empty(points.shape[1])
+    off, segment = path_offset(np.ascontiguousarray(q, dtype=float), points, direction)
+    if segment < 0:
+        return float(off), None
+    return float(off), (direction if np.any(direction) else None)
 
 
 def across_path(rate, direction) -> np.ndarray:
