@@ -5,7 +5,9 @@ A node's module imports rclpy, numpy and the model (about a second, several on a
 machine); a Ctrl-C during those imports used to end the process with a KeyboardInterrupt
 traceback and exit -2. Entering here, it ends the process at once with exit 0 and no output
 (`stop.importing`: nothing exists yet to tear down); once `main()` runs, a signal is a request
-that `main()` honours (a node built meanwhile is torn down, then exit 0). setup.py points every
+that `main()` honours (a node built meanwhile is torn down, then exit 0). Once `main()` has
+returned, the process leaves at once (`stop.leave`: flushed, then `os._exit`, without the
+interpreter's finalization, seconds of CPU on a loaded machine). setup.py points every
 such console script here (`ros2 run` and `colcon build` use the same entry points); `python -m
 hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module and `stop` import
 only the standard library.
@@ -43,9 +45,14 @@ def run_command(name: str) -> int:
     return module.main()
 
 
+def run_and_leave(name: str):
+    """`run_command`, then end the process with its code (`stop.leave`): a console script."""
+    stop.leave(run_command(name))
+
+
 def _command(name: str):
     def main() -> int:
-        return run_command(name)
+        return run_and_leave(name)
     main.__name__ = main.__qualname__ = name.replace('-', '_')
     main.__doc__ = f'The `{name}` console script ({COMMANDS[name]}.main).'
     return main
@@ -72,4 +79,4 @@ if __name__ == '__main__':
         sys.exit(2)
     command = sys.argv.pop(1)
     sys.argv[0] = command
-    sys.exit(run_command(command))
+    run_and_leave(command)
