@@ -332,6 +332,45 @@ def output_target(path: str | Path) -> Path:
     return target
 
 
+def folder_target(path: str | Path, empty: bool = False) -> Path:
+    """The folder `path` names for output: `path` itself when it is a new name or a folder, or
+    the folder its symbolic link leads to; with `empty`, only a new name or an empty folder (a
+    bag's). OSError (EINVAL), whose strerror says why in one line, for anything else: a file,
+    a device, a FIFO, a socket, a link that leads to none of these or to nothing (dangling, a
+    loop), a folder that is not empty. Nothing is created: the caller checks before it waits
+    or works."""
+    path = Path(path)
+
+    def refuse(reason: str) -> OSError:
+        return OSError(errno.EINVAL, reason, str(path))
+    try:
+        status = os.lstat(path)
+    except FileNotFoundError:
+        return path
+    except (OSError, ValueError) as exc:
+        raise refuse(exc.strerror if isinstance(exc, OSError) else 'not a file name') from None
+    target = path
+    if stat.S_ISLNK(status.st_mode):
+        try:
+            target = Path(os.path.realpath(path, strict=True))
+            status = os.stat(target)
+        except OSError as exc:
+            raise refuse(f'it is a symbolic link that leads to nothing ({exc.strerror}); name '
+                         'a folder') from None
+    if not stat.S_ISDIR(status.st_mode):
+        kind = 'a file' if stat.S_ISREG(status.st_mode) else file_type(status.st_mode)
+        link = f'a symbolic link to {_shown(target)}, ' if target != path else ''
+        raise refuse(f'it is {link}{kind}, not a folder; name a folder')
+    if empty:
+        try:
+            full = any(os.scandir(target))
+        except OSError as exc:
+            raise refuse(f'its entries cannot be read ({exc.strerror})') from None
+        if full:
+            raise refuse('it is a folder that is not empty; name a new one')
+    return target
+
+
 def replace_file(path: str | Path, write, check=None) -> Path:
     """Write a file whole or not at all: `write(temporary)` a file beside it (same suffix; the
     temporary exists, empty, when `write` is called), `check(temporary)` it if given, then
