@@ -367,7 +367,7 @@ def folder_target(path: str | Path, empty: bool = False) -> Path:
         except OSError as exc:
             raise refuse(f'its entries cannot be read ({exc.strerror})') from None
         if full:
-            raise refuse('it is a folder that is not empty; name a new one')
+            raise refuse('it already exists and is not empty (choose a new folder)')
     return target
 
 
