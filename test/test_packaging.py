@@ -73,12 +73,14 @@ def declared_scripts() -> tuple[list[str], list[str]]:
     for statement in ast.parse((REPO / 'setup.py').read_text()).body:
         if isinstance(statement, ast.Assign) and len(statement.targets) == 1:
             target = statement.targets[0]
-            if isinstance(target, ast.Name) and target.id in ('NODES', 'TOOLS'):
+            if isinstance(target, ast.Name) and target.id in ('NODES', 'TOOLS',
+                                                              'ROS_INSTALL_NODES'):
                 found[target.id] = ast.literal_eval(statement.value)
-    return list(found['NODES']), list(found['TOOLS'])
+    return list(found['NODES']), list(found['TOOLS']), list(found['ROS_INSTALL_NODES'])
 
 
-NODES, TOOLS = declared_scripts()
+# ROS_INSTALL_NODES: installed, but they run only in a ROS install (control_msgs)
+NODES, TOOLS, ROS_INSTALL_NODES = declared_scripts()
 
 
 def clean_env(**extra: str) -> dict[str, str]:
@@ -203,12 +205,12 @@ def test_colcon_install_declares_the_setup_py_scripts(prefix):
     assert len(entry_points) == 1, entry_points
     parser = configparser.ConfigParser()
     parser.read(entry_points[0])
-    assert set(parser['console_scripts']) == set(NODES) | set(TOOLS)
+    assert set(parser['console_scripts']) == set(NODES) | set(TOOLS) | set(ROS_INSTALL_NODES)
 
 
 # --- (c) ros2 run finds every console script ------------------------------------------------
 
-@pytest.mark.parametrize('executable', NODES + TOOLS)
+@pytest.mark.parametrize('executable', NODES + TOOLS + ROS_INSTALL_NODES)
 def test_ros2_run_finds(executable, prefix, ros_env):
     path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
     assert path == str(prefix / 'lib' / PACKAGE / executable), (

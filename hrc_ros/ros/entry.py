@@ -32,6 +32,7 @@ COMMANDS = {
     'hmi_node': 'hrc_ros.ros.nodes.hmi_node',
     'robot_bridge_node': 'hrc_ros.ros.nodes.robot_bridge_node',
     'cobot_sim_node': 'hrc_ros.ros.nodes.cobot_sim_node',
+    'speed_scaling_node': 'hrc_ros.ros.nodes.speed_scaling_node',
     'hrc-bag': 'hrc_ros.ros.bag',
     'hrc-case-study': 'hrc_ros.ros.case_study',
 }
@@ -68,6 +69,7 @@ tracker_sim_node = _command('tracker_sim_node')
 hmi_node = _command('hmi_node')
 robot_bridge_node = _command('robot_bridge_node')
 cobot_sim_node = _command('cobot_sim_node')
+speed_scaling_node = _command('speed_scaling_node')
 hrc_bag = _command('hrc-bag')
 hrc_case_study = _command('hrc-case-study')
 
