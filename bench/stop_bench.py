@@ -165,6 +165,12 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
         total = time.monotonic() - sent
     finally:
         codes = nodes.stop(timeout=0.1, signum=None)    # after an error: none left running
+    return round_result(phase, moment, total, nodes, codes, alive)
+
+
+def round_result(phase: str, moment: str, total: float, nodes: NodeProcesses, codes: dict,
+                 alive: set) -> dict:
+    """A round's figures per node: exit code, hang, stop seconds, bad log lines, stacks."""
     stopped = nodes.stop_seconds
     result = {'phase': phase, 'moment': moment, 'nodes': {}, 'total': total}
     for name in nodes.processes:
@@ -208,16 +214,7 @@ def launch_round(index: int, rng: random.Random, work: Path, observer: Observer,
         total = time.monotonic() - sent
     finally:
         codes = nodes.stop(timeout=0.1, signum=None)
-    stopped = nodes.stop_seconds
-    result = {'phase': 'launch', 'moment': moment, 'nodes': {}, 'total': total}
-    for name in nodes.processes:
-        log = nodes.log(name, tail=10 ** 6)
-        result['nodes'][name] = {
-            'code': codes.get(name), 'hang': name in alive and name not in stopped,
-            'seconds': stopped.get(name),
-            'bad': [line for line in log.splitlines() if any(b in line for b in BAD_LOG_LINES)],
-            'stacks': name in nodes.stacks_dumped}
-    return result
+    return round_result('launch', moment, total, nodes, codes, alive)
 
 
 def busy_processes(count: int) -> list:
