@@ -9,6 +9,9 @@ PACKAGE = 'hrc_ros'
 NODES = ['belief_estimator_node', 'decision_node', 'task_manager_node', 'cell_sim_node',
          'cell_view_node', 'body_tracking_node', 'tracker_sim_node', 'hmi_node',
          'robot_bridge_node', 'cobot_sim_node']
+# Nodes that run only in a ROS install: they publish messages of packages with no pip wheel
+# (speed_scaling_node: control_msgs/msg/SpeedScalingFactor; docs/ROBOT.md 3).
+ROS_INSTALL_NODES = ['speed_scaling_node']
 # The nodes, hrc-bag and hrc-case-study enter through hrc_ros.ros.entry, which installs the
 # stop regime (hrc_ros/ros/stop.py) before the heavy imports: Ctrl-C during them is a clean stop.
 TOOLS = {
@@ -50,7 +53,7 @@ setup(
     license='Apache-2.0',
     extras_require={'test': ['pytest', 'py-spy']},
     entry_points={
-        'console_scripts': [f'{n} = hrc_ros.ros.entry:{n}' for n in NODES]
+        'console_scripts': [f'{n} = hrc_ros.ros.entry:{n}' for n in NODES + ROS_INSTALL_NODES]
         + [f'{name} = {target}' for name, target in TOOLS.items()],
     },
 )

@@ -24,6 +24,17 @@ writes its stacks into its log and kills it (then signals the next). A log line 
 KeyboardInterrupt, "Exception ignored" or "Fatal Python error" is counted too. The logs of a round
 where anything went wrong are kept under `<out>/failures/`. Printed: per node the exits by code,
 the hangs, the bad logs and the stop time (SIGINT to exit), and the command to reproduce the run.
+
+`--launch` measures the stop as `ros2 launch hrc_ros hrc.launch.py robot:=sim hmi:=true` gets it
+from a Ctrl-C in its terminal: the launch file's eight nodes (`launch_plan.cell_nodes`, started
+with the arguments launch_ros gives them, `launch_plan.ros_arguments`; the HMI on a free port)
+all get one SIGINT at the same moment (`--order together`), after epoch k (uniform 1-3) plus a
+uniform fraction of the 1 s epoch, beside `--busy N` processes that spin on the CPU for the
+whole run (default 8, on this 2-core machine). launch escalates to SIGTERM after 5 s
+(`sigterm_timeout`); the target is every node out with 0 within `--within` s (default 3) in
+every round. Printed also: the rounds in which every node made it.
+
+    python bench/stop_bench.py --launch [--rounds 50] [--busy 8] [--within 3]
 """
 
 from __future__ import annotations
@@ -44,6 +55,7 @@ from hrc_ros.ros import stop
 from hrc_ros.ros.case_study import (NODE_NAMES, ROBOT_EPOCH_PERIOD, cell_nodes,
                                     write_run_params,
                                     write_scenario_params)
+from hrc_ros.ros import launch_plan
 from hrc_ros.ros.processes import STOP_ORDER, STOP_ORDERS, NodeProcesses
 
 PHASES = ('import', 'start-up', 'mid-epoch')
@@ -79,8 +91,10 @@ class Observer:
         self.epoch = max(self.epoch, int(msg.data))
 
     def up(self, names) -> bool:
-        present = {n for n, _ in self.node.get_node_names_and_namespaces()}
-        return {NODE_NAMES[n] for n in names} <= present
+        return {NODE_NAMES[n] for n in names} <= self.present()
+
+    def present(self) -> set:
+        return {n for n, _ in self.node.get_node_names_and_namespaces()}
 
     def spin_until(self, predicate, timeout: float, nodes: NodeProcesses) -> bool:
         deadline = time.monotonic() + timeout
@@ -151,6 +165,12 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
         total = time.monotonic() - sent
     finally:
         codes = nodes.stop(timeout=0.1, signum=None)    # after an error: none left running
+    return round_result(phase, moment, total, nodes, codes, alive)
+
+
+def round_result(phase: str, moment: str, total: float, nodes: NodeProcesses, codes: dict,
+                 alive: set) -> dict:
+    """A round's figures per node: exit code, hang, stop seconds, bad log lines, stacks."""
     stopped = nodes.stop_seconds
     result = {'phase': phase, 'moment': moment, 'nodes': {}, 'total': total}
     for name in nodes.processes:
@@ -163,12 +183,66 @@ def one_round(index: int, phase: str, rng: random.Random, work: Path, observer: 
     return result
 
 
+LAUNCH_ARGUMENTS = {'robot': 'sim', 'hmi': 'true'}
+
+
+def launch_round(index: int, rng: random.Random, work: Path, observer: Observer,
+                 timeout: float) -> dict:
+    """`--launch`: the launch file's nodes up and deciding, then one SIGINT to each at once."""
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    plan = launch_plan.cell_nodes(share_dir(), **LAUNCH_ARGUMENTS)
+    nodes = NodeProcesses(work, [])
+    observer.epoch = 0
+    moment = ''
+    try:
+        for node in plan:
+            extra = ['-p', 'port:=0'] if node.name == 'hmi' else []   # not 8080: held elsewhere
+            nodes.start(node.executable, ros_args=launch_plan.ros_arguments(node, work) + extra)
+        epoch = rng.randint(1, 3)
+        fraction = rng.uniform(0.0, 1.0)
+        names = {node.name for node in plan}
+        if observer.spin_until(lambda: names <= observer.present() and observer.epoch >= epoch,
+                               GRAPH_TIMEOUT, nodes):
+            observer.spin_until(lambda: False, fraction * ROBOT_EPOCH_PERIOD, nodes)
+            moment = f'{fraction:.2f} of epoch {epoch}'
+        else:
+            moment = f'not up or no epoch {epoch} within {GRAPH_TIMEOUT:g} s'
+        alive = {name for name, p in nodes.processes.items() if p.poll() is None}
+        sent = time.monotonic()
+        codes = nodes.stop(timeout=timeout, order='together')
+        total = time.monotonic() - sent
+    finally:
+        codes = nodes.stop(timeout=0.1, signum=None)
+    return round_result('launch', moment, total, nodes, codes, alive)
+
+
+def busy_processes(count: int) -> list:
+    """`count` processes that spin on the CPU until killed (the load beside the nodes)."""
+    import subprocess
+    return [subprocess.Popen([sys.executable, '-c', 'while True: pass'],
+                             stdin=subprocess.DEVNULL) for _ in range(count)]
+
+
+def within_report(results: list[dict], within: float) -> list[str]:
+    """The rounds in which every node exited 0 within `within` s of its signal."""
+    def clean(row):
+        return row['code'] == 0 and not row['hang'] and row['seconds'] is not None \
+            and row['seconds'] <= within
+    good = sum(all(clean(row) for row in r['nodes'].values()) for r in results)
+    stops = [row for r in results for row in r['nodes'].values()]
+    return [f'rounds with every node out with 0 within {within:g} s: {good} of {len(results)} '
+            f'({sum(map(clean, stops))} of {len(stops)} node stops)']
+
+
 def report(results: list[dict], args, elapsed: float) -> str:
     names = [n for n in NODE_NAMES if any(n in r['nodes'] for r in results)]  # the graph's
     phases = Counter(r['phase'] for r in results)
     lines = [f'stop_bench: {len(results)} rounds ('
-             + ', '.join(f'{p} {phases[p]}' for p in PHASES) + f'), seed {args.seed}, '
-             f'stop timeout {args.timeout:g} s, {elapsed / 60:.1f} min',
+             + ', '.join(f'{p} {phases[p]}' for p in PHASES + ('launch',) if phases[p])
+             + f'), seed {args.seed}, stop timeout {args.timeout:g} s, '
+             f'{elapsed / 60:.1f} min' + (f', beside {args.busy} busy processes' if args.busy
+                                          else '') + f', load average {load()}',
              f'{"node":<24}{"exit 0":>8}{"other exits":>14}{"hangs":>7}{"bad logs":>10}'
              f'{"stop median":>13}{"p99":>8}{"max":>8}']
     totals = Counter()
@@ -189,6 +263,8 @@ def report(results: list[dict], args, elapsed: float) -> str:
     if totals_s:
         lines.append(f'whole stop (first signal to last exit, {args.order}): median '
                      f'{statistics.median(totals_s):.2f} s, max {totals_s[-1]:.2f} s')
+    if args.launch:
+        lines += within_report(results, args.within)
     for phase in PHASES:
         times = sorted(row['seconds'] for r in results if r['phase'] == phase
                        for row in r['nodes'].values() if row['seconds'] is not None)
@@ -199,16 +275,30 @@ def report(results: list[dict], args, elapsed: float) -> str:
                  f'{totals["bad"]} logs with a traceback or "Exception ignored"')
     for r in results:
         for name, row in r['nodes'].items():
-            if row['code'] != 0 or row['hang'] or row['bad']:
+            slow = args.launch and (row['seconds'] or 0) > args.within
+            if row['code'] != 0 or row['hang'] or row['bad'] or slow:
                 lines.append(f'  round {r["round"]} ({r["phase"]}, {r["moment"]}): {name} '
                              f'exit {row["code"]}{" HANG" if row["hang"] else ""} '
-                             f'{row["bad"][:2]}')
+                             + (f'after {row["seconds"]:.2f} s ' if slow else '')
+                             + f'{row["bad"][:2]}')
     lines.append('reproduce: python bench/stop_bench.py '
                  f'--rounds {args.rounds} --seed {args.seed} --timeout {args.timeout:g}'
-                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES) else '')
-                 + (f' --robot {args.robot}' if args.robot != 'none' else '')
-                 + (f' --order {args.order}' if args.order != STOP_ORDER else ''))
+                 + (f' --launch --busy {args.busy} --within {args.within:g}' if args.launch
+                    else f' --busy {args.busy}' if args.busy else '')
+                 + (f' --phases {args.phases}' if args.phases != ','.join(PHASES)
+                    and not args.launch else '')
+                 + (f' --robot {args.robot}' if args.robot != 'none' and not args.launch
+                    else '')
+                 + (f' --order {args.order}' if args.order != STOP_ORDER and not args.launch
+                    else ''))
+    if args.launch:
+        lines.append('(a node\'s stop time is read in turn after the ones before it: an upper '
+                     'bound, at most the whole stop)')
     return '\n'.join(lines)
+
+
+def load() -> str:
+    return ' '.join(Path('/proc/loadavg').read_text().split()[:3])
 
 
 def main(argv=None) -> int:
@@ -226,7 +316,19 @@ def main(argv=None) -> int:
                         help='how the nodes are signalled (processes.NodeProcesses.stop): one '
                         'after the other, the last started first, each once the one before '
                         f'has exited, or all together (default {STOP_ORDER})')
+    parser.add_argument('--launch', action='store_true',
+                        help='the stop as ros2 launch gets it: the eight nodes of robot:=sim '
+                        'hmi:=true, one SIGINT to each at once (module docstring)')
+    parser.add_argument('--busy', type=int, default=None,
+                        help='processes spinning on the CPU beside the nodes (default 8 with '
+                        '--launch, else 0)')
+    parser.add_argument('--within', type=float, default=3.0,
+                        help='--launch: the stop time each node must keep (default 3 s)')
     args = parser.parse_args(argv)
+    if args.busy is None:
+        args.busy = 8 if args.launch else 0
+    if args.launch:
+        args.order = 'together'          # what a Ctrl-C in launch's terminal does
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(
@@ -240,25 +342,36 @@ def main(argv=None) -> int:
     rng = random.Random(args.seed)
     results: list[dict] = []
     started = time.monotonic()
+    busy = busy_processes(args.busy)
     with stop.regime():
         observer = Observer()
         try:
             for index in range(args.rounds):
-                phase = phases[index % len(phases)]
-                result = one_round(index, phase, rng, out / 'round', observer, args.timeout,
-                                   args.robot, args.order)
+                phase = 'launch' if args.launch else phases[index % len(phases)]
+                if args.launch:
+                    result = launch_round(index, rng, out / 'round', observer, args.timeout)
+                else:
+                    result = one_round(index, phase, rng, out / 'round', observer,
+                                       args.timeout, args.robot, args.order)
                 result['round'] = index
                 results.append(result)
                 bad = [n for n, row in result['nodes'].items()
-                       if row['code'] != 0 or row['hang'] or row['bad']]
+                       if row['code'] != 0 or row['hang'] or row['bad']
+                       or (args.launch and (row['seconds'] or 0) > args.within)]
+                slowest = max((row['seconds'] or 0 for row in result['nodes'].values()),
+                              default=0)
                 print(f'round {index:>3} {phase:<9} {result["moment"]:<40} '
-                      + (f'FAILED: {", ".join(bad)}' if bad else 'all exit 0'), flush=True)
+                      + (f'FAILED: {", ".join(bad)}' if bad else 'all exit 0')
+                      + f' (slowest {slowest:.2f} s, load {load()})', flush=True)
                 if bad:
                     shutil.copytree(out / 'round', failures / f'round_{index}')
         except Interrupted:
             print('stop_bench: interrupted', file=sys.stderr)
         finally:
             observer.close()
+            for process in busy:
+                process.kill()
+                process.wait()
     print()
     print(report(results, args, time.monotonic() - started))
     return 0

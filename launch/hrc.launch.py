@@ -10,18 +10,19 @@ the HMI, the robot bridge and a simulated arm.
 
 The plan (which nodes, which parameters) is `hrc_ros.ros.launch_plan`; this file only turns it
 into launch_ros actions, with the arguments' overrides as params files of each node's own name
-(`launch_plan.parameter_files`).
+(`launch_plan.parameter_files`) in a folder of this launch's (`launch_plan.params_dir`), removed
+when launch shuts down.
 """
-
-import tempfile
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, RegisterEventHandler
+from launch.event_handlers import OnShutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from hrc_ros.ros.launch_plan import ARGUMENTS, cell_nodes, parameter_files
+from hrc_ros.ros.launch_plan import (ARGUMENTS, cell_nodes, parameter_files, params_dir,
+                                     remove_params_dir)
 
 PACKAGE = 'hrc_ros'
 
@@ -29,11 +30,13 @@ PACKAGE = 'hrc_ros'
 def _cell_nodes(context):
     values = {a.name: LaunchConfiguration(a.name).perform(context) for a in ARGUMENTS}
     plan = cell_nodes(get_package_share_directory(PACKAGE), **values)
-    params_dir = tempfile.mkdtemp(prefix='hrc_launch_')    # the overrides, per node
-    return [Node(package=PACKAGE, executable=node.executable, name=node.name,
-                 namespace=node.namespace, parameters=parameter_files(node, params_dir),
-                 remappings=node.remappings, output='screen')
-            for node in plan]
+    folder = params_dir()    # the overrides, per node; gone when launch shuts down
+    return [RegisterEventHandler(OnShutdown(
+                on_shutdown=lambda event, context: remove_params_dir(folder)))] \
+        + [Node(package=PACKAGE, executable=node.executable, name=node.name,
+                namespace=node.namespace, parameters=parameter_files(node, folder),
+                remappings=node.remappings, output='screen')
+           for node in plan]
 
 
 def generate_launch_description():

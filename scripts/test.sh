@@ -3,6 +3,9 @@
 #   bash scripts/test.sh -k belief -x          # the whole of test/, filtered
 #   bash scripts/test.sh test/test_packaging.py  # only the paths given
 # Bootstraps .venv/ on first use (scripts/bootstrap.sh), then runs python -m pytest -q test.
+# The whole suite runs on two pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0 for
+# none): the tests of the ROS graph one after the other on one worker, the computations on the
+# other (test/conftest.py, "Two workers"); test paths given run in this process alone.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/bootstrap.sh
@@ -20,4 +23,8 @@ for arg in "$@"; do
     break
   fi
 done
-exec python -m pytest -q "${targets[@]}" "$@"
+workers=()
+if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-2}" != 0 ]; then
+  workers=(-n "${HRC_TEST_WORKERS:-2}")
+fi
+exec python -m pytest -q "${workers[@]}" "${targets[@]}" "$@"

@@ -24,6 +24,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from file_times import CPU_PROPERTY, FileTimes, cpu_now
 
 ROS_DOMAIN_RANGE = (30, 99)
 
@@ -197,3 +198,93 @@ def browser(chromium):
     finally:
         instance.close()
         playwright.stop()
+
+
+# -- the time per test file, in the log of every run (test/file_times.py) --------------------
+_file_times = FileTimes()
+_cpu_at_start = pytest.StashKey[float]()
+
+
+def pytest_collection_finish(session):
+    _file_times.collection_done()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_protocol(item, nextitem):
+    item.stash[_cpu_at_start] = cpu_now()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if call.when == 'teardown' and _cpu_at_start in item.stash:
+        report.user_properties.append((CPU_PROPERTY, cpu_now() - item.stash[_cpu_at_start]))
+
+
+def pytest_runtest_logreport(report):
+    cpu = sum(value for name, value in report.user_properties if name == CPU_PROPERTY)
+    _file_times.add(report.nodeid, report.when, report.duration, cpu)
+
+
+def pytest_terminal_summary(terminalreporter):
+    if not _file_times.seconds:
+        return
+    terminalreporter.section('time per test file')
+    terminalreporter.write_line(_file_times.table())
+    if os.environ.get('HRC_TEST_TIMES'):
+        _file_times.write(os.environ['HRC_TEST_TIMES'])
+
+
+# -- two workers (pytest-xdist, scripts/test.sh) ----------------------------------------------
+# The suite is about half computation (solves, fits, evaluations: one core each) and half the
+# ROS graph (node processes over DDS, waits on epochs). On two workers every test of the graph
+# is in one work unit, run one after the other on one worker in the DDS domain of the session,
+# exactly as without xdist (no two graphs at once, so no second domain and no graph test that
+# meets another graph's load), while each file of COMPUTE_FILES is a unit of its own (its module
+# fixtures built once) for the other worker. A file not listed is the graph's: a new test file
+# is safe by default, only slower. A test of a listed file that uses the graph (the
+# ros_domain_id or graph fixture) must be in GRAPH_TESTS: collection fails otherwise.
+# (pytest-xdist's own `--dist loadgroup` does not group under pytest 9.2, whose node ids it can
+# no longer rename, so the units come from `GraphScheduling`.)
+COMPUTE_FILES = frozenset({
+    'test_belief.py', 'test_cell.py', 'test_config_policy.py', 'test_conversions.py',
+    'test_evaluate.py', 'test_fit.py', 'test_fit_prior.py', 'test_hmi_core.py',
+    'test_model.py', 'test_observation.py', 'test_parallel.py', 'test_plant_fit.py',
+    'test_plant_generate.py', 'test_pomdp.py', 'test_pomdp_hrc.py', 'test_protocol.py',
+    'test_queue.py', 'test_queue_pomdp.py', 'test_recordings.py', 'test_robot.py',
+    'test_selection.py', 'test_simulator.py', 'test_solver.py', 'test_stream.py',
+    'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
+    'test_tracking.py'})
+GRAPH_TESTS = frozenset({
+    'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream'})
+GRAPH_FIXTURES = frozenset({'ros_domain_id', 'graph'})
+GRAPH_UNIT = 'graph'
+
+
+def work_unit(nodeid: str) -> str:
+    """The unit of work of a test on the xdist workers (above): its file, or the graph's."""
+    path, _, name = nodeid.partition('::')
+    file = path.rsplit('/', 1)[-1]
+    if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
+        return path
+    return GRAPH_UNIT
+
+
+def pytest_collection_modifyitems(config, items):
+    wrong = [item.nodeid for item in items
+             if work_unit(item.nodeid) != GRAPH_UNIT and GRAPH_FIXTURES & set(item.fixturenames)]
+    if wrong:
+        raise pytest.UsageError('tests of a COMPUTE_FILES file that use the ROS graph must be '
+                                f'in conftest.GRAPH_TESTS: {", ".join(wrong)}')
+
+
+def pytest_xdist_make_scheduler(config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GraphScheduling(LoadScopeScheduling):
+        """xdist's scheduling by scope, the scope being `work_unit`'s."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit(nodeid)
+    return GraphScheduling(config, log)

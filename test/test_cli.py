@@ -3,6 +3,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
@@ -38,7 +39,7 @@ def a_file(tmp_path):
     ('hrc-simulate', ['--seed', '-1'], '-1 is outside 0..'),
     ('hrc-simulate', ['--epochs', '0'], '0 is outside 1..'),
     ('hrc-simulate', ['--epochs', str(10 ** 9)], 'outside 1..100000'),
-    ('hrc-evaluate', ['--selectors', ','], 'names no selector'),
+    ('hrc-evaluate', ['--selectors', ','], '--selectors names nothing'),
     ('hrc-evaluate', ['--episodes', str(10 ** 9)], 'outside 1..1000000'),
     ('hrc-evaluate', ['--episodes', '1000000', '--epochs', '1000'], 'more than'),
     ('hrc-evaluate', ['--task-rate', 'nan'], 'outside [0.0, 1.0]'),
@@ -118,3 +119,178 @@ def test_ctrl_c_ends_a_command_in_one_line_and_writes_nothing(tmp_path):
     assert process.returncode == 130, text[-2000:]
     assert 'Traceback' not in text and 'hrc-solve: interrupted' in text
     assert list(tmp_path.iterdir()) == []
+
+
+# -- hostile output paths and empty list items (issue 37) -------------------------------------
+# In this process (main(argv)), so that each case costs milliseconds, not an interpreter's
+# start: a refusal is exit 2 and one line on stderr, and nothing is written.
+
+def hostile_paths(tmp_path) -> dict:
+    """name -> a path that is no place to write: a FIFO, a device, a regular file, a dangling
+    link, a loop of links."""
+    import os
+    fifo = tmp_path / 'fifo'
+    os.mkfifo(fifo)
+    regular = tmp_path / 'regular'
+    regular.write_text('x')
+    (tmp_path / 'dangling').symlink_to(tmp_path / 'nowhere')
+    (tmp_path / 'loop').symlink_to(tmp_path / 'loop')
+    return {'fifo': fifo, 'device': Path('/dev/null'), 'file': regular,
+            'dangling': tmp_path / 'dangling', 'loop': tmp_path / 'loop'}
+
+
+def refused_here(main, argv, capsys) -> str:
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exit_:          # argparse's error
+        code = exit_.code
+    err = capsys.readouterr().err.strip()
+    assert code == 2, (code, err)
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+HOSTILE = ('fifo', 'device', 'file', 'dangling', 'loop')
+
+
+def test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder(tmp_path, capsys):
+    """--bag /dev/null, a FIFO or a file ended in a NotADirectoryError traceback and a loop of
+    links in a FileExistsError one; now one line each, before any node starts."""
+    from hrc_ros.ros.case_study import main
+    paths = hostile_paths(tmp_path)
+    for name in HOSTILE:
+        line = refused_here(main, ['--out', tmp_path / 'out', '--bag', paths[name]], capsys)
+        assert line.startswith('hrc-case-study: error: bag folder') and 'not a folder' in line \
+            or 'leads to nothing' in line, line
+        line = refused_here(main, ['--out', paths[name]], capsys)
+        assert 'output folder' in line, line
+    full = tmp_path / 'full'
+    full.mkdir()
+    (full / 'x.mcap').write_text('x')
+    assert 'not empty' in refused_here(main, ['--out', tmp_path / 'out', '--bag', full], capsys)
+    assert (full / 'x.mcap').read_text() == 'x'
+    assert not (tmp_path / 'out' / 'logs').exists(), 'a refused run started'
+
+
+def test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers(tmp_path, capsys):
+    """-o a dangling link or a loop gave a FileExistsError traceback after the wait for the
+    topics' publishers; now one line before any wait (a day's --wait-timeout would hang the
+    test otherwise)."""
+    from hrc_ros.ros.bag import main
+    paths = hostile_paths(tmp_path)
+    (tmp_path / 'loop.mcap').symlink_to(tmp_path / 'loop.mcap')
+    full = tmp_path / 'full'
+    full.mkdir()
+    (full / 'a').write_text('a')
+    for target in [*(paths[name] for name in HOSTILE), tmp_path / 'loop.mcap', full]:
+        line = refused_here(main, ['record', '-o', target, '--wait-timeout', 86400,
+                                   '/hrc/epoch'], capsys)
+        assert line.startswith(f'hrc-bag: cannot record into {target}'), line
+    assert 'must not be empty' in refused_here(
+        main, ['record', '-o', tmp_path / 'new', '/hrc/epoch', ''], capsys)
+    assert not (tmp_path / 'new').exists()
+
+
+@pytest.mark.parametrize('text, reason', [
+    ('', "names nothing"), (' , ', 'names nothing'),
+    ('paper,,paper', 'has an empty item'), ('paper,', 'has an empty item'),
+    ('paper,paper', 'names paper twice'), ('paper,bogus', "unknown selector 'bogus'")])
+def test_hrc_evaluate_refuses_an_empty_or_repeated_selector(text, reason, tmp_path, capsys):
+    """--selectors '' ran the defaults and paper,,paper was taken."""
+    from hrc_ros.tools.evaluate import main
+    line = refused_here(main, ['--selectors', text, '--out', tmp_path / 'out'], capsys)
+    assert line.startswith('hrc-evaluate: error: ') and reason in line, line
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('args, reason', [
+    (['--hold', ',,,'], '--hold names nothing'),
+    (['--hold', 'emotion,,chains'], 'has an empty item'),
+    (['--hold', 'emotion,emotion'], 'names emotion twice'),
+    (['--namespace', '///'], 'an empty name between slashes'),
+    (['--namespace', '/cell1//a'], 'an empty name between slashes'),
+    (['--namespace', '/1cell'], "the name '1cell'"),
+    (['--namespace', '/' + 'a' * 5000], '5,001 characters'),
+])
+def test_hrc_fit_refuses_empty_hold_items_and_a_bad_namespace(args, reason, tmp_path, capsys):
+    from hrc_ros.tools.fit import main
+    data = tmp_path / 'in.csv'
+    data.write_text('epoch\n')
+    line = refused_here(main, [data, '-o', tmp_path / 'fitted.yaml', *args], capsys)
+    assert line.startswith('hrc-fit: error: ') and reason in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['in.csv']
+
+
+def test_hrc_fit_refuses_a_hostile_output_before_it_reads_its_inputs(tmp_path, capsys):
+    from hrc_ros.tools.fit import main
+    paths = hostile_paths(tmp_path)
+    data = tmp_path / 'in.csv'
+    data.write_text('not read: the output is refused first\n')
+    for name in ('fifo', 'device', 'dangling', 'loop'):
+        for option in ('-o', '--report', '--plot'):
+            argv = [data, '-o', tmp_path / 'fitted.yaml', option, paths[name]]
+            line = refused_here(main, argv, capsys)
+            assert f'cannot write {paths[name]} ({option})' in line, line
+
+
+@pytest.mark.parametrize('tool', ['simulate', 'evaluate', 'fleet'])
+def test_the_output_folder_of_every_tool_refuses_what_is_no_folder(tool, tmp_path, capsys):
+    import importlib
+    main = importlib.import_module(f'hrc_ros.tools.{tool}').main
+    paths = hostile_paths(tmp_path)
+    plant = tmp_path / 'plant.yaml'
+    plant.write_text('cells:\n  - name: a\n    recordings: x.csv\n')
+    for name in HOSTILE:
+        argv = (['run', plant] if tool == 'fleet' else []) + ['--out', paths[name]]
+        line = refused_here(main, argv, capsys)
+        assert f'output folder {paths[name]}: it is' in line, line
+
+
+def test_hrc_solve_refuses_a_hostile_output(tmp_path, capsys):
+    from hrc_ros.tools.solve import main
+    import os
+    os.mkfifo(tmp_path / 'fifo.npz')
+    (tmp_path / 'dangling.npz').symlink_to(tmp_path / 'nowhere.npz')
+    (tmp_path / 'loop.npz').symlink_to(tmp_path / 'loop.npz')
+    for name in ('fifo.npz', 'dangling.npz', 'loop.npz'):
+        line = refused_here(main, ['-o', tmp_path / name], capsys)
+        assert f'cannot write {tmp_path / name}' in line, line
+
+
+def test_a_plant_cells_namespace_must_be_a_ros_namespace_of_a_usable_length(tmp_path):
+    """A namespace of 5,001 characters was accepted: no ROS name under it can exist."""
+    from hrc_ros.core.names import MAX_NAMESPACE
+    from hrc_ros.core.plant.spec import PlantError, load_plant
+    plant = tmp_path / 'plant.yaml'
+    for namespace, reason in [('/' + 'a' * 5000, '5,001 characters'),
+                              ('///', 'an empty name between slashes'),
+                              ('/a b', "the name 'a b'")]:
+        plant.write_text(f'cells:\n  - name: a\n    namespace: "{namespace}"\n'
+                         '    recordings: x.csv\n')
+        with pytest.raises(PlantError, match=reason):
+            load_plant(plant)
+    longest = '/' + 'a' * (MAX_NAMESPACE - 1)
+    plant.write_text(f'cells:\n  - name: a\n    namespace: {longest}/\n    recordings: x.csv\n')
+    assert load_plant(plant).cells[0].namespace == longest
+
+
+def test_namespaces_and_lists_as_the_commands_take_them():
+    from hrc_ros.core.names import MAX_NAMESPACE, BadName, items, namespace
+    assert namespace('/') == namespace('') == '/'
+    assert namespace('cell1') == namespace('/cell1/') == '/cell1'
+    assert namespace('/a/b_2') == '/a/b_2'
+    for bad in ('//', '///', '/a//b', '/a//', '/1a', '/a-b', 'a' * (MAX_NAMESPACE + 1)):
+        with pytest.raises(BadName):
+            namespace(bad)
+    assert items(' paper , qmdp ', 'x') == ('paper', 'qmdp')
+    for bad in ('', ',', 'a,,b', 'a,', ',a', 'a,a'):
+        with pytest.raises(BadName):
+            items(bad, 'x')
+    # and ROS agrees with the limit: the longest name a cell's node uses under the longest
+    # namespace is a valid service name, one character more is not
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    from hrc_ros.core.names import LONGEST_CELL_NAME
+    validate_full_topic_name('/' + 'a' * (MAX_NAMESPACE - 1) + LONGEST_CELL_NAME)
+    with pytest.raises(InvalidTopicNameException):
+        validate_full_topic_name('/' + 'a' * MAX_NAMESPACE + LONGEST_CELL_NAME)

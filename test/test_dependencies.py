@@ -36,6 +36,9 @@ SOURCES = ('hrc_ros', 'launch')
 ROSDEP_YAML = REPO / 'rosdep' / 'hrc_ros.yaml'
 ROS = 'ros'            # the rosdep key is the ROS package of that name
 COLCON_ONLY = None     # no pip route: imported only by the launch file (ros2 launch)
+ROS_INSTALL_ONLY = 'a ROS install only'   # no wheel: imported only by these modules, which
+# stop at start with one line where it is missing (speed_scaling_node: control_msgs)
+ROS_INSTALL_ONLY_MODULES = ('hrc_ros/ros/nodes/speed_scaling_node.py',)
 
 # import name: (pip requirement, rosdep key). Add a row for each new third-party import.
 DEPENDENCIES = {
@@ -60,6 +63,7 @@ DEPENDENCIES = {
     'diagnostic_msgs': ('ros-jazzy-common-interfaces', ROS),
     'visualization_msgs': ('ros-jazzy-common-interfaces', ROS),
     'trajectory_msgs': ('ros-jazzy-common-interfaces', ROS),
+    'control_msgs': (ROS_INSTALL_ONLY, ROS),
     'ament_index_python': (COLCON_ONLY, ROS),
     'launch': (COLCON_ONLY, ROS),
     'launch_ros': (COLCON_ONLY, ROS),
@@ -156,6 +160,11 @@ def test_the_pip_route_installs(module):
         assert all(path.startswith('launch/') for path in IMPORTS[module]), (
             f'{module} is imported by the package itself, not only by the launch file: it '
             f'needs a pip requirement ({sorted(IMPORTS[module])})')
+        return
+    if pip is ROS_INSTALL_ONLY:
+        assert set(IMPORTS[module]) <= set(ROS_INSTALL_ONLY_MODULES), (
+            f'{module} has no wheel and may be imported only by {ROS_INSTALL_ONLY_MODULES}, '
+            f'not by {sorted(set(IMPORTS[module]) - set(ROS_INSTALL_ONLY_MODULES))}')
         return
     requirements = requirement_names((REPO / 'requirements.txt').read_text().splitlines())
     assert canonical(pip) in requirements, f'requirements.txt does not list {pip} ({module})'

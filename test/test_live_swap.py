@@ -12,6 +12,7 @@ decision node flags an estimator running another configuration.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -267,6 +268,15 @@ def test_a_pomdp_selector_swaps_in_the_pomdp_policy_named_with_the_pair(graph, p
     dec.run(1)
     node = dec.node
     assert node.selector.pomdp.path == default_pomdp       # '': the shipped one for config
+
+    def in_use():
+        return (node.get_parameter('policy_in_use').value,
+                node.get_parameter('pomdp_policy_in_use').value)
+    # what `ros2 param get` shows: pomdp_policy is '', the file in use is named (issue 37)
+    assert node.get_parameter('pomdp_policy').value == ''
+    assert in_use() == (str(Path(policy_path).resolve()), default_pomdp)
+    refused = node.set_parameters([Parameter('pomdp_policy_in_use', value=new_pomdp)])[0]
+    assert not refused.successful and 'read-only' in refused.reason
     for name, value in (('config', config_path), ('pomdp_policy', new_pomdp)):
         assert node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert node.config.source != config_path           # staged: not whole yet
@@ -280,6 +290,7 @@ def test_a_pomdp_selector_swaps_in_the_pomdp_policy_named_with_the_pair(graph, p
     assert f'and POMDP policy {new_pomdp} (' in swapped()[-1].message      # the new one named
     assert swapped()[-1].message.endswith(f'and POMDP policy {default_pomdp}')
     assert node.selector.pomdp.path == new_pomdp and node.selector.method == 'pomdp'
+    assert in_use() == (new_policy, new_pomdp)
     first = int(values['epoch'])
     assert graph.spin_until(lambda: node.epoch >= first + 2)
     decided = conv.diagnostic_values(dec.status(first + 1))

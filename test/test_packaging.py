@@ -73,12 +73,14 @@ def declared_scripts() -> tuple[list[str], list[str]]:
     for statement in ast.parse((REPO / 'setup.py').read_text()).body:
         if isinstance(statement, ast.Assign) and len(statement.targets) == 1:
             target = statement.targets[0]
-            if isinstance(target, ast.Name) and target.id in ('NODES', 'TOOLS'):
+            if isinstance(target, ast.Name) and target.id in ('NODES', 'TOOLS',
+                                                              'ROS_INSTALL_NODES'):
                 found[target.id] = ast.literal_eval(statement.value)
-    return list(found['NODES']), list(found['TOOLS'])
+    return list(found['NODES']), list(found['TOOLS']), list(found['ROS_INSTALL_NODES'])
 
 
-NODES, TOOLS = declared_scripts()
+# ROS_INSTALL_NODES: installed, but they run only in a ROS install (control_msgs)
+NODES, TOOLS, ROS_INSTALL_NODES = declared_scripts()
 
 
 def clean_env(**extra: str) -> dict[str, str]:
@@ -214,12 +216,12 @@ def test_colcon_install_declares_the_setup_py_scripts(prefix):
     assert len(entry_points) == 1, entry_points
     parser = configparser.ConfigParser()
     parser.read(entry_points[0])
-    assert set(parser['console_scripts']) == set(NODES) | set(TOOLS)
+    assert set(parser['console_scripts']) == set(NODES) | set(TOOLS) | set(ROS_INSTALL_NODES)
 
 
 # --- (c) ros2 run finds every console script ------------------------------------------------
 
-@pytest.mark.parametrize('executable', NODES + TOOLS)
+@pytest.mark.parametrize('executable', NODES + TOOLS + ROS_INSTALL_NODES)
 def test_ros2_run_finds(executable, prefix, ros_env):
     path = ros2_run_path(PACKAGE, executable, ros_env['AMENT_PREFIX_PATH'])
     assert path == str(prefix / 'lib' / PACKAGE / executable), (
@@ -564,10 +566,13 @@ def test_launch_plan_starts_the_hmi(tmp_path):
 
 def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
     """Run launch/hrc.launch.py with recording stand-ins for ROS `launch` and `launch_ros`
-    (not installable here): it declares every plan argument and starts the plan's nodes."""
+    (not installable here): it declares every plan argument and starts the plan's nodes, and
+    the folder of its override files is gone once launch shuts down (issue 37: one
+    tempfile.mkdtemp folder was left per launch)."""
+    import tempfile
     import types
 
-    from hrc_ros.ros.launch_plan import ARGUMENTS, cell_nodes
+    from hrc_ros.ros.launch_plan import ARGUMENTS, PARAMS_DIR_PREFIX, cell_nodes
 
     class Recorded:
         def __init__(self, *args, **kwargs):
@@ -577,9 +582,17 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
         def perform(self, context):
             return context[self.args[0]]
 
+    class RegisterEventHandler(Recorded):
+        pass
+
+    class OnShutdown(Recorded):
+        pass
+
     modules = {
         'launch': {'LaunchDescription': Recorded},
-        'launch.actions': {'DeclareLaunchArgument': Recorded, 'OpaqueFunction': Recorded},
+        'launch.actions': {'DeclareLaunchArgument': Recorded, 'OpaqueFunction': Recorded,
+                           'RegisterEventHandler': RegisterEventHandler},
+        'launch.event_handlers': {'OnShutdown': OnShutdown},
         'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
         'launch_ros': {}, 'launch_ros.actions': {'Node': Recorded},
         'ament_index_python': {},
@@ -587,6 +600,9 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
     }
     for name, members in modules.items():
         monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**members))
+    temporary = tmp_path / 'tmp'
+    temporary.mkdir()
+    monkeypatch.setattr(tempfile, 'tempdir', str(temporary))
     import importlib.util
     spec = importlib.util.spec_from_file_location('hrc_launch', LAUNCH_FILE)
     module = importlib.util.module_from_spec(spec)
@@ -597,22 +613,49 @@ def test_launch_file_turns_the_plan_into_nodes(monkeypatch, tmp_path):
             for d in declared] == [(a.name, a.default, a.choices) for a in ARGUMENTS]
     values = {a.name: a.default for a in ARGUMENTS}
     values.update(namespace='cell2', selector='mls', body_tracking='true')
-    nodes = opaque.kwargs['function'](values)
+    launched = [opaque.kwargs['function'](values) for _ in range(3)]     # three launches
     plan = cell_nodes(tmp_path, **values)
-    assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
-             n.kwargs['namespace'], n.kwargs['remappings']) for n in nodes] == \
-        [(PACKAGE, p.executable, p.name, p.namespace, p.remappings) for p in plan]
-    # the parameters: the plan's files, and its overrides as a file of the node's own name
-    # (one under `/**` would lose to hrc_params.yaml's section of the node: rcl's merge)
-    for node, planned in zip(nodes, plan):
-        files = node.kwargs['parameters']
-        assert len(files) == len(planned.parameters)
-        for path, want in zip(files, planned.parameters):
-            if isinstance(want, dict):
-                assert yaml.safe_load(open(path).read()) == \
-                    {f'/**/{planned.name}': {'ros__parameters': want}}
-            else:
-                assert path == want
+    for _handler, *nodes in launched:
+        assert [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['name'],
+                 n.kwargs['namespace'], n.kwargs['remappings']) for n in nodes] == \
+            [(PACKAGE, p.executable, p.name, p.namespace, p.remappings) for p in plan]
+        # the parameters: the plan's files, and its overrides as a file of the node's own
+        # name (one under `/**` would lose to hrc_params.yaml's section of the node: rcl's merge)
+        for node, planned in zip(nodes, plan):
+            files = node.kwargs['parameters']
+            assert len(files) == len(planned.parameters)
+            for path, want in zip(files, planned.parameters):
+                if isinstance(want, dict):
+                    assert yaml.safe_load(open(path).read()) == \
+                        {f'/**/{planned.name}': {'ros__parameters': want}}
+                    assert Path(path).parent.parent == temporary
+                else:
+                    assert path == want
+    assert len(list(temporary.glob(f'{PARAMS_DIR_PREFIX}*'))) == 3
+    for handler, *_nodes in launched:          # launch shuts down: its OnShutdown handlers run
+        assert isinstance(handler, RegisterEventHandler)
+        assert isinstance(handler.args[0], OnShutdown)
+        handler.args[0].kwargs['on_shutdown'](object(), object())
+    assert list(temporary.iterdir()) == [], 'a launch left its folder behind'
+
+
+def test_a_launch_killed_before_it_could_clean_up_leaves_its_folder_to_the_next(tmp_path):
+    """The folder of a launch whose process is gone (killed with SIGKILL: no shutdown event)
+    is removed by the next launch; a running launch's folder, and anything else, stays."""
+    from hrc_ros.ros.launch_plan import PARAMS_DIR_PREFIX, params_dir
+    gone = subprocess.Popen(['true'])
+    gone.wait()                               # its pid names no process now
+    dead = tmp_path / f'{PARAMS_DIR_PREFIX}{gone.pid}_abc'
+    running = tmp_path / f'{PARAMS_DIR_PREFIX}{os.getpid()}_def'
+    other = tmp_path / 'hrc_launch_notes.txt'
+    for folder in (dead, running):
+        folder.mkdir()
+        (folder / 'decision_3.yaml').write_text('{}')
+    other.write_text('not a launch folder')
+    new = params_dir(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [running.name, other.name, new.name])
+    assert new.name.startswith(f'{PARAMS_DIR_PREFIX}{os.getpid()}_')
 
 
 # --- the ROS parameter files against DESIGN.md's table --------------------------------------

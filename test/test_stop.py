@@ -157,6 +157,49 @@ def test_the_entry_module_installs_the_handlers_before_any_heavy_import():
     assert result.stdout.strip() == '[]'
 
 
+LEAVING = textwrap.dedent('''
+    import atexit, logging, sys
+    from hrc_ros.ros import stop
+
+    class Finalized:
+        def __del__(self):
+            sys.stdout.write('finalized\\n')
+
+    kept = Finalized()                      # collected only by the interpreter's finalization
+    atexit.register(lambda: sys.stdout.write('atexit hook\\n'))
+    logging.basicConfig(stream=open(sys.argv[1], 'w'), level=logging.INFO)
+    logging.getLogger('x').info('logged')   # buffered in the handler's stream until flushed
+    sys.stdout.write('buffered')            # not flushed yet: stdout is a pipe
+    stop.leave(int(sys.argv[2]))
+    sys.stdout.write('after leave\\n')
+''')
+
+
+@pytest.mark.parametrize('code', [0, 1])
+def test_a_command_leaves_after_its_stop_without_the_interpreters_finalization(code, tmp_path):
+    """`stop.leave`, which every console script of `entry` ends with once its main() has
+    returned: what was written is flushed (stdout, the logging handlers, the atexit hooks), the
+    code goes out, and nothing of the interpreter's finalization runs (issue 37: its final
+    garbage collection took ~1.8 s under load, past launch's grace)."""
+    log = tmp_path / 'log.txt'
+    result = subprocess.run([sys.executable, '-c', LEAVING, str(log), str(code)],
+                            capture_output=True, text=True, timeout=60, cwd='/')
+    assert result.returncode == code, result.stderr
+    assert result.stdout == 'bufferedatexit hook\n', result.stdout   # no 'finalized'
+    assert 'logged' in log.read_text()
+
+
+def test_every_console_script_of_entry_leaves_through_stop_leave(monkeypatch):
+    """The console scripts run their command, then `stop.leave` with its code."""
+    from hrc_ros.ros import entry
+    left = []
+    monkeypatch.setattr(entry, 'run_command', lambda name: f'code of {name}')
+    monkeypatch.setattr(entry.stop, 'leave', left.append)
+    for name in entry.COMMANDS:
+        getattr(entry, name.replace('-', '_'))()
+    assert left == [f'code of {name}' for name in entry.COMMANDS]
+
+
 SLOW_TO_STOP = textwrap.dedent('''
     import ctypes, sys, threading, time
     from rclpy.node import Node

@@ -70,8 +70,8 @@ import yaml
 from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
 
-from .paths import (MIB, ament_share_dir, file_limit, input_stat, open_input, output_target,
-                    parse_yaml, read_yaml, write_text)
+from .paths import (MIB, ament_share_dir, file_limit, folder_target, input_stat, open_input,
+                    output_target, parse_yaml, read_yaml, write_text)
 from .quoting import QUOTE_LIMIT, cap, quote
 
 PROFILE = 'ros2'
@@ -333,9 +333,10 @@ class BagWriter:
             except OSError as exc:
                 raise BagError(f'cannot write {target}: {exc.strerror}') from None
         else:
-            if target.exists() and (not target.is_dir() or any(target.iterdir())):
-                raise BagError(f'cannot record into {target}: it already exists '
-                               '(choose a new folder)')
+            try:
+                target = folder_target(target, empty=True)
+            except OSError as exc:
+                raise BagError(f'cannot record into {target}: {exc.strerror}') from None
             target.mkdir(parents=True, exist_ok=True)
             self.directory = target
             self.path = target / f'{target.resolve().name}_0.mcap'

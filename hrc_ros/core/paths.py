@@ -302,33 +302,69 @@ def read_yaml(path: str | Path, error: Error, what: str = 'YAML', kind: str = 'y
     return parse_yaml(read_text(path, error, what, kind), error, str(path))
 
 
+def _refusal(path: Path, reason: str) -> OSError:
+    return OSError(errno.EINVAL, reason, str(path))
+
+
+def _output_stat(path: Path, leads_to: str) -> tuple[Path, os.stat_result | None]:
+    """(where `path` leads, its status): `path` and None for a new name, the target of a
+    symbolic link and its status; the one-line OSError of `output_target` and `folder_target`
+    for a name that cannot be looked up or a link that leads nowhere (dangling, a loop)."""
+    try:
+        status = os.lstat(path)
+    except FileNotFoundError:
+        return path, None
+    except (OSError, ValueError) as exc:
+        raise _refusal(path, exc.strerror if isinstance(exc, OSError)
+                       else 'not a file name') from None
+    if not stat.S_ISLNK(status.st_mode):
+        return path, status
+    try:
+        target = Path(os.path.realpath(path, strict=True))
+        return target, os.stat(target)
+    except OSError as exc:
+        raise _refusal(path, f'it is a symbolic link that leads to {leads_to} '
+                             f'({exc.strerror})') from None
+
+
 def output_target(path: str | Path) -> Path:
     """The file `replace_file(path)` replaces: `path` itself, a new file, or the regular file
     its symbolic link leads to. OSError, whose strerror says why in one line, for anything else:
     a folder, a device, a FIFO, a socket, a link to one of these, a dangling link or a loop."""
     path = Path(path)
+    target, status = _output_stat(path, 'no file; only a link to a regular file is written '
+                                        'through')
+    if status is None or stat.S_ISREG(status.st_mode):
+        return target
+    if target == path:
+        raise _refusal(path, f'it is {file_type(status.st_mode)}, not a regular file; name a '
+                             'file')
+    raise _refusal(path, f'it is a symbolic link to {target}, {file_type(status.st_mode)}; '
+                         'only a link to a regular file is written through')
 
-    def refuse(reason: str) -> OSError:
-        return OSError(errno.EINVAL, reason, str(path))
-    try:
-        status = os.lstat(path)
-    except FileNotFoundError:
-        return path
-    except (OSError, ValueError) as exc:
-        raise refuse(exc.strerror if isinstance(exc, OSError) else 'not a file name') from None
-    if stat.S_ISREG(status.st_mode):
-        return path
-    if not stat.S_ISLNK(status.st_mode):
-        raise refuse(f'it is {file_type(status.st_mode)}, not a regular file; name a file')
-    try:
-        target = Path(os.path.realpath(path, strict=True))
-        status = os.stat(target)
-    except OSError as exc:
-        raise refuse(f'it is a symbolic link that leads to no file ({exc.strerror}); only a '
-                     'link to a regular file is written through') from None
-    if not stat.S_ISREG(status.st_mode):
-        raise refuse(f'it is a symbolic link to {target}, {file_type(status.st_mode)}; only a '
-                     'link to a regular file is written through')
+
+def folder_target(path: str | Path, empty: bool = False) -> Path:
+    """The folder `path` names for output: `path` itself when it is a new name or a folder, or
+    the folder its symbolic link leads to; with `empty`, only a new name or an empty folder (a
+    bag's). OSError (EINVAL), whose strerror says why in one line, for anything else: a file,
+    a device, a FIFO, a socket, a link that leads to none of these or to nothing (dangling, a
+    loop), a folder that is not empty. Nothing is created: the caller checks before it waits
+    or works."""
+    path = Path(path)
+    target, status = _output_stat(path, 'nothing; name a folder')
+    if status is None:
+        return target
+    if not stat.S_ISDIR(status.st_mode):
+        kind = 'a file' if stat.S_ISREG(status.st_mode) else file_type(status.st_mode)
+        link = f'a symbolic link to {_shown(target)}, ' if target != path else ''
+        raise _refusal(path, f'it is {link}{kind}, not a folder; name a folder')
+    if empty:
+        try:
+            full = any(os.scandir(target))
+        except OSError as exc:
+            raise _refusal(path, f'its entries cannot be read ({exc.strerror})') from None
+        if full:
+            raise _refusal(path, 'it already exists and is not empty (choose a new folder)')
     return target
 
 

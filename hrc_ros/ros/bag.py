@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
+from ..core.paths import folder_target
 from ..tools.common import Parser, bounded_float, bounded_int
 from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
                             format_size, full_type_name, policy_name, read_bag, split_type_name)
@@ -480,15 +481,20 @@ def check_topic_names(topics: Iterable[str]) -> None:
 
 def check_output(path: str | os.PathLike) -> None:
     """BagError (one line) if `hrc-bag record -o PATH` cannot write there, before any waiting:
-    an existing .mcap file is never overwritten, a folder must be new or empty."""
+    an existing .mcap file (or a link by that name) is never overwritten, and its folder must
+    exist; a bag folder must be new or empty (`paths.folder_target`: not a file, a device, a
+    FIFO, a dangling link or a loop of links)."""
     target = Path(path)
     if target.suffix == '.mcap':
         if target.exists() or target.is_symlink():
             raise BagError(f'cannot record into {target}: it already exists (choose a new name)')
         if not target.parent.is_dir():
             raise BagError(f'cannot write {target}: folder {target.parent} does not exist')
-    elif target.exists() and (not target.is_dir() or any(target.iterdir())):
-        raise BagError(f'cannot record into {target}: it already exists (choose a new folder)')
+        return
+    try:
+        folder_target(target, empty=True)
+    except OSError as exc:
+        raise BagError(f'cannot record into {target}: {exc.strerror}') from None
 
 
 def _resolved(node: Any, topics: Iterable[str]) -> list[str]:

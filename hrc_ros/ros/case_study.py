@@ -58,7 +58,8 @@ from ..core.cell.scenarios import SCENARIOS as PERSON_SCENARIOS
 from ..core.config import BELIEF_MODES, ConfigError, load_config
 from ..core.cell.faults import parse_faults
 from ..core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES, HRCModel
-from ..core.paths import arm_config_path, default_config_path, share_dir, write_text
+from ..core.paths import (arm_config_path, default_config_path, folder_target, share_dir,
+                          write_text)
 from ..core.study.plots import plot_trajectory
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.learning.recordings import place_in_epochs
@@ -432,14 +433,19 @@ def _main(argv: list[str] | None) -> int:
         args.config = str(arm_config_path())
     try:
         parse_faults(args.faults)
+        if args.bag:            # the user's: never emptied, it must be new or empty
+            folder_target(bag_dir, empty=True)
         output_folder(out)
+        if not args.bag:        # <out>/bag, the run's own: emptied for the new run
+            if bag_dir.is_symlink():
+                raise ToolError(f'bag folder {bag_dir} is a symbolic link: the run empties '
+                                'its own bag folder, so it must be one; name a bag with --bag')
+            folder_target(bag_dir)
+    except OSError as exc:
+        return fail('hrc-case-study', ToolError(f'bag folder {bag_dir}: {exc.strerror}'))
     except (ValueError, ToolError) as exc:
         return fail('hrc-case-study', exc)
-    if bag_dir.exists() and any(bag_dir.iterdir()):
-        if args.bag:
-            print(f'hrc-case-study: bag folder {bag_dir} is not empty; choose a new one',
-                  file=sys.stderr)
-            return 2
+    if not args.bag and bag_dir.is_dir() and any(bag_dir.iterdir()):
         shutil.rmtree(bag_dir)
     try:
         config = load_config(args.config or default_config_path())

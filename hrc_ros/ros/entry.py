@@ -5,7 +5,9 @@ A node's module imports rclpy, numpy and the model (about a second, several on a
 machine); a Ctrl-C during those imports used to end the process with a KeyboardInterrupt
 traceback and exit -2. Entering here, it ends the process at once with exit 0 and no output
 (`stop.importing`: nothing exists yet to tear down); once `main()` runs, a signal is a request
-that `main()` honours (a node built meanwhile is torn down, then exit 0). setup.py points every
+that `main()` honours (a node built meanwhile is torn down, then exit 0). Once `main()` has
+returned, the process leaves at once (`stop.leave`: flushed, then `os._exit`, without the
+interpreter's finalization, seconds of CPU on a loaded machine). setup.py points every
 such console script here (`ros2 run` and `colcon build` use the same entry points); `python -m
 hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module and `stop` import
 only the standard library.
@@ -30,6 +32,7 @@ COMMANDS = {
     'hmi_node': 'hrc_ros.ros.nodes.hmi_node',
     'robot_bridge_node': 'hrc_ros.ros.nodes.robot_bridge_node',
     'cobot_sim_node': 'hrc_ros.ros.nodes.cobot_sim_node',
+    'speed_scaling_node': 'hrc_ros.ros.nodes.speed_scaling_node',
     'hrc-bag': 'hrc_ros.ros.bag',
     'hrc-case-study': 'hrc_ros.ros.case_study',
 }
@@ -43,9 +46,14 @@ def run_command(name: str) -> int:
     return module.main()
 
 
+def run_and_leave(name: str):
+    """`run_command`, then end the process with its code (`stop.leave`): a console script."""
+    stop.leave(run_command(name))
+
+
 def _command(name: str):
     def main() -> int:
-        return run_command(name)
+        return run_and_leave(name)
     main.__name__ = main.__qualname__ = name.replace('-', '_')
     main.__doc__ = f'The `{name}` console script ({COMMANDS[name]}.main).'
     return main
@@ -61,6 +69,7 @@ tracker_sim_node = _command('tracker_sim_node')
 hmi_node = _command('hmi_node')
 robot_bridge_node = _command('robot_bridge_node')
 cobot_sim_node = _command('cobot_sim_node')
+speed_scaling_node = _command('speed_scaling_node')
 hrc_bag = _command('hrc-bag')
 hrc_case_study = _command('hrc-case-study')
 
@@ -72,4 +81,4 @@ if __name__ == '__main__':
         sys.exit(2)
     command = sys.argv.pop(1)
     sys.argv[0] = command
-    sys.exit(run_command(command))
+    run_and_leave(command)

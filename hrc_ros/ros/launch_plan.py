@@ -30,6 +30,9 @@ before `params_file`).
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -219,6 +222,58 @@ def parameter_files(node: NodeLaunch, params_dir: str | Path) -> list[str]:
             parameters = str(path)
         files.append(str(parameters))
     return files
+
+
+PARAMS_DIR_PREFIX = 'hrc_launch_'
+LEGACY_DIR_AGE = 86400.0    # seconds: a folder of the old form (no pid) older than this goes
+
+
+def params_dir(root: str | Path | None = None) -> Path:
+    """A new folder for one launch's override files (`parameter_files`), named by the launch's
+    process, `<tmp>/hrc_launch_<pid>_<random>`. The launch file removes it when launch shuts
+    down (`remove_params_dir` on launch's OnShutdown: the nodes read their params files when
+    they start, nothing reads them later); the folders of launches whose process is gone (one
+    killed with SIGKILL never got to remove its own) are removed first
+    (`remove_stale_params_dirs`), so that none accumulate (issue 37: 62 folders after 62
+    launches)."""
+    root = Path(root or tempfile.gettempdir())
+    remove_stale_params_dirs(root)
+    return Path(tempfile.mkdtemp(prefix=f'{PARAMS_DIR_PREFIX}{os.getpid()}_', dir=root))
+
+
+def remove_params_dir(path: str | Path) -> None:
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:       # someone else's process: alive
+        return True
+    return True
+
+
+def remove_stale_params_dirs(root: str | Path) -> list[Path]:
+    """Remove the launch folders in `root` whose launch process no longer runs, and those of
+    the old form (no pid in the name) older than a day; returns what was removed."""
+    removed = []
+    for folder in Path(root).glob(f'{PARAMS_DIR_PREFIX}*'):
+        pid, _, rest = folder.name[len(PARAMS_DIR_PREFIX):].partition('_')
+        try:
+            if not folder.is_dir() or folder.is_symlink():
+                continue
+            if pid.isdigit() and rest:
+                stale = not _alive(int(pid))
+            else:
+                stale = time.time() - folder.stat().st_mtime > LEGACY_DIR_AGE
+        except OSError:
+            continue
+        if stale:
+            remove_params_dir(folder)
+            removed.append(folder)
+    return removed
 
 
 def ros_arguments(node: NodeLaunch, params_dir: str | Path) -> list[str]:

@@ -108,6 +108,7 @@ class NodeParameters:
         self.specs = {spec.name: spec for spec in specs}
         self._check = check
         self._apply = apply
+        self._showing = False
         node.add_on_set_parameters_callback(self._on_set)
         for spec in specs:
             empty_array = isinstance(spec.default, (list, tuple)) and not spec.default
@@ -146,7 +147,24 @@ class NodeParameters:
         return {name: self.value(name) for name in self.specs
                 if self.node.has_parameter(name)}
 
+    def show(self, values: Mapping[str, Any]) -> None:
+        """Set read-only parameters that show what the node uses now (the decision node's
+        `policy_in_use`): `ros2 param get` reads them, nobody else sets them (read-only), and
+        the node's check and apply callbacks do not see them (nothing to check or apply)."""
+        parameters = [Parameter(name, self.specs[name].type, value)
+                      for name, value in values.items()]
+        self._showing = True
+        try:
+            result = self.node._set_parameters_atomically_common(   # rclpy: read-only ones too
+                parameters, {p.name: self.specs[p.name].descriptor() for p in parameters})
+        finally:
+            self._showing = False
+        if not result.successful:
+            raise RuntimeError(f'could not show {", ".join(values)}: {result.reason}')
+
     def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
+        if self._showing:
+            return SetParametersResult(successful=True)
         proposed = {p.name: (list(p.value) if isinstance(p.value, (list, tuple))
                              or hasattr(p.value, 'tolist') else p.value)
                     for p in parameters
@@ -167,6 +185,8 @@ class NodeParameters:
         return SetParametersResult(successful=True)
 
     def _post_set(self, parameters: list[Parameter]) -> None:
+        if self._showing:
+            return
         if self._apply is not None and any(p.name in self.specs for p in parameters):
             self._apply(self.values())
 

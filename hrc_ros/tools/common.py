@@ -20,7 +20,7 @@ from ..core import parallel
 from ..core.config import Config, ConfigError, load_config
 from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 from ..core.model import HRCModel
-from ..core.paths import default_config_path, output_target
+from ..core.paths import default_config_path, folder_target, output_target
 
 MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
 MAX_EPOCHS = 100_000            # one closed-loop run
@@ -63,10 +63,13 @@ def bounded_float(low: float, high: float):
 
 def output_folder(path: str | Path) -> Path:
     """The output folder `path`, created (with its parents) and checked writable; ToolError
-    if it is a file or cannot be created or written."""
+    if it is a file, a device, a FIFO, a link that leads to no folder (`paths.folder_target`)
+    or cannot be created or written."""
     folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise ToolError(f'output folder {folder} is a file; name a folder')
+    try:
+        folder_target(folder)
+    except OSError as exc:
+        raise ToolError(f'cannot write into output folder {folder}: {exc.strerror}') from None
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f'.hrc_write_test_{os.getpid()}'

@@ -50,6 +50,7 @@ from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.paths import arm_config_path, write_text, written
 from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
+from ..core.names import BadName, items
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
                      add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, command,
                      fail, load_model, load_pomdp, output_folder)
@@ -88,9 +89,10 @@ def load_world(config_path: str, policy_path: str | None, planning: HRCModel):
 
 
 def _selectors(parser, text: str, known) -> tuple:
-    selectors = tuple(s.strip() for s in text.split(',') if s.strip())
-    if not selectors:
-        parser.error('--selectors names no selector; choose from ' + ', '.join(known))
+    try:
+        selectors = items(text, '--selectors')
+    except BadName as exc:
+        parser.error(f'{exc}; choose from {", ".join(known)}')
     for s in selectors:
         if s not in known:
             parser.error(f'unknown selector {s!r} in --selectors; choose from '
@@ -114,7 +116,8 @@ def evaluate_arm_cell(args, parser) -> int:
     episodes = 200 if args.episodes is None else args.episodes
     task_rate = 0.5 if args.task_rate is None else args.task_rate
     epochs = 50 if args.epochs is None else args.epochs
-    selectors = _selectors(parser, args.selectors or ','.join(DEFAULT_SELECTORS), CELL_SELECTORS)
+    selectors = _selectors(parser, ','.join(DEFAULT_SELECTORS) if args.selectors is None
+                           else args.selectors, CELL_SELECTORS)
     baseline = args.baseline
     if baseline is None and 'ssm_only' in selectors:
         baseline = 'ssm_only'
@@ -252,8 +255,8 @@ def main(argv=None) -> int:
         args.task_rate = 0.2
     if args.true_policy and not args.true_config:
         parser.error('--true-policy needs --true-config')
-    selectors = _selectors(parser, args.selectors or 'paper,qmdp,mls,mdp',
-                           SIMULATION_SELECTORS)
+    selectors = _selectors(parser, 'paper,qmdp,mls,mdp' if args.selectors is None
+                           else args.selectors, SIMULATION_SELECTORS)
     if args.true_config and {'pomdp', 'fib'} & set(selectors):
         parser.error('--true-config compares the selectors that read a policy file (paper, '
                      'qmdp, mls, mdp); pomdp and fib would need a POMDP policy of the true '

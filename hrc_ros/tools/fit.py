@@ -34,9 +34,10 @@ from ..core.config import ConfigError, load_config
 from ..core.learning.fit import (BOOTSTRAP, DEFAULT_METHOD, FAMILIES, MAX_ITER, MIN_SUPPORT,
                                  NEWTON, SQUAREM, TOL, FitError, config_yaml, expand_hold, fit,
                                  prepare, report_dict, report_text)
-from ..core.paths import default_config_path, replace_file
+from ..core.paths import default_config_path, output_target, replace_file
 from ..core.learning.recordings import RecordingError, read_recordings
 from ..core.learning.stream import StreamError, check_stream, fit_stream_for
+from ..core.names import BadName, items, namespace
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
                      output_file)
 
@@ -90,13 +91,15 @@ def main(argv=None) -> int:
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
+        hold = expand_hold(items(args.hold, '--hold')) if args.hold else ()
+        if args.namespace is not None:
+            args.namespace = namespace(args.namespace, '--namespace')
         output = Path(args.output)
         report_path = Path(args.report or output.with_suffix('.report.json'))
         plot_path = (None if args.plot is None
                      else Path(args.plot or output.with_suffix('.png')))
         outputs = {'-o': output, '--report': report_path, '--plot': plot_path}
         check_outputs(outputs, args.inputs, args.base or default_config_path())
-        hold = expand_hold(args.hold.split(','))
         base = load_config(args.base or default_config_path())
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
         if args.stream:
@@ -105,7 +108,7 @@ def main(argv=None) -> int:
         for path in outputs.values():      # folders are made once the inputs have been read
             if path is not None:
                 output_file(path)
-    except (ToolError, ConfigError, RecordingError, FitError, StreamError) as exc:
+    except (ToolError, ConfigError, RecordingError, FitError, StreamError, BadName) as exc:
         return fail('hrc-fit', exc)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     say(f'hrc-fit: {data.epochs} epochs in {len(data.episodes)} episode(s) from '
@@ -166,6 +169,10 @@ def check_outputs(outputs: dict, inputs, base) -> None:
             continue
         if path.is_dir():
             raise ToolError(f'output {path} ({option}) is a folder; name a file')
+        try:        # a FIFO, a device, a dangling link or a loop: refused before any reading
+            output_target(path)
+        except OSError as exc:
+            raise ToolError(f'cannot write {path} ({option}): {exc.strerror}') from None
         where = resolve(path)
         for source, what in read:
             if where == source or source in where.parents:

@@ -60,6 +60,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+from ..names import BadName
+from ..names import namespace as ros_namespace
 from ..paths import read_yaml, shipped_config_path
 
 MAX_CELLS = 10_000
@@ -71,7 +73,6 @@ RUNS = ('on_drift', 'always')
 MDP_SELECTORS = ('paper', 'qmdp', 'mls')
 POMDP_SELECTORS = ('pomdp', 'fib')
 NAME = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$')
-NAMESPACE = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*/?$')
 
 # section -> key -> (kind, default); kinds are checked by _value below
 SECTIONS = {
@@ -331,11 +332,10 @@ def load_plant(path: str | Path) -> Plant:
         names.add(label)
         settings = _settings(where, cell, shared,
                              allowed=CELL_ONLY + tuple(SCALARS) + tuple(SECTIONS))
-        namespace = cell.get('namespace', f'/{label}')
-        if not isinstance(namespace, str) or not NAMESPACE.match(namespace):
-            raise PlantError(f'{where}: namespace must be a ROS namespace such as /line1, got '
-                             f'{namespace!r}')
-        namespace = '/' + namespace.strip('/') if namespace.strip('/') else '/'
+        try:
+            namespace = ros_namespace(cell.get('namespace', f'/{label}'))
+        except BadName as exc:
+            raise PlantError(f'{where}: {exc}') from None
         if namespace in namespaces:
             raise PlantError(f'{where}: namespace {namespace} is also the namespace of cell '
                              f'{namespaces[namespace]}')

@@ -77,6 +77,11 @@ PARAMETERS = (
               "read, solved for the configuration ('' = the shipped one in policies/pomdp/ "
               'solved for config); settable at run time with config and policy: swapped in '
               'at the next epoch boundary'),
+    ParamSpec('policy_in_use', T.STRING, '', 'the policy file deciding now, resolved (read-only: '
+              'set policy; it follows each swap at its epoch boundary)', read_only=True),
+    ParamSpec('pomdp_policy_in_use', T.STRING, '', 'the POMDP policy file the pomdp and fib '
+              "selectors read now, resolved ('' while the selector reads none; read-only: set "
+              'pomdp_policy)', read_only=True),
     ParamSpec('epoch_period', T.DOUBLE, 1.0, 'seconds between decision epochs',
               range=(0.01, 3600.0)),
     ParamSpec('input_timeout', T.DOUBLE, 0.0, "seconds to wait for an epoch's inputs; 0 = "
@@ -157,6 +162,7 @@ class DecisionNode(Node):
         super().__init__(self.NODE_NAME, **kwargs)
         self.running: Running | None = None      # set below: swaps are checked from then on
         self._checked: tuple | None = None        # the last swap verdict, by its values
+        self._shown_method: str | None = None     # the selector `_show_in_use` showed
         self.params, values, config, model = node_setup(
             self, PARAMETERS, self._check_parameters, self._apply_parameters)
         try:
@@ -228,6 +234,7 @@ class DecisionNode(Node):
             subscribe_epochs(self.inputs, lambda: self.epochs, self._on_epoch)
         self.inputs.subscribe(String, 'hrc/estimator_config', qos.STATE_INPUT,
                               conv.config_identity_from_msg, self._on_estimator_config)
+        self._show_in_use()
         pomdp = getattr(self.selector.pomdp, 'path', None)
         self.get_logger().info(
             f'policy {self.policy.path} (configuration {self.config.source}, sha256 '
@@ -238,6 +245,16 @@ class DecisionNode(Node):
     @property
     def epoch(self) -> int:
         return self.gate.epoch
+
+    def _show_in_use(self) -> None:
+        """The files deciding now as the read-only parameters `policy_in_use` and
+        `pomdp_policy_in_use` (issue 37: `ros2 param get /decision pomdp_policy` showed '',
+        the shipped one's path was only in the log)."""
+        pomdp = (getattr(self.selector.pomdp, 'path', '') or ''
+                 if self.selector.method in POMDP_SELECTORS else '')
+        self._shown_method = self.selector.method
+        self.params.show({'policy_in_use': str(self.policy.path),
+                          'pomdp_policy_in_use': str(pomdp)})
 
     # the pair in use
     config = property(lambda self: self.running.config)
@@ -314,6 +331,8 @@ class DecisionNode(Node):
                                                     values['pomdp_policy']))
         if values['selector'] not in POMDP_SELECTORS or not self._pomdp_changed(values):
             self.selector.set_method(values['selector'])   # qmdp's Q table is built here
+            if values['selector'] != self._shown_method:
+                self._show_in_use()
         # else the pair loading meanwhile reads the new POMDP policy and takes the method
         self.gate.input_timeout_ns, self.gate.stale_timeout_ns = timeouts_ns(values)
         self.stale_timeout = values['stale_timeout']
@@ -400,6 +419,7 @@ class DecisionNode(Node):
             if loaded.selector.method != self.params.value('selector'):
                 loaded.selector.set_method(self.params.value('selector'))
             self.running, self.staged = loaded, None
+            self._show_in_use()
             pomdp = getattr(loaded.selector.pomdp, 'path', None)
             before = getattr(old.selector.pomdp, 'path', None)
             self.inputs.report(Report(
