@@ -253,6 +253,7 @@ COMPUTE_FILES = frozenset({
     'test_model.py', 'test_observation.py', 'test_parallel.py', 'test_plant_fit.py',
     'test_plant_generate.py', 'test_pomdp.py', 'test_pomdp_hrc.py', 'test_protocol.py',
     'test_queue.py', 'test_queue_pomdp.py', 'test_recordings.py', 'test_robot.py',
+    'test_robot_monitor.py', 'test_hmi_shift.py',
     'test_selection.py', 'test_simulator.py', 'test_solver.py', 'test_stream.py',
     'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
     'test_tracking.py'})
