@@ -19,6 +19,7 @@ in one run (the other run's next epoch). The path is compared up to that epoch.
 """
 
 import csv
+import json
 import re
 import subprocess
 import sys
@@ -121,6 +122,11 @@ def test_ssm_is_never_violated_while_the_arm_moves(run):
     assert not np.any(moving[:, 0] < moving[:, 7]), moving[moving[:, 0] < moving[:, 7]][:5]
     assert not any(ssm_violated(s, v, ssm) for s, v in moving[:, [0, 8]])
     assert moving[:, 0].min() > 0.0              # no contact
+    # and against the person's true body at each joint state (hrc-case-study's own check of
+    # the run, core/robot/check.py, from hrc/sim/true_skeleton in the bag)
+    truth = json.loads((out / 'ssm_check.json').read_text())
+    assert truth['moving'] > 200 and truth['unchecked'] == 0, truth
+    assert truth['violations'] == 0, truth
 
 
 def per_epoch(out):
