@@ -103,6 +103,7 @@ def one_round(fresh: bool) -> dict:
     near = np.abs(s[1:] - goal_stamp) * 1e-9 <= 0.5 if goal_stamp else np.zeros(0, bool)
     return {'first_s': first_at - started if first_at else None,
             'max_gap_s': float(gaps.max()) if gaps.size else None,
+            'max_gap_at_s': float((s[int(np.argmax(gaps))] - s[0]) * 1e-9) if gaps.size else None,
             'max_gap_near_goal_s': float(gaps[near].max()) if near.any() else None,
             'joint_states': len(s)}
 
@@ -122,7 +123,8 @@ def main(argv=None) -> int:
             worst = max(worst, r['max_gap_s'] or 0.0, r['max_gap_near_goal_s'] or 0.0)
             print(f'round {i + 1}: first joint state {r["first_s"]:.2f} s after the start; '
                   f'{r["joint_states"]} joint states in 4 s; largest gap '
-                  f'{1e3 * r["max_gap_s"]:.1f} ms, within 0.5 s of the first goal '
+                  f'{1e3 * r["max_gap_s"]:.1f} ms ({r["max_gap_at_s"]:.2f} s after the first), '
+                  'within 0.5 s of the first goal '
                   f'{1e3 * r["max_gap_near_goal_s"]:.1f} ms', flush=True)
     finally:
         for p in busy:
