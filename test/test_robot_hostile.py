@@ -2,7 +2,7 @@
 /hostile) fed by this test's node, which plays the arm (joint states at 100 Hz), the person's
 tracker (a skeleton at 30 Hz, stamped with a tracker's 30 ms latency) and the override's
 listener, and, beside them, a second writer of the same topics: a forger that claims the person
-is far away (stamped a little ahead, within the bridge's future slack, and sent more often), or
+is far away (stamped a little ahead, within the bridge's clock_skew, and sent more often), or
 that claims the arm stands elsewhere. A second writer may only slow the arm, never free it.
 The core rule is unit-tested in test_robot.py.
 """
@@ -92,9 +92,9 @@ class Feeder(SpunNode):
         if forged_q is not None:
             self.forged_joints.publish(conv.joint_state_to_msg(JOINTS, [0.0] * 6, forged_q,
                                                                self._now()))
-        if forged_person is not None:       # 100 Hz, 40 ms ahead (FUTURE_SLACK is 50 ms)
+        if forged_person is not None:       # 100 Hz, 4 ms ahead (clock_skew is 5 ms)
             self.forged_skeleton.publish(conv.keypoints_to_msg(body_at(forged_person),
-                                                               self._now(0.04)))
+                                                               self._now(0.004)))
 
     def _tracker(self):
         self.skeleton.publish(conv.keypoints_to_msg(body_at(self.person), self._now(-0.03)))

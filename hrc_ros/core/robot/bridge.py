@@ -100,6 +100,7 @@ SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the ar
 OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
+STALL_RESENDS = 3                  # ... at most this many times in a row, then hold and report
 APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
 APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
@@ -118,6 +119,8 @@ DESCRIPTION_DEFAULTS = {
                                    # not trusted (a jump away)
     'tracking_error': 0.01,        # m the tracker's keypoints may lie from the body's (SSM takes
                                    # the person this much nearer: docs/ROBOT.md 7)
+    'clock_skew': 0.005,           # s the sensors' clocks may differ from the bridge's: a stamp
+                                   # further ahead is refused, and every age counts it unseen
 }
 
 
@@ -182,6 +185,7 @@ class RobotDescription:
     frozen_tolerance: float = DESCRIPTION_DEFAULTS['frozen_tolerance']
     max_body_speed: float = DESCRIPTION_DEFAULTS['max_body_speed']
     tracking_error: float = DESCRIPTION_DEFAULTS['tracking_error']
+    clock_skew: float = DESCRIPTION_DEFAULTS['clock_skew']
     ssm: SsmParameters = field(default_factory=SsmParameters)
     source: str = ''
 
@@ -406,13 +410,13 @@ def writers_reason(topic: str, publishers, owner: str) -> str:
     return ''
 
 
-def check_stamp(what: str, stamp_ns: int, now_ns: int) -> None:
-    """InputError for a sample stamped more than FUTURE_SLACK ahead of the clock: its source's
+def check_stamp(what: str, stamp_ns: int, now_ns: int, slack: float = FUTURE_SLACK) -> None:
+    """InputError for a sample stamped more than `slack` s ahead of the clock: its source's
     clock runs ahead, and the sample would still look fresh after its source stopped."""
     ahead = (stamp_ns - now_ns) * 1e-9
-    if ahead > FUTURE_SLACK:
+    if ahead > slack:
         raise InputError(f'{what} stamped {ahead:.3f} s ahead of this clock (more than '
-                         f'{FUTURE_SLACK} s): its source\'s clock is not synchronised with '
+                         f'{slack:g} s): its source\'s clock is not synchronised with '
                          'this one, and an age from it cannot be trusted')
 
 
@@ -556,6 +560,7 @@ class Bridge:
         self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
                        'frozen_skeletons': 0, 'goals_resent': 0}
         self._still_since: int | None = None    # the arm at rest on an unfinished goal
+        self._resent = 0              # goals sent again in a row without the arm moving
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
@@ -565,7 +570,7 @@ class Bridge:
         (`check_stamp`) or a second writer (`sequence`: its publication sequence number; the arm
         then holds, module docstring)."""
         self._joint_writer.check(sequence, now_ns * 1e-9)
-        check_stamp('joint state', stamp_ns, now_ns)
+        check_stamp('joint state', stamp_ns, now_ns, self.description.clock_skew)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
         self.measured.update(self.q, self.qd, stamp_ns)
@@ -581,7 +586,7 @@ class Bridge:
         if body is not None and not isinstance(body, BodyCapsules):
             raise InputError(f'a skeleton is BodyCapsules, got {type(body).__name__}')
         if body is not None:
-            check_stamp('skeleton', stamp_ns, now_ns)
+            check_stamp('skeleton', stamp_ns, now_ns, self.description.clock_skew)
         stream = self._skeleton_lock.classify(sequence, now_ns * 1e-9,
                                               self.monitor.p.human_timeout)
         if stream == StreamLock.OTHER or (body is not None and self._body_stamp is not None
@@ -597,19 +602,30 @@ class Bridge:
         held = self.body
         live = held is not None and \
             (now_ns - self._content_stamp) * 1e-9 <= self.monitor.p.human_timeout
-        if live and self.q is not None:
-            dt = (stamp_ns - self._content_stamp) * 1e-9
-            if self.skeleton_check.jumped_away(self.arm.distance(self.q, body),
-                                               self.arm.distance(self.q, held), dt):
-                self._others.append((body, int(stamp_ns)))     # it can only slow the arm
-                self.counts['implausible_skeletons'] += 1
-                return
+        if live and self.q is not None and self._jumped_away(body, stamp_ns):
+            self._others.append((body, int(stamp_ns)))     # it can only slow the arm
+            self.counts['implausible_skeletons'] += 1
+            return
         if held is not None and self.skeleton_check.unchanged(body, held):
             self.body, self._body_stamp = body, int(stamp_ns)     # no new data: it ages
             self.counts['frozen_skeletons'] += 1
             return
         self.body, self._body_stamp, self._content_stamp = body, int(stamp_ns), int(stamp_ns)
         self._measure_approach(body, int(stamp_ns))
+
+    def _jumped_away(self, body: BodyCapsules, stamp_ns: int) -> bool:
+        """A skeleton farther from the arm than the person can have moved since the held one
+        or since the followed frame at least APPROACH_WINDOW older (against the held one alone,
+        the gate's slack adds up frame by frame: a skeleton sliding away at 30 Hz passed at 4
+        m/s)."""
+        new = self.arm.distance(self.q, body)
+        refs = [(self._content_stamp, self.body)]
+        window = int(APPROACH_WINDOW * 1e9)
+        older = [f for f in self._frames if f[0] <= stamp_ns - window]
+        refs.append(older[-1] if older else (self._frames[0] if self._frames else refs[0]))
+        return any(self.skeleton_check.jumped_away(new, self.arm.distance(self.q, ref),
+                                                   (stamp_ns - then) * 1e-9)
+                   for then, ref in refs)
 
     def _measure_approach(self, body: BodyCapsules, stamp_ns: int) -> None:
         """The person's directed speed toward the arm (m/s) from the followed tracker's
@@ -644,7 +660,9 @@ class Bridge:
         if not held:
             return None, None
         seps = [self.arm.separation(self.q, b) for b, _ in held]
-        return min(seps, key=lambda sep: sep.distance), min(t for _, t in held)
+        # the stamps as old as the sensors' clocks may be off (clock_skew): the age counts it
+        skew = int(self.description.clock_skew * 1e9)
+        return min(seps, key=lambda sep: sep.distance), min(t for _, t in held) - skew
 
     def goal_publishers(self, count: int) -> None:
         """How many publishers the graph shows on the goal topic (this bridge's included)."""
@@ -712,7 +730,6 @@ class Bridge:
     # -- the tick ------------------------------------------------------------------------------
     def tick(self, now_ns: int) -> BridgeCommand:
         """What to send now (see the module docstring)."""
-        d = self.description
         reports = []
         fresh = (self.q is not None and self._joint_stamp is not None
                  and (now_ns - self._joint_stamp) * 1e-9 <= self.description.joint_state_timeout)
@@ -739,14 +756,15 @@ class Bridge:
                 self.pending = None
             self._replace = False
             self.active, self._next = trajectory, 0
-        own = self.active is not None and len(self.active.durations) > 0
+        # Nothing of the bridge's own to move (a stay, no goal yet, a goal run to its end):
+        # override 0, so that a goal it did not send cannot run on its override.
+        own = self.active is not None and self._next < len(self.active.durations)
         nominal = self.active.nominal_speed if own else 0.0
         # SSM on the person as near as the tracker's error allows (the check of a run is on
-        # the true body, with ISO's Z_d whole)
-        state = self.monitor.update(None if sep is None else sep.distance - d.tracking_error,
+        # the true body, with ISO's Z_d whole), and the arm as near as it may have come since
+        # its joint state (the commanded speed for the state's age)
+        state = self.monitor.update(None if sep is None else sep.distance - self._unseen(now_ns),
                                     human_stamp, now_ns, nominal, self.approach)
-        # Nothing of the bridge's own to move (a stay, no goal yet): override 0, so that a goal
-        # it did not send cannot run on its override.
         override = state.override if own else 0.0
         motion = self.motion
         if self.paused:
@@ -782,6 +800,13 @@ class Bridge:
                 return writer.reason
         return ''
 
+    def _unseen(self, now_ns: int) -> float:
+        """How much nearer than S the arm and the person may be (m) for what no sample shows:
+        the tracker's error, and the arm's travel at the speed it was allowed since its joint
+        state (which may be up to joint_state_timeout old)."""
+        age = max(0.0, (now_ns - self._joint_stamp) * 1e-9 + self.description.clock_skew)
+        return self.description.tracking_error + self.envelope.limit(self._joint_stamp) * age
+
     def _at_rest(self) -> bool:
         """Every joint slower than rest_speed, by the reported velocities and by the
         positions' differences."""
@@ -798,7 +823,7 @@ class Bridge:
         d = self.description
         p = self.monitor.p
         speed = self.measured.speed
-        limit = self.envelope.limit(now_ns)
+        limit = self.envelope.limit(self._joint_stamp)   # what the arm may do at the sample
         breach, foreign = '', False
         if speed > limit + d.speed_tolerance:
             breach, foreign = (f'the arm moves at {speed:.3f} m/s (measured), above the '
@@ -820,7 +845,7 @@ class Bridge:
         if not breach and sep is not None and speed > MOVING_SPEED:
             age = max(0.0, (now_ns - human_stamp) * 1e-9)
             if age <= p.human_timeout:
-                allowed = max_speed(sep.distance - d.tracking_error,
+                allowed = max_speed(sep.distance - self._unseen(now_ns),
                                     directed_speeds(p, self.approach), age) or 0.0
                 if speed > allowed + d.speed_tolerance:
                     breach = (f'the arm moves at {speed:.3f} m/s (measured), above the '
@@ -852,12 +877,22 @@ class Bridge:
                    and self.pending is None and bound >= self.monitor.p.min_speed)
         if not running or not self._at_rest():
             self._still_since = None
+            if running:
+                self._resent = 0          # it moves: the controller follows
             return
         if self._still_since is None:
             self._still_since = now_ns
         elif (now_ns - self._still_since) * 1e-9 >= STALL_RESEND:
             self.pending, self._still_since = self.motion, None
             self.counts['goals_resent'] += 1
+            self._resent += 1
+            if self._resent > STALL_RESENDS:
+                # the controller does not follow: hold, say why, and wait for an action
+                self.paused, self._resent = True, 0
+                self.fault, self._fault_clear_since = (
+                    f'the controller did not follow the bridge\'s goal {STALL_RESENDS + 1} '
+                    'times in a row (the arm stands while motion is commanded): the arm holds '
+                    'until the next action'), None
 
     def _frozen_reason(self, now_ns: int, reason: str) -> str:
         """SSM's stop for old data, named for what it is when the followed skeleton's stamps

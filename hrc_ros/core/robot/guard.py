@@ -13,8 +13,10 @@ commanded the motion (ISO 10218-1 5.4), and a person sensor used for SSM needs f
 of its own (ISO 13849: a stuck sensor must be detected):
 
 - `MeasuredSpeed`: the arm's top link speed from its joint states, from the reported
-  velocities and from the positions' finite differences over at least `min_dt`, the larger
-  (a driver that reports zero velocities, or positions that jump, both count).
+  velocities and from the positions' finite differences over at least `min_dt` (30 ms: the
+  error of a difference is the stamps' jitter over its span, and 0.5 ms of jitter over one 8 ms
+  period read as 0.02 m/s of motion), the larger (a driver that reports zero velocities, or
+  positions that jump, both count).
 - `SpeedEnvelope`: the speed the bridge's own commands let the arm have at each instant: the
   commanded bound (override x its goal's top link speed at override 1), held for `latency`
   (the command's way to the controller) and then falling at the SSM deceleration (the ramp the
@@ -53,7 +55,7 @@ ENVELOPE_KEPT = 512          # commanded bounds kept for the envelope (each domi
 class MeasuredSpeed:
     """The arm's top link speed (m/s) from its joint states (module docstring)."""
 
-    def __init__(self, arm: Arm, min_dt: float = 0.004, max_dt: float = 0.1):
+    def __init__(self, arm: Arm, min_dt: float = 0.03, max_dt: float = 0.1):
         self.arm = arm
         self.min_dt, self.max_dt = float(min_dt), float(max_dt)
         self._history: deque = deque(maxlen=16)     # (stamp ns, q)

@@ -76,7 +76,8 @@ from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTI
 T = Parameter.Type
 MAX_STEP_SEC = 1.0       # a longer stall of the motion thread is stepped as this at most
 TIME_SLACK = 1e-3        # s (and relative): a segment may be this much faster than computed
-MAX_GOAL_POINTS = 1000   # points of a goal this controller takes (timing them costs ~1 ms each)
+MAX_GOAL_POINTS = 1000   # points of a goal this controller takes
+PEAKS_KEPT = 4096        # segments' top link speeds remembered (a program repeats its segments)
 REST_CREEP = 1e-3        # rad an arm at rest may creep while its next goal is checked
 GIL_SWITCH = 0.001       # s: the interpreter's thread switch interval in this node
 # The controller's watchdog on the monitor's override (docs/ROBOT.md 5): the bridge sends one
@@ -113,6 +114,7 @@ class CobotSimNode(Node):
                                f'the limits, got {q0.tolist()} ({d.outside(q0) or "wrong size"})')
         self.arm = Arm()              # the motion thread's (separation)
         self.goal_arm = Arm()         # the executor's (goal checks)
+        self._peaks: dict = {}
         warm_up(self.arm, self.goal_arm)   # compiled (or loaded) before anything is published
         self._lock = threading.Lock()   # the follower, between the two threads
         self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
@@ -250,9 +252,20 @@ class CobotSimNode(Node):
                     f'{float(np.max(np.abs(path[i + 1] - path[i]))):.3f} rad in '
                     f'{durations[i]:.3f} s, faster than the joint speed and acceleration limits '
                     f'allow ({shortest:.3f} s at least)')
-        nominal = max(peak_link_speed(self.goal_arm, a, b, t)
-                      for a, b, t in zip(path[:-1], path[1:], durations))
+        # a program's goal repeats its cycle's few segments: each is timed once. A goal of
+        # many distinct segments takes its executor a while (about 2 s for 1,000 on a loaded
+        # machine), no override is taken meanwhile, and the arm brakes: safe, slow.
+        nominal = max(self._peak(a, b, t) for a, b, t in zip(path[:-1], path[1:], durations))
         return Trajectory(d.joint_names, path, durations, float(nominal), (), 'goal')
+
+    def _peak(self, start, end, duration) -> float:
+        key = (start.tobytes(), end.tobytes(), float(duration))
+        peak = self._peaks.get(key)
+        if peak is None:
+            peak = peak_link_speed(self.goal_arm, start, end, duration)
+            if len(self._peaks) < PEAKS_KEPT:
+                self._peaks[key] = peak
+        return peak
 
     def _on_override(self, msg: Float64, source: Stamp) -> None:
         """The speed override; a refused one (outside [0, 1], NaN, a second writer's) is
