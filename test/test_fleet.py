@@ -94,7 +94,8 @@ CELL = '  - name: a\n    recordings: x.csv\n'
     ('cells:\n' + CELL + '    selector: pomdp\n', 'set solver: pomdp or both'),
     ('cells:\n' + CELL + '    pomdp_policy: p.npz\n', 'pomdp_policy is the running POMDP '
      'policy of a cell whose selector is pomdp or fib; this one runs paper'),
-    ('cells:\n' + CELL + '    namespace: bad ns\n', 'namespace must be a ROS namespace'),
+    ('cells:\n' + CELL + '    namespace: bad ns\n',
+         "namespace 'bad ns' has the name 'bad ns', which must start with a letter"),
     ('cells:\n' + CELL + '    fit: {hold: [p_acept]}\n', "unknown parameter family 'p_acept'"),
     ('cells:\n' + CELL + '    fit: {prior: 3}\n', 'cells[0] (a): fit.prior must be true or false, '
      'got 3'),

@@ -120,7 +120,9 @@ def test_the_cell_with_the_arm_launches_with_unique_names_and_its_wiring(tmp_pat
     try:
         for node in plan:
             nodes.start(node.executable, ros_args=ros_arguments(node, tmp_path))
-        expected = {f'/cell1/{n}' for n in names} | {'/cell1/cell_view_inputs'}
+        # the view and the simulated arm each take their inputs on a second node of their own
+        expected = {f'/cell1/{n}' for n in names} | {'/cell1/cell_view_inputs',
+                                                     '/cell1/cobot_sim_inputs'}
         deadline = time.monotonic() + GRAPH_TIMEOUT
         def missing():
             return (expected - set(full_names(probe)),
