@@ -58,6 +58,7 @@ DEPENDENCIES = {
     'rcl_interfaces': ('ros-jazzy-rclpy', ROS),
     'builtin_interfaces': ('ros-jazzy-rclpy', ROS),
     'std_msgs': ('ros-jazzy-common-interfaces', ROS),
+    'std_srvs': ('ros-jazzy-common-interfaces', ROS),
     'sensor_msgs': ('ros-jazzy-common-interfaces', ROS),
     'geometry_msgs': ('ros-jazzy-common-interfaces', ROS),
     'diagnostic_msgs': ('ros-jazzy-common-interfaces', ROS),

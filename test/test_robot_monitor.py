@@ -266,6 +266,53 @@ def test_a_skeleton_that_jumps_away_is_not_trusted(setup):
     assert min(c.separation.distance for c, _, _ in steps) < 0.6
 
 
+def two(a, b) -> BodyCapsules:
+    """A tracker's frame of two people (body_capsules over 64 keypoints)."""
+    return body_capsules(np.concatenate([a, b]) + NOISE.normal(0.0, 0.0015, (64, 3)),
+                         K4ABT_JOINTS)
+
+
+def test_a_person_the_tracker_loses_near_the_arm_holds_it_until_seen_again(setup):
+    """Two people, one 0.9 m from the base; the tracker drops the near one (occluded) and goes
+    on with the far one. The frames without them are refused as jumps while the near one's
+    frame is fresh; once it has aged out the arm must not resume: it holds, with the reason,
+    until a frame shows two people again."""
+    cell = Cell(setup, distance=1.5)
+    program_running(cell)
+    near, far = person(0.9), person(3.0, math.radians(60))
+    cell.run(0.3, body=lambda: two(near, far))
+    steps = cell.run(2.0, body=lambda: seen(far))          # the near person is gone from view
+    # SSM goes on with their last frame while it is fresh, then the arm holds to the end
+    aged = int((cell.description.ssm.human_timeout + 0.05) / 0.01)
+    assert all(c.stop for c, _, _ in steps[aged:])
+    assert 'the tracker lost a person' in steps[-1][0].reason
+    assert 'a frame of 2 people became 1' in steps[-1][0].reason
+    assert np.all(steps[-1][2] == 0)
+    assert cell.bridge.counts['lost_people'] == 1
+    # seen again (moved away meanwhile): the hold clears and SSM decides again
+    steps = cell.run(1.5, body=lambda: two(person(2.5), far))
+    assert not cell.bridge.lost and not steps[-1][0].stop
+
+
+def test_the_operator_clears_a_lost_persons_hold_and_a_far_loss_holds_nothing(setup):
+    cell = Cell(setup, distance=1.5)
+    program_running(cell)
+    near, far = person(0.9), person(3.0, math.radians(60))
+    cell.run(0.3, body=lambda: two(near, far))
+    cell.run(1.0, body=lambda: seen(far))
+    assert cell.bridge.lost
+    assert cell.bridge.clear_lost() and not cell.bridge.clear_lost()
+    steps = cell.run(1.0, body=lambda: seen(far))
+    assert not steps[-1][0].stop
+    # a person lost 2.5 m from the arm (beyond lost_person_distance) is forgotten
+    cell = Cell(setup, distance=2.5)
+    program_running(cell)
+    mid = person(2.5 + 0.5)
+    cell.run(0.3, body=lambda: two(mid, far))
+    steps = cell.run(1.5, body=lambda: seen(person(3.0, math.radians(80))))
+    assert not cell.bridge.lost and cell.bridge.counts['lost_people'] == 0
+
+
 # -- one action source -----------------------------------------------------------------------
 def test_a_second_writer_of_the_actions_or_task_states_holds_the_arm(setup):
     cell = Cell(setup)

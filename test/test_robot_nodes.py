@@ -87,6 +87,7 @@ class Cell(SpunNode):
         self.person = FAR.copy()
         self.target = FAR.copy()
         self.skeleton_on = True
+        self.second = None            # a second person's place in the same frame (None: one)
         self._moved = time.monotonic()
         self.trajectories: list[JointTrajectory] = []
         self.overrides: list[tuple[float, float]] = []
@@ -129,9 +130,12 @@ class Cell(SpunNode):
             if distance > 0:
                 self.person = self.person + step * min(1.0, WALK * dt / distance)
             person = self.person.copy()
+            second = self.second
         if self.skeleton_on:
+            points = body_at(person) if second is None else \
+                np.concatenate([body_at(person), body_at(second)])
             self.skeleton_pub.publish(conv.keypoints_to_msg(
-                body_at(person), self.node.get_clock().now().to_msg()))
+                points, self.node.get_clock().now().to_msg()))
 
     def walk_to(self, target) -> None:
         with self.lock:
@@ -321,6 +325,47 @@ def test_no_skeleton_for_longer_than_the_timeout_stops_the_arm(cell):
     finally:
         driver.skeleton_on = True
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear with the skeleton back')
+    assert_alive(suite)
+
+
+def test_a_person_the_tracker_loses_near_the_arm_holds_it_until_the_operator_clears_it(cell):
+    """A second person 0.9 m from the base drops out of the tracker's frames (occluded): once
+    their last frame has aged out the arm holds, says why, and stays held with only the far
+    person in view, until ~/clear_lost_person (std_srvs/Trigger)."""
+    from std_srvs.srv import Trigger
+    driver, suite = cell
+    driver.walk_to(FAR)                # the person in view stays 2.5 m from the arm
+    driver.wait(lambda: np.allclose(driver.person, FAR), 'the person at FAR', 2 * TIMEOUT)
+    driver.epoch('ct', task(tp=2, tc=120))
+    driver.wait(driver.moving, 'the arm to run the program')
+    since = len(driver.statuses)
+    with driver.lock:
+        driver.second = np.array([0.9, -0.5, 0.8])
+    seen = len(driver.joint_states)
+    driver.wait(lambda: len(driver.joint_states) > seen + 30, 'ticks with both people in view')
+    with driver.lock:
+        driver.second = None
+    driver.wait(lambda: driver.value('robot_bridge: bridge', 'lost_person',
+                                     'the tracker lost a person', since),
+                'the lost person\'s hold on /diagnostics')
+    driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1][1] == 0.0,
+                'a protective stop with override 0')
+    driver.wait(driver.at_rest, 'the arm to stand')
+    held = len(driver.joint_states)
+    driver.wait(lambda: len(driver.joint_states) > held + 100, '100 more joint states')
+    assert driver.at_rest(held) and driver.stops[-1] is True      # the far person alone: held
+    client = driver.node.create_client(Trigger, 'robot_bridge/clear_lost_person')
+    try:
+        assert client.wait_for_service(timeout_sec=TIMEOUT)
+        future = client.call_async(Trigger.Request())
+        answer = driver.wait(lambda: future.result(), 'the clear service\'s answer')
+        assert answer.success and 'the tracker lost a person' in answer.message
+        driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear')
+        driver.wait(driver.moving, 'the arm to move again')
+        again = client.call_async(Trigger.Request())
+        assert not driver.wait(lambda: again.result(), 'the second answer').success
+    finally:
+        driver.node.destroy_client(client)
     assert_alive(suite)
 
 

@@ -245,6 +245,12 @@ def body_capsules(points, joints=None, keypoint_radius: float = KEYPOINT_RADIUS)
                     names + tuple(f'{n}_{b}' for b in range(1, bodies) for n in names))
 
 
+def people(body: BodyCapsules) -> int:
+    """How many people a skeleton frame holds (`body_capsules` names each body's torso
+    torso, torso_1, ...); an unlabelled frame counts as one."""
+    return max(1, sum(1 for n in body.names if n == 'torso' or n.startswith('torso_')))
+
+
 @dataclass(frozen=True)
 class Separation:
     """The closest approach of the arm to a person: S (m, negative where the capsules

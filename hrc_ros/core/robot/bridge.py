@@ -85,7 +85,7 @@ from ..model import commit_effective
 from ..paths import read_yaml, share_dir
 from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
-from .arm import segment_duration
+from .arm import people, segment_duration
 from .guard import MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path, nearest_on_path
 from .ssm import (MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState,
                   directed_speeds, max_speed)
@@ -121,6 +121,8 @@ DESCRIPTION_DEFAULTS = {
                                    # the person this much nearer: docs/ROBOT.md 7)
     'clock_skew': 0.005,           # s the sensors' clocks may differ from the bridge's: a stamp
                                    # further ahead is refused, and every age counts it unseen
+    'lost_person_distance': 1.5,   # m: a person the tracker loses nearer the arm than this holds
+                                   # it until seen again or cleared (docs/ROBOT.md 7)
 }
 
 
@@ -186,6 +188,7 @@ class RobotDescription:
     max_body_speed: float = DESCRIPTION_DEFAULTS['max_body_speed']
     tracking_error: float = DESCRIPTION_DEFAULTS['tracking_error']
     clock_skew: float = DESCRIPTION_DEFAULTS['clock_skew']
+    lost_person_distance: float = DESCRIPTION_DEFAULTS['lost_person_distance']
     ssm: SsmParameters = field(default_factory=SsmParameters)
     source: str = ''
 
@@ -558,9 +561,14 @@ class Bridge:
         self._fault_clear_since: int | None = None
         self._replace = False         # a goal of the bridge's must replace the controller's
         self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
-                       'frozen_skeletons': 0, 'goals_resent': 0}
+                       'frozen_skeletons': 0, 'goals_resent': 0, 'lost_people': 0}
         self._still_since: int | None = None    # the arm at rest on an unfinished goal
         self._resent = 0              # goals sent again in a row without the arm moving
+        # A person the followed tracker lost near the arm (`_track_loss`): (bodies in the frame
+        # that last showed them, their S m) while frames that dropped them are refused as
+        # jumps; `lost` the hold's reason once such a frame replaced theirs ('' = none).
+        self._losing: tuple[int, float] | None = None
+        self.lost, self._lost_people = '', 0
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
@@ -605,13 +613,41 @@ class Bridge:
         if live and self.q is not None and self._jumped_away(body, stamp_ns):
             self._others.append((body, int(stamp_ns)))     # it can only slow the arm
             self.counts['implausible_skeletons'] += 1
+            if self._losing is None:
+                self._losing = (people(held), self.arm.distance(self.q, held))
             return
+        self._track_loss(body, live)
         if held is not None and self.skeleton_check.unchanged(body, held):
             self.body, self._body_stamp = body, int(stamp_ns)     # no new data: it ages
             self.counts['frozen_skeletons'] += 1
             return
         self.body, self._body_stamp, self._content_stamp = body, int(stamp_ns), int(stamp_ns)
         self._measure_approach(body, int(stamp_ns))
+
+    def _track_loss(self, body: BodyCapsules, live: bool) -> None:
+        """A frame taken after frames that dropped the person nearest the arm were refused as
+        jumps (`_losing`) replaces theirs only because it aged out: the tracker lost them
+        (occluded, by the arm too, or a tracker that switched to someone else), and a person
+        who cannot be seen can still be there. Nearer than lost_person_distance that holds the
+        arm (`lost`) until a frame shows more people than the one that dropped them or
+        `clear_lost()` (the operator, who looked). Farther, or still live, it is forgotten."""
+        if self.lost and people(body) > self._lost_people:
+            self.lost = ''
+        if self._losing is not None and not live:
+            bodies, distance = self._losing
+            if distance < self.description.lost_person_distance and not self.lost:
+                self._lost_people = people(body)
+                self.lost = (f'the tracker lost a person {distance:.2f} m from the arm (a frame '
+                             f'of {bodies} people became {self._lost_people}): the arm holds '
+                             'until they are seen again or the stop is cleared')
+                self.counts['lost_people'] += 1
+        self._losing = None
+
+    def clear_lost(self) -> bool:
+        """The operator's clear of a lost person's hold (they looked: nobody is there).
+        True if there was one."""
+        was, self.lost, self._losing = bool(self.lost), '', None
+        return was
 
     def _jumped_away(self, body: BodyCapsules, stamp_ns: int) -> bool:
         """A skeleton farther from the arm than the person can have moved since the held one
@@ -794,6 +830,8 @@ class Bridge:
         for reason in self._graph_holds.values():
             if reason:
                 return reason
+        if self.lost:
+            return self.lost
         now = now_ns * 1e-9
         for writer in (self._joint_writer, *self.writers.values()):
             if writer.held(now):

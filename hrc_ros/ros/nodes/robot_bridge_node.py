@@ -56,6 +56,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64, String, UInt8MultiArray
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ...core.cell.tracking import joint_indices
@@ -216,6 +217,7 @@ class RobotBridgeNode(Node):
         self.watchdog = self.create_timer(self.description.joint_state_timeout / 2,
                                           self._watchdog)
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
+        self.create_service(Trigger, '~/clear_lost_person', self._on_clear_lost)
         self._publish_progress()
         self._set_stop(True, 'no joint state yet')
 
@@ -379,6 +381,17 @@ class RobotBridgeNode(Node):
             self.progress = values
             self.progress_pub.publish(conv.robot_progress_to_msg(*values))
 
+    def _on_clear_lost(self, request, response):
+        """~/clear_lost_person (std_srvs/Trigger): the operator looked, and nobody is where
+        the tracker lost a person; SSM decides again on what the tracker shows."""
+        reason = self.bridge.lost
+        response.success = self.bridge.clear_lost()
+        response.message = ('cleared: ' + reason if response.success else
+                            'no lost person holds the arm')
+        if response.success:
+            self.get_logger().warning(f'lost person\'s hold cleared by a service call ({reason})')
+        return response
+
     # -- status ------------------------------------------------------------------------------
     def _publish_status(self) -> None:
         command = self.command
@@ -404,6 +417,7 @@ class RobotBridgeNode(Node):
             'override_subscribers': self.override_pub.get_subscription_count(),
             'measured_speed_m_s': round(self.bridge.measured.speed, 4),
             'monitor': self.bridge.fault,
+            'lost_person': self.bridge.lost,
             **{f'monitor_{k}': v for k, v in self.bridge.counts.items()},
             'action_source': self.owners['action'] or '(any one publisher)',
             'task_state_source': self.owners['task_state'] or '(any one publisher)',
