@@ -13,10 +13,10 @@ the tolerance docs/ROBOT.md states; the batch runs with the graph's sensing and 
 
 Agreement, and where it may end (docs/ROBOT.md 6): the arm moves in wall-clock time, so a
 program cycle that completes near an epoch's end can be counted one epoch apart in the two
-runs; from there they are two episodes. The runs must agree exactly through at least
-AGREE_EPOCHS epochs, and where they part it must be that: one run's task state the other run's
-next epoch's (a cycle, or the task it completes, counted an epoch early). The path is compared
-up to that epoch.
+runs, and a distance level read at a boundary near a safety radius can differ; from there they
+are two episodes. The runs must agree exactly through at least MIN_AGREE epochs, and where they
+part it must be one of those two (the constants' comment). The path is compared up to that
+epoch.
 """
 
 import csv
@@ -43,12 +43,18 @@ from hrc_ros.ros.case_study import ROBOT_EPOCHS
 
 SEED = 0                      # hrc-case-study's defaults with --robot sim
 EPOCHS = ROBOT_EPOCHS
-# Seed 0's first task ends with a program cycle that completes within tens of ms of the epoch
-# 9/10 boundary: the graph counts it in epoch 10, the batch in 10 or 11 (11 once the monitor
-# took the sensors' 5 ms clock skew as data age, a centimetre of S_p: measured, 2026-12-06).
-# The runs must agree exactly up to there (the person's work, a handover asked and accepted,
-# the waits); 20 epochs agreed before that change.
-AGREE_EPOCHS = 9
+# Where the runs may part, and how (test_the_graph_and_the_batch_cell_agree_epoch_by_epoch):
+# the graph's arm runs in wall-clock time, each stop and resume a control period or two apart
+# from the batch's (more on a loaded machine), so an event that falls within tens of ms of an
+# epoch boundary can land in the neighbouring epoch. Two such events: a program cycle's
+# completion counted an epoch apart (seed 0's first task ends within tens of ms of the 9/10
+# boundary: the graph counts it in 10, the batch in 10 or 11), and a distance level read at a
+# boundary where the separation lies within EDGE m of a safety radius (CI with two test
+# workers at load 13-16: d 2 against 1 at epoch 7, measured 2026-12-06). Any other difference,
+# or any before MIN_AGREE epochs, fails. 20 epochs agreed on a quiet machine before the
+# monitor took the sensors' clock skew as data age.
+MIN_AGREE = 4            # the person's first work, the arm's first program, a handover asked
+EDGE = 0.05              # m: 50 ms of a 1 m/s arm or person
 # The arm's path (docs/ROBOT.md): the two runs visit the same configurations in the same order,
 # PATH_TOLERANCE rad on every joint at most, each run at most PATH_SHIFT s ahead of the other
 # (a monotone alignment, path_gap). The graph's arm runs in wall-clock time and each protective
@@ -174,12 +180,19 @@ def test_the_graph_and_the_batch_cell_agree_epoch_by_epoch(run, batch):
     assert proc.returncode == 0
     graph, cell = graph_epochs(out), batch_epochs(batch)
     k = parting_epoch(out, batch)
-    assert k > AGREE_EPOCHS, (k, graph[k - 1], cell[k - 1])
-    # where they part (if they do): one run's task state is the other's next epoch's (the
-    # action and answer then follow each run's own state)
+    assert k > MIN_AGREE, (k, graph[k - 1], cell[k - 1])
+    if k > EPOCHS:
+        return
+    # where they part: one run's task state is the other's next epoch's (the action and
+    # answer then follow each run's own state), or the same task state with d read at a
+    # boundary within EDGE of a safety radius
     g, b = [e[2] for e in graph[k - 1:k + 1]], [e[2] for e in cell[k - 1:k + 1]]
-    assert k > EPOCHS or g[0] == b[1] or b[0] == g[1], \
-        (k, g, b)
+    radii = GRAPH_SETTINGS.safety_radii
+    edge = min(abs(batch.separations[k - 1] - r) for r in radii)
+    shifted = g[0] == b[1] or b[0] == g[1]
+    borderline = g[0] == b[0] and graph[k - 1][3][0] != cell[k - 1][3][0] and edge <= EDGE
+    assert shifted or borderline, (k, graph[k - 1], cell[k - 1],
+                                   f'S {batch.separations[k - 1]:.3f} m')
     assert batch.tasks_completed == 3
 
 
@@ -253,11 +266,10 @@ def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, batch):
     ros_q = np.array([q for _, q in ros])
     batch_t = np.array([t for t, _ in batch.arm_path])
     batch_q = np.array([q for _, q in batch.arm_path])
-    # the first AGREE_EPOCHS epochs, where the runs are one episode: the graph's arm runs in
+    # up to where the runs part (they are one episode until then): the graph's arm runs in
     # wall-clock time, each protective stop and resume shifting it by a few tens of ms against
-    # the batch, so later the shifts add up past PATH_SHIFT (0.11 rad at 22 s, measured) and,
-    # near an epoch's end, move a cycle's completion into the next epoch
-    until = min(ros_t.max(), AGREE_EPOCHS, parting_epoch(out, batch) - 1.0)
+    # the batch (path_gap's alignment takes that)
+    until = min(ros_t.max(), parting_epoch(out, batch) - 1.0)
     keep = ros_t <= until
     ros_t, ros_q = ros_t[keep], ros_q[keep]
     inside = batch_t <= until
