@@ -393,3 +393,25 @@ def test_the_check_against_the_true_body_counts_what_the_arm_did_near_the_person
     mid = ssm_check([(base + 10 * MS, base + 10 * MS, q, qd)], walk, [], description, arm)
     assert mid['min_separation_moving_m'] == pytest.approx(
         arm.distance(q, body_capsules(person(2.0), K4ABT_JOINTS)), abs=1e-9)
+
+
+def test_an_arm_at_rest_when_a_person_appears_counts_in_the_appearance_until_they_are_seen():
+    """bench/ssm_scenarios.py's appear episode 135 (seed 0, 15 epochs): the arm happened to
+    stand when the person appeared and started again 60 ms later, before the frame showing them
+    reached the bridge. Those samples are the appearance exception's (no monitor sees a person
+    sooner than its sensor), not ordinary violations: the window closed at the first rest."""
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.paths import arm_config_path
+    from hrc_ros.core.robot.cell import ArmCell, person_seed
+    from hrc_ros.core.study.evaluation import episodes_of
+    config = load_config(arm_config_path())
+    model = HRCModel(config)
+    cell = ArmCell(model, load_policy(default_policy_path(config), config), person='appear')
+    scenarios, seeds = episodes_of(model, 'random', 136, 15, 0, 0.5)
+    result = cell.episode(scenarios[135], seeds[135], person_seed(0, 135), 'ssm_only')
+    assert result.ssm_violations == 0 and result.contacts == 0
+    assert result.appearance_violations > 0          # the arm moved by them, unseen
+    assert result.rest_after_event > 0.06            # at rest after their frame arrived
+    assert result.stop_delay == 0.0                  # stopped in the tick their frame came

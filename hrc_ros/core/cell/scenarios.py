@@ -115,6 +115,8 @@ class Scene:
         truth = self.bodies()
         return truth + self.rng.normal(0.0, TRACKER_NOISE, truth.shape)
 
+    appears = False       # a person appears in this scene (the appearance exception)
+
     @property
     def appeared(self) -> float | None:
         """When a person appeared inside the cell (the `appear` scene), else None."""
@@ -171,6 +173,7 @@ class Appear(Scene):
     """appear (module docstring): today's person, and a second one who appears by the arm."""
 
     name = 'appear'
+    appears = True
 
     def __init__(self, band: int, seed, **kwargs):
         super().__init__(band, seed, **kwargs)

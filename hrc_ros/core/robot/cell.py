@@ -355,7 +355,11 @@ class ArmCell:
                         out.contacts += 1
                     if arm.link_speed(follower.q, follower.qd) > bound + SPEED_SLACK:
                         out.speed_breaches += 1
-                elif t >= out.event and math.isnan(out.rest_after_event):
+                elif t >= out.event and math.isnan(out.rest_after_event) \
+                        and (not scene.appears or appeared_frame is not None):
+                    # at rest after the event; for an appeared person, after their first
+                    # frame reached the bridge (an arm at rest when they appear may start
+                    # again before the sensor shows them: no monitor sees them sooner)
                     out.rest_after_event = t - out.event
                     appearance_open = False
                 bridge.joint_state(names, follower.q, follower.qd, now, now)
