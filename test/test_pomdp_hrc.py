@@ -45,20 +45,24 @@ def reduced_solution(reduced):
 @pytest.mark.parametrize('config', ['default', 'arm'])
 def test_successors_are_the_rule_by_rule_transition(config, reduced, reduced_hrc):
     """P(x' | x, h, a) of the POMDP equals the model's explicit transition summed over h';
-    with the arm's model too (dp, dm pause the robot's counter, a retreat gains no band)."""
+    with the arm's model too (dp, dm pause the robot's counter, a retreat and a move closer
+    gain no band, the queue of MODEL.md 8.1: columns l * n_task * 4 + y * 4 + d)."""
     if config != 'default':
         reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
         reduced_hrc = hrc_pomdp(reduced)
     hrc, pomdp = reduced_hrc, reduced_hrc.pomdp
     rng = np.random.default_rng(4)
     n_columns = reduced.n_task * N_DISTANCE
+    all_columns = reduced.n_levels * n_columns
     for i in rng.choice(pomdp.n_x, size=60, replace=False):
+        level, within = divmod(int(hrc.columns[i]), n_columns)
         for h in (0, 4, 8):
             for a in range(len(ACTIONS)):
-                t = reduced.transition([h * n_columns + hrc.columns[i]], a)
-                column = t.target % n_columns
-                expected = np.bincount(column, weights=t.probability, minlength=n_columns)
-                got = np.zeros(n_columns)
+                t = reduced.transition([level * reduced.n_base + h * n_columns + within], a)
+                level_next, base = divmod(t.target, reduced.n_base)
+                column = level_next * n_columns + base % n_columns
+                expected = np.bincount(column, weights=t.probability, minlength=all_columns)
+                got = np.zeros(all_columns)
                 for k in range(pomdp.succ_x.shape[2]):
                     if pomdp.succ_x[i, a, k] >= 0:
                         got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]

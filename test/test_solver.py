@@ -33,7 +33,18 @@ def explicit_q(model, value, matrices):
     return q
 
 
-@pytest.mark.parametrize('config', ['default', 'arm'])
+def test_factored_q_equals_rule_by_rule_q_on_the_reduced_arm_model():
+    """The arm's model as shipped (its pauses, reach, approach, queue), reduced: the factored
+    Q against the rule-by-rule one on every state with a committed task and a sample."""
+    model = HRCModel(load_config(shipped_config_path('arm'), overrides=REDUCED))
+    rng = np.random.default_rng(7)
+    value = rng.normal(size=model.n_states) * 20
+    sample = rng.choice(model.n_states, size=3000, replace=False)
+    np.testing.assert_allclose(FactoredBellman(model).q(value)[:, sample].T,
+                               rule_q(model, value, sample), atol=1e-10)
+
+
+@pytest.mark.parametrize('config', ['default'])
 def test_factored_q_equals_explicit_sparse_on_reduced_model(config):
     reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
     matrices = reduced.sparse_matrices()

@@ -14,7 +14,10 @@ Sections:
   paper's model; [dn, dp, dm]: the cell with an arm, where a retreat or a move to the
   collaboration pose stops the task's program, docs/ROBOT.md), and optionally `retreat_reach`:
   the band below which a retreat (dp) gains one (MODEL.md 3.3; absent or null: every band; 1:
-  the cell with an arm, where a retreat gains none, config/arm.yaml);
+  the cell with an arm, where a retreat gains none, config/arm.yaml), and optionally
+  `approach_reach`: the band above which a move closer (dm) gains one, without the paper's
+  floor at band 1 (MODEL.md 3.3; absent or null: the paper's rule; 3: the cell with an arm,
+  where a move to the collaboration pose gains none, config/arm.yaml);
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
 - `solver`: gamma, eta, sweeps (null = run to eta, at most MAX_SWEEPS; an integer = the paper's
   fixed sweep count, at most MAX_SWEEPS),
@@ -60,7 +63,7 @@ BELIEF_MODES = ('table', 'bayes', 'posterior')
 _SCHEMA: dict[str, dict[str, str]] = {
     'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
               'p_delta': 'rows[3x3]', 'emotion': 'chains', 'robot_paused_by': 'paused',
-              'retreat_reach': 'reach|null'},
+              'retreat_reach': 'reach|null', 'approach_reach': 'approach|null'},
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
     'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
@@ -77,14 +80,15 @@ MAX_QUEUE = 4
 # Keys that may be left out (they then read as null).
 _OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'),
              ('model', 'robot_paused_by'), ('model', 'retreat_reach'), ('stream', 'queue'),
+             ('model', 'approach_reach'),
              # required by one form of the stream, refused by the other (`_check_stream_form`)
              *(('stream', k) for k in STREAM_PLAIN_KEYS + STREAM_QUEUE_KEYS)}
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
 PAUSED_MAY = ('dp', 'dm')
 # the optional model keys of the cell with an arm (docs/ROBOT.md 4); belief_hash keeps only
-# retreat_reach (the posterior filter's distance move), and only when it is set
-CELL_KEYS = ('robot_paused_by', 'retreat_reach')
+# retreat_reach and approach_reach (the posterior filter's distance move), and only when set
+CELL_KEYS = ('robot_paused_by', 'retreat_reach', 'approach_reach')
 # Sections that may be left out (then absent from the validated data).
 _OPTIONAL_SECTIONS = {'stream'}
 
@@ -140,6 +144,13 @@ class Config:
     def retreat_reach(self) -> int | None:
         """The band below which dp gains one band (MODEL.md 3.3); None: every band."""
         value = self.data['model'].get('retreat_reach')
+        return None if value is None else int(value)
+
+    @property
+    def approach_reach(self) -> int | None:
+        """The band above which dm gains one band, without the paper's floor at band 1
+        (MODEL.md 3.3); None: the paper's rule d' = max(1, d - 1 - Delta)."""
+        value = self.data['model'].get('approach_reach')
         return None if value is None else int(value)
 
     @property
@@ -266,6 +277,8 @@ class Config:
             model['robot_paused_by'] = list(self.robot_paused_by)
         if self.retreat_reach is not None:
             model['retreat_reach'] = self.retreat_reach
+        if self.approach_reach is not None:
+            model['approach_reach'] = self.approach_reach
         return model
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
@@ -546,6 +559,15 @@ def _check(name: str, kind: str, value: Any) -> Any:
             raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
                               f'or 1 or 2 (the band it cannot retreat beyond), got '
                               f'{quote(value)}')
+        return int(value)
+    if kind == 'approach|null':
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+                or value not in (1, 2, 3):
+            raise ConfigError(f'{name} must be null (the paper\'s rule: dm gains a band, never '
+                              f'below band 1) or 1, 2 or 3 (the band above which dm gains one; '
+                              f'3: none), got {quote(value)}')
         return int(value)
     if kind == 'paused':
         if value is None:      # as left out: [dn], the paper's model (as retreat_reach: null)

@@ -29,7 +29,9 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
    An uncommitted task waits unchanged.
 3. Distance: Delta in {-1, 0, +1} drawn from ``p_delta[ea]``; dp: ``min(3, d+1-Delta)``,
    dm: ``max(1, d-1-Delta)``, otherwise ``min(3, max(0, d-Delta))``. With the configuration's
-   ``model.retreat_reach`` r, dp gains the band only from d < r: ``min(3, d+[d<r]-Delta)``.
+   ``model.retreat_reach`` r, dp gains the band only from d < r: ``min(3, d+[d<r]-Delta)``;
+   with its ``model.approach_reach`` c, dm gains the band only from d > c and has no floor:
+   ``min(3, max(0, d-[d>c]-Delta))`` (c = 3: dm moves the distance as nw does).
 4. Emotions: em and ea each follow a bounded (down, stay, up) chain chosen by the action's
    group (base, motivate = mh, request = rh1/rh2); the 9x9 matrix is their Kronecker product.
 
@@ -141,15 +143,21 @@ def chain_matrix(down: float, stay: float, up: float) -> np.ndarray:
     return m
 
 
-def next_distance(d, action: int, delta, reach=None):
+def next_distance(d, action: int, delta, reach=None, approach=None):
     """MODEL.md 3.3 (works on scalars and arrays). `reach` (the configuration's
     ``model.retreat_reach``, `HRCModel.retreat_reach`): a retreat gains a band only from a
-    band below it; None, the model's rule, from every band."""
+    band below it; None, the model's rule, from every band. `approach` (``model.approach_reach``,
+    `HRCModel.approach_reach`): a move closer gains a band only from a band above it, and the
+    paper's floor at band 1 goes (what keeps the person out of band 0 is not the robot's
+    move: docs/ROBOT.md 4); None, the model's rule ``max(1, d - 1 - Delta)``."""
     if action == DP:
         gain = 1 if reach is None else (np.asarray(d) < reach).astype(np.int64)
         return np.minimum(3, d + gain - delta)
     if action == DM:
-        return np.maximum(1, d - 1 - delta)
+        if approach is None:
+            return np.maximum(1, d - 1 - delta)
+        gain = (np.asarray(d) > approach).astype(np.int64)
+        return np.minimum(3, np.maximum(0, d - gain - delta))
     return np.minimum(3, np.maximum(0, d - delta))
 
 
@@ -287,10 +295,13 @@ class HRCModel:
         self.paused = tuple(ACTION_INDEX[a] for a in config.robot_paused_by)
         # the band below which a retreat gains one (MODEL.md 3.3; None: every band)
         self.retreat_reach = config.retreat_reach
+        # the band above which a move closer gains one (MODEL.md 3.3; None: the paper's rule)
+        self.approach_reach = config.approach_reach
 
     def next_distance(self, d, action: int, delta):
-        """`next_distance` with this model's retreat (`retreat_reach`)."""
-        return next_distance(d, action, delta, self.retreat_reach)
+        """`next_distance` with this model's retreat and approach (`retreat_reach`,
+        `approach_reach`)."""
+        return next_distance(d, action, delta, self.retreat_reach, self.approach_reach)
 
     def step_task(self, task: dict, action: int, accepted, robot_runs=None) -> dict:
         """`step_task` with this model's rule for the robot's counter (`paused`)."""

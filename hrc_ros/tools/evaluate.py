@@ -126,10 +126,6 @@ def evaluate_arm_cell(args, parser) -> int:
         args.config = str(arm_config_path())
     try:
         config, model, policy = load_model(args)
-        if config.queue is not None:
-            raise ToolError(f'{config.source}: --cell arm does not observe the tasks waiting '
-                            '(stream.queue, MODEL.md 8.1) yet: leave out stream.queue, or run '
-                            'the model\'s cell (no --cell arm)')
         pomdp = load_pomdp(args, config, selectors)
         out = output_folder(args.out)
     except ToolError as exc:

@@ -249,18 +249,21 @@ def _queue_branches(queue, ys: np.ndarray, level: int, branches: list) -> tuple[
     return levels, out
 
 
-def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
-    """The MixedPOMDP of `model` over the closure of the task states the task book produces:
-    the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
-    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
-    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
-    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
-    expected drop charge)."""
+def model_tasks(model: HRCModel) -> np.ndarray:
+    """Every task (tp, tc, tx) of the model, (K, 3)."""
+    return np.array([(tp, tc, tx) for tp in range(1, model.rho + 1)
+                     for tc in range(1, model.sigma + 1) for tx in range(4)])
+
+
+def task_closure(model: HRCModel, operator: FactoredBellman | None = None) -> np.ndarray:
+    """The task states y the task book can produce, ascending: the idle cell, every task
+    entering an idle cell, and the closure under every action and answer (149 of the 11,664
+    at full size). The POMDP's solved states and the liveness check (`mdp.liveness`) read
+    them."""
     op = operator or FactoredBellman(model)
     outcomes = _task_outcomes(op)
     grid = model.task_grid
-    tasks = np.array([(tp, tc, tx) for tp in range(1, model.rho + 1)
-                      for tc in range(1, model.sigma + 1) for tx in range(4)])
+    tasks = model_tasks(model)
     idle_y = entering_task(model, np.array([0]), 0, 0, 0)[0]    # tp = 0 everywhere: y = 0
     reach = np.zeros(model.n_task, dtype=bool)
     reach[idle_y] = True
@@ -274,7 +277,21 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
         reach[np.concatenate(nxt)] = True
         if int(reach.sum()) == before:
             break
-    ys = np.flatnonzero(reach)
+    return np.flatnonzero(reach)
+
+
+def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
+    """The MixedPOMDP of `model` over the closure of the task states the task book produces:
+    the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
+    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
+    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
+    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
+    expected drop charge)."""
+    op = operator or FactoredBellman(model)
+    outcomes = _task_outcomes(op)
+    grid = model.task_grid
+    tasks = model_tasks(model)
+    ys = task_closure(model, op)
     n_y = ys.size
     y_index = np.full(model.n_task, -1, dtype=np.intp)
     y_index[ys] = np.arange(n_y)

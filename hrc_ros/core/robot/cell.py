@@ -184,10 +184,6 @@ class ArmCell:
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
                  pomdp=None, description=None, programs=None,
                  settings: ArmCellSettings | None = None):
-        if model.queue is not None:
-            raise ValueError(f'{model.config.source}: the cell with the arm does not observe '
-                             'the tasks waiting (stream.queue, MODEL.md 8.1) yet: leave out '
-                             'stream.queue, or evaluate it in the model\'s cell')
         self.model = model
         self.policy, self.value = policy_arrays(policy, value)
         self.pomdp = pomdp
@@ -206,13 +202,16 @@ class ArmCell:
                                                       method=selector, pomdp=self.pomdp)
         return self._choosers[selector]
 
-    def _decide(self, selector: str, belief, x, hidden) -> int:
+    def _decide(self, selector: str, belief, x, hidden, level: int = 0) -> int:
+        """The epoch's action; `level` the tasks waiting as the robot observes them, l =
+        min(waiting, L) (MODEL.md 8.1, read only by a model with a queue)."""
         if selector == 'ssm_only':
             return ssm_only_action(dict(zip(TASK_VARIABLES, x[:-1])))
         if selector == 'mdp':
-            action = int(self.policy[self.model.index(hidden + x)])
+            action = int(self.policy[level * self.model.n_base + self.model.index(hidden + x)])
         else:
-            action = int(self._chooser(selector).select(belief, x).action)
+            seen = x if self.model.queue is None else x + (level,)
+            action = int(self._chooser(selector).select(belief, seen).action)
         return DN if x[-1] == 0 else action
 
     def episode(self, scenario, human_seed, person_seed, selector: str = 'paper',
@@ -259,7 +258,8 @@ class ArmCell:
             boundary = arm.distance(follower.q, held)
             d = level_of_distance(boundary, cfg.safety_radii)
             x = book.observable(d)
-            action = self._decide(selector, belief, x, (human.em, human.ea))
+            level = 0 if model.queue is None else min(len(book.queue), model.queue_length)
+            action = self._decide(selector, belief, x, (human.em, human.ea), level)
             task_before = book.state
             reaction = human.react(action, task_before)
             person.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)
