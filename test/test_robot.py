@@ -610,6 +610,20 @@ def test_ssm_only_works_and_hands_the_persons_tasks_by_the_work_plan():
     assert ssm_only_action(task(1, 0, 2)) == NW and ssm_only_action(task(0, 0, 0)) == NW
 
 
+def test_the_integrators_rule_hands_either_agent_tasks_to_the_person():
+    """The second baseline (docs/ROBOT.md 4): ssm_only's work plan, except that a task either
+    agent can do goes to the person; outside the decision layer, selectable in the batch."""
+    from hrc_ros.core.robot.cell import (BASELINES, CELL_SELECTORS, integrator_action,
+                                         ssm_only_action)
+    from hrc_ros.core.decision.selection import SELECTORS
+    assert integrator_action(dict(tp=2, tx=2, ty=0)) == RH1
+    for tp, tx, ty in ((1, 0, 0), (1, 1, 0), (1, 3, 0), (1, 2, 2), (1, 2, 1), (0, 0, 0)):
+        task = dict(tp=tp, tx=tx, ty=ty)
+        assert integrator_action(task) == ssm_only_action(task)
+    assert 'integrator' in CELL_SELECTORS and 'integrator' in BASELINES
+    assert 'integrator' not in SELECTORS
+
+
 @pytest.fixture(scope='module')
 def cell(model, policy):
     from hrc_ros.core.robot.cell import ArmCell

@@ -10,6 +10,8 @@ With `--cell arm` the episodes run in the cell with the arm (core.robot.cell: th
 the MuJoCo UR5e, the person walking around it) and the table is in physical units: tasks per
 hour, idle and protective-stop time, the minimum separation, SSM violations, refused requests,
 with every selector's paired differences to the baseline (ssm_only, SSM alone, by default).
+Besides the decision layer's selectors it runs the two baselines outside it: ssm_only and
+integrator (an integrator's rule on top of SSM, docs/ROBOT.md 4).
 Without `--config` it plans with the arm's model, `config/arm.yaml` (the robot's counter paused
 under dp and dm, MODEL.md 3.2), and its shipped policy.
 
@@ -201,8 +203,8 @@ def main(argv=None) -> int:
                              'default 0.2, with --cell arm 0.5: a queue that keeps the cell busy)')
     parser.add_argument('--selectors', default=None,
                         help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS)
-                             + ' (default paper,qmdp,mls,mdp); with --cell arm also ssm_only '
-                             '(default ssm_only,paper,qmdp)')
+                             + ' (default paper,qmdp,mls,mdp); with --cell arm also the '
+                             'baselines ssm_only and integrator (default ssm_only,paper,qmdp)')
     parser.add_argument('--baseline', default=None,
                         help='also print every selector\'s paired cost difference to this one '
                              '(one of --selectors), with 95%% intervals')
