@@ -30,12 +30,14 @@ def write_config(tmp_path, mutate):
 def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     """config/arm.yaml (docs/ROBOT.md 4): model keys more than the default (the robot paused
     under dp and dm, a retreat and a move closer that gain no band) and a queue (issue 34's
-    liveness); each key's default and the key left out are one model, one hash."""
+    liveness); each key's default and the key left out are one model, one hash, and so is
+    model.robot_rate (MODEL.md 3.2, which arm.yaml leaves out: docs/ROBOT.md 4)."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
     assert default.retreat_reach is None and arm.retreat_reach == 1
     assert default.approach_reach is None and arm.approach_reach == 3
-    cell_keys = ('robot_paused_by', 'retreat_reach', 'approach_reach')
+    assert default.robot_rate is None and arm.robot_rate is None     # optional, not shipped on
+    cell_keys = ('robot_paused_by', 'retreat_reach', 'approach_reach', 'robot_rate')
     assert {k: v for k, v in arm.data['model'].items()
             if k not in cell_keys} == default.data['model']
     assert arm.queue == 2 and 'stream' not in default.data
@@ -43,8 +45,14 @@ def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
         {k: default.data[k] for k in default.data if k != 'model'}
     assert arm.policy_hash != default.policy_hash
     explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None,
-                                               'approach_reach': None}})
+                                               'approach_reach': None, 'robot_rate': None}})
     assert explicit.policy_hash == default.policy_hash
+    rated = load_config(DEFAULT, {'model': {'robot_rate': {3: [0, 0.1, 0.5, 1]}}})
+    assert rated.policy_hash != default.policy_hash           # the counter's rule: the policy's
+    assert rated.belief_hash == default.belief_hash           # no evidence about the person
+    assert rated.robot_rate[3].tolist() == [0, 0.1, 0.5, 1] and rated.robot_rate[1].min() == 1
+    as_json = load_config(DEFAULT, {'model': {'robot_rate': {'3': [0, 0.1, 0.5, 1]}}})
+    assert as_json.policy_hash == rated.policy_hash           # a policy meta's JSON keys
     approach = load_config(DEFAULT, {'model': {'approach_reach': 3}})
     assert approach.policy_hash != default.policy_hash
     assert approach.belief_hash != default.belief_hash     # the posterior reads the move
@@ -125,6 +133,12 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['model'].__setitem__('retreat_reach', 1.0), r'model\.retreat_reach must be'),
     (lambda d: d['model'].__setitem__('approach_reach', 0), r'model\.approach_reach must be'),
     (lambda d: d['model'].__setitem__('approach_reach', 4), r'model\.approach_reach must be'),
+    (lambda d: d['model'].__setitem__('robot_rate', {1: [1, 1, 1, 1]}),
+     r'model\.robot_rate: 1 is no task nature with a robot share'),
+    (lambda d: d['model'].__setitem__('robot_rate', {0: [1, 1, 1]}), r'model\.robot_rate\[0\]'),
+    (lambda d: d['model'].__setitem__('robot_rate', {0: [1, 1, 1.5, 1]}),
+     r'model\.robot_rate\[0\]\[2\]'),
+    (lambda d: d['model'].__setitem__('robot_rate', [1, 1, 1, 1]), r'model\.robot_rate must be'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):

@@ -23,7 +23,9 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
    (``tp > 0, ty = 0, tx in {0, 2}``) ``ty'=2, bp'=tp, bc'=tc``. Otherwise counters count
    down (``hc' = max(0, hc-1)``, ``hp' = hp if hc != 0 else 0``, the same for the robot),
    except that under dn the robot is paused (``bc' = bc``), and under dp and dm too where
-   the configuration's ``model.robot_paused_by`` says so (the cell with an arm, MODEL.md 3.2).
+   the configuration's ``model.robot_paused_by`` says so (the cell with an arm, MODEL.md 3.2);
+   with its ``model.robot_rate`` the counter of a robot that works runs down only with
+   probability rate[tx, d] (an event of its own, `task_steps`).
    A committed task whose committed agents' counters are all 0 is complete and resets
    ``tp = tc = tx = ty = 0``; otherwise ``tc'`` is the largest committed counter.
    An uncommitted task waits unchanged.
@@ -297,6 +299,9 @@ class HRCModel:
         self.retreat_reach = config.retreat_reach
         # the band above which a move closer gains one (MODEL.md 3.3; None: the paper's rule)
         self.approach_reach = config.approach_reach
+        # P(the robot's counter runs down in an epoch it works) by (tx, d) (MODEL.md 3.2;
+        # None: 1, the paper's deterministic rule)
+        self.robot_rate = config.robot_rate
 
     def next_distance(self, d, action: int, delta):
         """`next_distance` with this model's retreat and approach (`retreat_reach`,
@@ -306,6 +311,24 @@ class HRCModel:
     def step_task(self, task: dict, action: int, accepted, robot_runs=None) -> dict:
         """`step_task` with this model's rule for the robot's counter (`paused`)."""
         return step_task(task, action, accepted, robot_runs, self.paused)
+
+    def run_probability(self, action: int, tx, d):
+        """P(the robot's counter runs down this epoch | it works) of `action` at the tasks'
+        natures `tx` and bands `d` (MODEL.md 3.2, `robot_rate`); None where the step has no
+        such event: no rate, or an action that pauses the robot."""
+        if self.robot_rate is None or action in self.paused:
+            return None
+        return self.robot_rate[np.asarray(tx), np.asarray(d)]
+
+    def task_steps(self, task: dict, action: int, accepted, d) -> list:
+        """[(the next task variables, their probability)] of one acceptance branch: the task
+        step, split by whether the robot's counter runs (`run_probability`; one step of
+        probability 1 without that event)."""
+        rate = self.run_probability(action, task['tx'], d)
+        if rate is None:
+            return [(self.step_task(task, action, accepted), 1.0)]
+        return [(self.step_task(task, action, accepted, True), rate),
+                (self.step_task(task, action, accepted, False), 1.0 - rate)]
 
     # -- indexing ------------------------------------------------------------------------
     def index(self, state) -> int | np.ndarray:
@@ -510,8 +533,9 @@ class HRCModel:
         p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
         out = []
         arrivals = self.arrivals
-        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
-            nxt = self.step_task(task, action, accepted)
+        steps = [(nxt, p_a * p_run) for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc))
+                 for nxt, p_run in self.task_steps(task, action, accepted, s[:, 10])]
+        for nxt, p_a in steps:
             y_step = self.task_index(nxt)
             branches = [(y_step, p_a)]
             if arrivals is not None:    # MODEL.md 8: a task may enter the cell left idle
@@ -559,8 +583,9 @@ class HRCModel:
         p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
         p_release = np.where(task['tp'] > 0, arr.p_complete, arr.p_idle)
         branches, dropped = [], np.zeros(len(sources))
-        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
-            nxt = self.step_task(task, action, accepted)
+        steps = [(nxt, p_a * p_run) for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc))
+                 for nxt, p_run in self.task_steps(task, action, accepted, s[:, 10])]
+        for nxt, p_a in steps:
             y_step = np.asarray(self.task_index(nxt), dtype=np.intp)
             idle = nxt['tp'] == 0
             for released, p_r in ((1, p_release), (0, 1.0 - p_release)):

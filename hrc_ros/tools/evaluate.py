@@ -52,8 +52,8 @@ from ..core.paths import arm_config_path, write_text, written
 from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
-                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, command,
-                     fail, load_model, load_pomdp, output_folder)
+                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int,
+                     check_cell, command, fail, load_model, load_pomdp, output_folder)
 
 
 def write_summary_csv(path, summaries: dict, metrics) -> None:
@@ -255,6 +255,7 @@ def main(argv=None) -> int:
         world = true_policy = None
         if args.true_config:
             world, true_policy = load_world(args.true_config, args.true_policy, model)
+        check_cell(world or model)
         out = output_folder(args.out)
     except ToolError as exc:
         return fail('hrc-evaluate', exc)
