@@ -736,7 +736,8 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
     assert '3 episodes x 6 epochs of 1 s' in out and 'real time on one core' in out
     table = out.split('paired differences')[0]
     rows = [line.split()[0] for line in table.splitlines() if '±' in line]
-    assert rows == ['ssm_only', 'paper', 'qmdp']
+    # the baseline first, the cell's default decision (paper) next, the integrator's rule too
+    assert rows == ['ssm_only', 'paper', 'qmdp', 'integrator']
     assert 'paired differences to ssm_only' in out
     summary = json.loads((tmp_path / 'summary.json').read_text())
     assert summary['baseline'] == 'ssm_only' and summary['settings']['cell'] == 'arm'
@@ -745,7 +746,7 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
     assert Path(summary['settings']['policy']).name == 'arm.npz'
     assert all(v['ssm_violations']['mean'] == 0 for v in summary['selectors'].values())
     with (tmp_path / 'episodes.csv').open() as f:
-        assert len(list(csv.DictReader(f))) == 9
+        assert len(list(csv.DictReader(f))) == 12
     for argv, message in ((['--true-config', 'x.yaml'], '--true-config is for'),
                           (['--selectors', 'ssm_only,best'], "unknown selector 'best'"),
                           (['--scenario', 'case-study'], 'random task streams'),

@@ -3,7 +3,7 @@
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
                  [--waiting-cost W]
-    hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp]
+    hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp,integrator]
                  [--baseline ssm_only]
 
 With `--cell arm` the episodes run in the cell with the arm (core.robot.cell: the bridge, SSM,
@@ -204,7 +204,8 @@ def main(argv=None) -> int:
     parser.add_argument('--selectors', default=None,
                         help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS)
                              + ' (default paper,qmdp,mls,mdp); with --cell arm also the '
-                             'baselines ssm_only and integrator (default ssm_only,paper,qmdp)')
+                             'baselines ssm_only and integrator (default '
+                             'ssm_only,paper,qmdp,integrator)')
     parser.add_argument('--baseline', default=None,
                         help='also print every selector\'s paired cost difference to this one '
                              '(one of --selectors), with 95%% intervals')

@@ -79,7 +79,7 @@ from .bridge import Bridge, load_programs, load_robot_description
 from .ssm import MOVING_SPEED, ssm_violated
 
 CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS + ('integrator',)
-DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp')
+DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp', 'integrator')
 BASELINES = ('ssm_only', 'integrator')     # rules on top of SSM, outside the decision layer
 METRICS = (
     ('tasks_per_hour', 'tasks per hour'),
