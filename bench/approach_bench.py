@@ -23,7 +23,6 @@ is absent after every action in this cell, so a floor scores for every action al
 from __future__ import annotations
 
 import argparse
-import collections
 import math
 import sys
 import time
@@ -37,8 +36,11 @@ from hrc_ros.core.config import load_config  # noqa: E402
 from hrc_ros.core.mdp.policy import default_policy_path, load_policy  # noqa: E402
 from hrc_ros.core.model import ACTIONS, DELTAS, DM, HRCModel, next_distance  # noqa: E402
 from hrc_ros.core.paths import arm_config_path  # noqa: E402
-from hrc_ros.core.robot.cell import ArmCell, person_seed  # noqa: E402
-from hrc_ros.core.study.evaluation import Z95, episodes_of  # noqa: E402
+from hrc_ros.core.robot.cell import ArmCell  # noqa: E402
+from hrc_ros.core.study.evaluation import Z95  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from retreat_bench import count_moves  # noqa: E402
 
 RULES = {
     'paper (null)': lambda d, delta: int(next_distance(d, DM, delta)),
@@ -70,13 +72,7 @@ def transitions(config_path, episodes: int, epochs: int, seed: int, share: float
     model = HRCModel(config)
     cell = ProbedCell(model, load_policy(default_policy_path(config), config), probe=DM,
                       share=share, seed=seed)
-    scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed, 0.5)
-    counts = collections.Counter()
-    for e, (scenario, human) in enumerate(zip(scenarios, seeds)):
-        ep = cell.episode(scenario, human, person_seed(seed, e), 'paper', record=True)
-        for k in range(len(ep.actions) - 1):
-            counts[(ep.actions[k], ep.distances[k], ep.distances[k + 1])] += 1
-    return model, counts
+    return model, count_moves(cell, model, episodes, epochs, seed)
 
 
 def log_likelihood(model, counts, rule, scored: str = 'dm') -> float:

@@ -38,13 +38,19 @@ def transitions(config_path, episodes: int, epochs: int, seed: int):
     config = load_config(config_path)
     model = HRCModel(config)
     cell = ArmCell(model, load_policy(default_policy_path(config), config))
+    return model, count_moves(cell, model, episodes, epochs, seed)
+
+
+def count_moves(cell, model, episodes: int, epochs: int, seed: int) -> collections.Counter:
+    """(action, d, d') -> epochs, over the cell's seeded random episodes under paper (also
+    bench/approach_bench.py's count)."""
     scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed, 0.5)
     counts = collections.Counter()
     for e, (scenario, human) in enumerate(zip(scenarios, seeds)):
         ep = cell.episode(scenario, human, person_seed(seed, e), 'paper', record=True)
         for k in range(len(ep.actions) - 1):
             counts[(ep.actions[k], ep.distances[k], ep.distances[k + 1])] += 1
-    return model, counts
+    return counts
 
 
 def log_likelihood(model, counts, reach) -> float:

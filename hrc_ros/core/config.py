@@ -458,6 +458,15 @@ def _prob_rows(name: str, value: Any, rows: int, cols: int) -> list[list[float]]
     return out
 
 
+def _band_or_null(name: str, value: Any, bands: tuple, what: str) -> int | None:
+    """A band among `bands`, or None; ConfigError '<name> must be <what>, got ...'."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value not in bands:
+        raise ConfigError(f'{name} must be {what}, got {quote(value)}')
+    return int(value)
+
+
 def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'int>=1':
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -577,23 +586,12 @@ def _check(name: str, kind: str, value: Any) -> Any:
                 out[group][var] = _prob_rows(f'{name}.{group}.{var}', [body[var]], 1, 3)[0]
         return out
     if kind == 'reach|null':
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
-                or value not in (1, 2):
-            raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
-                              f'or 1 or 2 (the band it cannot retreat beyond), got '
-                              f'{quote(value)}')
-        return int(value)
+        return _band_or_null(name, value, (1, 2), 'null (a retreat gains a band from every '
+                             'band) or 1 or 2 (the band it cannot retreat beyond)')
     if kind == 'approach|null':
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
-                or value not in (1, 2, 3):
-            raise ConfigError(f'{name} must be null (the paper\'s rule: dm gains a band, never '
-                              f'below band 1) or 1, 2 or 3 (the band above which dm gains one; '
-                              f'3: none), got {quote(value)}')
-        return int(value)
+        return _band_or_null(name, value, (1, 2, 3), "null (the paper's rule: dm gains a band, "
+                             'never below band 1) or 1, 2 or 3 (the band above which dm gains '
+                             'one; 3: none)')
     if kind == 'rate|null':
         if value is None:
             return None
