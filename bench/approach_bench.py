@@ -40,7 +40,7 @@ from hrc_ros.core.robot.cell import ArmCell  # noqa: E402
 from hrc_ros.core.study.evaluation import Z95  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from retreat_bench import count_moves  # noqa: E402
+from retreat_bench import count_moves, print_moves  # noqa: E402
 
 RULES = {
     'paper (null)': lambda d, delta: int(next_distance(d, DM, delta)),
@@ -107,13 +107,7 @@ def main(argv=None) -> int:
     print(f'{args.episodes} episodes x {args.epochs} epochs of the cell with the arm, seed '
           f'{args.seed}, policy of {args.config}, dm in {args.share:.0%} of the epochs with '
           f'd >= 1 ({time.perf_counter() - t0:.0f} s)')
-    print("action  d   epochs   P(d' = 0, 1, 2, 3)")
-    for action in ACTIONS:
-        for d in range(4):
-            row = [counts[(action, d, e)] for e in range(4)]
-            if sum(row):
-                share = ', '.join(f'{x / sum(row):.3f}' for x in row)
-                print(f'{action:6}  {d}  {sum(row):7}   {share}')
+    print_moves(counts, ACTIONS)
     print('a band closer after dm and after nw (dm - nw, 95%):')
     for d in (1, 2, 3):
         (a, n), (b, m) = closer(counts, 'dm', d), closer(counts, 'nw', d)
