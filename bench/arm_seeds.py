@@ -5,7 +5,7 @@ The batch cell as test/test_robot_case_study.py runs it (`ArmCell` with `GRAPH_S
 case study's scenario, human seed s and person seed [s, 2], the paper selector), with the
 shipped policy of the configuration (default: the arm's model, config/arm.yaml).
 
-    python bench/arm_seeds.py [--seeds 40] [--epochs 20,30,40] [--config C]
+    python bench/arm_seeds.py [--seeds 40] [--epochs 20,30,40] [--config C [--policy P]]
 """
 
 from __future__ import annotations
@@ -31,10 +31,14 @@ def main(argv=None) -> int:
     parser.add_argument('--epochs', default='20,30,40',
                         help='comma-separated run lengths (the longest is simulated)')
     parser.add_argument('--config', default=str(arm_config_path()))
+    parser.add_argument('--policy', default=None,
+                        help="the configuration's MDP policy (default: the shipped one solved "
+                        'for it)')
     args = parser.parse_args(argv)
     lengths = sorted(int(e) for e in args.epochs.split(','))
     config = load_config(args.config)
-    cell = ArmCell(HRCModel(config), load_policy(default_policy_path(config), config),
+    policy = args.policy or default_policy_path(config)
+    cell = ArmCell(HRCModel(config), load_policy(policy, config),
                    settings=GRAPH_SETTINGS)
     study = case_study()
     t0 = time.perf_counter()
@@ -58,7 +62,7 @@ def main(argv=None) -> int:
         count = sum(1 for k in done_by if k is not None and k <= n)
         print(f'  3/3 within {n} epochs: {count} of {args.seeds}')
     print(f'reproduce: python bench/arm_seeds.py --seeds {args.seeds} --epochs {args.epochs} '
-          f'--config {args.config}')
+          f'--config {args.config}' + (f' --policy {args.policy}' if args.policy else ''))
     return 0
 
 

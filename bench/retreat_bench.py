@@ -38,13 +38,30 @@ def transitions(config_path, episodes: int, epochs: int, seed: int):
     config = load_config(config_path)
     model = HRCModel(config)
     cell = ArmCell(model, load_policy(default_policy_path(config), config))
+    return model, count_moves(cell, model, episodes, epochs, seed)
+
+
+def print_moves(counts, actions) -> None:
+    """The table of d' by (action, d) of `count_moves`'s counts (also approach_bench's)."""
+    print("action  d   epochs   P(d' = 0, 1, 2, 3)")
+    for action in actions:
+        for d in range(4):
+            row = [counts[(action, d, e)] for e in range(4)]
+            if sum(row):
+                share = ', '.join(f'{x / sum(row):.3f}' for x in row)
+                print(f'{action:6}  {d}  {sum(row):7}   {share}')
+
+
+def count_moves(cell, model, episodes: int, epochs: int, seed: int) -> collections.Counter:
+    """(action, d, d') -> epochs, over the cell's seeded random episodes under paper (also
+    bench/approach_bench.py's count)."""
     scenarios, seeds = episodes_of(model, 'random', episodes, epochs, seed, 0.5)
     counts = collections.Counter()
     for e, (scenario, human) in enumerate(zip(scenarios, seeds)):
         ep = cell.episode(scenario, human, person_seed(seed, e), 'paper', record=True)
         for k in range(len(ep.actions) - 1):
             counts[(ep.actions[k], ep.distances[k], ep.distances[k + 1])] += 1
-    return model, counts
+    return counts
 
 
 def log_likelihood(model, counts, reach) -> float:
@@ -71,13 +88,7 @@ def main(argv=None) -> int:
     model, counts = transitions(args.config, args.episodes, args.epochs, args.seed)
     print(f'{args.episodes} episodes x {args.epochs} epochs of the cell with the arm, seed '
           f'{args.seed}, policy of {args.config} ({time.perf_counter() - t0:.0f} s)')
-    print("action  d   epochs   P(d' = 0, 1, 2, 3)")
-    for action in ('dp', 'nw', 'ct', 'dn'):
-        for d in range(4):
-            row = [counts[(action, d, e)] for e in range(4)]
-            if sum(row):
-                share = ', '.join(f'{x / sum(row):.3f}' for x in row)
-                print(f'{action:6}  {d}  {sum(row):7}   {share}')
+    print_moves(counts, ('dp', 'nw', 'ct', 'dn'))
     print('log-likelihood of the epochs after dp, by retreat_reach:')
     scores = {reach: log_likelihood(model, counts, reach) for reach in REACHES}
     for reach, score in scores.items():

@@ -28,25 +28,40 @@ def write_config(tmp_path, mutate):
 
 
 def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
-    """config/arm.yaml (docs/ROBOT.md 4): two model keys more than the default (the robot
-    paused under dp and dm, a retreat that gains no band); each key's default and the key left
-    out are one model, one hash."""
+    """config/arm.yaml (docs/ROBOT.md 4): model keys more than the default (the robot paused
+    under dp and dm, a retreat and a move closer that gain no band) and a queue (issue 34's
+    liveness); each key's default and the key left out are one model, one hash, and so is
+    model.robot_rate (MODEL.md 3.2, which arm.yaml leaves out: docs/ROBOT.md 4)."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
     assert default.retreat_reach is None and arm.retreat_reach == 1
+    assert default.approach_reach is None and arm.approach_reach == 3
+    assert default.robot_rate is None and arm.robot_rate is None     # optional, not shipped on
+    cell_keys = ('robot_paused_by', 'retreat_reach', 'approach_reach', 'robot_rate')
     assert {k: v for k, v in arm.data['model'].items()
-            if k not in ('robot_paused_by', 'retreat_reach')} == default.data['model']
-    assert {k: arm.data[k] for k in arm.data if k != 'model'} == \
+            if k not in cell_keys} == default.data['model']
+    assert arm.queue == 2 and 'stream' not in default.data
+    assert {k: arm.data[k] for k in arm.data if k not in ('model', 'stream')} == \
         {k: default.data[k] for k in default.data if k != 'model'}
     assert arm.policy_hash != default.policy_hash
-    explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None}})
+    explicit = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn'], 'retreat_reach': None,
+                                               'approach_reach': None, 'robot_rate': None}})
     assert explicit.policy_hash == default.policy_hash
+    rated = load_config(DEFAULT, {'model': {'robot_rate': {3: [0, 0.1, 0.5, 1]}}})
+    assert rated.policy_hash != default.policy_hash           # the counter's rule: the policy's
+    assert rated.belief_hash == default.belief_hash           # no evidence about the person
+    assert rated.robot_rate[3].tolist() == [0, 0.1, 0.5, 1] and rated.robot_rate[1].min() == 1
+    as_json = load_config(DEFAULT, {'model': {'robot_rate': {'3': [0, 0.1, 0.5, 1]}}})
+    assert as_json.policy_hash == rated.policy_hash           # a policy meta's JSON keys
+    approach = load_config(DEFAULT, {'model': {'approach_reach': 3}})
+    assert approach.policy_hash != default.policy_hash
+    assert approach.belief_hash != default.belief_hash     # the posterior reads the move
     null = load_config(DEFAULT, {'model': {'robot_paused_by': None}})
     assert null.robot_paused_by == ('dn',) and null.policy_hash == default.policy_hash
     reach = load_config(DEFAULT, {'model': {'retreat_reach': 2}})
     assert reach.policy_hash not in (default.policy_hash, arm.policy_hash)
-    reordered = load_config(DEFAULT, {'model': {'robot_paused_by': ['dm', 'dn', 'dp'],
-                                                'retreat_reach': 1}})
+    reordered = load_config(shipped_config_path('arm'),
+                            {'model': {'robot_paused_by': ['dm', 'dn', 'dp']}})
     assert reordered.policy_hash == arm.policy_hash
 
 
@@ -68,7 +83,8 @@ def test_the_belief_hash_tells_apart_what_the_posterior_filter_reads_of_the_arms
         beliefs.append(belief_filter.update(np.full(9, 1 / 9), DP, 2, evidence))
     assert np.abs(beliefs[0] - beliefs[1]).max() > 0.01
     assert reach.belief_hash != default.belief_hash
-    assert load_config(shipped_config_path('arm')).belief_hash == reach.belief_hash
+    assert load_config(shipped_config_path('arm')).belief_hash == load_config(
+        DEFAULT, {'model': {'retreat_reach': 1, 'approach_reach': 3}}).belief_hash
     assert load_config(DEFAULT, {'model': {'retreat_reach': None}}).belief_hash == \
         default.belief_hash
     paused = load_config(DEFAULT, {'model': {'robot_paused_by': ['dn', 'dp', 'dm']}})
@@ -115,6 +131,14 @@ def test_shipped_configs_load_and_differ_only_in_alpha10():
     (lambda d: d['model'].__setitem__('retreat_reach', True), r'model\.retreat_reach must be'),
     # an integer key, as rho and sigma: 1.0 is not one
     (lambda d: d['model'].__setitem__('retreat_reach', 1.0), r'model\.retreat_reach must be'),
+    (lambda d: d['model'].__setitem__('approach_reach', 0), r'model\.approach_reach must be'),
+    (lambda d: d['model'].__setitem__('approach_reach', 4), r'model\.approach_reach must be'),
+    (lambda d: d['model'].__setitem__('robot_rate', {1: [1, 1, 1, 1]}),
+     r'model\.robot_rate: 1 is no task nature with a robot share'),
+    (lambda d: d['model'].__setitem__('robot_rate', {0: [1, 1, 1]}), r'model\.robot_rate\[0\]'),
+    (lambda d: d['model'].__setitem__('robot_rate', {0: [1, 1, 1.5, 1]}),
+     r'model\.robot_rate\[0\]\[2\]'),
+    (lambda d: d['model'].__setitem__('robot_rate', [1, 1, 1, 1]), r'model\.robot_rate must be'),
 ])
 def test_bad_configs_fail_naming_the_field(tmp_path, mutate, field):
     with pytest.raises(ConfigError, match=field):
@@ -138,7 +162,8 @@ def test_shipped_policies_load_and_match_their_configs():
     for name in ('default', 'paper', 'fail_safe_unaware', 'arm'):
         config = load_config(shipped_config_path(name))
         policy = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
-        assert policy.policy.shape == (419_904,) and policy.policy.dtype == np.int8
+        states = 419_904 * (1 if config.queue is None else config.queue + 1)   # arm: a queue
+        assert policy.policy.shape == (states,) and policy.policy.dtype == np.int8
         assert policy.meta['config_sha256'] == config.policy_hash
         assert policy.meta['converged'] and policy.meta['residual'] < 1e-6
     with pytest.raises(PolicyError, match='solved for configuration'):

@@ -42,23 +42,33 @@ def reduced_solution(reduced):
     return solve_pomdp(reduced, episodes=400, per_state=40, rounds=1, seed=3)
 
 
-@pytest.mark.parametrize('config', ['default', 'arm'])
+@pytest.mark.parametrize('config', ['default', 'arm', 'rated'])
 def test_successors_are_the_rule_by_rule_transition(config, reduced, reduced_hrc):
     """P(x' | x, h, a) of the POMDP equals the model's explicit transition summed over h';
-    with the arm's model too (dp, dm pause the robot's counter, a retreat gains no band)."""
-    if config != 'default':
+    with the arm's model too (dp, dm pause the robot's counter, a retreat and a move closer
+    gain no band, the queue of MODEL.md 8.1: columns l * n_task * 4 + y * 4 + d)."""
+    if config == 'arm':
         reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
+        reduced_hrc = hrc_pomdp(reduced)
+    if config == 'rated':     # model.robot_rate: the counter's run is a branch of its own
+        rate = {0: [0.0, 0.1, 0.5, 0.9], 2: [0.2, 0.3, 0.6, 1.0], 3: [0.0, 0.05, 0.4, 0.7]}
+        reduced = HRCModel(load_config(shipped_config_path('arm'), overrides={
+            'model': {**REDUCED['model'], 'robot_rate': rate}}))
         reduced_hrc = hrc_pomdp(reduced)
     hrc, pomdp = reduced_hrc, reduced_hrc.pomdp
     rng = np.random.default_rng(4)
     n_columns = reduced.n_task * N_DISTANCE
-    for i in rng.choice(pomdp.n_x, size=60, replace=False):
+    all_columns = reduced.n_levels * n_columns
+    # (the queue's rule-by-rule transitions are slow: fewer states with it)
+    for i in rng.choice(pomdp.n_x, size=60 if reduced.queue is None else 24, replace=False):
+        level, within = divmod(int(hrc.columns[i]), n_columns)
         for h in (0, 4, 8):
             for a in range(len(ACTIONS)):
-                t = reduced.transition([h * n_columns + hrc.columns[i]], a)
-                column = t.target % n_columns
-                expected = np.bincount(column, weights=t.probability, minlength=n_columns)
-                got = np.zeros(n_columns)
+                t = reduced.transition([level * reduced.n_base + h * n_columns + within], a)
+                level_next, base = divmod(t.target, reduced.n_base)
+                column = level_next * n_columns + base % n_columns
+                expected = np.bincount(column, weights=t.probability, minlength=all_columns)
+                got = np.zeros(all_columns)
                 for k in range(pomdp.succ_x.shape[2]):
                     if pomdp.succ_x[i, a, k] >= 0:
                         got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]

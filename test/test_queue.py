@@ -418,19 +418,31 @@ def test_hrc_evaluate_charges_both_runs_of_a_mismatch_the_worlds_waiting(tmp_pat
     assert regrets[0] == regrets[1]
 
 
-def test_the_arm_cell_refuses_a_queue_in_one_line(small_queue, capsys):
-    """Where the tasks waiting are not followed yet (review): the arm's batch cell refuses a
-    queue configuration in one line instead of reading l = 0 or raising a traceback mid-run."""
-    from hrc_ros.core.robot.cell import ArmCell
-    from hrc_ros.tools import evaluate as evaluate_tool
-    with pytest.raises(ValueError, match='stream.queue'):
-        ArmCell(small_queue, np.zeros(small_queue.n_states, dtype=np.int8))
-    path = str(shipped_config_path('stream_queue'))
-    argv = ['--cell', 'arm', '--config', path, '--selectors', 'ssm_only,mdp', '--episodes', '2',
-            '--epochs', '5', '--out', '/tmp/hrc_queue_refused']
-    assert evaluate_tool.main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert 'stream.queue' in err and '\n' not in err, err
+def test_the_arm_cell_reads_the_queue_as_the_batch_does(small_queue, monkeypatch):
+    """The arm's batch cell (issue 34: config/arm.yaml has a queue) reads l = min(tasks
+    waiting, L), as the model's batch does: a policy that holds (dn) only at l = 2 and works
+    (nw) elsewhere is followed level by level."""
+    from hrc_ros.core.robot import cell as arm_cell
+    from hrc_ros.core.tasks import TaskBook
+    waiting = []
+
+    class Book(TaskBook):
+        def begin_epoch(self, k):
+            state = super().begin_epoch(k)
+            waiting.append(len(self.queue))
+            return state
+
+    monkeypatch.setattr(arm_cell, 'TaskBook', Book)
+    model = small_queue
+    policy = np.full(model.n_states, NW, dtype=np.int8)
+    policy[2 * model.n_base:] = DN               # every state with l = 2: hold
+    scenarios, seeds = episodes_of(model, 'random', 1, 12, 0, 0.9)
+    episode = arm_cell.ArmCell(model, policy).episode(scenarios[0], seeds[0], [0, 0, 2], 'mdp',
+                                                      record=True)
+    expected = ['dn' if min(n, 2) == 2 or d == 0 else 'nw'
+                for n, d in zip(waiting, episode.distances)]
+    assert episode.actions == expected
+    assert max(waiting) > 2 and min(waiting) < 2
 
 
 @pytest.fixture(scope='module')

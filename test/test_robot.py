@@ -662,6 +662,20 @@ def test_ssm_only_works_and_hands_the_persons_tasks_by_the_work_plan():
     assert ssm_only_action(task(1, 0, 2)) == NW and ssm_only_action(task(0, 0, 0)) == NW
 
 
+def test_the_integrators_rule_hands_either_agent_tasks_to_the_person():
+    """The second baseline (docs/ROBOT.md 4): ssm_only's work plan, except that a task either
+    agent can do goes to the person; outside the decision layer, selectable in the batch."""
+    from hrc_ros.core.robot.cell import (BASELINES, CELL_SELECTORS, integrator_action,
+                                         ssm_only_action)
+    from hrc_ros.core.decision.selection import SELECTORS
+    assert integrator_action(dict(tp=2, tx=2, ty=0)) == RH1
+    for tp, tx, ty in ((1, 0, 0), (1, 1, 0), (1, 3, 0), (1, 2, 2), (1, 2, 1), (0, 0, 0)):
+        task = dict(tp=tp, tx=tx, ty=ty)
+        assert integrator_action(task) == ssm_only_action(task)
+    assert 'integrator' in CELL_SELECTORS and 'integrator' in BASELINES
+    assert 'integrator' not in SELECTORS
+
+
 @pytest.fixture(scope='module')
 def cell(model, policy):
     from hrc_ros.core.robot.cell import ArmCell
@@ -774,7 +788,8 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
     assert '3 episodes x 6 epochs of 1 s' in out and 'real time on one core' in out
     table = out.split('paired differences')[0]
     rows = [line.split()[0] for line in table.splitlines() if '±' in line]
-    assert rows == ['ssm_only', 'paper', 'qmdp']
+    # the baseline first, the cell's default decision (paper) next, the integrator's rule too
+    assert rows == ['ssm_only', 'paper', 'qmdp', 'integrator']
     assert 'paired differences to ssm_only' in out
     summary = json.loads((tmp_path / 'summary.json').read_text())
     assert summary['baseline'] == 'ssm_only' and summary['settings']['cell'] == 'arm'
@@ -783,7 +798,7 @@ def test_hrc_evaluate_cell_arm_prints_the_table_and_writes_its_files(tmp_path, c
     assert Path(summary['settings']['policy']).name == 'arm.npz'
     assert all(v['ssm_violations']['mean'] == 0 for v in summary['selectors'].values())
     with (tmp_path / 'episodes.csv').open() as f:
-        assert len(list(csv.DictReader(f))) == 9
+        assert len(list(csv.DictReader(f))) == 12
     for argv, message in ((['--true-config', 'x.yaml'], '--true-config is for'),
                           (['--selectors', 'ssm_only,best'], "unknown selector 'best'"),
                           (['--scenario', 'case-study'], 'random task streams'),

@@ -143,13 +143,15 @@ def test_ssm_is_never_violated_while_the_arm_moves(run):
 
 
 def per_epoch(out):
-    """Epoch k -> (d_k the estimator published, task state), placed by publication time."""
+    """Epoch k -> (d_k the estimator published, task state), placed by publication time (the
+    task state's eight variables: the arm's model has a queue, whose ninth value, the tasks
+    waiting, the batch reads from its own task book)."""
     rows = messages(out, '/hrc/epoch', '/hrc/distance_level', '/hrc/task_state')
     signals = [(t, msg.data) for topic, msg, t, _ in rows if topic == '/hrc/epoch']
     placed = place_in_epochs(signals, [(topic, msg, t) for topic, msg, t, _ in rows
                                        if topic != '/hrc/epoch'])
     return {k: (placed[('/hrc/distance_level', k)][0][1].data,
-                tuple(placed[('/hrc/task_state', k)][0][1].data))
+                tuple(placed[('/hrc/task_state', k)][0][1].data)[:8])
             for _, k in signals}, dict((k, t) for t, k in signals)
 
 

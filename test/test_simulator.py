@@ -247,6 +247,19 @@ def test_bad_inputs_raise(model, policy):
     assert STATE_VARIABLES[0] == 'em' and DN == ACTIONS.index('dn')
 
 
+def test_the_models_cell_refuses_the_arms_progress_rate(model, policy):
+    """model.robot_rate (MODEL.md 3.2) is the arm's physics, which the model's cell does not
+    simulate: the simulator and the batch evaluator refuse it in one line instead of running
+    the paper's counter under a plan that expects another."""
+    from hrc_ros.core.study.evaluation import BatchSimulator
+    rated = HRCModel(load_config(shipped_config_path('default'), overrides={
+        'model': {'robot_rate': {0: [0.0, 0.1, 0.5, 0.9]}}}))
+    with pytest.raises(ValueError, match=r'model\.robot_rate.*hrc-evaluate --cell arm'):
+        simulate(rated, policy, case_study())
+    with pytest.raises(ValueError, match=r'model\.robot_rate'):
+        BatchSimulator(model, policy, world=rated)
+
+
 def test_the_default_never_freezes_in_the_collision_circle(model, policy):
     """Issue 14: the shipped default plans with the fail-safe. Planned with every action at
     d = 0, the case study with seed 4 asked for joint work at d = 1, the human stepped into the

@@ -33,7 +33,61 @@ def explicit_q(model, value, matrices):
     return q
 
 
-@pytest.mark.parametrize('config', ['default', 'arm'])
+def test_factored_q_equals_rule_by_rule_q_on_the_reduced_arm_model():
+    """The arm's model as shipped (its pauses, reach, approach, queue), reduced: the factored
+    Q against the rule-by-rule one on every state with a committed task and a sample."""
+    model = HRCModel(load_config(shipped_config_path('arm'), overrides=REDUCED))
+    rng = np.random.default_rng(7)
+    value = rng.normal(size=model.n_states) * 20
+    sample = rng.choice(model.n_states, size=3000, replace=False)
+    np.testing.assert_allclose(FactoredBellman(model).q(value)[:, sample].T,
+                               rule_q(model, value, sample), atol=1e-10)
+
+
+RATE = {0: [0.0, 0.1, 0.5, 0.9], 2: [0.2, 0.3, 0.6, 1.0], 3: [0.0, 0.05, 0.4, 0.7]}
+
+
+def test_the_robot_rate_makes_the_working_robots_counter_a_draw():
+    """model.robot_rate (MODEL.md 3.2): where the robot works (committed, bc > 0, an action
+    that does not pause it) its counter runs down with rate[tx, d] and stays otherwise; under
+    a pausing action, and without a rate, the step is the paper's one deterministic branch."""
+    rated = HRCModel(load_config(CONFIG, overrides={**REDUCED, 'model': {
+        **REDUCED['model'], 'robot_rate': RATE, 'robot_paused_by': ['dn', 'dp', 'dm']}}))
+    plain = HRCModel(load_config(CONFIG, overrides=REDUCED))
+    state = (0, 0, 1, 1, 2, 2, 0, 0, 1, 1, 2)     # tx 2, robot committed, bc 1, d 2
+    source = rated.index(state)
+    for action, expected in (('nw', RATE[2][2]), ('mh', RATE[2][2]), ('dn', None),
+                             ('dm', None)):
+        t = rated.transition([source], ACTIONS.index(action))
+        y = (t.target // 4) % rated.n_task
+        done = rated.task_grid['tp'][y] == 0           # the last cycle ran: complete
+        if expected is None:                           # paused: the counter stays
+            assert not done.any()
+        else:
+            assert t.probability[done].sum() == pytest.approx(expected)
+    assert rated.run_probability(NW, 2, 2) == RATE[2][2]
+    assert rated.run_probability(DN, 2, 2) is None and plain.run_probability(NW, 2, 2) is None
+    assert len(plain.task_steps({n: np.array([v]) for n, v in zip(
+        ('tp', 'tc', 'tx', 'ty', 'hp', 'hc', 'bp', 'bc'), state[2:10])}, NW, False, 2)) == 1
+
+
+@pytest.mark.parametrize('config', ['default', 'arm', 'stream'])
+def test_factored_q_and_the_sweep_with_a_robot_rate_equal_the_rule_by_rule_model(config):
+    """The rate in both forms of the operator: the factored Q against the rule-by-rule one
+    (with the arm's pauses and queue, the paper's pauses, the queue-less stream) and the fused
+    sweep against the max of the Q."""
+    model = HRCModel(load_config(shipped_config_path(config), overrides={
+        **REDUCED, 'model': {**REDUCED['model'], 'robot_rate': RATE}}))
+    rng = np.random.default_rng(9)
+    value = rng.normal(size=model.n_states) * 20
+    op = FactoredBellman(model)
+    q = op.q(value)
+    sample = rng.choice(model.n_states, size=2000, replace=False)
+    np.testing.assert_allclose(q[:, sample].T, rule_q(model, value, sample), atol=1e-10)
+    np.testing.assert_allclose(op.apply(value)[0], q.max(axis=0), atol=1e-10)
+
+
+@pytest.mark.parametrize('config', ['default'])
 def test_factored_q_equals_explicit_sparse_on_reduced_model(config):
     reduced = HRCModel(load_config(shipped_config_path(config), overrides=REDUCED))
     matrices = reduced.sparse_matrices()

@@ -14,7 +14,14 @@ Sections:
   paper's model; [dn, dp, dm]: the cell with an arm, where a retreat or a move to the
   collaboration pose stops the task's program, docs/ROBOT.md), and optionally `retreat_reach`:
   the band below which a retreat (dp) gains one (MODEL.md 3.3; absent or null: every band; 1:
-  the cell with an arm, where a retreat gains none, config/arm.yaml);
+  the cell with an arm, where a retreat gains none, config/arm.yaml), and optionally
+  `approach_reach`: the band above which a move closer (dm) gains one, without the paper's
+  floor at band 1 (MODEL.md 3.3; absent or null: the paper's rule; 3: the cell with an arm,
+  where a move to the collaboration pose gains none, config/arm.yaml), and optionally
+  `robot_rate`: per task nature with a robot share (0, 2, 3: the station its program runs at)
+  the probability, by the band d = 0..3 at the epoch's start, that the robot's counter runs
+  down in an epoch it works (MODEL.md 3.2; absent or null: 1, the paper's rule; the cell with
+  an arm: measured, SSM slows the arm near the person, config/arm.yaml);
 - `cost`: k1, k2, alpha1..alpha13, beta1..beta6 (MODEL.md section 4);
 - `solver`: gamma, eta, sweeps (null = run to eta, at most MAX_SWEEPS; an integer = the paper's
   fixed sweep count, at most MAX_SWEEPS),
@@ -60,7 +67,8 @@ BELIEF_MODES = ('table', 'bayes', 'posterior')
 _SCHEMA: dict[str, dict[str, str]] = {
     'model': {'rho': 'int>=1', 'sigma': 'int>=1', 'p_accept': 'prob[3]',
               'p_delta': 'rows[3x3]', 'emotion': 'chains', 'robot_paused_by': 'paused',
-              'retreat_reach': 'reach|null'},
+              'retreat_reach': 'reach|null', 'approach_reach': 'approach|null',
+              'robot_rate': 'rate|null'},
     'cost': {'k1': 'weight', 'k2': 'weight', **{k: 'weight' for k in ALPHAS + BETAS}},
     'solver': {'gamma': 'open01', 'eta': 'positive', 'sweeps': 'sweeps',
                'fail_safe_aware': 'bool'},
@@ -77,14 +85,17 @@ MAX_QUEUE = 4
 # Keys that may be left out (they then read as null).
 _OPTIONAL = {('observation', 'likelihood'), ('observation', 'prior'), ('stream', 'q'),
              ('model', 'robot_paused_by'), ('model', 'retreat_reach'), ('stream', 'queue'),
+             ('model', 'approach_reach'), ('model', 'robot_rate'),
              # required by one form of the stream, refused by the other (`_check_stream_form`)
              *(('stream', k) for k in STREAM_PLAIN_KEYS + STREAM_QUEUE_KEYS)}
 # model.robot_paused_by: dn always pauses the robot (it stops); dp and dm may (MODEL.md 3.2)
 PAUSED_ALWAYS = ('dn',)
 PAUSED_MAY = ('dp', 'dm')
 # the optional model keys of the cell with an arm (docs/ROBOT.md 4); belief_hash keeps only
-# retreat_reach (the posterior filter's distance move), and only when it is set
-CELL_KEYS = ('robot_paused_by', 'retreat_reach')
+# retreat_reach and approach_reach (the posterior filter's distance move), and only when set
+CELL_KEYS = ('robot_paused_by', 'retreat_reach', 'approach_reach', 'robot_rate')
+# model.robot_rate: the natures whose task the robot has a share of (its program's station)
+RATE_NATURES = (0, 2, 3)
 # Sections that may be left out (then absent from the validated data).
 _OPTIONAL_SECTIONS = {'stream'}
 
@@ -141,6 +152,27 @@ class Config:
         """The band below which dp gains one band (MODEL.md 3.3); None: every band."""
         value = self.data['model'].get('retreat_reach')
         return None if value is None else int(value)
+
+    @property
+    def approach_reach(self) -> int | None:
+        """The band above which dm gains one band, without the paper's floor at band 1
+        (MODEL.md 3.3); None: the paper's rule d' = max(1, d - 1 - Delta)."""
+        value = self.data['model'].get('approach_reach')
+        return None if value is None else int(value)
+
+    @property
+    def robot_rate(self) -> np.ndarray | None:
+        """(4, 4): P(the robot's counter runs down in an epoch it works | the task's nature tx
+        (row), the band d at the epoch's start (column)) (MODEL.md 3.2); a nature the
+        configuration leaves out (and tx 1, no robot share) runs at 1. None: the paper's rule
+        (1 everywhere, deterministic)."""
+        value = self.data['model'].get('robot_rate')
+        if value is None:
+            return None
+        out = np.ones((4, 4))
+        for tx, row in value.items():
+            out[int(tx)] = row
+        return out
 
     @property
     def cost(self) -> dict[str, float]:
@@ -251,7 +283,8 @@ class Config:
         observation.setdefault('likelihood', None)
         if observation.get('prior') is None:   # left out or null: uniform, one hash
             observation.pop('prior', None)
-        # what pauses the robot's counter is not the filter's (one hash with and without it);
+        # what pauses the robot's counter, and how fast it runs, is not the filter's (one hash
+        # with and without them: the run is no evidence about the person);
         # what a retreat gains is: the posterior mode reads the distance move after dp
         # (HRCModel.transition_likelihood)
         return config_hash({'model': self._model_identity(with_paused=False),
@@ -260,12 +293,17 @@ class Config:
     def _model_identity(self, with_paused: bool) -> dict:
         """The model section as the hashes read it: the cell keys (CELL_KEYS) only where they
         differ from the paper's model (robot_paused_by left out or [dn], retreat_reach left out
-        or null: one model, one hash), robot_paused_by only `with_paused`."""
+        or null: one model, one hash), robot_paused_by and robot_rate only `with_paused`."""
         model = {k: v for k, v in self.data['model'].items() if k not in CELL_KEYS}
         if with_paused and self.robot_paused_by != PAUSED_ALWAYS:
             model['robot_paused_by'] = list(self.robot_paused_by)
+        if with_paused and self.robot_rate is not None:   # the counter's rule, as the pauses
+            model['robot_rate'] = {str(k): list(v) for k, v in
+                                   sorted(self.data['model']['robot_rate'].items())}
         if self.retreat_reach is not None:
             model['retreat_reach'] = self.retreat_reach
+        if self.approach_reach is not None:
+            model['approach_reach'] = self.approach_reach
         return model
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> 'Config':
@@ -420,6 +458,15 @@ def _prob_rows(name: str, value: Any, rows: int, cols: int) -> list[list[float]]
     return out
 
 
+def _band_or_null(name: str, value: Any, bands: tuple, what: str) -> int | None:
+    """A band among `bands`, or None; ConfigError '<name> must be <what>, got ...'."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value not in bands:
+        raise ConfigError(f'{name} must be {what}, got {quote(value)}')
+    return int(value)
+
+
 def _check(name: str, kind: str, value: Any) -> Any:
     if kind == 'int>=1':
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -539,14 +586,29 @@ def _check(name: str, kind: str, value: Any) -> Any:
                 out[group][var] = _prob_rows(f'{name}.{group}.{var}', [body[var]], 1, 3)[0]
         return out
     if kind == 'reach|null':
+        return _band_or_null(name, value, (1, 2), 'null (a retreat gains a band from every '
+                             'band) or 1 or 2 (the band it cannot retreat beyond)')
+    if kind == 'approach|null':
+        return _band_or_null(name, value, (1, 2, 3), "null (the paper's rule: dm gains a band, "
+                             'never below band 1) or 1, 2 or 3 (the band above which dm gains '
+                             'one; 3: none)')
+    if kind == 'rate|null':
         if value is None:
             return None
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
-                or value not in (1, 2):
-            raise ConfigError(f'{name} must be null (a retreat gains a band from every band) '
-                              f'or 1 or 2 (the band it cannot retreat beyond), got '
-                              f'{quote(value)}')
-        return int(value)
+        if not isinstance(value, dict) or not value:
+            raise ConfigError(f'{name} must be null or map task natures with a robot share '
+                              f'({", ".join(map(str, RATE_NATURES))}) to 4 probabilities (d = '
+                              f'0..3), got {quote(value)}')
+        out = {}
+        for tx, row in value.items():
+            if isinstance(tx, str) and tx.isdigit() and len(tx) == 1:
+                tx = int(tx)        # as JSON writes the keys (a policy's meta)
+            if isinstance(tx, bool) or not isinstance(tx, int) or tx not in RATE_NATURES:
+                natures = ', '.join(map(str, RATE_NATURES))
+                raise ConfigError(f'{name}: {quote(tx)} is no task nature with a robot share '
+                                  f'(the robot works on natures {natures})')
+            out[tx] = _prob_vector(f'{name}[{tx}]', row, 4)
+        return out
     if kind == 'paused':
         if value is None:      # as left out: [dn], the paper's model (as retreat_reach: null)
             return None

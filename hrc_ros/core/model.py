@@ -23,13 +23,17 @@ One decision epoch (MODEL.md 3): three independent random events, then determini
    (``tp > 0, ty = 0, tx in {0, 2}``) ``ty'=2, bp'=tp, bc'=tc``. Otherwise counters count
    down (``hc' = max(0, hc-1)``, ``hp' = hp if hc != 0 else 0``, the same for the robot),
    except that under dn the robot is paused (``bc' = bc``), and under dp and dm too where
-   the configuration's ``model.robot_paused_by`` says so (the cell with an arm, MODEL.md 3.2).
+   the configuration's ``model.robot_paused_by`` says so (the cell with an arm, MODEL.md 3.2);
+   with its ``model.robot_rate`` the counter of a robot that works runs down only with
+   probability rate[tx, d] (an event of its own, `task_steps`).
    A committed task whose committed agents' counters are all 0 is complete and resets
    ``tp = tc = tx = ty = 0``; otherwise ``tc'`` is the largest committed counter.
    An uncommitted task waits unchanged.
 3. Distance: Delta in {-1, 0, +1} drawn from ``p_delta[ea]``; dp: ``min(3, d+1-Delta)``,
    dm: ``max(1, d-1-Delta)``, otherwise ``min(3, max(0, d-Delta))``. With the configuration's
-   ``model.retreat_reach`` r, dp gains the band only from d < r: ``min(3, d+[d<r]-Delta)``.
+   ``model.retreat_reach`` r, dp gains the band only from d < r: ``min(3, d+[d<r]-Delta)``;
+   with its ``model.approach_reach`` c, dm gains the band only from d > c and has no floor:
+   ``min(3, max(0, d-[d>c]-Delta))`` (c = 3: dm moves the distance as nw does).
 4. Emotions: em and ea each follow a bounded (down, stay, up) chain chosen by the action's
    group (base, motivate = mh, request = rh1/rh2); the 9x9 matrix is their Kronecker product.
 
@@ -141,15 +145,21 @@ def chain_matrix(down: float, stay: float, up: float) -> np.ndarray:
     return m
 
 
-def next_distance(d, action: int, delta, reach=None):
+def next_distance(d, action: int, delta, reach=None, approach=None):
     """MODEL.md 3.3 (works on scalars and arrays). `reach` (the configuration's
     ``model.retreat_reach``, `HRCModel.retreat_reach`): a retreat gains a band only from a
-    band below it; None, the model's rule, from every band."""
+    band below it; None, the model's rule, from every band. `approach` (``model.approach_reach``,
+    `HRCModel.approach_reach`): a move closer gains a band only from a band above it, and the
+    paper's floor at band 1 goes (what keeps the person out of band 0 is not the robot's
+    move: docs/ROBOT.md 4); None, the model's rule ``max(1, d - 1 - Delta)``."""
     if action == DP:
         gain = 1 if reach is None else (np.asarray(d) < reach).astype(np.int64)
         return np.minimum(3, d + gain - delta)
     if action == DM:
-        return np.maximum(1, d - 1 - delta)
+        if approach is None:
+            return np.maximum(1, d - 1 - delta)
+        gain = (np.asarray(d) > approach).astype(np.int64)
+        return np.minimum(3, np.maximum(0, d - gain - delta))
     return np.minimum(3, np.maximum(0, d - delta))
 
 
@@ -287,14 +297,38 @@ class HRCModel:
         self.paused = tuple(ACTION_INDEX[a] for a in config.robot_paused_by)
         # the band below which a retreat gains one (MODEL.md 3.3; None: every band)
         self.retreat_reach = config.retreat_reach
+        # the band above which a move closer gains one (MODEL.md 3.3; None: the paper's rule)
+        self.approach_reach = config.approach_reach
+        # P(the robot's counter runs down in an epoch it works) by (tx, d) (MODEL.md 3.2;
+        # None: 1, the paper's deterministic rule)
+        self.robot_rate = config.robot_rate
 
     def next_distance(self, d, action: int, delta):
-        """`next_distance` with this model's retreat (`retreat_reach`)."""
-        return next_distance(d, action, delta, self.retreat_reach)
+        """`next_distance` with this model's retreat and approach (`retreat_reach`,
+        `approach_reach`)."""
+        return next_distance(d, action, delta, self.retreat_reach, self.approach_reach)
 
     def step_task(self, task: dict, action: int, accepted, robot_runs=None) -> dict:
         """`step_task` with this model's rule for the robot's counter (`paused`)."""
         return step_task(task, action, accepted, robot_runs, self.paused)
+
+    def run_probability(self, action: int, tx, d):
+        """P(the robot's counter runs down this epoch | it works) of `action` at the tasks'
+        natures `tx` and bands `d` (MODEL.md 3.2, `robot_rate`); None where the step has no
+        such event: no rate, or an action that pauses the robot."""
+        if self.robot_rate is None or action in self.paused:
+            return None
+        return self.robot_rate[np.asarray(tx), np.asarray(d)]
+
+    def task_steps(self, task: dict, action: int, accepted, d) -> list:
+        """[(the next task variables, their probability)] of one acceptance branch: the task
+        step, split by whether the robot's counter runs (`run_probability`; one step of
+        probability 1 without that event)."""
+        rate = self.run_probability(action, task['tx'], d)
+        if rate is None:
+            return [(self.step_task(task, action, accepted), 1.0)]
+        return [(self.step_task(task, action, accepted, True), rate),
+                (self.step_task(task, action, accepted, False), 1.0 - rate)]
 
     # -- indexing ------------------------------------------------------------------------
     def index(self, state) -> int | np.ndarray:
@@ -499,8 +533,9 @@ class HRCModel:
         p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
         out = []
         arrivals = self.arrivals
-        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
-            nxt = self.step_task(task, action, accepted)
+        steps = [(nxt, p_a * p_run) for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc))
+                 for nxt, p_run in self.task_steps(task, action, accepted, s[:, 10])]
+        for nxt, p_a in steps:
             y_step = self.task_index(nxt)
             branches = [(y_step, p_a)]
             if arrivals is not None:    # MODEL.md 8: a task may enter the cell left idle
@@ -548,8 +583,9 @@ class HRCModel:
         p_acc = self.acceptance_probability(action, em, task['tp'], task['tx'], task['ty'])
         p_release = np.where(task['tp'] > 0, arr.p_complete, arr.p_idle)
         branches, dropped = [], np.zeros(len(sources))
-        for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc)):
-            nxt = self.step_task(task, action, accepted)
+        steps = [(nxt, p_a * p_run) for accepted, p_a in ((True, p_acc), (False, 1.0 - p_acc))
+                 for nxt, p_run in self.task_steps(task, action, accepted, s[:, 10])]
+        for nxt, p_a in steps:
             y_step = np.asarray(self.task_index(nxt), dtype=np.intp)
             idle = nxt['tp'] == 0
             for released, p_r in ((1, p_release), (0, 1.0 - p_release)):

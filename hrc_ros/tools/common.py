@@ -61,6 +61,16 @@ def bounded_float(low: float, high: float):
     return _bounded(float, low, high, 'a number', f'[{low}, {high}]')
 
 
+def check_cell(world: HRCModel) -> None:
+    """ToolError when the model's cell cannot run `world` (`simulation.check_model_cell`: a
+    robot_rate is the arm's physics)."""
+    from ..core.study.simulation import check_model_cell
+    try:
+        check_model_cell(world)
+    except ValueError as exc:
+        raise ToolError(str(exc)) from None
+
+
 def output_folder(path: str | Path) -> Path:
     """The output folder `path`, created (with its parents) and checked writable; ToolError
     if it is a file, a device, a FIFO, a link that leads to no folder (`paths.folder_target`)

@@ -3,13 +3,15 @@
     hrc-evaluate [--episodes 1000] [--epochs 50] [--selectors paper,qmdp,mls,mdp]
                  [--baseline pomdp] [--true-config TRUE.yaml [--true-policy TRUE.npz]]
                  [--waiting-cost W]
-    hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp]
+    hrc-evaluate --cell arm [--episodes 200] [--selectors ssm_only,paper,qmdp,integrator]
                  [--baseline ssm_only]
 
 With `--cell arm` the episodes run in the cell with the arm (core.robot.cell: the bridge, SSM,
 the MuJoCo UR5e, the person walking around it) and the table is in physical units: tasks per
 hour, idle and protective-stop time, the minimum separation, SSM violations, refused requests,
 with every selector's paired differences to the baseline (ssm_only, SSM alone, by default).
+Besides the decision layer's selectors it runs the two baselines outside it: ssm_only and
+integrator (an integrator's rule on top of SSM, docs/ROBOT.md 4).
 Without `--config` it plans with the arm's model, `config/arm.yaml` (the robot's counter paused
 under dp and dm, MODEL.md 3.2), and its shipped policy.
 
@@ -52,8 +54,8 @@ from ..core.study.plots import plot_summaries
 from ..core.study.simulation import SIMULATION_SELECTORS
 from ..core.names import BadName, items
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
-                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int, command,
-                     fail, load_model, load_pomdp, output_folder)
+                     add_model_arguments, add_pomdp_argument, bounded_float, bounded_int,
+                     check_cell, command, fail, load_model, load_pomdp, output_folder)
 
 
 def write_summary_csv(path, summaries: dict, metrics) -> None:
@@ -132,10 +134,6 @@ def evaluate_arm_cell(args, parser) -> int:
         args.config = str(arm_config_path())
     try:
         config, model, policy = load_model(args)
-        if config.queue is not None:
-            raise ToolError(f'{config.source}: --cell arm does not observe the tasks waiting '
-                            '(stream.queue, MODEL.md 8.1) yet: leave out stream.queue, or run '
-                            'the model\'s cell (no --cell arm)')
         pomdp = load_pomdp(args, config, selectors)
         out = output_folder(args.out)
     except ToolError as exc:
@@ -216,8 +214,9 @@ def main(argv=None) -> int:
                              'default 0.2, with --cell arm 0.5: a queue that keeps the cell busy)')
     parser.add_argument('--selectors', default=None,
                         help='comma-separated, from ' + ', '.join(SIMULATION_SELECTORS)
-                             + ' (default paper,qmdp,mls,mdp); with --cell arm also ssm_only '
-                             '(default ssm_only,paper,qmdp)')
+                             + ' (default paper,qmdp,mls,mdp); with --cell arm also the '
+                             'baselines ssm_only and integrator (default '
+                             'ssm_only,paper,qmdp,integrator)')
     parser.add_argument('--baseline', default=None,
                         help='also print every selector\'s paired cost difference to this one '
                              '(one of --selectors), with 95%% intervals')
@@ -275,6 +274,7 @@ def main(argv=None) -> int:
         world = true_policy = None
         if args.true_config:
             world, true_policy = load_world(args.true_config, args.true_policy, model)
+        check_cell(world or model)
         out = output_folder(args.out)
     except ToolError as exc:
         return fail('hrc-evaluate', exc)

@@ -15,6 +15,14 @@ arrival_busy and q with the base's queue and waiting_cost; recordings without `q
 refused in one line.
 `--prior` also fits the person prior, the distribution of h = 3*em + ea where an episode starts
 (MODEL.md 6.1), from the episodes recorded from epoch 1, and writes it as `observation.prior`.
+`--rate` also counts the robot's progress rate by task nature and band (MODEL.md 3.2,
+core.learning.rate) and writes it as `model.robot_rate`.
+
+The recordings are read with the base configuration's rules (its robot_paused_by,
+retreat_reach, approach_reach; with a robot_rate or `--rate` a working robot's counter may
+stay): a recording of the cell with the arm, read with the paper's rules, would show a retreat
+that gained nothing as the person stepping closer and a program cycle that SSM slowed as a
+task state that cannot follow.
 
 Refused in one line before any work: an output (-o, --report, --plot) that is an input, lies
 in an input bag folder, is the base configuration or is another output. Output folders are
@@ -35,7 +43,9 @@ from ..core.learning.fit import (BOOTSTRAP, DEFAULT_METHOD, FAMILIES, MAX_ITER, 
                                  NEWTON, SQUAREM, TOL, FitError, config_yaml, expand_hold, fit,
                                  prepare, report_dict, report_text)
 from ..core.paths import default_config_path, output_target, replace_file
+from ..core.learning.rate import fit_rate
 from ..core.learning.recordings import RecordingError, read_recordings
+from ..core.model import HRCModel
 from ..core.learning.stream import StreamError, check_stream, fit_stream_for
 from ..core.names import BadName, items, namespace
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
@@ -88,6 +98,10 @@ def main(argv=None) -> int:
                         help='also fit the person prior (where h = 3*em + ea starts, from the '
                         'episodes recorded from epoch 1; MODEL.md 6.1) and write it as '
                         'observation.prior')
+    parser.add_argument('--rate', action='store_true',
+                        help="also count the robot's progress rate (the share of the epochs it "
+                        'works in which its counter runs down, by task nature and band; '
+                        'MODEL.md 3.2) and write it as model.robot_rate')
     parser.add_argument('-q', '--quiet', action='store_true', help='print only the summary')
     args = parser.parse_args(argv)
     try:
@@ -104,7 +118,8 @@ def main(argv=None) -> int:
         recordings = read_recordings(args.inputs, base.rho, base.sigma, args.namespace)
         if args.stream:
             check_stream(recordings, base)
-        data = prepare(recordings)
+        model = HRCModel(base)
+        data = prepare(recordings, model, counter_may_stay=args.rate)
         for path in outputs.values():      # folders are made once the inputs have been read
             if path is not None:
                 output_file(path)
@@ -120,7 +135,9 @@ def main(argv=None) -> int:
                      prior=args.prior)
         stream = (fit_stream_for(recordings, base, bootstrap=args.bootstrap, seed=args.seed)
                   if args.stream else None)
-        text = config_yaml(result, base, args.inputs, stream)
+        rate = (fit_rate(recordings, model, bootstrap=args.bootstrap, seed=args.seed)
+                if args.rate else None)
+        text = config_yaml(result, base, args.inputs, stream, rate)
     except FitError as exc:
         return fail('hrc-fit', exc)
     except ConfigError as exc:
@@ -130,6 +147,8 @@ def main(argv=None) -> int:
     report.update(inputs=[str(p) for p in args.inputs], base=base.source, output=str(output))
     if stream is not None:
         report['stream'] = stream.report()
+    if rate is not None:
+        report['robot_rate'] = rate.report()
     try:
         # what is written is a configuration load_config accepts, or OUT.yaml is left as it was
         write_replacing(output, text, check=load_config)
@@ -142,8 +161,9 @@ def main(argv=None) -> int:
     print(report_text(result) if not args.quiet else
           f'hrc-fit: {result.iterations} EM iterations, log likelihood {result.loglik:.4f}, '
           f'{len(result.warnings)} warning(s)')
-    if stream is not None:
-        print('\n'.join(stream.lines()))
+    for counted in (stream, rate):
+        if counted is not None:
+            print('\n'.join(counted.lines()))
     written = [output, report_path]
     if plot_path is not None:
         from ..core.study.plots import plot_fit

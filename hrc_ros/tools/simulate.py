@@ -16,8 +16,8 @@ from ..core.config import BELIEF_MODES
 from ..core.study.plots import plot_trajectory
 from ..core.study.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
 from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments,
-                     add_pomdp_argument, bounded_int, command, fail, load_model, load_pomdp,
-                     output_folder)
+                     add_pomdp_argument, bounded_int, check_cell, command, fail, load_model,
+                     load_pomdp, output_folder)
 
 
 @command('hrc-simulate')
@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         config, model, policy = load_model(args)
+        check_cell(model)
         pomdp = load_pomdp(args, config, (args.selector,))
         out = output_folder(args.out)
     except ToolError as exc:

@@ -3,9 +3,11 @@
     hrc-solve --config config/default.yaml -o policies/default.npz
     hrc-solve --method pomdp --config config/default.yaml -o policies/pomdp/default.npz
 
-Prints the residual and elapsed time of every sweep (every `--every` sweeps), then the policy
-file it wrote. `--method pomdp` solves the POMDP over the belief (core.pomdp.solver: point-based
-sweeps between a lower and an upper bound) and prints their progress and final gap.
+Prints the residual and elapsed time of every sweep (every `--every` sweeps), the policy's
+liveness (the probability that a committed task completes within 50 epochs, exactly, beside the
+model's bound: core.mdp.liveness), then the policy file it wrote. `--method pomdp` solves the
+POMDP over the belief (core.pomdp.solver: point-based sweeps between a lower and an upper
+bound) and prints their progress and final gap.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import sys
 
 from ..core.config import MAX_SWEEPS
 from ..core.model import ACTIONS
+from ..core.mdp.liveness import check_liveness
 from ..core.mdp.policy import save_policy
 from ..core.mdp.solver import memory_estimate, solve
 from .common import (MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int, check_memory,
@@ -74,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
           f'{result.iterations} sweeps, Bellman residual {result.residual:.3e}, '
           f'{result.timings["total"]:.2f} s, peak memory {peak_megabytes():.0f} MB')
     print(f'hrc-solve: actions {counts}')
+    for line in check_liveness(model, result.policy).lines(model):
+        print(f'hrc-solve: {line}')
     print(f'hrc-solve: wrote {path} (config sha256 {config.policy_hash[:12]})')
     return 0
 

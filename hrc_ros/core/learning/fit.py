@@ -99,7 +99,8 @@ import yaml
 from . import _kernels as _fit_kernels
 from ..config import EMOTION_GROUPS, Config, validate
 from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, N_HIDDEN, N_OBSERVATIONS,
-                     TASK_VARIABLES, next_distance, request_eligible, step_task)
+                     HRCModel, next_distance, request_eligible)
+from .rate import successor_ok, working
 from .recordings import NO_OBSERVATION, UNANSWERED, UNKNOWN_DISTANCE, Recording
 
 EMOTION_VARIABLES = ('em', 'ea')
@@ -266,38 +267,43 @@ class FitData:
 
 
 
-def _task_dict(task: np.ndarray) -> dict:
-    return {n: task[:, i] for i, n in enumerate(TASK_VARIABLES)}
+def _successor_ok(task, action, accepted, nxt, model: HRCModel | None = None,
+                  counter_may_stay: bool = False) -> np.ndarray:
+    """Whether each next task state follows from (task, action, accepted) by MODEL.md 3.2 with
+    `model`'s rules (the paper's without one), or is a new task entering the cell that the step
+    left idle (the task book's rule); with `counter_may_stay` a working robot's counter may
+    also have stayed (model.robot_rate: the cell with the arm's progress)."""
+    ok = successor_ok(model, task, action, accepted, nxt)
+    if counter_may_stay:
+        works = working(model, task, action)
+        ok |= works & successor_ok(model, task, action, accepted, nxt, False)
+    return ok
 
 
-def _successor_ok(task, action, accepted, nxt) -> np.ndarray:
-    """Whether each next task state follows from (task, action, accepted) by MODEL.md 3.2,
-    or is a new task entering the cell that the step left idle (the task book's rule)."""
-    out = np.zeros(len(task), dtype=bool)
-    for a in np.unique(action):
-        rows = np.flatnonzero(action == a)
-        stepped = step_task(_task_dict(task[rows]), int(a), accepted[rows])
-        stepped = np.stack([stepped[n] for n in TASK_VARIABLES], axis=1)
-        same = np.all(stepped == nxt[rows], axis=1)
-        entered = ((stepped[:, 0] == 0) & (nxt[rows, 0] > 0) & (nxt[rows, 3] == 0)
-                   & np.all(stepped[:, 4:] == nxt[rows, 4:], axis=1))
-        out[rows] = same | entered
-    return out
-
-
-def _delta_outcomes(d: np.ndarray, action: np.ndarray) -> np.ndarray:
-    """(n, 3): next_distance of each Delta."""
+def _delta_outcomes(d: np.ndarray, action: np.ndarray,
+                    model: HRCModel | None = None) -> np.ndarray:
+    """(n, 3): next_distance of each Delta (with `model`'s retreat and approach rules, the
+    paper's without one)."""
     out = np.empty((len(d), len(DELTAS)), dtype=np.int64)
+    move = next_distance if model is None else model.next_distance
     for a in np.unique(action):
         rows = np.flatnonzero(action == a)
         for k, delta in enumerate(DELTAS):
-            out[rows, k] = next_distance(d[rows], int(a), delta)
+            out[rows, k] = move(d[rows], int(a), delta)
     return out
 
 
-def prepare(recordings: list[Recording]) -> FitData:
+def prepare(recordings: list[Recording], model: HRCModel | None = None,
+            counter_may_stay: bool = False) -> FitData:
     """The fit's arrays from recorded episodes (rules in the module docstring), vectorised
-    over the concatenated episodes."""
+    over the concatenated episodes. `model`: whose rules read the moves and the task steps
+    (the base configuration's: robot_paused_by, retreat_reach, approach_reach; None: the
+    paper's); `counter_may_stay` (a model with robot_rate, or one being fitted, `hrc-fit
+    --rate`): a working robot's counter may stay, as in the cell with the arm."""
+    if model is not None and model.robot_rate is not None:
+        counter_may_stay = True
+    if counter_may_stay and model is None:
+        raise ValueError('counter_may_stay needs the model whose pauses say when the robot works')
     issues: list[str] = []
     for r in recordings:
         for message in r.issues:
@@ -335,7 +341,7 @@ def prepare(recordings: list[Recording]) -> FitData:
         issues.append(f'{where(i + 1)}: epoch {epoch[i + 1]} follows epoch {epoch[i]}: the '
                       'episode is cut at the gap')
     link = both & (step == 1)
-    outcomes = _delta_outcomes(np.maximum(d, 0), action)
+    outcomes = _delta_outcomes(np.maximum(d, 0), action, model)
     d_next = np.append(d[1:], UNKNOWN_DISTANCE)
     known = link & (d >= 0) & (d_next >= 0)
     fits = outcomes == d_next[:, None]
@@ -348,7 +354,7 @@ def prepare(recordings: list[Recording]) -> FitData:
     for value in (False, True):
         follows[value] = np.zeros(n, dtype=bool)
         follows[value][:-1] = _successor_ok(task[:-1], action[:-1], np.full(n - 1, value),
-                                            task[1:])
+                                            task[1:], model, counter_may_stay)
     # an unanswered eligible request: its successor's task state tells the answer
     infer = link & eligible & (accepted == UNANSWERED)
     accepted[infer & follows[True] & ~follows[False]] = 1
@@ -1465,14 +1471,16 @@ def _yaml_lines(value, indent: int = 0) -> list[str]:
     return lines
 
 
-def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
+def config_yaml(result: FitResult, base: Config, sources, stream=None, rate=None) -> str:
     """The fitted configuration as a complete YAML file with a header saying what it is;
     with `stream` (a `stream.StreamFit` or `QueueStreamFit`) its `stream` section is the
-    fitted one."""
+    fitted one, with `rate` (a `rate.RateFit`) its model.robot_rate."""
     import textwrap
     data = fitted_data(result, base)
     if stream is not None:
         data['stream'] = stream.section()
+    if rate is not None:
+        data['model']['robot_rate'] = rate.section()
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec='seconds')
     sources = [str(s) for s in sources]
     header = [
@@ -1490,8 +1498,9 @@ def config_yaml(result: FitResult, base: Config, sources, stream=None) -> str:
         "Everything else (rho, sigma, cost, solver, observation table, epsilon, mode) is the "
         "base's. Solve it before use: hrc-solve --config <this file> -o <policy.npz>",
     ]
-    if stream is not None:
-        header.insert(-1, stream.header())
+    for counted in (stream, rate):
+        if counted is not None:
+            header.insert(-1, counted.header())
     lines = [f'# {line}' for paragraph in header
              for line in textwrap.wrap(paragraph, 97, break_on_hyphens=False)]
     return '\n'.join(lines + [''] + _yaml_lines(data)) + '\n'

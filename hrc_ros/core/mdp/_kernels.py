@@ -25,7 +25,12 @@ task maps
 request is eligible); `p_accept_h` (9,) by h; `mix` (3, 3, 16) the distance matrices
 [group (other, dp, dm), ea, 4 d' + d] = P(d' | d, ea); `g` (8,) action costs; `cost`
 (9, n_y, 4); `fail_safe_aware` (only dn at d = 0); `dp_paused`, `dm_paused` (dp, dm step
-the task as dn does, `t_pause`, instead of as nw, `t_default`: `model.robot_paused_by`); the
+the task as dn does, `t_pause`, instead of as nw, `t_default`: `model.robot_paused_by`);
+`rated`, `rate` (n_y, 4; any values without a rate), `t_accept_pause` (model.robot_rate,
+MODEL.md 3.2: every action under which the robot works mixes its successor with the paused
+one, `t_pause` or, for an accepted request, `t_accept_pause`, by rate[y, d]; without a rate
+nothing of it runs and the
+sweep is what it was, bit for bit); the
 stream (MODEL.md 8; empty
 `arrive_y` without one): `arrive_y` the idle y, `arrive_enter` (len(arrive_y), K) the task
 states a task k makes of them, `arrive_q` (K,), `p_idle`, `p_complete`; `value` V (9, n_y, 4);
@@ -76,9 +81,16 @@ def _emotion(e, value, y):
     return a0, a1, a2, a3
 
 
+def _rated(rate, run, pause):
+    """The working action's value with model.robot_rate (MODEL.md 3.2): the paused branch
+    plus the rate times the run's gain, per start band d."""
+    return (pause[0] + rate[0] * (run[0] - pause[0]), pause[1] + rate[1] * (run[1] - pause[1]),
+            pause[2] + rate[2] * (run[2] - pause[2]), pause[3] + rate[3] * (run[3] - pause[3]))
+
+
 def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, cost,
            fail_safe_aware, dp_paused, dm_paused, arrive_y, arrive_enter, arrive_q, p_idle,
-           p_complete, value, w, out, residual, w_given):
+           p_complete, value, w, out, residual, w_given, rated, rate, t_accept_pause):
     n_y = value.shape[1]
     if not w_given:   # the queue (MODEL.md 8.1) forms w itself (`queue_continuations`)
         # 1. emotion step for the three groups (one parallel region)
@@ -126,6 +138,7 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             yq = t_pause[y]
             yc = t_commit[y]
             ya = t_accept[y]
+            ry = rate[y]  # model.robot_rate at (tx(y), d), read only when rated
             x0 = wb[y0, 0]
             x1 = wb[y0, 1]
             x2 = wb[y0, 2]
@@ -135,10 +148,16 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             p2 = wb[yq, 2]
             p3 = wb[yq, 3]
             b0, b1, b2, b3 = _mix_inline(cn, x0, x1, x2, x3)  # nw
+            if rated:   # a working robot's counter runs with the rate, else stays
+                b0, b1, b2, b3 = _rated_inline(ry, (b0, b1, b2, b3),
+                                               _mix_inline(cn, p0, p1, p2, p3))
             if dp_paused:
                 q0, q1, q2, q3 = _mix_inline(cp, p0, p1, p2, p3)  # dp
             else:
                 q0, q1, q2, q3 = _mix_inline(cp, x0, x1, x2, x3)  # dp
+                if rated:
+                    q0, q1, q2, q3 = _rated_inline(ry, (q0, q1, q2, q3),
+                                                   _mix_inline(cp, p0, p1, p2, p3))
             b0 = max(b0, q0 - g_dp)
             b1 = max(b1, q1 - g_dp)
             b2 = max(b2, q2 - g_dp)
@@ -147,11 +166,17 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
                 q0, q1, q2, q3 = _mix_inline(cm, p0, p1, p2, p3)  # dm
             else:
                 q0, q1, q2, q3 = _mix_inline(cm, x0, x1, x2, x3)  # dm
+                if rated:
+                    q0, q1, q2, q3 = _rated_inline(ry, (q0, q1, q2, q3),
+                                                   _mix_inline(cm, p0, p1, p2, p3))
             b0 = max(b0, q0 - g_dm)
             b1 = max(b1, q1 - g_dm)
             b2 = max(b2, q2 - g_dm)
             b3 = max(b3, q3 - g_dm)
             q0, q1, q2, q3 = _mix_inline(cn, wm[y0, 0], wm[y0, 1], wm[y0, 2], wm[y0, 3])  # mh
+            if rated:
+                q0, q1, q2, q3 = _rated_inline(ry, (q0, q1, q2, q3), _mix_inline(
+                    cn, wm[yq, 0], wm[yq, 1], wm[yq, 2], wm[yq, 3]))
             b0 = max(b0, q0 - g_mh)
             b1 = max(b1, q1 - g_mh)
             b2 = max(b2, q2 - g_mh)
@@ -170,6 +195,9 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
                 b3 = max(b3, q3)
             # requests: the refused branch (all a request can do where it is not eligible)
             r0, r1, r2, r3 = _mix_inline(cn, wr[y0, 0], wr[y0, 1], wr[y0, 2], wr[y0, 3])
+            if rated:
+                r0, r1, r2, r3 = _rated_inline(ry, (r0, r1, r2, r3), _mix_inline(
+                    cn, wr[yq, 0], wr[yq, 1], wr[yq, 2], wr[yq, 3]))
             r0 -= g_rh
             r1 -= g_rh
             r2 -= g_rh
@@ -180,6 +208,10 @@ def _sweep(gamma_e, t_default, t_pause, t_commit, t_accept, p_accept_h, mix, g, 
             b3 = max(b3, r3)
             if ya >= 0:  # the eligible request: accepted with p_accept[em]
                 q0, q1, q2, q3 = _mix_inline(cn, wr[ya, 0], wr[ya, 1], wr[ya, 2], wr[ya, 3])
+                if rated:
+                    yp = t_accept_pause[y]
+                    q0, q1, q2, q3 = _rated_inline(ry, (q0, q1, q2, q3), _mix_inline(
+                        cn, wr[yp, 0], wr[yp, 1], wr[yp, 2], wr[yp, 3]))
                 b0 = max(b0, r0 + pa * (q0 - g_rh - r0))
                 b1 = max(b1, r1 + pa * (q1 - g_rh - r1))
                 b2 = max(b2, r2 + pa * (q2 - g_rh - r2))
@@ -248,6 +280,7 @@ def _queue_continuations(gamma_e, busy_y, arrive_y, arrive_enter, arrive_q, p_id
 
 
 _mix_inline = numba.njit(inline='always')(_mix)
+_rated_inline = numba.njit(inline='always')(_rated)
 _emotion_inline = numba.njit(inline='always')(_emotion)
 sweep = parallel_kernel(_sweep, cache=True, nogil=True)
 queue_continuations = parallel_kernel(_queue_continuations, cache=True, nogil=True)

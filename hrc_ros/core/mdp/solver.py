@@ -16,7 +16,10 @@ So a sweep is one 27x9 matrix product (the three emotion groups), a few batched 
 products, and gathers along y. ct differs from nw only where it is effective
 (`model.commit_effective`), requests only where eligible (`model.request_eligible`), dn only by
 the paused robot counter; dp and dm step the task as nw does, or as dn does where the
-configuration pauses the robot under them (`model.robot_paused_by`, the cell with an arm).
+configuration pauses the robot under them (`model.robot_paused_by`, the cell with an arm). With
+`model.robot_rate` (MODEL.md 3.2) every action under which the robot works has two task
+successors, its own (the counter runs) and the paused one, mixed by the rate at (tx(y), d)
+after the distance step (the run is independent of the person and of Delta).
 
 `FactoredBellman` is the operator, in two forms of one definition:
 
@@ -124,6 +127,16 @@ class FactoredBellman:
         rh2_accept = task_map(RH2, True)
         self.t_accept = np.where(self.request_is_rh2, rh2_accept[self.request_y],
                                  rh1_accept[self.request_y])
+        # model.robot_rate (MODEL.md 3.2): where the robot works its counter runs down with
+        # probability rate[tx, d], else it stays as under a pause: every working action's
+        # successor mixes its own task map (run) with the paused one, per y and d
+        self.rated = model.robot_rate is not None
+        self.rate_yd = np.ascontiguousarray(model.robot_rate[grid['tx']] if self.rated
+                                            else np.ones((n_y, N_DISTANCE)))
+        paused = {a: model.task_index(model.step_task(grid, a, True, False)).astype(np.intp)
+                  for a in (RH1, RH2)}
+        self.t_accept_pause = np.where(self.request_is_rh2, paused[RH2][self.request_y],
+                                       paused[RH1][self.request_y])
 
         self.p_accept_vector = np.repeat(model.config.p_accept, 3)   # by h = 3*em + ea
         self.p_accept_h = self.p_accept_vector[:, None, None]
@@ -151,6 +164,8 @@ class FactoredBellman:
         self.t_commit_full[self.ct_effective] = self.t_commit
         self.t_accept_full = np.full(n_y, -1, dtype=np.intp)
         self.t_accept_full[self.request_y] = self.t_accept
+        self.t_accept_pause_full = np.full(n_y, -1, dtype=np.intp)
+        self.t_accept_pause_full[self.request_y] = self.t_accept_pause
         # mix[group, ea, d', d] = P(d' | d, ea) for the groups (other, dp, dm)
         self.mix = np.ascontiguousarray(np.stack(
             [model.distance_matrix(a).transpose(0, 2, 1) for a in (NW, DP, DM)])
@@ -186,6 +201,8 @@ class FactoredBellman:
         self.g_dm = self.t_dm + offset
         self.g_commit_full = np.where(self.t_commit_full >= 0, self.t_commit_full + offset, -1)
         self.g_accept_full = np.where(self.t_accept_full >= 0, self.t_accept_full + offset, -1)
+        self.g_accept_pause_full = np.where(self.t_accept_pause_full >= 0,
+                                            self.t_accept_pause_full + offset, -1)
         self._w = None
         self._residual = np.empty(n_y)
 
@@ -259,19 +276,20 @@ class FactoredBellman:
         """Q (8, 9, n_y, 4) from the continuations along y' (the task maps, per action) and
         the state cost."""
         nw = base[..., 0:4]
+        work = self._working
         q = np.empty((len(ACTIONS),) + self.shape)
-        q[NW] = nw[:, self.g_default]
-        q[DP] = base[:, self.g_dp, 4:8]
-        q[DM] = base[:, self.g_dm, 8:12]
-        q[MH] = motivate[:, self.g_default]
+        q[NW] = work(nw, self.g_default)
+        q[DP] = work(base[..., 4:8], self.g_dp, works=not self.dp_paused)
+        q[DM] = work(base[..., 8:12], self.g_dm, works=not self.dm_paused)
+        q[MH] = work(motivate, self.g_default)
         q[DN] = nw[:, self.g_pause]
         q[CT] = q[NW]
         q[CT][:, self.ct_effective] = nw[:, self.g_commit_full[self.ct_effective]]
-        refused = request[:, self.g_default]
+        refused = work(request, self.g_default)
         q[RH1] = refused
         q[RH2] = refused
         ry = self.request_y
-        accepted = request[:, self.g_accept_full[ry]]
+        accepted = work(request, self.g_accept_full[ry], self.g_accept_pause_full[ry], ry)
         mixed = refused[:, ry] + self.p_accept_h * (accepted - refused[:, ry])
         rh2 = self.request_is_rh2
         q[RH1][:, ry[~rh2]] = mixed[:, ~rh2]
@@ -281,6 +299,19 @@ class FactoredBellman:
         unavailable = ~self.model.availability                     # (8, 4): by action and d
         q[np.broadcast_to(unavailable[:, None, None, :], q.shape)] = -np.inf
         return q
+
+    def _working(self, continuation, rows, paused_rows=None, ys=None,
+                 works: bool = True) -> np.ndarray:
+        """The continuation (9, n_w, 4) of an action read at its successor `rows` (one per y
+        of `ys`, every y by default): with model.robot_rate, where the robot `works` under
+        it, mixed per (y, d) with the paused successors `paused_rows` (the pause's, g_pause,
+        by default) by the rate; as it is without a rate or for an action that pauses."""
+        if not self.rated or not works:
+            return continuation[:, rows]
+        paused_rows = self.g_pause if paused_rows is None else paused_rows
+        rate = self.rate_yd if ys is None else self.rate_yd[ys]
+        pause = continuation[:, paused_rows]
+        return pause + rate * (continuation[:, rows] - pause)
 
     def apply(self, value: np.ndarray, out: np.ndarray | None = None
               ) -> tuple[np.ndarray, float]:
@@ -297,7 +328,8 @@ class FactoredBellman:
                        self.arrive_y, self.arrive_enter, self.arrive_q,
                        self.arrive_p[0], self.arrive_p[1],
                        np.ascontiguousarray(value).reshape(self.shape),
-                       self._w, out.reshape(self.shape), self._residual, False)
+                       self._w, out.reshape(self.shape), self._residual, False,
+                       self.rated, self.rate_yd, self.g_accept_pause_full)
         return out, float(self._residual.max())
 
     def _queue_apply(self, value: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, float]:
@@ -322,7 +354,8 @@ class FactoredBellman:
                            self.level_cost[lv], self.fail_safe_aware, self.dp_paused,
                            self.dm_paused, self.arrive_y, self.arrive_enter, self.arrive_q,
                            p_idle, p_busy, value[lv], self._w[lv], result[lv],
-                           self._level_residual[lv], True)
+                           self._level_residual[lv], True, self.rated, self.rate_yd,
+                           self.g_accept_pause_full)
         return out, float(self._level_residual.max())
 
     def residual(self, value: np.ndarray) -> float:

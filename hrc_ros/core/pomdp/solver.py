@@ -249,18 +249,21 @@ def _queue_branches(queue, ys: np.ndarray, level: int, branches: list) -> tuple[
     return levels, out
 
 
-def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
-    """The MixedPOMDP of `model` over the closure of the task states the task book produces:
-    the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
-    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
-    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
-    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
-    expected drop charge)."""
+def model_tasks(model: HRCModel) -> np.ndarray:
+    """Every task (tp, tc, tx) of the model, (K, 3)."""
+    return np.array([(tp, tc, tx) for tp in range(1, model.rho + 1)
+                     for tc in range(1, model.sigma + 1) for tx in range(4)])
+
+
+def task_closure(model: HRCModel, operator: FactoredBellman | None = None) -> np.ndarray:
+    """The task states y the task book can produce, ascending: the idle cell, every task
+    entering an idle cell, and the closure under every action and answer (149 of the 11,664
+    at full size). The POMDP's solved states and the liveness check (`mdp.liveness`) read
+    them."""
     op = operator or FactoredBellman(model)
     outcomes = _task_outcomes(op)
     grid = model.task_grid
-    tasks = np.array([(tp, tc, tx) for tp in range(1, model.rho + 1)
-                      for tc in range(1, model.sigma + 1) for tx in range(4)])
+    tasks = model_tasks(model)
     idle_y = entering_task(model, np.array([0]), 0, 0, 0)[0]    # tp = 0 everywhere: y = 0
     reach = np.zeros(model.n_task, dtype=bool)
     reach[idle_y] = True
@@ -274,7 +277,64 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
         reach[np.concatenate(nxt)] = True
         if int(reach.sum()) == before:
             break
-    ys = np.flatnonzero(reach)
+    return np.flatnonzero(reach)
+
+
+def _paused_outcomes(op: FactoredBellman, outcomes: list) -> list:
+    """Per action, with model.robot_rate: (y' when refused or not a request, y' when accepted
+    or -1) with the robot's counter staying (the run's failure, MODEL.md 3.2); the same as
+    `_task_outcomes` where the step sets the counter (an effective ct, an accepted rh2)."""
+    commit = np.where(op.t_commit_full >= 0, op.t_commit_full, op.t_pause)
+    return [({CT: commit}.get(a, op.t_pause), np.where(eligible, op.t_accept_pause_full, -1))
+            for a, (_, _, eligible) in enumerate(outcomes)]
+
+
+def _run_branches(op: FactoredBellman, ys: np.ndarray, d: int, runs, stays, p) -> list:
+    """The task branches [(y', P by h)] of the sources `ys` at band d of an action under which
+    the robot works: each of (refused, accepted) splits into the counter running (rate[tx, d])
+    and staying; where both give one y' (no robot work) the one branch keeps its weight."""
+    rate = op.rate_yd[ys, d][:, None]
+    out = []
+    for run, stay, p_branch in zip(runs, stays, p):
+        run, stay = run[ys], stay[ys]
+        same = (run == stay)[:, None]
+        out.append((run, np.where(same, p_branch, p_branch * rate)))
+        out.append((np.where(same[:, 0], -1, stay), np.where(same, 0.0, p_branch * (1 - rate))))
+    return out
+
+
+def _add_successors(succ_x, succ_l, k, first, a, dist, d_of_x, y_index, n_y, levels, branches,
+                    source_d) -> None:
+    """Write the branches [(y' per source, P by h)] at queue levels `levels` through the
+    distance step into the successor lists of action a (rows first + (i_y, d); only the rows
+    at band `source_d` unless it is None), counting in k."""
+    for l_next, (y_next, p_y) in zip(levels, branches):
+        has = y_next >= 0
+        for d_next in range(N_DISTANCE):
+            p_d = dist[:, :, d_next].T                      # (d, 9)
+            lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_y * 4, 9)
+            use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
+            if source_d is not None:
+                use &= d_of_x == source_d
+            rows = np.flatnonzero(use)
+            target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
+            succ_x[first + rows, a, k[rows]] = (l_next * n_y + target) * N_DISTANCE + d_next
+            succ_l[first + rows, a, k[rows]] = lik[rows]
+            k[rows] += 1
+
+
+def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPomdp:
+    """The MixedPOMDP of `model` over the closure of the task states the task book produces:
+    the idle cell, every task (tp, tc, tx) entering an idle cell, and all that the dynamics
+    reach from them, at every distance, and with a queue (MODEL.md 8.1) at every queue length
+    l = 0..L: (L + 1) times the states, the successors split by the release and the head's
+    entry (`_queue_branches`), the reward the MDP's (`HRCModel.flat_cost`: J + w l + the
+    expected drop charge)."""
+    op = operator or FactoredBellman(model)
+    outcomes = _task_outcomes(op)
+    grid = model.task_grid
+    tasks = model_tasks(model)
+    ys = task_closure(model, op)
     n_y = ys.size
     y_index = np.full(model.n_task, -1, dtype=np.intp)
     y_index[ys] = np.arange(n_y)
@@ -296,6 +356,9 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
         n_k = 2 * 3 * (1 if arrivals is None else 1 + len(arrivals.q))
     else:                     # (accepted, released) x (stays, or the head's K kinds) x 3 d'
         n_k = 2 * 2 * 3 * (1 + len(queue.arrivals.q))
+    if op.rated:              # model.robot_rate: the counter runs or stays (MODEL.md 3.2)
+        n_k *= 2
+    paused = _paused_outcomes(op, outcomes) if op.rated else None
     succ_x = np.full((n_x, n_a, n_k), -1, dtype=np.intp)
     succ_l = np.zeros((n_x, n_a, n_k, N_HIDDEN))
     d_of_x = np.tile(np.arange(N_DISTANCE), n_y)
@@ -303,26 +366,23 @@ def hrc_pomdp(model: HRCModel, operator: FactoredBellman | None = None) -> HRCPo
         first = level * n_base_x                                    # this level's rows
         for a, (refused, accepted, eligible) in enumerate(outcomes):
             dist = model.distance_matrix(a)[ea]                     # (9, d, d')
-            branches = [(refused[ys], np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0))]
-            branches.append((accepted[ys], np.where(eligible[ys][:, None], p_accept, 0.0)))
-            if arrivals is not None:
-                branches = _arrival_branches(arrivals, ys, branches)
-            levels = [0] * len(branches)
-            if queue is not None:
-                levels, branches = _queue_branches(queue, ys, level, branches)
+            p_refused = np.where(eligible[ys][:, None], 1.0 - p_accept, 1.0)
+            p_accepted = np.where(eligible[ys][:, None], p_accept, 0.0)
+            # (the source band the branches hold for, None: every one; the task branches)
+            groups = [(None, [(refused[ys], p_refused), (accepted[ys], p_accepted)])]
+            if paused is not None and a not in model.paused:
+                groups = [(d, _run_branches(op, ys, d, (refused, accepted),
+                                            paused[a], (p_refused, p_accepted)))
+                          for d in range(N_DISTANCE)]
             k = np.zeros(n_base_x, dtype=np.intp)
-            for l_next, (y_next, p_y) in zip(levels, branches):
-                has = y_next >= 0
-                for d_next in range(N_DISTANCE):
-                    p_d = dist[:, :, d_next].T                      # (d, 9)
-                    lik = np.repeat(p_y, N_DISTANCE, axis=0) * p_d[d_of_x]   # (n_y * 4, 9)
-                    use = np.repeat(has, N_DISTANCE) & (lik.max(axis=1) > 0)
-                    rows = np.flatnonzero(use)
-                    target = y_index[np.repeat(np.where(has, y_next, 0), N_DISTANCE)[rows]]
-                    succ_x[first + rows, a, k[rows]] = ((l_next * n_y + target) * N_DISTANCE
-                                                        + d_next)
-                    succ_l[first + rows, a, k[rows]] = lik[rows]
-                    k[rows] += 1
+            for source_d, branches in groups:
+                if arrivals is not None:
+                    branches = _arrival_branches(arrivals, ys, branches)
+                levels = [0] * len(branches)
+                if queue is not None:
+                    levels, branches = _queue_branches(queue, ys, level, branches)
+                _add_successors(succ_x, succ_l, k, first, a, dist, d_of_x, y_index, n_y,
+                                levels, branches, source_d)
     d_of_x = np.tile(np.arange(N_DISTANCE), n_y * n_levels)
     if queue is None:
         cost = op.cost[:, ys, :].transpose(1, 2, 0).reshape(n_x, N_HIDDEN)   # (x, h)

@@ -9,7 +9,7 @@ episode runs the epoch protocol of docs/DESIGN.md with a physical epoch in betwe
 1. ``book.begin_epoch(k)``; the distance level d_k is the band (`safety_radii`, the
    estimator's rule `observation.level_of_distance`) of the separation between the arm's links
    and the latest skeleton the bridge holds, not of a reference point;
-2. a_k from (b_k, x_k) by the selector (the d = 0 fail-safe applies, except to ssm_only);
+2. a_k from (b_k, x_k) by the selector (the d = 0 fail-safe applies, except to the baselines);
 3. the human reacts (`SimulatedHuman.react`: acceptance, Delta, em', ea', O'); the person's
    approach level moves by Delta and their walking speed follows em', ea';
 4. for `epoch_period` seconds, every `control_period`: the person walks, a skeleton frame is
@@ -36,6 +36,11 @@ never holds (dn), and has no d = 0 fail-safe (SSM stops the arm). Tasks only the
 (tx 1) or that need both (tx 3) go to the person through the work plan, which in the model's
 terms is the only way a person commits: rh1 / rh2 every epoch until taken (with the model's
 acceptance odds and its effect on the emotions).
+
+**The baseline `integrator`**: the best simple rule an integrator would write on top of SSM
+(`integrator_action`, docs/ROBOT.md 4): ssm_only's work plan, except that a task either agent
+can do (tx 2) goes to the person. Like ssm_only it is outside the decision layer: no belief, no
+model, no d = 0 fail-safe of its own (SSM stops the arm).
 
 **Metrics per episode** (then mean, 95% interval, paired differences on common random numbers:
 episode e of every selector sees the same task stream, the same human uniforms and the same
@@ -75,8 +80,9 @@ from .bridge import Bridge, load_programs, load_robot_description
 from .metrics import IDLE, STOP, arm_activity, per_hour, request_refused, share
 from .ssm import MOVING_SPEED, protective_distance
 
-CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS
-DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp')
+CELL_SELECTORS = ('ssm_only',) + SIMULATION_SELECTORS + ('integrator',)
+DEFAULT_SELECTORS = ('ssm_only', 'paper', 'qmdp', 'integrator')
+BASELINES = ('ssm_only', 'integrator')     # rules on top of SSM, outside the decision layer
 METRICS = (
     ('tasks_per_hour', 'tasks per hour'),
     ('idle_share', 'robot idle %'),
@@ -94,6 +100,20 @@ def ssm_only_action(task) -> int:
     if tp > 0 and ty == 0:
         return {0: CT, 2: CT, 1: RH1, 3: RH2}[tx]
     return NW
+
+
+def integrator_action(task) -> int:
+    """The integrator baseline (docs/ROBOT.md 4, "the integrator's rule"): ssm_only's work
+    plan, except that a task either agent can do (tx 2) goes to the person (rh1, asked every
+    epoch until taken, as the plan asks for the person's own tasks) instead of the arm. In
+    this cell the arm is slower than the person at every band (SSM slows it whenever the
+    person is near), so of the integrator's candidate rules (hand it over when the person is
+    near, d <= 1 or d <= 2, or always) the pilot run (seed 1, never the evaluation's) found
+    this one best for tasks per hour. No memory, no model of the person."""
+    tp, tx, ty = int(task['tp']), int(task['tx']), int(task['ty'])
+    if tp > 0 and ty == 0 and tx == 2:
+        return RH1
+    return ssm_only_action(task)
 
 
 @dataclass(frozen=True)
@@ -208,10 +228,6 @@ class ArmCell:
     def __init__(self, model: HRCModel, policy, value=None, mode: str | None = None,
                  pomdp=None, description=None, programs=None,
                  settings: ArmCellSettings | None = None, person: str = 'honest'):
-        if model.queue is not None:
-            raise ValueError(f'{model.config.source}: the cell with the arm does not observe '
-                             'the tasks waiting (stream.queue, MODEL.md 8.1) yet: leave out '
-                             'stream.queue, or evaluate it in the model\'s cell')
         self.model = model
         self.policy, self.value = policy_arrays(policy, value)
         self.pomdp = pomdp
@@ -231,13 +247,17 @@ class ArmCell:
                                                       method=selector, pomdp=self.pomdp)
         return self._choosers[selector]
 
-    def _decide(self, selector: str, belief, x, hidden) -> int:
-        if selector == 'ssm_only':
-            return ssm_only_action(dict(zip(TASK_VARIABLES, x[:-1])))
+    def _decide(self, selector: str, belief, x, hidden, level: int = 0) -> int:
+        """The epoch's action; `level` the tasks waiting as the robot observes them, l =
+        min(waiting, L) (MODEL.md 8.1, read only by a model with a queue)."""
+        if selector in BASELINES:
+            rule = ssm_only_action if selector == 'ssm_only' else integrator_action
+            return rule(dict(zip(TASK_VARIABLES, x[:-1])))
         if selector == 'mdp':
-            action = int(self.policy[self.model.index(hidden + x)])
+            action = int(self.policy[level * self.model.n_base + self.model.index(hidden + x)])
         else:
-            action = int(self._chooser(selector).select(belief, x).action)
+            seen = x if self.model.queue is None else x + (level,)
+            action = int(self._chooser(selector).select(belief, seen).action)
         return DN if x[-1] == 0 else action
 
     def episode(self, scenario, human_seed, person_seed, selector: str = 'paper',
@@ -294,7 +314,8 @@ class ArmCell:
             boundary = arm.distance(follower.q, held)
             d = level_of_distance(boundary, cfg.safety_radii)
             x = book.observable(d)
-            action = self._decide(selector, belief, x, (human.em, human.ea))
+            level = 0 if model.queue is None else min(len(book.queue), model.queue_length)
+            action = self._decide(selector, belief, x, (human.em, human.ea), level)
             task_before = book.state
             reaction = human.react(action, task_before)
             scene.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)

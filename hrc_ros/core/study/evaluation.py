@@ -51,7 +51,7 @@ from ..model import (ACTION_EMOTION_GROUP, ACTIONS, DELTAS, DN, N_DISTANCE, N_HI
                      request_eligible, safest_best)
 from ..mdp.policy import policy_arrays
 from ..decision.selection import POMDP_SELECTORS, VOTE_TOLERANCE, check_alpha_columns
-from .simulation import SIMULATION_SELECTORS, Scenario, case_study
+from .simulation import SIMULATION_SELECTORS, Scenario, case_study, check_model_cell
 
 METRICS = (
     ('discounted_cost', 'discounted cost'),
@@ -183,6 +183,7 @@ class BatchSimulator:
         self.policy, value = policy_arrays(policy, value)
         self.model = model
         world = model if world is None else world
+        check_model_cell(world)
         self.world = world
         if self.policy.shape != (model.n_states,):
             raise ValueError(f'the policy has {self.policy.size} states, the model '

@@ -163,6 +163,16 @@ class Trajectory:
         return '\n'.join(lines)
 
 
+def check_model_cell(world: HRCModel) -> None:
+    """ValueError for a world the model's cell cannot run: `model.robot_rate` is the cell with
+    the arm's physics (its program's cycles under SSM, MODEL.md 3.2), which the model's cell,
+    without an arm, does not simulate (its robot's counter is the paper's)."""
+    if world.robot_rate is not None:
+        raise ValueError(f'{world.config.source} has model.robot_rate, the arm\'s progress under '
+                         'SSM, which the model\'s cell does not simulate: run it in the cell with '
+                         'the arm (hrc-evaluate --cell arm, hrc-case-study --robot sim)')
+
+
 def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper',
              mode: str | None = None, seed=0, value=None, fail_safe: bool = True,
              pomdp=None) -> Trajectory:
@@ -181,6 +191,7 @@ def simulate(model: HRCModel, policy, scenario: Scenario, selector: str = 'paper
     if selector not in SIMULATION_SELECTORS:
         raise ValueError(f'unknown selector {selector!r}; expected one of '
                          f'{", ".join(SIMULATION_SELECTORS)}')
+    check_model_cell(model)
     pi, value = policy_arrays(policy, value)
     waiting_cost = charged_waiting_cost(model)
     top = model.queue_length
