@@ -591,15 +591,31 @@ def test_dm_is_capped_at_the_collaboration_speed(setup):
     assert moving and max(c.override for c in moving) == pytest.approx(0.3)
 
 
-def test_an_accepted_joint_request_starts_the_shared_program_on_nw(setup):
+@pytest.mark.parametrize('action', [NW, MH, RH1, RH2])
+def test_an_accepted_joint_request_starts_the_shared_program_on_nw_and_on_mh(setup, action):
+    """The model's robot works under every action its configuration does not pause (nw, mh,
+    the requests: MODEL.md 3.2), so the committed robot's program runs under each (issue 34:
+    under mh it stayed unstarted, and qmdp, which motivates, left the arm idle 77% of the
+    time); after dn a request or mh leaves the hold."""
     rig = Rig(setup)
     rig.run(0.3)
+    rig.bridge.action(NW, rig.t)                   # the bridge starts held: leave the hold
     rig.task(tp=1, tc=1, tx=3, ty=3, hp=1, hc=1, bp=1, bc=1)
-    rig.bridge.action(NW, rig.t)
+    rig.bridge.action(action, rig.t)
     rig.run(0.02)
     assert rig.sent[-1].kind == 'program' and rig.bridge.progress.nature == 3
     rig.task()                                     # the task ended: the share is dropped
     assert rig.bridge.progress is None
+    held = Rig(setup)
+    held.run(0.3)
+    held.bridge.action(DN, held.t)
+    held.task(tp=1, tc=1, tx=3, ty=3, hp=1, hc=1, bp=1, bc=1)
+    held.bridge.action(action, held.t)
+    commands = held.run(0.05)
+    if action == NW:
+        assert held.sent[-1].kind == 'program'
+    else:
+        assert held.sent == [] and all(c.override == 0.0 for c in commands)
 
 
 def test_ssm_caps_every_action_and_a_close_person_stops_the_arm(setup):

@@ -23,7 +23,9 @@ rule is a unit test (test/test_robot.py) and the phase-2 node only converts mess
 - dm: moves to the collaboration pose, its override capped at `collaboration_speed`.
 - dn: holds: override 0, no new trajectory (the arm brakes along its path and stands; the
   program waits).
-- rh1, rh2, mh: leave the motion as it is (requests to the person); a hold stays a hold.
+- rh1, rh2, mh: leave the motion as it is (requests to the person), except that a committed
+  program not running runs as under nw (the model's robot works under them); a hold stays a
+  hold.
 
 **Safe point.** A new trajectory replaces the running one only where the arm is at rest (every
 joint slower than `rest_speed`): the bridge first commands override 0, the controller brakes
@@ -748,7 +750,12 @@ class Bridge:
             self.paused = True
             return
         if a in (RH1, RH2, MH):
-            return                    # requests to the person: the motion stays as it is
+            # requests to the person: the motion stays as it is, except that a committed
+            # program that is not running runs, as under nw (the model's robot works under
+            # them: MODEL.md 3.2, robot_paused_by); a hold stays a hold
+            if not self.paused:
+                self._continue_program()
+            return
         self.paused = False
         x = self.task
         if a == DP:
