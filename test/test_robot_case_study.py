@@ -64,6 +64,12 @@ EDGE = 0.05              # m: 50 ms of a 1 m/s arm or person
 # (the same joints, reached 0.2 s later). Measured with the alignment: see the test's message.
 PATH_TOLERANCE = 0.1
 PATH_SHIFT = 1.0
+# ... over the first PATH_EPOCHS epochs at most: a goal planned at an epoch boundary starts from
+# where the arm stands then, so once the drift has moved the arm along its path at a boundary
+# the two runs' next goals are different lines in joint space (seed 0 with issue 34's bridge:
+# the epochs agree through all 40, the paths 0.022 rad through 20 s and 0.12-0.30 rad from 25 s
+# on, with a band of 1 or 2 s alike)
+PATH_EPOCHS = 20
 GRID = 0.02                   # s: both paths resampled on this grid (the batch's control period)
 
 
@@ -271,7 +277,7 @@ def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, batch):
     # up to where the runs part (they are one episode until then): the graph's arm runs in
     # wall-clock time, each protective stop and resume shifting it by a few tens of ms against
     # the batch (path_gap's alignment takes that)
-    until = min(ros_t.max(), parting_epoch(out, batch) - 1.0)
+    until = min(ros_t.max(), PATH_EPOCHS, parting_epoch(out, batch) - 1.0)
     keep = ros_t <= until
     ros_t, ros_q = ros_t[keep], ros_q[keep]
     inside = batch_t <= until
