@@ -451,9 +451,9 @@ def _both_in(world: Config, running: dict, config: Config, policy, pomdp, select
 def shadow(running: dict, summary: dict, mdp: dict, pomdp: dict | None, selector: str,
            settings: dict, seed: int) -> tuple[dict, dict]:
     """The in-sample figures: the running pair and the new one (fitted from all the
-    recordings, its policy) in the world fitted from those same recordings. Reported beside
-    the held-out check (`heldout`), which decides: here the new policy is scored in the
-    world it was planned for."""
+    recordings, its policy) in the world fitted from those same recordings, every metric of
+    the check: optimistic for the new policy, which is scored in the world it was planned
+    for, until the refits correct them (check.py)."""
     t0 = time.perf_counter()
     runs = _both_in(summary['config'], running, summary['config'], mdp['result'],
                     None if pomdp is None else pomdp['policy'], selector, settings, seed)
