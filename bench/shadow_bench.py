@@ -190,14 +190,14 @@ def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
         name = 'in-sample (episodes only)' if refits is None else f'{refits} refits'
         made = {id(r): decisions(r, refits) for r in results}
 
-        def covered(rs):
+        def covered(rs, made=made):
             hits = 0
             for r in rs:
                 m, t = made[id(r)][1]['discounted_cost'], r['truth']['discounted_cost']['mean']
                 hits += m['low'] <= t <= m['high']
             return wilson(hits, len(rs))
 
-        def promoted(rs):
+        def promoted(rs, made=made):
             return wilson(sum(made[id(r)][0] == 'promote' for r in rs), len(rs))
         print(f'| {name} | {covered(results)} | {covered(unchanged)} | {covered(changed)} | '
               f'{promoted(unchanged)} | {promoted(better)} | {promoted(not_cheaper)} |')
