@@ -387,6 +387,10 @@ def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
     assert cost['low'] < 1.0 < cost['high'] and cost['refits'] == 10
     assert 'not cheaper with 95% confidence' in p.entry['reason']
     assert p.entry['shadow']['errors']['discounted_cost'] == pytest.approx(errors)
+    # the report says how the refits were made: resampled episodes (recordings simulated
+    # from the fit were tried and dropped; the report said so until 2026-12-06)
+    world = p.entry['shadow']['world']
+    assert 'refits of resampled episodes' in world and 'simulated' not in world
     assert outputs[0].args[-1] == Ref('shadow')
 
 

@@ -5,9 +5,9 @@ world's, and its cache follows what the recordings depend on.
   hrc-evaluate --true-config draws them (`episodes_of(..., prior=)`), not uniform ones;
 - the cache's key changes when the generator, the settings or a world file's contents change,
   and not otherwise, and follows the shipped policy a cell without one runs;
-- generated recordings carry the tasks waiting, and cuts (halves, windows) cut them too, so a
-  queue base's stream can be fitted from them; fit.prior refuses at read recordings whose
-  half starts no episode (review of the plant's fit.prior / fit.stream).
+- generated recordings carry the tasks waiting, and cuts (the drift window's, the fit's
+  window) cut them too, so a queue base's stream can be fitted from them; fit.prior refuses at
+  read recordings in which no episode starts (review of the plant's fit.prior / fit.stream).
 """
 
 from __future__ import annotations

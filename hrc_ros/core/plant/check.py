@@ -80,8 +80,8 @@ METRICS = {
 }
 GUARDS = ('refused_requests', 'tasks_completed', 'collision_stuck')    # promote.guards
 WORLD = ('the world fitted from all the recordings (in-sample), corrected for the fit\'s '
-         'optimism by refits of recordings simulated from it; the interval carries the fitting '
-         'error and the episodes\' noise')
+         'optimism by refits of resampled episodes (each fitted from the base and solved as '
+         'the cell was); the interval carries the fitting error and the episodes\' noise')
 
 
 def t_quantile(dof: int) -> float:
