@@ -8,13 +8,14 @@
 1. Plant (`--cells 8 --cpus 2`). Cells of the full-size model, each with recordings generated
    by the batch simulator (1000 epochs: 20 episodes x 50; half in the default world, half in
    the `reluctant` world of fit_bench.py), `run: always` so every cell runs every stage (read,
-   drift test with 99 simulations, fit with 50 bootstrap resamples, value iteration, each half
-   fitted and solved, the shadow check over 1000 paired episodes in-sample and held out,
-   outputs). A round runs the same plant (a) on an embedded Ray with `--cpus` CPUs (hrc-fleet's
-   scheduler, numba's threads per task as Ray assigns CPUs), then (b) serially in one new
-   process, `hrc-fleet run --serial`'s call, once on one CPU (`--serial-threads 1`: numba's
-   kernels serial and numpy's BLAS on one thread, as Ray's one-CPU tasks run: T_1, the run time
-   on one processor that a speed-up is measured against) and once with numba's and BLAS's
+   drift test with 99 simulations, fit with 50 bootstrap resamples, value iteration, the
+   shadow check over 1000 paired episodes in-sample and its 10 refits (each a fit, a solve
+   and four evaluations), outputs). A round runs the same plant (a) on an embedded Ray with
+   `--cpus` CPUs (hrc-fleet's scheduler, numba's threads per task as Ray assigns CPUs), then
+   (b) serially in one new process, `hrc-fleet run --serial`'s call, once on one CPU
+   (`--serial-threads 1`: numba's kernels serial and numpy's BLAS on one thread, as Ray's
+   one-CPU tasks run: T_1, the run time on one processor that a speed-up is measured
+   against) and once with numba's and BLAS's
    threads free to use every core (`0`: the solves' parallel kernels on both CPUs, so that
    process is itself partly parallel). Each serial run is a new process, so that it pays
    numba's cache loads as Ray's new workers do. All are timed over the same call
@@ -382,9 +383,8 @@ def scaling(report: dict, args) -> None:
     t_cell = float(np.mean(per_cell))
     print('  stage seconds per cell (mean over cells, summed over its tasks): '
           + ', '.join(f'{k} {np.mean(v):.2f}' for k, v in stages.items()))
-    # the two folds run beside each other (and beside the fit, counted after it here: the
-    # path printed is an upper bound)
-    chunks = {'null': math.ceil(99 / 10), 'boot': math.ceil(50 / 10), 'fold': 2}
+    # the refits run beside each other (one per task) and beside the in-sample shadow
+    chunks = {'null': math.ceil(99 / 10), 'boot': math.ceil(50 / 10), 'refit': 10}
     path = sum(np.mean(v) / chunks.get(k, 1) for k, v in stages.items())
     print(f'  one cell: {t_cell:.1f} CPU s in all; critical path with its fan-outs spread '
           f'{path:.1f} s; {3600 / t_cell:.0f} cells per hour per core')

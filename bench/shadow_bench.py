@@ -1,207 +1,326 @@
-"""The promotion rule's error rates: the in-sample shadow check against the held-out one.
+"""The promotion check against the truth: coverage, false promotions and power, on generated
+cells whose truth is computed in the world they came from.
 
-    nice -n 10 .venv/bin/python bench/shadow_bench.py                 # 100 / 30 / 20 cells
-    nice -n 10 .venv/bin/python bench/shadow_bench.py --minutes 60 --results cells.jsonl
+    nice -n 10 .venv/bin/python bench/shadow_bench.py --results out/shadow.jsonl   # 250 cells
+    nice -n 10 .venv/bin/python bench/shadow_bench.py --results F --shard 1/2      # half of them
+    .venv/bin/python bench/shadow_bench.py --table F                               # the table
 
-Each simulated cell runs the default configuration and its shipped policy and has 1000
-recorded epochs (20 episodes of 50, the paper selector with 20% exploration, hrc-evaluate's
-random task streams: what `generate:` makes), in one of three worlds:
+A cell runs the default configuration and its shipped policy (the paper selector) and has
+`--episodes` x 50 recorded epochs (the running policy with 20% exploration, hrc-evaluate's
+random task streams: what `generate:` makes), in a world that differs from the default by a
+known amount: `amount` t of the way from the default's people to those of a direction,
+every probability of the direction's families mixed (1 - t) default + t direction:
 
-- `unchanged`: the default people themselves; a promotion is a false promotion;
-- `reluctant`: people who decline most requests and drift closer (the tests' drifted cell);
-- `mild`: only p_accept lower (0.2 / 0.65 / 0.95 against 0.3 / 0.8 / 0.99).
+- `unchanged` (t = 0): the default people themselves; a promotion there is a false one;
+- `reluctant` (t in 0.25, 0.5, 0.75, 1): people who decline requests and drift closer (the
+  tests' drifted cell, bench/fleet_bench.py);
+- `mild` (t in 0.25 .. 1): only p_accept lower (0.2 / 0.65 / 0.95 at t = 1, the
+  default's 0.3 / 0.8 / 0.95).
 
-Every cell goes through the stages of `core/plant/stages.py` as hrc-fleet runs them with `run:
-always` (no drift gate: the rule alone is measured), without the bootstrap and the plots, which
-do not enter the decision: `read`, `fit_point` + `fit_summary` + `solve_mdp` (the new policy),
-`shadow` (in-sample: both policies in the world fitted from all 1000 epochs), `fold` x 2 and
-`heldout` (the held-out check), `evaluate: {episodes: 1000, epochs: 50}`. The rule
-(`pipeline.decide`) is then applied to three sets of figures of the same cell: in-sample (the
-old rule), held out in the two halves' fitted worlds (`evaluate.worlds: 0`, the default) and
-held out in 10 bootstrap worlds of each half (`evaluate.worlds: 10`), so the columns are paired
-cell by cell. Printed per world: the share of cells each rule promotes with its 95% Wilson
-interval, the cells where the rules disagree (McNemar's discordant pairs), and the mean cost
-differences. One Ray task per cell on `--cpus` CPUs; every seed comes from the cell's index, so
-a run is reproducible.
+Every cell goes through the plant's own stages (`core/plant/stages.py`) as hrc-fleet runs them
+with `run: always` (no drift gate: the check alone is measured): `read`, `fit_point` +
+`fit_summary` + `solve_mdp` (the new policy), `shadow` (in-sample, `evaluate.episodes` 1000)
+and `refits` (`--refits` of them, draws 0..R-1: each a resample of the episodes fitted and
+solved as the cell was, and its error). The truth, which no rule can see: the new policy and
+the running one over `--truth-episodes` other paired episodes in the world the recordings
+were made in (`hrc-evaluate --true-config`'s machinery), every metric of the check; and the
+regret of each against the policy solved for that world (in the default world, the running
+policy itself).
+
+The table (`--table`, printed at the end of a run too), per number of refits R (the first R
+of each cell's, so the columns are paired cell by cell) and over the cells done:
+
+- coverage: the share of cells whose 95% interval of the cost difference holds the true one,
+  overall, in unchanged and in changed cells (95% Wilson intervals); the truth has its own
+  noise (its 95% half-width is printed; it makes the measured coverage a little low);
+- false promotions: unchanged cells promoted (and, below the table, the true differences of
+  those promoted: the shipped policy is not the default world's optimum under the selector,
+  so a refit of an unchanged cell can be truly cheaper);
+- power: cells truly better by >= 1 cost unit per episode promoted, and by bands of the truth;
+- wrong promotions: changed cells promoted whose new policy is truly not cheaper;
+- the in-sample rule (the in-sample interval over the episodes alone, the old rule before the
+  held-out check) on the same cells, for comparison.
+
+Resumable and shardable: a cell is its index (its world, amount and seeds follow from it);
+`--results` gets one JSON line per cell as it finishes, and a run skips the cells already
+there; `--shard K/N` runs the cells whose index is K - 1 modulo N. `--cpus` worker processes
+(one cell each, numba on one thread).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
 import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from datetime import datetime, timezone
 from pathlib import Path
 
-os.environ.setdefault('RAY_worker_niceness', '0')
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from fleet_bench import MILD, RELUCTANT, wilson  # noqa: E402
-
-WORLDS = {'unchanged': {}, 'reluctant': RELUCTANT, 'mild': MILD}
+DIRECTIONS = {
+    'reluctant': {'p_accept': [0.05, 0.35, 0.7],
+                  'p_delta': [[0.05, 0.65, 0.30], [0.05, 0.55, 0.40], [0.02, 0.38, 0.60]]},
+    'mild': {'p_accept': [0.2, 0.65, 0.95]},
+}
+AMOUNTS = (0.25, 0.5, 0.75, 1.0)
+CELLS = 250           # 100 unchanged, then the changed ones in turn
+UNCHANGED_EVERY = 5   # cells 0, 5, 10, ... and 1, 6, 11, ... are unchanged (2 in 5)
+EVALUATE = {'episodes': 1000, 'epochs': 50, 'task_rate': 0.2}
 FIT = {'bootstrap': 0, 'starts': 2, 'tol': 1e-7, 'max_iter': 1000, 'hold': (),
-       'window': None}
-EVALUATE = {'episodes': 1000, 'epochs': 50, 'task_rate': 0.2, 'worlds': 10}
+       'window': None, 'prior': False, 'stream': False}
 
 
-def one_cell(world: str, seed: int) -> dict:
-    """Both rules' figures and decisions for one generated cell (module docstring)."""
+def cell_of(index: int) -> dict:
+    """The world, amount and seeds of cell `index` (the same on every run and shard)."""
+    if index % UNCHANGED_EVERY in (0, 1):
+        return {'index': index, 'direction': 'unchanged', 'amount': 0.0, 'seed': index}
+    changed = index - 2 * (index // UNCHANGED_EVERY) - 2
+    direction = ('reluctant', 'mild')[changed % 2]
+    amount = AMOUNTS[(changed // 2) % len(AMOUNTS)]
+    return {'index': index, 'direction': direction, 'amount': amount, 'seed': index}
+
+
+def world_of(cell: dict) -> dict:
+    """The world's overrides: each family of the direction mixed with the default's."""
+    if cell['direction'] == 'unchanged':
+        return {}
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.paths import default_config_path
+    default = load_config(default_config_path()).data['model']
+    t = cell['amount']
+    target = DIRECTIONS[cell['direction']]
+    return {'model': {k: (np.asarray(default[k]) * (1 - t) + np.asarray(v) * t).tolist()
+                      for k, v in target.items()}}
+
+
+def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dict:
+    """The plant's check of one generated cell and its truth (module docstring)."""
     import numba
 
     from hrc_ros.core.config import load_config
     from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.mdp.solver import solve
+    from hrc_ros.core.model import HRCModel
     from hrc_ros.core.paths import default_config_path
     from hrc_ros.core.plant import stages
-    from hrc_ros.core.plant.pipeline import decide
     numba.set_num_threads(1)
     t0 = time.perf_counter()
+    seed = cell['seed']
     base = load_config(default_config_path())
     policy = load_policy(default_policy_path(base), base)
     running = {'config': base, 'policy': policy, 'pomdp': None}
-    generate = {'world': WORLDS[world], 'episodes': 20, 'epochs': 50, 'explore': 0.2,
+    world = world_of(cell)
+    generate = {'world': world, 'episodes': episodes, 'epochs': 50, 'explore': 0.2,
                 'seed': 1000 + seed}
     _, text = stages.generate(base, policy, generate, 'paper')
     with tempfile.TemporaryDirectory(prefix='shadow_bench_') as folder:
         path = Path(folder) / 'cell.csv'
         path.write_text(text)
-        _, data = stages.read([str(path)], base.rho, base.sigma, '/', 1000)
+        _, data = stages.read([str(path)], base.rho, base.sigma, '/', 100_000)
     _, point = stages.fit_point(data, base, FIT, seed)
-    _, summary = stages.fit_summary(point, base, ['generated'])
+    _, summary = stages.fit_summary(point, base, ['generated'], data, FIT, seed)
     _, mdp = stages.solve_mdp(summary, None)
-    inside, _ = stages.shadow(running, summary, mdp, None, 'paper', EVALUATE, seed)
-    folds = [stages.fold(data, half, base, FIT, seed, None, None, EVALUATE['worlds'])[1]
-             for half in (0, 1)]
-    held, _ = stages.heldout(running, *folds, 'paper', EVALUATE, seed)
-    point, _ = stages.heldout(running, *({**f, 'worlds': []} for f in folds), 'paper',
-                              EVALUATE, seed)                      # evaluate.worlds: 0
-    each = all(decide({**f, 'episodes': point['episodes']})[0] == 'promote'
-               for f in point['folds'])
-    # the truth, which no rule can see: the new policy and the running one in the world the
-    # recordings were made in, on other episodes
-    true = stages._both_in(stages.world_config(base, WORLDS[world]), running,
-                           summary['config'], mdp['result'], None, 'paper', EVALUATE,
-                           seed + 10_000)
-    truth = {metric: stages.paired(*true[metric]) for metric in stages.SHADOW_METRICS}
-    truth['episodes'] = EVALUATE['episodes']
-    rules = (('in_sample', inside), ('held_out_point', point), ('held_out', held))
-    return {'world': world, 'seed': seed, 'seconds': time.perf_counter() - t0,
-            **{rule: decide(figures)[0] for rule, figures in rules},
-            **{f'cost_{rule}': figures['discounted_cost'] for rule, figures in rules},
-            'held_out_each': 'promote' if each and decide(point)[0] == 'promote' else 'keep',
-            'truth': decide(truth)[0], 'cost_truth': truth['discounted_cost']}
+    settings = dict(EVALUATE, refits=refits)
+    inside, _ = stages.shadow(running, summary, mdp, None, 'paper', settings, seed)
+    t_refits = time.perf_counter()
+    done, _ = stages.refits(running, data, point, summary, mdp, base, 'paper', FIT, None,
+                            settings, seed, None, list(range(refits)))
+    t_refits = time.perf_counter() - t_refits
+    # the truth: the new policy and the running one in the world the recordings came from
+    true_world = stages.world_config(base, world)
+    truth_settings = dict(EVALUATE, episodes=truth_episodes)
+    true = stages._both_in(true_world, running, summary['config'], mdp['result'], None,
+                           'paper', truth_settings, seed + 10_000)
+    truth = {m: stages.paired(*true[m]) for m in stages.CHECK_METRICS}
+    if world:
+        optimum = solve(HRCModel(true_world))
+        best = stages._both_in(true_world, running, true_world, optimum, None, 'paper',
+                               truth_settings, seed + 10_000)['discounted_cost'][0]
+    else:       # the default world's optimum is the running policy, solved for it
+        best = true['discounted_cost'][1]
+    regret = {'running': float(np.mean(true['discounted_cost'][1] - best)),
+              'new': float(np.mean(true['discounted_cost'][0] - best))}
+    return {**cell, 'episodes': episodes, 'epochs': data['all'].epochs,
+            'in_sample': {m: inside[m] for m in stages.CHECK_METRICS},
+            'rows': done['rows'], 'truth': truth, 'regret': regret,
+            'seconds': time.perf_counter() - t0, 'refit_seconds': t_refits}
 
 
-COLUMNS = {'in_sample': 'in-sample rule (old)',
-           'held_out_point': 'held out, point worlds (worlds: 0)',
-           'held_out_each': 'held out, point worlds, each fold alone too',
-           'held_out': 'held out, 10 bootstrap worlds (worlds: 10)',
-           'truth': 'the rule in the true world'}
+# -- the table --------------------------------------------------------------------------------
+def wilson(k: int, n: int) -> str:
+    from hrc_ros.core.plant.stages import own_interval
+    if not n:
+        return '-'
+    low, high = own_interval(k / n, n)
+    return f'{k}/{n} = {100 * k / n:.1f}% [{100 * low:.1f}, {100 * high:.1f}]'
 
 
-def _ci(m: dict) -> str:
-    return f'{m["mean"]:+.2f} [{m["low"]:+.2f}, {m["high"]:+.2f}]'
+def decisions(r: dict, refits: int | None, guards=()) -> tuple[str, dict]:
+    """The plant's rule on the cell's figures with its first `refits` refits (None: the
+    in-sample rule, the interval over the episodes alone)."""
+    from hrc_ros.core.plant import check
+    rows = [] if refits is None else r['rows'][:refits]
+    figures = check.combine(r['in_sample'], rows)
+    if refits is None:
+        for m in figures.values():
+            m['refits'] = 2          # the old rule: decide on the in-sample interval
+    return check.decide(figures, guards)[0], figures
 
 
-def interrupted(args, t0: float) -> bool:
-    """--minutes spent: stop waiting and report the cells done (said in the output)."""
-    if args.minutes and time.perf_counter() - t0 > 60 * args.minutes:
-        print(f'stopped after {args.minutes} minutes: the table is of the cells done')
-        return True
-    return False
+def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
+    refit_counts = [k for k in refit_counts if all(len(r['rows']) >= k for r in results)]
+    unchanged = [r for r in results if r['direction'] == 'unchanged']
+    changed = [r for r in results if r['direction'] != 'unchanged']
+    better = [r for r in results if r['truth']['discounted_cost']['mean'] <= -1.0]
+    not_cheaper = [r for r in changed if r['truth']['discounted_cost']['mean'] >= 0]
+    truth_half = np.median([r['truth']['discounted_cost']['half_width'] for r in results])
+    print(f'{len(results)} cells ({len(unchanged)} unchanged, {len(changed)} changed; '
+          f'{len(better)} truly better by >= 1.0 per episode); the truth\'s own 95% half-width '
+          f'{truth_half:.3f} (median)\n')
+    print('| rule | coverage, all | unchanged | changed | false promotions (unchanged) | '
+          'power (truly better by >= 1.0) | wrong promotions (changed, truly not cheaper) |')
+    print('|---|---|---|---|---|---|---|')
+    for refits in [None] + refit_counts:
+        name = 'in-sample (episodes only)' if refits is None else f'{refits} refits'
+        made = {id(r): decisions(r, refits) for r in results}
 
+        def covered(rs, made=made):
+            hits = 0
+            for r in rs:
+                m, t = made[id(r)][1]['discounted_cost'], r['truth']['discounted_cost']['mean']
+                hits += m['low'] <= t <= m['high']
+            return wilson(hits, len(rs))
 
-def table(results: list) -> None:
-    """The rates per world (module docstring) of the cells in `results`."""
-    print('| world | cells | ' + ' | '.join(f'{COLUMNS[c]}: promoted (95%)' for c in COLUMNS)
-          + ' | promoted by the in-sample rule only / by the held-out one (worlds: 0) only | '
-          'mean cost difference in-sample / held out (worlds: 0) / (worlds: 10) / true |')
-    print('|---|---|' + '---|' * (len(COLUMNS) + 2))
-    for world in WORLDS:
-        rs = [r for r in results if r['world'] == world]
-        if not rs:
-            continue
-        n = len(rs)
-        row = [world, str(n)]
-        for rule in COLUMNS:
-            k = sum(r[rule] == 'promote' for r in rs)
-            low, high = wilson(k, n)
-            row.append(f'{k} = {100 * k / n:.1f}% [{100 * low:.1f}%, {100 * high:.1f}%]')
-        only_in = sum(r['in_sample'] == 'promote' != r['held_out_point'] for r in rs)
-        only_out = sum(r['held_out_point'] == 'promote' != r['in_sample'] for r in rs)
-        row.append(f'{only_in} / {only_out}')
-        row.append(' / '.join(f'{sum(r["cost_" + c]["mean"] for r in rs) / n:+.2f}'
-                              for c in COLUMNS if 'cost_' + c in rs[0]))
-        print('| ' + ' | '.join(row) + ' |')
-    print('\nAgainst the truth (the rule on 1000 paired episodes in the world the recordings '
-          'were made in, which no rule can see), all cells:')
-    print('| rule | promoted when the truth says promote | promoted when the truth says keep |')
+        def promoted(rs, made=made):
+            return wilson(sum(made[id(r)][0] == 'promote' for r in rs), len(rs))
+        print(f'| {name} | {covered(results)} | {covered(unchanged)} | {covered(changed)} | '
+              f'{promoted(unchanged)} | {promoted(better)} | {promoted(not_cheaper)} |')
+    if not refit_counts:
+        return
+    k = refit_counts[-1] if 10 not in refit_counts else 10
+    print(f'\nPower by the true difference ({k} refits):\n')
+    print('| true cost difference per episode | cells | promoted |')
     print('|---|---|---|')
-    for rule in list(COLUMNS)[:-1]:
-        row = [COLUMNS[rule]]
-        for verdict in ('promote', 'keep'):
-            rs = [r for r in results if r['truth'] == verdict]
-            k = sum(r[rule] == 'promote' for r in rs)
-            low, high = wilson(k, len(rs)) if rs else (float('nan'),) * 2
-            row.append(f'{k} of {len(rs)} [{100 * low:.1f}%, {100 * high:.1f}%]')
-        print('| ' + ' | '.join(row) + ' |')
+    for low, high in ((-math.inf, -3.0), (-3.0, -2.0), (-2.0, -1.0), (-1.0, 0.0),
+                      (0.0, math.inf)):
+        rs = [r for r in results if low < r['truth']['discounted_cost']['mean'] <= high]
+        print(f'| ({low:+.0f}, {high:+.0f}] | {len(rs)} | '
+              f'{wilson(sum(decisions(r, k)[0] == "promote" for r in rs), len(rs))} |')
+    print(f'\nBy world ({k} refits): mean in-sample / estimate / true difference, promoted\n')
+    print('| world | amount | cells | in-sample | estimate | true | true regret of the running '
+          'policy / the new one | promoted |')
+    print('|---|---|---|---|---|---|---|---|')
+    groups = sorted({(r['direction'], r['amount']) for r in results})
+    for direction, amount in groups:
+        rs = [r for r in results if (r['direction'], r['amount']) == (direction, amount)]
+        est = np.mean([decisions(r, k)[1]['discounted_cost']['mean'] for r in rs])
+        print(f'| {direction} | {amount:g} | {len(rs)} | '
+              f'{np.mean([r["in_sample"]["discounted_cost"]["mean"] for r in rs]):+.2f} | '
+              f'{est:+.2f} | {np.mean([r["truth"]["discounted_cost"]["mean"] for r in rs]):+.2f}'
+              f' | {np.mean([r["regret"]["running"] for r in rs]):+.2f} / '
+              f'{np.mean([r["regret"]["new"] for r in rs]):+.2f} | '
+              f'{wilson(sum(decisions(r, k)[0] == "promote" for r in rs), len(rs))} |')
+    z = []
+    for r in results:
+        m = decisions(r, k)[1]['discounted_cost']
+        z.append((m['mean'] - r['truth']['discounted_cost']['mean']) / (m['half_width'] / 1.96))
+    z = np.array(z)
+    print(f'\nThe estimate\'s error in units of its own standard error ({k} refits): mean '
+          f'{z.mean():+.2f}, sd {z.std(ddof=1):.2f}, quartiles '
+          + ', '.join(f'{q:+.2f}' for q in np.percentile(z, [25, 50, 75])))
+    false = [r['truth']['discounted_cost']['mean'] for r in unchanged
+             if decisions(r, k)[0] == 'promote']
+    print(f'Unchanged cells promoted ({k} refits): {len(false)}, of which truly not cheaper '
+          f'(the truth\'s mean >= 0): {sum(t >= 0 for t in false)}; their true differences '
+          + ', '.join(f'{t:+.2f}' for t in false))
+    guard = sum(decisions(r, k)[0] == 'promote'
+                and r['truth']['collision_epochs']['low'] > 0 for r in results)
+    print(f'Promoted although truly more collision epochs (the truth\'s interval above zero): '
+          f'{guard} of {sum(decisions(r, k)[0] == "promote" for r in results)} promoted')
     seconds = sorted(r['seconds'] for r in results)
-    print(f'(seconds per cell, one CPU each: median {seconds[len(seconds) // 2]:.0f}, the '
-          f'slowest {seconds[-1]:.0f})')
+    refit = sorted(r['refit_seconds'] / max(1, len(r['rows'])) for r in results)
+    print(f'Seconds per cell, one CPU each: median {seconds[len(seconds) // 2]:.0f} (a refit: '
+          f'median {refit[len(refit) // 2]:.1f}), the slowest {seconds[-1]:.0f}')
+
+
+# -- running ----------------------------------------------------------------------------------
+def append(path: Path, line: str) -> None:
+    """One line, in one write to a file opened for appending: shards running side by side
+    into the same file never interleave their lines."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, line.encode())
+    finally:
+        os.close(fd)
+
+
+def load(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass        # a line cut by a stopped run: that cell runs again
+    return out
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--unchanged', type=int, default=100)
-    parser.add_argument('--drifted', type=int, default=30, help='cells of reluctant people')
-    parser.add_argument('--mild', type=int, default=20)
+    parser.add_argument('--results', required=True, help='JSON lines, appended and resumed')
+    parser.add_argument('--cells', type=int, default=CELLS)
+    parser.add_argument('--shard', default='1/1', help='K/N: the cells K - 1 modulo N')
+    parser.add_argument('--episodes', type=int, default=20, help='recorded episodes of 50')
+    parser.add_argument('--refits', type=int, default=20)
+    parser.add_argument('--truth-episodes', type=int, default=4000)
     parser.add_argument('--cpus', type=int, default=2)
-    parser.add_argument('--results', default=None,
-                        help='append each cell\'s figures to this file (JSON lines)')
-    parser.add_argument('--minutes', type=float, default=0,
-                        help='report the cells done after this long (default: all cells)')
-    parser.add_argument('--table', default=None, metavar='RESULTS',
-                        help='only print the table of a --results file')
+    parser.add_argument('--table', action='store_true', help='only print the table')
     args = parser.parse_args(argv)
+    path = Path(args.results)
     if args.table:
-        table([json.loads(line) for line in Path(args.table).read_text().splitlines()])
+        table(load(path))
         return 0
+    k, n = (int(v) for v in args.shard.split('/'))
+    done = {r['index'] for r in load(path)}
+    todo = [cell_of(i) for i in range(args.cells) if i % n == k - 1 and i not in done]
     print(f'command: nice -n 10 .venv/bin/python bench/shadow_bench.py '
-          f'{" ".join(sys.argv[1:])}'.rstrip())
+          f'{" ".join(sys.argv[1:] if argv is None else argv)}')
     print(f'started {datetime.now(timezone.utc).isoformat(timespec="minutes")}, load average '
-          f'{os.getloadavg()[0]:.1f}', flush=True)
-    import ray
-    ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level='warning')
-    task = ray.remote(one_cell)
+          f'{os.getloadavg()[0]:.1f}; {len(todo)} cells to run, {len(done)} already done',
+          flush=True)
     t0 = time.perf_counter()
-    try:
-        counts = {'unchanged': args.unchanged, 'reluctant': args.drifted, 'mild': args.mild}
-        # interleaved, so that a run stopped early (Ctrl-C: the table of the cells done) has
-        # every world in its proportion
-        cells = sorted(((w, s) for w, n in counts.items() for s in range(n)),
-                       key=lambda c: (c[1] + 0.5) / counts[c[0]])
-        pending = {task.remote(w, s): (w, s) for w, s in cells}
-        results = []
-        while pending and not interrupted(args, t0):
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            r = ray.get(ready[0])
-            del pending[ready[0]]
-            results.append(r)
-            if args.results:
-                with open(args.results, 'a') as out:
-                    out.write(json.dumps(r) + '\n')
-            print(f'  {r["world"]:<9} seed {r["seed"]:>3}: '
-                  + '  '.join(f'{rule} {r[rule]:<7}' + (f' ({_ci(r["cost_" + rule])})'
-                                                           if 'cost_' + rule in r else '')
-                              for rule in COLUMNS) + f'  {r["seconds"]:.0f} s', flush=True)
-    finally:
-        ray.shutdown()
-    print(f'\n{len(results)} cells in {time.perf_counter() - t0:.0f} s on {args.cpus} CPUs, '
-          f'load average at the end {os.getloadavg()[0]:.1f}')
-    table(results)
+    with ProcessPoolExecutor(max_workers=args.cpus) as pool:
+        pending = {pool.submit(run_cell, c, args.episodes, args.refits, args.truth_episodes): c
+                   for c in todo}
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                cell = pending.pop(future)
+                try:
+                    r = future.result()
+                except Exception as exc:   # noqa: BLE001 - one cell's failure is printed
+                    print(f'  cell {cell["index"]} failed: {type(exc).__name__}: {exc}',
+                          flush=True)
+                    continue
+                append(path, json.dumps(r) + '\n')
+                _, m = decisions(r, min(10, len(r['rows'])))
+                c = m['discounted_cost']
+                print(f'  {r["index"]:>3} {r["direction"]:<9} {r["amount"]:.2f}: in-sample '
+                      f'{c["in_sample"]:+6.2f}, estimate {c["mean"]:+6.2f} [{c["low"]:+6.2f}, '
+                      f'{c["high"]:+6.2f}], true {r["truth"]["discounted_cost"]["mean"]:+6.2f}'
+                      f'  {r["seconds"]:.0f} s', flush=True)
+    print(f'\n{len(todo)} cells in {time.perf_counter() - t0:.0f} s on {args.cpus} CPUs, load '
+          f'average at the end {os.getloadavg()[0]:.1f}\n')
+    table(load(path))
     return 0
 
 

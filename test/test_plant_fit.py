@@ -8,14 +8,15 @@ jobs, serially, without Ray) on recordings written as a CSV:
 - fit.stream: the fitted YAML is the one hrc-fit --stream writes for the same recording files
   (the stream section, and the rest of the configuration too); a base with stream.queue and
   recordings without the tasks waiting fail the cell with hrc-fit's message.
-- the held-out folds fit the same model: each half's configuration has its own prior and the
-  stream counted from the half's recordings, and so have its bootstrap worlds.
+- the promotion check's refits fit the same model: each refit's configuration is the fit of
+  its resampled episodes, its own prior included, with the cell's stream as counted.
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -24,7 +25,6 @@ import yaml
 from hrc_ros.core.config import load_config
 from hrc_ros.core.learning import fit as fitting
 from hrc_ros.core.learning.recordings import read_recordings
-from hrc_ros.core.learning.stream import fit_stream_for
 from hrc_ros.core.paths import shipped_config_path
 from hrc_ros.core.plant import stages
 from hrc_ros.core.plant.pipeline import CellPipeline, Ref, resolve, run_stage
@@ -56,7 +56,7 @@ def cell(tmp_path, recordings, fit: str, base: str = 'default'):
 
 def fitted(spec, base):
     """The cell's pipeline run as far as its fit summary: its own read, fit, bootstrap and
-    summary jobs with the payloads they name (the drift test and the folds left out) ->
+    summary jobs with the payloads they name (the drift test left out) ->
     (the summary's facts, its payload, the read payload)."""
     p = CellPipeline(spec, '/nonexistent/out', rho=base.rho, sigma=base.sigma)
     payloads = {'@base:a': base}
@@ -64,7 +64,7 @@ def fitted(spec, base):
     facts = {}
     while jobs:
         job = jobs.pop(0)
-        if job.key.startswith(('drift', 'null', 'fold')):
+        if job.key.startswith(('drift', 'null')):
             continue
         facts, payload = run_stage(job.stage, *resolve(job.args, payloads, 'a'))
         assert 'error' not in facts, facts
@@ -144,7 +144,7 @@ def test_fit_stream_writes_what_hrc_fit_stream_writes(tmp_path, recordings_csv,
     assert got == want                                     # the rest of the fit is the same
     assert facts['stream']['section'] == want['stream']
     # hrc-fit's report has the stream's; so has the plant's fitted.report.json (same seed)
-    files = stages.outputs({'cell': 'a'}, summary, None, None, None, None)[1]
+    files = stages.outputs({'cell': 'a'}, summary, None, None, None)[1]
     report = json.loads(files['fitted.report.json'])
     assert report['stream'] == json.loads(out.with_suffix('.report.json').read_text())['stream']
     assert len(data['recordings']) == 8                    # kept for the stream
@@ -172,25 +172,29 @@ def test_fit_stream_on_a_queue_base_without_queued_fails_the_cell_as_hrc_fit_ref
     assert facts['error'] == f'fit.stream: {message}'
 
 
-def test_the_folds_fit_the_prior_and_the_halves_streams(tmp_path, recordings_csv,
-                                                        default_config, monkeypatch):
-    spec = cell(tmp_path, recordings_csv, '{prior: true, stream: true, starts: 1}')
-    _, data = stages.read(spec.recordings, 2, 2, '/a', 1000, None, default_config)
-    monkeypatch.setattr(stages, 'solve_mdp', lambda summary, limit: ({}, {'result': None}))
-    half = 1
-    _, fold = stages.fold(data, half, default_config, spec.fit, spec.seed, None, None, 2)
-    records = stages.halves(read_recordings([recordings_csv], 2, 2))[half]
-    want = fit_stream_for(records, default_config, bootstrap=spec.fit['bootstrap'],
-                          seed=spec.seed).section()
-    point = fitting.fit(data['halves'][half], default_config, spec.fit['hold'], n_init=1,
-                        seed=spec.seed, tol=spec.fit['tol'], max_iter=spec.fit['max_iter'],
-                        bootstrap=0, prior=True)
-    config = fold['config'].data
-    assert config['stream'] == yaml.safe_load(yaml.safe_dump(want))
-    np.testing.assert_allclose(config['observation']['prior'],
-                               fitting.fitted_data(point, default_config)['observation']['prior'],
+def test_a_refit_fits_its_resample_as_the_cell_is_fitted_with_the_cells_stream(
+        tmp_path, recordings_csv, default_config, monkeypatch):
+    """A refit of the promotion check (stages.refit): the fit of its resampled episodes from
+    the base with the cell's settings, its own person prior among them, and the stream the
+    cell's fit counted (the refits refit what EM fits)."""
+    spec = cell(tmp_path, recordings_csv, '{prior: true, stream: true, starts: 1, bootstrap: 0}')
+    _, summary, data = fitted(spec, default_config)
+    point = summary['result']
+    monkeypatch.setattr('hrc_ros.core.mdp.solver.value_iteration',
+                        lambda model, start=None: 'solved')
+    config, policy, pomdp, converged = stages.refit(
+        data, point, summary, {'result': SimpleNamespace(value=None)}, default_config,
+        spec.fit, None, spec.seed, 3, None)
+    assert policy == 'solved' and pomdp is None and converged
+    resample = stages.refit_data(data['all'], [spec.seed, 4, 3])
+    assert len(resample.episodes) == len(data['all'].episodes) == 8
+    assert resample.epochs != data['all'].epochs or not np.array_equal(
+        resample.observation, data['all'].observation)
+    want = fitting.fit(resample, default_config, spec.fit['hold'], n_init=1, seed=spec.seed,
+                       tol=spec.fit['tol'], max_iter=spec.fit['max_iter'], bootstrap=0,
+                       prior=True)
+    assert config.data['stream'] == summary['config'].data['stream']
+    np.testing.assert_allclose(config.data['observation']['prior'],
+                               fitting.fitted_data(want, default_config)['observation']['prior'],
                                rtol=0, atol=1e-9)
-    assert len(fold['worlds']) == 2
-    for world in fold['worlds']:
-        assert world.data['stream'] == config['stream']
-        assert world.data['observation']['prior'] != config['observation']['prior']
+    assert config.data['observation']['prior'] != summary['config'].data['observation']['prior']

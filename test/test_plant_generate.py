@@ -5,9 +5,9 @@ world's, and its cache follows what the recordings depend on.
   hrc-evaluate --true-config draws them (`episodes_of(..., prior=)`), not uniform ones;
 - the cache's key changes when the generator, the settings or a world file's contents change,
   and not otherwise, and follows the shipped policy a cell without one runs;
-- generated recordings carry the tasks waiting, and cuts (halves, windows) cut them too, so a
-  queue base's stream can be fitted from them; fit.prior refuses at read recordings whose
-  half starts no episode (review of the plant's fit.prior / fit.stream).
+- generated recordings carry the tasks waiting, and cuts (the drift window's, the fit's
+  window) cut them too, so a queue base's stream can be fitted from them; fit.prior refuses at
+  read recordings in which no episode starts (review of the plant's fit.prior / fit.stream).
 """
 
 from __future__ import annotations
@@ -72,8 +72,8 @@ def test_generated_recordings_carry_the_tasks_waiting_and_a_queue_base_fits_thei
         tmp_path):
     """A generated cell on a queue base (stream.queue) records the tasks waiting, so that
     fit.stream can count the queue's releases from it (it failed the cell at read: no
-    `queued`); halves and windows that cut an episode cut its tasks waiting with it, so the
-    folds count the stream of their own epochs (they raised a broadcast error)."""
+    `queued`); windows and cuts that cut an episode cut its tasks waiting with it (a cut
+    raised a broadcast error)."""
     from hrc_ros.core.config import load_config
     from hrc_ros.core.learning.stream import fit_stream_for
     from hrc_ros.core.paths import shipped_config_path
@@ -86,29 +86,29 @@ def test_generated_recordings_carry_the_tasks_waiting_and_a_queue_base_fits_thei
     path.write_text(text)
     facts, data = stages.read([str(path)], base.rho, base.sigma, '/', 100, 150, base)
     assert facts['epochs'] == 150 and sum(len(r) for r in data['recordings']) == 150
-    for r in data['recordings'] + [r for h in stages.halves(data['recordings']) for r in h]:
+    parts = [stages.span(data['recordings'], 0, 75), stages.span(data['recordings'], 75, 150)]
+    for r in data['recordings'] + [r for part in parts for r in part]:
         assert len(r.queued) == len(r)
-    halves = stages.halves(data['recordings'])
-    assert {len(halves[0][-1]), len(halves[1][0])} != {41}      # an episode was cut
-    for part in halves:
+    assert {len(parts[0][-1]), len(parts[1][0])} != {41}         # an episode was cut
+    for part in parts:
         fit_stream_for(part, base, bootstrap=0)                   # no error
 
 
-def test_fit_prior_refuses_recordings_with_a_half_without_an_episode_start(tmp_path,
-                                                                           default_config,
-                                                                           policy):
-    """fit.prior fits the person prior in each half too (the held-out check), so recordings
-    of one long run (its later half starts no episode) fail the cell when they are read,
-    with one line naming fit.prior and the half, not after the whole fit in a fold."""
+def test_fit_prior_refuses_recordings_in_which_no_episode_starts(tmp_path, default_config,
+                                                                policy):
+    """fit.prior fits where people start, so recordings in which no episode starts at epoch 1
+    (here: the fit's window cuts the one long run) fail the cell when they are read, with
+    one line naming fit.prior, not after the fit."""
     _, text = stages.generate(default_config, policy, {'world': {}, 'episodes': 1,
                                                        'epochs': 200, 'seed': 2,
                                                        'explore': 0.2}, 'paper')
     path = tmp_path / 'long.csv'
     path.write_text(text)
-    args = ([str(path)], default_config.rho, default_config.sigma, '/', 100, None, None)
-    stages.read(*args)                                            # without the prior: fine
-    with pytest.raises(stages.CellError, match='fit.prior: no episode in the later half'):
-        stages.read(*args, True)
+    args = ([str(path)], default_config.rho, default_config.sigma, '/', 100)
+    stages.read(*args, None, None, True)                          # the whole run: fine
+    with pytest.raises(stages.CellError, match='fit.prior: no episode in the recordings '
+                                               'starts at epoch 1'):
+        stages.read(*args, 100, None, True)                       # its last 100 epochs
 
 
 def test_the_cache_follows_the_shipped_policy_a_cell_without_one_runs(tmp_path, monkeypatch):

@@ -194,6 +194,24 @@ def test_value_iteration_is_a_fixed_point_and_counts_sweeps(reduced):
     assert fixed.iterations == 20 and not fixed.converged
 
 
+def test_value_iteration_from_a_nearby_models_values_reaches_the_same_fixed_point(reduced):
+    """`start` (the plant's refits start from the fit's values): a nearby model's values give
+    the same fixed point within VI's error bound, in fewer sweeps; a start of the wrong
+    size is refused."""
+    near = HRCModel(load_config(CONFIG, overrides={**REDUCED, 'model': {
+        **REDUCED['model'], 'p_accept': [0.25, 0.75, 0.97]}}))
+    cold = value_iteration(reduced)
+    warm = value_iteration(reduced, start=value_iteration(near).value)
+    assert warm.converged and warm.iterations < cold.iterations
+    assert np.max(np.abs(warm.value - cold.value)) < 2 * 0.95 * reduced.config.eta / 0.05
+    q = FactoredBellman(reduced).q(cold.value)
+    differ = np.flatnonzero(warm.policy != cold.policy)
+    assert np.all(np.abs(q[warm.policy[differ], differ] - q[cold.policy[differ], differ])
+                  < 1e-6), 'policies differ beyond ties'
+    with pytest.raises(ValueError, match='start has shape'):
+        value_iteration(reduced, start=np.zeros(3))
+
+
 def test_solve_dispatches_and_refuses_bad_arguments(reduced):
     with pytest.raises(ValueError, match='unknown method'):
         solve(reduced, method='simplex')

@@ -30,6 +30,7 @@ import os
 import sys
 import time
 from collections import deque
+from contextlib import nullcontext
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from ..core.paths import replace_file
 from ..core.plant import report as reporting
 from ..core.plant.pipeline import DRIVER, DRIVER_NODE, CellPipeline, Ref, run_serially, run_stage
 from ..core.plant.spec import POMDP_SELECTORS, Plant, PlantError, load_plant
+from . import fleet_ray
 from .common import Parser, ToolError, bounded_int, command, fail, output_folder
 
 PROGRESS_WIDTH = 110
@@ -131,6 +133,35 @@ class Progress:
             self.stream.flush()
 
 
+class Interruptible:
+    """Ctrl-C (SIGINT) while the plant runs on Ray, taken as a flag and raised as
+    KeyboardInterrupt by `check` between Ray calls: raised inside one (ray.wait, ray.get) it
+    left the driver's core worker half way through a call, and the process died with SIGSEGV
+    after Ray's shutdown in one run in two. Outside the main thread (a test's runner) nothing
+    changes."""
+
+    def __enter__(self):
+        import signal
+        import threading
+        self.hit, self.previous = False, None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        self.hit = True
+
+    def check(self) -> None:
+        if self.hit:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        import signal
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+        return False
+
+
 # -- Ray --------------------------------------------------------------------------------------
 _REMOTE = None
 
@@ -142,8 +173,9 @@ def _remote_stage():
         import ray
 
         @ray.remote(num_returns=2)
-        def stage_task(stage, hook, cell, *args):
+        def stage_task(stage, hook, run, cell, key, *args):
             _threads_as_assigned(ray)
+            fleet_ray.record_attempt(ray, run, cell, key)
             if hook is not None:
                 hook(stage, cell)
             return run_stage(stage, *args)
@@ -165,8 +197,10 @@ def _died(exc: Exception, stage: str, retries: int) -> str:
 
 
 def run_on_ray(pipelines: list[CellPipeline], objects: dict, progress=None, hook=None,
-               client: bool = False) -> None:
-    """Run every cell's stages as Ray tasks (module docstring); returns when all are done."""
+               client: bool = False, interrupt: 'Interruptible | None' = None) -> dict:
+    """Run every cell's stages as Ray tasks (module docstring); returns when all are done,
+    with what Ray had to redo: {'retries': (cell, key) -> the attempts' pids and nodes,
+    'lost_nodes': [...], 'nodes': the nodes at the start}."""
     import ray
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -179,6 +213,8 @@ def run_on_ray(pipelines: list[CellPipeline], objects: dict, progress=None, hook
         refs[key] = shared.setdefault(id(value), ray.put(value))
     pending: dict = {}
     local: deque = deque()
+    run = f'{os.getpid()}-{time.time_ns()}'     # this run's keys of the attempts
+    nodes = fleet_ray.LostNodes(ray)
 
     def payload_of(job) -> tuple:
         return tuple(refs[a.key if a.key.startswith('@') else (job.cell, a.key)]
@@ -192,8 +228,8 @@ def run_on_ray(pipelines: list[CellPipeline], objects: dict, progress=None, hook
             options = {'max_retries': job.retries, 'retry_exceptions': False}
             if job.where == DRIVER_NODE:
                 options['scheduling_strategy'] = here
-            status, payload = remote.options(**options).remote(job.stage, hook, job.cell,
-                                                               *payload_of(job))
+            status, payload = remote.options(**options).remote(
+                job.stage, hook, run, job.cell, job.key, *payload_of(job))
             refs[(job.cell, job.key)] = payload
             pending[status] = (pipeline, job)
         if pipeline.finished:     # free what its stages left in the object store
@@ -202,44 +238,52 @@ def run_on_ray(pipelines: list[CellPipeline], objects: dict, progress=None, hook
 
     for pipeline in pipelines:
         submit(pipeline, pipeline.start())
-    while pending or local:
-        while local:
-            pipeline, job = local.popleft()
-            args = tuple(ray.get(a) if isinstance(a, ray.ObjectRef) else a
-                         for a in payload_of(job))
-            facts, payload = run_stage(job.stage, *args)
-            refs[(job.cell, job.key)] = ray.put(payload)
-            submit(pipeline, pipeline.done(job.key, facts))
+    with nullcontext(interrupt) if interrupt else Interruptible() as interrupt:
+        while pending or local:
+            interrupt.check()
+            nodes.poll()
+            while local:
+                pipeline, job = local.popleft()
+                args = tuple(ray.get(a) if isinstance(a, ray.ObjectRef) else a
+                             for a in payload_of(job))
+                facts, payload = run_stage(job.stage, *args)
+                refs[(job.cell, job.key)] = ray.put(payload)
+                submit(pipeline, pipeline.done(job.key, facts))
+                if progress:
+                    progress(pipelines)
+            if not pending:
+                continue
+            ready, waiting = ray.wait(list(pending), num_returns=1, timeout=0.5)
+            if ready and waiting:         # and whatever else finished meanwhile
+                ready += ray.wait(waiting, num_returns=len(waiting), timeout=0)[0]
+            for status in ready:
+                pipeline, job = pending.pop(status)
+                try:
+                    facts = ray.get(status)
+                except ray.exceptions.RayError as exc:
+                    facts = {'error': _died(exc, job.stage, job.retries)}
+                submit(pipeline, pipeline.done(job.key, facts))
             if progress:
                 progress(pipelines)
-        if not pending:
-            continue
-        ready, waiting = ray.wait(list(pending), num_returns=1, timeout=0.5)
-        if ready and waiting:         # and whatever else finished meanwhile
-            ready += ray.wait(waiting, num_returns=len(waiting), timeout=0)[0]
-        for status in ready:
-            pipeline, job = pending.pop(status)
-            try:
-                facts = ray.get(status)
-            except ray.exceptions.RayError as exc:
-                facts = {'error': _died(exc, job.stage, job.retries)}
-            submit(pipeline, pipeline.done(job.key, facts))
-        if progress:
-            progress(pipelines)
+    nodes.poll(force=True)
+    return {'retries': fleet_ray.attempts(run), 'lost_nodes': nodes.lost, 'nodes': nodes}
 
 
-def start_ray(address: str | None, num_cpus: int | None, object_store_mb: int | None):
-    """(started here, client mode): join `address`, or start an embedded Ray; nothing when
-    this process already has one (a test session, a notebook)."""
+def start_ray(address: str | None, num_cpus: int | None, object_store_mb: int | None,
+              checked: bool = False):
+    """(started here, client mode): join `address` (checked first unless `checked`:
+    `fleet_ray.check_address`, one line naming it and the cause), or start an embedded Ray;
+    nothing when this process already has one (a test session, a notebook)."""
     import ray
     if ray.is_initialized():
         return False, False
     os.environ.setdefault('RAY_DEDUP_LOGS', '0')
     if address:     # an existing cluster keeps its own resources and dashboard
+        target = address if checked else fleet_ray.check_address(address)
         try:
             ray.init(address=address, logging_level='warning')
         except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise ToolError(f'cannot join the Ray cluster at {address}: '
+            raise ToolError(f'cannot join the Ray cluster at {address} ({target}): '
                             f'{" ".join(str(exc).split())[:300]}') from None
         return True, address.startswith('ray://')
     for attempt in range(STARTS):
@@ -280,30 +324,101 @@ def write_report(out: Path, report: dict) -> list[Path]:
     return written
 
 
+RAY_LOG = 'ray.log'
+
+
+def _run_on_own_ray(pipelines, objects, out: Path, address, num_cpus, object_store_mb,
+                    progress, hook) -> tuple[dict, str]:
+    """The plant on a Ray this run starts or joins (or the one this process has): the
+    address checked before OUT is made, Ray's output into OUT/ray.log, Ctrl-C taken between
+    Ray calls, and an embedded cluster stopped whole (fleet_ray). (what Ray redid, engine)."""
+    import ray
+    if ray.is_initialized():           # a test session, a notebook: its Ray and its output
+        output_folder(out)
+        done = run_on_ray(pipelines, objects, progress, hook, False)
+        return done, _engine(ray, address)
+    if address:
+        fleet_ray.check_address(address)        # one line and nothing made when it fails
+    created = not out.exists()
+    output_folder(out)
+    embedded = fleet_ray.EmbeddedProcesses()
+    stream = getattr(progress, 'stream', None)
+    mine = False
+    try:
+        with Interruptible() as interrupt, fleet_ray.RayLog(out / RAY_LOG) as output:
+            if stream is not None:
+                progress.stream = output.terminal
+            try:
+                mine, client = start_ray(address, num_cpus, object_store_mb, checked=True)
+                embedded.add()
+                interrupt.check()
+                return (run_on_ray(pipelines, objects, progress, hook, client, interrupt),
+                        _engine(ray, address))
+            finally:
+                if mine:
+                    embedded.add()          # the workers started since
+                    ray.shutdown()
+                    embedded.stop()
+                if stream is not None:
+                    progress.stream = stream
+    except ToolError:
+        if not mine:        # Ray could not be started or joined: leave nothing behind
+            _remove_made(out, created)
+        raise
+
+
+def _engine(ray, address) -> str:
+    cpus = int(ray.cluster_resources().get('CPU', 0))
+    return f'Ray {ray.__version__} ({address or "embedded"}, {cpus} CPUs)'
+
+
+def _remove_made(out: Path, created: bool) -> None:
+    """What this run made in OUT before it found it could not work: its Ray log, and OUT
+    itself if it made it and nothing else is in it."""
+    try:
+        (out / RAY_LOG).unlink(missing_ok=True)
+        if created:
+            out.rmdir()
+    except OSError:
+        pass
+
+
+def _redone(report: dict, done: dict) -> None:
+    """What Ray had to redo, into the report: per cell the stage tasks it ran more than once
+    (`retries`, with the workers they ran on), and the nodes lost during the run."""
+    nodes = done.get('nodes')
+    for entry in report['cells']:
+        entry['retries'] = [
+            {'stage': key, 'attempts': len(seen),
+             'workers': [{'pid': s['pid'], 'node': nodes.address(s['node']) if nodes else
+                          s['node']} for s in seen]}
+            for (cell, key), seen in sorted(done.get('retries', {}).items())
+            if cell == entry['cell']]
+    report['lost_nodes'] = done.get('lost_nodes', [])
+    report['retried_tasks'] = sum(len(e['retries']) for e in report['cells'])
+
+
 def run_plant(plant: Plant, out: Path, address: str | None = None, serial: bool = False,
               apply: bool = False, num_cpus: int | None = None,
               object_store_mb: int | None = None, hook=None, progress=None,
               apply_timeout: float = 30.0) -> dict:
-    """Run the plant into `out` and return the plant report (written there too)."""
+    """Run the plant into `out` (made once the engine is up: a cluster that cannot be joined
+    leaves none) and return the plant report (written there too)."""
     started = datetime.now(timezone.utc).isoformat(timespec='seconds')
     t0 = time.perf_counter()
+    out = Path(out)
     pipelines, objects = prepare(plant, out)
     progress = progress or Progress()
     if serial:
-        engine = 'one process (serial)'
+        output_folder(out)
+        engine, done = 'one process (serial)', {}
         run_serially(pipelines, objects, progress)
     else:
-        import ray
-        mine, client = start_ray(address, num_cpus, object_store_mb)
-        try:
-            cpus = int(ray.cluster_resources().get('CPU', 0))
-            engine = f'Ray {ray.__version__} ({address or "embedded"}, {cpus} CPUs)'
-            run_on_ray(pipelines, objects, progress, hook, client)
-        finally:
-            if mine:
-                ray.shutdown()
+        done, engine = _run_on_own_ray(pipelines, objects, out, address, num_cpus,
+                                       object_store_mb, progress, hook)
     progress.close()
     report = plant_report(plant, pipelines, started, time.perf_counter() - t0, engine)
+    _redone(report, done)
     if apply:
         from ..ros.fleet_apply import apply_promoted
         results = apply_promoted(report['cells'], timeout=apply_timeout)
@@ -340,7 +455,9 @@ def main(argv=None) -> int:
         parser.error('--serial runs without Ray; leave out --address')
     try:
         plant = load_plant(args.plant)
-        out = output_folder(args.out)
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():     # made once the engine is up (run_plant)
+            raise ToolError(f'output folder {out} is a file; name a folder')
     except (PlantError, ToolError) as exc:
         return fail('hrc-fleet', exc)
     try:

@@ -81,21 +81,27 @@ def statistic(data: FitData, running: Config, tol: float = 1e-6, max_iter: int =
     return Statistic(2.0 * (loglik1 - loglik0), loglik0, loglik1, null.params.pi.copy())
 
 
-def simulate(data: FitData, params: Params, pi: np.ndarray, rng: np.random.Generator
-             ) -> FitData:
-    """A recording with the design of `data` and the human drawn from (params, pi)."""
+def simulate(data: FitData, params: Params, pi: np.ndarray, rng: np.random.Generator,
+             pi_cut: np.ndarray | None = None) -> FitData:
+    """A recording with the design of `data` and the human drawn from (params, pi); with
+    `pi_cut` (a fit with a person prior) the segments that do not start an episode
+    (`FitData.true_starts`) start from it instead."""
     emotion = params.emotion_matrices()                      # (3, 9, 9)
     emotion_cdf = np.cumsum(emotion, axis=2)
     observation_cdf = np.cumsum(params.likelihood, axis=0)   # (3, 9) over O
     delta_cdf = np.cumsum(params.p_delta, axis=1)
-    pi_cdf = np.cumsum(pi)
+    pi_cdfs = [np.cumsum(pi), np.cumsum(pi if pi_cut is None else pi_cut)]
     epochs = data.epochs
     starts = np.zeros(epochs, dtype=bool)
     starts[data.seg_start[:-1]] = True
+    kind = np.zeros(epochs, dtype=np.int64)     # which start distribution each segment has
+    if pi_cut is not None:
+        kind[data.seg_start[:-1]] = np.where(data.true_starts, 0, 1)
     u = rng.random((epochs, 5))
     h = np.empty(epochs, dtype=np.int64)
     for t in range(epochs):
         if starts[t]:
+            pi_cdf = pi_cdfs[kind[t]]
             h[t] = min(int(np.searchsorted(pi_cdf, u[t, 0] * pi_cdf[-1], side='right')),
                        N_HIDDEN - 1)
         else:
@@ -142,3 +148,30 @@ def p_value(observed: float, null) -> float:
     if math.isinf(observed) and observed > 0:
         return 0.0
     return float((1 + np.count_nonzero(null >= observed)) / (1 + null.size))
+
+
+def describe(d: dict) -> str:
+    """The drift test's result in words, as the report states it: the epochs it tested
+    against the window asked for (a cell with fewer recorded epochs is tested on all of
+    them), and p as the fraction it is, with where it stands against alpha (p equal to alpha
+    is no drift: the test calls drift for p < alpha only)."""
+    n = d['simulations']
+    if d.get('impossible'):
+        return (f'the recordings\' last {d["window_epochs"]} epochs are impossible under the '
+                f'running model ({d["impossible"]}): p = 0, drift')
+    above = round(d['p'] * (n + 1)) - 1          # simulations at or above the statistic
+    p = f'p = {d["p"]:.3f} (= {above + 1}/{n + 1}: {above} of {n} simulations at or above it)'
+    if d['p'] < d['alpha']:
+        verdict = f'below alpha {d["alpha"]:g}: drift'
+    elif math.isclose(d['p'], d['alpha'], rel_tol=1e-9, abs_tol=1e-12):
+        verdict = (f'exactly alpha {d["alpha"]:g}, not below it: no drift (drift is p < alpha; '
+                   f'p moves in steps of {1 / (n + 1):.3g})')
+    else:
+        verdict = f'not below alpha {d["alpha"]:g}: no drift'
+    window = d.get('window')
+    epochs = (f'the last {d["window_epochs"]} epochs' if window is None
+              or d['window_epochs'] >= window else
+              f'all {d["window_epochs"]} recorded epochs (fewer than the window of {window})')
+    median = '' if d.get('null_median') is None else f', their median {d["null_median"]:.2f}'
+    return (f'likelihood ratio {d["statistic"]:.2f} over {epochs}, {p}, {verdict} '
+            f'({n} simulations under the running model{median})')

@@ -5,46 +5,40 @@ failure) and answers with the stages that may run now, as `Job`s whose arguments
 values or `Ref`s to earlier stages' payloads (or to plant objects: the running
 configurations and policies the driver loaded once). A scheduler runs them: `run_serially`
 here, one after the other in this process (the benchmark's baseline), or `hrc_ros.tools.fleet`
-as Ray tasks. So the order of stages, the fan-out of the drift simulations and bootstrap
-resamples, what a failure stops and the decision are unit tests, whatever runs them.
+as Ray tasks. So the order of stages, the fan-out of the drift simulations, bootstrap
+resamples and refits, what a failure stops and the decision are unit tests, whatever runs them.
 
     [generate -> save]  ->  read  ->  drift_observed  ->  drift_null x K  ->  p
         run on_drift and p >= alpha: keep (no drift), nothing fitted
         otherwise: fit_point -> bootstrap x M -> fit_summary -> solve_mdp [-> solve_pomdp]
-                   -> shadow (the in-sample figures, reported)
-          beside it: fold x 2 (each half of the recordings fitted and solved) -> heldout
-          both done: decide (on heldout's figures) -> outputs -> write
-    (run always: the fits start beside the drift test instead of after it.)
+                   -> shadow (the in-sample figures) and refits x R (the fit's error)
+                   -> decide (check.py) -> outputs -> write
+    (run always: the fit starts beside the drift test instead of after it.)
 
-The promotion rule (`decide`), exactly: promote when the new policy's discounted cost minus
-the running one's, held out (2-fold cross-fitting: the policy fitted and solved from one half
-of the recordings and the running pair over the same episodes in the world fitted from the
-other half, and the roles swapped, each episode's two differences averaged), has a 95%
-interval whose upper end is below zero, AND its mean collision epochs and mean refused
-requests per episode, held out alike, are not above the running policy's (paired mean
-difference <= 0: safety is not traded for cost, not even within noise); otherwise keep, with
-the figures. The in-sample figures (the new policy in the world fitted from the recordings it
-was solved from) are reported beside them and do not decide: the new policy is optimal for
-that world, so it wins there even when the cell did not change (docs/FLEET.md). A failed
-stage fails the cell with its reason (decision `failed`); the other cells go on.
+The promotion rule (`check.decide`): promote when the new policy's discounted cost minus the
+running one's, in-sample and corrected for the fit's optimism by R refits of recordings
+simulated from the fit, has a 95% interval below zero (an interval that carries the fitting
+error as well as the episodes' noise), unless its collision epochs are higher with 95%
+confidence (the safety guard) or a guard the plant file sets (`promote.guards`, none by
+default) finds the new policy worse; otherwise keep, with the figures. A failed stage fails
+the cell with its reason (decision `failed`); the other cells go on.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import traceback
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import drift
+from . import check, drift
+from .check import KEEP, PROMOTE  # noqa: F401 - the decisions, named here too
 from .spec import CHUNK, POMDP_SELECTORS, CellSpec
-from .stages import SHADOW_METRICS, STAGES, CellError
+from .stages import MIN_EPISODES, SHADOW_METRICS, STAGES, CellError
 
-PROMOTE, KEEP, FAILED = 'promote', 'keep', 'failed'
+FAILED = 'failed'
 ANY, DRIVER_NODE, DRIVER = 'any', 'driver_node', 'driver'
-NOT_WORSE_TOLERANCE = 1e-12
 
 
 @dataclass(frozen=True)
@@ -65,25 +59,13 @@ class Job:
     label: str = ''     # for the progress bar
 
 
-def decide(shadow: dict, world: str = 'held out') -> tuple[str, str]:
-    """The promotion rule (module docstring) on the shadow check's paired figures, measured
-    in `world` (named in the reason)."""
-    cost = shadow['discounted_cost']
-    figures = (f'cost new - running {cost["mean"]:+.3f} [{cost["low"]:+.3f}, '
-               f'{cost["high"]:+.3f}] per episode (95%, {shadow["episodes"]} paired episodes, '
-               f'{world})')
-    if not (math.isfinite(cost['high']) and cost['high'] < 0):
-        return KEEP, (f'the new policy is not cheaper with 95% confidence: {figures}')
-    for metric, what in (('collision_epochs', 'collision epochs'),
-                         ('refused_requests', 'refused requests')):
-        m = shadow[metric]
-        if not m['mean'] <= NOT_WORSE_TOLERANCE:
-            return KEEP, (f'cheaper ({figures}) but more {what}: {m["new"]:.3f} against '
-                          f'{m["running"]:.3f} per episode')
-    c, r = shadow['collision_epochs'], shadow['refused_requests']
-    return PROMOTE, (f'cheaper: {figures}; collision epochs {c["new"]:.3f} (running '
-                     f'{c["running"]:.3f}), refused requests {r["new"]:.3f} (running '
-                     f'{r["running"]:.3f}) per episode')
+REFIT_CHUNK = 1      # refits per task: each is a fit and a solve, seconds of work
+
+
+def refit_draws(count: int) -> list[list[int]]:
+    """The refits' draws 0..count - 1 in tasks of REFIT_CHUNK (their seeds come from the
+    draw: the same whatever the scheduling)."""
+    return [list(range(i, min(i + REFIT_CHUNK, count))) for i in range(0, count, REFIT_CHUNK)]
 
 
 def seeds(seed: int, stream: int, count: int) -> list[list[list[int]]]:
@@ -114,9 +96,9 @@ class CellPipeline:
     _fitting: bool = False
     _summarised: bool = False
     _solves: set = field(default_factory=set)
-    _folds: set = field(default_factory=set)
-    _started: set = field(default_factory=set)      # of shadow, heldout
-    _checks: dict = field(default_factory=dict)     # their facts
+    _started: bool = False                          # the shadow check
+    _shadow: dict | None = None                     # its in-sample facts
+    _refits: list = field(default_factory=list)     # the refits' rows
 
     def __post_init__(self):
         s = self.spec
@@ -153,16 +135,10 @@ class CellPipeline:
                          self.spec.fit['prior'], where=DRIVER_NODE)
 
     def _fit(self) -> list[Job]:
-        """The fit of all the recordings and, beside it, of each half (the held-out check's
-        folds)."""
+        """The fit of the recordings."""
         s = self.spec
         self._fitting = True
-        pomdp = s.pomdp if s.selector in POMDP_SELECTORS else None
-        return [self._job('fit', 'fit_point', Ref('read'), self._object('base'), s.fit, s.seed)
-                ] + [self._job(f'fold.{half}', 'fold', Ref('read'), half, self._object('base'),
-                               s.fit, s.seed, s.max_memory_mb, pomdp, s.evaluate['worlds'],
-                               label='fit and solve halves')
-                     for half in (0, 1)]
+        return [self._job('fit', 'fit_point', Ref('read'), self._object('base'), s.fit, s.seed)]
 
     def done(self, key: str, facts: dict) -> list[Job]:
         """The stage `key` finished with `facts` ({'error': ...} when it failed)."""
@@ -232,15 +208,12 @@ class CellPipeline:
             if self._solves:
                 return []
             return self._after_fit()
-        if key.startswith('fold.'):
-            self._folds.add(key)
-            self.entry.setdefault('folds', []).append(
-                {k: v for k, v in facts.items() if k != 'seconds'})
-            self.entry['folds'].sort(key=lambda f: f['half'])
-            return self._after_fit()
-        if key in ('shadow', 'heldout'):
-            self._checks[key] = facts
-            if len(self._checks) < 2:
+        if key == 'shadow':
+            self._shadow = facts
+        if key.startswith('refit.'):
+            self._refits += facts['rows']
+        if key == 'shadow' or key.startswith('refit.'):
+            if any(k == 'shadow' or k.startswith('refit.') for k in self._waiting):
                 return []
             return self._decided()
         if key == 'outputs':
@@ -263,9 +236,9 @@ class CellPipeline:
                          s.fit, s.seed, *(Ref(f'boot.{i}') for i in range(chunks)))
 
     def _after_fit(self) -> list[Job]:
-        """Solve once the fit is summarised; once the drift test says so (or run: always),
-        the in-sample figures once the solves are done and the held-out check once both
-        halves are fitted and solved."""
+        """Solve once the fit is summarised; once the drift test says so (or run: always) and
+        the solves are done, the shadow check: the in-sample figures and the refits
+        (check.py), side by side."""
         s = self.spec
         jobs: list[Job] = []
         if (self._summarised and 'mdp' not in self.entry.get('solve', {})
@@ -277,38 +250,52 @@ class CellPipeline:
             if s.solves_pomdp:
                 jobs.append(self._job('pomdp', 'solve_pomdp', Ref('summary'), s.pomdp, s.seed,
                                       s.max_memory_mb, label='solve pomdp'))
-        if self._drift_p() is None:
+        if self._drift_p() is None or self._started or self._solves or \
+                'mdp' not in self.entry.get('solve', {}):
             return jobs
-        if (self._summarised and not self._solves and 'mdp' in self.entry.get('solve', {})
-                and 'shadow' not in self._started):
-            self._started.add('shadow')
-            self.stage = 'shadow check'
-            jobs.append(self._job('shadow', 'shadow', self._object('running'), Ref('summary'),
-                                  Ref('mdp'), Ref('pomdp') if s.solves_pomdp else None,
-                                  s.selector, s.evaluate, s.seed, label='shadow check'))
-        if len(self._folds) == 2 and 'heldout' not in self._started:
-            self._started.add('heldout')
-            self.stage = 'shadow check'
-            jobs.append(self._job('heldout', 'heldout', self._object('running'), Ref('fold.0'),
-                                  Ref('fold.1'), s.selector, s.evaluate, s.seed,
-                                  label='shadow check'))
+        self._started = True
+        self.stage = 'shadow check'
+        pomdp = Ref('pomdp') if s.solves_pomdp else None
+        jobs.append(self._job('shadow', 'shadow', self._object('running'), Ref('summary'),
+                              Ref('mdp'), pomdp, s.selector, s.evaluate, s.seed,
+                              label='shadow check'))
+        refit_pomdp = s.pomdp if s.selector in POMDP_SELECTORS else None
+        count = s.evaluate['refits'] if self._episodes() >= MIN_EPISODES else 0
+        for i, draws in enumerate(refit_draws(count)):
+            jobs.append(self._job(f'refit.{i}', 'refits', self._object('running'), Ref('read'),
+                                  Ref('fit'), Ref('summary'), Ref('mdp'), self._object('base'),
+                                  s.selector, s.fit, refit_pomdp, s.evaluate, s.seed,
+                                  s.max_memory_mb, draws, label='refits'))
         return jobs
 
     def _decided(self) -> list[Job]:
-        """The rule on the held-out figures; the in-sample ones reported beside them, with
-        what the rule would have said on them."""
-        held, inside = self._checks['heldout'], self._checks['shadow']
-        for metric in ('collision_epochs', 'refused_requests'):
-            self.entry[metric] = held[metric]
-        self.entry['cost_difference'] = held['discounted_cost']
-        in_sample_decision, _ = decide(inside, 'in-sample')
+        """The rule (check.decide) on the in-sample figures corrected by the refits."""
+        inside, rows = self._shadow, sorted(self._refits, key=lambda r: r['draw'])
+        figures = check.combine(inside, rows)
+        decision, reason, blocked = check.decide(
+            figures, self.spec.promote['guards'],
+            unchecked=f'the refits resample episodes, and the recordings hold '
+                      f'{self._episodes()}; at least {MIN_EPISODES} are needed')
+        self.entry['cost_difference'] = figures[check.COST]
+        for metric in check.METRICS:
+            if metric != check.COST and metric in figures:
+                self.entry[metric] = figures[metric]
+        self.entry['guards'] = {'safety': check.SAFETY,
+                                'plant': list(self.spec.promote['guards']),
+                                'kept_by': [{'guard': b['guard'],
+                                             'figure': b['figure'],
+                                             'cost_given_up': b['cost_given_up']}
+                                            for b in blocked]}
         self.entry['shadow'] = {
-            **{k: held[k] for k in ('world', 'folds', 'worlds', 'episodes', 'epochs', 'seed',
-                                    'selector')},
-            'in_sample': {**{k: inside[k] for k in ('world', 'episodes') + SHADOW_METRICS},
-                          'decision': in_sample_decision}}
-        decision, reason = decide(held)
+            'world': check.WORLD, 'refits': len(rows),
+            'refits_not_converged': sum(not r['converged'] for r in rows),
+            'errors': {m: [r[m][0] - r[m][1] for r in rows] for m in check.METRICS},
+            'in_sample': {**{k: inside[k] for k in ('world', 'episodes') + SHADOW_METRICS}},
+            **{k: inside[k] for k in ('episodes', 'epochs', 'seed', 'selector')}}
         return self._outputs(decision, reason, shadow=True)
+
+    def _episodes(self) -> int:
+        return int(self.entry.get('read', {}).get('episodes', 0))
 
     def _drift_p(self) -> float | None:
         return self.entry['drift_p']
@@ -321,14 +308,12 @@ class CellPipeline:
         self.entry['drift'] = {
             'p': p, 'drifted': drifted, 'statistic': facts['statistic'],
             'simulations': len(self._null), 'alpha': s.drift['alpha'],
-            'window_epochs': self.entry['read']['window_epochs'],
+            'window_epochs': self.entry['read']['window_epochs'], 'window': s.drift['window'],
             'null_median': _median(self._null), 'impossible': facts['impossible'],
             'loglik_running': facts['loglik_running'], 'loglik_refit': facts['loglik_refit']}
         if not drifted and s.run == 'on_drift':
-            return self._outputs(KEEP, f'no drift: the running model explains the last '
-                                 f'{self.entry["read"]["window_epochs"]} epochs (likelihood '
-                                 f'ratio {facts["statistic"]:.2f}, p = {p:.3f} >= alpha '
-                                 f'{s.drift["alpha"]:g}); nothing fitted', shadow=False)
+            return self._outputs(KEEP, f'no drift, nothing fitted (run: on_drift): '
+                                 f'{drift.describe(self.entry["drift"])}', shadow=False)
         if not self._fitting:
             return self._fit()
         return self._after_fit()
@@ -338,11 +323,11 @@ class CellPipeline:
         self.stage = 'outputs'
         if not shadow:
             return [self._job('outputs', 'outputs', self._report(), None, None, None, None,
-                              None, label='outputs')]
+                              label='outputs')]
         s = self.spec
         return [self._job('outputs', 'outputs', self._report(), Ref('summary'), Ref('mdp'),
                           Ref('pomdp') if s.solves_pomdp else None, Ref('shadow'),
-                          Ref('heldout'), label='outputs')]
+                          label='outputs')]
 
     def _report(self) -> dict:
         return json.loads(json.dumps(self.entry, default=float))

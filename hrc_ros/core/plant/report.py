@@ -2,13 +2,17 @@
 (`plant_report.md`, `plant_costs.png`), and each cell's shadow-check plot.
 
 An entry holds at least `cell`, `decision` (promote, keep or failed), `reason`, `drift_p` and
-`cost_difference` (the paired mean of the new policy's discounted cost minus the running one's,
-with `low` and `high`, its 95% interval, held out: what the promotion rule decides on; null
-when no shadow check ran), and also the drift test's figures, the collision epochs and
-refused requests both ways (held out too), `shadow` (each fold's figures and the in-sample
-ones, each with the world it was measured in), the fitted parameters
-that moved (whose 95% interval leaves out the base value) with their intervals, the stages'
-seconds, the files written and, with --apply, what the swap did.
+`cost_difference` (the new policy's discounted cost minus the running one's per episode: the
+in-sample figure corrected for the fit's optimism, with `low` and `high`, its 95% interval
+carrying the fitting error, what the promotion rule decides on, and `in_sample`,
+`optimism`, `optimism_sd`, `refits`; null when no shadow check ran), and also the drift
+test's figures, every other metric of the check alike (`collision_epochs`,
+`refused_requests`, `tasks_completed`, `collision_stuck`), `guards` (the safety guard, the
+plant's, and those that kept the cell with the cost they gave up), `shadow` (the world, the
+refits' errors, the in-sample figures), the fit's warnings, the fitted parameters that moved
+(whose 95% interval leaves out the base value) with their intervals, the stages' seconds, the
+files written, the stage tasks Ray ran more than once (`retries`) and, with --apply, what the
+swap did. The plant's entry has `lost_nodes` and `retried_tasks`.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..paths import save_figure
+from . import check, drift
 
 
 def figure_bytes(plot, *args) -> bytes:
@@ -42,20 +47,24 @@ def _pyplot():
     return plt
 
 
-def plot_shadow(entry: dict, heldout: np.ndarray, in_sample: np.ndarray, path) -> Path:
-    """The shadow check of one cell: the per-episode cost differences held out (what the
-    rule decides on) and in-sample (the new policy in its own fitted world), means and
-    intervals."""
+def plot_shadow(entry: dict, in_sample: np.ndarray, path) -> Path:
+    """The shadow check of one cell: the per-episode cost differences in the fitted world
+    (in-sample), their mean, and the estimate the rule decides on (in-sample minus the
+    refits' mean error) with its 95% interval; each refit's error marks where that refit
+    would have put the estimate."""
     plt = _pyplot()
-    cost, inside = entry['cost_difference'], entry['shadow']['in_sample']['discounted_cost']
+    cost = entry['cost_difference']
+    errors = np.asarray(entry['shadow']['errors']['discounted_cost'], dtype=float)
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    bins = np.histogram_bin_edges(np.concatenate([heldout, in_sample]), bins=60)
-    for values, c, colour, label in ((heldout, cost, 'tab:blue', 'held out (decides)'),
-                                     (in_sample, inside, 'tab:orange', 'in-sample')):
-        ax.hist(values, bins=bins, color=colour, alpha=0.45)
-        ax.axvline(c['mean'], color=colour, lw=2,
-                   label=f'{label}: {c["mean"]:+.3f} [{c["low"]:+.3f}, {c["high"]:+.3f}]')
-        ax.axvspan(c['low'], c['high'], color=colour, alpha=0.2)
+    ax.hist(in_sample, bins=60, color='0.75', label='per episode, in-sample')
+    ax.axvline(cost['in_sample'], color='tab:orange', lw=2,
+               label=f'in-sample mean {cost["in_sample"]:+.3f} (optimistic)')
+    ax.axvspan(cost['low'], cost['high'], color='tab:blue', alpha=0.2,
+               label=f'decides: {cost["mean"]:+.3f} [{cost["low"]:+.3f}, {cost["high"]:+.3f}]')
+    ax.axvline(cost['mean'], color='tab:blue', lw=2)
+    if errors.size:
+        ax.plot(cost['in_sample'] - errors, np.zeros(errors.size), '|', color='tab:blue',
+                ms=14, label=f'in-sample minus each refit\'s error ({errors.size})')
     ax.axvline(0.0, color='0.3', lw=1)
     ax.set_xlabel('discounted cost, new policy - running policy (same episode)')
     ax.set_ylabel('episodes')
@@ -69,30 +78,50 @@ def plot_shadow(entry: dict, heldout: np.ndarray, in_sample: np.ndarray, path) -
     return Path(path)
 
 
+COLOURS = {'promote': 'tab:green', 'keep': 'tab:blue', 'failed': 'tab:red'}
+
+
 def plot_plant(entries: list[dict], path) -> Path:
-    """Every cell's paired cost difference with its 95% interval (cells without a shadow
-    check are named, without a bar)."""
+    """`plant_figure`, saved."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 0.45 * len(entries) + 1.4))
-    colours = {'promote': 'tab:green', 'keep': 'tab:blue', 'failed': 'tab:red'}
-    for i, e in enumerate(entries):
-        c = e.get('cost_difference')
-        if c:
-            ax.errorbar(c['mean'], i, xerr=[[c['mean'] - c['low']], [c['high'] - c['mean']]],
-                        fmt='o', color=colours.get(e['decision'], 'k'), capsize=3)
-        else:
-            ax.text(0, i, f'  {e["decision"]}: no shadow check', va='center', fontsize=8,
-                    color=colours.get(e['decision'], 'k'))
-    ax.axvline(0.0, color='0.3', lw=1)
-    ax.set_yticks(range(len(entries)), [e['cell'] for e in entries])
-    ax.invert_yaxis()
-    ax.set_xlabel('discounted cost, new - running (paired, 95%)')
-    fig.tight_layout()
+    fig = plant_figure(entries)
     try:
         save_figure(fig, path, dpi=100)
     finally:
         plt.close(fig)
     return Path(path)
+
+
+def plant_figure(entries: list[dict]):
+    """Every cell's cost difference (the estimate the rule decides on) with its 95% interval,
+    coloured by the decision, the in-sample figure beside it; cells without a shadow check
+    are named, without a bar. A legend says which is which."""
+    from matplotlib.lines import Line2D
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 0.45 * len(entries) + 1.8))
+    for i, e in enumerate(entries):
+        c = e.get('cost_difference')
+        colour = COLOURS.get(e['decision'], 'k')
+        if c:
+            ax.errorbar(c['mean'], i, xerr=[[c['mean'] - c['low']], [c['high'] - c['mean']]],
+                        fmt='o', color=colour, capsize=3)
+            if c.get('in_sample') is not None:
+                ax.plot(c['in_sample'], i, 'x', color='tab:orange')
+        else:
+            ax.text(0, i, f'  {e["decision"]}: no shadow check', va='center', fontsize=8,
+                    color=colour)
+    ax.axvline(0.0, color='0.3', lw=1)
+    ax.set_yticks(range(len(entries)), [e['cell'] for e in entries])
+    ax.invert_yaxis()
+    ax.set_xlabel('discounted cost per episode, new - running')
+    handles = [Line2D([], [], color=COLOURS[d], marker='o', label=f'{d}: estimate, 95% '
+                      'interval (fitting error and episodes)')
+               for d in ('promote', 'keep') if any(e['decision'] == d for e in entries)]
+    handles.append(Line2D([], [], color='tab:orange', marker='x', ls='',
+                          label='in-sample (optimistic, does not decide)'))
+    ax.legend(handles=handles, fontsize=7, loc='best')
+    fig.tight_layout()
+    return fig
 
 
 def _interval(m: dict | None, digits: int = 3) -> str:
@@ -105,82 +134,150 @@ def _both(m: dict | None) -> str:
     return '-' if not m else f'{m["new"]:.2f} / {m["running"]:.2f}'
 
 
-def _in_sample(entry: dict) -> dict:
-    return (entry.get('shadow') or {}).get('in_sample') or {}
+RUN_WORDS = {'always': 'run: always (fitted and checked whatever the drift test says)',
+             'on_drift': 'run: on_drift (fitted and checked only when drift is found)'}
 
 
-def _shadow_table(entry: dict) -> list[str]:
-    """Each figure of the shadow check with the world it was measured in."""
+def _check_table(entry: dict) -> list[str]:
+    """Each metric of the shadow check: in-sample, the refits' error, the estimate."""
     shadow = entry.get('shadow')
     if not shadow:
         return []
-    rows = [(f'policy fitted from {f["policy_fitted_from"]}', f'fitted from '
-             f'{f["world_fitted_from"]}', f) for f in shadow['folds']]
-    held = {'discounted_cost': entry['cost_difference'],
-            'collision_epochs': entry['collision_epochs'],
-            'refused_requests': entry['refused_requests']}
-    rows.append(('both folds, per episode averaged', 'held out (the rule decides on this)',
-                 held))
-    rows.append(('fitted from all the recordings', f'{shadow["in_sample"]["world"]}; the rule '
-                 f'there would say {shadow["in_sample"]["decision"]}', shadow['in_sample']))
-    lines = [f'Shadow check ({shadow["episodes"]} paired episodes of {shadow["epochs"]} epochs, '
-             f'selector {shadow["selector"]}, seed {shadow["seed"]}):', '',
-             '| new policy | world | cost new - running (95%) | collision epochs new - '
-             'running | refused new - running |', '|---|---|---|---|---|']
-    for policy, world, m in rows:
-        lines.append(f'| {policy} | {world} | {_interval(m["discounted_cost"])} | '
-                     f'{_interval(m["collision_epochs"])} | {_interval(m["refused_requests"])} |')
+    lines = [f'Shadow check ({shadow["episodes"]} paired episodes of {shadow["epochs"]} '
+             f'epochs, selector {shadow["selector"]}, seed {shadow["seed"]}; '
+             f'{shadow["refits"]} refits'
+             + (f', {shadow["refits_not_converged"]} of them with EM not converged'
+                if shadow.get('refits_not_converged') else '')
+             + f'): {shadow["world"]}.', '',
+             '| new - running, per episode | in-sample (episodes\' 95%) | refits\' mean error '
+             '(sd) | estimate (95%): decides |', '|---|---|---|---|']
+    for metric, (words, _) in check.METRICS.items():
+        m = entry.get('cost_difference' if metric == check.COST else metric)
+        if not m:
+            continue
+        error = ('-' if m.get('optimism') is None else
+                 f'{m["optimism"]:+.3f} ({m["optimism_sd"]:.3f})')
+        lines.append(f'| {words} | {m["in_sample"]:+.3f} +- {m["in_sample_half_width"]:.3f} | '
+                     f'{error} | {_interval(m)} |')
     return lines + ['']
 
 
+def _guard_lines(entry: dict) -> list[str]:
+    guards = entry.get('guards')
+    if not guards:
+        return []
+    plant = ', '.join(guards['plant']) or 'none (promote.guards)'
+    lines = [f'Guards: safety, always: {check.METRICS[guards["safety"]][0]} not higher with '
+             f'95% confidence; the plant\'s: {plant}.']
+    for b in guards['kept_by']:
+        lines.append(f'Kept by the guard {b["guard"]}: {_interval(b["figure"])} per episode; '
+                     f'the cost it gave up: {_interval(b["cost_given_up"])} per episode.')
+    return lines + ['']
+
+
+def _warning_lines(entry: dict) -> list[str]:
+    read = entry.get('read') or {}
+    warnings = list((entry.get('fit') or {}).get('warnings') or [])
+    stream = (entry.get('fit') or {}).get('stream') or {}
+    warnings += [f'stream: {w}' for w in stream.get('warnings') or []]
+    if read.get('issues'):
+        warnings.append(f'{read["issues"]} row{"s" if read["issues"] != 1 else ""} of the '
+                        'recordings left out or episodes cut (the fit\'s rules): '
+                        + '; '.join(read.get('first_issues') or []))
+    if not warnings:
+        return []
+    return ['Warnings:', ''] + [f'- {w}' for w in warnings] + ['']
+
+
+def _retry_lines(entry: dict) -> list[str]:
+    retries = entry.get('retries') or []
+    if not retries:
+        return []
+    return ['Ray ran ' + '; '.join(
+        f'{r["stage"]} {r["attempts"]} times (workers ' + ', '.join(
+            f'pid {w["pid"]} on {w["node"]}' for w in r['workers']) + ')'
+        for r in retries) + ': a worker died or its node was lost, and the task was retried '
+        '(the seeds do not depend on where it ran, so the figures are those of a run '
+        'without it).', '']
+
+
+def _moved_lines(entry: dict) -> list[str]:
+    moved = entry.get('moved') or []
+    if not moved:
+        return []
+    return (['Moved (the fitted value\'s 95% interval leaves out the base value; the interval '
+             'is the bootstrap\'s over episodes, widened to hold the fitted value and to at '
+             'least the binomial interval of the parameter\'s support):', '',
+             '| parameter | base | fitted | 95% interval | support (epochs) |',
+             '|---|---|---|---|---|']
+            + [f'| {m["name"]} | {m["base"]:.4f} | {m["fitted"]:.4f} | '
+               f'[{m["ci95"][0]:.4f}, {m["ci95"][1]:.4f}] | {m.get("support", 0):.0f} |'
+               for m in moved] + [''])
+
+
+def _engine_lines(plant: dict) -> list[str]:
+    lost = plant.get('lost_nodes') or []
+    retried = plant.get('retried_tasks', 0)
+    words = ('no node lost' if not lost else 'nodes lost: ' + '; '.join(
+        f'{n["node"][:12]} ({n["address"]}) after {n["after_seconds"]:.0f} s: {n["reason"]}'
+        for n in lost))
+    words += ('; no task retried' if not retried else
+              f'; {retried} stage task{"s" if retried != 1 else ""} retried (per cell below)')
+    return [f'Engine: {plant["engine"]}; {words}. Ray\'s own output: [ray.log](ray.log) '
+            '(when this run started or joined Ray).', '']
+
+
 def markdown(plant: dict) -> str:
-    """plant_report.md: the table, the plot, then per cell what moved and why."""
+    """plant_report.md: the table, the plot, then per cell what decided, what the fit warned
+    of, what moved and what Ray had to redo."""
     entries = plant['cells']
     lines = [f'# Plant report: {plant["plant"]}', '',
-             f'{plant["started"]}, {len(entries)} cells on {plant["engine"]}, '
-             f'{plant["seconds"]:.1f} s. Decisions: '
-             + ', '.join(f'{k} {v}' for k, v in plant['decisions'].items()) + '.', '',
-             'Cost difference: the new policy\'s discounted cost minus the running one\'s over '
-             'the same episodes (mean, 95% interval), held out: the policy fitted and solved '
-             'from one half of the recordings, both policies in the world fitted from the '
-             'other half, the two folds averaged. Promote only when that interval is below '
-             'zero and collision epochs and refused requests (held out too) are not above the '
-             'running policy\'s. In-sample: the new policy in the world fitted from all the '
-             'recordings, the ones it was solved from; optimistic for it, reported, never '
-             'deciding (docs/FLEET.md).', '',
-             '| cell | namespace | decision | drift p | cost new - running, held out (95%) | '
-             'in-sample (not deciding) | collision epochs new / running, held out | '
-             'refused new / running | moved | reason |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             f'{plant["started"]}, {len(entries)} cells, {plant["seconds"]:.1f} s. Decisions: '
+             + ', '.join(f'{k} {v}' for k, v in plant['decisions'].items()) + '.', '']
+    lines += _engine_lines(plant)
+    lines += ['Cost difference: the new policy\'s discounted cost (the cost it minimises, which '
+              'prices requests, refusals and the person\'s emotions) minus the running one\'s '
+              'over the same episodes, per episode. In-sample (both in the world fitted from '
+              'the recordings) it is optimistic for the new policy; the estimate subtracts '
+              'the optimism measured by refits of recordings simulated from the fit, and its '
+              '95% interval carries the fitting error as well as the episodes\' noise. '
+              'Promote when that interval is below zero, unless the collision epochs are '
+              'higher with 95% confidence (the safety guard) or a guard of the plant file '
+              'says the new policy is worse (docs/FLEET.md).', '',
+              '| cell | namespace | run | decision | drift p | cost new - running (95%) | '
+              'in-sample | collision epochs new - running (95%) | refused new - running '
+              '(95%) | moved | warnings | reason |',
+              '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for e in entries:
         p = '-' if e.get('drift_p') is None else f'{e["drift_p"]:.3f}'
         reason = str(e.get('reason') or '').replace('|', '/')
-        lines.append(f'| {e["cell"]} | {e["namespace"]} | **{e["decision"]}** | {p} | '
-                     f'{_interval(e.get("cost_difference"))} | '
-                     f'{_interval(_in_sample(e).get("discounted_cost"))} | '
-                     f'{_both(e.get("collision_epochs"))} | {_both(e.get("refused_requests"))}'
-                     f' | {len(e.get("moved") or [])} | {reason} |')
+        cost = e.get('cost_difference') or {}
+        inside = '-' if cost.get('in_sample') is None else f'{cost["in_sample"]:+.3f}'
+        warnings = len((e.get('fit') or {}).get('warnings') or [])
+        lines.append(f'| {e["cell"]} | {e["namespace"]} | {e.get("run", "-")} | '
+                     f'**{e["decision"]}** | {p} | {_interval(cost or None)} | {inside} | '
+                     f'{_interval(e.get("collision_epochs"))} | '
+                     f'{_interval(e.get("refused_requests"))} | {len(e.get("moved") or [])} | '
+                     f'{warnings} | {reason} |')
     lines += ['', '![cost differences](plant_costs.png)', '']
     for e in entries:
         lines += [f'## {e["cell"]} ({e["namespace"]}): {e["decision"]}', '', str(e['reason']),
                   '']
+        read = e.get('read')
+        lines.append(RUN_WORDS.get(e.get('run'), f'run: {e.get("run")}') + '.'
+                     + (f' Recordings: {read["epochs"]} epochs in {read["episodes"]} '
+                        f'episode{"s" if read["episodes"] != 1 else ""}.' if read else ''))
+        lines.append('')
         d = e.get('drift')
         if d:
-            median = '-' if d['null_median'] is None else f'{d["null_median"]:.2f}'
-            lines.append(f'Drift: likelihood ratio {d["statistic"]:.2f} over the last '
-                         f'{d["window_epochs"]} epochs, p = {d["p"]:.3f} ({d["simulations"]} '
-                         f'simulations under the running model, their median {median}); '
-                         f'{"drift" if d["drifted"] else "no drift"} at alpha {d["alpha"]:g}.')
-            lines.append('')
-        lines += _shadow_table(e)
+            lines += [f'Drift: {drift.describe(d)}.', '']
+        lines += _warning_lines(e)
+        lines += _check_table(e)
+        lines += _guard_lines(e)
+        lines += _retry_lines(e)
         if e.get('applied'):
             lines += [f'Applied: {e["applied"]["status"]}: {e["applied"]["detail"]}', '']
-        moved = e.get('moved') or []
-        if moved:
-            lines += ['| parameter | base | fitted | 95% interval |', '|---|---|---|---|']
-            lines += [f'| {m["name"]} | {m["base"]:.4f} | {m["fitted"]:.4f} | '
-                      f'[{m["ci95"][0]:.4f}, {m["ci95"][1]:.4f}] |' for m in moved]
-            lines.append('')
+        lines += _moved_lines(e)
         files = e.get('files') or []
         for name, title in (('fitted.png', 'fitted parameters'), ('shadow.png', 'shadow check')):
             if name in files:

@@ -22,7 +22,10 @@
         drift: {window: 1000, alpha: 0.05, simulations: 199}
         fit: {bootstrap: 50, starts: 2, tol: 1.0e-7, max_iter: 1000, hold: [], window: null,
               prior: false, stream: false}
-        evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2, worlds: 0}
+        evaluate: {episodes: 1000, epochs: 50, task_rate: 0.2, refits: 10}   # the check
+        promote: {guards: []}      # further guards (refused_requests, tasks_completed,
+                                   # collision_stuck), none by default; collision epochs
+                                   # are always guarded
         pomdp: {episodes: 2000, rounds: 1}
         max_memory_mb: null        # a solve whose memory estimate is above this fails
         retries: 3                 # Ray's retries of a task whose worker died
@@ -31,8 +34,8 @@
 `fit` is hrc-fit's: `prior: true` also fits the person prior (hrc-fit --prior, written as
 observation.prior), `stream: true` also fits the task stream from the recordings (hrc-fit
 --stream, written as the `stream` section; with a base that has stream.queue, recordings
-without the tasks waiting fail the cell when they are read); both in the halves of the
-held-out check too, so that every fit of the cell fits the same model.
+without the tasks waiting fail the cell when they are read); both in the promotion check's
+refits too, so that every fit of the cell fits the same model.
 
 A generated cell has `generate:` instead of `recordings:`: the batch simulator records
 `episodes` x `epochs` of the running policy in a world whose people differ from the base
@@ -68,6 +71,7 @@ MAX_CELLS = 10_000
 # The version of what `stages.generate` records for the same settings (part of the cache's
 # key): 2 draws the people from the world's person prior (observation.prior) when it has one.
 GENERATOR = 2
+REFITS = 10    # the promotion check's refits per cell (docs/FLEET.md: chosen by coverage)
 SOLVERS = ('mdp', 'pomdp', 'both')
 RUNS = ('on_drift', 'always')
 MDP_SELECTORS = ('paper', 'qmdp', 'mls')
@@ -84,7 +88,8 @@ SECTIONS = {
             'hold': ('families', ()), 'window': ('int_or_null:20:1000000000', None),
             'prior': ('bool', False), 'stream': ('bool', False)},
     'evaluate': {'episodes': ('int:10:1000000', 1000), 'epochs': ('int:1:100000', 50),
-                 'task_rate': ('prob', 0.2), 'worlds': ('worlds', 0)},
+                 'task_rate': ('prob', 0.2), 'refits': ('int:2:1000', REFITS)},
+    'promote': {'guards': ('guards', ())},
     'pomdp': {'episodes': ('int:1:100000', 2000), 'rounds': ('int:0:20', 1)},
     'generate': {'world': ('world', None), 'episodes': ('int:1:1000000', 40),
                  'epochs': ('int:1:100000', 50), 'explore': ('prob', 0.2),
@@ -97,6 +102,10 @@ SCALARS = {'base': ('text', 'default'), 'policy': ('text_or_null', None),
            'seed': ('int:0:2147483647', 0)}
 CELL_ONLY = ('name', 'namespace', 'recordings', 'generate')
 CHUNK = 10     # bootstrap resamples and drift simulations per task
+# keys a plant file may no longer have, and what to do instead
+RETIRED = {'evaluate.worlds': 'the held-out check and its bootstrap worlds are gone: the '
+                              'interval carries the fitting error through refits '
+                              '(evaluate.refits; docs/FLEET.md); remove evaluate.worlds'}
 
 
 class PlantError(ValueError):
@@ -121,6 +130,7 @@ class CellSpec:
     fit: dict
     evaluate: dict
     pomdp: dict
+    promote: dict
     max_memory_mb: int | None
     retries: int
     seed: int
@@ -228,11 +238,13 @@ def _value(where: str, key: str, kind, value):
         if not ok:
             raise bad('a probability in [0, 1]' if kind == 'prob' else 'a number in (0, 1)')
         return float(value)
-    if kind == 'worlds':        # 0 (the other half's fit alone) or 2..1000 bootstrap worlds
-        if isinstance(value, bool) or not isinstance(value, int) or not (
-                value == 0 or 2 <= value <= 1000):
-            raise bad('0 or an integer in 2..1000')
-        return value
+    if kind == 'guards':        # promote.guards: further guards, none by default
+        from .check import GUARDS
+        if isinstance(value, str):
+            value = [v for v in value.split(',') if v.strip()]
+        if not isinstance(value, (list, tuple)) or not all(v in GUARDS for v in value):
+            raise bad(f'a list of guards among {", ".join(GUARDS)}')
+        return tuple(dict.fromkeys(value))
     if kind == 'families':
         from ..learning.fit import FitError, expand_hold
         if isinstance(value, str):
@@ -263,6 +275,8 @@ def _settings(where: str, given: dict, into: dict, allowed=None) -> dict:
                                  f'{", ".join(SECTIONS[key])}')
             section = dict(out.get(key) or {})
             for sub, v in value.items():
+                if f'{key}.{sub}' in RETIRED:
+                    raise PlantError(f'{where}: {key}.{sub}: {RETIRED[f"{key}.{sub}"]}')
                 if sub not in SECTIONS[key]:
                     raise PlantError(f'{where}: unknown key {key}.{sub!s} (known: '
                                      f'{", ".join(SECTIONS[key])})')
@@ -381,6 +395,7 @@ def load_plant(path: str | Path) -> Plant:
             solver=solver, selector=selector, run=settings.get('run', SCALARS['run'][1]),
             drift=_section(settings, 'drift'), fit=_section(settings, 'fit'),
             evaluate=_section(settings, 'evaluate'), pomdp=_section(settings, 'pomdp'),
+            promote=_section(settings, 'promote'),
             max_memory_mb=settings.get('max_memory_mb'),
             retries=settings.get('retries', SCALARS['retries'][1]),
             seed=settings.get('seed', SCALARS['seed'][1]), index=i))

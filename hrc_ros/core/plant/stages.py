@@ -10,7 +10,7 @@ bytes and the driver writes them (`paths.replace_file`), so workers need no shar
 The recordings are read where they are (`read` runs on the driver's node).
 
     generate       the batch simulator records the running policy in another world (CSV)
-    read           recordings -> the fit's arrays: all of them, the drift window, two halves
+    read           recordings -> the fit's arrays: all of them and the drift window
     drift_observed the likelihood ratio of the window against the running model (drift.py)
     drift_null     the same statistic on recordings simulated under the running model
     fit_point      EM from the running configuration (core.learning.fit)
@@ -18,10 +18,10 @@ The recordings are read where they are (`read` runs on the driver's node).
     fit_summary    intervals, the fitted configuration and what moved
     solve_mdp      value iteration of the fitted configuration
     solve_pomdp    the POMDP over the belief (solver pomdp or both)
-    fold           one half of the recordings fitted and solved (bootstrap-free)
     shadow         both policies in the world fitted from all recordings (in-sample figures)
-    heldout        the promotion rule's figures: each half's policy and the running one in
-                   the world fitted from the other half, paired episodes
+    refits         resamples of the episodes fitted and solved as the cell was, each new
+                   policy and the running one in its own fitted world and in the cell's: the
+                   fit's error, which corrects the in-sample figures (check.py; one per call)
     outputs        the files of the cell: fitted YAML and report, policies, report, plots
 """
 
@@ -48,7 +48,7 @@ from ..learning.recordings import (NO_OBSERVATION, UNANSWERED, UNKNOWN_QUEUED, R
                                    RecordingError, read_recordings)
 from ..learning.stream import StreamError, check_stream, fit_stream_for
 from ..model import ACTIONS, TASK_VARIABLES, HRCModel
-from . import drift
+from . import check, drift
 
 FIT_TASK_FIELDS = ('epoch', 'task', 'd', 'observation', 'action', 'accepted', 'line')
 
@@ -144,13 +144,6 @@ def tail(recordings: list[Recording], epochs: int) -> list[Recording]:
     return span(recordings, max(total - epochs, 0), total)
 
 
-def halves(recordings: list[Recording]) -> tuple[list[Recording], list[Recording]]:
-    """The earlier and the later half of the recordings' epochs, in time order (the episode
-    in the middle is cut there): the two folds of the held-out shadow check."""
-    total = sum(len(r) for r in recordings)
-    return span(recordings, 0, total - total // 2), span(recordings, total - total // 2, total)
-
-
 def read(paths, rho: int, sigma: int, namespace: str, window: int,
          fit_window: int | None = None, stream_base: Config | None = None,
          prior: bool = False) -> tuple[dict, dict]:
@@ -159,10 +152,9 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
     cells is read at the cell's namespace; a corrupt or unreadable recording fails the cell
     (a fit on what happened to be readable would hide it). With `stream_base` (the base of a
     cell with fit.stream) also 'recordings', the fit's recordings themselves, which the
-    stream is counted from (the halves' are cut from them where needed, not kept twice),
-    checked as hrc-fit --stream checks them before any work (`stream.check_stream`). With
-    `prior` (fit.prior) each half must hold an episode that starts at epoch 1, since the
-    held-out check fits the prior on each half (checked here, before any work)."""
+    stream is counted from, checked as hrc-fit --stream checks them before any work
+    (`stream.check_stream`). With `prior` (fit.prior) an episode must start at epoch 1, as
+    hrc-fit --prior asks (checked here, before any work)."""
     from .spec import recording_files
     t0 = time.perf_counter()
     files = recording_files(paths)
@@ -178,16 +170,12 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
         used = recordings if fit_window is None else tail(recordings, fit_window)
         data = fitting.prepare(used)
         recent = fitting.prepare(tail(recordings, window))
-        folds = tuple(fitting.prepare(h) for h in halves(used))
     except (RecordingError, fitting.FitError) as exc:
         raise CellError(f'recordings: {" ".join(str(exc).split())}') from None
-    if prior:
-        for which, f in zip(HALVES, folds):
-            if not f.true_starts.any():
-                raise CellError(f'fit.prior: no episode in {which} of the recordings starts '
-                                f'at epoch {fitting.FIRST_EPOCH}, and the held-out check fits '
-                                'the person prior on each half; record the runs from their '
-                                'start (more episodes), or set fit.prior: false')
+    if prior and not data.true_starts.any():
+        raise CellError(f'fit.prior: no episode in the recordings starts at epoch '
+                        f'{fitting.FIRST_EPOCH}, so nothing shows how a person starts; record '
+                        'the runs from their start, or set fit.prior: false')
     if stream_base is not None:
         try:
             check_stream(used, stream_base)
@@ -195,10 +183,9 @@ def read(paths, rho: int, sigma: int, namespace: str, window: int,
             raise CellError(f'fit.stream: {exc}') from None
     facts = {'files': [str(f) for f in files], 'epochs': data.epochs,
              'episodes': len(data.episodes), 'window_epochs': recent.epochs,
-             'halves': [f.epochs for f in folds],
              'issues': len(data.issues), 'first_issues': data.issues[:5],
              'seconds': _seconds(t0)}
-    payload = {'all': data, 'window': recent, 'halves': folds}
+    payload = {'all': data, 'window': recent}
     if stream_base is not None:
         payload['recordings'] = used
     return facts, payload
@@ -277,8 +264,36 @@ def bootstrap(data: dict, point: fitting.FitResult, settings: dict, seeds
     return {'resamples': len(seeds), 'seconds': _seconds(t0)}, out
 
 
+Z95 = 1.959963984540054
+
+
+def own_interval(share: float, events: float) -> tuple[float, float]:
+    """The 95% Wilson interval of a probability `share` seen over `events` informative
+    epochs (the fit's support): how well the data could pin it down if the hidden state were
+    known, so no interval claimed for it is narrower. [0, 1] without events."""
+    if not events > 0:
+        return 0.0, 1.0
+    p = min(max(float(share), 0.0), 1.0)
+    z2 = Z95 * Z95 / events
+    centre = (p + z2 / 2) / (1 + z2)
+    half = Z95 * math.sqrt(p * (1 - p) / events + z2 / (4 * events)) / (1 + z2)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def parameter_interval(result: fitting.FitResult, i: int) -> tuple[float, float]:
+    """The 95% interval the plant reports for free parameter `i`: the bootstrap's
+    percentiles, widened to hold the fitted value (resamples refitted from the estimate can
+    all stop a rounding step beside it) and to at least `own_interval` of its support (a
+    bootstrap over one episode, or over episodes that all agree, has no spread at all)."""
+    fitted = float(result.params.vector()[i])
+    own = own_interval(fitted, float(result.support[i]))
+    low, high = result.interval[:, i] if result.interval is not None else own
+    return min(float(low), own[0], fitted), max(float(high), own[1], fitted)
+
+
 def moved_parameters(result: fitting.FitResult) -> list[dict]:
-    """The free parameters whose 95% interval leaves out the base value: what moved."""
+    """The free parameters whose 95% interval (`parameter_interval`) leaves out the base
+    value: what moved."""
     if result.interval is None:
         return []
     fitted, base = result.params.vector(), result.base.vector()
@@ -286,10 +301,12 @@ def moved_parameters(result: fitting.FitResult) -> list[dict]:
     for i, name in enumerate(fitting.PARAMETER_NAMES):
         if fitting.PARAMETER_FAMILIES[i] in result.hold:
             continue
-        low, high = result.interval[:, i]
+        low, high = parameter_interval(result, i)
         if not low <= base[i] <= high:
             out.append({'name': name, 'base': float(base[i]), 'fitted': float(fitted[i]),
-                        'ci95': [float(low), float(high)]})
+                        'ci95': [low, high],
+                        'bootstrap': [float(v) for v in result.interval[:, i]],
+                        'support': float(result.support[i])})
     return out
 
 
@@ -396,9 +413,9 @@ def solve_pomdp(summary: dict, settings: dict, seed: int, max_memory_mb: int | N
 
 # -- the shadow check -------------------------------------------------------------------------
 SHADOW_METRICS = ('discounted_cost', 'collision_epochs', 'refused_requests')
-HALVES = ('the earlier half', 'the later half')
+CHECK_METRICS = tuple(check.METRICS)      # the figures of the promotion check
 IN_SAMPLE_WORLD = ('fitted from all the recordings, the ones the new policy was solved from '
-                   '(optimistic for it: not used to decide)')
+                   '(optimistic for it: corrected by the refits before it decides)')
 
 
 def paired(new: np.ndarray, running: np.ndarray) -> dict:
@@ -426,20 +443,21 @@ def _both_in(world: Config, running: dict, config: Config, policy, pomdp, select
         new = evaluate(HRCModel(config), policy, pomdp=pomdp, **common)[selector]
     except (ValueError, RuntimeError) as exc:
         raise CellError(f'shadow check: {exc}') from None
-    return {metric: (getattr(new, metric).astype(float), getattr(old, metric).astype(float))
-            for metric in SHADOW_METRICS}
+    return {metric: (np.asarray(getattr(new, metric), dtype=float),
+                     np.asarray(getattr(old, metric), dtype=float))
+            for metric in CHECK_METRICS}
 
 
 def shadow(running: dict, summary: dict, mdp: dict, pomdp: dict | None, selector: str,
            settings: dict, seed: int) -> tuple[dict, dict]:
     """The in-sample figures: the running pair and the new one (fitted from all the
-    recordings, its policy) in the world fitted from those same recordings. Reported beside
-    the held-out check (`heldout`), which decides: here the new policy is scored in the
-    world it was planned for."""
+    recordings, its policy) in the world fitted from those same recordings, every metric of
+    the check: optimistic for the new policy, which is scored in the world it was planned
+    for, until the refits correct them (check.py)."""
     t0 = time.perf_counter()
     runs = _both_in(summary['config'], running, summary['config'], mdp['result'],
                     None if pomdp is None else pomdp['policy'], selector, settings, seed)
-    facts = {metric: paired(*runs[metric]) for metric in SHADOW_METRICS}
+    facts = {metric: paired(*runs[metric]) for metric in CHECK_METRICS}
     facts.update(world=IN_SAMPLE_WORLD, episodes=settings['episodes'],
                  epochs=settings['epochs'], seed=seed, selector=selector,
                  seconds=_seconds(t0))
@@ -447,44 +465,103 @@ def shadow(running: dict, summary: dict, mdp: dict, pomdp: dict | None, selector
     return facts, {'difference': cost[0] - cost[1]}
 
 
-def fold(data: dict, half: int, base: Config, fit_settings: dict, seed: int,
-         max_memory_mb: int | None, pomdp_settings: dict | None, worlds: int
-         ) -> tuple[dict, dict]:
-    """One half of the recordings (`read`'s 'halves'): fitted as `fit_point` fits and solved
-    as `solve_mdp` (and, for the pomdp and fib selectors, as `solve_pomdp`) solves, the
-    candidate of this fold; and `worlds` bootstrap resamples of the half's episodes refitted
-    from its estimate (as `bootstrap` refits, seeds [seed, 3 + half, b]), the worlds the other
-    fold's candidate is evaluated in: what the people of this half may be, given its epochs.
-    The model is the cell's fit's (`fit.prior`: with the person prior, each world's the
-    resample's; `fit.stream`: with the stream counted from this half's recordings, the same
-    in every world: the bootstrap refits the EM's parameters only)."""
-    t0 = time.perf_counter()
-    which = HALVES[half]
-    half_data = {'all': data['halves'][half]}
-    if fit_settings.get('stream'):
-        half_data['recordings'] = halves(data['recordings'])[half]
+# -- the promotion check's refits (check.py) ----------------------------------------------------
+MIN_EPISODES = 10     # the check's refits resample episodes: fewer cannot bound the fit's error
+
+
+def resampled(data: fitting.FitData, counts: np.ndarray) -> fitting.FitData:
+    """`data` with episode e taken counts[e] times (each copy its own episode, its segments
+    in order): a bootstrap resample as its own recordings, for a refit that runs the cell's
+    whole fit on it (starts from the base included)."""
+    order = np.argsort(data.seg_episode, kind='stable')
+    by_episode = np.split(order, np.cumsum(np.bincount(data.seg_episode,
+                                                       minlength=len(data.episodes)))[:-1])
+    segments, episode, names = [], [], []
+    for e, count in enumerate(np.asarray(counts, dtype=int)):
+        for copy_ in range(count):
+            segments += list(by_episode[e])
+            episode += [len(names)] * len(by_episode[e])
+            names.append(f'{data.episodes[e]}#{copy_}')
+    starts, stops = data.seg_start[:-1][segments], data.seg_start[1:][segments]
+    rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)])
+    return fitting.FitData(
+        group=np.ascontiguousarray(data.group[rows]), observation=data.observation[rows],
+        answer=data.answer[rows], move=np.ascontiguousarray(data.move[rows]),
+        has_move=data.has_move[rows], unique_delta=np.ascontiguousarray(data.unique_delta[rows]),
+        seg_start=np.concatenate([[0], np.cumsum(stops - starts)]).astype(np.int64),
+        seg_episode=np.asarray(episode, dtype=np.int64), episodes=names, issues=[],
+        rows_read=int(rows.size), seg_true_start=data.true_starts[segments])
+
+
+def refit_data(data: fitting.FitData, seed) -> fitting.FitData:
+    """The recordings of one refit: a resample of the episodes, with replacement
+    (`bootstrap_counts`, from its own seed)."""
+    return resampled(data, bootstrap_counts(len(data.episodes), seed))
+
+
+def refit(data: dict, point: fitting.FitResult, summary: dict, mdp: dict, base: Config,
+          fit_settings: dict, pomdp_settings: dict | None, seed: int, draw: int,
+          max_memory_mb: int | None) -> tuple[Config, object, object, bool]:
+    """One refit of the check (check.py): the episodes resampled (seed [seed, 4, draw]),
+    fitted as the cell's fit fits them (`fit_point`'s settings: from the base, its starts),
+    solved as `solve_mdp` solves (value iteration started from the fit's values: the same
+    fixed point, in fewer sweeps) and, for the pomdp and fib selectors, as `solve_pomdp`. The
+    fitted stream (fit.stream) is the cell's, not refitted. (configuration, MDP policy,
+    POMDP policy or None, whether EM converged)."""
+    from ..mdp.solver import value_iteration
+    recordings = refit_data(data['all'], [seed, 4, draw])
     try:
-        point_facts, point = fit_point(half_data, base, fit_settings, seed)
-        _, summary = fit_summary(point, base, [f'{which} of the recordings'], half_data,
-                                 fit_settings, seed)
-        _, mdp = solve_mdp(summary, max_memory_mb)
-        pomdp = (None if pomdp_settings is None else
-                 solve_pomdp(summary, pomdp_settings, seed, max_memory_mb)[1]['policy'])
-        draws = resample_fits(half_data['all'], point, fit_settings,
-                              [[seed, 3 + half, b] for b in range(worlds)])   # none for 0
+        result = fitting.fit(recordings, base, fit_settings['hold'],
+                             n_init=fit_settings['starts'], seed=seed,
+                             tol=fit_settings['tol'], max_iter=fit_settings['max_iter'],
+                             bootstrap=0, prior=fit_settings.get('prior', False))
         stream = summary['config'].data.get('stream') if summary['stream'] else None
-        resampled = [Config(_with_stream(fitting.fitted_data(replace(point, params=params),
-                                                             base), stream),
-                            source=f'{which}, bootstrap world {b}')
-                     for b, params in enumerate(draws)]
-    except (CellError, ConfigError) as exc:
-        raise CellError(f'{which} of the recordings: {exc}') from None
-    facts = {'half': which, 'epochs': point.epochs, 'episodes': point.episodes,
-             'iterations': point_facts['iterations'], 'loglik': point_facts['loglik'],
-             'worlds': worlds, 'config_sha256': summary['config'].policy_hash,
-             'seconds': _seconds(t0)}
-    return facts, {'config': summary['config'], 'policy': mdp['result'], 'pomdp': pomdp,
-                   'worlds': resampled}
+        config = Config(_with_stream(fitting.fitted_data(result, base), stream),
+                        source=f'refit {draw}')
+    except (fitting.FitError, ConfigError) as exc:
+        raise CellError(f'refit {draw}: {exc}') from None
+    model = HRCModel(config)
+    check_memory(model, max_memory_mb, 'the MDP solve')
+    policy = value_iteration(model, start=mdp['result'].value)
+    pomdp = None
+    if pomdp_settings is not None:
+        pomdp = solve_pomdp({'config': config}, pomdp_settings, seed, max_memory_mb
+                            )[1]['policy']
+    return config, policy, pomdp, bool(result.converged)
+
+
+def _refit_figures(inside: tuple, fitted: tuple) -> list[float]:
+    """[the refit's paired mean in its own world, the same in the cell's fitted world, the
+    episodes' variance of their difference]: both over the same seeded episodes, so the
+    difference's noise is the variance of the per-episode differences over n."""
+    d_in, d_out = inside[0] - inside[1], fitted[0] - fitted[1]
+    both = d_in - d_out
+    both = both[np.isfinite(both)]
+    noise = float(np.var(both, ddof=1) / both.size) if both.size > 1 else 0.0
+    return [float(np.mean(d_in)), float(np.mean(d_out)), noise]
+
+
+def refits(running: dict, data: dict, point: fitting.FitResult, summary: dict, mdp: dict,
+           base: Config, selector: str, fit_settings: dict, pomdp_settings: dict | None,
+           settings: dict, seed: int, max_memory_mb: int | None, draws
+           ) -> tuple[dict, None]:
+    """The check's refits `draws` (check.py): per refit b, each metric's paired difference
+    new - running of the refit's policy against the running pair in the refit's own fitted
+    world and in the cell's fitted world, over the same `settings['episodes']` seeded episodes
+    (seed + 1 + b), and the episodes' variance of their difference. Its error e*_b is the
+    first minus the second."""
+    t0 = time.perf_counter()
+    rows = []
+    for b in draws:
+        config, policy, pomdp, converged = refit(data, point, summary, mdp, base, fit_settings,
+                                                 pomdp_settings, seed, b, max_memory_mb)
+        inside = _both_in(config, running, config, policy, pomdp, selector, settings,
+                          seed + 1 + b)
+        fitted = _both_in(summary['config'], running, config, policy, pomdp, selector,
+                          settings, seed + 1 + b)
+        rows.append({'draw': b, 'converged': converged,
+                     **{m: _refit_figures(inside[m], fitted[m]) for m in CHECK_METRICS}})
+    return {'rows': rows, 'seconds': _seconds(t0)}, None
 
 
 def _with_stream(data: dict, stream: dict | None) -> dict:
@@ -494,71 +571,9 @@ def _with_stream(data: dict, stream: dict | None) -> dict:
     return data
 
 
-def clustered(new: list, running: list) -> dict:
-    """Mean of new - running over the episodes of K worlds (lists of per-episode arrays, the
-    same episodes for both), its 95% interval by the worlds' means: mean +- t(0.975, K - 1)
-    sd / sqrt(K), so that what the worlds disagree on is in the interval, not only the
-    episodes' noise."""
-    from scipy.stats import t as student
-    means = np.array([np.mean(n - r) for n, r in zip(new, running)])
-    k = len(means)
-    mean = float(means.mean())
-    half = float(student.ppf(0.975, k - 1) * means.std(ddof=1) / math.sqrt(k))
-    return {'mean': mean, 'half_width': half, 'low': mean - half, 'high': mean + half,
-            'worlds': k, 'new': float(np.mean([np.mean(n) for n in new])),
-            'running': float(np.mean([np.mean(r) for r in running]))}
-
-
-def _difference(new: list, running: list) -> dict:
-    """`paired` over one world's episodes, `clustered` over several worlds'."""
-    if len(new) == 1:
-        return {**paired(new[0], running[0]), 'worlds': 1}
-    return clustered(new, running)
-
-
-def heldout(running: dict, first: dict, second: dict, selector: str, settings: dict,
-            seed: int) -> tuple[dict, dict]:
-    """The held-out shadow check (docs/FLEET.md): the candidate fitted and solved from one
-    half of the recordings and the running pair, paired, in each bootstrap world of the
-    other half (with `evaluate.worlds: 0`, in the other half's fit alone), then the roles
-    swapped. World k of both folds gets the same ceil(episodes / worlds) seeded episodes
-    (seed + 1 + k); per world the two folds' differences are averaged episode by episode,
-    and the interval is over the worlds (`clustered`; over the episodes for one world).
-    Neither candidate is ever scored in a world fitted from its own epochs."""
-    t0 = time.perf_counter()
-    worlds = [fold['worlds'] or [fold['config']] for fold in (first, second)]
-    k = len(worlds[0])
-    each = dict(settings, episodes=math.ceil(settings['episodes'] / k))
-    folds, runs = [], []
-    for candidate, other, fitted, evaluated in ((first, worlds[1], 0, 1),
-                                                (second, worlds[0], 1, 0)):
-        per_world = [_both_in(world, running, candidate['config'], candidate['policy'],
-                              candidate['pomdp'], selector, each, seed + 1 + w)
-                     for w, world in enumerate(other)]
-        runs.append(per_world)
-        folds.append({'policy_fitted_from': HALVES[fitted],
-                      'world_fitted_from': HALVES[evaluated],
-                      **{metric: _difference([r[metric][0] for r in per_world],
-                                             [r[metric][1] for r in per_world])
-                         for metric in SHADOW_METRICS}})
-    facts = {metric: _difference([(a[metric][0] + b[metric][0]) / 2 for a, b in zip(*runs)],
-                                 [(a[metric][1] + b[metric][1]) / 2 for a, b in zip(*runs)])
-             for metric in SHADOW_METRICS}
-    where = (f'{k} bootstrap worlds of the other half, the interval over the worlds' if k > 1
-             else 'the world fitted from the other half, the interval over the episodes')
-    facts.update(world=(f'held out: each half\'s candidate in {where}; the two folds '
-                        'averaged per episode'), folds=folds, episodes=each['episodes'] * k,
-                 epochs=settings['epochs'], seed=seed, selector=selector, worlds=k,
-                 seconds=_seconds(t0))
-    difference = np.concatenate([(a['discounted_cost'][0] - a['discounted_cost'][1]
-                                  + b['discounted_cost'][0] - b['discounted_cost'][1]) / 2
-                                 for a, b in zip(*runs)])
-    return facts, {'difference': difference}
-
-
 # -- outputs ----------------------------------------------------------------------------------
 def outputs(report: dict, summary: dict | None, mdp: dict | None, pomdp: dict | None,
-            shadow_payload: dict | None, heldout_payload: dict | None) -> tuple[dict, dict]:
+            shadow_payload: dict | None) -> tuple[dict, dict]:
     """The cell's files as bytes, by name: fitted.yaml, fitted.report.json, fitted.png,
     policy.npz, pomdp.npz, shadow.png and cell_report.json (last: its presence says the
     others are complete)."""
@@ -576,14 +591,13 @@ def outputs(report: dict, summary: dict | None, mdp: dict | None, pomdp: dict | 
         files['policy.npz'] = mdp['npz']
     if pomdp is not None:
         files['pomdp.npz'] = pomdp['npz']
-    if heldout_payload is not None:
+    if shadow_payload is not None:
         files['shadow.png'] = reporting.figure_bytes(reporting.plot_shadow, report,
-                                                     heldout_payload['difference'],
                                                      shadow_payload['difference'])
     files['cell_report.json'] = (json.dumps(report, indent=2, default=float) + '\n').encode()
     return {'files': sorted(files), 'seconds': _seconds(t0)}, files
 
 
 STAGES = {f.__name__: f for f in (generate, read, drift_observed, drift_null, fit_point,
-                                  bootstrap, fit_summary, solve_mdp, solve_pomdp, shadow, fold,
-                                  heldout, outputs)}
+                                  bootstrap, fit_summary, solve_mdp, solve_pomdp, shadow, refits,
+                                  outputs)}
