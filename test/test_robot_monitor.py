@@ -289,9 +289,33 @@ def test_a_person_the_tracker_loses_near_the_arm_holds_it_until_seen_again(setup
     assert 'a frame of 2 people became 1' in steps[-1][0].reason
     assert np.all(steps[-1][2] == 0)
     assert cell.bridge.counts['lost_people'] == 1
-    # seen again (moved away meanwhile): the hold clears and SSM decides again
-    steps = cell.run(1.5, body=lambda: two(person(2.5), far))
-    assert not cell.bridge.lost and not steps[-1][0].stop
+    # a third person walking in far away is not the lost one: the hold stays
+    steps = cell.run(1.0, body=lambda: two(person(3.5, math.radians(-100)), far))
+    assert cell.bridge.lost and all(c.stop for c, _, _ in steps)
+    # seen again near the arm (where they were lost): the hold clears, SSM decides again,
+    # and the arm resumes once they have stepped back
+    cell.run(0.5, body=lambda: two(person(1.2), far))
+    assert not cell.bridge.lost
+    steps = cell.run(2.0, body=lambda: two(person(2.5), far))
+    assert not steps[-1][0].stop
+
+
+def test_a_person_dropped_from_the_frame_near_the_arm_holds_it_even_if_the_rest_is_plausible(
+        setup):
+    """The near person (0.9 m from the base) drops out and the one left is 1 m farther from
+    the arm, which the jump gate takes as a walk at 3 m/s: a frame of fewer people whose
+    nearest is farther lost someone near the arm, also across a frame of nobody."""
+    for gap in (False, True):
+        cell = Cell(setup, distance=1.5)
+        program_running(cell)
+        near, other = person(0.9), person(1.6, math.radians(-60))
+        cell.run(0.3, body=lambda near=near, other=other: two(near, other))
+        if gap:
+            for _ in range(3):          # the tracker reports nobody for a few frames
+                cell.bridge.skeleton(None, cell.t, cell.t)
+        steps = cell.run(1.5, body=lambda other=other: seen(other))
+        assert cell.bridge.lost and 'a frame of 2 people became 1' in steps[-1][0].reason
+        assert all(c.stop for c, _, _ in steps[60:])
 
 
 def test_the_operator_clears_a_lost_persons_hold_and_a_far_loss_holds_nothing(setup):
@@ -415,3 +439,15 @@ def test_an_arm_at_rest_when_a_person_appears_counts_in_the_appearance_until_the
     assert result.appearance_violations > 0          # the arm moved by them, unseen
     assert result.rest_after_event > 0.06            # at rest after their frame arrived
     assert result.stop_delay == 0.0                  # stopped in the tick their frame came
+
+
+def test_people_counts_the_bodies_of_a_frame_whatever_joints_it_names():
+    """people() counts bodies by their bones' suffixes (a joint set without the pelvis has no
+    torso bone: counting torsos found one person in two); unlabelled keypoints are one."""
+    from hrc_ros.core.robot.arm import people
+    upper = tuple(j for j in K4ABT_JOINTS if j != 'pelvis')
+    for joints in (K4ABT_JOINTS, upper):
+        for n in (1, 2, 5):
+            points = NOISE.normal(0.0, 1.0, (n * len(joints), 3))
+            assert people(body_capsules(points, joints)) == n
+    assert people(body_capsules(NOISE.normal(0.0, 1.0, (64, 3)))) == 1

@@ -246,9 +246,13 @@ def body_capsules(points, joints=None, keypoint_radius: float = KEYPOINT_RADIUS)
 
 
 def people(body: BodyCapsules) -> int:
-    """How many people a skeleton frame holds (`body_capsules` names each body's torso
-    torso, torso_1, ...); an unlabelled frame counts as one."""
-    return max(1, sum(1 for n in body.names if n == 'torso' or n.startswith('torso_')))
+    """How many people a skeleton frame holds: `body_capsules` names the second body's bones
+    `<bone>_1`, the third's `<bone>_2`, ... (no bone name of `BONES` ends in a number); an
+    unlabelled frame (spheres `keypoint_<i>`) counts as one."""
+    if not body.names or body.names[0].startswith('keypoint_'):
+        return 1
+    return len({n.rsplit('_', 1)[1] if n.rsplit('_', 1)[-1].isdigit() else ''
+                for n in body.names})
 
 
 @dataclass(frozen=True)

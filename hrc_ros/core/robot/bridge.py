@@ -88,7 +88,8 @@ from ..paths import read_yaml, share_dir
 from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import people, segment_duration
-from .guard import MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path, nearest_on_path
+from .guard import (JUMP_SLACK, MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path,
+                    nearest_on_path)
 from .ssm import (MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState,
                   directed_speeds, max_speed)
 
@@ -571,6 +572,7 @@ class Bridge:
         # jumps; `lost` the hold's reason once such a frame replaced theirs ('' = none).
         self._losing: tuple[int, float] | None = None
         self.lost, self._lost_people = '', 0
+        self._seen: tuple | None = None   # (people, S m) of the last frame taken
 
     # -- inputs ------------------------------------------------------------------------------
     def joint_state(self, names, positions, velocities, stamp_ns: int, now_ns: int,
@@ -631,13 +633,25 @@ class Bridge:
         jumps (`_losing`) replaces theirs only because it aged out: the tracker lost them
         (occluded, by the arm too, or a tracker that switched to someone else), and a person
         who cannot be seen can still be there. Nearer than lost_person_distance that holds the
-        arm (`lost`) until a frame shows more people than the one that dropped them or
-        `clear_lost()` (the operator, who looked). Farther, or still live, it is forgotten."""
-        if self.lost and people(body) > self._lost_people:
-            self.lost = ''
+        arm (`lost`) until a frame shows more people than the one that dropped them, one of
+        them nearer the arm than lost_person_distance (another person walking in far away is
+        not the lost one), or `clear_lost()` (the operator, who looked). Farther, or still
+        live, it is forgotten. A frame with fewer people than the last one taken (also across
+        frames of nobody) whose nearest person is farther from the arm than that one's, by
+        more than the gate's JUMP_SLACK, lost someone too: the nearer person may be the one
+        missing (identities are not known), so it holds the same way when that frame's nearest
+        was nearer than lost_person_distance."""
+        near = self.description.lost_person_distance
+        now = self.arm.distance(self.q, body) if self.q is not None else math.inf
+        if self.lost and people(body) > self._lost_people and now < near:
+            self.lost = ''            # someone is seen again where the lost person may be
+        seen, self._seen = self._seen, (people(body), now)
+        if seen is not None and people(body) < seen[0] and seen[1] < near \
+                and now > seen[1] + JUMP_SLACK:
+            self._losing, live = self._losing or seen, False
         if self._losing is not None and not live:
             bodies, distance = self._losing
-            if distance < self.description.lost_person_distance and not self.lost:
+            if distance < near and not self.lost:
                 self._lost_people = people(body)
                 self.lost = (f'the tracker lost a person {distance:.2f} m from the arm (a frame '
                              f'of {bodies} people became {self._lost_people}): the arm holds '
