@@ -71,15 +71,18 @@ def check_cell(world: HRCModel) -> None:
         raise ToolError(str(exc)) from None
 
 
-def output_folder(path: str | Path) -> Path:
+def output_folder(path: str | Path, make: bool = True) -> Path:
     """The output folder `path`, created (with its parents) and checked writable; ToolError
     if it is a file, a device, a FIFO, a link that leads to no folder (`paths.folder_target`)
-    or cannot be created or written."""
+    or cannot be created or written. `make=False` checks only what `path` is (a command that
+    makes its folder later, once its work has started)."""
     folder = Path(path)
     try:
         folder_target(folder)
     except OSError as exc:
         raise ToolError(f'cannot write into output folder {folder}: {exc.strerror}') from None
+    if not make:
+        return folder
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f'.hrc_write_test_{os.getpid()}'

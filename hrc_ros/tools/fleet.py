@@ -36,7 +36,7 @@ from pathlib import Path
 
 from ..core.config import ConfigError, load_config
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
-from ..core.paths import folder_target, replace_file
+from ..core.paths import replace_file
 from ..core.plant import report as reporting
 from ..core.plant.pipeline import DRIVER, DRIVER_NODE, CellPipeline, Ref, run_serially, run_stage
 from ..core.plant.spec import POMDP_SELECTORS, Plant, PlantError, load_plant
@@ -455,11 +455,7 @@ def main(argv=None) -> int:
         parser.error('--serial runs without Ray; leave out --address')
     try:
         plant = load_plant(args.plant)
-        out = Path(args.out)
-        try:                                      # made once the engine is up (run_plant)
-            folder_target(out)
-        except OSError as exc:
-            raise ToolError(f'cannot write into output folder {out}: {exc.strerror}') from None
+        out = output_folder(args.out, make=False)  # made once the engine is up (run_plant)
     except (PlantError, ToolError) as exc:
         return fail('hrc-fleet', exc)
     try:
