@@ -614,21 +614,23 @@ class Bridge:
         held = self.body
         live = held is not None and \
             (now_ns - self._content_stamp) * 1e-9 <= self.monitor.p.human_timeout
-        if live and self.q is not None and self._jumped_away(body, stamp_ns):
+        # its separation at the arm's current configuration, once for every rule below
+        distance = self.arm.distance(self.q, body) if self.q is not None else math.inf
+        if live and self.q is not None and self._jumped_away(distance, stamp_ns):
             self._others.append((body, int(stamp_ns)))     # it can only slow the arm
             self.counts['implausible_skeletons'] += 1
             if self._losing is None:
                 self._losing = (people(held), self.arm.distance(self.q, held))
             return
-        self._track_loss(body, live)
+        self._track_loss(body, distance, live)
         if held is not None and self.skeleton_check.unchanged(body, held):
             self.body, self._body_stamp = body, int(stamp_ns)     # no new data: it ages
             self.counts['frozen_skeletons'] += 1
             return
         self.body, self._body_stamp, self._content_stamp = body, int(stamp_ns), int(stamp_ns)
-        self._measure_approach(body, int(stamp_ns))
+        self._measure_approach(body, distance, int(stamp_ns))
 
-    def _track_loss(self, body: BodyCapsules, live: bool) -> None:
+    def _track_loss(self, body: BodyCapsules, now: float, live: bool) -> None:
         """A frame taken after frames that dropped the person nearest the arm were refused as
         jumps (`_losing`) replaces theirs only because it aged out: the tracker lost them
         (occluded, by the arm too, or a tracker that switched to someone else), and a person
@@ -640,19 +642,19 @@ class Bridge:
         frames of nobody) whose nearest person is farther from the arm than that one's, by
         more than the gate's JUMP_SLACK, lost someone too: the nearer person may be the one
         missing (identities are not known), so it holds the same way when that frame's nearest
-        was nearer than lost_person_distance."""
+        was nearer than lost_person_distance. `now`: the frame's separation (m)."""
         near = self.description.lost_person_distance
-        now = self.arm.distance(self.q, body) if self.q is not None else math.inf
-        if self.lost and people(body) > self._lost_people and now < near:
+        count = people(body)
+        if self.lost and count > self._lost_people and now < near:
             self.lost = ''            # someone is seen again where the lost person may be
-        seen, self._seen = self._seen, (people(body), now)
-        if seen is not None and people(body) < seen[0] and seen[1] < near \
+        seen, self._seen = self._seen, (count, now)
+        if seen is not None and count < seen[0] and seen[1] < near \
                 and now > seen[1] + JUMP_SLACK:
             self._losing, live = self._losing or seen, False
         if self._losing is not None and not live:
             bodies, distance = self._losing
             if distance < near and not self.lost:
-                self._lost_people = people(body)
+                self._lost_people = count
                 self.lost = (f'the tracker lost a person {distance:.2f} m from the arm (a frame '
                              f'of {bodies} people became {self._lost_people}): the arm holds '
                              'until they are seen again or the stop is cleared')
@@ -665,12 +667,11 @@ class Bridge:
         was, self.lost, self._losing = bool(self.lost), '', None
         return was
 
-    def _jumped_away(self, body: BodyCapsules, stamp_ns: int) -> bool:
-        """A skeleton farther from the arm than the person can have moved since the held one
-        or since the followed frame at least APPROACH_WINDOW older (against the held one alone,
-        the gate's slack adds up frame by frame: a skeleton sliding away at 30 Hz passed at 4
-        m/s)."""
-        new = self.arm.distance(self.q, body)
+    def _jumped_away(self, new: float, stamp_ns: int) -> bool:
+        """A skeleton farther from the arm (`new`, its separation in m) than the person can
+        have moved since the held one or since the followed frame at least APPROACH_WINDOW
+        older (against the held one alone, the gate's slack adds up frame by frame: a skeleton
+        sliding away at 30 Hz passed at 4 m/s)."""
         refs = [(self._content_stamp, self.body)]
         window = int(APPROACH_WINDOW * 1e9)
         older = [f for f in self._frames if f[0] <= stamp_ns - window]
@@ -679,12 +680,12 @@ class Bridge:
                                                    (stamp_ns - then) * 1e-9)
                    for then, ref in refs)
 
-    def _measure_approach(self, body: BodyCapsules, stamp_ns: int) -> None:
+    def _measure_approach(self, body: BodyCapsules, distance: float, stamp_ns: int) -> None:
         """The person's directed speed toward the arm (m/s) from the followed tracker's
         skeletons over APPROACH_WINDOW: the fall of their separation, both at the arm's current
         configuration (the arm's own motion left out), plus APPROACH_NOISE (the tracker's
         jitter over the window). SSM plans for it where it exceeds ISO 13855's speeds
-        (`ssm.directed_speeds`)."""
+        (`ssm.directed_speeds`). `distance`: the body's separation (m)."""
         history = self._frames
         while history and history[-1][0] >= stamp_ns:
             history.pop()
@@ -696,7 +697,7 @@ class Bridge:
         if self.q is None or dt < APPROACH_WINDOW / 2:
             self.approach = 0.0
             return
-        fall = self.arm.distance(self.q, old) - self.arm.distance(self.q, body)
+        fall = self.arm.distance(self.q, old) - distance
         self.approach = max(0.0, fall / dt) + APPROACH_NOISE if fall > 0 else 0.0
 
     def _nearest(self, now_ns: int) -> tuple[Separation | None, int | None]:
