@@ -46,6 +46,18 @@ class SpunNode:
             assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
             time.sleep(0.02)
 
+    def call(self, service_type, name: str, request=None, timeout: float | None = None):
+        """The answer of service `name` to `request` (default: an empty request), waiting
+        for the service and the answer at most `timeout` s each (default `wait_timeout`)."""
+        timeout = self.wait_timeout if timeout is None else timeout
+        client = self.node.create_client(service_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+            future = client.call_async(service_type.Request() if request is None else request)
+            return self.wait(future.result, f'the answer of {name}', timeout)
+        finally:
+            self.node.destroy_client(client)
+
     def close(self) -> None:
         self._stopping.set()
         self.thread.join(5)

@@ -125,13 +125,7 @@ class Feeder(SpunNode):
     def clear_lost(self):
         """robot_bridge/clear_lost_person, as the operator: its answer."""
         from std_srvs.srv import Trigger
-        client = self.node.create_client(Trigger, f'{NS}/robot_bridge/clear_lost_person')
-        try:
-            assert client.wait_for_service(timeout_sec=TIMEOUT)
-            future = client.call_async(Trigger.Request())
-            return self.wait(lambda: future.result(), 'the clear service\'s answer')
-        finally:
-            self.node.destroy_client(client)
+        return self.call(Trigger, f'{NS}/robot_bridge/clear_lost_person')
 
     def status(self, contains: str, since: int = 0):
         for status in reversed(self.statuses[since:]):

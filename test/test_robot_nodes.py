@@ -357,18 +357,11 @@ def test_a_person_the_tracker_loses_near_the_arm_holds_it_until_the_operator_cle
     driver.epoch('ct', task(tp=2, tc=120))
     driver.wait(lambda: len(driver.joint_states) > held + 100, '100 more joint states')
     assert driver.at_rest(held) and driver.stops[-1] is True
-    client = driver.node.create_client(Trigger, 'robot_bridge/clear_lost_person')
-    try:
-        assert client.wait_for_service(timeout_sec=TIMEOUT)
-        future = client.call_async(Trigger.Request())
-        answer = driver.wait(lambda: future.result(), 'the clear service\'s answer')
-        assert answer.success and 'the tracker lost a person' in answer.message
-        driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear')
-        driver.wait(driver.moving, 'the arm to move again')
-        again = client.call_async(Trigger.Request())
-        assert not driver.wait(lambda: again.result(), 'the second answer').success
-    finally:
-        driver.node.destroy_client(client)
+    answer = driver.call(Trigger, 'robot_bridge/clear_lost_person')
+    assert answer.success and 'the tracker lost a person' in answer.message
+    driver.wait(lambda: driver.stops[-1] is False, 'the stop to clear')
+    driver.wait(driver.moving, 'the arm to move again')
+    assert not driver.call(Trigger, 'robot_bridge/clear_lost_person').success
     assert_alive(suite)
 
 
