@@ -15,13 +15,19 @@ import numpy as np
 import pytest
 
 from hrc_ros.core.cell.person import SimulatedPerson
+from hrc_ros.core.config import load_config
+from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+from hrc_ros.core.model import HRCModel
+from hrc_ros.core.paths import arm_config_path
 from hrc_ros.core.cell.tracking import K4ABT_JOINTS
 from hrc_ros.core.protocol import InputError
 from hrc_ros.core.robot.arm import (JOINT_NAMES, Arm, BodyCapsules, Trajectory,
                                     TrajectoryFollower, body_capsules, peak_link_speed)
+from hrc_ros.core.robot.cell import ArmCell, person_seed
 from hrc_ros.core.robot.bridge import WRITER_HOLD, Bridge, load_programs, load_robot_description
 from hrc_ros.core.robot.guard import (MeasuredSpeed, SkeletonCheck, SpeedEnvelope,
                                       path_deviation)
+from hrc_ros.core.study.evaluation import episodes_of
 
 MS = 1_000_000
 NOISE = np.random.default_rng(33)
@@ -129,6 +135,26 @@ def test_the_envelope_holds_each_command_for_the_latency_then_falls_at_the_decel
     assert envelope.limit(600 * MS) == pytest.approx(0.3)
 
 
+def test_the_envelope_over_a_span_is_the_most_it_allowed_at_any_instant_of_it():
+    """A difference of positions is the mean speed over its span: what the commands allowed
+    anywhere in the span bounds it, each command from when it was given."""
+    envelope = SpeedEnvelope(deceleration=2.0, latency=0.02, horizon=0.1)
+    envelope.command(0, 0.5)
+    envelope.command(20 * MS, 0.1)
+    envelope.command(40 * MS, 0.0)
+    assert envelope.limit(60 * MS) == pytest.approx(0.5 - 2.0 * 0.04)
+    assert envelope.limit(60 * MS, 20 * MS) == pytest.approx(0.5)       # in its latency then
+    assert envelope.limit(100 * MS, 50 * MS) == pytest.approx(0.5 - 2.0 * 0.03)
+    envelope.command(100 * MS, 0.3)                   # counts from when it was given, whole
+    assert envelope.limit(100 * MS, 50 * MS) == pytest.approx(0.3 + 0.14)
+    # a command decayed to nothing stays for the horizon: a span reaching back still sees it
+    envelope.command(280 * MS, 0.0)
+    assert envelope.limit(300 * MS) == 0.0
+    assert envelope.limit(300 * MS, 250 * MS) == pytest.approx(0.3 - 2.0 * 0.13)
+    assert envelope.limit(500 * MS) == 0.0
+    assert envelope.limit(500 * MS, 250 * MS) == 0.0     # gone once decayed a horizon ago
+
+
 def test_the_path_deviation_is_the_distance_to_the_waypoints_polyline():
     points = np.array([[0.0] * 6, [1.0] + [0.0] * 5, [1.0, 1.0] + [0.0] * 4])
     assert path_deviation([0.5, 0, 0, 0, 0, 0], points) == pytest.approx(0.0)
@@ -186,6 +212,22 @@ def test_a_goal_the_bridge_did_not_send_stops_the_arm_and_is_replaced(setup):
     done = cell.bridge.progress.cycles_done
     cell.run(4.0)
     assert not cell.commands[-1][0].stop and cell.bridge.progress.cycles_done > done
+
+
+def test_the_honest_batch_cell_has_no_monitor_stops():
+    """SSM brakes the arm as a person comes near; its positions' difference is the mean speed
+    over the last 40 ms, higher than it may move now. Before the envelope took spans, the
+    monitor read that as motion the bridge did not send: 7 stops in these two episodes of the
+    honest batch cell under SSM alone (1.4 an episode over 60), each dropping the running
+    goal."""
+    config = load_config(arm_config_path())
+    model = HRCModel(config)
+    scenarios, seeds = episodes_of(model, 'random', 2, 50, 0, 0.5)
+    cell = ArmCell(model, load_policy(default_policy_path(config), config))
+    for e, (scenario, human) in enumerate(zip(scenarios, seeds)):
+        out = cell.episode(scenario, human, person_seed(0, e), 'ssm_only', record=True)
+        assert sum(stop for _, stop, _, _ in out.samples) > 0       # SSM stopped the arm
+        assert out.monitor['foreign_motion'] == 0 and out.monitor['overspeed'] == 0, e
 
 
 def test_a_slower_goal_off_the_bridges_path_stops_the_program(setup):

@@ -558,7 +558,8 @@ class Bridge:
         self._others: deque = deque(maxlen=OTHER_BODIES)     # (body, stamp ns) to count too
         # The monitor (core/robot/guard.py).
         self.measured = MeasuredSpeed(self.arm, max_dt=d.joint_state_timeout)
-        self.envelope = SpeedEnvelope(d.ssm.deceleration, latency + period)
+        self.envelope = SpeedEnvelope(d.ssm.deceleration, latency + period,
+                                     horizon=d.joint_state_timeout)
         self.skeleton_check = SkeletonCheck(d.frozen_tolerance, d.max_body_speed)
         self.fault = ''               # the monitor's protective stop ('' = none)
         self._fault_clear_since: int | None = None
@@ -882,10 +883,16 @@ class Bridge:
         its own replaces the controller's at rest."""
         d = self.description
         p = self.monitor.p
-        speed = self.measured.speed
+        measured = self.measured
+        speed = measured.speed
         limit = self.envelope.limit(self._joint_stamp)   # what the arm may do at the sample
+        # a difference of positions is the mean speed since `measured.since`: against the
+        # most the commands allowed over that span (guard's docstring)
+        spanned = limit if measured.since is None else self.envelope.limit(self._joint_stamp,
+                                                                            measured.since)
         breach, foreign = '', False
-        if speed > limit + d.speed_tolerance:
+        over = max(measured.reported - limit, measured.differenced - spanned)
+        if over > d.speed_tolerance:
             breach, foreign = (f'the arm moves at {speed:.3f} m/s (measured), above the '
                                f'{limit:.3f} m/s the bridge commanded: motion the bridge did '
                                'not send'), True

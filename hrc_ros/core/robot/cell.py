@@ -197,6 +197,7 @@ class EpisodeResult:
     event: float = math.nan               # s: when the scenario's event started
     rest_after_event: float = math.nan    # s from the event until the arm was at rest
     stop_delay: float = math.nan          # s from the appeared person's skeleton to the stop
+    monitor: dict = field(default_factory=dict)   # the bridge's monitor counts (Bridge.counts)
 
 
 @dataclass
@@ -423,6 +424,7 @@ class ArmCell:
             observation = reaction.observation
         del observation
         out.seconds = scenario.epochs * cfg.epoch_period
+        out.monitor = dict(bridge.counts)
         out.tasks_completed = len(book.completed)
         out.tasks_released = sum(1 for r in book.records if r.release_epoch <= scenario.epochs)
         return out

@@ -16,12 +16,16 @@ of its own (ISO 13849: a stuck sensor must be detected):
   velocities and from the positions' finite differences over at least `min_dt` (30 ms: the
   error of a difference is the stamps' jitter over its span, and 0.5 ms of jitter over one 8 ms
   period read as 0.02 m/s of motion), the larger (a driver that reports zero velocities, or
-  positions that jump, both count).
+  positions that jump, both count). A difference is the mean speed over its span (`since` to
+  the sample), so it is judged against the most the arm was allowed over that span, the reported
+  velocity against what it is allowed at the sample: an arm braking as commanded moved faster
+  over the last 30 ms than it may move now (before, 1.4 nuisance stops an episode of the honest
+  batch cell, each dropping the running goal).
 - `SpeedEnvelope`: the speed the bridge's own commands let the arm have at each instant: the
   commanded bound (override x its goal's top link speed at override 1), held for `latency`
   (the command's way to the controller) and then falling at the SSM deceleration (the ramp the
-  controller follows). A measured speed above it plus `tolerance` is motion the bridge did not
-  command.
+  controller follows); `limit(t, since)` the most it allowed at any instant of [since, t]. A
+  measured speed above it plus `tolerance` is motion the bridge did not command.
 - `path_deviation`, `across_path`: how far (rad, the largest joint) a configuration lies from
   the bridge's own trajectory, and how fast it moves across it. Its segments are cubic in time
   but straight in joint space (q0 + (q1 - q0) h(u)), so the path is the polyline of its
@@ -62,12 +66,14 @@ class MeasuredSpeed:
         self.speed = 0.0
         self.reported = 0.0
         self.differenced = 0.0
+        self.since: int | None = None     # the stamp (ns) the difference spans from, if any
         self.joint_rate = np.zeros(0)     # rad/s per joint from the positions' differences
 
     def update(self, q, qd, stamp_ns: int) -> float:
         q = np.asarray(q, dtype=float)
         self.reported = self.arm.link_speed(q, qd)
         self.differenced = 0.0
+        self.since = None
         self.joint_rate = np.zeros(0)
         history = self._history
         while history and history[-1][0] >= stamp_ns:     # out of order or repeated: restart
@@ -79,6 +85,7 @@ class MeasuredSpeed:
             if dt >= self.min_dt:
                 self.joint_rate = (q - q_then) / dt
                 self.differenced = self.arm.link_speed(q, self.joint_rate)
+                self.since = int(then)
                 break
         history.append((int(stamp_ns), q.copy()))
         self.speed = max(self.reported, self.differenced)
@@ -87,16 +94,19 @@ class MeasuredSpeed:
     def reset(self) -> None:
         self._history.clear()
         self.speed = self.reported = self.differenced = 0.0
+        self.since = None
         self.joint_rate = np.zeros(0)
 
 
 class SpeedEnvelope:
     """The top link speed the bridge's own commands allow the arm at each instant (module
-    docstring): each commanded bound holds for `latency` s, then falls at `deceleration`."""
+    docstring): each commanded bound holds for `latency` s, then falls at `deceleration`.
+    Commands stay `horizon` s after they have decayed to nothing, for spans that reach back."""
 
-    def __init__(self, deceleration: float, latency: float):
+    def __init__(self, deceleration: float, latency: float, horizon: float = 0.1):
         self.deceleration = float(deceleration)
         self.latency = float(latency)
+        self.horizon = float(horizon)
         self._commands: deque = deque(maxlen=ENVELOPE_KEPT)    # (t ns, bound), bounds falling
 
     def command(self, now_ns: int, bound: float) -> None:
@@ -107,16 +117,21 @@ class SpeedEnvelope:
             commands.pop()
         commands.append((int(now_ns), bound))
 
-    def limit(self, now_ns: int) -> float:
-        """The fastest the arm may be moving at `now_ns` (m/s)."""
+    def limit(self, now_ns: int, since_ns: int | None = None) -> float:
+        """The fastest the arm may be moving at `now_ns` (m/s), or at any instant from
+        `since_ns` to `now_ns`: each command at its highest within the span (a command given
+        after `now_ns`, a sample older than the tick, counts whole, as it always did: the
+        dominated commands before it are gone)."""
         commands = self._commands
+        since = now_ns if since_ns is None else min(int(since_ns), now_ns)
         best = 0.0
         for then, bound in commands:
             best = max(best, bound - self.deceleration
-                       * max(0.0, (now_ns - then) * 1e-9 - self.latency))
-        # the oldest commands that have decayed to nothing count no more
+                       * max(0.0, (max(since, then) - then) * 1e-9 - self.latency))
+        # the oldest commands that had decayed to nothing `horizon` ago count no more
+        past = now_ns - int(self.horizon * 1e9)
         while len(commands) > 1 and commands[0][1] - self.deceleration * max(
-                0.0, (now_ns - commands[0][0]) * 1e-9 - self.latency) <= 0.0:
+                0.0, (past - commands[0][0]) * 1e-9 - self.latency) <= 0.0:
             commands.popleft()
         return best
 
