@@ -431,3 +431,48 @@ def test_building_an_arm_starts_no_child_process():
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0] == '0', out.stdout
+
+
+# A launcher that starts a node as hrc-case-study does and is then killed without stopping it.
+LAUNCHER = textwrap.dedent('''
+    import sys, time
+    from pathlib import Path
+    from hrc_ros.ros.processes import NodeProcesses
+    nodes = NodeProcesses(Path(sys.argv[1]), sys.argv[3:])
+    nodes.start(sys.argv[2])
+    print(nodes.processes[sys.argv[2]].pid, flush=True)
+    while True:
+        time.sleep(60)
+''')
+
+
+def gone(pid: int) -> bool:
+    """The process has exited (a zombie nobody has reaped yet counts as exited)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return True
+    return any(line.startswith('State:') and 'Z' in line.split()[1]
+               for line in status.splitlines())
+
+
+def test_a_node_whose_launcher_is_killed_stops_itself(tmp_path, graph_probe):
+    """stop.py point 7: hrc-case-study killed with SIGKILL (its own stop never runs) left its
+    nodes running as orphans, the arm's simulation and its topics with them. A node started
+    by NodeProcesses sees its parent change and stops the clean way."""
+    launcher = subprocess.Popen(
+        [sys.executable, '-c', LAUNCHER, str(tmp_path), 'decision_node',
+         *map(str, params())], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    pid = None
+    try:
+        pid = int(launcher.stdout.readline())
+        wait_for(lambda: in_graph(graph_probe, 'decision'), START_TIMEOUT, 'the node on the graph')
+        os.killpg(launcher.pid, signal.SIGKILL)
+        launcher.wait(timeout=10)
+        wait_for(lambda: gone(pid), STOP_TIMEOUT, 'the orphaned node to stop')
+    finally:
+        if pid is not None and not gone(pid):
+            os.kill(pid, signal.SIGKILL)
+    log = (tmp_path / 'decision_node.log').read_text()
+    assert f'the launching process {launcher.pid} is gone: stopping' in log, log
+    assert not clean_log(log), log

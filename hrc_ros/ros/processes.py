@@ -108,8 +108,10 @@ class NodeProcesses:
                  env: dict | None = None):
         self.log_dir = Path(log_dir)
         self.params = [str(p) for p in params]
+        # the launcher's pid: a node whose launcher dies without stopping it stops itself
+        # (stop.py, point 7)
         self.env = {**(os.environ if env is None else env), 'PYTHONFAULTHANDLER': '1',
-                    'PYTHONUNBUFFERED': '1'}
+                    'PYTHONUNBUFFERED': '1', stop_regime.PARENT_ENV: str(os.getpid())}
         self.processes: dict[str, subprocess.Popen] = {}
         self.stacks_dumped: list[str] = []
         self.stop_seconds: dict[str, float] = {}    # signal (or the stop call) to exit, per node

@@ -35,6 +35,13 @@ signal interrupts anything, and nothing but the main thread ever shuts a context
    closed before `main()` returns, and a command that left work in a thread of its own must
    join it first.
 
+7. A node started by `processes.NodeProcesses` (hrc-case-study, the benches) is told its
+   launcher's pid (`PARENT_ENV`). If the launcher dies without stopping it (SIGKILL, a crash:
+   its own stop never runs), the node sees its parent change (polled every `ORPHAN_POLL` s by
+   a daemon thread) and stops itself the clean way, as if it had got SIGINT: before, it ran on
+   as an orphan, its motion and its topics with it. Under `ros2 launch` (no variable) nothing
+   is watched: launch's own shutdown covers its children.
+
 Exit codes: 0 for a stop by signal (also during start-up, before the node exists), 1 for a
 node that cannot start, FORCED_EXIT for a second signal. What this cannot cover is the first
 ~50 ms after exec, before the interpreter has run a line of the script (twice that when the ROS
@@ -53,11 +60,14 @@ import select
 import signal
 import sys
 import threading
+import time
 from contextlib import contextmanager
 from typing import Callable, Iterator, NoReturn
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 FORCED_EXIT = 3      # exit code of a process whose stop a second signal forced
+PARENT_ENV = 'HRC_PARENT_PID'   # the launcher's pid, set by processes.NodeProcesses (point 7)
+ORPHAN_POLL = 0.5    # s between the orphan watch's looks at the parent pid
 
 
 class _Regime:
@@ -101,7 +111,38 @@ def install() -> bool:
     _regime.reader.start()
     _regime.installed = True
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    _watch_parent()
     return True
+
+
+def _watch_parent() -> None:
+    """Point 7 of the module docstring: when `PARENT_ENV` names this process's parent, a
+    daemon thread sends this process SIGINT once the parent is gone. The variable is taken out
+    of the environment (a process this one starts has another parent); a parent that is gone
+    already at the start stops the process at once."""
+    value = os.environ.pop(PARENT_ENV, None)
+    try:
+        parent = int(value)
+    except (TypeError, ValueError):
+        return
+    if parent <= 1:
+        return
+    if os.getppid() != parent:
+        try:
+            os.kill(parent, 0)
+            return          # alive: not our parent (a grandchild that inherited the variable)
+        except ProcessLookupError:
+            pass            # gone during the imports: the watch below stops this at once
+        except OSError:
+            return
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(ORPHAN_POLL)
+        print(f'the launching process {parent} is gone: stopping', file=sys.stderr, flush=True)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=watch, name='orphan watch', daemon=True).start()
 
 
 def uninstall() -> None:
