@@ -216,7 +216,8 @@ def test_a_goal_the_bridge_did_not_send_stops_the_arm_and_is_replaced(setup):
 
 def test_the_honest_batch_cell_has_no_monitor_stops():
     """SSM brakes the arm as a person comes near; its positions' difference is the mean speed
-    over the last 40 ms, higher than it may move now. Before the envelope took spans, the
+    over its span (40 ms: the batch cell's joint states come every 20 ms, and a span is at least
+    30 ms), higher than it may move now. Before the envelope took spans, the
     monitor read that as motion the bridge did not send: 7 stops in these two episodes of the
     honest batch cell under SSM alone (1.4 an episode over 60), each dropping the running
     goal."""

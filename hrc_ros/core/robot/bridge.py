@@ -891,11 +891,15 @@ class Bridge:
         spanned = limit if measured.since is None else self.envelope.limit(self._joint_stamp,
                                                                             measured.since)
         breach, foreign = '', False
-        over = max(measured.reported - limit, measured.differenced - spanned)
-        if over > d.speed_tolerance:
-            breach, foreign = (f'the arm moves at {speed:.3f} m/s (measured), above the '
-                               f'{limit:.3f} m/s the bridge commanded: motion the bridge did '
-                               'not send'), True
+        if measured.reported > limit + d.speed_tolerance:
+            breach, foreign = (f'the arm moves at {measured.reported:.3f} m/s (its reported '
+                               f'velocities), above the {limit:.3f} m/s the bridge commanded: '
+                               'motion the bridge did not send'), True
+        elif measured.differenced > spanned + d.speed_tolerance:
+            breach, foreign = (f'the arm moves at {measured.differenced:.3f} m/s (its positions '
+                               f'over {(self._joint_stamp - measured.since) * 1e-9:.3f} s), '
+                               f'above the {spanned:.3f} m/s the bridge commanded in that time: '
+                               'motion the bridge did not send'), True
         elif self.active is not None:
             off, direction = nearest_on_path(self.q, self.active.positions)
             # by the reported velocities: differences of positions cut the corners of the
