@@ -256,9 +256,16 @@ COMPUTE_FILES = frozenset({
     'test_robot_monitor.py', 'test_hmi_shift.py',
     'test_selection.py', 'test_simulator.py', 'test_solver.py', 'test_stream.py',
     'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
-    'test_tracking.py'})
+    'test_tracking.py', 'test_cli.py', 'test_fit_rate.py', 'test_hostile_files.py',
+    'test_layout.py', 'test_liveness.py'})
 GRAPH_TESTS = frozenset({
-    'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream'})
+    'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream',
+    # a decision node in-process
+    'test_hostile_files.py::test_the_decision_node_refuses_hostile_files_at_once_and_keeps_deciding',
+    # ROS commands that must refuse before any node starts: should one start after all, it
+    # starts beside the graph's tests, not beside another graph
+    'test_cli.py::test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder',
+    'test_cli.py::test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers'})
 GRAPH_FIXTURES = frozenset({'ros_domain_id', 'graph'})
 GRAPH_UNIT = 'graph'
 
