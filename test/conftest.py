@@ -256,9 +256,27 @@ COMPUTE_FILES = frozenset({
     'test_robot_monitor.py', 'test_hmi_shift.py',
     'test_selection.py', 'test_simulator.py', 'test_solver.py', 'test_stream.py',
     'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
-    'test_tracking.py'})
+    'test_tracking.py', 'test_cli.py', 'test_fit_rate.py', 'test_hostile_files.py',
+    'test_layout.py', 'test_liveness.py', 'test_fleet.py'})
 GRAPH_TESTS = frozenset({
-    'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream'})
+    'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream',
+    # a decision node in-process
+    'test_hostile_files.py::test_the_decision_node_refuses_hostile_files_at_once_and_keeps_deciding',
+    # ROS commands that must refuse before any node starts: should one start after all, it
+    # starts beside the graph's tests, not beside another graph
+    'test_cli.py::test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder',
+    'test_cli.py::test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers',
+    # hrc-fleet's --apply against decision nodes (the plant run's module fixture starts them):
+    # the rest of test_fleet, the Ray engine's checks without nodes, runs on the other worker
+    # on a Ray of its own (a Ray per worker process, ray_session)
+    *(f'test_fleet.py::{name}' for name in (
+        'test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the_corrupt',
+        'test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported',
+        'test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused',
+        'test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary',
+        'test_apply_reports_a_namespace_whose_decision_node_is_not_ours_and_goes_on',
+        'test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy',
+        'test_a_worker_killed_mid_task_is_retried_and_the_report_is_right'))})
 GRAPH_FIXTURES = frozenset({'ros_domain_id', 'graph'})
 GRAPH_UNIT = 'graph'
 

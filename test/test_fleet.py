@@ -1,6 +1,6 @@
 """The plant of cells (hrc-fleet, docs/FLEET.md): the plant file, the promotion rule, the
 pipeline's state machine and the drift test's pieces without Ray; then `hrc-fleet run` on the
-session's embedded Ray (one per test session, 2 CPUs, a small object store, no dashboard):
+session's embedded Ray (one per test process, 2 CPUs, a small object store, no dashboard):
 
 - a plant of four small cells (generated recordings at full model size: one whose people
   accept readily and drift closer, 4000 epochs of them (the promotion check's interval
@@ -569,9 +569,11 @@ def test_recordings_impossible_under_the_running_model_have_p_zero(default_confi
 # -- hrc-fleet run on Ray ---------------------------------------------------------------------
 @pytest.fixture(scope='module')
 def ray_session():
-    """The one embedded Ray of the test session (only this module uses Ray): 2 CPUs, a
-    150 MB object store, no dashboard; shut down as soon as this module is done, so the rest
-    of the suite never shares the machine with it, and none of its processes left behind."""
+    """The embedded Ray of this test process (only this module uses Ray): 2 CPUs, a 150 MB
+    object store, no dashboard; shut down as soon as this module's tests here are done, and
+    none of its processes left behind. With two workers (conftest.py) the tests of --apply
+    run on the graph's worker and the engine's others beside it, each worker on a Ray of its
+    own."""
     ray = pytest.importorskip('ray')
     # Ray's workers run at nice 15 by default: on a loaded machine (CI beside nothing, a
     # developer's beside other work) they would wait for everyone else; here they compete

@@ -33,6 +33,12 @@ def small_queue():
     return HRCModel(queue_config())
 
 
+@pytest.fixture(scope='module')
+def small_queue_mdp(small_queue):
+    """The small queue model's MDP solve, once for the tests that read it (none changes it)."""
+    return solve(small_queue)
+
+
 # -- configuration ----------------------------------------------------------------------------
 def test_a_queue_multiplies_the_states_and_keeps_the_other_configurations_as_they_were():
     plain = load_config(CONFIG)
@@ -162,11 +168,15 @@ def test_factored_q_and_the_fused_sweep_equal_the_rule_by_rule_queue(overrides):
     value = np.random.default_rng(5).normal(size=model.n_states) * 20
     q = op.q(value)
     sources = np.arange(model.n_states)
-    for a in range(len(ACTIONS)):   # the transition rows are distributions
-        t = model.transition(sources, a)
+    checked = []
+
+    def rows_are_distributions(a, t):
         np.testing.assert_allclose(np.bincount(t.source, weights=t.probability), 1.0,
                                    atol=1e-12)
-    np.testing.assert_allclose(q.T, rule_q(model, value, sources), atol=1e-10)
+        checked.append(a)
+    np.testing.assert_allclose(q.T, rule_q(model, value, sources, rows_are_distributions),
+                               atol=1e-10)
+    assert checked == list(range(len(ACTIONS)))
     new, residual = op.apply(value)
     np.testing.assert_allclose(new, q.max(axis=0), atol=1e-10)
     assert residual == pytest.approx(np.max(np.abs(q.max(axis=0) - value)), abs=1e-10)
@@ -194,25 +204,26 @@ def test_without_releases_the_empty_queue_is_the_papers_model():
     np.testing.assert_array_equal(a.policy[:zero.n_base], b.policy)
 
 
-def test_the_solved_value_is_the_exact_value_of_its_policy(small_queue):
+def test_the_solved_value_is_the_exact_value_of_its_policy(small_queue, small_queue_mdp):
     """Policy evaluation by the sparse rule-by-rule matrix (`HRCModel.transition`,
     `flat_cost` with the drop charge) gives value iteration's value back, within its bound."""
-    result = solve(small_queue)
+    result = small_queue_mdp
     exact = evaluate_policy(small_queue, result.policy)
     bound = small_queue.config.eta * small_queue.gamma / (1 - small_queue.gamma)
     assert np.max(np.abs(exact - result.value)) < 2 * bound
 
 
-def test_waiting_costs_and_a_full_queue_costs_more(small_queue):
-    v = solve(small_queue).value.reshape(small_queue.n_levels, -1)
+def test_waiting_costs_and_a_full_queue_costs_more(small_queue, small_queue_mdp):
+    v = small_queue_mdp.value.reshape(small_queue.n_levels, -1)
     assert np.all(v[1] < v[0] - 1e-6) and np.all(v[2] < v[1] - 1e-6)
 
 
 # -- policy files -----------------------------------------------------------------------------
 def test_a_queue_policy_round_trips_and_is_refused_by_the_queue_less_model(tmp_path,
-                                                                          small_queue):
+                                                                          small_queue,
+                                                                          small_queue_mdp):
     cfg = small_queue.config
-    result = solve(small_queue)
+    result = small_queue_mdp
     path = save_policy(tmp_path / 'queue.npz', result, cfg)
     loaded = load_policy(path, cfg)
     assert loaded.policy.shape == (small_queue.n_states,)
@@ -264,9 +275,9 @@ def test_the_evaluation_reads_the_policy_at_the_observed_queue_length(small_queu
                                    base.discounted_cost + charged)
 
 
-def test_qmdp_reads_q_at_the_queue_level(small_queue):
+def test_qmdp_reads_q_at_the_queue_level(small_queue, small_queue_mdp):
     m = small_queue
-    result = solve(m)
+    result = small_queue_mdp
     sim = BatchSimulator(m, result.policy, value=result.value, mode='posterior')
     rng = np.random.default_rng(2)
     column = rng.integers(0, sim.columns, size=40)
@@ -278,14 +289,15 @@ def test_qmdp_reads_q_at_the_queue_level(small_queue):
     np.testing.assert_array_equal(got, want)
 
 
-def test_the_selector_reads_the_policy_and_q_at_the_observed_queue_length(small_queue):
+def test_the_selector_reads_the_policy_and_q_at_the_observed_queue_length(small_queue,
+                                                                         small_queue_mdp):
     """ActionSelector (the decision node's) with a queue: the observable's tenth value l picks
     the block l * N0 + h * n_task * 4 + (y, d) for every selector, as the evaluation does
     (mls and qmdp against the flat arrays; the vote against its definition), more than L
     waiting reads as L, a negative or missing l is refused by name; a model without a queue
     does not read a tenth value."""
     m = small_queue
-    result = solve(m)
+    result = small_queue_mdp
     selector = ActionSelector(m, result.policy, value=result.value)
     q = FactoredBellman(m).q(result.value)
     grid, rng = m.task_grid, np.random.default_rng(4)
@@ -446,12 +458,12 @@ def test_the_arm_cell_reads_the_queue_as_the_batch_does(small_queue, monkeypatch
 
 
 @pytest.fixture(scope='module')
-def small_queue_solved(small_queue):
+def small_queue_solved(small_queue, small_queue_mdp):
     """The small queue model's MDP solve and a quick POMDP solve (its quality does not matter
     here, only that the batch and `simulate` read it alike)."""
     from hrc_ros.core.pomdp.solver import solve_pomdp
     pomdp = solve_pomdp(small_queue, episodes=20, per_state=4, rounds=0, seed=4, tol=5e-2)
-    return solve(small_queue), pomdp.policy()
+    return small_queue_mdp, pomdp.policy()
 
 
 @pytest.mark.parametrize('mode', ['bayes', 'table', 'posterior'])

@@ -33,6 +33,32 @@ def small(request):
     return model, hrc_pomdp(model)
 
 
+@pytest.fixture(scope='module')
+def small_mdp(small):
+    """The MDP's value of `small`'s model at its solved states (x, h): one solve for the
+    tests that compare with it."""
+    model, hrc = small
+    return solve(model).value[flat_states(model, hrc)]
+
+
+@pytest.fixture(scope='module')
+def small_start(small):
+    """The fixed points of `small`'s POMDP and the bounds a solve starts from there (blind
+    vectors and FIB), built once: the sweep tests deep-copy them before they move them."""
+    from hrc_ros.core.pomdp.solver import _fixed_points, initial_bounds
+    _, hrc = small
+    points_x, points = _fixed_points(hrc)
+    return points_x, points, initial_bounds(hrc.pomdp, points_x, points)
+
+
+@pytest.fixture(scope='module')
+def queue2_solved():
+    """A quick POMDP solve of the L = 2 queue model (its quality does not matter, only how
+    its file and the selectors read it), shared by the tests that read it."""
+    model = queue_model(2)
+    return model, solve_pomdp(model, episodes=60, per_state=8, rounds=0, seed=4, tol=5e-2)
+
+
 def flat_states(model, hrc):
     """(x, h) -> the flat index l * N0 + (h * n_task + y) * 4 + d of the model."""
     n_cols = model.n_task * 4
@@ -117,10 +143,10 @@ def test_queue_pomdp_mdp_is_the_factored_queue_q(aware):
                                pomdp.reward[:n_base_x] - QUEUE['waiting_cost'], atol=1e-12)
 
 
-def test_the_queue_pomdp_mdp_value_is_the_mdp_solve(small):
+def test_the_queue_pomdp_mdp_value_is_the_mdp_solve(small, small_mdp):
     """The POMDP's fully observed MDP over the solved states converges to the MDP's value."""
-    model, hrc = small
-    value = solve(model).value[flat_states(model, hrc)]
+    _, hrc = small
+    value = small_mdp
     q = mdp_q(hrc.pomdp, tol=1e-10)
     best = np.where(hrc.pomdp.available[..., None], q, -np.inf).max(axis=1)
     np.testing.assert_allclose(best, value, atol=1e-4)   # the solve stops at eta = 1e-6
@@ -144,11 +170,10 @@ def test_the_queue_pomdp_bounds_bracket_and_sit_below_the_mdp():
     assert np.all(lower <= np.einsum('ph,ph->p', mdp[result.points_x], result.points) + 1e-9)
 
 
-def test_the_queue_pomdp_policy_file_finds_the_queue_length(tmp_path):
+def test_the_queue_pomdp_policy_file_finds_the_queue_length(tmp_path, queue2_solved):
     from hrc_ros.core.pomdp.policy import load_pomdp_policy, save_pomdp_policy
-    model = queue_model(2)
+    model, result = queue2_solved
     config = model.config
-    result = solve_pomdp(model, episodes=60, per_state=8, rounds=0, seed=4, tol=5e-2)
     path = save_pomdp_policy(tmp_path / 'queue.npz', result, config)
     loaded = load_pomdp_policy(path, config).policy
     mine = result.policy()
@@ -191,36 +216,40 @@ def test_without_a_queue_the_pomdp_is_the_shipped_one_to_the_bit(name):
     assert np.array_equal(q_fib, shipped.policy.q_fib)
 
 
-@pytest.mark.parametrize('stream', ['queue', 'plain'])
-def test_the_sparse_bounds_equal_the_reference_forms(small, stream):
-    """The sparse kernels the queue's solve uses (`fast`) give the reference forms' MDP Q, FIB
-    step and blind vectors, on the queue model and on a queue-less stream."""
+def test_the_sparse_bounds_equal_the_reference_forms(small):
+    """The sparse kernels the queue's solve uses give the reference forms on the queue model."""
+    assert_sparse_bounds_are_the_reference_forms(small[1].pomdp)
+
+
+def test_the_sparse_bounds_equal_the_reference_forms_without_a_queue():
+    """... and on a queue-less stream (one model: it does not depend on `small`'s L)."""
+    assert_sparse_bounds_are_the_reference_forms(hrc_pomdp(HRCModel(load_config(
+        CONFIG, overrides={**SMALL, 'stream': {'arrival_idle': 0.3, 'arrival_complete': 0.25,
+                                               'q': QUEUE['q']}}))).pomdp)
+
+
+def assert_sparse_bounds_are_the_reference_forms(pomdp):
+    """The sparse kernels (`fast`) give the reference forms' MDP Q, FIB step and blind
+    vectors."""
     from hrc_ros.core.pomdp.solver import blind_alphas, fib_step
-    model, hrc = small
-    if stream == 'plain':
-        hrc = hrc_pomdp(HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': {
-            'arrival_idle': 0.3, 'arrival_complete': 0.25, 'q': QUEUE['q']}})))
-    pomdp = hrc.pomdp
     np.testing.assert_allclose(mdp_q(pomdp, fast=True), mdp_q(pomdp), atol=1e-9)
     q = pomdp.reward + np.random.default_rng(7).normal(size=pomdp.reward.shape)
     np.testing.assert_allclose(fib_step(pomdp, q, fast=True), fib_step(pomdp, q), atol=1e-12)
     np.testing.assert_allclose(blind_alphas(pomdp, fast=True), blind_alphas(pomdp), atol=1e-9)
 
 
-def test_shared_backups_equal_the_full_ones(small):
+def test_shared_backups_equal_the_full_ones(small, small_start):
     """Backing up an action from another with the same successors and group (`share`, the
     queue's solve) moves both bounds as backing every action up in full does."""
     import copy
 
-    from hrc_ros.core.pomdp.solver import (_fixed_points, backup_sweeps, initial_bounds,
-                                           shared_actions)
-    model, hrc = small
+    from hrc_ros.core.pomdp.solver import backup_sweeps, shared_actions
+    _, hrc = small
     pomdp = hrc.pomdp
     same_as = shared_actions(pomdp)
     assert np.count_nonzero(same_as >= 0) > pomdp.n_x           # there is work to share
     assert np.all(same_as < np.arange(pomdp.n_actions)[None, :])
-    points_x, points = _fixed_points(hrc)
-    start = initial_bounds(pomdp, points_x, points)
+    points_x, points, start = small_start
     runs = []
     for share in (False, True):
         alphas, upper = copy.deepcopy(start)
@@ -233,18 +262,17 @@ def test_shared_backups_equal_the_full_ones(small):
     np.testing.assert_allclose(runs[1][1], runs[0][1], atol=1e-9)
 
 
-def test_perseus_sweeps_keep_the_bounds_and_lift_every_point(small):
+def test_perseus_sweeps_keep_the_bounds_and_lift_every_point(small, small_start, small_mdp):
     """The randomised sweep of the queue's solve (`perseus`): the lower bound never falls at a
     point, stays below the upper bound and the MDP, and reaches the full sweeps' values within
     a small margin, with fewer vectors."""
     import copy
 
-    from hrc_ros.core.pomdp.solver import _fixed_points, backup_sweeps, initial_bounds
-    model, hrc = small
+    from hrc_ros.core.pomdp.solver import backup_sweeps
+    _, hrc = small
     pomdp = hrc.pomdp
-    points_x, points = _fixed_points(hrc)
-    start = initial_bounds(pomdp, points_x, points)
-    mdp = solve(model).value[flat_states(model, hrc)]
+    points_x, points, start = small_start
+    mdp = small_mdp
     results = {}
     for perseus in (False, True):
         alphas, upper = copy.deepcopy(start)
@@ -264,15 +292,15 @@ def test_perseus_sweeps_keep_the_bounds_and_lift_every_point(small):
     assert results[True][1] < results[False][1]
 
 
-def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_length():
+def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_length(
+        queue2_solved):
     """The pomdp and fib selectors at l: ActionSelector (the decision node's) and the batch
     evaluation ask the alpha policy for the column l * n_task * 4 + y * 4 + d (the episodes'
     actions reproduce the selector's), and a POMDP policy of another state space is refused."""
     from hrc_ros.core.decision.selection import ActionSelector
     from hrc_ros.core.model import TASK_VARIABLES
     from hrc_ros.core.study.evaluation import BatchSimulator, human_seed
-    model = queue_model(2)
-    result = solve_pomdp(model, episodes=60, per_state=8, rounds=0, seed=4, tol=5e-2)
+    model, result = queue2_solved
     alphas = result.policy()
     mdp = solve(model)
     selector = ActionSelector(model, mdp, pomdp=alphas)
