@@ -697,6 +697,12 @@ def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, 
         tasks = driver.node.create_publisher(UInt8MultiArray, '/lonely/hrc/task_state',
                                              qos.LATCHED)
         actions = driver.node.create_publisher(String, '/lonely/hrc/action', qos.RELIABLE)
+        # the action is volatile and sent once: only once the bridge's reader has matched
+        # (failed once at load 3-5: published before discovery, the ct never arrived)
+        driver.wait(lambda: actions.get_subscription_count() >= 1
+                    and tasks.get_subscription_count() >= 1,
+                    'the lonely bridge to match the action and task-state writers',
+                    START_TIMEOUT)
         since = len(driver.statuses)
         tasks.publish(conv.task_state_to_msg(task(tp=1, tc=1)))
         actions.publish(String(data='ct'))
