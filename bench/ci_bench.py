@@ -64,7 +64,9 @@ def one_run(index: int, out: Path, workers: int) -> dict:
     wall = time.monotonic() - started
     mean_load = sampler.stop()
     text = log.read_text(errors='replace')
-    summary = re.findall(r'=+ (.*(?:passed|failed|error).*) in [\d.]+s', text)
+    # pytest -q ends with the bare line, without -q it is framed in '='
+    summary = re.findall(r'^(?:=+ )?(\d.*(?:passed|failed|error).*) in [\d.]+s', text,
+                         re.MULTILINE)
     failed = re.findall(r'^(?:FAILED|ERROR) (\S+)', text, re.MULTILINE)
     return {'code': code, 'wall': wall, 'load_start': start_load, 'load_end': load1(),
             'load_mean': mean_load, 'summary': summary[-1] if summary else '(no summary)',
