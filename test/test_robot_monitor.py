@@ -435,7 +435,9 @@ def test_the_graphs_publishers_hold_the_arm_unless_the_owner_is_alone():
 def test_the_check_against_the_true_body_counts_what_the_arm_did_near_the_person(setup):
     """core/robot/check.py on made-up records: a moving sample near the true body breaks SSM,
     the same sample with the arm at rest or the body far does not, a sample with no true
-    body near is unchecked, and the truth is interpolated between its samples."""
+    body within a second is unchecked, one within a second but not 0.1 s is checked with the
+    person that much nearer (cell_sim stalled once at load 9: the sample was left out), and
+    the truth is interpolated between its samples."""
     from hrc_ros.core.robot.check import ssm_check
     description, _, arm = setup
     q = description.poses['home']
@@ -447,13 +449,19 @@ def test_the_check_against_the_true_body_counts_what_the_arm_did_near_the_person
     joints = [(base + 10 * MS, base + 10 * MS, q, qd),            # moving, the person near
               (base + 15 * MS, base + 15 * MS, q, np.zeros(6)),   # at rest: no check due
               (base + 410 * MS, base + 410 * MS, q, qd),          # moving, the person far
-              (base + 900 * MS, base + 900 * MS, q, qd)]          # no true sample within 0.1 s
+              (base + 900 * MS, base + 900 * MS, q, qd),          # far, 0.48 s after it
+              (base + 2000 * MS, base + 2000 * MS, q, qd)]        # no true sample within 1 s
     separations = [(base + 10 * MS, [0.5] + [0.0] * 6 + [0.4, 0.2])]
     check = ssm_check(joints, truth, separations, description, arm)
     distance = arm.distance(q, body_capsules(near, K4ABT_JOINTS))
     assert distance < 1.0
-    assert check['joint_states'] == 4 and check['moving'] == 3 and check['unchecked'] == 1
+    assert check['joint_states'] == 5 and check['moving'] == 4 and check['unchecked'] == 1
+    assert check['bridged'] == 1                      # the far person 0.96 m nearer: no breach
     assert check['violations'] == 1 and check['worst']['separation_m'] == pytest.approx(distance)
+    # a gap in the truth right after the near person: checked with them 0.26 m nearer still
+    gap = ssm_check([(base + 150 * MS, 0, q, qd)], truth[:2], [], description, arm)
+    assert gap['bridged'] == 1 and gap['unchecked'] == 0 and gap['violations'] == 1
+    assert gap['worst']['separation_m'] == pytest.approx(distance - 2.0 * 0.13)
     assert check['own_moving'] == 1 and check['own_violations'] == 0
     # halfway between two true samples of a walking person: the body halfway
     walk = [(base, person(3.0)), (base + 20 * MS, person(1.0))]
