@@ -797,6 +797,26 @@ def parameters_now(namespace: str, decision: list[str]) -> tuple:
         applier.close()
 
 
+def wait_answering(namespace: str, timeout: float = 120.0) -> None:
+    """Until the decision node and the belief estimator in `namespace` answer their parameter
+    services: --apply is for a running cell. Applied during their start, on a loaded machine the
+    decision node did not answer for its selector within SET_TIMEOUT (10 s): it was still
+    loading its policy (the quiet CI run of 2026-12-06 11:35)."""
+    from hrc_ros.ros.fleet_apply import Applier
+    deadline = time.monotonic() + timeout
+    while True:
+        applier = Applier()
+        try:
+            clients = [applier.client(f'{namespace}/{node}')
+                       for node in ('decision', 'belief_estimator')]
+            if None not in clients and all(applier.get(c, ['config']) is not None
+                                           for c in clients):
+                return
+        finally:
+            applier.close()
+        assert time.monotonic() < deadline, f'{namespace}: the nodes never answered'
+
+
 def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused(
         tmp_path, ros_domain_id):
     """--apply against running nodes (processes): a node that runs another selector than the
@@ -821,6 +841,7 @@ def test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_
     for node in ('decision_node', 'belief_estimator_node'):
         suite.start(node, remappings=[('__ns', '/fleet_checks')])
     try:
+        wait_answering('/fleet_checks')
         other = apply_promoted([{**entry, 'selector': 'pomdp'}], timeout=5.0)['checks']
         refused = apply_promoted([{**entry, 'selector': 'paper'}], timeout=5.0)['checks']
         after = parameters_now('/fleet_checks', ['config', 'policy', 'selector'])
@@ -871,6 +892,7 @@ def test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary(tmp_
     for node in ('decision_node', 'belief_estimator_node'):
         suite.start(node, remappings=[('__ns', '/fleet_nights')])
     try:
+        wait_answering('/fleet_nights')
         first = apply_promoted([night('fail_safe_unaware',
                                       share_dir() / 'policies' / 'fail_safe_unaware.npz')],
                                timeout=20.0)['nights']
