@@ -787,12 +787,16 @@ def test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported(p
 
 def parameters_now(namespace: str, decision: list[str]) -> tuple:
     """(the decision node's parameters `decision`, the belief estimator's config) of the nodes
-    in `namespace`, read through their parameter services."""
+    in `namespace`, read through their parameter services; None for a node whose services do
+    not show up or that does not answer."""
     from hrc_ros.ros.fleet_apply import Applier
     applier = Applier()
     try:
-        return (applier.get(applier.client(f'{namespace}/decision'), decision),
-                applier.get(applier.client(f'{namespace}/belief_estimator'), ['config']))
+        answers = []
+        for node, names in (('decision', decision), ('belief_estimator', ['config'])):
+            client = applier.client(f'{namespace}/{node}')
+            answers.append(None if client is None else applier.get(client, names))
+        return tuple(answers)
     finally:
         applier.close()
 
@@ -802,18 +806,8 @@ def wait_answering(namespace: str, timeout: float = 120.0) -> None:
     services: --apply is for a running cell. Applied during their start, on a loaded machine the
     decision node did not answer for its selector within SET_TIMEOUT (10 s): it was still
     loading its policy (the quiet CI run of 2026-12-06 11:35)."""
-    from hrc_ros.ros.fleet_apply import Applier
     deadline = time.monotonic() + timeout
-    while True:
-        applier = Applier()
-        try:
-            clients = [applier.client(f'{namespace}/{node}')
-                       for node in ('decision', 'belief_estimator')]
-            if None not in clients and all(applier.get(c, ['config']) is not None
-                                           for c in clients):
-                return
-        finally:
-            applier.close()
+    while None in parameters_now(namespace, ['config']):
         assert time.monotonic() < deadline, f'{namespace}: the nodes never answered'
 
 
