@@ -1,6 +1,6 @@
 """How fast the robot's program progresses in the cell with the arm: the data for
-`model.robot_rate` (MODEL.md 3.2, docs/ROBOT.md 4; config/arm.yaml does not set it), counted
-by the code `hrc-fit --rate` counts recordings with (core.learning.rate).
+`model.robot_rate` (MODEL.md 3.2, docs/ROBOT.md 4; config/arm.yaml sets what it measured),
+counted by the code `hrc-fit --rate` counts recordings with (core.learning.rate).
 
 Seeded episodes of the batch cell with the arm (`core.robot.cell.ArmCell`, random task streams
 as `hrc-evaluate --cell arm` draws them, task rate 0.5) under each selector named, recorded as

@@ -30,13 +30,16 @@ def write_config(tmp_path, mutate):
 def test_the_arm_config_is_the_default_with_the_cell_keys_of_the_arm():
     """config/arm.yaml (docs/ROBOT.md 4): model keys more than the default (the robot paused
     under dp and dm, a retreat and a move closer that gain no band) and a queue (issue 34's
-    liveness); each key's default and the key left out are one model, one hash, and so is
-    model.robot_rate (MODEL.md 3.2, which arm.yaml leaves out: docs/ROBOT.md 4)."""
+    liveness) and the arm's measured progress (model.robot_rate, MODEL.md 3.2); each key's
+    default and the key left out are one model, one hash."""
     default, arm = load_config(DEFAULT), load_config(shipped_config_path('arm'))
     assert default.robot_paused_by == ('dn',) and arm.robot_paused_by == ('dn', 'dp', 'dm')
     assert default.retreat_reach is None and arm.retreat_reach == 1
     assert default.approach_reach is None and arm.approach_reach == 3
-    assert default.robot_rate is None and arm.robot_rate is None     # optional, not shipped on
+    assert default.robot_rate is None                                # optional: the paper's rule
+    # the arm works least at the shared station and near the person (bench/progress_bench.py)
+    assert arm.robot_rate[3, 1] < arm.robot_rate[0, 1] < arm.robot_rate[0, 3] < 1
+    assert arm.robot_rate[[0, 2, 3], 0].max() == 0 and arm.robot_rate[1].min() == 1   # SSM stops
     cell_keys = ('robot_paused_by', 'retreat_reach', 'approach_reach', 'robot_rate')
     assert {k: v for k, v in arm.data['model'].items()
             if k not in cell_keys} == default.data['model']

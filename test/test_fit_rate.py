@@ -43,7 +43,8 @@ def test_the_arms_recordings_are_read_with_the_arms_rules():
     done = (0, 0, 0, 0, 0, 0, 1, 0)      # complete (bp goes to 0 an epoch later, MODEL.md 3.2)
     rows = [(COMMITTED, 1, 'nw'), (COMMITTED, 1, 'nw'), (with_bc(1), 1, 'nw'),
             (done, 1, 'dp'), ((0,) * 8, 1, 'dn')]
-    arm = HRCModel(load_config(shipped_config_path('arm')))
+    arm = HRCModel(load_config(shipped_config_path('arm'), overrides={
+        'model': {'robot_rate': None}}))         # the arm's rules, the paper's counter
     rated = HRCModel(load_config(shipped_config_path('arm'), overrides={
         'model': {'robot_rate': {0: [0.0, 0.1, 0.5, 0.9]}}}))
     paper = prepare([recording(rows)])
@@ -112,4 +113,5 @@ def test_hrc_fit_writes_the_rate_into_a_configuration_that_loads(tmp_path, capsy
     assert 'robot_rate (MODEL.md 3.2)' in printed and 'tx 0, d 2:' in printed
     fitted = load_config(out)
     assert fitted.robot_rate[0, 2] == pytest.approx(0.4, abs=0.15)
-    assert fitted.robot_rate[3, 1] == 1.0     # no epoch at the shared station: the base's (1)
+    base = load_config(shipped_config_path('arm'))
+    assert fitted.robot_rate[3, 1] == base.robot_rate[3, 1]   # no epoch at the shared station

@@ -117,7 +117,9 @@ def test_the_cell_with_the_arm_completes_the_case_study_and_stops_cleanly(run):
     # the bridge's goals, the stop (latched, on change) and the progress; the arm's joint
     # states, the separation and the override (a tick each) stream through every epoch (their
     # rate on a loaded host is cobot_sim's to meet, bench/robot_bench.py)
-    assert counts['/joint_trajectory_controller/joint_trajectory'] >= 3
+    # (how many goals is the plan's: with the arm's measured progress it hands the
+    # either-agent task to the person, and the arm runs the joint task's program alone)
+    assert counts['/joint_trajectory_controller/joint_trajectory'] >= 1
     assert counts['/hrc/protective_stop'] >= 1 and counts['/hrc/robot_progress'] >= 3
     rows = messages(out, '/hrc/epoch', '/joint_states', '/hrc/separation', '/hrc/speed_override')
     signals = [(t, msg.data) for topic, msg, t, _ in rows if topic == '/hrc/epoch']
