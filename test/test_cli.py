@@ -172,6 +172,18 @@ def test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder(tmp_path, capsys)
     assert not (tmp_path / 'out' / 'logs').exists(), 'a refused run started'
 
 
+def test_hrc_case_study_refuses_the_arms_rate_without_the_arm(tmp_path, capsys):
+    """config/arm.yaml plans with the arm's measured progress: without --robot sim the task
+    manager would count the robot's share down the paper's way, another cell than the plan's.
+    One line before any node starts (it ran to the end without a word before)."""
+    from hrc_ros.core.paths import arm_config_path
+    from hrc_ros.ros.case_study import main
+    line = refused_here(main, ['--out', tmp_path / 'out', '--config', arm_config_path()],
+                        capsys)
+    assert 'model.robot_rate' in line and 'hrc-case-study --robot sim' in line, line
+    assert not (tmp_path / 'out' / 'logs').exists(), 'a refused run started'
+
+
 def test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers(tmp_path, capsys):
     """-o a dangling link or a loop gave a FileExistsError traceback after the wait for the
     topics' publishers; now one line before any wait (a day's --wait-timeout would hang the

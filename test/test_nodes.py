@@ -1206,6 +1206,19 @@ def test_task_manager_refuses_out_of_domain_initial_task(graph):
         graph.start(TaskManagerNode, initial_task=[9, 1, 1])
 
 
+def test_task_manager_refuses_the_arms_rate_without_the_arms_progress(graph):
+    """config/arm.yaml plans with the arm's measured progress (model.robot_rate): a task
+    manager that counts the robot's share down one an epoch (no robot_progress, no arm) would
+    run another cell than the plan's, so it refuses at start in one line; with the arm's
+    progress it starts."""
+    from hrc_ros.core.paths import arm_config_path
+    from hrc_ros.ros.node_support import StartupError
+    with pytest.raises(StartupError, match='robot_rate.*needs robot_progress: true'):
+        graph.start(TaskManagerNode, config=str(arm_config_path()))
+    node = graph.start(TaskManagerNode, config=str(arm_config_path()), robot_progress=True)
+    assert node.model.robot_rate is not None
+
+
 def test_task_manager_parameters_are_read_only(graph):
     node = Tasks(graph, initial_task=[1, 1, 3]).node
     result = node.set_parameters([Parameter('schedule', value=['2:1,1,1'])])[0]

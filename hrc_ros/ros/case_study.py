@@ -63,7 +63,8 @@ from ..core.paths import (arm_config_path, default_config_path, folder_target, s
 from ..core.study.plots import plot_trajectory
 from ..core.mdp.policy import PolicyError, default_policy_path, load_policy
 from ..core.learning.recordings import place_in_epochs
-from ..core.study.simulation import BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory, case_study
+from ..core.study.simulation import (BELIEF_COLUMNS, SCORE_COLUMNS, Scenario, Trajectory,
+                                     case_study, check_model_cell)
 from ..core.tasks import TaskBook
 from ..core.decision.selection import POMDP_SELECTORS, SELECTORS
 from ..core.pomdp.policy import load_shipped_pomdp_policy
@@ -450,10 +451,12 @@ def _main(argv: list[str] | None) -> int:
     try:
         config = load_config(args.config or default_config_path())
         model = HRCModel(config)
+        if args.robot != 'sim':     # the arm's progress (robot_rate) needs the arm
+            check_model_cell(model)
         load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
         if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one
             load_shipped_pomdp_policy(config)
-    except (ConfigError, PolicyError) as exc:
+    except (ConfigError, PolicyError, ValueError) as exc:
         return fail('hrc-case-study', exc)
     shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)

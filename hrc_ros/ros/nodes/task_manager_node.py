@@ -79,6 +79,13 @@ class TaskManagerNode(Node):
         self.tasks: TaskEpochs | None = None
         self.params, values, self.config, self.model = node_setup(
             self, PARAMETERS, self._check_parameters, self._apply_parameters)
+        if self.model.robot_rate is not None and not values['robot_progress']:
+            # the plan's counter runs at the arm's measured rate; the paper's, one an epoch,
+            # here: the plan would be of another cell (MODEL.md 3.2)
+            raise StartupError(f'{self.config.source} has model.robot_rate (the arm\'s progress '
+                               'under SSM), which needs robot_progress: true (the cell with the '
+                               'arm, robot:=sim); without an arm use a configuration without '
+                               'it (e.g. the shipped default)')
         initial = tuple(int(v) for v in values['initial_task']) or None
         try:
             book = TaskBook(self.model, initial_task=initial, schedule=list(values['schedule']),
