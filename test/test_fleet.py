@@ -522,6 +522,13 @@ def test_the_markdown_says_the_run_mode_warnings_guards_and_retries_and_the_plot
     text = reporting.markdown(plant)
     assert 'run: always (fitted and checked whatever the drift test says)' in text
     assert '- only 1 episode: bootstrap intervals' in text and 'x.csv:7: the episode' in text
+    # a keep on few episodes says so (the check's power by recording size, docs/FLEET.md)
+    assert '- kept on 1 recorded episode: the fitting error of so few' in text
+    many = {**entry, 'read': {**entry['read'], 'episodes': 200}}
+    promoted = {**entry, 'decision': PROMOTE}
+    unchecked = {k: v for k, v in entry.items() if k != 'cost_difference'}   # no drift: no fit
+    for other in (many, promoted, unchecked):
+        assert 'recorded episode' not in reporting.markdown({**plant, 'cells': [other]})
     assert 'the cost it gave up: -3.010 [-3.480, -2.540] per episode' in text
     assert 'Ray ran null.2 2 times (workers pid 11 on n1, pid 12 on n2)' in text
     assert 'nodes lost: n2n2n2n2n2n2 (10.0.0.2) after 31 s: raylet died' in text

@@ -175,9 +175,24 @@ def _guard_lines(entry: dict) -> list[str]:
     return lines + ['']
 
 
+# below this many recorded episodes a keep says little (bench/shadow_bench.py, docs/FLEET.md:
+# the check's power by recording size)
+POWER_EPISODES = 200
+
+
 def _warning_lines(entry: dict) -> list[str]:
     read = entry.get('read') or {}
     warnings = list((entry.get('fit') or {}).get('warnings') or [])
+    episodes = read.get('episodes')
+    checked = entry.get('cost_difference') is not None     # the shadow check ran
+    if entry.get('decision') == check.KEEP and checked and episodes is not None \
+            and episodes < POWER_EPISODES:
+        warnings.append(f'kept on {episodes} recorded episode{"s" if episodes != 1 else ""}: '
+                        'the fitting error of so few keeps most truly cheaper policies from '
+                        'promotion (of cells truly cheaper by >= 1 per episode, 4 of 16 '
+                        'promoted at 20 episodes; bench/shadow_bench.py, docs/FLEET.md by '
+                        'recording size), so this keep is weak evidence that no better '
+                        f'policy exists: record {POWER_EPISODES} episodes or more')
     stream = (entry.get('fit') or {}).get('stream') or {}
     warnings += [f'stream: {w}' for w in stream.get('warnings') or []]
     if read.get('issues'):
