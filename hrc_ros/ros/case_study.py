@@ -451,13 +451,16 @@ def _main(argv: list[str] | None) -> int:
     try:
         config = load_config(args.config or default_config_path())
         model = HRCModel(config)
-        if args.robot != 'sim':     # the arm's progress (robot_rate) needs the arm
-            check_model_cell(model)
         load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
         if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one
             load_shipped_pomdp_policy(config)
-    except (ConfigError, PolicyError, ValueError) as exc:
+    except (ConfigError, PolicyError) as exc:
         return fail('hrc-case-study', exc)
+    if args.robot != 'sim':     # the arm's progress (robot_rate) needs the arm
+        try:
+            check_model_cell(model)
+        except ValueError as exc:
+            return fail('hrc-case-study', exc)
     shutil.rmtree(out / 'logs', ignore_errors=True)
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'

@@ -26,6 +26,7 @@ from std_msgs.msg import Bool, String, UInt8MultiArray
 
 from ...core.protocol import (ERROR, TASK_HOLD, WARN, InputError, Report, RequestCounts, Stamp,
                               TaskEpochs, check_timeout_order)
+from ...core.study.simulation import check_model_cell
 from ...core.tasks import TaskBook, parse_schedule
 from .. import conversions as conv
 from .. import qos
@@ -79,13 +80,14 @@ class TaskManagerNode(Node):
         self.tasks: TaskEpochs | None = None
         self.params, values, self.config, self.model = node_setup(
             self, PARAMETERS, self._check_parameters, self._apply_parameters)
-        if self.model.robot_rate is not None and not values['robot_progress']:
-            # the plan's counter runs at the arm's measured rate; the paper's, one an epoch,
-            # here: the plan would be of another cell (MODEL.md 3.2)
-            raise StartupError(f'{self.config.source} has model.robot_rate (the arm\'s progress '
-                               'under SSM), which needs robot_progress: true (the cell with the '
-                               'arm, robot:=sim); without an arm use a configuration without '
-                               'it (e.g. the shipped default)')
+        if not values['robot_progress']:
+            # without the arm's progress this node runs the model's own cell (the paper's
+            # counter, one an epoch): refuse a model that cell cannot run (MODEL.md 3.2)
+            try:
+                check_model_cell(self.model)
+            except ValueError as exc:
+                raise StartupError(f'{exc}; this node needs robot_progress: true with it (the '
+                                   'cell with the arm, robot:=sim)') from None
         initial = tuple(int(v) for v in values['initial_task']) or None
         try:
             book = TaskBook(self.model, initial_task=initial, schedule=list(values['schedule']),
