@@ -92,10 +92,21 @@ def test_no_tracked_file_holds_a_merge_conflict_marker():
 def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
     """scripts/test.sh and the README promise that an explicit ROS_DOMAIN_ID is used."""
     probe = 'import os, conftest; print(os.environ["ROS_DOMAIN_ID"], conftest.ROS_DOMAIN_ID)'
-    env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
+    env = {k: v for k, v in os.environ.items()
+           if k not in ('ROS_DOMAIN_ID', 'PYTEST_XDIST_WORKER')}
     given = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
                            capture_output=True, env={**env, 'ROS_DOMAIN_ID': '5'}, timeout=60)
     assert given.stdout.split() == ['5', '5'], given.stderr
+    # the first xdist worker's graph is in the given domain, every other worker's in its own
+    domains = []
+    for worker in ('gw0', 'gw1', 'gw2', 'gw3'):
+        run = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
+                             capture_output=True, timeout=60,
+                             env={**env, 'ROS_DOMAIN_ID': '5', 'PYTEST_XDIST_WORKER': worker})
+        domain, same = run.stdout.split()
+        assert domain == same, run.stderr
+        domains.append(int(domain))
+    assert domains[0] == 5 and len(set(domains)) == 4 and all(1 <= d <= 100 for d in domains)
     chosen = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
                             capture_output=True, env=env, timeout=60)
     domain, same = chosen.stdout.split()
@@ -118,3 +129,19 @@ def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
     assert result.returncode != 0
     assert 'Timeout' in output and 'test_hangs' in output
     assert 'helper' in output and 'MainThread' in output, output[-3000:]
+
+
+def test_importing_a_node_does_not_import_numba():
+    """numba's import is 0.2 s of CPU at every node's start (a cell starts five to eight of
+    them, the suite hundreds); the kernels import it where they run (the solver's sweep, the
+    arm's distances, which the robot nodes warm up at start), not the nodes' modules."""
+    from hrc_ros.ros.entry import COMMANDS
+    nodes = [module for name, module in COMMANDS.items() if name.endswith('_node')]
+    probe = ('import importlib, sys\n'
+             f'for module in {nodes!r}:\n'
+             '    importlib.import_module(module)\n'
+             '    assert "numba" not in sys.modules, module\n'
+             'print(len(sys.argv))\n')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == '1', result.stderr[-2000:]

@@ -64,7 +64,6 @@ from typing import Callable
 
 import numpy as np
 
-from . import _kernels
 from ..config import MAX_SWEEPS
 from ..model import (ACTIONS, CT, DM, DN, DP, MH, N_DISTANCE, N_HIDDEN, NW, RH1, RH2, HRCModel,
                      commit_effective, request_eligible, safest_best, tie_floor)
@@ -316,6 +315,7 @@ class FactoredBellman:
     def apply(self, value: np.ndarray, out: np.ndarray | None = None
               ) -> tuple[np.ndarray, float]:
         """(T V, max |T V - V|): one sweep by the fused kernel (`_kernels.sweep`)."""
+        from . import _kernels   # numba: imported where a sweep runs, not by the nodes
         if out is None:
             out = np.empty(self.model.n_states)
         if self.queue is not None:
@@ -336,6 +336,7 @@ class FactoredBellman:
         """`apply` with the queue (MODEL.md 8.1): `_kernels.queue_continuations` forms the
         mixed continuations of every source level, then the sweep's action pass runs per level
         on them (its emotion and arrival steps skipped)."""
+        from . import _kernels
         n_l = self.n_levels
         if self._z is None:
             self._z = np.empty((n_l, 3, N_HIDDEN, self.n_y, N_DISTANCE))

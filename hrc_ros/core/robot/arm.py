@@ -66,7 +66,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._kernels import capsule_ends, capsule_separation, link_speed
+
+def _kernels():
+    """The numba kernels, imported at their first use: numba's import is 0.2 s of CPU in the
+    start of every node that imports this module, and the nodes of a cell without the arm
+    never call them."""
+    from . import _kernels as kernels
+    return kernels
+
 
 JOINT_NAMES = ('shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
                'wrist_2_joint', 'wrist_3_joint')
@@ -271,8 +278,8 @@ class Separation:
 def separation(arm_segments, arm_radii, arm_names, body: BodyCapsules) -> Separation:
     """The `Separation` of arm capsules (n, 2, 3) / (n,) from a person's capsules."""
     points = np.empty((2, 3))
-    distance, i, j = capsule_separation(arm_segments, arm_radii, body.segments, body.radii,
-                                        points, True)
+    distance, i, j = _kernels().capsule_separation(arm_segments, arm_radii, body.segments,
+                                                   body.radii, points, True)
     return Separation(float(distance), points[0], points[1], arm_names[i], body.names[j])
 
 
@@ -330,8 +337,9 @@ class Arm:
         if q.tobytes() != self._q.tobytes():
             self.data.qpos[:] = q
             self._mujoco.mj_kinematics(self.model, self.data)
-            capsule_ends(self.data.geom_xpos[self._geoms], self.data.geom_xmat[self._geoms],
-                         self.half_lengths, self._segments)
+            _kernels().capsule_ends(self.data.geom_xpos[self._geoms],
+                                    self.data.geom_xmat[self._geoms], self.half_lengths,
+                                    self._segments)
             self._q[:] = q
         return self._segments
 
@@ -350,8 +358,9 @@ class Arm:
     def link_speed(self, q, qd) -> float:
         """The fastest point of the arm's capsules (m/s) at joint angles q moving at qd."""
         segments = self._kinematics(q)
-        return float(link_speed(segments, self.radii, self.last_joint, self.data.xaxis,
-                                self.data.xanchor, np.asarray(qd, dtype=float)))
+        return float(_kernels().link_speed(segments, self.radii, self.last_joint,
+                                           self.data.xaxis, self.data.xanchor,
+                                           np.asarray(qd, dtype=float)))
 
     def separation(self, q, body: BodyCapsules) -> Separation:
         """The closest approach of the arm at q to the person's capsules."""
@@ -359,8 +368,9 @@ class Arm:
 
     def distance(self, q, body: BodyCapsules) -> float:
         """Only S of `separation` (m): the fast path of the batch cell's checks."""
-        return float(capsule_separation(self._kinematics(q), self.radii, body.segments,
-                                        body.radii, self._points, False)[0])
+        return float(_kernels().capsule_separation(self._kinematics(q), self.radii,
+                                                   body.segments, body.radii, self._points,
+                                                   False)[0])
 
 
 # -- motion -----------------------------------------------------------------------------------

@@ -49,8 +49,7 @@ from collections import deque
 
 import numpy as np
 
-from ._kernels import path_offset
-from .arm import Arm, BodyCapsules
+from .arm import Arm, BodyCapsules, _kernels
 
 JUMP_SLACK = 0.05            # m a skeleton may move away on top of max_body_speed * dt (noise)
 ENVELOPE_KEPT = 512          # commanded bounds kept for the envelope (each dominated one goes)
@@ -150,7 +149,7 @@ def nearest_on_path(q, positions) -> tuple[float, np.ndarray | None]:
     joint state."""
     points = np.ascontiguousarray(positions, dtype=float)
     direction = np.empty(points.shape[1])
-    off, segment = path_offset(np.ascontiguousarray(q, dtype=float), points, direction)
+    off, segment = _kernels().path_offset(np.ascontiguousarray(q, dtype=float), points, direction)
     if segment < 0:
         return float(off), None
     return float(off), (direction if np.any(direction) else None)
