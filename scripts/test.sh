@@ -3,15 +3,17 @@
 #   bash scripts/test.sh -k belief -x          # the whole of test/, filtered
 #   bash scripts/test.sh test/test_packaging.py  # only the paths given
 # Bootstraps .venv/ on first use (scripts/bootstrap.sh), then runs python -m pytest -q test.
-# The whole suite runs on two pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0 for
-# none): the tests of the ROS graph one after the other on one worker, the computations on the
-# other (test/conftest.py, "Two workers"); test paths given run in this process alone.
+# The whole suite runs on three pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0
+# for none): the tests of the ROS graph in two units, each one after the other on one worker in
+# a DDS domain of its own, the computations on whichever worker is free (test/conftest.py,
+# "three workers"); test paths given run in this process alone.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/bootstrap.sh
 
 # One DDS domain per run (1..100, from this shell's process id) so that two runs on one host
-# do not see each other's nodes; an explicit ROS_DOMAIN_ID wins.
+# do not see each other's nodes; an explicit ROS_DOMAIN_ID wins (the first worker's; the others
+# take ROS_DOMAIN_ID + 37 k modulo 100).
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 1 ))}"
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE" >&2
 
@@ -24,7 +26,7 @@ for arg in "$@"; do
   fi
 done
 workers=()
-if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-2}" != 0 ]; then
-  workers=(-n "${HRC_TEST_WORKERS:-2}")
+if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-3}" != 0 ]; then
+  workers=(-n "${HRC_TEST_WORKERS:-3}")
 fi
 exec python -m pytest -q "${workers[@]}" "${targets[@]}" "$@"

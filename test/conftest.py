@@ -3,7 +3,8 @@
 Before anything can call `rclpy.init`, this module (imported by pytest ahead of every test
 module) gives the session its DDS domain: the ROS_DOMAIN_ID of the environment when one is set
 (scripts/test.sh sets one per run; set your own to watch a test with other tools), else a
-random one in 30..99, and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that
+random one in 30..99 (on pytest-xdist, the first worker's; every other worker has one of its
+own, `worker_domain`), and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written to os.environ so that
 subprocesses (the multi-process suite, the refused decision node) inherit them. Two sessions on
 one machine, or a session next to a running cell, then never see each other's topics.
 
@@ -35,8 +36,20 @@ ROS_DOMAIN_RANGE = (30, 99)
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+
+
+def worker_domain(base: int, worker: str) -> int:
+    """The DDS domain of a pytest-xdist worker (`PYTEST_XDIST_WORKER`, gw0, gw1, ...) in a run
+    whose domain is `base`: gw0 and a run without workers use `base`, worker k another one of
+    1..100 (base + 37 k, modulo 100), so that two workers' graphs never see each other."""
+    k = int(worker[2:]) if worker.startswith('gw') and worker[2:].isdigit() else 0
+    return base if k == 0 else (base - 1 + 37 * k) % 100 + 1
+
+
 _given = os.environ.get('ROS_DOMAIN_ID', '').strip()
-ROS_DOMAIN_ID = int(_given) if _given else random.SystemRandom().randint(*ROS_DOMAIN_RANGE)
+ROS_DOMAIN_ID = worker_domain(
+    int(_given) if _given else random.SystemRandom().randint(*ROS_DOMAIN_RANGE),
+    os.environ.get('PYTEST_XDIST_WORKER', ''))
 os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.pop('ROS_STATIC_PEERS', None)
@@ -236,14 +249,15 @@ def pytest_terminal_summary(terminalreporter):
         _file_times.write(os.environ['HRC_TEST_TIMES'])
 
 
-# -- two workers (pytest-xdist, scripts/test.sh) ----------------------------------------------
+# -- three workers (pytest-xdist, scripts/test.sh) --------------------------------------------
 # The suite is about half computation (solves, fits, evaluations: one core each) and half the
-# ROS graph (node processes over DDS, waits on epochs). On two workers every test of the graph
-# is in one work unit, run one after the other on one worker in the DDS domain of the session,
-# exactly as without xdist (no two graphs at once, so no second domain and no graph test that
-# meets another graph's load), while each file of COMPUTE_FILES is a unit of its own (its module
-# fixtures built once) for the other worker. A file not listed is the graph's: a new test file
-# is safe by default, only slower. A test of a listed file that uses the graph (the
+# ROS graph (node processes over DDS, waits on epochs in real time). The graph's tests form two
+# work units, GRAPH_UNITS (the arm's and the plant's, and the rest), each run one after the
+# other on one worker in that worker's own DDS domain (`worker_domain`: two graphs never see
+# each other's topics), while each file of COMPUTE_FILES is a unit of its own (its module
+# fixtures built once) for whichever worker is free. The two graph units are the largest in
+# tests, so xdist hands them out first, to two workers. A file not listed is the graph's: a new
+# test file is safe by default, only slower. A test of a listed file that uses the graph (the
 # ros_domain_id or graph fixture) must be in GRAPH_TESTS: collection fails otherwise.
 # (pytest-xdist's own `--dist loadgroup` does not group under pytest 9.2, whose node ids it can
 # no longer rename, so the units come from `GraphScheduling`.)
@@ -278,21 +292,29 @@ GRAPH_TESTS = frozenset({
         'test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy',
         'test_a_worker_killed_mid_task_is_retried_and_the_report_is_right'))})
 GRAPH_FIXTURES = frozenset({'ros_domain_id', 'graph'})
-GRAPH_UNIT = 'graph'
+# the graph's second unit: the arm's cell, the plant's --apply, the learning loop and the
+# console (about half of the graph's time, measured by the time per test file); the rest is
+# the first
+ARM_GRAPH_FILES = frozenset({
+    'test_robot_case_study.py', 'test_robot_nodes.py', 'test_robot_scenarios.py',
+    'test_robot_hostile.py', 'test_cobot_sim_motion.py', 'test_robot_graph.py',
+    'test_speed_scaling.py', 'test_fleet.py', 'test_learning_loop.py', 'test_hmi_console.py'})
+GRAPH_UNITS = ('graph', 'graph-arm-plant')
 
 
 def work_unit(nodeid: str) -> str:
-    """The unit of work of a test on the xdist workers (above): its file, or the graph's."""
+    """The unit of work of a test on the xdist workers (above): its file, or a graph unit."""
     path, _, name = nodeid.partition('::')
     file = path.rsplit('/', 1)[-1]
     if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
         return path
-    return GRAPH_UNIT
+    return GRAPH_UNITS[1] if file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 
 
 def pytest_collection_modifyitems(config, items):
     wrong = [item.nodeid for item in items
-             if work_unit(item.nodeid) != GRAPH_UNIT and GRAPH_FIXTURES & set(item.fixturenames)]
+             if work_unit(item.nodeid) not in GRAPH_UNITS
+             and GRAPH_FIXTURES & set(item.fixturenames)]
     if wrong:
         raise pytest.UsageError('tests of a COMPUTE_FILES file that use the ROS graph must be '
                                 f'in conftest.GRAPH_TESTS: {", ".join(wrong)}')

@@ -175,6 +175,22 @@ class Cell(SpunNode):
                 return status
         return None
 
+    def wait(self, predicate, what: str, timeout: float | None = None):
+        """SpunNode.wait, and on a timeout what the cell said last: the last status of every
+        robot component and the last protective-stop and override values (a wait that fails
+        under load must name the state the module's shared nodes were left in)."""
+        try:
+            return super().wait(predicate, what, timeout)
+        except AssertionError as exc:
+            last = {}
+            for status in self.statuses[-400:]:
+                if status.name.startswith(('robot_bridge', 'cobot_sim')):
+                    last[status.name] = f'{status.level!r} {status.message[:200]}'
+            context = '; '.join(f'{k}: {v}' for k, v in sorted(last.items()))
+            raise AssertionError(f'{exc}; stops {self.stops[-3:]}, overrides '
+                                 f'{[v for _, v in self.overrides[-3:]]}; last statuses: '
+                                 f'{context}') from None
+
 
 
 @pytest.fixture(scope='module')
