@@ -201,7 +201,7 @@ def test_every_console_script_of_entry_leaves_through_stop_leave(monkeypatch):
 
 
 SLOW_TO_STOP = textwrap.dedent('''
-    import ctypes, sys, threading, time
+    import ctypes, signal, sys, time
     from rclpy.node import Node
     from hrc_ros.ros.node_support import run
 
@@ -214,12 +214,17 @@ SLOW_TO_STOP = textwrap.dedent('''
             print('running', flush=True)
 
         def on_stop(self):
-            print('last word: stuck', flush=True)
             if sys.argv[1] == 'native':   # stuck in C with the interpreter lock released
-                sleeper = threading.Thread(target=time.sleep, args=(120,), daemon=True)
-                sleeper.start()
-                ctypes.CDLL(None).pthread_join(ctypes.c_ulong(sleeper.ident), None)
+                # libc's sleep(), with the stop signals blocked in this thread so that they
+                # cannot cut it short: the kernel hands them to another thread (pthread_join
+                # on a Python thread, which CPython detaches, returned at once with EINVAL,
+                # and the test raced the node's own clean stop)
+                signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+                print('last word: stuck', flush=True)
+                left = ctypes.CDLL(None).sleep(120)
+                print(f'out of C with {left} s left', flush=True)
             else:
+                print('last word: stuck', flush=True)
                 time.sleep(120)
 
     sys.exit(run(SlowToStop))
@@ -249,6 +254,7 @@ def test_a_second_stop_signal_forces_the_exit(stuck_in, tmp_path, ros_domain_id)
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
     assert code == stop.FORCED_EXIT, log.read_text()
+    assert 'out of C' not in log.read_text()      # the second signal ended it, not the sleep
     assert 'second stop signal: exiting at once (3)' in log.read_text()
 
 
