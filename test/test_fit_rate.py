@@ -115,3 +115,31 @@ def test_hrc_fit_writes_the_rate_into_a_configuration_that_loads(tmp_path, capsy
     assert fitted.robot_rate[0, 2] == pytest.approx(0.4, abs=0.15)
     base = load_config(shipped_config_path('arm'))
     assert fitted.robot_rate[3, 1] == base.robot_rate[3, 1]   # no epoch at the shared station
+
+
+def test_a_live_swap_keeps_a_rated_model_rated_and_an_unrated_one_unrated(tmp_path):
+    """The decision node's swap rule: a configuration with model.robot_rate (the arm's measured
+    progress) where the running one has none, or the other way round, is refused (the cell
+    runs with or without the arm by how it started); new rates for a rated cell are taken."""
+    import yaml
+
+    from hrc_ros.core.paths import arm_config_path
+    from hrc_ros.core.swap import ACCEPTED, check_swap
+    from hrc_ros.ros.node_support import load_node_config
+    arm = str(arm_config_path())
+    data = yaml.safe_load(open(arm))
+    unrated, faster = tmp_path / 'unrated.yaml', tmp_path / 'faster.yaml'
+    plain = {**data, 'model': {k: v for k, v in data['model'].items() if k != 'robot_rate'}}
+    unrated.write_text(yaml.safe_dump(plain))
+    rates = {k: [min(1.0, 1.2 * r) for r in v] for k, v in data['model']['robot_rate'].items()}
+    faster.write_text(yaml.safe_dump({**data, 'model': {**data['model'], 'robot_rate': rates}}))
+    paused = tuple(load_node_config(arm).robot_paused_by)
+    assert load_node_config(str(unrated)).robot_rate is None
+    out = check_swap(2, 2, arm, str(unrated), paused=paused, rated=True)
+    assert out.refused and 'no model.robot_rate' in out.reason \
+        and "arm's measured progress" in out.reason and 'restart the nodes' in out.reason
+    into = check_swap(2, 2, str(unrated), arm, paused=paused, rated=False)
+    assert into.refused and 'unrated.yaml' not in into.reason and 'arm.yaml' in into.reason
+    assert check_swap(2, 2, arm, str(faster), paused=paused, rated=True).verdict == ACCEPTED
+    # without the check (a node that does not plan), the rate is not the swap's business
+    assert check_swap(2, 2, arm, str(unrated), paused=paused).verdict == ACCEPTED

@@ -12,6 +12,9 @@ rule, for both nodes alike (`check_swap`):
 - for the decision node, a configuration whose `model.robot_paused_by` differs from the
   running one's: `REFUSED` (the task manager keeps the robot's counter by the rule it started
   with, so the planner would plan with another task step than the cell's; restart the nodes);
+  the same for one that has `model.robot_rate` (the arm's measured progress) where the running
+  one has none, or the other way round (the cell runs with or without the arm by how it
+  started: the task manager refuses a rated model without the arm's progress at start);
 - for the decision node, a policy that does not exist, is not a policy, or was not solved for
   the configuration set with it: `REFUSED`; a configuration set alone while the policy in use
   was not solved for it: `STAGED` (the old pair keeps deciding until a policy for it is set,
@@ -77,14 +80,15 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                load: Callable[[str], Config] = load_node_config,
                paused: tuple | None = None, queue: int | None | bool = False,
                running_pomdp: str | None = None, pomdp_value: str | None = None,
-               pomdp_needed: bool = False) -> SwapCheck:
+               pomdp_needed: bool = False, rated: bool | None = None) -> SwapCheck:
     """The swap rule (module docstring) for a running cell of size (rho, sigma) whose node runs
     the parameter values `running_config` (and `running_policy`: the decision node; None for a
     node without a policy) and is asked for `config_value` (and `policy_value`); `paused`: the
     running configuration's `robot_paused_by` (the decision node; None: not checked);
     `queue`: its `stream.queue` (None: no queue; False: not checked); `running_pomdp` and
     `pomdp_value`: the decision node's `pomdp_policy` in use and asked for (None: a node
-    without one), `pomdp_needed`: its selector reads the POMDP policy."""
+    without one), `pomdp_needed`: its selector reads the POMDP policy; `rated`: whether the
+    running configuration has `model.robot_rate` (None: not checked)."""
     with_policy = running_policy is not None
     pomdp_changed = running_pomdp is not None and pomdp_value != running_pomdp
     if config_value == running_config and not pomdp_changed \
@@ -104,6 +108,15 @@ def check_swap(rho: int, sigma: int, running_config: str, config_value: str,
                          f'counter under {", ".join(config.robot_paused_by)}, the running '
                          f'configuration under {", ".join(paused)} (MODEL.md 3.2), and the task '
                          'manager keeps it by the rule it started with: restart the nodes',
+                         config)
+    if rated is not None and (config.robot_rate is not None) != rated:
+        def counted(has_rate):
+            return ("counts the robot's share by the arm's measured progress (model.robot_rate)"
+                    if has_rate else "counts the robot's share down every epoch it works "
+                    '(no model.robot_rate)')
+        return SwapCheck(REFUSED, f'config refused: {config.source} {counted(not rated)}, the '
+                         f'running configuration {counted(rated)} (MODEL.md 3.2), and the cell '
+                         'runs with or without the arm by how it started: restart the nodes',
                          config)
     if queue is not False and config.queue != queue:
         def said(length):

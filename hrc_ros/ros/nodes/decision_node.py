@@ -302,6 +302,7 @@ class DecisionNode(Node):
                              values['config'], running.policy_value, values['policy'],
                              paused=running.model.config.robot_paused_by,
                              queue=running.model.config.queue,
+                             rated=running.model.config.robot_rate is not None,
                              running_pomdp=running.pomdp_value,
                              pomdp_value=values['pomdp_policy'],
                              pomdp_needed=values['selector'] in POMDP_SELECTORS)
