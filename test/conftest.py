@@ -37,7 +37,6 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-
 def worker_domain(base: int, worker: str) -> int:
     """The DDS domain of a pytest-xdist worker (`PYTEST_XDIST_WORKER`, gw0, gw1, ...) in a run
     whose domain is `base`: gw0 and a run without workers use `base`, worker k another one of
@@ -255,9 +254,11 @@ def pytest_terminal_summary(terminalreporter):
 # work units, GRAPH_UNITS (the arm's and the plant's, and the rest), each run one after the
 # other on one worker in that worker's own DDS domain (`worker_domain`: two graphs never see
 # each other's topics), while each file of COMPUTE_FILES is a unit of its own (its module
-# fixtures built once) for whichever worker is free. The two graph units are the largest in
-# tests, so xdist hands them out first, to two workers. A file not listed is the graph's: a new
-# test file is safe by default, only slower. A test of a listed file that uses the graph (the
+# fixtures built once) for whichever worker is free. The graph units are handed out first (one
+# to each of the first two workers), then the longest computations (LONG_COMPUTE_FILES, by the
+# time per file in the CI log), then the rest, so that no long unit starts last. A file not
+# listed is the graph's: a new test file is safe by default, only slower. A test of a listed
+# file that uses the graph (the
 # ros_domain_id or graph fixture) must be in GRAPH_TESTS: collection fails otherwise.
 # (pytest-xdist's own `--dist loadgroup` does not group under pytest 9.2, whose node ids it can
 # no longer rename, so the units come from `GraphScheduling`.)
@@ -300,6 +301,17 @@ ARM_GRAPH_FILES = frozenset({
     'test_robot_hostile.py', 'test_cobot_sim_motion.py', 'test_robot_graph.py',
     'test_speed_scaling.py', 'test_fleet.py', 'test_learning_loop.py', 'test_hmi_console.py'})
 GRAPH_UNITS = ('graph', 'graph-arm-plant')
+LONG_COMPUTE_FILES = ('test_fleet.py', 'test_queue_pomdp.py', 'test_queue.py', 'test_stream.py',
+                      'test_pomdp_hrc.py', 'test_fit.py', 'test_config_policy.py', 'test_cli.py',
+                      'test_fit_prior.py', 'test_liveness.py', 'test_robot.py')
+
+
+def unit_order(unit: str) -> tuple[int, int]:
+    """The rank of a work unit in the order the workers get them (above)."""
+    if unit in GRAPH_UNITS:
+        return 0, GRAPH_UNITS.index(unit)
+    file = unit.rsplit('/', 1)[-1]
+    return (1, LONG_COMPUTE_FILES.index(file)) if file in LONG_COMPUTE_FILES else (2, 0)
 
 
 def work_unit(nodeid: str) -> str:
@@ -328,4 +340,10 @@ def pytest_xdist_make_scheduler(config, log):
 
         def _split_scope(self, nodeid: str) -> str:
             return work_unit(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            # the queue in `unit_order` (a stable sort: xdist's order among equals)
+            for unit in reversed(sorted(self.workqueue, key=unit_order)):
+                self.workqueue.move_to_end(unit, last=False)
+            super()._assign_work_unit(node)
     return GraphScheduling(config, log)

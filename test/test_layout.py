@@ -145,3 +145,20 @@ def test_importing_a_node_does_not_import_numba():
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0 and result.stdout.strip() == '1', result.stderr[-2000:]
+
+
+def test_the_schedulers_file_lists_name_files_that_exist_on_the_right_side():
+    """conftest's work units: the arm's graph files and the long computations it hands out
+    first are test files of the suite, on the graph's side and the computations' side (a
+    renamed file would otherwise drop out of its unit silently)."""
+    import conftest
+    files = {p.name for p in (REPO / 'test').glob('test_*.py')}
+    assert set(conftest.LONG_COMPUTE_FILES) <= conftest.COMPUTE_FILES & files
+    graph_side = files - conftest.COMPUTE_FILES
+    assert set(conftest.ARM_GRAPH_FILES) - {'test_fleet.py'} <= graph_side
+    assert conftest.work_unit('test/test_robot_nodes.py::t') == conftest.GRAPH_UNITS[1]
+    assert conftest.work_unit('test/test_replay.py::t') == conftest.GRAPH_UNITS[0]
+    assert conftest.work_unit('test/test_queue.py::t') == 'test/test_queue.py'
+    order = sorted(['test/test_belief.py', 'test/test_queue.py', *conftest.GRAPH_UNITS[::-1]],
+                   key=conftest.unit_order)
+    assert order == [*conftest.GRAPH_UNITS, 'test/test_queue.py', 'test/test_belief.py']
