@@ -659,11 +659,13 @@ DECISION_PARAMS = """\
 @pytest.fixture(scope='module')
 def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
     """`hrc-fleet run plant.yaml --apply` with a decision node running in the drifted cell's
-    namespace; then a listener of our own waits for that node to report the new policy."""
+    namespace; then a listener of our own waits for that node to report the new policy.
+    hrc-fleet runs as a process of its own, a driver of the session's Ray (its GCS address):
+    a native crash in a driver (Ray's core worker, rclpy) fails this fixture with the output,
+    where in this process it took the test worker down (CI at load 10, 2026-12-06)."""
     from test_suite_multiprocess import Listener
     from hrc_ros.ros import conversions as conv
     from hrc_ros.ros.processes import NodeProcesses
-    from hrc_ros.tools.fleet import main
     params = plant_dir / 'decision.yaml'
     params.write_text(DECISION_PARAMS.format(policy=policy_path, small_base=small_cell['base'],
                                              small_policy=small_cell['policy'],
@@ -675,8 +677,12 @@ def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
                     name=f'decision{namespace.replace("/", "_")}')
     out = plant_dir / 'out'
     try:
-        code = main(['run', str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
-                     '--apply-timeout', '30', '-q'])
+        fleet = fleet_process([str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
+                               '--apply-timeout', '30', '-q', '--address',
+                               ray_session.get_runtime_context().gcs_address])
+        stdout, stderr = fleet.communicate(timeout=900)
+        code = fleet.returncode
+        assert code in (0, 1), f'hrc-fleet exited {code}:\n{stdout[-3000:]}\n{stderr[-5000:]}'
         # the files set are copies named by their content (fleet_apply.live_copy), one set
         # per cell here: the test checks they are the cell's files
         lives = {cell: sorted((out / 'cells' / cell / 'live').iterdir())

