@@ -67,12 +67,18 @@ from dataclasses import dataclass
 import numpy as np
 
 
+_KERNELS = None
+
+
 def _kernels():
     """The numba kernels, imported at their first use: numba's import is 0.2 s of CPU in the
     start of every node that imports this module, and the nodes of a cell without the arm
-    never call them."""
-    from . import _kernels as kernels
-    return kernels
+    never call them. Kept once imported (the batch cell calls them every control step)."""
+    global _KERNELS
+    if _KERNELS is None:
+        from . import _kernels as kernels
+        _KERNELS = kernels
+    return _KERNELS
 
 
 JOINT_NAMES = ('shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
@@ -445,20 +451,29 @@ def peak_link_speed(arm: Arm, q0, q1, duration: float, samples: int = 9) -> floa
     return 1.05 * best
 
 
-def warm_up(*arms: Arm) -> None:
+def warm_up(*arms: Arm, stopped=None) -> bool:
     """Run every numba kernel of the arm once (kinematics, separation with its closest
     points, distance, link speed, a segment's peak), so that a node's first real call does not
     compile them on its control thread (9 s on a fresh install) or load them from numba's
-    cache (about 0.5 s)."""
+    cache (about 0.5 s). `stopped()` (optional) is asked before each kernel: once it is true
+    the rest is skipped and False returned, so that a node asked to stop while it compiles
+    stops within one kernel's compilation, not after all of them (a node stopped at its first
+    start on a loaded machine took more than 10 s)."""
+    from .guard import nearest_on_path
     body = body_capsules(np.array([[1.5, 0.0, 0.5], [1.5, 0.2, 0.9]]))
     q0 = np.array([1.4, -1.9, 1.9, -1.57, -1.57, 0.0])
+    steps = []
     for arm in arms:
-        arm.separation(q0, body)
-        arm.distance(q0, body)
-        arm.link_speed(q0, np.full(N_JOINTS, 0.1))
-        peak_link_speed(arm, q0, q0 + 0.1, 1.0, samples=1)
-    from .guard import nearest_on_path
-    nearest_on_path(np.zeros(N_JOINTS), np.array([np.zeros(N_JOINTS), np.ones(N_JOINTS)]))
+        steps += [lambda a=arm: a.separation(q0, body), lambda a=arm: a.distance(q0, body),
+                  lambda a=arm: a.link_speed(q0, np.full(N_JOINTS, 0.1)),
+                  lambda a=arm: peak_link_speed(a, q0, q0 + 0.1, 1.0, samples=1)]
+    steps.append(lambda: nearest_on_path(np.zeros(N_JOINTS),
+                                         np.array([np.zeros(N_JOINTS), np.ones(N_JOINTS)])))
+    for step in steps:
+        if stopped is not None and stopped():
+            return False
+        step()
+    return True
 
 
 @dataclass

@@ -49,6 +49,7 @@ from ...core.protocol import CELL_HOLD, ActionPairing, InputError, PeriodEstimat
 from ...core.robot.arm import JOINT_NAMES, Arm, body_capsules, warm_up
 from .. import conversions as conv
 from .. import qos
+from .. import stop as stop_regime
 from ..node_support import (CONFIG, STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
                             ParamSpec, StartupError, check_array, control_clock, node_setup, run)
 from .belief_estimator_node import MOTION_PARAMETERS, check_motion_parameters
@@ -167,7 +168,7 @@ class CellSimNode(Node):
             self.person = self.scene.person
             if values['person_scenario'] != SCENARIOS[0]:
                 self.arm = Arm()       # the scripted people walk at the arm's true links
-                warm_up(self.arm)
+                warm_up(self.arm, stopped=stop_regime.requested)
 
         self.joint_pub = self.create_publisher(JointState, 'human/joint_states',
                                                qos.SENSOR_DATA)

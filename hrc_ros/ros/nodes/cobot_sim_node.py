@@ -67,6 +67,7 @@ from ...core.robot.bridge import SECOND_WRITER_HOLD
 from ...core.robot.ssm import protective_distance
 from .. import conversions as conv
 from .. import qos
+from .. import stop as stop_regime
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,
                             StartupError, run)
 from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTION, ROBOT_FRAME,
@@ -115,7 +116,9 @@ class CobotSimNode(Node):
         self.arm = Arm()              # the motion thread's (separation)
         self.goal_arm = Arm()         # the executor's (goal checks)
         self._peaks: dict = {}
-        warm_up(self.arm, self.goal_arm)   # compiled (or loaded) before anything is published
+        # compiled (or loaded) before anything is published; a stop asked meanwhile ends it
+        # within one kernel (the node then stops)
+        warm_up(self.arm, self.goal_arm, stopped=stop_regime.requested)
         self._lock = threading.Lock()   # the follower, between the two threads
         self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
         self.override = 0.0

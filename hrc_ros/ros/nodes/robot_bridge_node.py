@@ -69,6 +69,7 @@ from ...core.robot.bridge import (WRITER_HOLD, Bridge, RobotDescriptionError, lo
                                   load_robot_description, writers_reason)
 from .. import conversions as conv
 from .. import qos
+from .. import stop as stop_regime
 from ..node_support import (STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
                             NodeParameters, ParamSpec, StartupError, check_core, run)
 from ..sources import endpoints
@@ -174,7 +175,8 @@ class RobotBridgeNode(Node):
         except RobotDescriptionError as exc:
             raise StartupError(str(exc)) from None
         arm = Arm()
-        warm_up(arm)                  # compiled (or loaded) before the first joint state
+        warm_up(arm, stopped=stop_regime.requested)   # compiled (or loaded) before the first joint
+        # state; a stop asked meanwhile ends it within one kernel (the node then stops)
         self.bridge = Bridge(self.description, programs, arm, values['control_period'])
         self.owners = {'action': self._owner(values['action_source']),
                        'task_state': self._owner(values['task_state_source'])}
