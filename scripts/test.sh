@@ -6,14 +6,15 @@
 # The whole suite runs on three pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0
 # for none): the tests of the ROS graph in two units, each one after the other on one worker in
 # a DDS domain of its own, the computations on whichever worker is free (test/conftest.py,
-# "three workers"); test paths given run in this process alone.
+# "three workers"); test paths given run in this process alone. With HRC_TEST_WORKERS=2 both
+# workers start with a graph unit and the computations wait for one to finish.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/bootstrap.sh
 
 # One DDS domain per run (1..100, from this shell's process id) so that two runs on one host
-# do not see each other's nodes; an explicit ROS_DOMAIN_ID wins (the first worker's; the others
-# take ROS_DOMAIN_ID + 37 k modulo 100).
+# do not see each other's nodes; an explicit ROS_DOMAIN_ID wins (the first worker's; worker k
+# takes (ROS_DOMAIN_ID - 1 + 37 k) mod 100 + 1, so a run uses three domains of 1..100).
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 1 ))}"
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE" >&2
 

@@ -255,8 +255,8 @@ def pytest_terminal_summary(terminalreporter):
 # other on one worker in that worker's own DDS domain (`worker_domain`: two graphs never see
 # each other's topics), while each file of COMPUTE_FILES is a unit of its own (its module
 # fixtures built once) for whichever worker is free. The graph units are handed out first (one
-# to each of the first two workers), then the longest computations (LONG_COMPUTE_FILES, by the
-# time per file in the CI log), then the rest, so that no long unit starts last. A file not
+# to each of the first two workers ready), then the longest computations (LONG_COMPUTE_FILES,
+# by the time per file in the CI log), then the rest, so that no long unit starts last. A file not
 # listed is the graph's: a new test file is safe by default, only slower. A test of a listed
 # file that uses the graph (the
 # ros_domain_id or graph fixture) must be in GRAPH_TESTS: collection fails otherwise.
@@ -282,8 +282,8 @@ GRAPH_TESTS = frozenset({
     'test_cli.py::test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder',
     'test_cli.py::test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers',
     # hrc-fleet's --apply against decision nodes (the plant run's module fixture starts them):
-    # the rest of test_fleet, the Ray engine's checks without nodes, runs on the other worker
-    # on a Ray of its own (a Ray per worker process, ray_session)
+    # the rest of test_fleet, the Ray engine's checks without nodes, is a unit of its own on
+    # another worker, on a Ray of its own (a Ray per worker process, ray_session)
     *(f'test_fleet.py::{name}' for name in (
         'test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the_corrupt',
         'test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported',

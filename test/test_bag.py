@@ -54,9 +54,10 @@ MARKER = 'payload-marker-0123456789'
 
 @pytest.fixture(scope='module', autouse=True)
 def ros_env():
-    """A random domain in 100..199 on localhost, so concurrent DDS tests do not meet ours."""
+    """A random domain in 101..199 on localhost (above the test workers' 1..100, conftest), so
+    concurrent DDS tests do not meet ours."""
     saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
-    os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(100, 199))
+    os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(101, 199))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     yield dict(os.environ)
     for key, value in saved.items():

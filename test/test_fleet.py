@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -578,8 +579,8 @@ def test_recordings_impossible_under_the_running_model_have_p_zero(default_confi
 def ray_session():
     """The embedded Ray of this test process (only this module uses Ray): 2 CPUs, a 150 MB
     object store, no dashboard; shut down as soon as this module's tests here are done, and
-    none of its processes left behind. With two workers (conftest.py) the tests of --apply
-    run on the graph's worker and the engine's others beside it, each worker on a Ray of its
+    none of its processes left behind. On xdist (conftest.py) the tests of --apply run in a
+    graph unit and the engine's others in this file's own unit, each worker on a Ray of its
     own."""
     ray = pytest.importorskip('ray')
     # Ray's workers run at nice 15 by default: on a loaded machine (CI beside nothing, a
@@ -656,6 +657,9 @@ DECISION_PARAMS = """\
 """
 
 
+FLEET_TIMEOUT = 240     # s: the plant run of plant_run (about 70 s quiet)
+
+
 @pytest.fixture(scope='module')
 def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
     """`hrc-fleet run plant.yaml --apply` with a decision node running in the drifted cell's
@@ -680,9 +684,21 @@ def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
         fleet = fleet_process([str(plant_dir / 'plant.yaml'), '--out', str(out), '--apply',
                                '--apply-timeout', '30', '-q', '--address',
                                ray_session.get_runtime_context().gcs_address])
-        stdout, stderr = fleet.communicate(timeout=900)
+        try:     # below pytest-timeout's 300 s, which would end the whole worker
+            stdout, stderr = fleet.communicate(timeout=FLEET_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            os.killpg(fleet.pid, signal.SIGKILL)
+            stdout, stderr = fleet.communicate()
+        finally:
+            if fleet.poll() is None:
+                os.killpg(fleet.pid, signal.SIGKILL)
+                fleet.wait()
         code = fleet.returncode
-        assert code in (0, 1), f'hrc-fleet exited {code}:\n{stdout[-3000:]}\n{stderr[-5000:]}'
+        if code not in (0, 1):
+            ray_log = out / 'ray.log'
+            pytest.fail(f'hrc-fleet exited {code} (-9: killed after {FLEET_TIMEOUT} s):\n'
+                        f'{stdout[-3000:]}\n{stderr[-5000:]}\n'
+                        + (ray_log.read_text()[-3000:] if ray_log.exists() else ''))
         # the files set are copies named by their content (fleet_apply.live_copy), one set
         # per cell here: the test checks they are the cell's files
         lives = {cell: sorted((out / 'cells' / cell / 'live').iterdir())
