@@ -1,7 +1,7 @@
 """Run the test suite as CI does (`CI=true bash .ci/run`), optionally beside busy processes, and
 print its time, its result and its time per file.
 
-    nice -n 10 .venv/bin/python bench/ci_bench.py [--runs 1] [--busy 0] [--workers 3] [--out DIR]
+    nice -n 10 .venv/bin/python bench/ci_bench.py [--runs 1] [--busy 0] [--workers 2] [--out DIR]
 
 `--busy N` starts N processes that spin on the CPU for the whole bench (the load CI meets on a
 shared machine; on this 2-core machine `--busy 6` gives a load average of about 8 with the
@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--runs', type=int, default=1)
     parser.add_argument('--busy', type=int, default=0, help='busy processes beside the suite')
-    parser.add_argument('--workers', type=int, default=3,
+    parser.add_argument('--workers', type=int, default=2,
                         help='pytest-xdist workers (HRC_TEST_WORKERS; 0: none)')
     parser.add_argument('--out', default='out/ci_bench')
     args = parser.parse_args(argv)

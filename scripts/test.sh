@@ -3,11 +3,11 @@
 #   bash scripts/test.sh -k belief -x          # the whole of test/, filtered
 #   bash scripts/test.sh test/test_packaging.py  # only the paths given
 # Bootstraps .venv/ on first use (scripts/bootstrap.sh), then runs python -m pytest -q test.
-# The whole suite runs on three pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0
-# for none): the tests of the ROS graph in two units, each one after the other on one worker in
-# a DDS domain of its own, the computations on whichever worker is free (test/conftest.py,
-# "three workers"); test paths given run in this process alone. With HRC_TEST_WORKERS=2 both
-# workers start with a graph unit and the computations wait for one to finish.
+# The whole suite runs on two pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0 for
+# none): the tests of the ROS graph one after the other on one worker, the computations on the
+# other; on three or more the graph's tests form two units, each on a worker and DDS domain of
+# its own (about 9 min instead of 10.5 quiet, but timing flakes at that load: bench/README.md;
+# test/conftest.py, "workers"); test paths given run in this process alone.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/bootstrap.sh
@@ -27,7 +27,7 @@ for arg in "$@"; do
   fi
 done
 workers=()
-if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-3}" != 0 ]; then
-  workers=(-n "${HRC_TEST_WORKERS:-3}")
+if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-2}" != 0 ]; then
+  workers=(-n "${HRC_TEST_WORKERS:-2}")
 fi
 exec python -m pytest -q "${workers[@]}" "${targets[@]}" "$@"

@@ -248,17 +248,17 @@ def pytest_terminal_summary(terminalreporter):
         _file_times.write(os.environ['HRC_TEST_TIMES'])
 
 
-# -- three workers (pytest-xdist, scripts/test.sh) --------------------------------------------
+# -- workers (pytest-xdist, scripts/test.sh) --------------------------------------------------
 # The suite is about half computation (solves, fits, evaluations: one core each) and half the
-# ROS graph (node processes over DDS, waits on epochs in real time). The graph's tests form two
-# work units, GRAPH_UNITS (the arm's and the plant's, and the rest), each run one after the
-# other on one worker in that worker's own DDS domain (`worker_domain`: two graphs never see
-# each other's topics), while each file of COMPUTE_FILES is a unit of its own (its module
-# fixtures built once) for whichever worker is free. The graph units are handed out first (one
-# to each of the first two workers ready), then the longest computations (LONG_COMPUTE_FILES,
-# by the time per file in the CI log), then the rest, so that no long unit starts last. A file not
-# listed is the graph's: a new test file is safe by default, only slower. A test of a listed
-# file that uses the graph (the
+# ROS graph (node processes over DDS, waits on epochs in real time). The graph's tests form one
+# work unit on two workers (the default) and two on three or more, GRAPH_UNITS (the arm's and
+# the plant's, and the rest), each run one after the other on one worker in that worker's own
+# DDS domain (`worker_domain`: two graphs never see each other's topics), while each file of
+# COMPUTE_FILES is a unit of its own (its module fixtures built once) for whichever worker is
+# free. The graph units are handed out first (one to each of the first workers ready), then
+# the longest computations (LONG_COMPUTE_FILES, by the time per file in the CI log), then the
+# rest, so that no long unit starts last. A file not listed is the graph's: a new test file is
+# safe by default, only slower. A test of a listed file that uses the graph (the
 # ros_domain_id or graph fixture) must be in GRAPH_TESTS: collection fails otherwise.
 # (pytest-xdist's own `--dist loadgroup` does not group under pytest 9.2, whose node ids it can
 # no longer rename, so the units come from `GraphScheduling`.)
@@ -301,6 +301,12 @@ ARM_GRAPH_FILES = frozenset({
     'test_robot_hostile.py', 'test_cobot_sim_motion.py', 'test_robot_graph.py',
     'test_speed_scaling.py', 'test_fleet.py', 'test_learning_loop.py', 'test_hmi_console.py'})
 GRAPH_UNITS = ('graph', 'graph-arm-plant')
+# the graph in two units only on three workers or more (HRC_TEST_WORKERS=3): on two, one unit
+# of the graph beside the computations, as measured green run after run. Three workers took
+# the quiet run from about 10.5 to 9 min but met timing flakes at their higher load
+# (bench/README.md); set by `pytest_xdist_make_scheduler` in the controller
+SPLIT_GRAPH_WORKERS = 3
+split_graph = False
 LONG_COMPUTE_FILES = ('test_fleet.py', 'test_queue_pomdp.py', 'test_queue.py', 'test_stream.py',
                       'test_pomdp_hrc.py', 'test_fit.py', 'test_config_policy.py', 'test_cli.py',
                       'test_fit_prior.py', 'test_liveness.py', 'test_robot.py')
@@ -314,13 +320,15 @@ def unit_order(unit: str) -> tuple[int, int]:
     return (1, LONG_COMPUTE_FILES.index(file)) if file in LONG_COMPUTE_FILES else (2, 0)
 
 
-def work_unit(nodeid: str) -> str:
-    """The unit of work of a test on the xdist workers (above): its file, or a graph unit."""
+def work_unit(nodeid: str, split: bool | None = None) -> str:
+    """The unit of work of a test on the xdist workers (above): its file, or a graph unit
+    (the second one only when the graph is `split`; default: `split_graph`)."""
     path, _, name = nodeid.partition('::')
     file = path.rsplit('/', 1)[-1]
     if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
         return path
-    return GRAPH_UNITS[1] if file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
+    split = split_graph if split is None else split
+    return GRAPH_UNITS[1] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 
 
 def pytest_collection_modifyitems(config, items):
@@ -334,6 +342,8 @@ def pytest_collection_modifyitems(config, items):
 
 def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadScopeScheduling
+    global split_graph
+    split_graph = int(config.getoption('numprocesses') or 0) >= SPLIT_GRAPH_WORKERS
 
     class GraphScheduling(LoadScopeScheduling):
         """xdist's scheduling by scope, the scope being `work_unit`'s."""

@@ -156,9 +156,11 @@ def test_the_schedulers_file_lists_name_files_that_exist_on_the_right_side():
     assert set(conftest.LONG_COMPUTE_FILES) <= conftest.COMPUTE_FILES & files
     graph_side = files - conftest.COMPUTE_FILES
     assert set(conftest.ARM_GRAPH_FILES) - {'test_fleet.py'} <= graph_side
-    assert conftest.work_unit('test/test_robot_nodes.py::t') == conftest.GRAPH_UNITS[1]
-    assert conftest.work_unit('test/test_replay.py::t') == conftest.GRAPH_UNITS[0]
-    assert conftest.work_unit('test/test_queue.py::t') == 'test/test_queue.py'
+    for split in (True, False):     # three workers or more; two
+        assert conftest.work_unit('test/test_robot_nodes.py::t', split) == \
+            conftest.GRAPH_UNITS[1 if split else 0]
+        assert conftest.work_unit('test/test_replay.py::t', split) == conftest.GRAPH_UNITS[0]
+        assert conftest.work_unit('test/test_queue.py::t', split) == 'test/test_queue.py'
     order = sorted(['test/test_belief.py', 'test/test_queue.py', *conftest.GRAPH_UNITS[::-1]],
                    key=conftest.unit_order)
     assert order == [*conftest.GRAPH_UNITS, 'test/test_queue.py', 'test/test_belief.py']
