@@ -484,26 +484,31 @@ def test_a_node_whose_launcher_is_killed_stops_itself(tmp_path, graph_probe):
     assert not clean_log(log), log
 
 
-def test_a_robot_node_stopped_while_it_compiles_its_kernels_stops_within_one(
+def test_a_robot_node_stopped_while_it_compiles_its_kernels_exits_at_once(
         tmp_path, graph_probe, monkeypatch):
-    """robot_bridge_node warms its numba kernels up after it joins the graph: 9 s of
-    compilation on a fresh install, during which a stop used to wait for all of them (CI on
-    three workers: 'ignored SIGINT for 10 s'). With an empty numba cache (NUMBA_CACHE_DIR) and
-    SIGINT as soon as the node is on the graph, it exits 0 and the last kernel of the warm-up
-    (guard.nearest_on_path's path_offset) was never compiled."""
+    """robot_bridge_node compiles its numba kernels (about 9 s on a fresh install) before its
+    node exists, and a stop signal meanwhile ends the process at once with 0, as during the
+    imports (node_support.warm_up_before_the_node). Warmed up after it joined the graph, its
+    first start in a colcon install ignored a SIGINT for 10 s in CI. With an empty numba cache
+    (NUMBA_CACHE_DIR) and SIGINT once the first kernel is in the cache: exit 0, the node never
+    on the graph, and the warm-up's last kernel (guard's path_offset) never compiled."""
     cache = tmp_path / 'numba_cache'
     monkeypatch.setenv('NUMBA_CACHE_DIR', str(cache))
     nodes = NodeProcesses(tmp_path, params())
     nodes.start('robot_bridge_node')
     process = nodes.processes['robot_bridge_node']
+    seen = []
     try:
-        wait_for(lambda: in_graph(graph_probe, 'robot_bridge'), START_TIMEOUT,
-                 'the node on the graph', process)
+        def compiling():
+            seen.append(in_graph(graph_probe, 'robot_bridge'))
+            return any(cache.rglob('*.nbc'))
+        wait_for(compiling, START_TIMEOUT, 'the first kernel in the cache', process)
         nodes.send_signal('robot_bridge_node', signal.SIGINT)
         code = process.wait(timeout=STOP_TIMEOUT)
     finally:
         nodes.stop(timeout=5.0)
     log = nodes.log('robot_bridge_node')
     assert code == 0 and not clean_log(log), log
+    assert not any(seen) and not in_graph(graph_probe, 'robot_bridge')
     compiled = {p.name.split('-')[0] for p in cache.rglob('*.nbc')}
     assert '_kernels.path_offset' not in compiled, compiled

@@ -61,15 +61,14 @@ from std_msgs.msg import Float64, Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from ...core.protocol import InputError, SingleWriter, Stamp
-from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed, warm_up
+from ...core.robot.arm import Arm, Trajectory, TrajectoryFollower, peak_link_speed
 from ...core.robot.arm import segment_duration
 from ...core.robot.bridge import SECOND_WRITER_HOLD
 from ...core.robot.ssm import protective_distance
 from .. import conversions as conv
 from .. import qos
-from .. import stop as stop_regime
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,
-                            StartupError, run)
+                            StartupError, run, warm_up_before_the_node)
 from .robot_bridge_node import (KEYPOINT_JOINTS, OVERRIDE_TOPIC, ROBOT_DESCRIPTION, ROBOT_FRAME,
                                 TRAJECTORY_TOPIC, check_names, last_refusals,
                                 load_description, skeleton_converter)
@@ -105,6 +104,8 @@ class CobotSimNode(Node):
     NODE_NAME = 'cobot_sim'
 
     def __init__(self, **kwargs):
+        arm, goal_arm = Arm(), Arm()
+        warm_up_before_the_node(arm, goal_arm)
         super().__init__(self.NODE_NAME, **kwargs)
         self.params = NodeParameters(self, PARAMETERS, check_names, self._apply)
         values = self.params.values()
@@ -113,12 +114,9 @@ class CobotSimNode(Node):
         if q0.shape != (len(d.joint_names),) or d.outside(q0):
             raise StartupError(f'initial_positions must be {len(d.joint_names)} angles within '
                                f'the limits, got {q0.tolist()} ({d.outside(q0) or "wrong size"})')
-        self.arm = Arm()              # the motion thread's (separation)
-        self.goal_arm = Arm()         # the executor's (goal checks)
+        self.arm = arm                # the motion thread's (separation)
+        self.goal_arm = goal_arm      # the executor's (goal checks)
         self._peaks: dict = {}
-        # compiled (or loaded) before anything is published; a stop asked meanwhile ends it
-        # within one kernel (the node then stops)
-        warm_up(self.arm, self.goal_arm, stopped=stop_regime.requested)
         self._lock = threading.Lock()   # the follower, between the two threads
         self.follower = TrajectoryFollower(q0, d.ssm.deceleration)
         self.override = 0.0

@@ -64,14 +64,14 @@ from ...core.model import ACTIONS
 from ...core.protocol import (CELL_HOLD, ERROR, OK, WARN, ActionPairing, PeriodEstimate, Report,
                               Stamp)
 from ...core.protocol import InputError
-from ...core.robot.arm import Arm, body_capsules, warm_up
+from ...core.robot.arm import Arm, body_capsules
 from ...core.robot.bridge import (WRITER_HOLD, Bridge, RobotDescriptionError, load_programs,
                                   load_robot_description, writers_reason)
 from .. import conversions as conv
 from .. import qos
-from .. import stop as stop_regime
 from ..node_support import (STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
-                            NodeParameters, ParamSpec, StartupError, check_core, run)
+                            NodeParameters, ParamSpec, StartupError, check_core, run,
+                            warm_up_before_the_node)
 from ..sources import endpoints
 
 T = Parameter.Type
@@ -166,6 +166,8 @@ class RobotBridgeNode(Node):
     NODE_NAME = 'robot_bridge'
 
     def __init__(self, **kwargs):
+        arm = Arm()
+        warm_up_before_the_node(arm)
         super().__init__(self.NODE_NAME, **kwargs)
         self.params = NodeParameters(self, PARAMETERS, check_names, self._apply)
         values = self.params.values()
@@ -174,9 +176,6 @@ class RobotBridgeNode(Node):
             programs = load_programs(self.description, values['motion_programs'] or None)
         except RobotDescriptionError as exc:
             raise StartupError(str(exc)) from None
-        arm = Arm()
-        warm_up(arm, stopped=stop_regime.requested)   # compiled (or loaded) before the first joint
-        # state; a stop asked meanwhile ends it within one kernel (the node then stops)
         self.bridge = Bridge(self.description, programs, arm, values['control_period'])
         self.owners = {'action': self._owner(values['action_source']),
                        'task_state': self._owner(values['task_state_source'])}
