@@ -40,7 +40,7 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 def worker_domain(base: int, worker: str) -> int:
     """The DDS domain of a pytest-xdist worker (`PYTEST_XDIST_WORKER`, gw0, gw1, ...) in a run
     whose domain is `base`: gw0 and a run without workers use `base`, worker k another one of
-    1..100 (base + 37 k, modulo 100), so that two workers' graphs never see each other."""
+    1..100 ((base - 1 + 37 k) mod 100 + 1), so that two workers' graphs never see each other."""
     k = int(worker[2:]) if worker.startswith('gw') and worker[2:].isdigit() else 0
     return base if k == 0 else (base - 1 + 37 * k) % 100 + 1
 
@@ -304,9 +304,8 @@ GRAPH_UNITS = ('graph', 'graph-arm-plant')
 # the graph in two units only on three workers or more (HRC_TEST_WORKERS=3): on two, one unit
 # of the graph beside the computations, as measured green run after run. Three workers took
 # the quiet run from about 10.5 to 9 min but met timing flakes at their higher load
-# (bench/README.md); set by `pytest_xdist_make_scheduler` in the controller
+# (bench/README.md)
 SPLIT_GRAPH_WORKERS = 3
-split_graph = False
 LONG_COMPUTE_FILES = ('test_fleet.py', 'test_queue_pomdp.py', 'test_queue.py', 'test_stream.py',
                       'test_pomdp_hrc.py', 'test_fit.py', 'test_config_policy.py', 'test_cli.py',
                       'test_fit_prior.py', 'test_liveness.py', 'test_robot.py')
@@ -320,14 +319,13 @@ def unit_order(unit: str) -> tuple[int, int]:
     return (1, LONG_COMPUTE_FILES.index(file)) if file in LONG_COMPUTE_FILES else (2, 0)
 
 
-def work_unit(nodeid: str, split: bool | None = None) -> str:
+def work_unit(nodeid: str, split: bool = False) -> str:
     """The unit of work of a test on the xdist workers (above): its file, or a graph unit
-    (the second one only when the graph is `split`; default: `split_graph`)."""
+    (the second one only when the graph is `split`)."""
     path, _, name = nodeid.partition('::')
     file = path.rsplit('/', 1)[-1]
     if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
         return path
-    split = split_graph if split is None else split
     return GRAPH_UNITS[1] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 
 
@@ -342,14 +340,13 @@ def pytest_collection_modifyitems(config, items):
 
 def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadScopeScheduling
-    global split_graph
-    split_graph = int(config.getoption('numprocesses') or 0) >= SPLIT_GRAPH_WORKERS
+    split = int(config.getoption('numprocesses') or 0) >= SPLIT_GRAPH_WORKERS
 
     class GraphScheduling(LoadScopeScheduling):
         """xdist's scheduling by scope, the scope being `work_unit`'s."""
 
         def _split_scope(self, nodeid: str) -> str:
-            return work_unit(nodeid)
+            return work_unit(nodeid, split)
 
         def _assign_work_unit(self, node) -> None:
             # the queue in `unit_order` (a stable sort: xdist's order among equals)
