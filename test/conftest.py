@@ -250,10 +250,14 @@ def pytest_terminal_summary(terminalreporter):
 
 # -- workers (pytest-xdist, scripts/test.sh) --------------------------------------------------
 # The suite is about half computation (solves, fits, evaluations: one core each) and half the
-# ROS graph (node processes over DDS, waits on epochs in real time). The graph's tests form one
-# work unit on two workers (the default) and two on three or more, GRAPH_UNITS (the arm's and
-# the plant's, and the rest), each run one after the other on one worker in that worker's own
-# DDS domain (`worker_domain`: two graphs never see each other's topics), while each file of
+# ROS graph (node processes over DDS, waits on epochs in real time). The graph's tests form
+# work units, GRAPH_UNITS, each run one after the other on one worker in that worker's own DDS
+# domain (`worker_domain`: two graphs never see each other's topics): the plant's `--apply`
+# (PLANT_GRAPH_TESTS: a Ray computation of about 1.5 min with two decision nodes beside it)
+# always a unit of its own, which a second worker takes beside the rest of the graph (in one
+# unit it made the graph's worker the run's critical path: 580 s against 460 s of computation
+# on the other, CI log of 2026-12-06); on three workers or more (HRC_TEST_WORKERS=3) the arm's
+# cell, the learning loop and the console a unit too. Each file of
 # COMPUTE_FILES is a unit of its own (its module fixtures built once) for whichever worker is
 # free. The graph units are handed out first (one to each of the first workers ready), then
 # the longest computations (LONG_COMPUTE_FILES, by the time per file in the CI log), then the
@@ -273,6 +277,18 @@ COMPUTE_FILES = frozenset({
     'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
     'test_tracking.py', 'test_cli.py', 'test_fit_rate.py', 'test_hostile_files.py',
     'test_layout.py', 'test_liveness.py', 'test_fleet.py'})
+# hrc-fleet's --apply against decision nodes (the plant run's module fixture starts them), and
+# the retry of a killed Ray worker beside them: the rest of test_fleet, the Ray engine's checks
+# without nodes, is a unit of its own, on a Ray of its own where it lands on another worker (a
+# Ray per worker process, ray_session)
+PLANT_GRAPH_TESTS = (
+    'test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the_corrupt',
+    'test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported',
+    'test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused',
+    'test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary',
+    'test_apply_reports_a_namespace_whose_decision_node_is_not_ours_and_goes_on',
+    'test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy',
+    'test_a_worker_killed_mid_task_is_retried_and_the_report_is_right')
 GRAPH_TESTS = frozenset({
     'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream',
     # a decision node in-process
@@ -281,30 +297,18 @@ GRAPH_TESTS = frozenset({
     # starts beside the graph's tests, not beside another graph
     'test_cli.py::test_hrc_case_study_refuses_a_bag_or_out_that_is_no_folder',
     'test_cli.py::test_hrc_bag_record_refuses_its_output_before_waiting_for_publishers',
-    # hrc-fleet's --apply against decision nodes (the plant run's module fixture starts them):
-    # the rest of test_fleet, the Ray engine's checks without nodes, is a unit of its own on
-    # another worker, on a Ray of its own (a Ray per worker process, ray_session)
-    *(f'test_fleet.py::{name}' for name in (
-        'test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the_corrupt',
-        'test_apply_swaps_the_promoted_cell_live_and_a_cell_not_running_is_reported',
-        'test_apply_changes_nothing_on_a_node_of_another_selector_or_when_the_set_is_refused',
-        'test_apply_night_after_night_and_a_set_the_node_refuses_at_the_boundary',
-        'test_apply_reports_a_namespace_whose_decision_node_is_not_ours_and_goes_on',
-        'test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy',
-        'test_a_worker_killed_mid_task_is_retried_and_the_report_is_right'))})
+    *(f'test_fleet.py::{name}' for name in PLANT_GRAPH_TESTS)})
 GRAPH_FIXTURES = frozenset({'ros_domain_id', 'graph'})
-# the graph's second unit: the arm's cell, the plant's --apply, the learning loop and the
-# console (about half of the graph's time, measured by the time per test file); the rest is
-# the first
+# the graph's third unit on three workers or more: the arm's cell, the learning loop and the
+# console (about half of the rest of the graph's time, by the time per test file)
 ARM_GRAPH_FILES = frozenset({
     'test_robot_case_study.py', 'test_robot_nodes.py', 'test_robot_scenarios.py',
     'test_robot_hostile.py', 'test_cobot_sim_motion.py', 'test_robot_graph.py',
-    'test_speed_scaling.py', 'test_fleet.py', 'test_learning_loop.py', 'test_hmi_console.py'})
-GRAPH_UNITS = ('graph', 'graph-arm-plant')
-# the graph in two units only on three workers or more (HRC_TEST_WORKERS=3): on two, one unit
-# of the graph beside the computations, as measured green run after run. Three workers took
-# the quiet run from about 10.5 to 9 min but met timing flakes at their higher load
-# (bench/README.md)
+    'test_speed_scaling.py', 'test_learning_loop.py', 'test_hmi_console.py'})
+GRAPH_UNITS = ('graph', 'graph-plant', 'graph-arm')
+# the arm's unit apart only on three workers or more: on two, the graph and the plant beside
+# each other are the load measured green run after run. Three workers took the quiet run from
+# about 10 to 8.5 min but met timing flakes at their higher load (bench/README.md)
 SPLIT_GRAPH_WORKERS = 3
 LONG_COMPUTE_FILES = ('test_fleet.py', 'test_queue_pomdp.py', 'test_queue.py', 'test_stream.py',
                       'test_pomdp_hrc.py', 'test_fit.py', 'test_config_policy.py', 'test_cli.py',
@@ -321,12 +325,15 @@ def unit_order(unit: str) -> tuple[int, int]:
 
 def work_unit(nodeid: str, split: bool = False) -> str:
     """The unit of work of a test on the xdist workers (above): its file, or a graph unit
-    (the second one only when the graph is `split`)."""
+    (the arm's only when the graph is `split`)."""
     path, _, name = nodeid.partition('::')
     file = path.rsplit('/', 1)[-1]
-    if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
+    test = f'{file}::{name.split("[", 1)[0]}'
+    if file in COMPUTE_FILES and test not in GRAPH_TESTS:
         return path
-    return GRAPH_UNITS[1] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
+    if file == 'test_fleet.py':
+        return GRAPH_UNITS[1]
+    return GRAPH_UNITS[2] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 
 
 def pytest_collection_modifyitems(config, items):

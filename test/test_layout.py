@@ -148,18 +148,26 @@ def test_importing_a_node_does_not_import_numba():
 
 
 def test_the_schedulers_file_lists_name_files_that_exist_on_the_right_side():
-    """conftest's work units: the arm's graph files and the long computations it hands out
-    first are test files of the suite, on the graph's side and the computations' side (a
-    renamed file would otherwise drop out of its unit silently)."""
+    """conftest's work units: the arm's graph files, the plant's graph tests and the long
+    computations it hands out first are test files (and tests) of the suite, on the graph's
+    side and the computations' side (a renamed file or test would otherwise drop out of its
+    unit silently)."""
     import conftest
     files = {p.name for p in (REPO / 'test').glob('test_*.py')}
     assert set(conftest.LONG_COMPUTE_FILES) <= conftest.COMPUTE_FILES & files
     graph_side = files - conftest.COMPUTE_FILES
-    assert set(conftest.ARM_GRAPH_FILES) - {'test_fleet.py'} <= graph_side
+    assert set(conftest.ARM_GRAPH_FILES) <= graph_side
+    fleet = (REPO / 'test' / 'test_fleet.py').read_text()
+    assert all(f'\ndef {name}(' in fleet for name in conftest.PLANT_GRAPH_TESTS)
+    plant = f'test/test_fleet.py::{conftest.PLANT_GRAPH_TESTS[0]}'
     for split in (True, False):     # three workers or more; two
         assert conftest.work_unit('test/test_robot_nodes.py::t', split) == \
-            conftest.GRAPH_UNITS[1 if split else 0]
+            conftest.GRAPH_UNITS[2 if split else 0]
         assert conftest.work_unit('test/test_replay.py::t', split) == conftest.GRAPH_UNITS[0]
+        # the plant's --apply a unit of its own on two workers too, the rest of its file not
+        assert conftest.work_unit(plant, split) == conftest.GRAPH_UNITS[1]
+        assert conftest.work_unit('test/test_fleet.py::test_ctrl_c', split) == \
+            'test/test_fleet.py'
         assert conftest.work_unit('test/test_queue.py::t', split) == 'test/test_queue.py'
     order = sorted(['test/test_belief.py', 'test/test_queue.py', *conftest.GRAPH_UNITS[::-1]],
                    key=conftest.unit_order)
