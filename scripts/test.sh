@@ -4,10 +4,10 @@
 #   bash scripts/test.sh test/test_packaging.py  # only the paths given
 # Bootstraps .venv/ on first use (scripts/bootstrap.sh), then runs python -m pytest -q test.
 # The whole suite runs on two pytest-xdist workers (HRC_TEST_WORKERS=N for another count, 0 for
-# none): the tests of the ROS graph one after the other on one worker, the computations on the
-# other; on three or more the graph's tests form two units, each on a worker and DDS domain of
-# its own (about 9 min instead of 10.5 quiet, but timing flakes at that load: bench/README.md;
-# test/conftest.py, "workers"); test paths given run in this process alone.
+# none): the tests of the ROS graph one after the other on one worker, the plant's --apply tests
+# and the computations on the other, whichever is free; on three or more the arm's graph tests
+# form a unit of their own too (no faster on two cores, and timing flakes at that load:
+# bench/README.md; test/conftest.py, "workers"); test paths given run in this process alone.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/bootstrap.sh
