@@ -716,6 +716,31 @@ def test_a_robot_task_takes_the_models_epochs_at_full_speed_and_more_when_slowed
     assert bc[:3] == [0, 2, 2] and slow.stop_time + slow.idle_time > fast.stop_time
 
 
+def test_a_batch_episode_can_follow_given_actions_and_refuses_a_wrong_list(cell):
+    """`actions=`: the robot's actions of a recorded run instead of the selector's, epoch by
+    epoch (the graph's, for test_robot_case_study's path check): the episode takes exactly
+    those; its own actions given back reproduce it; a list of another length or with an
+    unknown name is refused in one line."""
+    from hrc_ros.core.robot.cell import person_seed
+    from hrc_ros.core.study.simulation import Scenario
+    scenario = Scenario((0, 0, 1, 2, 2, 0, 0, 0, 0, 0, 3), (), 6)
+    own = cell.episode(scenario, [7, 0], person_seed(0, 0), 'ssm_only', record=True)
+    assert own.actions[0] == 'ct' and own.tasks_completed == 1
+    again = cell.episode(scenario, [7, 0], person_seed(0, 0), 'ssm_only', record=True,
+                         actions=own.actions)
+    assert again.actions == own.actions and again.task_states == own.task_states
+    assert [q.tolist() for _, q in again.arm_path] == [q.tolist() for _, q in own.arm_path]
+    # the robot never told to work: the task is not done and the arm never leaves home
+    idle = cell.episode(scenario, [7, 0], person_seed(0, 0), 'ssm_only', record=True,
+                        actions=['nw'] * 6)
+    assert idle.actions == ['nw'] * 6 and idle.tasks_completed == 0
+    home = idle.arm_path[0][1]
+    assert max(np.abs(q - home).max() for _, q in idle.arm_path) < 1e-9
+    for wrong in (['nw'] * 5, ['nw'] * 5 + ['go']):
+        with pytest.raises(ValueError, match='actions must name one of nw, rh1'):
+            cell.episode(scenario, [7, 0], person_seed(0, 0), 'ssm_only', actions=wrong)
+
+
 def test_batch_cell_keeps_ssm_and_pairs_the_episodes(model, policy):
     from hrc_ros.core.robot.cell import evaluate_arm, format_arm_paired, format_arm_table
     results = evaluate_arm(model, policy, episodes=6, epochs=25, seed=4,

@@ -60,6 +60,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -262,11 +263,20 @@ class ArmCell:
         return DN if x[-1] == 0 else action
 
     def episode(self, scenario, human_seed, person_seed, selector: str = 'paper',
-                record: bool = False) -> EpisodeResult:
-        """One seeded episode (scenario as `evaluation.random_scenarios` makes them)."""
+                record: bool = False, actions: Sequence[str] | None = None) -> EpisodeResult:
+        """One seeded episode (scenario as `evaluation.random_scenarios` makes them).
+
+        `actions`: the robot's actions epoch by epoch (names, one per epoch) instead of the
+        selector's: a recorded run's, to follow the arm and the person under the commands
+        that run gave (the graph's, where it read a distance at a safety radius otherwise
+        than the batch). The selector then only names the run."""
         if selector not in CELL_SELECTORS:
             raise ValueError(f'unknown selector {selector!r}; expected one of '
                              f'{", ".join(CELL_SELECTORS)}')
+        if actions is not None and (len(actions) != scenario.epochs
+                                    or not set(actions) <= set(ACTIONS)):
+            raise ValueError(f'actions must name one of {", ".join(ACTIONS)} for each of the '
+                             f'{scenario.epochs} epochs')
         model, cfg, desc = self.model, self.settings, self.description
         em, ea, *task_values, d0 = (int(v) for v in scenario.initial_state)
         book = TaskBook(model, initial_task=dict(zip(TASK_VARIABLES, task_values)),
@@ -316,7 +326,8 @@ class ArmCell:
             d = level_of_distance(boundary, cfg.safety_radii)
             x = book.observable(d)
             level = 0 if model.queue is None else min(len(book.queue), model.queue_length)
-            action = self._decide(selector, belief, x, (human.em, human.ea), level)
+            action = (self._decide(selector, belief, x, (human.em, human.ea), level)
+                      if actions is None else ACTIONS.index(actions[k - 1]))
             task_before = book.state
             reaction = human.react(action, task_before)
             scene.begin_epoch(reaction.delta, reaction.em, reaction.ea, true_separation)
