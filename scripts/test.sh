@@ -14,7 +14,7 @@ source scripts/bootstrap.sh
 
 # One DDS domain per run (1..100, from this shell's process id) so that two runs on one host
 # do not see each other's nodes; an explicit ROS_DOMAIN_ID wins (the first worker's; worker k
-# takes (ROS_DOMAIN_ID - 1 + 37 k) mod 100 + 1, so a run uses three domains of 1..100).
+# takes (ROS_DOMAIN_ID - 1 + 37 k) mod 100 + 1, so a run of N workers uses N domains of 1..100).
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 1 ))}"
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE" >&2
 

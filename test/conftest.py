@@ -306,9 +306,10 @@ ARM_GRAPH_FILES = frozenset({
     'test_robot_hostile.py', 'test_cobot_sim_motion.py', 'test_robot_graph.py',
     'test_speed_scaling.py', 'test_learning_loop.py', 'test_hmi_console.py'})
 GRAPH_UNITS = ('graph', 'graph-plant', 'graph-arm')
-# the arm's unit apart only on three workers or more: on two, the graph and the plant beside
-# each other are the load measured green run after run. Three workers took the quiet run from
-# about 10 to 8.5 min but met timing flakes at their higher load (bench/README.md)
+# the arm's unit apart only on three workers or more: on two cores a third worker is no faster
+# once the plant runs beside the graph (518.6 s against 527.3 s from fresh clones, quiet), and
+# its higher load met timing flakes (bench/README.md). Two workers with the plant apart were
+# measured green once quiet (and at load 8 in bench/README.md's table where it says so)
 SPLIT_GRAPH_WORKERS = 3
 LONG_COMPUTE_FILES = ('test_fleet.py', 'test_queue_pomdp.py', 'test_queue.py', 'test_stream.py',
                       'test_pomdp_hrc.py', 'test_fit.py', 'test_config_policy.py', 'test_cli.py',
@@ -331,7 +332,7 @@ def work_unit(nodeid: str, split: bool = False) -> str:
     test = f'{file}::{name.split("[", 1)[0]}'
     if file in COMPUTE_FILES and test not in GRAPH_TESTS:
         return path
-    if file == 'test_fleet.py':
+    if file == 'test_fleet.py' and name.split('[', 1)[0] in PLANT_GRAPH_TESTS:
         return GRAPH_UNITS[1]
     return GRAPH_UNITS[2] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 

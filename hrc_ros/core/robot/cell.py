@@ -269,7 +269,8 @@ class ArmCell:
         `actions`: the robot's actions epoch by epoch (names, one per epoch) instead of the
         selector's: a recorded run's, to follow the arm and the person under the commands
         that run gave (the graph's, where it read a distance at a safety radius otherwise
-        than the batch). The selector then only names the run."""
+        than the batch). They are taken as given: the d = 0 fail-safe is the recorded run's
+        (it chose dn there or not), and the selector is only checked, not asked."""
         if selector not in CELL_SELECTORS:
             raise ValueError(f'unknown selector {selector!r}; expected one of '
                              f'{", ".join(CELL_SELECTORS)}')
