@@ -1,7 +1,10 @@
 """SSM against people who test it, in the batch cell with the arm (docs/ROBOT.md 4, "People who
 test SSM"): per person scenario and selector, SSM violations against the true bodies (the
 appearance exception apart), the smallest margin S - S_p while the arm moved, the time from the
-event to the arm at rest, and the time from an appeared person's first skeleton to the stop.
+event to the arm at rest, and the time from an appeared person's first skeleton to the stop;
+then per scenario each selector against the first, paired on the same episodes: the time to
+rest's mean difference and its p95's, with 95% intervals (t over the episodes; a paired
+bootstrap over the episodes for the p95), and the share of episodes where it took longer.
 
 The same episodes as `hrc-evaluate --cell arm --person SCENARIO` (random task streams at task
 rate 0.5, seed 0, the arm's model and policy), shorter (--epochs, default 20: every episode has
@@ -81,6 +84,31 @@ def summary(rows, control_period: float) -> dict:
     }
 
 
+BOOTSTRAP = 2000    # paired resamples of the episodes for the p95's interval
+
+
+def paired_rest(base_rows, rows, seed: int = 0) -> dict | None:
+    """The time to rest after the event, `rows` minus `base_rows`, paired on the episodes
+    where both have one (the same episodes: same streams, people and seeds)."""
+    a = np.array(base_rows, dtype=float)[:, 5]
+    b = np.array(rows, dtype=float)[:, 5]
+    both = np.isfinite(a) & np.isfinite(b)
+    a, b = a[both], b[both]
+    n = len(a)
+    if n < 2:
+        return None
+    diff = b - a
+    half = 1.96 * diff.std(ddof=1) / np.sqrt(n)     # normal: the runs reported have n >= 200
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, n, size=(BOOTSTRAP, n))
+    p95 = np.percentile(b[picks], 95, axis=1) - np.percentile(a[picks], 95, axis=1)
+    return {'episodes': n, 'mean': float(diff.mean()), 'mean_half_width': float(half),
+            'p95': float(np.percentile(b, 95) - np.percentile(a, 95)),
+            'p95_interval': [float(np.percentile(p95, 2.5)), float(np.percentile(p95, 97.5))],
+            'longer_share': float((diff > 1e-9).mean()),
+            'shorter_share': float((diff < -1e-9).mean())}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--episodes', type=int, default=1000)
@@ -95,8 +123,9 @@ def main(argv=None) -> int:
     control_period = ArmCellSettings().control_period
     scenarios = [s for s in args.scenarios.split(',') if s]
     selectors = [s for s in args.selectors.split(',') if s]
-    results = {}
+    results, paired = {}, {}
     started = time.perf_counter()
+    by_selector: dict = {}
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for scenario in scenarios:
             for selector in selectors:
@@ -104,6 +133,7 @@ def main(argv=None) -> int:
                 jobs = [(scenario, selector, s, min(s + CHUNK, args.episodes), args.epochs,
                          args.seed) for s in range(0, args.episodes, CHUNK)]
                 rows = [row for part in pool.map(_chunk, jobs) for row in part]
+                by_selector.setdefault(scenario, {})[selector] = rows
                 figures = summary(rows, control_period)
                 results.setdefault(scenario, {})[selector] = figures
                 rest = figures['rest_after_event_s']
@@ -124,13 +154,25 @@ def main(argv=None) -> int:
                          f'periods ({delay["appearances_inside_sp0"]} inside S_p(0))'
                          if delay else '')
                       + f'; {time.perf_counter() - t0:.0f} s', flush=True)
+            base = selectors[0]
+            for selector in selectors[1:]:
+                d = paired_rest(by_selector[scenario][base], by_selector[scenario][selector])
+                paired.setdefault(scenario, {})[f'{selector} - {base}'] = d
+                if d is not None:
+                    lo, hi = d['p95_interval']
+                    print(f'{scenario:<15} {selector} - {base}, paired on {d["episodes"]} '
+                          f'episodes: rest after the event {d["mean"]:+.3f} '
+                          f'+- {d["mean_half_width"]:.3f} s (95%), p95 {d["p95"]:+.3f} s '
+                          f'[{lo:+.3f}, {hi:+.3f}]; longer in {100 * d["longer_share"]:.1f}%, '
+                          f'shorter in {100 * d["shorter_share"]:.1f}% of them', flush=True)
     print(f'{time.perf_counter() - started:.0f} s in all, {args.jobs} jobs, load '
           f'{os.getloadavg()[0]:.1f}')
     print(f'reproduce: python bench/ssm_scenarios.py --episodes {args.episodes} --epochs '
           f'{args.epochs} --seed {args.seed} --scenarios {",".join(scenarios)} --selectors '
           f'{",".join(selectors)}')
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2) + '\n')
+        Path(args.json).write_text(json.dumps({'scenarios': results, 'paired': paired},
+                                              indent=2) + '\n')
     bad = [(s, x) for s, by in results.items() for x, f in by.items()
            if f['ssm_violations'] or f['contacts'] or f['speed_breaches']]
     return 1 if bad else 0
