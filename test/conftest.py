@@ -289,6 +289,12 @@ PLANT_GRAPH_TESTS = (
     'test_apply_reports_a_namespace_whose_decision_node_is_not_ours_and_goes_on',
     'test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_pomdp_policy',
     'test_a_worker_killed_mid_task_is_retried_and_the_report_is_right')
+# pytest-timeout (pytest.ini: 300 s, the thread method, which ends the whole worker) counts a
+# test's fixtures' setup in its time: the plant's first test builds the POMDP cell's policies
+# (small_cell) and runs hrc-fleet (plant_run, killed after test_fleet.FLEET_TIMEOUT), which at
+# load 8 came to more than 300 s together (the worker ended 290 s after small_cell began,
+# "node down", 2026-12-06): the plant's tests get PLANT_TIMEOUT
+PLANT_TIMEOUT = 600
 GRAPH_TESTS = frozenset({
     'test_stream_queue_fit.py::test_a_bag_the_node_suite_records_with_a_queue_fits_the_queue_stream',
     # a decision node in-process
@@ -338,6 +344,10 @@ def work_unit(nodeid: str, split: bool = False) -> str:
 
 
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        path, _, name = item.nodeid.partition('::')
+        if path.endswith('test_fleet.py') and name.split('[', 1)[0] in PLANT_GRAPH_TESTS:
+            item.add_marker(pytest.mark.timeout(PLANT_TIMEOUT))
     wrong = [item.nodeid for item in items
              if work_unit(item.nodeid) not in GRAPH_UNITS
              and GRAPH_FIXTURES & set(item.fixturenames)]

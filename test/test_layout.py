@@ -172,3 +172,29 @@ def test_the_schedulers_file_lists_name_files_that_exist_on_the_right_side():
     order = sorted(['test/test_belief.py', 'test/test_queue.py', *conftest.GRAPH_UNITS[::-1]],
                    key=conftest.unit_order)
     assert order == [*conftest.GRAPH_UNITS, 'test/test_queue.py', 'test/test_belief.py']
+
+
+def test_the_plants_tests_have_time_for_their_fixtures_and_the_plant_run():
+    """pytest-timeout counts fixture setup in a test's time and, with the thread method, ends
+    the whole worker: the plant's tests (whose first one builds small_cell and runs hrc-fleet,
+    killed after FLEET_TIMEOUT) get conftest.PLANT_TIMEOUT, with room for small_cell's solves
+    at load (more than 2 min at load 8), and no other test does."""
+    import ast
+    import conftest
+    fleet = ast.parse((REPO / 'test' / 'test_fleet.py').read_text())
+    (fleet_timeout,) = [node.value.value for node in fleet.body if isinstance(node, ast.Assign)
+                        and [t.id for t in node.targets] == ['FLEET_TIMEOUT']]
+    assert conftest.PLANT_TIMEOUT >= fleet_timeout + 180
+
+    class Item:
+        def __init__(self, nodeid):
+            self.nodeid, self.markers, self.fixturenames = nodeid, [], []
+
+        def add_marker(self, marker):
+            self.markers.append(marker)
+    plant = Item(f'test/test_fleet.py::{conftest.PLANT_GRAPH_TESTS[0]}')
+    others = [Item('test/test_fleet.py::test_ctrl_c_on_an_embedded_cluster_exits_130'),
+              Item('test/test_queue.py::test_x')]
+    conftest.pytest_collection_modifyitems(None, [plant, *others])
+    assert [(m.name, m.args) for m in plant.markers] == [('timeout', (conftest.PLANT_TIMEOUT,))]
+    assert all(not item.markers for item in others)
