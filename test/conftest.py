@@ -372,3 +372,9 @@ def pytest_xdist_make_scheduler(config, log):
                 self.workqueue.move_to_end(unit, last=False)
             super()._assign_work_unit(node)
     return GraphScheduling(config, log)
+
+
+def pytest_configure(config):
+    # a hang on an xdist worker is reported with its stacks (test/hang_stacks.py)
+    from hang_stacks import HangStacks
+    config.pluginmanager.register(HangStacks(config), 'hrc-hang-stacks')

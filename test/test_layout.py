@@ -131,6 +131,33 @@ def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
     assert 'helper' in output and 'MainThread' in output, output[-3000:]
 
 
+def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
+    """The suite runs on xdist workers, where pytest-timeout's own dump never reaches the log
+    (the worker ends with os._exit: "worker 'gw0' crashed"): hang_stacks writes the threads'
+    stacks before the timeout and the controller adds them to the crashed test's report."""
+    hanging = tmp_path / 'test_hang.py'
+    hanging.write_text('import threading, time\n\n'
+                       'def test_hangs():\n'
+                       '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
+                       '                     daemon=True).start()\n'
+                       '    time.sleep(60)\n')
+    (tmp_path / 'conftest.py').write_text(
+        f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
+        'from hang_stacks import HangStacks\n\n\n'
+        'def pytest_configure(config):\n'
+        '    config.pluginmanager.register(HangStacks(config), "hrc-hang-stacks")\n')
+    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
+                             '-o', 'timeout=4', '-p', 'no:cacheprovider', '-n', '1',
+                             '--rootdir', str(tmp_path), str(hanging)],
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert "crashed while running 'test_hang.py::test_hangs'" in output, output[-3000:]
+    assert 'its threads 2 s before the test\'s timeout' in output, output[-3000:]
+    assert 'test_hang.py", line 6 in test_hangs' in output, output[-3000:]
+    assert output.count('Thread 0x') >= 2, output[-3000:]      # the helper's stack too
+
+
 def test_importing_a_node_does_not_import_numba():
     """numba's import is 0.2 s of CPU at every node's start (a cell starts five to eight of
     them, the suite hundreds); the kernels import it where they run (the solver's sweep, the
