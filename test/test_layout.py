@@ -113,14 +113,17 @@ def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
     assert domain == same and 30 <= int(domain) <= 99, chosen.stderr
 
 
+HANGING_TEST = ('import threading, time\n\n'
+                'def test_hangs():\n'
+                '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
+                '                     daemon=True).start()\n'
+                '    time.sleep(60)\n')
+
+
 def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
     """pytest.ini's per-test timeout: a hang is a red test with its stacks, not a stuck CI."""
     hanging = tmp_path / 'test_hang.py'
-    hanging.write_text('import threading, time\n\n'
-                       'def test_hangs():\n'
-                       '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
-                       '                     daemon=True).start()\n'
-                       '    time.sleep(60)\n')
+    hanging.write_text(HANGING_TEST)
     result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
                              '-o', 'timeout=3', '-p', 'no:cacheprovider',
                              '--rootdir', str(tmp_path), str(hanging)],
@@ -136,11 +139,7 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
     (the worker ends with os._exit: "worker 'gw0' crashed"): hang_stacks writes the threads'
     stacks before the timeout and the controller adds them to the crashed test's report."""
     hanging = tmp_path / 'test_hang.py'
-    hanging.write_text('import threading, time\n\n'
-                       'def test_hangs():\n'
-                       '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
-                       '                     daemon=True).start()\n'
-                       '    time.sleep(60)\n')
+    hanging.write_text(HANGING_TEST)
     (tmp_path / 'conftest.py').write_text(
         f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
         'from hang_stacks import HangStacks\n\n\n'
