@@ -330,23 +330,27 @@ def unit_order(unit: str) -> tuple[int, int]:
     return (1, LONG_COMPUTE_FILES.index(file)) if file in LONG_COMPUTE_FILES else (2, 0)
 
 
+def is_plant_test(nodeid: str) -> bool:
+    """A test of PLANT_GRAPH_TESTS (any of its parameters)."""
+    path, _, name = nodeid.partition('::')
+    return path.endswith('test_fleet.py') and name.split('[', 1)[0] in PLANT_GRAPH_TESTS
+
+
 def work_unit(nodeid: str, split: bool = False) -> str:
     """The unit of work of a test on the xdist workers (above): its file, or a graph unit
     (the arm's only when the graph is `split`)."""
     path, _, name = nodeid.partition('::')
     file = path.rsplit('/', 1)[-1]
-    test = f'{file}::{name.split("[", 1)[0]}'
-    if file in COMPUTE_FILES and test not in GRAPH_TESTS:
+    if file in COMPUTE_FILES and f'{file}::{name.split("[", 1)[0]}' not in GRAPH_TESTS:
         return path
-    if file == 'test_fleet.py' and name.split('[', 1)[0] in PLANT_GRAPH_TESTS:
+    if is_plant_test(nodeid):
         return GRAPH_UNITS[1]
     return GRAPH_UNITS[2] if split and file in ARM_GRAPH_FILES else GRAPH_UNITS[0]
 
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        path, _, name = item.nodeid.partition('::')
-        if path.endswith('test_fleet.py') and name.split('[', 1)[0] in PLANT_GRAPH_TESTS:
+        if is_plant_test(item.nodeid):
             item.add_marker(pytest.mark.timeout(PLANT_TIMEOUT))
     wrong = [item.nodeid for item in items
              if work_unit(item.nodeid) not in GRAPH_UNITS

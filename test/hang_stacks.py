@@ -5,10 +5,11 @@ with ``os._exit``. In a single process the dump reaches the terminal; on an xdis
 goes to the worker's own output, which the controller never shows, so CI read only "[gw1] node
 down: Not properly terminated" and "worker 'gw1' crashed while running ...": a hang without
 its stacks. This plugin arms faulthandler on each worker to write every thread's stack to a
-file of that worker `MARGIN` seconds before the test's timeout (the timeout marker's, else
-pytest.ini's), and the controller adds that file to the report of a test whose worker
-crashed. The file is emptied as each test starts, so what it holds is of the test that hung.
-Without xdist it does nothing (pytest-timeout's own dump is in the log).
+file of that worker `MARGIN` seconds before the test's timeout (as pytest-timeout reads it:
+the marker's, else --timeout, PYTEST_TIMEOUT or pytest.ini's), and the controller adds that
+file to the report of a test whose worker crashed. The file is emptied as each test starts,
+so what it holds is of the test that hung. Without xdist it does nothing (pytest-timeout's
+own dump is in the log).
 """
 
 from __future__ import annotations
@@ -24,11 +25,16 @@ MARGIN = 2.0            # s before pytest-timeout ends the worker
 LIMIT = 30_000          # characters of stacks at most in a report
 
 
-def test_timeout(item) -> float:
-    """The test's timeout in seconds (its timeout marker's, else the ini's); 0: none."""
+def timeout_of(item) -> float:
+    """The test's timeout in seconds as pytest-timeout takes it: its timeout marker's, else
+    --timeout, PYTEST_TIMEOUT or the ini's (pytest_timeout.get_env_settings); 0: none."""
+    from pytest_timeout import get_env_settings
     marker = item.get_closest_marker('timeout')
-    value = marker.args[0] if marker is not None and marker.args else item.config.getini(
-        'timeout')
+    value = None
+    if marker is not None:
+        value = marker.args[0] if marker.args else marker.kwargs.get('timeout')
+    if value is None:
+        value = get_env_settings(item.config).timeout
     try:
         return max(float(value or 0), 0.0)
     except (TypeError, ValueError):
@@ -56,7 +62,7 @@ class HangStacks:
             return None
         self.file.seek(0)
         self.file.truncate()
-        seconds = test_timeout(item)
+        seconds = timeout_of(item)
         if seconds > 0:
             faulthandler.dump_traceback_later(max(seconds - MARGIN, seconds / 2),
                                               file=self.file)

@@ -86,12 +86,18 @@ def run(tmp_path_factory, ros_domain_id):
 
 @pytest.fixture(scope='module')
 def batch():
+    return batch_episode()
+
+
+def batch_episode(actions=None):
+    """The batch cell's case study on the graph's seed, sensing and start; with `actions`,
+    driven by them instead of its own decisions (`ArmCell.episode(actions=)`)."""
     config = load_config(arm_config_path())
     cell = ArmCell(HRCModel(config), load_policy(default_policy_path(config), config),
                    settings=GRAPH_SETTINGS)
     scenario = case_study()
     return cell.episode(Scenario(scenario.initial_state, scenario.schedule, EPOCHS, 'case'),
-                        SEED, [SEED, 2], 'paper', record=True)
+                        SEED, [SEED, 2], 'paper', record=True, actions=actions)
 
 
 def messages(out, *topics):
@@ -273,14 +279,9 @@ def followed(run):
     the arm's first motion, which left the decisions' common stretch without motion)."""
     out, proc = run
     assert proc.returncode == 0
-    config = load_config(arm_config_path())
-    cell = ArmCell(HRCModel(config), load_policy(default_policy_path(config), config),
-                   settings=GRAPH_SETTINGS)
-    scenario = case_study()
     actions = [e[0] for e in graph_epochs(out)]
     assert len(actions) == EPOCHS, actions
-    return cell.episode(Scenario(scenario.initial_state, scenario.schedule, EPOCHS, 'case'),
-                        SEED, [SEED, 2], 'paper', record=True, actions=actions)
+    return batch_episode(actions)
 
 
 def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, followed):
