@@ -93,7 +93,7 @@ def closer(counts, action, d) -> tuple[int, int]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--episodes', type=int, default=40)
     parser.add_argument('--epochs', type=int, default=50)
     parser.add_argument('--share', type=float, default=0.3,

@@ -25,7 +25,7 @@ from hrc_ros.core.robot.cell import METRICS, _interval  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('episodes', help='episodes.csv of hrc-evaluate --cell arm')
     parser.add_argument('--pairs', default='paper-ssm_only,paper-integrator,qmdp-integrator,'
                         'integrator-ssm_only', help='comma-separated A-B')

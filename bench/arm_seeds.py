@@ -26,7 +26,7 @@ from hrc_ros.core.study.simulation import Scenario, case_study  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--seeds', type=int, default=40)
     parser.add_argument('--epochs', default='20,30,40',
                         help='comma-separated run lengths (the longest is simulated)')

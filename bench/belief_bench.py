@@ -54,7 +54,7 @@ def percentiles(ns: np.ndarray) -> tuple[float, float]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--config', type=Path, default=ROOT / 'config' / 'default.yaml')
     parser.add_argument('--policy', type=Path, default=ROOT / 'policies' / 'default.npz')
     parser.add_argument('--repeat', type=int, default=20000, help='timed calls (default 20000)')

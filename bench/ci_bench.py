@@ -85,7 +85,7 @@ def table(files: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--runs', type=int, default=1)
     parser.add_argument('--busy', type=int, default=0, help='busy processes beside the suite')
     parser.add_argument('--workers', type=int, default=2,

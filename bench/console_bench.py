@@ -393,7 +393,7 @@ def memory(args, work: Path) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--phase', action='append', choices=('latency', 'cpu', 'memory'),
                         help='the phases to run (default: latency and cpu)')
     parser.add_argument('--pages', type=int, default=10)

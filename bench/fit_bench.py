@@ -152,7 +152,7 @@ def regret(world: HRCModel, planning: HRCModel, policy, reference, episodes: int
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--sizes', default=','.join(str(s) for s in SIZES),
                         help='epochs of recordings per fit, comma-separated')
     parser.add_argument('--worlds', default=','.join(TRUE_CONFIGS))

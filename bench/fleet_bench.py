@@ -459,7 +459,7 @@ def serial_modes(text: str) -> list[int]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--cells', type=int, default=8)
     parser.add_argument('--cpus', type=int, default=2)
     parser.add_argument('--object-store-mb', type=int, default=500)

@@ -349,7 +349,7 @@ def soak(args, work: Path) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--clicks', type=int, default=200)
     parser.add_argument('--pages', type=int, default=200)
     parser.add_argument('--soak', type=float, default=60.0, help='seconds with the pages open')

@@ -65,7 +65,7 @@ def timed(call, repeat: int) -> tuple[float, str]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args(argv)
     print(f'# {" ".join(shlex.quote(a) for a in [sys.executable, *sys.argv])}')

@@ -47,7 +47,7 @@ class PilotCell(arm_cell.ArmCell):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--episodes', type=int, default=100)
     parser.add_argument('--seed', type=int, default=1)
     args = parser.parse_args(argv)

@@ -249,7 +249,7 @@ def summary(name: str, times: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--rounds', type=int, default=5)
     parser.add_argument('--scenarios', default=','.join(SCENARIOS))
     parser.add_argument('--kernels', default=','.join(KERNELS))

@@ -34,7 +34,7 @@ def shipped() -> list[str]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--configs', default=None,
                         help='comma-separated shipped configurations (default: every one with a '
                         'shipped policy)')

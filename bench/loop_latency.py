@@ -398,7 +398,7 @@ def compare_view(args, processes: Processes, policy: str) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--seconds', type=float, default=30.0,
                         help='measured duration of the decision loop (after warm-up)')
     parser.add_argument('--epoch', type=float, default=0.05, help='epoch_period, seconds')

@@ -116,7 +116,7 @@ def case_study_start(model, mdp, pomdp, per_h: int, epochs: int = 150) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--config', default=str(REPO / 'config' / 'default.yaml'))
     parser.add_argument('--skip-solve', action='store_true',
                         help='measure the shipped POMDP policy of the configuration')

@@ -23,7 +23,7 @@ from hrc_ros.core.study.evaluation import BatchSimulator, episodes_of  # noqa: E
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--episodes', type=int, default=1000)
     args = parser.parse_args(argv)
     config = load_config(shipped_config_path('default'))

@@ -211,7 +211,7 @@ def sim_rate(seconds: float) -> tuple[list, float]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--episodes', type=int, default=20)
     parser.add_argument('--node-steps', type=int, default=6000)
     parser.add_argument('--sim-seconds', type=float, default=10.0)

@@ -275,7 +275,7 @@ def load(path: Path) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--results', required=True, help='JSON lines, appended and resumed')
     parser.add_argument('--cells', type=int, default=CELLS)
     parser.add_argument('--shard', default='1/1', help='K/N: the cells K - 1 modulo N')

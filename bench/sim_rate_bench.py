@@ -157,7 +157,7 @@ def measure(busy: int, seconds: float, warmup: float) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--busy', default='0,2,4')
     parser.add_argument('--seconds', type=float, default=15.0)
     parser.add_argument('--warmup', type=float, default=3.0)

@@ -136,7 +136,7 @@ def main() -> int:
         fn = child_hrc if kind == 'hrc' else child_mdptoolbox
         print(json.dumps(fn(int(rho), int(sigma), float(eta), out or None)))
         return 0
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--sizes', default='2,3,4', help='rho = sigma values (default 2,3,4)')
     parser.add_argument('--eta', type=float, default=1e-6)
     parser.add_argument('--skip-mdptoolbox', action='store_true')

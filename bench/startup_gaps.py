@@ -109,7 +109,7 @@ def one_round(fresh: bool) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--rounds', type=int, default=3)
     parser.add_argument('--fresh', action='store_true')
     parser.add_argument('--busy', type=int, default=0)

@@ -302,7 +302,7 @@ def load() -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--rounds', type=int, default=200)
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--timeout', type=float, default=10.0,

@@ -70,7 +70,7 @@ def paired(x, y) -> tuple[float, float]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('a')
     parser.add_argument('b')
     parser.add_argument('--baseline', default='pomdp')

@@ -65,7 +65,7 @@ def measure(data: list[bytes]) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=' '.join(__doc__.split('\n\n')[0].split()))
     parser.add_argument('--frames', type=int, default=600)
     args = parser.parse_args(argv)
     print(f'body_tracking_node per frame, median of {args.frames} frames (ms):')

@@ -111,14 +111,21 @@ class Listener(SpunNode):
 
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
+LOGGED_URL = re.compile(r'worker page (http://127\.0\.0\.1:(\d+)/),')
 
 
-def serving(port: int) -> bool:
+def logged_port(suite: NodeProcesses, name: str = 'hmi_node') -> int | None:
+    """The port the HMI bound, from its log line (port 0: the OS chose it, so no other
+    process can hold it, as it could a number picked here and bound later); None until the
+    line is there."""
+    found = LOGGED_URL.search(suite.log(name, 10 ** 6))
+    return None if found is None else int(found.group(2))
+
+
+def serving(port: int | None) -> bool:
     """The HMI's web server accepts connections (its node joins the graph before it binds)."""
+    if port is None:
+        return False
     with socket.socket() as s:
         s.settimeout(1.0)
         return s.connect_ex(('127.0.0.1', port)) == 0
@@ -129,18 +136,20 @@ def cell(tmp_path_factory, policy_path, ros_domain_id):
     """The suite's processes (all but the decision node, which the first test starts), the
     listener and the HMI's URL; always stopped at the end."""
     folder = tmp_path_factory.mktemp('hmi_cell')
-    port = free_port()
     params = folder / 'params.yaml'
-    params.write_text(PARAMS.format(policy=policy_path, period=EPOCH_PERIOD, port=port))
+    params.write_text(PARAMS.format(policy=policy_path, period=EPOCH_PERIOD, port=0))
     suite = NodeProcesses(folder, [params])
     listener = Listener()
     try:
         for node in ('hmi', 'task_manager', 'belief_estimator', 'cell_sim'):
             suite.start(f'{node}_node')
         listener.wait(lambda: (listener.nodes_up(('hmi', 'task_manager', 'belief_estimator',
-                                                  'cell_sim')) and serving(port))
+                                                  'cell_sim')) and serving(logged_port(suite)))
                       or suite.dead(), START_TIMEOUT, 'the nodes to start')
         assert not suite.dead(), suite.logs()
+        port = logged_port(suite)
+        # a restart (test_the_page_recovers_when_the_hmi_restarts) binds the same port
+        params.write_text(PARAMS.format(policy=policy_path, period=EPOCH_PERIOD, port=port))
         yield suite, listener, f'http://127.0.0.1:{port}/'
     finally:
         suite.stop(10.0)

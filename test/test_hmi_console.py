@@ -50,7 +50,7 @@ from hrc_ros.ros.launch_plan import ROBOT_OVERRIDES
 from hrc_ros.ros.nodes.hmi_node import HmiInputs
 from hrc_ros.ros.processes import NodeProcesses
 from spun import SpunNode
-from test_hmi_browser import free_port, serving
+from test_hmi_browser import logged_port, serving
 
 START_TIMEOUT = 60.0      # seconds for the processes to start (a loaded machine)
 BODY_S = 2.5              # seconds the body at the arm stays (the stop, and d = 0 epochs)
@@ -127,21 +127,20 @@ def cell(tmp_path_factory, ros_domain_id):
     HMI's URL; the decision node starts when the HMI and the recorder hear the rest, so the
     shift (its first epoch) begins with both hearing everything. Always stopped at the end."""
     folder = tmp_path_factory.mktemp('hmi_console')
-    port = free_port()
-    suite = NodeProcesses(folder, [params_file(folder, port)])
+    suite = NodeProcesses(folder, [params_file(folder, 0)])     # port 0: the OS chooses
     model = HRCModel(load_config(arm_config_path()))
     reads = HmiInputs(model.rho, model.sigma)
     recorder = Recorder(reads)
     try:
         for node in CELL:
             suite.start(f'{node}_node')
-        recorder.wait(lambda: (recorder.nodes_up(CELL) and serving(port)) or suite.dead(),
-                      'the nodes to start', START_TIMEOUT)
+        recorder.wait(lambda: (recorder.nodes_up(CELL) and serving(logged_port(suite)))
+                      or suite.dead(), 'the nodes to start', START_TIMEOUT)
         assert not suite.dead(), suite.logs()
         recorder.wait(lambda: any(name == 'separation' for _, name, _ in recorder.records),
                       'the arm to publish', START_TIMEOUT)
         suite.start('decision_node')
-        yield suite, recorder, reads, model, f'http://127.0.0.1:{port}/'
+        yield suite, recorder, reads, model, f'http://127.0.0.1:{logged_port(suite)}/'
     finally:
         suite.stop(10.0)
         recorder.close()
