@@ -197,7 +197,9 @@ def launch_round(index: int, rng: random.Random, work: Path, observer: Observer,
     moment = ''
     try:
         for node in plan:
-            extra = ['-p', 'port:=0'] if node.name == 'hmi' else []   # not 8080: held elsewhere
+            # not 8080, held elsewhere; named for the node, which the params file's own
+            # `hmi: port: 8080` would outrank
+            extra = ['-p', f'{node.name}:port:=0'] if node.name == 'hmi' else []
             nodes.start(node.executable, ros_args=launch_plan.ros_arguments(node, work) + extra)
         epoch = rng.randint(1, 3)
         fraction = rng.uniform(0.0, 1.0)

@@ -306,3 +306,160 @@ def test_namespaces_and_lists_as_the_commands_take_them():
     validate_full_topic_name('/' + 'a' * (MAX_NAMESPACE - 1) + LONGEST_CELL_NAME)
     with pytest.raises(InvalidTopicNameException):
         validate_full_topic_name('/' + 'a' * MAX_NAMESPACE + LONGEST_CELL_NAME)
+
+
+# -- what a user's first session tried (a review, 2026-12-06) -----------------------------------
+def test_an_empty_output_path_is_refused_by_every_command(tmp_path, capsys, monkeypatch):
+    """`--out ''` read as the current folder: hrc-simulate and hrc-evaluate wrote their files
+    there, and `hrc-fit -o ''` crashed with a traceback."""
+    from hrc_ros.ros import bag, case_study
+    from hrc_ros.ros.hmi import shots
+    from hrc_ros.tools import evaluate, fit, fleet, simulate, solve
+    monkeypatch.chdir(tmp_path)
+    for main, argv in [(simulate.main, ['--out', '']), (evaluate.main, ['--out', ' ']),
+                       (fit.main, ['x.csv', '-o', '']), (solve.main, ['-o', '']),
+                       (bag.main, ['record', '-o', '', '/x']),
+                       (case_study.main, ['--out', '']), (fleet.main, ['run', 'p.yaml',
+                                                                      '--out', '']),
+                       (shots.main, ['--out', ''])]:
+        assert 'an empty path names nothing' in refused_here(main, argv, capsys), main
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_hrc_case_study_checks_its_inputs_before_it_makes_a_folder_or_empties_a_bag(tmp_path,
+                                                                                    capsys):
+    """A refused configuration or policy left an empty --out behind, and a refusal came after
+    the last run's bag in <out>/bag was deleted; an HMI port in use failed 4 s into the run,
+    with the bag and logs written. Now one line each, and the last run's files stay."""
+    import socket
+    from hrc_ros.ros.case_study import main
+    err = refused_here(main, ['--out', tmp_path / 'new', '--config', tmp_path / 'none.yaml'],
+                       capsys)
+    assert 'none.yaml' in err and not (tmp_path / 'new').exists()
+    err = refused_here(main, ['--out', tmp_path / 'new', '--policy', tmp_path], capsys)
+    assert 'not a regular file' in err and not (tmp_path / 'new').exists()
+    last = tmp_path / 'last'
+    (last / 'bag').mkdir(parents=True)
+    (last / 'bag' / 'last_0.mcap').write_bytes(b'the last run')
+    refused_here(main, ['--out', last, '--policy', tmp_path / 'none.npz'], capsys)
+    assert (last / 'bag' / 'last_0.mcap').read_bytes() == b'the last run'
+    with socket.socket() as taken:
+        taken.bind(('127.0.0.1', 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        err = refused_here(main, ['--out', tmp_path / 'new', '--hmi', 'show', '--hmi-port',
+                                  port], capsys)
+    assert f'--hmi-port {port}' in err and 'in use' in err
+    assert not (tmp_path / 'new').exists()
+
+
+def test_a_policy_error_never_advises_writing_over_what_is_no_policy(tmp_path):
+    """`--policy README.md` advised `hrc-solve ... -o README.md`, and a folder `-o <folder>`
+    with 'the policy file file itself'."""
+    from hrc_ros.core.mdp.policy import PolicyError, load_policy
+    readme = tmp_path / 'README.md'
+    readme.write_text('# not a policy')
+    for path, said in [(readme, 'not a policy file'), (tmp_path, 'name the policy file itself'),
+                       (tmp_path / 'gone.npz', 'policy file ')]:
+        with pytest.raises(PolicyError) as error:
+            load_policy(path)
+        text = str(error.value)
+        assert said in text and 'file file' not in text, text
+        advice = text.split('Solve it again: ')[1]
+        assert advice.endswith('-o ' + (str(path) if path.suffix == '.npz' else '<file>.npz'))
+
+
+def test_hrc_hmi_shots_refuses_an_hmi_it_cannot_reach_in_one_line(tmp_path, capsys):
+    """`--url http://127.0.0.1:1/` was a 34-line Playwright traceback and an empty --out."""
+    from hrc_ros.ros.hmi.shots import main
+    for url, said in [('http://127.0.0.1:1/', 'cannot reach'), ('ftp://x/', 'not an http')]:
+        assert said in refused_here(main, ['--out', tmp_path / 'shots', '--url', url], capsys)
+    assert not (tmp_path / 'shots').exists()
+
+
+def entry(name: str, *args, stdout=subprocess.PIPE, **kwargs) -> subprocess.Popen:
+    """A console script as a user runs it (`python -m hrc_ros.ros.entry` runs the same main
+    as the installed script)."""
+    return subprocess.Popen([sys.executable, '-m', 'hrc_ros.ros.entry', name, *map(str, args)],
+                            stdout=stdout, stderr=subprocess.PIPE, text=True, **kwargs)
+
+
+@pytest.fixture
+def started():
+    """The processes a test starts (`entry`), killed at its end whatever happened: a node that
+    starts instead of answering must not outlive a failed test (one did, for 20 minutes)."""
+    processes: list[subprocess.Popen] = []
+
+    def start(name: str, *args, **kwargs) -> subprocess.Popen:
+        processes.append(entry(name, *args, **kwargs))
+        return processes[-1]
+    yield start
+    for process in processes:
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+
+
+def finished(process: subprocess.Popen, timeout: float = 60.0) -> tuple[int, str, str]:
+    try:
+        out, err = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        pytest.fail(f'still running after {timeout} s (it started instead of answering):\n'
+                    f'{(out or "")[-1500:]}\n{err[-1500:]}')
+    return process.returncode, out or '', err
+
+
+def test_every_node_answers_help_with_its_parameters_and_starts_on_nothing_else(started):
+    """`decision_node --help` and `robot_bridge_node --bogus-flag` started the node (the
+    bridge, a protective stop; the HMI took port 8080), and a missing --params-file was a
+    25-line RCLError traceback. Now --help prints the usage and every parameter and exits 0;
+    a non-ROS argument, an unknown ROS one and ROS arguments rcl refuses are one line and 2,
+    before any ROS work (so no DDS domain is touched here)."""
+    import importlib
+    from hrc_ros.ros.entry import COMMANDS
+    nodes = [name for name in COMMANDS if name.endswith('_node')]
+    assert len(nodes) == 11
+    running = {name: started(name, '--help') for name in nodes}
+    for name, process in running.items():
+        code, out, err = finished(process)
+        assert code == 0 and out.startswith(f'usage: {name} '), (name, code, out[:300], err)
+        for spec in importlib.import_module(COMMANDS[name]).PARAMETERS:
+            assert f'\n  {spec.name} (' in out, (name, spec.name)
+    cases = [(('--bogus-flag',), 'unrecognized arguments: --bogus-flag'),
+             (('--ros-args', '--bogus-ros'), 'unknown ROS arguments: --bogus-ros'),
+             (('--ros-args', '--params-file', '/nonexistent/params.yaml'), 'no such file'),
+             (('--ros-args', '-p', 'a=1'), "Couldn't parse parameter override rule")]
+    running = {(name, args): started(name, *args) for name in ('robot_bridge_node',
+                                                            'decision_node')
+               for args, _ in cases}
+    for (name, args), process in running.items():
+        code, out, err = finished(process)
+        said = dict(cases)[args]
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and said in lines[0], (name, args, code, err)
+        assert lines[0].startswith(f'{name}: error: ') and '/project/src' not in lines[0]
+
+
+def test_a_reader_that_leaves_stops_the_report_not_the_work(tmp_path, started):
+    """`hrc-fit ... | head -1` ended the fit with 'error: cannot write Broken pipe' before it
+    wrote its files, and `hrc-bag info | head -1` with a BrokenPipeError traceback. Here the
+    reader leaves before the command's first line: the fit writes its files and exits 0."""
+    bag = Path(__file__).resolve().parents[1] / 'bags' / 'case_study'
+    fitted = tmp_path / 'fitted.yaml'
+    fit = subprocess.Popen([sys.executable, '-m', MODULES['hrc-fit'], str(bag), '-o',
+                            str(fitted), '--bootstrap', '0'], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        info = started('hrc-bag', 'info', bag)
+        for process in (fit, info):
+            process.stdout.close()          # the reader is gone before anything was written
+        for process in (fit, info):
+            code = process.wait(timeout=120)
+            err = process.stderr.read()
+            assert code == 0 and err == '', (process.args, code, err)
+    finally:
+        fit.kill()
+        fit.wait()
+    assert load_config(fitted).data['model']['p_accept']

@@ -56,8 +56,10 @@ NODE_NAMES = {  # executable -> node name (DESIGN.md, config/hrc_params.yaml)
 # Nodes that cannot start on hrc_params.yaml alone (no camera pose): the params they also need.
 EXTRA_PARAMS = {'body_tracking_node': 'body_tracking_sim_params.yaml',
                 'tracker_sim_node': 'body_tracking_sim_params.yaml'}
-# ... and the arguments: the HMI on a free port, not 8080 that another run may hold.
-EXTRA_ARGS = {'hmi_node': ['-p', 'port:=0']}
+# ... and the arguments: the HMI on a free port, not 8080 that another run may hold. Named for
+# the node: the params file's `hmi: port: 8080` outranks a plain `-p port:=0` (rcl: a node's
+# own entry beats the wildcard), which left this test on 8080 until 2026-12-06.
+EXTRA_ARGS = {'hmi_node': ['-p', 'hmi:port:=0']}
 DOMAIN_ID = random.Random().randint(215, 230)
 BUILD_TIMEOUT = 120
 GRAPH_TIMEOUT = 30.0
@@ -318,6 +320,12 @@ def test_installed_node_joins_graph_and_stops_on_sigint(executable, prefix, ros_
         joined = graph_probe.wait_for(name, '/', process, GRAPH_TIMEOUT)
         assert joined, (f'{executable} did not show up as /{name} within {GRAPH_TIMEOUT} s '
                         f'(exit code {process.poll()}):\n{log.read_text()}')
+        if executable == 'hmi_node':        # on the port the OS chose (it joins, then binds)
+            deadline = time.monotonic() + GRAPH_TIMEOUT
+            while 'worker page' not in log.read_text() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert 'worker page http://127.0.0.1:' in log.read_text(), log.read_text()
+            assert ':8080/' not in log.read_text(), log.read_text()
         os.killpg(process.pid, signal.SIGINT)   # what Ctrl-C in a terminal does
         try:
             code = process.wait(timeout=SHUTDOWN_TIMEOUT)

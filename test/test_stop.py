@@ -227,7 +227,7 @@ SLOW_TO_STOP = textwrap.dedent('''
                 print('last word: stuck', flush=True)
                 time.sleep(120)
 
-    sys.exit(run(SlowToStop))
+    sys.exit(run(SlowToStop, sys.argv[:1]))   # its own argument is no ROS argument
 ''')
 
 

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
 from ..core.paths import folder_target
-from ..tools.common import Parser, bounded_float, bounded_int
+from ..tools.common import Parser, bounded_float, bounded_int, path_text
 from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
                             format_size, full_type_name, policy_name, read_bag, split_type_name)
 
@@ -610,7 +610,7 @@ def main(argv: list[str] | None = None) -> int:
         prog='hrc-bag', description='Record, play and inspect rosbag2-compatible MCAP bags.')
     commands = parser.add_subparsers(dest='command', required=True)
     record = commands.add_parser('record', help='record topics into a bag directory')
-    record.add_argument('-o', '--output', required=True,
+    record.add_argument('-o', '--output', required=True, type=path_text,
                         help='bag directory to create (or a file name ending in .mcap)')
     record.add_argument('--duration', type=bounded_float(0.0, 1e7), default=None,
                         help='stop after S seconds')

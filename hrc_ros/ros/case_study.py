@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 import sys
 import time
 from pathlib import Path
@@ -69,7 +70,7 @@ from ..core.tasks import TaskBook
 from ..core.decision.selection import POMDP_SELECTORS, SELECTORS
 from ..core.pomdp.policy import load_shipped_pomdp_policy
 from ..tools.common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, fail,
-                            output_folder)
+                            output_folder, path_text)
 from ..core.protocol import TaskEpochs
 from .launch_plan import (BODY_TRACKING_SIM_PARAMS, ROBOT_OVERRIDES, ROBOTS, SIM_MOTION_REMAPS,
                           SYNTHETIC_TRACKER_WITH_ARM, scenario_parameters)
@@ -96,6 +97,7 @@ ROBOT_EPOCH_PERIOD = 1.0    # s, the batch cell's physical epoch (ArmCellSetting
 # program cycles the arm completes under SSM, so its three tasks take longer than the model's
 # 20 epochs; in the batch cell the shipped arm policy completes them by epoch 31 with seed 0.
 ROBOT_EPOCHS = 40
+SSM_CHECK = 'ssm_check.json'    # written by a run with the arm only
 TOPICS = {
     'human/joint_states': 'sensor_msgs/msg/JointState',
     'human/skeleton': 'geometry_msgs/msg/PoseArray',
@@ -368,6 +370,20 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     return events
 
 
+def check_port_free(port: int, host: str = '127.0.0.1') -> None:
+    """ToolError when `host:port` cannot be bound now (another HMI, another program): the
+    HMI would fail seconds into the run, after the folder and the bag were made. A check,
+    not a reservation: the HMI binds it a moment later, as the web server does (address
+    reuse on)."""
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ToolError(f'--hmi-port {port}: cannot serve the HMI on {host}:{port}: '
+                            f'{exc.strerror or exc}; name a free port') from None
+
+
 def main(argv: list[str] | None = None) -> int:
     with stop.regime():
         return _main(argv)
@@ -375,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     parser = Parser(prog='hrc-case-study', description=__doc__.split('\n')[0])
-    parser.add_argument('--out', default='out/case_study', help='output folder')
+    parser.add_argument('--out', default='out/case_study', type=path_text, help='output folder')
     parser.add_argument('--epochs', type=bounded_int(1, MAX_RUN_EPOCHS), default=None,
                         help=f'decision epochs (default {case_study().epochs}; with --robot sim '
                              f'{ROBOT_EPOCHS}: the case study\'s tasks at the arm\'s physical '
@@ -432,6 +448,19 @@ def _main(argv: list[str] | None) -> int:
         return fail('hrc-case-study', ToolError(SYNTHETIC_TRACKER_WITH_ARM))
     if args.robot == 'sim' and not args.config:   # the arm's model (docs/ROBOT.md, section 4)
         args.config = str(arm_config_path())
+    # the inputs first: a refused run makes no folder and leaves the last run's bag alone
+    try:
+        config = load_config(args.config or default_config_path())
+        model = HRCModel(config)
+        load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
+        if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one
+            load_shipped_pomdp_policy(config)
+        if args.robot != 'sim':     # the arm's progress (robot_rate) needs the arm
+            check_model_cell(model)
+        if args.hmi:
+            check_port_free(args.hmi_port)
+    except (ConfigError, PolicyError, ValueError, ToolError) as exc:
+        return fail('hrc-case-study', exc)
     try:
         parse_faults(args.faults)
         if args.bag:            # the user's: never emptied, it must be new or empty
@@ -448,20 +477,8 @@ def _main(argv: list[str] | None) -> int:
         return fail('hrc-case-study', exc)
     if not args.bag and bag_dir.is_dir() and any(bag_dir.iterdir()):
         shutil.rmtree(bag_dir)
-    try:
-        config = load_config(args.config or default_config_path())
-        model = HRCModel(config)
-        load_policy(args.policy or default_policy_path(config), config)  # refuse early, clearly
-        if args.selector in POMDP_SELECTORS:    # the decision node reads the shipped one
-            load_shipped_pomdp_policy(config)
-    except (ConfigError, PolicyError) as exc:
-        return fail('hrc-case-study', exc)
-    if args.robot != 'sim':     # the arm's progress (robot_rate) needs the arm
-        try:
-            check_model_cell(model)
-        except ValueError as exc:
-            return fail('hrc-case-study', exc)
     shutil.rmtree(out / 'logs', ignore_errors=True)
+    (out / SSM_CHECK).unlink(missing_ok=True)     # a run with the arm's; this one may have none
     (out / 'logs').mkdir(parents=True, exist_ok=True)
     shipped = share_dir() / 'config'
     scenario = case_study()
@@ -525,7 +542,7 @@ def _main(argv: list[str] | None) -> int:
         from ..core.robot.check import format_ssm_check, ssm_check_of_bag
         check = ssm_check_of_bag(bag_dir, load_robot_description())
         print(format_ssm_check(check))
-        write_text(out / 'ssm_check.json', json.dumps({'person': args.person, **check},
+        write_text(out / SSM_CHECK, json.dumps({'person': args.person, **check},
                                                       indent=2) + '\n')
         print(f'wrote {out / "ssm_check.json"}')
     print(f'node logs in {out / "logs"}; {time.monotonic() - started:.1f} s')

@@ -9,8 +9,9 @@ that `main()` honours (a node built meanwhile is torn down, then exit 0). Once `
 returned, the process leaves at once (`stop.leave`: flushed, then `os._exit`, without the
 interpreter's finalization, seconds of CPU on a loaded machine). setup.py points every
 such console script here (`ros2 run` and `colcon build` use the same entry points); `python -m
-hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module and `stop` import
-only the standard library.
+hrc_ros.ros.entry NAME [ARGS...]` runs one by its script name. This module, `stop` and
+`core.streams` (a reader of the output that leaves, `| head`, stops the report, not the
+work) import only the standard library.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from __future__ import annotations
 import importlib
 import sys
 
+from ..core.streams import outliving_stdout
 from . import stop
 
 # console script -> module whose main() it runs (every node's main() takes ROS args from argv)
@@ -43,7 +45,8 @@ def run_command(name: str) -> int:
     stop.install()
     with stop.importing():        # a stop signal now ends the process at once, with 0
         module = importlib.import_module(COMMANDS[name])
-    return module.main()
+    with outliving_stdout():       # `| head`: the report stops, the work goes on
+        return module.main()
 
 
 def run_and_leave(name: str):

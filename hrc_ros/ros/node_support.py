@@ -28,6 +28,10 @@ time), so the machines decide what a timeout means and the nodes only keep time.
 
 from __future__ import annotations
 
+import os
+import re
+import sys
+import textwrap
 import threading
 import time
 import traceback
@@ -44,8 +48,10 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import qos_policy_name_from_kind
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.utilities import remove_ros_args
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
@@ -611,6 +617,66 @@ STARTUP_ERRORS = (StartupError, ParameterException)
 STOP_BACKSTOP_SEC = 1.0   # the longest a spin waits; a stop signal wakes it at once (stop.py)
 
 
+RCL_SOURCE = re.compile(r',? at /\S+:\d+')      # rcl's "at /project/src/x.c:N" trail
+USAGE = ('usage: {prog} [--help] [--ros-args [-p NAME:=VALUE] [--params-file FILE] '
+         '[-r FROM:=TO] ...]')
+SHOWN_ARGUMENTS = 200     # characters of refused arguments a one-line error quotes
+
+
+def command_line(node_class, argv: Sequence[str]) -> int | None:
+    """What the command line asks before any ROS work: None to start the node (ROS arguments
+    only); else the exit code, after the usage and parameters on stdout (--help, 0) or one
+    line on stderr (2): an argument that is not a ROS argument, or ROS arguments rcl refuses
+    (a --params-file missing or not YAML, a malformed -p). A node used to start on either,
+    robot-side ones included, and rcl's refusal was a traceback."""
+    prog = os.path.basename(argv[0]) if argv else node_class.NODE_NAME
+
+    def refuse(why: str) -> int:
+        print(f'{prog}: error: {why}', file=sys.stderr)
+        return 2
+    for flag, value in zip(argv, argv[1:]):
+        if flag == '--params-file' and not os.path.isfile(value):
+            return refuse(f'--params-file {cap(value, SHOWN_ARGUMENTS)}: '
+                          + ('is a directory' if os.path.isdir(value) else 'no such file'))
+    try:
+        rest = remove_ros_args(list(argv))[1:]
+    except _rclpy.UnknownROSArgsError as exc:     # its text: the list's repr
+        unknown = ' '.join(re.findall(r"'((?:[^'\\]|\\.)*)'", str(exc))) or str(exc)
+        return refuse(f'unknown ROS arguments: {cap(unknown, SHOWN_ARGUMENTS)} (after '
+                      f'--ros-args; {prog} --help shows the usage)')
+    except _rclpy.RCLError as exc:
+        why = RCL_SOURCE.sub('', ' '.join(str(exc).split()))
+        return refuse(f'the ROS arguments are refused: {cap(why, SHOWN_ARGUMENTS)}')
+    if '-h' in rest or '--help' in rest:
+        print(node_help(node_class, prog))
+        return 0
+    if rest:
+        return refuse(f'unrecognized arguments: {cap(" ".join(rest), SHOWN_ARGUMENTS)} (a node '
+                      f'takes ROS arguments only: {prog} --ros-args -p NAME:=VALUE; {prog} '
+                      '--help lists its parameters)')
+    return None
+
+
+def node_help(node_class, prog: str) -> str:
+    """The usage, the node's module docstring's first paragraph and its parameters (their
+    ParamSpecs: what `ros2 param describe` shows once it runs)."""
+    module = sys.modules[node_class.__module__]
+    lines = [USAGE.format(prog=prog), '']
+    summary = ' '.join((module.__doc__ or '').split('\n\n')[0].split())
+    if summary:
+        lines += textwrap.wrap(summary, 96) + ['']
+    lines.append(f'parameters of node {node_class.NODE_NAME!r} (set with -p NAME:=VALUE or '
+                 'a --params-file):')
+    for spec in getattr(module, 'PARAMETERS', ()):
+        kind = spec.type.name.lower().replace('_array', '[]')
+        extra = ''.join([f', {spec.range[0]}..{spec.range[1]}' if spec.range else '',
+                         ', read-only' if spec.read_only else ''])
+        lines += textwrap.wrap(f'{spec.name} ({kind}, default {spec.default!r}{extra}): '
+                               f'{spec.description}', 96, initial_indent='  ',
+                               subsequent_indent='      ')
+    return '\n'.join(lines)
+
+
 def run(node_class, args=None) -> int:
     """The `main()` of a node (ros2/demos talker pattern, with the suite's stop regime of
     `stop.py`); returns the process exit code.
@@ -622,8 +688,12 @@ def run(node_class, args=None) -> int:
     exit 0. A second signal forces the exit (`stop.FORCED_EXIT`). A context shut down from
     elsewhere (ExternalShutdownException) also ends the loop. A node that cannot start
     (`StartupError`, a rejected parameter) logs why and returns 1, with no traceback; any
-    other error is a bug and propagates.
+    other error is a bug and propagates. Before any of it, `command_line`: --help, and
+    arguments that are not ROS arguments or that rcl refuses (exit 2, one line).
     """
+    refused = command_line(node_class, sys.argv if args is None else args)
+    if refused is not None:
+        return refused
     with stop.regime():
         if stop.requested():
             return 0

@@ -21,6 +21,7 @@ from ..core.config import Config, ConfigError, load_config
 from ..core.mdp.policy import Policy, PolicyError, default_policy_path, load_policy
 from ..core.model import HRCModel
 from ..core.paths import default_config_path, folder_target, output_target
+from ..core.streams import outliving_stdout
 
 MAX_SEED = 2 ** 31 - 1          # the simulated cell node's seed range
 MAX_EPOCHS = 100_000            # one closed-loop run
@@ -59,6 +60,14 @@ def bounded_int(low: int, high: int):
 def bounded_float(low: float, high: float):
     """An argparse type: a finite number in [low, high]."""
     return _bounded(float, low, high, 'a number', f'[{low}, {high}]')
+
+
+def path_text(text: str) -> str:
+    """An argparse type: a path that names something. An empty one read as the current
+    folder: `hrc-simulate --out ''` wrote its files there, `hrc-fit -o ''` crashed."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError('an empty path names nothing; name a file or folder')
+    return text
 
 
 def check_cell(world: HRCModel) -> None:
@@ -173,7 +182,8 @@ def command(prog: str):
     checked before any work (one line and 2 when it is wrong), Ctrl-C ends the command with one
     line and 130 instead of a traceback, and an output it cannot write (a full disk, a link to
     a device planted in its folder) is one line and 1 (what it was writing is written whole or
-    not at all: `paths.replace_file`)."""
+    not at all: `paths.replace_file`). A reader of its output that leaves (`| head`) stops the
+    report only (`core.streams`)."""
     def decorate(main):
         @functools.wraps(main)
         def run(argv=None) -> int:
@@ -182,7 +192,8 @@ def command(prog: str):
             except parallel.KernelSettingError as exc:
                 return fail(prog, exc)
             try:
-                return main(argv)
+                with outliving_stdout():      # `| head`: the report stops, the work goes on
+                    return main(argv)
             except KeyboardInterrupt:
                 print(f'\n{prog}: interrupted', file=sys.stderr)
                 return INTERRUPTED

@@ -55,7 +55,8 @@ from ..core.study.simulation import SIMULATION_SELECTORS
 from ..core.names import BadName, items
 from .common import (MAX_EPISODES, MAX_EPISODE_EPOCHS, MAX_EPOCHS, MAX_SEED, Parser, ToolError,
                      add_model_arguments, add_pomdp_argument, bounded_float, bounded_int,
-                     check_cell, command, fail, load_model, load_pomdp, output_folder)
+                     check_cell, command, fail, load_model, load_pomdp, output_folder,
+                     path_text)
 
 
 def write_summary_csv(path, summaries: dict, metrics) -> None:
@@ -240,7 +241,7 @@ def main(argv=None) -> int:
                              "the model's person) or a scenario that tests SSM (walk_in, "
                              'run_in, appear, reach, frozen_tracker, lost_tracker: docs/ROBOT.md '
                              '4); the figures then add SSM against the true bodies')
-    parser.add_argument('--out', default='out/evaluate', help='output folder')
+    parser.add_argument('--out', default='out/evaluate', type=path_text, help='output folder')
     args = parser.parse_args(argv)
     if args.cell != 'arm' and args.person != 'honest':
         parser.error('--person is for the cell with the arm (--cell arm)')

@@ -49,7 +49,7 @@ from ..core.model import HRCModel
 from ..core.learning.stream import StreamError, check_stream, fit_stream_for
 from ..core.names import BadName, items, namespace
 from .common import (MAX_SEED, Parser, ToolError, bounded_float, bounded_int, command, fail,
-                     output_file)
+                     output_file, path_text)
 
 
 @command('hrc-fit')
@@ -59,7 +59,8 @@ def main(argv=None) -> int:
         'observation likelihood) to recorded runs by EM; write a configuration and a report.')
     parser.add_argument('inputs', nargs='+', metavar='INPUT',
                         help='bag folders, .mcap files or trajectory .csv files')
-    parser.add_argument('-o', '--output', required=True, help='configuration YAML to write')
+    parser.add_argument('-o', '--output', required=True, type=path_text,
+                        help='configuration YAML to write')
     parser.add_argument('--base', default=None, help='configuration the fit starts from and '
                         'copies everything else from (default: the shipped default.yaml)')
     parser.add_argument('--hold', default='', help='comma-separated families to keep at the '
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
                         help='warn below this many informative epochs per parameter')
     parser.add_argument('--namespace', default=None,
                         help="the cell's namespace in the bags (default: the only one)")
-    parser.add_argument('--report', default=None,
+    parser.add_argument('--report', default=None, type=path_text,
                         help='JSON report to write (default: OUT with .report.json)')
     parser.add_argument('--plot', nargs='?', const='', default=None, metavar='PNG',
                         help='also plot fitted vs base parameters (default: OUT with .png)')

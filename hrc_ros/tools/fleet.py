@@ -41,7 +41,8 @@ from ..core.plant import report as reporting
 from ..core.plant.pipeline import DRIVER, DRIVER_NODE, CellPipeline, Ref, run_serially, run_stage
 from ..core.plant.spec import POMDP_SELECTORS, Plant, PlantError, load_plant
 from . import fleet_ray
-from .common import Parser, ToolError, bounded_int, command, fail, output_folder
+from .common import (Parser, ToolError, bounded_int, command, fail, output_folder,
+                     path_text)
 
 PROGRESS_WIDTH = 110
 STARTS = 3          # attempts at starting the embedded Ray (its raylet's start-up can time out)
@@ -435,7 +436,8 @@ def main(argv=None) -> int:
     commands = parser.add_subparsers(dest='command', required=True, parser_class=Parser)
     run = commands.add_parser('run', help='run the plant: every cell, then the plant report')
     run.add_argument('plant', help='the plant file (YAML; docs/FLEET.md)')
-    run.add_argument('--out', default='out/fleet', help='output folder (default out/fleet)')
+    run.add_argument('--out', default='out/fleet', type=path_text,
+                     help='output folder (default out/fleet)')
     run.add_argument('--address', default=None,
                      help="an existing Ray cluster: 'auto' or ray://host:port (default: an "
                           'embedded Ray on this machine)')

@@ -17,7 +17,7 @@ from ..core.study.plots import plot_trajectory
 from ..core.study.simulation import SIMULATION_SELECTORS, Scenario, case_study, simulate
 from .common import (MAX_EPOCHS, MAX_SEED, Parser, ToolError, add_model_arguments,
                      add_pomdp_argument, bounded_int, check_cell, command, fail, load_model,
-                     load_pomdp, output_folder)
+                     load_pomdp, output_folder, path_text)
 
 
 @command('hrc-simulate')
@@ -36,7 +36,7 @@ def main(argv=None) -> int:
                         help='seed of the simulated human')
     parser.add_argument('--epochs', type=bounded_int(1, MAX_EPOCHS), default=None,
                         help='number of epochs (default: the case study\'s 20)')
-    parser.add_argument('--out', default='out/simulate', help='output folder')
+    parser.add_argument('--out', default='out/simulate', type=path_text, help='output folder')
     args = parser.parse_args(argv)
     try:
         config, model, policy = load_model(args)

@@ -20,7 +20,7 @@ from ..core.mdp.liveness import check_liveness
 from ..core.mdp.policy import save_policy
 from ..core.mdp.solver import memory_estimate, solve
 from .common import (MAX_SEED, Parser, ToolError, add_model_arguments, bounded_int, check_memory,
-                     command, fail, load_model, output_file)
+                     command, fail, load_model, output_file, path_text)
 
 POMDP = 'pomdp'
 MAX_ROUNDS = 20
@@ -31,7 +31,7 @@ MAX_POMDP_EPISODES = 100_000   # x 50 epochs of 9 floats: under 2 GB of gathered
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-solve', description=__doc__.split('\n')[1])
     add_model_arguments(parser, policy=False)
-    parser.add_argument('-o', '--output', required=True,
+    parser.add_argument('-o', '--output', required=True, type=path_text,
                         help='policy file to write (a name ending in .npz)')
     parser.add_argument('--method', default='value_iteration', choices=('value_iteration', POMDP),
                         help='value_iteration (the MDP, default) or pomdp '

@@ -53,11 +53,20 @@ _END_OF_DIRECTORY = b'PK\x05\x06'
 _ZIP64_LOCATOR = b'PK\x06\x07'
 
 
-def open_policy(path: Path, resolve: str, what: str = 'policy file') -> BinaryIO:
+def solve_again(path: Path) -> str:
+    """What to do about a policy file that cannot be used: solve it again in its place when
+    it is named like one (.npz); a README or a folder named by mistake is not overwritten."""
+    target = cap(path, PATH_QUOTE) if path.suffix == '.npz' and not path.is_dir() else \
+        '<file>.npz'
+    return f'Solve it again: hrc-solve --config <your config.yaml> -o {target}'
+
+
+def open_policy(path: Path, resolve: str, what: str = 'policy') -> BinaryIO:
     """A policy file opened for reading (`paths.open_input`: a regular file of at most the
-    'policy' cap), or PolicyError saying what is wrong and `resolve` (what to do)."""
+    'policy' cap), or PolicyError saying what is wrong and `resolve` (what to do). `what`
+    names the kind ('policy', 'POMDP policy'): the messages add 'file'."""
     if not os.path.lexists(path):
-        raise PolicyError(f'{what} {cap(path, PATH_QUOTE)} does not exist. {resolve}')
+        raise PolicyError(f'{what} file {cap(path, PATH_QUOTE)} does not exist. {resolve}')
     return open_input(path, lambda message: PolicyError(f'{message}. {resolve}'), 'policy', what)
 
 
@@ -269,7 +278,7 @@ def save_policy(path: str | Path, result: SolveResult, config: Config) -> Path:
 def load_policy(path: str | Path, config: Config | None = None) -> Policy:
     """Load and check a policy file; with `config`, also check it was solved for it."""
     path = Path(path)
-    resolve = f'Solve it again: hrc-solve --config <your config.yaml> -o {cap(path, PATH_QUOTE)}'
+    resolve = solve_again(path)
     n_states = None if config is None else HRCModel(config).n_states
     with open_policy(path, resolve) as stream:
         headers = _headers(stream, path, resolve)
@@ -293,7 +302,7 @@ def peek_policy(path: str | Path, config: Config) -> dict:
     state count, and its meta says it was solved for `config`. Reads the headers and the meta
     only (milliseconds); `load_policy` then reads and checks the arrays. PolicyError as there."""
     path = Path(path)
-    resolve = f'Solve it again: hrc-solve --config <your config.yaml> -o {cap(path, PATH_QUOTE)}'
+    resolve = solve_again(path)
     with open_policy(path, resolve) as stream:
         headers = _headers(stream, path, resolve)
         _check_headers(path, headers, HRCModel(config).n_states, resolve)

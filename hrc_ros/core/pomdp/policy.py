@@ -179,7 +179,7 @@ def load_pomdp_policy(path: str | Path, config: Config | None = None) -> PomdpPo
     if config is not None:
         model = HRCModel(config)
         n_columns = model.n_levels * model.n_task * N_DISTANCE   # l outermost (MODEL.md 8.1)
-    with open_policy(path, how, 'POMDP policy file') as stream:
+    with open_policy(path, how, 'POMDP policy') as stream:
         headers = _headers(stream, path, how)
         _check_headers(path, headers, n_columns, how)   # before any array is read
         arrays = _read_members(stream, path, headers, ARRAYS, how, 'a POMDP policy file')

@@ -20,13 +20,17 @@ from __future__ import annotations
 import json
 import sys
 import time
+import urllib.error
+import urllib.parse
+import urllib.request
 from pathlib import Path
 
 import numpy as np
 
 from ...core.hmi import AccessPolicy, HmiMachine
+from ...core.quoting import cap
 from ...core.model import ACTIONS, DN, RH2, TASK_VARIABLES
-from ...tools.common import Parser, fail, output_folder
+from ...tools.common import Parser, fail, output_folder, path_text
 from .browser import SIZES, BrowserError, launch
 from .server import HmiServer, ServerSettings
 
@@ -209,9 +213,31 @@ def shoot(browser, url: str, out: Path, state: str, token: str = '',
     return written
 
 
+REACH_TIMEOUT_SEC = 5.0
+
+
+def check_reachable(url: str) -> None:
+    """ValueError in one line when `url` is not an http(s) address or nothing answers there
+    (an HTTP error status is an answer: the HMI may ask for its token)."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ('http', 'https') or not parts.hostname:
+        raise ValueError(f'--url {cap(url, 200)}: not an http(s) address, e.g. '
+                         'http://127.0.0.1:8080/')
+    try:
+        with urllib.request.urlopen(url, timeout=REACH_TIMEOUT_SEC):
+            pass
+    except urllib.error.HTTPError:
+        pass
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        reason = getattr(exc, 'reason', exc)
+        raise ValueError(f'cannot reach {cap(url, 200)}: {reason}; is the HMI running '
+                         '(hmi_node, or hrc-case-study --hmi)?') from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-hmi-shots', description=__doc__.split('\n')[0])
-    parser.add_argument('--out', default='out/hmi_shots', help='folder for the PNG files')
+    parser.add_argument('--out', default='out/hmi_shots', type=path_text,
+                        help='folder for the PNG files')
     parser.add_argument('--url', default='', help='a running HMI (default: a scripted cell '
                         'served here)')
     parser.add_argument('--token', default='', help="the running HMI's operator's access token "
@@ -227,11 +253,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.colours and not 2 <= args.colours <= 256:
         return fail('hrc-hmi-shots', f'--colours must lie in 2..256, got {args.colours}')
     try:
+        if args.url:            # before the folder is made: an HMI that is not there is one line
+            check_reachable(args.url)
         out = output_folder(Path(args.out))
+        from playwright.sync_api import Error as PlaywrightError
         from playwright.sync_api import sync_playwright
     except ImportError:
         return fail('hrc-hmi-shots', 'playwright is not installed: pip install playwright')
-    except Exception as exc:  # noqa: BLE001 - a bad output folder, said in one line
+    except Exception as exc:  # noqa: BLE001 - a bad output folder or URL, said in one line
         return fail('hrc-hmi-shots', exc)
     written = []
     try:
@@ -251,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
                 browser.close()
     except BrowserError as exc:
         return fail('hrc-hmi-shots', exc)
+    except PlaywrightError as exc:      # the HMI went away, a page that never loaded
+        return fail('hrc-hmi-shots', f'the browser failed: {str(exc).splitlines()[0]}')
     for path in written:
         if args.colours:
             reduce_colours(path, args.colours)
