@@ -49,8 +49,11 @@ class HangStacks:
         self.created = None
         worker = getattr(config, 'workerinput', None)
         uses_workers = worker is not None or bool(getattr(config.option, 'numprocesses', 0))
-        if worker is None and uses_workers and ENV not in os.environ:
-            # the controller, before its workers start (they inherit the environment)
+        if worker is None and uses_workers:
+            # the controller, before its workers start (they inherit the environment): a
+            # folder of its own even when it inherited one, as a pytest run inside a test of
+            # the suite does, whose worker gw0 would share the suite's gw0's file (CI,
+            # 2026-12-06: the suite's gw0 emptied it as its next test started)
             self.created = os.environ[ENV] = tempfile.mkdtemp(prefix='hrc_test_stacks_')
         folder = os.environ.get(ENV)
         self.folder = Path(folder) if folder and uses_workers else None

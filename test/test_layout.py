@@ -145,12 +145,20 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
         'from hang_stacks import HangStacks\n\n\n'
         'def pytest_configure(config):\n'
         '    config.pluginmanager.register(HangStacks(config), "hrc-hang-stacks")\n')
+    # a run inside a run of the suite inherits the suite's folder (HRC_TEST_STACKS_DIR): its
+    # gw0 wrote to the suite's gw0's file, which that worker emptied as its next test started
+    # (CI, 2026-12-06); this run must use a folder of its own and leave the inherited alone
+    inherited = tmp_path / 'the_suites_stacks'
+    inherited.mkdir()
+    from hang_stacks import ENV
     result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
                              '-o', 'timeout=4', '-p', 'no:cacheprovider', '-n', '1',
                              '--rootdir', str(tmp_path), str(hanging)],
-                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                            env={**os.environ, ENV: str(inherited)})
     output = result.stdout + result.stderr
     assert result.returncode != 0
+    assert list(inherited.iterdir()) == []
     assert "crashed while running 'test_hang.py::test_hangs'" in output, output[-3000:]
     assert 'its threads 2 s before the test\'s timeout' in output, output[-3000:]
     assert 'test_hang.py", line 6 in test_hangs' in output, output[-3000:]
