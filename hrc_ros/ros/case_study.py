@@ -543,8 +543,8 @@ def _main(argv: list[str] | None) -> int:
         check = ssm_check_of_bag(bag_dir, load_robot_description())
         print(format_ssm_check(check))
         write_text(out / SSM_CHECK, json.dumps({'person': args.person, **check},
-                                                      indent=2) + '\n')
-        print(f'wrote {out / "ssm_check.json"}')
+                                               indent=2) + '\n')
+        print(f'wrote {out / SSM_CHECK}')
     print(f'node logs in {out / "logs"}; {time.monotonic() - started:.1f} s')
     return 0
 
