@@ -463,3 +463,12 @@ def test_a_reader_that_leaves_stops_the_report_not_the_work(tmp_path, started):
         fit.kill()
         fit.wait()
     assert load_config(fitted).data['model']['p_accept']
+
+
+def test_an_integer_for_a_decimal_parameter_says_how_to_write_it(started):
+    """`epoch_period: 1` in a params file is a YAML integer, which rclpy refuses for a double
+    parameter; the one line now says what to write."""
+    code, out, err = finished(started('decision_node', '--ros-args', '-p', 'epoch_period:=1'))
+    lines = [line for line in (out + err).splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1, (code, out, err)
+    assert 'cannot start:' in lines[0] and '(write 1.0: a number with a decimal point)' in lines[0]

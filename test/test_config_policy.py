@@ -161,6 +161,28 @@ def test_unreadable_and_malformed_files(tmp_path):
         load_config(binary)
 
 
+def test_a_key_given_twice_is_refused_naming_it_and_its_line(tmp_path):
+    """YAML's loaders keep a repeated key's second value without a word: a configuration with
+    `k1` twice under cost was solved with the second (a review, 2026-12-06). Lists of mappings
+    with the same keys, the same key in two mappings and merge keys stay valid."""
+    lines = DEFAULT.read_text().splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith('cost:'))
+    twice = tmp_path / 'twice.yaml'
+    twice.write_text('\n'.join(lines[:at + 1] + ['  k1: 5.0'] + lines[at + 1:]) + '\n')
+    second = [i + 1 for i, line in enumerate(twice.read_text().splitlines())
+              if line.strip().startswith('k1:')][1]
+    with pytest.raises(ConfigError) as error:
+        load_config(twice)
+    message = str(error.value)
+    assert f'line {second}: the key cost.k1 is given twice' in message, message
+    assert '\n' not in message
+    from hrc_ros.core.paths import parse_yaml
+    assert parse_yaml('a: [{x: 1}, {x: 2}]\nb: {x: 1}\nc: {x: 2}\n', ValueError, 's') == {
+        'a': [{'x': 1}, {'x': 2}], 'b': {'x': 1}, 'c': {'x': 2}}
+    assert parse_yaml('base: &b {x: 1}\nother: {<<: *b, y: 2}\n', ValueError, 's')[
+        'other'] == {'x': 1, 'y': 2}
+
+
 def test_shipped_policies_load_and_match_their_configs():
     for name in ('default', 'paper', 'fail_safe_unaware', 'arm'):
         config = load_config(shipped_config_path(name))

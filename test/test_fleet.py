@@ -125,6 +125,12 @@ CELL = '  - name: a\n    recordings: x.csv\n'
      'promote.guards must be a list of guards among refused_requests'),
     ('cells: [\n', 'is not valid YAML'),
     ('celss: []\n', "unknown top-level key 'celss'"),
+    # a key given twice: YAML keeps the second silently (a review ran the second recordings)
+    ('cells:\n' + CELL + '    recordings: y.csv\n', 'the key cells.recordings is given twice'),
+    # a generated world that makes no configuration of its base: the plant file's mistake,
+    # refused before any work (it failed the cell after the others had run)
+    ('cells:\n  - name: g\n    generate: {world: {model: {p_accept: [0.05, 0.35, 1.7]}}}\n',
+     'cells[0] (g): generate.world: model.p_accept[2] = 1.7 is not a probability'),
 ])
 def test_a_bad_plant_file_is_refused_in_one_line(tmp_path, text, message):
     with pytest.raises(PlantError) as error:

@@ -730,6 +730,14 @@ def test_decision_follows_the_epoch_topic(graph, model, policy_path):
     dec.inputs()
     epoch.publish(UInt32(data=2))
     assert dec.run(2) == [expected] * 2
+    # the one writer of hrc/epoch is the source it follows, not 'another epoch source' (a
+    # replay's player was reported so, with 'Stop one'); a second writer is
+    assert graph.spin_until(lambda: dec.node.count_publishers('hrc/epoch') == 1)
+    assert dec.node._other_sources() == []
+    second = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    assert graph.spin_until(lambda: len(dec.node._other_sources()) == 2)
+    graph.probe.destroy_publisher(second)
+    assert graph.spin_until(lambda: dec.node._other_sources() == [])
     dec.inputs()
     epoch = new_epoch_source(graph, dec.node.epochs)
     epoch.publish(UInt32(data=1))                            # the replay started again

@@ -239,10 +239,33 @@ def _check_yaml_events(text: str, max_depth: int, max_nodes: int) -> None:
     deeper than `max_depth` or holds more than `max_nodes` values, every alias counted as the
     values and levels of the node it names (so neither an alias bomb nor 1,500 nested brackets
     ever reach the composer, the constructor or Python's recursion limit), or when an alias
-    sits inside the node it names (a structure that contains itself)."""
+    sits inside the node it names (a structure that contains itself), or when a mapping gives
+    one key twice (YAML's loaders keep the second silently: a cost given twice in a
+    configuration was solved with the second value, without a word)."""
     nodes = depth = reach = 0
     anchored: dict[str, tuple[int, int]] = {}    # anchor -> (values, levels) of its node
     open_nodes: list[tuple] = []                 # per open collection: anchor, values, reach
+    mappings: list[list | None] = []             # per open collection: [keys, key next, key]
+
+    def done() -> None:
+        """A whole node ended inside the innermost collection: in a mapping, the key's or
+        the value's turn follows."""
+        if mappings and mappings[-1] is not None:
+            mappings[-1][1] = not mappings[-1][1]
+
+    def check_key(event) -> None:
+        frame = mappings[-1] if mappings else None
+        if frame is None or not frame[1]:
+            return
+        key = event.value
+        if key in frame[0] and key != '<<':
+            line = event.start_mark.line + 1 if event.start_mark is not None else '?'
+            where = '.'.join(str(f[2]) for f in mappings[:-1] if f is not None and f[2])
+            name = f'{where}.{key}' if where else key
+            raise _Refused(f'line {line}: the key {cap(name, 80)} is given twice (the second '
+                           'would silently replace the first); keep one')
+        frame[0].add(key)
+        frame[2] = key
 
     def grow(count: int, level: int, event) -> None:
         nonlocal nodes, reach
@@ -263,21 +286,28 @@ def _check_yaml_events(text: str, max_depth: int, max_nodes: int) -> None:
                 line = event.start_mark.line + 1 if event.start_mark is not None else '?'
                 raise _Refused(f'line {line}: the alias *{cap(event.anchor, 40)} is inside the '
                                'node it names (a structure that contains itself)')
+            done()
         elif isinstance(event, yaml.ScalarEvent):
             grow(1, depth + 1, event)
             if event.anchor is not None:
                 anchored[event.anchor] = (1, 1)
+            check_key(event)
+            done()
         elif isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
             grow(1, depth + 1, event)
             depth += 1
             open_nodes.append((event.anchor, nodes, reach))
+            mappings.append([set(), True, None] if isinstance(event, yaml.MappingStartEvent)
+                            else None)
             reach = depth
         elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
             anchor, count_before, reach_before = open_nodes.pop()
+            mappings.pop()
             if anchor is not None:
                 anchored[anchor] = (nodes - count_before + 1, reach - depth + 1)
             reach = max(reach, reach_before)
             depth -= 1
+            done()
 
 
 def parse_yaml(text: str, error: Error, source: str, max_depth: int = YAML_MAX_DEPTH,

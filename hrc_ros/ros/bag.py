@@ -15,12 +15,14 @@ import importlib
 import os
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from ..core import bagfile
 from ..core.paths import folder_target
+from ..core.quoting import cap
 from ..tools.common import Parser, bounded_float, bounded_int, path_text
 from ..core.bagfile import (BagError, BagMessage, bag_info, duration_fields, duration_ns,
                             format_size, full_type_name, policy_name, read_bag, split_type_name)
@@ -204,6 +206,7 @@ class Recorder:
             for t, ty in (topics or {}).items()}
         self.subscriptions: dict[str, Any] = {}
         self.message_count = 0
+        self.counts: Counter = Counter()     # messages per topic
         self._timer = node.create_timer(poll_period, self.poll)
         self.poll()
 
@@ -249,6 +252,7 @@ class Recorder:
             source_ns = info.get('source_timestamp') if isinstance(info, dict) else None
             self.writer.write(topic, data, receive_ns, source_ns or receive_ns)
             self.message_count += 1
+            self.counts[topic] += 1
         return on_message
 
     def close(self) -> None:
@@ -362,6 +366,7 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
     if unknown:
         raise BagError(f'{info.path} has no topic {", ".join(sorted(unknown))} '
                        f'(it has {", ".join(t.topic for t in info.topics) or "none"})')
+    counts = {t.topic: t.message_count for t in info.topics}
     import rclpy
     import rclpy.context
     from rclpy.duration import Duration
@@ -389,9 +394,13 @@ def play(path: str | os.PathLike, node: Any = None, rate: float = 1.0,
                 cls, topic.topic, qos_from_offers(topic.qos_profiles))
         wanted = set(publishers)
         every_topic = wait_for_subscribers > 0
+        # a topic without messages has nothing to deliver: nobody need listen to it (a bag
+        # with an empty topic waited the whole --wait-for-subscribers for it)
+        played = {topic: publisher for topic, publisher in publishers.items()
+                  if counts.get(topic, 0) > 0}
         unmatched = wait_until_matched(
-            node, publishers, wait_for_subscribers if every_topic else match_timeout,
-            every_topic=every_topic, notice=notice) if publishers else {}
+            node, played, wait_for_subscribers if every_topic else match_timeout,
+            every_topic=every_topic, notice=notice) if played else {}
         count, first_ns, start, last_wall = 0, None, 0.0, 0.0
         messages = read_bag(info.path, topics=wanted) if wanted else iter(())
         if order == 'publish':
@@ -559,6 +568,11 @@ def _record(node: Any, args: argparse.Namespace) -> int:
     print(f'hrc-bag: recorded {writer.message_count} messages on {len(writer.topics)} '
           f'topic(s) in {time.monotonic() - started:.1f} s to {writer.path} '
           f'({format_size(writer.path.stat().st_size)})', flush=True)
+    empty = [topic for topic in topics if recorder.counts[topic] == 0]
+    if empty:      # a bag that lacks a topic's messages cannot be replayed or fitted as one
+        print(f'hrc-bag: warning: no message on {cap(", ".join(empty), 400)}: they had '
+              'publishers but sent nothing while recording (start the recorder before the '
+              'run, or record longer)', file=sys.stderr, flush=True)
     return 0
 
 

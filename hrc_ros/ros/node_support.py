@@ -704,13 +704,24 @@ def run(node_class, args=None) -> int:
             rclpy.try_shutdown()
 
 
+WRONG_TYPE = re.compile(r"to '([^']*)' of type 'INTEGER', expecting type 'DOUBLE'")
+
+
+def type_hint(message: str) -> str:
+    """What to do about rclpy's refusal of an integer where a parameter is a double (YAML's
+    `1` is an integer): write it with a decimal point."""
+    found = WRONG_TYPE.search(message)
+    return '' if found is None else f' (write {found.group(1)}.0: a number with a decimal point)'
+
+
 def _run_node(node_class) -> int:
     if stop.requested():
         return 0
     try:
         node = node_class()
     except STARTUP_ERRORS as exc:
-        rclpy.logging.get_logger(node_class.NODE_NAME).error(f'cannot start: {exc}')
+        rclpy.logging.get_logger(node_class.NODE_NAME).error(
+            f'cannot start: {exc}{type_hint(str(exc))}')
         return 1
     executor = SingleThreadedExecutor()
     try:

@@ -305,6 +305,22 @@ def _base_path(folder: Path, text: str) -> str:
     return _resolve(folder, text)
 
 
+def check_world(where: str, base: str, world: dict) -> None:
+    """PlantError when a generated cell's world (overrides written in the plant file) does not
+    make a configuration of its base: a typo there is the plant file's, refused before any
+    work (it failed the cell after the others had run). A base that does not load is left to
+    the cell (its read stage fails it alone, as a broken file of its own)."""
+    from ..config import ConfigError, load_config
+    try:
+        config = load_config(base)
+    except ConfigError:
+        return
+    try:
+        config.with_overrides(world)
+    except ConfigError as exc:
+        raise PlantError(f'{where}: generate.world: {exc}') from None
+
+
 def load_plant(path: str | Path) -> Plant:
     """The plant file, checked (module docstring); PlantError with one line otherwise."""
     path = Path(path)
@@ -387,9 +403,12 @@ def load_plant(path: str | Path) -> Plant:
         if pomdp_policy is not None and selector not in POMDP_SELECTORS:
             raise PlantError(f'{where}: pomdp_policy is the running POMDP policy of a cell '
                              f'whose selector is pomdp or fib; this one runs {selector}')
+        base = _base_path(folder, settings.get('base', SCALARS['base'][1]))
+        if generate is not None and isinstance(generate['world'], dict):
+            check_world(where, base, generate['world'])
         out.append(CellSpec(
             name=label, namespace=namespace, recordings=recordings, generate=generate,
-            base=_base_path(folder, settings.get('base', SCALARS['base'][1])),
+            base=base,
             policy=None if policy is None else _resolve(folder, policy),
             pomdp_policy=None if pomdp_policy is None else _resolve(folder, pomdp_policy),
             solver=solver, selector=selector, run=settings.get('run', SCALARS['run'][1]),

@@ -374,9 +374,13 @@ class DecisionNode(Node):
     def _other_sources(self) -> list:
         """Other publishers of hrc/epoch or hrc/action (`Endpoint`s): a second decision node,
         say (also one with this node's name: one publisher per topic of this name is this
-        node's own)."""
-        return (endpoints(self, 'hrc/epoch', skip_own=self.epoch_pub is not None)
-                + endpoints(self, 'hrc/action'))
+        node's own). Following hrc/epoch (topic mode), its one publisher is the source this
+        node follows (a bag's player, a clock of the cell), not another: only a second one
+        is (a replay used to report its player as 'another epoch source ... Stop one')."""
+        epoch = endpoints(self, 'hrc/epoch', skip_own=self.epoch_pub is not None)
+        if self.epoch_pub is None and len(epoch) == 1:
+            epoch = []
+        return epoch + endpoints(self, 'hrc/action')
 
     def _publish_claim(self) -> None:
         self.claim_pub.publish(conv.claim_to_msg(self.claim))
