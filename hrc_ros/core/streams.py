@@ -22,7 +22,6 @@ class OutlivingStdout:
 
     def __init__(self, stream):
         self._stream = stream
-        self.reader_gone = False
 
     def write(self, text):
         try:
@@ -38,7 +37,6 @@ class OutlivingStdout:
             self._drop()
 
     def _drop(self) -> None:
-        self.reader_gone = True
         try:
             devnull = os.open(os.devnull, os.O_WRONLY)
         except OSError:
