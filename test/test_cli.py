@@ -1,6 +1,7 @@
 """Every command refuses bad arguments before any work starts: one line on stderr, exit 2
 (issue 13: each of these used to run, crash with a traceback, or run for hours)."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -377,6 +378,31 @@ def test_hrc_hmi_shots_refuses_an_hmi_it_cannot_reach_in_one_line(tmp_path, caps
     assert not (tmp_path / 'shots').exists()
 
 
+def test_hrc_hmi_shots_ends_on_ctrl_c_with_one_line(tmp_path):
+    """hrc-hmi-shots ran outside the commands' guard (tools.common.command): Ctrl-C was a
+    KeyboardInterrupt traceback (and `| head` could break its report). Here Ctrl-C arrives
+    while it waits on an HMI that accepted the connection and never answers."""
+    import signal
+    import socket
+    with socket.create_server(('127.0.0.1', 0)) as listening:
+        port = listening.getsockname()[1]
+        shots = subprocess.Popen([sys.executable, '-m', 'hrc_ros.ros.hmi.shots', '--out',
+                                  str(tmp_path / 'shots'), '--url', f'http://127.0.0.1:{port}/'],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            listening.settimeout(60.0)
+            connection, _ = listening.accept()      # it is waiting for the page now
+            with connection:
+                shots.send_signal(signal.SIGINT)
+                out, err = shots.communicate(timeout=60)
+        finally:
+            shots.kill()
+            shots.wait()
+    assert shots.returncode == 130 and err.strip() == 'hrc-hmi-shots: interrupted', (
+        shots.returncode, err)
+    assert not (tmp_path / 'shots').exists()
+
+
 def entry(name: str, *args, stdout=subprocess.PIPE, **kwargs) -> subprocess.Popen:
     """A console script as a user runs it (`python -m hrc_ros.ros.entry` runs the same main
     as the installed script)."""
@@ -411,7 +437,8 @@ def finished(process: subprocess.Popen, timeout: float = 60.0) -> tuple[int, str
     return process.returncode, out or '', err
 
 
-def test_every_node_answers_help_with_its_parameters_and_starts_on_nothing_else(started):
+def test_every_node_answers_help_with_its_parameters_and_starts_on_nothing_else(started,
+                                                                                tmp_path):
     """`decision_node --help` and `robot_bridge_node --bogus-flag` started the node (the
     bridge, a protective stop; the HMI took port 8080), and a missing --params-file was a
     25-line RCLError traceback. Now --help prints the usage and every parameter and exits 0;
@@ -427,9 +454,15 @@ def test_every_node_answers_help_with_its_parameters_and_starts_on_nothing_else(
         assert code == 0 and out.startswith(f'usage: {name} '), (name, code, out[:300], err)
         for spec in importlib.import_module(COMMANDS[name]).PARAMETERS:
             assert f'\n  {spec.name} (' in out, (name, spec.name)
+    fifo = tmp_path / 'params.fifo'
+    os.mkfifo(fifo)
     cases = [(('--bogus-flag',), 'unrecognized arguments: --bogus-flag'),
              (('--ros-args', '--bogus-ros'), 'unknown ROS arguments: --bogus-ros'),
-             (('--ros-args', '--params-file', '/nonexistent/params.yaml'), 'no such file'),
+             (('--ros-args', '--params-file', '/nonexistent/params.yaml'),
+              'params.yaml: cannot read: No such file or directory'),
+             # a FIFO was 'no such file'; rcl itself would wait on it for a writer
+             (('--ros-args', '--params-file', str(fifo)),
+              'cannot read: it is a FIFO (named pipe), not a regular file'),
              (('--ros-args', '-p', 'a=1'), "Couldn't parse parameter override rule")]
     running = {(name, args): started(name, *args) for name in ('robot_bridge_node',
                                                             'decision_node')

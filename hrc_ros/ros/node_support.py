@@ -55,6 +55,7 @@ from rclpy.utilities import remove_ros_args
 
 from ..core import protocol
 from ..core.config import ConfigError, load_config
+from ..core.paths import input_stat
 from ..core.swap import config_path
 from ..core.protocol import InputError, Report, Stamp
 from . import qos, stop
@@ -635,9 +636,11 @@ def command_line(node_class, argv: Sequence[str]) -> int | None:
         print(f'{prog}: error: {why}', file=sys.stderr)
         return 2
     for flag, value in zip(argv, argv[1:]):
-        if flag == '--params-file' and not os.path.isfile(value):
-            return refuse(f'--params-file {cap(value, SHOWN_ARGUMENTS)}: '
-                          + ('is a directory' if os.path.isdir(value) else 'no such file'))
+        if flag == '--params-file':   # rcl would block on a FIFO and trace back on the rest
+            try:
+                input_stat(value, ValueError, 'parameters')
+            except ValueError as exc:
+                return refuse(f'--params-file {exc}')
     try:
         rest = remove_ros_args(list(argv))[1:]
     except _rclpy.UnknownROSArgsError as exc:     # its text: the list's repr

@@ -30,7 +30,7 @@ import numpy as np
 from ...core.hmi import AccessPolicy, HmiMachine
 from ...core.quoting import cap
 from ...core.model import ACTIONS, DN, RH2, TASK_VARIABLES
-from ...tools.common import Parser, fail, output_folder, path_text
+from ...tools.common import Parser, command, fail, output_folder, path_text
 from .browser import SIZES, BrowserError, launch
 from .server import HmiServer, ServerSettings
 
@@ -234,6 +234,7 @@ def check_reachable(url: str) -> None:
                          '(hmi_node, or hrc-case-study --hmi)?') from None
 
 
+@command('hrc-hmi-shots')
 def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog='hrc-hmi-shots', description=__doc__.split('\n')[0])
     parser.add_argument('--out', default='out/hmi_shots', type=path_text,
