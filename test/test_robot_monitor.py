@@ -295,6 +295,44 @@ def test_a_frozen_tracker_stops_the_arm_with_its_reason_and_a_live_one_does_not(
     assert not steps[-1][0].stop
 
 
+def test_a_clock_that_steps_back_drops_what_is_held_and_holds_the_arm(setup):
+    """The bridge's clock steps back 30 s (an NTP step, a /clock that restarted) and the
+    tracker stops at that moment: the skeleton held, stamped in the clock's future, read as 0 s
+    old, and SSM let the program run on with nobody seen for the length of the step (a review
+    found override 0.97 at 45 s). Now the next tick sees the step, drops what is held and holds
+    the arm while nobody is seen; the arm brakes within what was commanded (no monitor fault)
+    and the program resumes once the tracker sends again."""
+    cell = Cell(setup)
+    program_running(cell)
+    cell.t -= 30_000 * MS
+    steps = []
+    for _ in range(150):        # 1.5 s: the joint states go on, the tracker is silent
+        cell.bridge.joint_state(JOINT_NAMES, cell.follower.q, cell.follower.qd, cell.t, cell.t)
+        command = cell.bridge.tick(cell.t)
+        cell.follower.step(0.01, command.override)
+        steps.append(command)
+        cell.t += 10 * MS
+    assert steps[0].stop
+    assert 'the clock stepped back: data held is stamped 29.99' in steps[0].reason
+    assert all(c.stop and c.override == 0.0 for c in steps), [c.reason for c in steps[-3:]]
+    assert 'no human data' in steps[-1].reason and not cell.bridge.fault
+    assert np.all(cell.follower.qd == 0) and cell.bridge.counts['clock_steps'] == 1
+    steps = cell.run(1.5)                                 # the tracker again
+    assert not steps[-1][0].stop and np.max(np.abs(steps[-1][2])) > 0.1
+    assert cell.bridge.counts['clock_steps'] == 1 and cell.bridge.motion == 'program'
+
+
+def test_joint_names_given_twice_are_refused(setup):
+    """A merged joint state naming a joint twice: the last copy was taken (a review's elbow read
+    2.9 rad for 1.9), so SSM would see the arm where it is not. Now it is refused whole."""
+    bridge = Bridge(setup[0], setup[1], setup[2])
+    names = list(JOINT_NAMES) + [JOINT_NAMES[2]]
+    q = list(setup[0].poses['home']) + [setup[0].poses['home'][2] + 1.0]
+    with pytest.raises(InputError, match=f'joint state names {JOINT_NAMES[2]} more than once'):
+        bridge.joint_state(names, q, [0.0] * len(names), 0, 0)
+    assert bridge.q is None
+
+
 def test_a_skeleton_that_jumps_away_is_not_trusted(setup):
     """A person near the arm; the next frame claims they are 2 m farther 10 ms later. SSM keeps
     the near body (aging) until it is older than human_timeout."""

@@ -477,6 +477,9 @@ class JointStateReader:
                              f'and {len(velocities)} velocities')
         if names != self._names:
             where = {n: i for i, n in enumerate(names)}
+            if len(where) != len(names):        # which copy is the joint? (a merged source)
+                twice = sorted({n for n in names if names.count(n) > 1})
+                raise InputError(f'joint state names {", ".join(twice)} more than once')
             lack = [n for n in self.description.joint_names if n not in where]
             if lack:
                 raise InputError(f'joint state without {", ".join(lack)} (has '
@@ -565,7 +568,8 @@ class Bridge:
         self._fault_clear_since: int | None = None
         self._replace = False         # a goal of the bridge's must replace the controller's
         self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
-                       'frozen_skeletons': 0, 'goals_resent': 0, 'lost_people': 0}
+                       'frozen_skeletons': 0, 'goals_resent': 0, 'lost_people': 0,
+                       'clock_steps': 0}
         self._still_since: int | None = None    # the arm at rest on an unfinished goal
         self._resent = 0              # goals sent again in a row without the arm moving
         # A person the followed tracker lost near the arm (`_track_loss`): (bodies in the frame
@@ -790,12 +794,18 @@ class Bridge:
     def tick(self, now_ns: int) -> BridgeCommand:
         """What to send now (see the module docstring)."""
         reports = []
+        stepped = self._clock_stepped_back(now_ns)
+        if stepped:
+            self._note_stop(stepped, reports)
+            self.envelope.command(now_ns, 0.0)
+            return BridgeCommand(None, 0.0, True, stepped, None, None, 'hold', tuple(reports))
         fresh = (self.q is not None and self._joint_stamp is not None
                  and (now_ns - self._joint_stamp) * 1e-9 <= self.description.joint_state_timeout)
         reason = ''
         if not fresh:
             reason = ('no joint state yet' if self.q is None else
-                      f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
+                      'no joint state since the clock stepped back' if self._joint_stamp is None
+                      else f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
         else:
             reason = self._hold_reason(now_ns)
@@ -846,6 +856,32 @@ class Bridge:
             self._stop_reason = ''
         return BridgeCommand(trajectory, override, stop, reason, state, sep, motion,
                              tuple(reports))
+
+    def _clock_stepped_back(self, now_ns: int) -> str:
+        """The clock stepped back (an NTP or PTP step, `date`, a /clock that restarted) when
+        what is held is stamped more than clock_skew ahead of it: every age from those stamps
+        would read 0 (a skeleton the tracker stopped sending would stay fresh for the step, and
+        the frames of the tracker it follows would count as older than the held one). Then
+        the joint state and the skeletons held are dropped, the commanded bounds taken as given
+        now (`SpeedEnvelope.rebase`), and the arm holds until fresh data comes (a lost person's
+        hold stays). '' when the clock is sane."""
+        held = [t for t in (self._joint_stamp, self._body_stamp, self._content_stamp,
+                            self.envelope.newest) if t is not None]
+        held += [t for _, t in self._others] + [t for t, _ in self._frames]
+        ahead = (max(held) - now_ns) * 1e-9 if held else 0.0
+        if ahead <= self.description.clock_skew:
+            return ''
+        self._joint_stamp = None      # its configuration stays: where the arm was last seen
+        self.envelope.rebase(now_ns)
+        self.body, self._body_stamp, self._content_stamp = None, None, None
+        self._others.clear()
+        self._frames.clear()
+        self.approach = 0.0
+        self._fault_clear_since = self._still_since = None
+        self.counts['clock_steps'] += 1
+        return (f'the clock stepped back: data held is stamped {ahead:.3f} s ahead of it (more '
+                f'than clock_skew {self.description.clock_skew} s); the joint state and '
+                'skeletons held are dropped and the arm holds until fresh ones come')
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input

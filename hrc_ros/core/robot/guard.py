@@ -116,6 +116,18 @@ class SpeedEnvelope:
             commands.pop()
         commands.append((int(now_ns), bound))
 
+    @property
+    def newest(self) -> int | None:
+        """The time (ns) of the last command, None before any."""
+        return self._commands[-1][0] if self._commands else None
+
+    def rebase(self, now_ns: int) -> None:
+        """Commands given after `now_ns` (a clock that stepped back left them in its future,
+        where each counts whole for as long as the step) are taken as given at `now_ns`: from
+        there they hold for the latency and fall at the deceleration, as the arm brakes."""
+        self._commands = deque(((min(then, int(now_ns)), bound)
+                                for then, bound in self._commands), maxlen=ENVELOPE_KEPT)
+
     def limit(self, now_ns: int, since_ns: int | None = None) -> float:
         """The fastest the arm may be moving at `now_ns` (m/s), or at any instant from
         `since_ns` to `now_ns`: each command at its highest within the span (a command given
