@@ -21,11 +21,13 @@ def test_a_factor_is_a_finite_override_clamped_and_anything_else_a_pause(value, 
     assert safe_factor(value) == factor
 
 
-def test_the_factor_follows_the_override_and_only_changes_go_out():
+def test_the_factor_follows_the_override_and_goes_out_every_time():
+    """Unchanged factors go out again: the controller keeps the last factor anyone sent, and
+    only changes went out before (a forged 1.0 while the arm was held at 0 ran the goal)."""
     adapter = ScalingAdapter(timeout=0.1)
     assert adapter.start() == 0.0                     # a controller that starts first holds
     assert adapter.override(0.4, 1.00, sequence=1) == 0.4
-    assert adapter.override(0.4, 1.01, sequence=2) is None    # unchanged: nothing to send
+    assert adapter.override(0.4, 1.01, sequence=2) == 0.4     # unchanged: sent again
     assert adapter.override(2.0, 1.02, sequence=3) == 1.0     # never faster than planned
     assert adapter.override(math.nan, 1.03, sequence=4) == 0.0
     assert adapter.override(0.3, 1.04, sequence=5) == 0.3
@@ -36,12 +38,12 @@ def test_the_factor_follows_the_override_and_only_changes_go_out():
 def test_no_override_for_the_timeout_pauses_the_arm_until_one_comes():
     adapter = ScalingAdapter(timeout=0.1)
     adapter.start()
-    assert adapter.tick(0.5) is None and adapter.factor == 0.0     # none yet: still 0
+    assert adapter.tick(0.5) == 0.0 and adapter.factor == 0.0      # none yet: still 0
     assert adapter.override(0.8, 1.0, sequence=1) == 0.8
-    assert adapter.tick(1.05) is None                              # within the timeout
+    assert adapter.tick(1.05) == 0.8                               # within the timeout: again
     assert adapter.tick(1.11) == 0.0 and adapter.timeouts == 1     # the bridge went quiet
     assert 'no override for' in adapter.reason
-    assert adapter.tick(1.2) is None                               # once
+    assert adapter.tick(1.2) == 0.0 and adapter.timeouts == 1      # counted once
     assert adapter.override(0.8, 1.3, sequence=2) == 0.8           # back
 
 
@@ -51,9 +53,17 @@ def test_a_second_writer_holds_the_arm_whatever_either_says():
     assert adapter.override(0.9, 1.0, sequence=100) == 0.9
     assert adapter.override(1.0, 1.01, sequence=5) == 0.0     # another writer's numbers
     assert adapter.second_writer == 1 and 'second writer' in adapter.reason
-    assert adapter.override(0.9, 1.02, sequence=101) is None  # the bridge's, but held: 0
+    assert adapter.override(0.9, 1.02, sequence=101) == 0.0   # the bridge's, but held: 0
     assert adapter.factor == 0.0
     assert adapter.override(0.9, 1.03 + SECOND_WRITER_HOLD, sequence=102) == 0.9
+
+
+def test_the_default_timeout_is_no_longer_than_the_latency_ssm_plans_for():
+    """The arm must not run on an override older than the bridge's SSM planned it for (its
+    period plus command_latency): the adapter's 0.1 s let it run 0.07 s longer."""
+    from hrc_ros.core.robot.bridge import load_robot_description
+    from hrc_ros.core.robot.scaling import DEFAULT_TIMEOUT
+    assert DEFAULT_TIMEOUT <= load_robot_description().command_latency
 
 
 @pytest.mark.parametrize('timeout', [0, -1, math.nan, math.inf])

@@ -16,9 +16,13 @@ factor and falls to 0 (the arm pauses on its path) when
   unknown, so the arm holds until the other has been silent for `SECOND_WRITER_HOLD`).
 
 A finite value outside [0, 1] is clamped (and counted): below 0 is a pause, above 1 would run
-the trajectory faster than it was planned, which SSM never allows. The factor goes out when it
-changes (the topic is transient local: a controller that joins later gets the last one), and
-0 once at start. Times are seconds of one monotonic clock.
+the trajectory faster than it was planned, which SSM never allows. The factor goes out with
+every override and every watchdog tick, changed or not: the controller keeps the last factor
+it got from anyone, and a value another node writes to its topic (one forged `factor: 1.0`
+while the bridge holds the arm at 0) must not outlive the next tick (it published only changes
+before: a held 0 was never sent again, and the forged 1.0 ran the paused goal). The topic is
+transient local: a controller that joins later gets the last one. Times are seconds of one
+monotonic clock.
 """
 
 from __future__ import annotations
@@ -27,7 +31,10 @@ import math
 
 from ..protocol import InputError, SingleWriter
 
-DEFAULT_TIMEOUT = 0.1           # s without an override before the factor is 0
+# s without an override before the factor is 0: the bridge's SSM plans each override for its
+# control period plus command_latency (0.03 s), so an older one must not drive the arm; the
+# same as cobot_sim's override_timeout
+DEFAULT_TIMEOUT = 0.03
 SECOND_WRITER_HOLD = 1.0        # s a second override writer holds the arm after its last value
 
 
@@ -44,8 +51,8 @@ def safe_factor(value) -> float:
 
 
 class ScalingAdapter:
-    """Overrides in, scaling factors out (module docstring). `override` and `tick` return the
-    factor to publish now, or None when it has not changed."""
+    """Overrides in, scaling factors out (module docstring). `start`, `override` and `tick`
+    return the factor to publish now (every time: module docstring)."""
 
     def __init__(self, timeout: float = DEFAULT_TIMEOUT, what: str = 'the speed override'):
         if not (isinstance(timeout, (int, float)) and math.isfinite(timeout) and timeout > 0):
@@ -61,7 +68,7 @@ class ScalingAdapter:
         """The factor to publish at start: 0, until an override says otherwise."""
         return self._set(0.0, self.reason)
 
-    def override(self, value, now: float, sequence: int | None = None) -> float | None:
+    def override(self, value, now: float, sequence: int | None = None) -> float:
         """An override of the bridge's (its publication sequence number, if known)."""
         self.received += 1
         try:
@@ -84,8 +91,9 @@ class ScalingAdapter:
             return self._set(0.0, self.writers.reason)
         return self._set(factor, '' if factor > 0 else 'the override is 0')
 
-    def tick(self, now: float) -> float | None:
-        """The watchdog, called at least every `timeout`: 0 once the override is too old."""
+    def tick(self, now: float) -> float:
+        """The watchdog, called at least every `timeout`: the factor again, 0 once the
+        override is too old."""
         if self.heard_at is None:
             return self._set(0.0, 'no override received yet')
         if now - self.heard_at > self.timeout:
@@ -95,13 +103,10 @@ class ScalingAdapter:
                                   f'{self.timeout:g} s)')
         if self.writers.held(now):
             return self._set(0.0, self.writers.reason)
-        return None
+        return self.factor
 
-    def _set(self, factor: float, reason: str) -> float | None:
-        self.reason = reason
-        if factor == self.factor:
-            return None
-        self.factor = factor
+    def _set(self, factor: float, reason: str) -> float:
+        self.reason, self.factor = reason, factor
         return factor
 
     def values(self, now: float) -> dict:

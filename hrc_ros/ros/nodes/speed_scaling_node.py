@@ -10,7 +10,9 @@ SpeedScalingFactor (`factor`) on `scaling_topic`, reliable and transient local w
 ros2_controllers' joint_trajectory_controller with speed scaling reads `~/speed_scaling_input`.
 The rules are `core.robot.scaling.ScalingAdapter`'s: 0 at start and while no override has
 come, 0 once the override is older than `override_timeout` (a watchdog timer), 0 for a value
-that is no finite number or from a second writer, a finite value clamped to [0, 1].
+that is no finite number or from a second writer, a finite value clamped to [0, 1]; the factor
+goes out with every override and every watchdog tick (a value another node writes to the
+controller's topic lasts until the next one).
 
 It runs in a ROS install where control_msgs exists (`rosdep install` installs
 ros-jazzy-control-msgs); the pip wheels here do not bring it, and without it the node stops at
@@ -86,9 +88,8 @@ class SpeedScalingNode(Node):
     def _on_watchdog(self) -> None:
         self._publish(self.adapter.tick(time.monotonic()))
 
-    def _publish(self, factor: float | None) -> None:
-        if factor is not None:
-            self.publisher.publish(self.message(factor=float(factor)))
+    def _publish(self, factor: float) -> None:
+        self.publisher.publish(self.message(factor=float(factor)))
 
     def _on_status(self) -> None:
         values = self.adapter.values(time.monotonic())
@@ -101,7 +102,7 @@ class SpeedScalingNode(Node):
 
     def on_stop(self) -> None:
         """The last word: 0, so that a controller still running pauses."""
-        self._publish(0.0 if self.adapter.factor else None)
+        self._publish(0.0)
 
 
 def main(args=None):
