@@ -457,6 +457,19 @@ def test_a_long_refused_value_is_cut():
         o.parse_order({'priority': 'x' * 10_000, 'duration': 1, 'nature': 0}, 2, 2)
 
 
+def test_a_deeply_nested_field_is_refused_in_words_not_by_recursion():
+    """A page's order whose priority nests lists 5,000 deep (JSON parses up to about 1,000 in
+    the web thread; the executor's stack is deeper): its repr raised RecursionError, which
+    ended hmi_node. Now it is named by its kind."""
+    nested: list = []
+    for _ in range(5000):
+        nested = [nested]
+    for value, shown in ((nested, 'a list'), ({'a': nested}, 'a set of fields')):
+        with pytest.raises(ValueError) as refused:
+            o.parse_order({'priority': value, 'duration': 1, 'nature': 0}, 2, 2)
+        assert str(refused.value) == PRIORITY + shown
+
+
 ORDER = {'priority': 1, 'duration': 2, 'nature': 0}
 
 
@@ -565,6 +578,18 @@ def test_each_request_needs_a_token_and_the_token_gives_its_role():
     assert switched.role == access.WORKER and switched.remember and switched.token == WORKER
     assert policy.check(host, None, f'Bearer {WORKER}', OPERATOR, None).role == access.OPERATOR
     assert policy.check('evil.example', None, None, WORKER, None).allowed  # the token decides
+
+
+def test_a_token_that_is_not_utf_8_is_a_wrong_token_not_an_error():
+    """aiohttp hands a header's bytes that are not UTF-8 over as lone surrogates: the token
+    check's encode raised UnicodeEncodeError, a 500 and a logged traceback for every such
+    request, no token needed. Now it is a wrong token (401)."""
+    policy = AccessPolicy('0.0.0.0', WORKER, OPERATOR)
+    host = '10.0.0.5:8080'
+    bad = b'\xff\xfe'.decode('utf-8', 'surrogateescape')
+    for given in ((f'Bearer {bad}', None, None), (None, bad, None), (None, None, bad)):
+        verdict = policy.check(host, None, *given)
+        assert verdict.status == 401 and verdict.reason == 'the access token is wrong'
 
 
 def test_the_workers_token_opens_the_workers_page_only_and_queues_nothing():

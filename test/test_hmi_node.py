@@ -571,6 +571,77 @@ def test_off_loopback_every_request_needs_the_token(served):
     run_async(check())
 
 
+def raw_response(url: str, request: bytes) -> bytes:
+    """The head of the answer to `request` sent as bytes (no client library in between to
+    normalise a path or refuse a header)."""
+    import socket
+    from urllib.parse import urlsplit
+    parts = urlsplit(url)
+    with socket.create_connection((parts.hostname, parts.port), timeout=TIMEOUT) as sock:
+        sock.sendall(request)
+        data = b''
+        while b'\r\n\r\n' not in data:
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            data += chunk
+    return data
+
+
+def test_hostile_requests_get_an_answer_not_a_traceback_or_another_site(served):
+    """A review's requests against the node off loopback: a token that is not UTF-8 was a 500
+    with a traceback in the node's log per request (no token needed); a token link to
+    //evil.example/ redirected the browser there with the cookie set."""
+    process, url = served
+    port = url.rsplit(':', 1)[1].strip('/')
+    head = f'Host: 127.0.0.1:{port}\r\nConnection: close\r\n'.encode()
+    for bad in (b'Authorization: Bearer \xff\xfe\r\n', b'Cookie: hrc_hmi_token=\xff\r\n'):
+        answer = raw_response(url, b'GET / HTTP/1.1\r\n' + head + bad + b'\r\n')
+        assert answer.startswith(b'HTTP/1.1 401'), answer[:200]
+    answer = raw_response(url, f'GET //evil.example/?token={TOKEN} HTTP/1.1\r\n'.encode()
+                          + head + b'\r\n')
+    assert answer.startswith(b'HTTP/1.1 303'), answer[:300]
+    location = re.search(rb'\r\nLocation: ([^\r]*)', answer).group(1)
+    assert location == b'/', location
+    assert process.poll() is None
+
+
+def test_idle_connections_close_and_workers_pages_leave_room_for_the_operator():
+    """The server alone (no ROS): a connection that sends no whole request is closed after
+    idle_timeout_s (aiohttp's default kept it an hour: idle sockets from anyone held the node's
+    files before any token was checked); workers' pages stop short of max_connections, so
+    the operator's console still gets in."""
+    import socket
+    from hrc_ros.core.hmi import AccessPolicy
+    from hrc_ros.ros.hmi.server import HmiServer, ServerSettings
+    server = HmiServer(ServerSettings(port=0, max_connections=4, idle_timeout_s=0.5),
+                       AccessPolicy('127.0.0.1'), lambda command: True)
+    port = server.start()
+    url = f'http://127.0.0.1:{port}/'
+    try:
+        with socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT) as idle, \
+                socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT) as partial:
+            partial.sendall(b'GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n')     # and no more
+            started = time.monotonic()
+            assert idle.recv(1) == b'' and partial.recv(1) == b''      # closed by the server
+            assert time.monotonic() - started < TIMEOUT
+
+        async def pages():
+            async with session() as s:
+                workers = [await s.ws_connect(url + 'ws') for _ in range(2)]
+                with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+                    await s.ws_connect(url + 'ws')
+                operators = [await s.ws_connect(url + 'ws?view=operator') for _ in range(2)]
+                with pytest.raises(aiohttp.WSServerHandshakeError) as full:
+                    await s.ws_connect(url + 'ws?view=operator')
+                for ws in workers + operators:
+                    await ws.close()
+                return refused.value.status, full.value.status
+        assert run_async(pages()) == (503, 503)
+    finally:
+        server.stop()
+
+
 WORKER_BEARER = {'Authorization': f'Bearer {WORKER_TOKEN}'}
 
 

@@ -136,9 +136,12 @@ class AccessPolicy:
         """The role whose token `given` is (the operator's first), or None."""
         if given is None:
             return None
+        # surrogateescape: aiohttp hands a header's bytes that are not UTF-8 over as lone
+        # surrogates, which a strict encode refused with a traceback (a 500 per request)
+        presented = given.encode('utf-8', 'surrogateescape')
         for role in (OPERATOR, WORKER):
             token = self.tokens[role]
-            if token and hmac.compare_digest(given.encode(), token.encode()):
+            if token and hmac.compare_digest(presented, token.encode()):
                 return role
         return None
 

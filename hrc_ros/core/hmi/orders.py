@@ -87,6 +87,8 @@ def _whole_number(name: str, value, low: int, high: int) -> int:
         shown = str(number)
     elif isinstance(value, str) and not value.strip():
         shown = 'nothing'
+    elif isinstance(value, (list, dict)):    # no repr: a page's JSON may nest a thousand deep
+        shown = 'a list' if isinstance(value, list) else 'a set of fields'
     else:
         shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
     raise ValueError(f'{expected}, got {shown}')

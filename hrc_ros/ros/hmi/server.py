@@ -91,6 +91,7 @@ REPLIES_KEPT = 16         # replies waiting for a slow page (older ones are drop
 SEND_TIMEOUT_S = 10.0     # a page that takes longer to take one message is closed
 FLOOD_FACTOR = 5          # a page refused this many bursts' worth of messages is closed
 ERROR_REPLY_S = 1.0       # at most one error reply a second per page
+OPERATOR_PAGES_KEPT = 8   # of max_connections, kept for the operator's console (half at most)
 START_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 5.0
 
@@ -105,6 +106,9 @@ class ServerSettings:
     message_burst: int = 20          # ... after this many
     heartbeat_s: float = 20.0        # WebSocket pings: a vanished peer is noticed
     keepalive_s: float = 5.0         # a 'tick' to each page when there is nothing else
+    # s a connection may stay open without a whole request (before, aiohttp's 3630: 1,300 idle
+    # sockets from anyone held every file the node may open, the token checked only later)
+    idle_timeout_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -206,7 +210,8 @@ class HmiServer:
             app.router.add_get(path, self._page)
         app.router.add_get('/ws', self._websocket)
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None,
-                                     shutdown_timeout=1.0)
+                                     shutdown_timeout=1.0,
+                                     keepalive_timeout=self.settings.idle_timeout_s)
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.settings.host, self.settings.port,
                            reuse_address=True, backlog=256)
@@ -301,9 +306,11 @@ class HmiServer:
                                     request.cookies.get(COOKIE), request.query.get('token'),
                                     websocket=request.path == '/ws')
         if verdict.allowed and verdict.remember and request.path != '/ws':
-            # the token came in the URL: keep it in a cookie and take it out of the URL
+            # the token came in the URL: keep it in a cookie and take it out of the URL, back
+            # to a page of ours only (a path '//evil.example/' is another site to a browser)
             query = urlencode([(k, v) for k, v in request.query.items() if k != 'token'])
-            response = web.HTTPSeeOther(request.path + (f'?{query}' if query else ''))
+            page = request.path if request.path in PAGES else '/'
+            response = web.HTTPSeeOther(page + (f'?{query}' if query else ''))
             response.set_cookie(COOKIE, verdict.token, httponly=True, samesite='Strict',
                                 path='/', secure=request.secure)
             return response
@@ -332,10 +339,14 @@ class HmiServer:
         view = request.query.get('view', 'worker')
         if view not in VIEWS:
             return web.Response(status=400, text=f'400: view must be one of {", ".join(VIEWS)}\n')
-        if len(self.clients) >= self.settings.max_connections:
+        most = self.settings.max_connections
+        if view != OPERATOR:       # the operator's console gets in however many workers' are open
+            most -= min(OPERATOR_PAGES_KEPT, most // 2)
+        if len(self.clients) >= most:
             self.counts['refused_503'] += 1
             return web.Response(status=503, text=f'503: {len(self.clients)} pages are open, the '
-                                'most this HMI serves (max_connections)\n')
+                                f'most this HMI serves for a {view} page (max_connections, '
+                                f'{OPERATOR_PAGES_KEPT} of them kept for the operator)\n')
         ws = web.WebSocketResponse(max_msg_size=self.settings.max_frame_bytes,
                                    heartbeat=self.settings.heartbeat_s, compress=False)
         await ws.prepare(request)

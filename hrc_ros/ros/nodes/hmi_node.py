@@ -33,6 +33,7 @@ import os
 import queue
 import resource
 import time
+import traceback
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
@@ -418,12 +419,19 @@ class HmiNode(Node):
                 command = self.commands.get_nowait()
             except queue.Empty:
                 break
-            if command.kind == 'answer':
-                self._answer(command, now)
-            elif command.kind == 'order':
-                self._order(command, now)
-            else:
-                self.machine.forget_client(command.client)
+            try:
+                if command.kind == 'answer':
+                    self._answer(command, now)
+                elif command.kind == 'order':
+                    self._order(command, now)
+                else:
+                    self.machine.forget_client(command.client)
+            except Exception:  # noqa: BLE001 - a page's command must not end the node
+                self.inputs.internal_error(f'page {command.kind}', 'a page',
+                                           traceback.format_exc())
+                self.server.reply(command.client, {
+                    'type': f'{command.kind}_result', 'ok': False, 'code': 'error',
+                    'text': 'the HMI could not handle this (logged); try again'})
         self._push(now)
 
     def _answer(self, command: Command, now: int) -> None:
