@@ -787,6 +787,20 @@ def test_a_bad_parameter_stops_the_node_at_start(ros_domain_id, executable, para
 
 
 # -- across the whole run ---------------------------------------------------------------------
+@pytest.mark.parametrize('node, names', [
+    ('body_tracking_node', ('keypoint_joints', 'max_speed', 'max_gap', 'confirm_frames')),
+    ('cobot_sim_node', ('override_timeout',))])
+def test_what_the_arms_safety_reads_cannot_be_set_while_it_runs(node, names):
+    """A review: `ros2 param set /body_tracking keypoint_joints "['PELVIS']"` left the bridge one
+    0.1 m sphere per person (every hand unseen by SSM), and cobot_sim's override_timeout could
+    rise to 10 s under an SSM planned for 0.03 s. They are read-only now, as the bridge's are
+    (NodeParameters refuses a set of a read-only parameter: test_nodes)."""
+    import importlib
+    specs = {spec.name: spec for spec in importlib.import_module(
+        f'hrc_ros.ros.nodes.{node}').PARAMETERS}
+    assert [name for name in names if not specs[name].read_only] == []
+
+
 def test_ssm_held_in_every_sample_while_the_arm_moved(cell):
     driver, _ = cell
     samples = np.array(driver.separations)

@@ -84,17 +84,22 @@ PARAMETERS = CAMERA_PARAMETERS + (
     ParamSpec('switch_margin', T.DOUBLE, DEFAULT_SWITCH_MARGIN, 'metres another body must be '
               'nearer than the followed one before the nearest rule switches to it',
               range=(0.0, 10.0)),
+    # The robot side's safety reads these (the bridge's capsules, the jump gate): fixed while
+    # the node runs (a runtime set of keypoint_joints: [PELVIS] hid every hand from SSM)
     ParamSpec('keypoint_joints', T.STRING_ARRAY, [], 'joints of each body that make up '
-              f"human/skeleton (names of {', '.join(K4ABT_JOINTS[:3])}, ...; [] = all 32)"),
+              f"human/skeleton (names of {', '.join(K4ABT_JOINTS[:3])}, ...; [] = all 32)",
+              read_only=True),
     ParamSpec('max_speed', T.DOUBLE, DEFAULT_MAX_SPEED, 'm/s a body centroid may move; a '
               'faster move is a tracking jump (frame dropped until it holds confirm_frames '
-              'frames)', range=(0.1, 100.0)),
+              'frames)', range=(0.1, 100.0), read_only=True),
     ParamSpec('max_gap', T.DOUBLE, DEFAULT_MAX_GAP, 'seconds between frames beyond which '
               'velocities restart and the followed body is chosen again; also how long the '
               'followed stream may be silent before another publisher is followed, and how '
-              'long a frame not taken counts for the nearer person', range=(0.001, 60.0)),
+              'long a frame not taken counts for the nearer person', range=(0.001, 60.0),
+              read_only=True),
     ParamSpec('confirm_frames', T.INTEGER, DEFAULT_CONFIRM_FRAMES, 'frames a relocated body '
-              'must hold before it is taken as its new place', range=(1, 1000)),
+              'must hold before it is taken as its new place', range=(1, 1000),
+              read_only=True),
 )
 
 

@@ -96,7 +96,8 @@ PARAMETERS = (
     ParamSpec('initial_positions', T.DOUBLE_ARRAY, [], 'the arm\'s configuration at start, '
               'rad in the description\'s joint order ([] = its home pose)', read_only=True),
     ParamSpec('override_timeout', T.DOUBLE, OVERRIDE_TIMEOUT, 'seconds without a speed override '
-              'after which it is taken as 0 (the arm brakes)', range=(0.01, 10.0)),
+              'after which it is taken as 0 (the arm brakes)', range=(0.01, 10.0),
+              read_only=True),    # the bridge plans each override for command_latency
 )
 
 
