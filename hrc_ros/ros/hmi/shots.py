@@ -18,6 +18,7 @@ browser is Debian's Chromium driven by Playwright (`ros.hmi.browser`).
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import urllib.error
@@ -241,8 +242,10 @@ def main(argv: list[str] | None = None) -> int:
                         help='folder for the PNG files')
     parser.add_argument('--url', default='', help='a running HMI (default: a scripted cell '
                         'served here)')
-    parser.add_argument('--token', default='', help="the running HMI's operator's access token "
-                        '(it opens both pages)')
+    parser.add_argument('--token', default=os.environ.get('HRC_HMI_OPERATOR_TOKEN', ''),
+                        help="the running HMI's operator's access token (it opens both pages; "
+                        'default: $HRC_HMI_OPERATOR_TOKEN, which unlike the option does not show '
+                        'in the process list)')
     parser.add_argument('--scene', action='append', choices=tuple(SCENES),
                         help='the scripted cell\'s states to take (default: request and '
                         'stopped)')
