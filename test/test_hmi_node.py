@@ -629,6 +629,12 @@ def test_idle_connections_close_and_workers_pages_leave_room_for_the_operator():
         async def pages():
             async with session() as s:
                 workers = [await s.ws_connect(url + 'ws') for _ in range(2)]
+                await asyncio.sleep(1.5)          # an open page is not idle: it stays
+                await workers[0].send_str('{"type": "nonsense"}')
+                answers = []
+                while not answers or answers[-1].get('type') in ('hello', 'view', 'tick'):
+                    answers.append(json.loads((await workers[0].receive(TIMEOUT)).data))
+                assert answers[-1]['type'] == 'error', answers
                 with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
                     await s.ws_connect(url + 'ws')
                 operators = [await s.ws_connect(url + 'ws?view=operator') for _ in range(2)]
