@@ -114,7 +114,9 @@ def node_compute(steps: int) -> list:
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    node = RobotBridgeNode(context=context)
+    from rclpy.parameter import Parameter
+    node = RobotBridgeNode(context=context, parameter_overrides=[     # the probe is the arm
+        Parameter('override_consumers', value=['bench_probe'])])
     probe = rclpy.create_node('bench_probe', context=context)
     probe.create_subscription(Float64, node.override_topic, lambda _: None, qos.RELIABLE)
     deadline = time.monotonic() + 10.0
@@ -143,9 +145,10 @@ def node_compute(steps: int) -> list:
                 state = {name: 0 for name in TASK_VARIABLES}
                 state.update(tp=1 + epoch // len(NODE_ACTIONS) % 3, tc=3, tx=0)
                 timed(conv.task_state_from_msg, node._on_task_state,
-                      conv.task_state_to_msg(state))
+                      conv.task_state_to_msg(state), Stamp(time.time_ns(), epoch + 1))
                 timed(conv.action_from_msg, node._on_action,
-                      String(data=NODE_ACTIONS[epoch % len(NODE_ACTIONS)]), time.time_ns())
+                      String(data=NODE_ACTIONS[epoch % len(NODE_ACTIONS)]),
+                      Stamp(time.time_ns(), epoch + 1))
             if step % 3 == 0:                    # 33 Hz
                 u = 0.5 - 0.5 * np.cos(2 * np.pi * step / 1500)     # 15 s out and back
                 msg = conv.keypoints_to_msg((far + (near - far) * u)[None] + offsets, stamp)

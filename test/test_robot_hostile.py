@@ -142,7 +142,8 @@ def feeder(tmp_path_factory, ros_domain_id):
     try:
         suite.start('robot_bridge_node', ros_args=[
             '-r', f'__ns:={NS}', '-p', 'action_source:=/robot_hostile_test',
-            '-p', 'task_state_source:=/robot_hostile_test'])
+            '-p', 'task_state_source:=/robot_hostile_test',
+            '-p', 'override_consumers:=[robot_hostile_test]'])     # the test is the arm
         driver.wait(lambda: driver.status('below the protective distance') or suite.dead(),
                     'the bridge to stop for the person near the arm', START_TIMEOUT)
         assert not suite.dead(), suite.logs()

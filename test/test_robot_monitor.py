@@ -322,6 +322,21 @@ def test_a_clock_that_steps_back_drops_what_is_held_and_holds_the_arm(setup):
     assert cell.bridge.counts['clock_steps'] == 1 and cell.bridge.motion == 'program'
 
 
+def test_the_override_needs_a_consumer_not_only_a_reader():
+    """Only a node that acts on the override lets the arm move: a display (the HMI), a
+    recorder or an echo reads it and cannot stop the arm."""
+    from hrc_ros.core.robot.bridge import OVERRIDE_CONSUMERS, unconsumed_reason
+    topic = '/hrc/speed_override'
+    assert unconsumed_reason(topic, ['hmi', 'cobot_sim'], OVERRIDE_CONSUMERS) == ''
+    assert unconsumed_reason(topic, ['speed_scaling'], OVERRIDE_CONSUMERS) == ''
+    assert unconsumed_reason(topic, ['hmi'], ()) == ''              # []: any reader acts
+    assert 'nobody subscribes' in unconsumed_reason(topic, [], OVERRIDE_CONSUMERS)
+    assert 'nobody subscribes' in unconsumed_reason(topic, [], ())
+    said = unconsumed_reason(topic, ['hmi', 'recorder', 'hmi'], OVERRIDE_CONSUMERS)
+    assert said.startswith('none of cobot_sim, speed_scaling (override_consumers)')
+    assert 'only 3 reader(s) that cannot act on the arm (hmi, recorder)' in said
+
+
 def test_joint_names_given_twice_are_refused(setup):
     """A merged joint state naming a joint twice: the last copy was taken (a review's elbow read
     2.9 rad for 1.9), so SSM would see the arm where it is not. Now it is refused whole."""

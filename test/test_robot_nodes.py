@@ -56,11 +56,13 @@ def body_at(place) -> np.ndarray:
     return np.asarray(place, dtype=float)[None] + BODY + NOISE.normal(0.0, 0.0015, BODY.shape)
 
 
-def bridge_args(namespace: str = '') -> list[str]:
-    """The bridge's ROS arguments: this test's node owns the actions and task states."""
+def bridge_args(namespace: str = '', arm: bool = False) -> list[str]:
+    """The bridge's ROS arguments: this test's node owns the actions and task states, and with
+    `arm` it is the arm too (it acts on the override: one of override_consumers)."""
     return ((['-r', f'__ns:={namespace}'] if namespace else [])
             + ['-p', 'action_source:=/robot_nodes_test', '-p',
-               'task_state_source:=/robot_nodes_test'])
+               'task_state_source:=/robot_nodes_test']
+            + (['-p', 'override_consumers:=[robot_nodes_test]'] if arm else []))
 DESCRIPTION = load_robot_description()
 PROGRAMS = load_programs(DESCRIPTION)
 JOINTS = DESCRIPTION.joint_names
@@ -606,7 +608,7 @@ def test_joint_states_that_stop_or_are_refused_stop_the_arm(cell, tmp_path):
     skeleton = node.create_publisher(PoseArray, '/solo/human/skeleton', qos.SENSOR_DATA)
     home = DESCRIPTION.poses['home']
     try:
-        solo.start('robot_bridge_node', ros_args=bridge_args('/solo'))
+        solo.start('robot_bridge_node', ros_args=bridge_args('/solo', arm=True))
 
         def feed(position=home):
             stamp = node.get_clock().now().to_msg()
@@ -682,8 +684,13 @@ def test_a_bad_speed_override_holds_the_simulated_arm(cell, tmp_path):
 
 
 def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, tmp_path):
+    """No consumer of the override (override_consumers): only a display reads it, best effort
+    as the HMI does. Counted as a listener, the HMI kept the bridge sending goals after the
+    arm's adapter had gone (a review): the arm is held, with an ERROR that says why."""
     driver, _ = cell
     lonely = NodeProcesses(tmp_path, [])
+    driver.node.create_subscription(Float64, '/lonely/hrc/speed_override', lambda m: None,
+                                    qos.SENSOR_DATA)        # a display, as hmi_node's
     stops: list[bool] = []
     driver.node.create_subscription(Bool, '/lonely/hrc/protective_stop',
                                     lambda m: stops.append(m.data),
@@ -704,8 +711,9 @@ def test_a_speed_override_nobody_listens_to_is_an_error_and_holds_the_arm(cell, 
                                                    ERROR) or lonely.dead(),
                              'the ERROR for an override nobody listens to', START_TIMEOUT)
         assert not lonely.dead(), lonely.logs()
-        assert 'nobody subscribes to the speed override on /lonely/hrc/speed_override' \
-            in status.message
+        assert ('none of cobot_sim, speed_scaling (override_consumers) subscribes to the speed '
+                'override on /lonely/hrc/speed_override, only 1 reader(s) that cannot act on '
+                'the arm (robot_nodes_test)') in status.message
         driver.wait(lambda: stops and stops[-1] is True, 'its latched protective stop')
         # fed an arm at rest and a person far away, with a ct, it still sends no goal
         pub = driver.node.create_publisher(JointState, '/lonely/joint_states', qos.SENSOR_DATA)

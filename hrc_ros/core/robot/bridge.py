@@ -416,6 +416,26 @@ def writers_reason(topic: str, publishers, owner: str) -> str:
     return ''
 
 
+OVERRIDE_CONSUMERS = ('cobot_sim', 'speed_scaling')   # node names that act on the override
+
+
+def unconsumed_reason(topic: str, readers, consumers) -> str:
+    """Why SSM cannot act on the arm through the override on `topic`, whose subscribers'
+    node names are `readers`: none of them is one of `consumers` (node names, any namespace;
+    empty: any reader acts). A display (the HMI), a recorder or `ros2 topic echo` reads it
+    too, but only the arm's side acts on it: counting them kept the arm moving after its
+    controller's adapter died. '' when a consumer reads it."""
+    readers = list(readers)
+    if (readers and not consumers) or any(r in consumers for r in readers):
+        return ''
+    if not readers:
+        return f'nobody subscribes to the speed override on {topic}: SSM cannot act on the arm'
+    shown = ', '.join(sorted(set(readers))[:5])
+    return (f'none of {", ".join(consumers)} (override_consumers) subscribes to the speed '
+            f'override on {topic}, only {len(readers)} reader(s) that cannot act on the arm '
+            f'({shown}): SSM cannot act on the arm')
+
+
 def check_stamp(what: str, stamp_ns: int, now_ns: int, slack: float = FUTURE_SLACK) -> None:
     """InputError for a sample stamped more than `slack` s ahead of the clock: its source's
     clock runs ahead, and the sample would still look fresh after its source stopped."""

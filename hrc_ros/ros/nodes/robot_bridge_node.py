@@ -65,8 +65,9 @@ from ...core.protocol import (CELL_HOLD, ERROR, OK, WARN, ActionPairing, PeriodE
                               Stamp)
 from ...core.protocol import InputError
 from ...core.robot.arm import Arm, body_capsules
-from ...core.robot.bridge import (WRITER_HOLD, Bridge, RobotDescriptionError, load_programs,
-                                  load_robot_description, writers_reason)
+from ...core.robot.bridge import (OVERRIDE_CONSUMERS, WRITER_HOLD, Bridge,
+                                  RobotDescriptionError, load_programs, load_robot_description,
+                                  unconsumed_reason, writers_reason)
 from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, WARNING_THROTTLE_SEC, DeadlineTimer, Inputs,
@@ -118,6 +119,10 @@ PARAMETERS = (
               'publisher or a second writer holds the arm (docs/ROBOT.md 5)', read_only=True),
     ParamSpec('task_state_source', T.STRING, 'task_manager', 'the node that owns '
               "hrc/task_state, as action_source ('' = any one publisher)", read_only=True),
+    ParamSpec('override_consumers', T.STRING_ARRAY, list(OVERRIDE_CONSUMERS), 'node names (any '
+              'namespace) that act on the speed override: the arm moves only while one of them '
+              'subscribes to it (a display, a recorder or an echo reads it but cannot stop the '
+              "arm); a vendor's adapter adds its name; [] = any subscriber", read_only=True),
 )
 OVERRIDE_GRACE_SEC = 5.0      # a start-up without the override's subscriber is a WARN this long
 
@@ -196,6 +201,8 @@ class RobotBridgeNode(Node):
         self.compute = deque(maxlen=COMPUTE_WINDOW)
         self._last_tick = time.monotonic()
         self._listening: bool | None = None
+        self.consumers = tuple(values['override_consumers'])
+        self._unconsumed = 'the speed override\'s readers are not known yet'
 
         self.trajectory_pub = self.create_publisher(JointTrajectory, self.trajectory_topic,
                                                     qos.RELIABLE)
@@ -220,6 +227,7 @@ class RobotBridgeNode(Node):
         self.status_timer = self.create_timer(STATUS_PERIOD_SEC, self._publish_status)
         self.create_service(Trigger, '~/clear_lost_person', self._on_clear_lost)
         self._publish_progress()
+        self._refresh_readers()
         self._set_stop(True, 'no joint state yet')
 
     def _apply(self, values) -> None:
@@ -304,6 +312,7 @@ class RobotBridgeNode(Node):
         """No joint state for `joint_state_timeout`: tick anyway (the bridge then stops). Also
         tells the bridge how many publishers the goal topic has (another one: a stop)."""
         self.bridge.goal_publishers(self.count_publishers(self.trajectory_pub.topic_name))
+        self._refresh_readers()
         for kind in self.owners:
             self._writers(kind)
         if time.monotonic() - self._last_tick > self.description.joint_state_timeout:
@@ -312,7 +321,9 @@ class RobotBridgeNode(Node):
     def _tick(self, started: float) -> None:
         self._last_tick = time.monotonic()
         self.ticks += 1
-        listening = self.override_pub.get_subscription_count() > 0
+        if self._unconsumed or not self.override_pub.get_subscription_count():
+            self._refresh_readers()      # at once while held; the watchdog's 20 Hz otherwise
+        listening = not self._unconsumed
         if listening:
             command = self.command = self.bridge.tick(self._now())
             if command.trajectory is not None:
@@ -323,9 +334,7 @@ class RobotBridgeNode(Node):
             override, stop, reason = command.override, command.stop, command.reason
         else:
             self.command = None
-            override, stop = 0.0, True
-            reason = (f'nobody subscribes to the speed override on '
-                      f'{self.override_pub.topic_name}: SSM cannot act on the arm')
+            override, stop, reason = 0.0, True, self._unconsumed
         self.override_pub.publish(Float64(data=float(override)))
         self.compute.append(time.perf_counter() - started)
         if listening != self._listening:
@@ -353,13 +362,23 @@ class RobotBridgeNode(Node):
                 f'protective stop: {reason}' if stop else 'protective stop cleared',
                 {'reason': reason if stop else ''}, kind='stop'))
 
+    def _refresh_readers(self) -> None:
+        """Whether one of override_consumers reads the override (`unconsumed_reason`): the
+        graph's subscribers of the topic, once the publisher has matched any."""
+        topic = self.override_pub.topic_name
+        readers = ([info.node_name for info in self.get_subscriptions_info_by_topic(topic)]
+                   if self.override_pub.get_subscription_count() else [])
+        self._unconsumed = unconsumed_reason(topic, readers, self.consumers)
+
     def _report_listening(self) -> None:
         """OK once someone listens; until then WARN for OVERRIDE_GRACE_SEC after the start
         (the controller may start after the bridge), then ERROR."""
         topic = self.override_pub.topic_name
+        values = {'topic': topic, 'subscribers': self.override_pub.get_subscription_count(),
+                  'consumers': ', '.join(self.consumers) or '(any subscriber)'}
         if self._listening:
             self.inputs.report(Report(OK, 'speed override', f'the speed override on {topic} '
-                                      'has subscribers', {'topic': topic}, log=False))
+                                      'has a consumer', values, log=False))
             return
         waited = time.monotonic() - self.started
         if waited < OVERRIDE_GRACE_SEC:
@@ -367,12 +386,12 @@ class RobotBridgeNode(Node):
                 WARN, 'speed override', f'waiting for the controller or adapter to subscribe to '
                 f'the speed override on {topic} ({waited:.1f} s of a {OVERRIDE_GRACE_SEC:g} s '
                 'start-up grace); the arm is held until it does',
-                {'topic': topic, 'subscribers': 0}, kind='no_subscriber', log=False))
+                values, kind='no_subscriber', log=False))
             return
         self.inputs.report(Report(
-            ERROR, 'speed override', f'nobody subscribes to the speed override on {topic}: the '
-            'arm is held (protective stop, no trajectory sent) until its controller or adapter '
-            'listens', {'topic': topic, 'subscribers': 0}, kind='no_subscriber'))
+            ERROR, 'speed override', f'{self._unconsumed}; the arm is held (protective stop, '
+            'no trajectory sent) until its controller or adapter listens', values,
+            kind='no_subscriber'))
 
     def _publish_progress(self) -> None:
         progress = self.bridge.progress
