@@ -44,7 +44,7 @@ setup(
         ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support',
-                      'matplotlib', 'pillow', 'numba', 'aiohttp', 'ray>=2.58', 'mujoco',
+                      'matplotlib', 'pillow', 'numba', 'aiohttp>=3.14.5', 'ray>=2.58', 'mujoco',
                       'playwright'],
     zip_safe=False,
     maintainer='hrc_ros maintainers',

@@ -60,10 +60,24 @@ def test_a_second_writer_holds_the_arm_whatever_either_says():
 
 def test_the_default_timeout_is_no_longer_than_the_latency_ssm_plans_for():
     """The arm must not run on an override older than the bridge's SSM planned it for (its
-    period plus command_latency): the adapter's 0.1 s let it run 0.07 s longer."""
+    control period plus command_latency): the adapter's 0.1 s and its watchdog's 0.05 s let it
+    run 0.11 s longer. The timeout and the watchdog's period together stay within it."""
     from hrc_ros.core.robot.bridge import load_robot_description
-    from hrc_ros.core.robot.scaling import DEFAULT_TIMEOUT
-    assert DEFAULT_TIMEOUT <= load_robot_description().command_latency
+    from hrc_ros.ros.nodes.robot_bridge_node import PARAMETERS
+    period = next(spec.default for spec in PARAMETERS if spec.name == 'control_period')
+    adapter = ScalingAdapter()
+    assert adapter.timeout + adapter.watchdog_period <= (
+        period + load_robot_description().command_latency)
+
+
+def test_a_gap_in_the_bridges_overrides_does_not_hand_the_line_to_another_writer():
+    """The writer lock's silence is not the timeout: after a 40 ms gap (the factor is 0 for
+    it) another writer's value is still a second writer's, flagged and held."""
+    adapter = ScalingAdapter()
+    assert adapter.override(0.9, 1.0, sequence=100) == 0.9
+    assert adapter.tick(1.04) == 0.0                          # the gap: paused
+    assert adapter.override(1.0, 1.041, sequence=5) == 0.0    # someone else's 1.0
+    assert adapter.second_writer == 1 and 'second writer' in adapter.reason
 
 
 @pytest.mark.parametrize('timeout', [0, -1, math.nan, math.inf])

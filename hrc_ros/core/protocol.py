@@ -334,6 +334,8 @@ class EpochFollower:
 
 
 STREAM_MAX_SKIP = 64        # sequence numbers a followed stream may skip (frames lost on the way)
+# what rmw calls a node until discovery has its name (ros/sources.py, robot.bridge)
+UNKNOWN_NODE_NAME = '_NODE_NAME_UNKNOWN_'
 
 
 class StreamLock:
@@ -376,6 +378,11 @@ class StreamLock:
         self.others += 1
         return self.OTHER
 
+    def forget(self) -> None:
+        """Follow the next writer heard (the clock stepped back: the line's times lie in its
+        future, and a writer that restarted with it numbers from 1 again)."""
+        self.last = self.last_heard = None
+
 
 class SingleWriter:
     """A stream that must have one writer (the arm's joint states, goals, speed override):
@@ -397,6 +404,13 @@ class SingleWriter:
 
     def held(self, now: float) -> bool:
         return self.other_at is not None and now - self.other_at <= self.hold
+
+    def clock_stepped_back(self, now: float) -> None:
+        """The next writer heard is followed (`StreamLock.forget`); a second writer's hold
+        lasts `hold` from `now` at most (it was counted from a time in the clock's future)."""
+        self.lock.forget()
+        if self.other_at is not None:
+            self.other_at = min(self.other_at, now)
 
     @property
     def reason(self) -> str:

@@ -28,11 +28,11 @@ from typing import Callable
 
 from std_msgs.msg import UInt32
 
-from ..core.protocol import WARN, Endpoint, EpochFollower, InputError, Report, Stamp
+from ..core.protocol import (UNKNOWN_NODE_NAME, WARN, Endpoint, EpochFollower, InputError,
+                             Report, Stamp)
 from . import conversions as conv
 from . import qos
 
-UNKNOWN_NODE_NAME = '_NODE_NAME_UNKNOWN_'
 UNKNOWN_NODE_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'
 GID_BYTES = 16           # a Fast DDS GUID: 12 bytes of participant prefix, 4 of entity id
 PUBLISHERS_KEPT = 32     # publishers remembered per topic, present or gone

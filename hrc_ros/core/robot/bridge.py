@@ -85,7 +85,8 @@ import numpy as np
 from ..model import ACTIONS, CT, DM, DN, DP, MH, NW, RH1, RH2, TASK_VARIABLES, action_index
 from ..model import commit_effective
 from ..paths import read_yaml, share_dir
-from ..protocol import OK, WARN, InputError, Report, SingleWriter, StreamLock
+from ..protocol import (OK, UNKNOWN_NODE_NAME, WARN, InputError, Report, SingleWriter,
+                        StreamLock)
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import people, segment_duration
 from .guard import (JUMP_SLACK, MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path,
@@ -430,7 +431,10 @@ def unconsumed_reason(topic: str, readers, consumers) -> str:
         return ''
     if not readers:
         return f'nobody subscribes to the speed override on {topic}: SSM cannot act on the arm'
-    shown = ', '.join(sorted(set(readers))[:5])
+    # rmw names a subscriber's node UNKNOWN_NODE_NAME until discovery has its name (a consumer
+    # that is starting)
+    shown = ', '.join(sorted({'a node the graph does not name yet' if r == UNKNOWN_NODE_NAME else r
+                              for r in readers})[:5])
     return (f'none of {", ".join(consumers)} (override_consumers) subscribes to the speed '
             f'override on {topic}, only {len(readers)} reader(s) that cannot act on the arm '
             f'({shown}): SSM cannot act on the arm')
@@ -497,8 +501,9 @@ class JointStateReader:
                              f'and {len(velocities)} velocities')
         if names != self._names:
             where = {n: i for i, n in enumerate(names)}
-            if len(where) != len(names):        # which copy is the joint? (a merged source)
-                twice = sorted({n for n in names if names.count(n) > 1})
+            # which copy is the joint? (a merged source; joints the arm ignores may repeat)
+            twice = [n for n in self.description.joint_names if names.count(n) > 1]
+            if twice:
                 raise InputError(f'joint state names {", ".join(twice)} more than once')
             lack = [n for n in self.description.joint_names if n not in where]
             if lack:
@@ -898,6 +903,12 @@ class Bridge:
         self._frames.clear()
         self.approach = 0.0
         self._fault_clear_since = self._still_since = None
+        # the writers' lines too: their times lie in the clock's future, and a writer that
+        # restarted with the clock numbers from 1 (it was refused as a second writer until the
+        # clock caught up: a replay's whole previous run)
+        for writer in (self._joint_writer, *self.writers.values()):
+            writer.clock_stepped_back(now_ns * 1e-9)
+        self._skeleton_lock.forget()
         self.counts['clock_steps'] += 1
         return (f'the clock stepped back: data held is stamped {ahead:.3f} s ahead of it (more '
                 f'than clock_skew {self.description.clock_skew} s); the joint state and '

@@ -36,6 +36,10 @@ from ..protocol import InputError, SingleWriter
 # same as cobot_sim's override_timeout
 DEFAULT_TIMEOUT = 0.03
 SECOND_WRITER_HOLD = 1.0        # s a second override writer holds the arm after its last value
+# s the followed override writer may be silent before another is followed: not the timeout
+# (a 30 ms gap in the bridge's overrides, common under load, would hand the line to another
+# writer unflagged)
+WRITER_SILENCE = 0.1
 
 
 def safe_factor(value) -> float:
@@ -61,8 +65,15 @@ class ScalingAdapter:
         self.factor: float | None = None       # the last published (None: none yet)
         self.heard_at: float | None = None     # the last override of the followed writer
         self.reason = 'no override received yet'
-        self.writers = SingleWriter(what, self.timeout, SECOND_WRITER_HOLD)
+        self.writers = SingleWriter(what, max(self.timeout, WRITER_SILENCE), SECOND_WRITER_HOLD)
         self.received = self.refused = self.clamped = self.timeouts = self.second_writer = 0
+
+    @property
+    def watchdog_period(self) -> float:
+        """s between the node's watchdog ticks: an override is dropped at most this long after
+        `timeout` (with the 0.03 s default, 37.5 ms in all: within the 40 ms of control period
+        and command latency that the bridge's SSM plans each override for)."""
+        return min(self.timeout / 4, 0.05)
 
     def start(self) -> float:
         """The factor to publish at start: 0, until an override says otherwise."""

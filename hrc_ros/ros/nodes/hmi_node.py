@@ -43,6 +43,7 @@ from std_msgs.msg import Bool, Float64, Float64MultiArray, String, UInt8, UInt8M
 
 from ...core.hmi import AccessError, AccessPolicy, HmiMachine, is_loopback
 from ...core.hmi.access import OPERATOR, TOKEN_ENV, WORKER
+from ...core.hmi.orders import REFUSED
 from ...core.protocol import InputError
 from .. import conversions as conv
 from .. import qos
@@ -429,10 +430,23 @@ class HmiNode(Node):
             except Exception:  # noqa: BLE001 - a page's command must not end the node
                 self.inputs.internal_error(f'page {command.kind}', 'a page',
                                            traceback.format_exc())
-                self.server.reply(command.client, {
-                    'type': f'{command.kind}_result', 'ok': False, 'code': 'error',
-                    'text': 'the HMI could not handle this (logged); try again'})
+                self._failed(command)
         self._push(now)
+
+    def _failed(self, command: Command) -> None:
+        """The reply to a command that failed, shaped as its normal one so that the page
+        leaves its waiting state (the worker's buttons, the console's 'sending...')."""
+        text = 'the HMI could not handle this (logged); try again'
+        payload = command.payload
+        if command.kind == 'answer':
+            request, accept = payload.get('request'), payload.get('accept')
+            self.server.reply(command.client, {
+                'type': 'answer_result', 'request': request if isinstance(request, str) else None,
+                'accept': accept if isinstance(accept, bool) else None, 'ok': False,
+                'code': 'error', 'text': text})
+        elif command.kind == 'order':
+            self.server.reply(command.client, {'type': 'order_result', 'ref': payload.get('ref'),
+                                               'order': None, 'status': REFUSED, 'text': text})
 
     def _answer(self, command: Command, now: int) -> None:
         request, accept = command.payload['request'], command.payload['accept']

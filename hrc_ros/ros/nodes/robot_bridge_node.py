@@ -389,8 +389,9 @@ class RobotBridgeNode(Node):
                 values, kind='no_subscriber', log=False))
             return
         self.inputs.report(Report(
-            ERROR, 'speed override', f'{self._unconsumed}; the arm is held (protective stop, '
-            'no trajectory sent) until its controller or adapter listens', values,
+            ERROR, 'speed override', f'{self._unconsumed or "no consumer of the override yet"};'
+            ' the arm is held (protective stop, no trajectory sent) until its controller or '
+            'adapter listens', values,
             kind='no_subscriber'))
 
     def _publish_progress(self) -> None:

@@ -76,7 +76,7 @@ class SpeedScalingNode(Node):
                               lambda msg: msg.data, self._on_override, name='override',
                               with_stamp=True)
         self._publish(self.adapter.start())
-        self.create_timer(min(self.adapter.timeout / 2, 0.05), self._on_watchdog)
+        self.create_timer(self.adapter.watchdog_period, self._on_watchdog)
         self.create_timer(STATUS_PERIOD_SEC, self._on_status)
         self.get_logger().info(
             f'{values["override_topic"]} -> {self.resolve_topic_name(values["scaling_topic"])} '
