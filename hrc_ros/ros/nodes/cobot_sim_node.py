@@ -108,7 +108,7 @@ class CobotSimNode(Node):
         arm, goal_arm = Arm(), Arm()
         warm_up_before_the_node(arm, goal_arm)
         super().__init__(self.NODE_NAME, **kwargs)
-        self.params = NodeParameters(self, PARAMETERS, check_names, self._apply)
+        self.params = NodeParameters(self, PARAMETERS, check_names)    # all read-only
         values = self.params.values()
         self.description = d = load_description(values['robot_description'])
         q0 = np.asarray(values['initial_positions'] or d.poses['home'], dtype=float)
@@ -171,9 +171,6 @@ class CobotSimNode(Node):
             self._motion_thread.join(timeout=5.0)
         self.sampled.destroy()
         return super().destroy_node()
-
-    def _apply(self, values) -> None:
-        self.override_timeout = self.override_writer.silence = values['override_timeout']
 
     # -- inputs ------------------------------------------------------------------------------
     def _on_trajectory(self, msg: JointTrajectory) -> None:
