@@ -369,6 +369,11 @@ class BagWriter:
         """topic -> type name of the topics added so far."""
         return {name: record.type_name for name, record in self._topics.items()}
 
+    @property
+    def message_counts(self) -> dict[str, int]:
+        """topic -> messages written on it so far (0 for a topic added and never written)."""
+        return {name: record.message_count for name, record in self._topics.items()}
+
     def add_topic(self, topic: str, type_name: str, qos: Sequence[Mapping] | None = None, *,
                   topic_type_hash: str | None = None) -> None:
         """Declare a topic (a channel, with its type's schema the first time it is seen).

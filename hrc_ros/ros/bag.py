@@ -15,7 +15,6 @@ import importlib
 import os
 import sys
 import time
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -206,7 +205,6 @@ class Recorder:
             for t, ty in (topics or {}).items()}
         self.subscriptions: dict[str, Any] = {}
         self.message_count = 0
-        self.counts: Counter = Counter()     # messages per topic
         self._timer = node.create_timer(poll_period, self.poll)
         self.poll()
 
@@ -252,7 +250,6 @@ class Recorder:
             source_ns = info.get('source_timestamp') if isinstance(info, dict) else None
             self.writer.write(topic, data, receive_ns, source_ns or receive_ns)
             self.message_count += 1
-            self.counts[topic] += 1
         return on_message
 
     def close(self) -> None:
@@ -568,7 +565,8 @@ def _record(node: Any, args: argparse.Namespace) -> int:
     print(f'hrc-bag: recorded {writer.message_count} messages on {len(writer.topics)} '
           f'topic(s) in {time.monotonic() - started:.1f} s to {writer.path} '
           f'({format_size(writer.path.stat().st_size)})', flush=True)
-    empty = [topic for topic in topics if recorder.counts[topic] == 0]
+    written = writer.message_counts
+    empty = [topic for topic in topics if written.get(topic, 0) == 0]
     if empty:      # a bag that lacks a topic's messages cannot be replayed or fitted as one
         print(f'hrc-bag: warning: no message on {cap(", ".join(empty), 400)}: they had '
               'publishers but sent nothing while recording (start the recorder before the '
