@@ -890,9 +890,10 @@ class Bridge:
         the joint state and the skeletons held are dropped, the commanded bounds taken as given
         now (`SpeedEnvelope.rebase`), and the arm holds until fresh data comes (a lost person's
         hold stays). '' when the clock is sane."""
+        # (the followed frames of `_frames` are no newer than `_body_stamp`: not scanned)
         held = [t for t in (self._joint_stamp, self._body_stamp, self._content_stamp,
                             self.envelope.newest) if t is not None]
-        held += [t for _, t in self._others] + [t for t, _ in self._frames]
+        held += [t for _, t in self._others]
         ahead = (max(held) - now_ns) * 1e-9 if held else 0.0
         if ahead <= self.description.clock_skew:
             return ''
