@@ -305,15 +305,21 @@ def _base_path(folder: Path, text: str) -> str:
     return _resolve(folder, text)
 
 
-def check_world(where: str, base: str, world: dict) -> None:
+def check_world(where: str, base: str, world: dict, loaded: dict) -> None:
     """PlantError when a generated cell's world (overrides written in the plant file) does not
     make a configuration of its base: a typo there is the plant file's, refused before any
     work (it failed the cell after the others had run). A base that does not load is left to
-    the cell (its read stage fails it alone, as a broken file of its own)."""
+    the cell (its read stage fails it alone, as a broken file of its own). `loaded`: base ->
+    its configuration (None: it does not load), so that a base many cells share (up to
+    MAX_CELLS) is read once."""
     from ..config import ConfigError, load_config
-    try:
-        config = load_config(base)
-    except ConfigError:
+    if base not in loaded:
+        try:
+            loaded[base] = load_config(base)
+        except ConfigError:
+            loaded[base] = None
+    config = loaded[base]
+    if config is None:
         return
     try:
         config.with_overrides(world)
@@ -348,7 +354,7 @@ def load_plant(path: str | Path) -> Plant:
     if len(cells) > MAX_CELLS:
         raise PlantError(f'{path}: {len(cells)} cells; a plant file holds at most {MAX_CELLS}')
     folder = path.resolve().parent
-    out, names, namespaces = [], set(), {}
+    out, names, namespaces, bases = [], set(), {}, {}
     for i, cell in enumerate(cells):
         label = cell.get('name') if isinstance(cell, dict) else None
         where = f'{path}: {_where(i, label if isinstance(label, str) else None)}'
@@ -405,7 +411,7 @@ def load_plant(path: str | Path) -> Plant:
                              f'whose selector is pomdp or fib; this one runs {selector}')
         base = _base_path(folder, settings.get('base', SCALARS['base'][1]))
         if generate is not None and isinstance(generate['world'], dict):
-            check_world(where, base, generate['world'])
+            check_world(where, base, generate['world'], bases)
         out.append(CellSpec(
             name=label, namespace=namespace, recordings=recordings, generate=generate,
             base=base,
