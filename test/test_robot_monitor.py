@@ -53,7 +53,8 @@ def seen(keypoints, noise=0.0015) -> BodyCapsules:
 
 class Cell:
     """A bridge and a controller at 100 Hz; `foreign(trajectory)` is a goal someone else sends
-    the controller, `lie` replaces the velocities the controller reports."""
+    the controller, `lie` replaces the velocities the controller reports, `frozen` (positions,
+    velocities) the whole state the driver reports."""
 
     def __init__(self, setup, distance=2.5):
         self.description, programs, self.arm = setup
@@ -63,6 +64,7 @@ class Cell:
         self.keypoints = person(distance)
         self.t = 0
         self.lie = None
+        self.frozen = None
         self.commands = []
 
     def foreign(self, target, duration):
@@ -77,7 +79,8 @@ class Cell:
             self.bridge.skeleton(seen(self.keypoints) if body is None else body(), self.t,
                                  self.t)
             qd = self.follower.qd if self.lie is None else self.lie
-            self.bridge.joint_state(JOINT_NAMES, self.follower.q, qd, self.t, self.t)
+            q, qd = (self.follower.q, qd) if self.frozen is None else self.frozen
+            self.bridge.joint_state(JOINT_NAMES, q, qd, self.t, self.t)
             command = self.bridge.tick(self.t)
             if command.trajectory is not None:
                 self.follower.follow(command.trajectory)
@@ -229,6 +232,7 @@ def test_the_honest_batch_cell_has_no_monitor_stops():
         out = cell.episode(scenario, human, person_seed(0, e), 'ssm_only', record=True)
         assert sum(stop for _, stop, _, _ in out.samples) > 0       # SSM stopped the arm
         assert out.monitor['foreign_motion'] == 0 and out.monitor['overspeed'] == 0, e
+        assert out.monitor['frozen_joint_states'] == 0, e
 
 
 def test_a_slower_goal_off_the_bridges_path_stops_the_program(setup):
@@ -320,6 +324,38 @@ def test_a_clock_that_steps_back_drops_what_is_held_and_holds_the_arm(setup):
     steps = cell.run(1.5)                                 # the tracker again
     assert not steps[-1][0].stop and np.max(np.abs(steps[-1][2])) > 0.1
     assert cell.bridge.counts['clock_steps'] == 1 and cell.bridge.motion == 'program'
+
+
+def test_joint_states_frozen_while_the_arm_moves_stop_it_and_a_slow_honest_arm_does_not(setup):
+    """The driver repeats its last state (the positions and velocities of an arm moving at
+    speed) with fresh stamps while the controller goes on: the bridge saw fresh joint states
+    and let the program run on stale positions until the stall rule held it about 4 s later.
+    Now positions that stand still for joint_state_timeout while the velocities say the arm
+    moves are no data: a protective stop, the real arm brakes, and the program goes on once
+    the driver reports motion again. An arm moving just above rest_speed is no freeze."""
+    cell = Cell(setup)
+    program_running(cell)
+    cell.frozen = (cell.follower.q.copy(), cell.follower.qd.copy())
+    steps = cell.run(1.0)
+    stopped = [i for i, (c, _, _) in enumerate(steps) if c.stop]
+    timeout = cell.description.joint_state_timeout
+    assert stopped and stopped[0] * 0.01 <= timeout + 0.02, stopped[:3]
+    assert all(c.stop and c.override == 0.0 for c, _, _ in steps[stopped[0]:])
+    assert 'a frozen driver' in steps[-1][0].reason and not cell.bridge.fault
+    assert np.all(steps[-1][2] == 0)                    # the arm itself braked and stands
+    assert cell.bridge.counts['frozen_joint_states'] == 1
+    cell.frozen = None                                  # the driver again
+    steps = cell.run(1.5)
+    assert not steps[-1][0].stop and np.max(np.abs(steps[-1][2])) > 0.1
+    assert cell.bridge.counts['frozen_joint_states'] == 1
+    # an arm crawling at 1.5 rest_speed on one joint reports that motion: no freeze
+    crawl = np.zeros(6)
+    crawl[0] = 1.5 * cell.description.rest_speed
+    q = cell.follower.q.copy()
+    for k in range(50):
+        cell.bridge.joint_state(JOINT_NAMES, q + crawl * k * 0.01, crawl, cell.t, cell.t)
+        assert 'frozen driver' not in cell.bridge.tick(cell.t).reason
+        cell.t += 10 * MS
 
 
 def test_the_override_needs_a_consumer_not_only_a_reader():

@@ -50,7 +50,11 @@ that the links' top speed at override 1 (`Trajectory.nominal_speed`) times the o
 within the speed SSM allows. Whatever the action, the commanded override is the smallest of
 SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collaboration_speed)
 and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
-than `joint_state_timeout`: a protective stop with its reason.
+than `joint_state_timeout`: a protective stop with its reason. So are joint states whose
+positions have stood still (within FROZEN_JOINT_TOLERANCE) for more than `joint_state_timeout`
+while their velocities say the arm moves (faster than `rest_speed`): a driver that repeats its
+last state with fresh stamps, the arm anywhere along its path (before, only the stall rule
+caught it, after about 4 s).
 
 **One arm, every person.** Each input names its writer by its publication sequence number
 (`core.protocol.StreamLock`; None where the middleware gives none: all one writer). The
@@ -105,6 +109,8 @@ OTHER_BODIES = 64                  # skeletons of other writers kept (each count
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
 STALL_RESENDS = 3                  # ... at most this many times in a row, then hold and report
+FROZEN_JOINT_TOLERANCE = 1e-4     # rad: joint states that moved less stood still (at rest_speed
+                                  # a joint moves 1e-3 rad in joint_state_timeout)
 APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
 APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
@@ -561,6 +567,10 @@ class Bridge:
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
         self._joint_stamp: int | None = None
+        # (positions, stamp) where the joint states last moved or said the arm rests: their
+        # age is how long the positions have contradicted the velocities (`_frozen_joints`)
+        self._joint_moved: tuple[np.ndarray, int] | None = None
+        self._joints_frozen = False
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
         self._content_stamp: int | None = None   # the stamp of the last skeleton that changed
@@ -594,7 +604,7 @@ class Bridge:
         self._replace = False         # a goal of the bridge's must replace the controller's
         self.counts = {'overspeed': 0, 'foreign_motion': 0, 'implausible_skeletons': 0,
                        'frozen_skeletons': 0, 'goals_resent': 0, 'lost_people': 0,
-                       'clock_steps': 0}
+                       'clock_steps': 0, 'frozen_joint_states': 0}
         self._still_since: int | None = None    # the arm at rest on an unfinished goal
         self._resent = 0              # goals sent again in a row without the arm moving
         # A person the followed tracker lost near the arm (`_track_loss`): (bodies in the frame
@@ -615,6 +625,10 @@ class Bridge:
         check_stamp('joint state', stamp_ns, now_ns, self.description.clock_skew)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
+        moved = self._joint_moved
+        if moved is None or (np.abs(self.qd) <= self.description.rest_speed).all() \
+                or np.abs(self.q - moved[0]).max() > FROZEN_JOINT_TOLERANCE:
+            self._joint_moved = (self.q, int(stamp_ns))
         self.measured.update(self.q, self.qd, stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
@@ -833,7 +847,11 @@ class Bridge:
                       else f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
         else:
-            reason = self._hold_reason(now_ns)
+            frozen = self._frozen_joints(self._joint_moved[1], now_ns)
+            if frozen and not self._joints_frozen:
+                self.counts['frozen_joint_states'] += 1
+            self._joints_frozen = bool(frozen)
+            reason = frozen or self._hold_reason(now_ns)
         if reason:
             self._note_stop(reason, reports)
             self.envelope.command(now_ns, 0.0)
@@ -898,6 +916,7 @@ class Bridge:
         if ahead <= self.description.clock_skew:
             return ''
         self._joint_stamp = None      # its configuration stays: where the arm was last seen
+        self._joint_moved = None
         self.envelope.rebase(now_ns)
         self.body, self._body_stamp, self._content_stamp = None, None, None
         self._others.clear()
@@ -914,6 +933,18 @@ class Bridge:
         return (f'the clock stepped back: data held is stamped {ahead:.3f} s ahead of it (more '
                 f'than clock_skew {self.description.clock_skew} s); the joint state and '
                 'skeletons held are dropped and the arm holds until fresh ones come')
+
+    def _frozen_joints(self, moved_ns: int, now_ns: int) -> str:
+        """Why the joint states are no data though fresh: their positions stood still since
+        `moved_ns` for more than joint_state_timeout while their velocities say the arm moves
+        (module docstring). '' otherwise."""
+        still = (now_ns - moved_ns) * 1e-9
+        if still <= self.description.joint_state_timeout:
+            return ''
+        return (f'the joint states\' positions have not moved (by {FROZEN_JOINT_TOLERANCE} rad) '
+                f'for {still:.3f} s while their velocities say the arm moves (up to '
+                f'{np.abs(self.qd).max():.3f} rad/s): a frozen driver, the arm may be anywhere '
+                'along its path')
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input
