@@ -562,6 +562,14 @@ def test_off_loopback_every_request_needs_the_token(served):
                 assert r.status == 303 and r.headers['Location'] == '/operator'
                 cookie = r.cookies['hrc_hmi_token']
                 assert cookie['httponly'] and cookie['samesite'] == 'Strict'
+                assert not cookie['secure']      # plain HTTP: else it never came back
+            # behind a TLS proxy (docs/HMI.md's nginx): the cookie only ever goes over HTTPS
+            async with s.get(url + f'?token={TOKEN}', allow_redirects=False,
+                             headers={'X-Forwarded-Proto': 'https'}) as r:
+                assert r.status == 303 and r.cookies['hrc_hmi_token']['secure']
+            s.cookie_jar.clear()
+            async with s.get(url + f'operator?token={TOKEN}', allow_redirects=False) as r:
+                assert r.status == 303
             async with s.get(url + 'operator') as response:      # the cookie from now on
                 assert response.status == 200
             ws = await s.ws_connect(url + 'ws?view=operator')
