@@ -17,7 +17,8 @@ does. In order, on one running cell:
    queued" and the task appears in hrc/task_state; an out-of-range one and one with letters
    are refused with the field's range; the console's timeline has the epochs;
 5. the HMI process is stopped: the page says "no connection to the cell"; started again on the
-   same port, the page reconnects by itself.
+   same port with tokens the page lacks, it says its access is refused; started again without
+   them, the page reconnects by itself.
 
 Before them, `hrc-hmi-shots`' screenshots of its scripted cell at the three sizes.
 
@@ -323,5 +324,17 @@ def test_the_page_recovers_when_the_hmi_restarts(cell, pages):
     assert process.wait(10) == 0
     expect(page.locator('#connection')).to_have_text('no connection to the cell')
     expect(page.locator('#accept')).to_be_disabled()
-    suite.start('hmi_node')
+    # started again with tokens this page does not carry: it says its access is refused,
+    # where it said "no connection" for as long as anyone waited
+    tokens = ['-p', 'worker_token:=worker-token-000000000', '-p',
+              'operator_token:=operator-token-00000000']
+    params = [arg for path in suite.params for arg in ('--params-file', path)]
+    suite.start('hmi_node', ros_args=params + tokens)
+    expect(page.locator('#connection')).to_have_text(re.compile('^access refused: open this '),
+                                                     timeout=START_TIMEOUT * MS)
+    expect(page.locator('#accept')).to_be_disabled()
+    process = suite.processes.pop('hmi_node')
+    os.killpg(process.pid, signal.SIGINT)
+    assert process.wait(10) == 0
+    suite.start('hmi_node')                       # without tokens: the page connects by itself
     expect(page.locator('#connection')).to_have_text('connected', timeout=START_TIMEOUT * MS)

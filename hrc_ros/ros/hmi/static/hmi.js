@@ -4,6 +4,9 @@
 'use strict';
 const HMI = (() => {
   const NO_CELL = 'no connection to the cell';
+  // the HMI answers but refuses this page's token (it was restarted with new tokens, or the
+  // cookie is gone): waiting would never connect
+  const REFUSED = 'access refused: open this page again with the link that carries its token';
   const WATCHDOG_MS = 15000;   // the server sends something at least every 5 s
 
   function text(id, value) {
@@ -14,7 +17,7 @@ const HMI = (() => {
   // connect(view, {view(message, client), reply(message, client), feed(message), down()})
   function connect(view, handlers) {
     const connection = document.getElementById('connection');
-    let socket = null, client = null, backoff = 250, watchdog = null;
+    let socket = null, client = null, backoff = 250, watchdog = null, opened = false;
 
     function show(state, words) {
       connection.dataset.state = state;
@@ -27,7 +30,8 @@ const HMI = (() => {
     function open() {
       const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
       socket = new WebSocket(`${scheme}://${location.host}/ws?view=${view}`);
-      socket.onopen = () => { backoff = 250; arm(); };
+      opened = false;
+      socket.onopen = () => { backoff = 250; opened = true; arm(); };
       socket.onmessage = (event) => {
         arm();
         let message;
@@ -48,6 +52,14 @@ const HMI = (() => {
         socket = null;
         client = null;
         show('disconnected', NO_CELL);
+        if (!opened) {
+          // a refused handshake looks like no server at all: ask the page itself why
+          fetch(location.pathname, {cache: 'no-store'}).then((response) => {
+            if ((response.status === 401 || response.status === 403) && !opened) {
+              show('refused', REFUSED);
+            }
+          }, () => {});
+        }
         if (handlers.down) handlers.down();
         setTimeout(open, backoff + Math.random() * 250);
         backoff = Math.min(backoff * 2, 4000);
@@ -72,5 +84,5 @@ const HMI = (() => {
     text('distance', d.text);
   }
 
-  return {connect, text, band, NO_CELL};
+  return {connect, text, band, NO_CELL, REFUSED};
 })();
