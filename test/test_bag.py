@@ -499,7 +499,7 @@ def test_recorder_receives_best_effort_publishers(node, tmp_path):
                    'the recorder to subscribe')
         for i in range(5):
             publisher.publish(JointState(name=['l_elbow'], velocity=[0.1 * i]))
-            spin_until(node, lambda n=i + 1: recorder.message_count == n, 5, f'message {i}')
+            spin_until(node, lambda n=i + 1: writer.message_count == n, 5, f'message {i}')
         recorder.close()
     messages = list(bag.read_bag(tmp_path / 'sensor.mcap'))
     assert [bag.deserialize(m).velocity[0] for m in messages] == [0.1 * i for i in range(5)]

@@ -204,7 +204,6 @@ class Recorder:
             node.resolve_topic_name(t): (None if ty is None else full_type_name(ty))
             for t, ty in (topics or {}).items()}
         self.subscriptions: dict[str, Any] = {}
-        self.message_count = 0
         self._timer = node.create_timer(poll_period, self.poll)
         self.poll()
 
@@ -249,7 +248,6 @@ class Recorder:
             receive_ns = clock.now().nanoseconds
             source_ns = info.get('source_timestamp') if isinstance(info, dict) else None
             self.writer.write(topic, data, receive_ns, source_ns or receive_ns)
-            self.message_count += 1
         return on_message
 
     def close(self) -> None:
@@ -550,14 +548,14 @@ def _record(node: Any, args: argparse.Namespace) -> int:
             while not _stopped(node.context):
                 rclpy.spin_once(node, timeout_sec=0.05)
                 now = time.monotonic()
-                if recorder.message_count != reported and now >= next_status:
-                    reported = recorder.message_count
+                if writer.message_count != reported and now >= next_status:
+                    reported = writer.message_count
                     print(f'hrc-bag: recorded {reported} messages', flush=True)
                     next_status = now + 1.0
                 if args.duration is not None and now - started >= args.duration:
                     break
                 if args.max_messages is not None and \
-                        recorder.message_count >= args.max_messages:
+                        writer.message_count >= args.max_messages:
                     break
         finally:
             if node.context.ok():
