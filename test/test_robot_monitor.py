@@ -330,9 +330,10 @@ def test_joint_states_frozen_while_the_arm_moves_stop_it_and_a_slow_honest_arm_d
     """The driver repeats its last state (the positions and velocities of an arm moving at
     speed) with fresh stamps while the controller goes on: the bridge saw fresh joint states
     and let the program run on stale positions until the stall rule held it about 4 s later.
-    Now positions that stand still for joint_state_timeout while the velocities say the arm
-    moves are no data: a protective stop, the real arm brakes, and the program goes on once
-    the driver reports motion again. An arm moving just above rest_speed is no freeze."""
+    Now positions that moved less than a quarter of what the velocities say over
+    joint_state_timeout are no data: a protective stop, the real arm brakes, and the program
+    goes on once the driver reports motion again. An arm moving just above rest_speed is no
+    freeze."""
     cell = Cell(setup)
     program_running(cell)
     cell.frozen = (cell.follower.q.copy(), cell.follower.qd.copy())
@@ -356,6 +357,35 @@ def test_joint_states_frozen_while_the_arm_moves_stop_it_and_a_slow_honest_arm_d
         cell.bridge.joint_state(JOINT_NAMES, q + crawl * k * 0.01, crawl, cell.t, cell.t)
         assert 'frozen driver' not in cell.bridge.tick(cell.t).reason
         cell.t += 10 * MS
+
+
+@pytest.mark.parametrize('disguise', ['jitter', 'two_states', 'rest_blips'])
+def test_a_frozen_driver_that_jitters_flips_or_blips_rest_is_still_frozen(setup, disguise):
+    """An adversarial review of the first rule (positions within 1e-4 rad for 0.1 s): 2e-4
+    rad of jitter on the frozen positions, or a flip between two states 1.5e-4 rad apart, or
+    every 9th message at rest, restarted its clock at every message, escaped the stall rule
+    too (its velocities never read as rest), and ran the arm 0.17 m/s faster than SSM allowed
+    a person 1.2 m away. Such motion adds nothing along what the velocities claim."""
+    cell = Cell(setup)
+    program_running(cell)
+    q, qd = cell.follower.q.copy(), cell.follower.qd.copy()
+    rng = np.random.default_rng(5)
+    messages = []
+    for k in range(30):
+        if disguise == 'jitter':
+            messages.append((q + rng.uniform(-2e-4, 2e-4, 6), qd))
+        elif disguise == 'two_states':
+            messages.append((q + 1.5e-4 * (k % 2), qd))
+        else:
+            messages.append((q, np.zeros(6) if k % 9 == 0 else qd))
+    steps = []
+    for frozen in messages:
+        cell.frozen = frozen
+        steps += cell.run(0.01)
+    stopped = [i for i, (c, _, _) in enumerate(steps) if c.stop]
+    assert stopped and stopped[0] * 0.01 <= cell.description.joint_state_timeout + 0.02, \
+        [c.reason for c, _, _ in steps[:12]]
+    assert 'a frozen driver' in steps[-1][0].reason and steps[-1][0].override == 0.0
 
 
 def test_the_override_needs_a_consumer_not_only_a_reader():

@@ -51,10 +51,10 @@ within the speed SSM allows. Whatever the action, the commanded override is the 
 SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collaboration_speed)
 and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
 than `joint_state_timeout`: a protective stop with its reason. So are joint states whose
-positions have stood still (within FROZEN_JOINT_TOLERANCE) for more than `joint_state_timeout`
-while their velocities say the arm moves (faster than `rest_speed`): a driver that repeats its
-last state with fresh stamps, the arm anywhere along its path (before, only the stall rule
-caught it, after about 4 s).
+positions moved less than FROZEN_JOINT_SHARE of what their velocities, integrated over the last
+`joint_state_timeout`, say they moved (when that is more than FROZEN_JOINT_TOLERANCE): a driver
+that repeats its last state with fresh stamps, with or without jitter on it, the arm anywhere
+along its path (before, only the stall rule caught it, after about 4 s; `_frozen_joints`).
 
 **One arm, every person.** Each input names its writer by its publication sequence number
 (`core.protocol.StreamLock`; None where the middleware gives none: all one writer). The
@@ -109,8 +109,12 @@ OTHER_BODIES = 64                  # skeletons of other writers kept (each count
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
 STALL_RESENDS = 3                  # ... at most this many times in a row, then hold and report
-FROZEN_JOINT_TOLERANCE = 1e-4     # rad: joint states that moved less stood still (at rest_speed
-                                  # a joint moves 1e-3 rad in joint_state_timeout)
+FROZEN_JOINT_TOLERANCE = 1e-4      # rad: velocities that claim less motion than this over
+                                   # joint_state_timeout claim none (`_frozen_joints`)
+FROZEN_JOINT_SHARE = 0.25          # positions that moved less than this share of the claim are
+                                   # frozen (jitter must fake a quarter of it)
+FROZEN_JOINT_SPACING = 0.001       # s between the joint states kept for that (1 kHz drivers)
+FROZEN_JOINT_RECENT = 3            # of them, the last that must say the arm moves now
 APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
 APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
@@ -567,9 +571,9 @@ class Bridge:
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
         self._joint_stamp: int | None = None
-        # (positions, stamp) where the joint states last moved or said the arm rests: their
-        # age is how long the positions have contradicted the velocities (`_frozen_joints`)
-        self._joint_moved: tuple[np.ndarray, int] | None = None
+        # (stamp, q, qd) of the joint states over the last joint_state_timeout and the one
+        # before: the positions' motion against the velocities' (`_frozen_joints`)
+        self._joint_window: deque = deque()
         self._joints_frozen = False
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
@@ -625,10 +629,14 @@ class Bridge:
         check_stamp('joint state', stamp_ns, now_ns, self.description.clock_skew)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
-        moved = self._joint_moved
-        if moved is None or (np.abs(self.qd) <= self.description.rest_speed).all() \
-                or np.abs(self.q - moved[0]).max() > FROZEN_JOINT_TOLERANCE:
-            self._joint_moved = (self.q, int(stamp_ns))
+        window = self._joint_window
+        # one stamped out of order, or within FROZEN_JOINT_SPACING of the last kept, is not
+        # kept (a flood cannot grow the window past joint_state_timeout / the spacing)
+        if not window or stamp_ns >= window[-1][0] + FROZEN_JOINT_SPACING * 1e9:
+            window.append((int(stamp_ns), self.q, self.qd))
+            horizon = stamp_ns - self.description.joint_state_timeout * 1e9
+            while len(window) > 2 and window[1][0] <= horizon:
+                window.popleft()
         self.measured.update(self.q, self.qd, stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
@@ -847,7 +855,7 @@ class Bridge:
                       else f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
         else:
-            frozen = self._frozen_joints(self._joint_moved[1], now_ns)
+            frozen = self._frozen_joints()
             if frozen and not self._joints_frozen:
                 self.counts['frozen_joint_states'] += 1
             self._joints_frozen = bool(frozen)
@@ -916,7 +924,7 @@ class Bridge:
         if ahead <= self.description.clock_skew:
             return ''
         self._joint_stamp = None      # its configuration stays: where the arm was last seen
-        self._joint_moved = None
+        self._joint_window.clear()
         self.envelope.rebase(now_ns)
         self.body, self._body_stamp, self._content_stamp = None, None, None
         self._others.clear()
@@ -934,17 +942,33 @@ class Bridge:
                 f'than clock_skew {self.description.clock_skew} s); the joint state and '
                 'skeletons held are dropped and the arm holds until fresh ones come')
 
-    def _frozen_joints(self, moved_ns: int, now_ns: int) -> str:
-        """Why the joint states are no data though fresh: their positions stood still since
-        `moved_ns` for more than joint_state_timeout while their velocities say the arm moves
-        (module docstring). '' otherwise."""
-        still = (now_ns - moved_ns) * 1e-9
-        if still <= self.description.joint_state_timeout:
+    def _frozen_joints(self) -> str:
+        """Why the joint states are no data though fresh: over the last joint_state_timeout
+        their positions moved less than FROZEN_JOINT_SHARE of what their velocities say (the
+        velocities integrated over the samples' stamps, as a vector: jitter or a flip between
+        two states adds no motion along them, and a lone message at rest takes little off the
+        claim). '' otherwise, and while the samples span less than the window."""
+        window = self._joint_window
+        span = (window[-1][0] - window[0][0]) * 1e-9 if window else 0.0
+        if span < self.description.joint_state_timeout:
             return ''
-        return (f'the joint states\' positions have not moved (by {FROZEN_JOINT_TOLERANCE} rad) '
-                f'for {still:.3f} s while their velocities say the arm moves (up to '
-                f'{np.abs(self.qd).max():.3f} rad/s): a frozen driver, the arm may be anywhere '
-                'along its path')
+        steps = np.diff(np.array([t for t, _, _ in window], dtype=np.int64)) * 1e-9
+        velocities = np.array([qd for _, _, qd in window])
+        # trapezoids: the motion the velocities claim from the first sample to the last
+        claimed = float(np.linalg.norm(
+            ((velocities[1:] + velocities[:-1]) * 0.5 * steps[:, None]).sum(axis=0)))
+        moved = float(np.linalg.norm(window[-1][1] - window[0][1]))
+        # ... and the velocities say the arm moves now (any of the last FROZEN_JOINT_RECENT
+        # samples faster than rest_speed): a driver whose velocities lag its positions (a
+        # low-pass filter) claims motion for a while after the arm came to rest
+        now_moving = (np.abs(velocities[-FROZEN_JOINT_RECENT:])
+                      > self.description.rest_speed).any()
+        if claimed <= FROZEN_JOINT_TOLERANCE or moved >= FROZEN_JOINT_SHARE * claimed \
+                or not now_moving:
+            return ''
+        return (f'the joint states\' positions moved {moved:.4f} rad in {span:.3f} s where their '
+                f'velocities say {claimed:.4f} rad (up to {np.abs(self.qd).max():.3f} rad/s): a '
+                'frozen driver, the arm may be anywhere along its path')
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input
