@@ -51,10 +51,10 @@ within the speed SSM allows. Whatever the action, the commanded override is the 
 SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collaboration_speed)
 and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
 than `joint_state_timeout`: a protective stop with its reason. So are joint states whose
-positions moved less than FROZEN_JOINT_SHARE of what their velocities, integrated over the last
-`joint_state_timeout`, say they moved (when that is more than FROZEN_JOINT_TOLERANCE): a driver
-that repeats its last state with fresh stamps, with or without jitter on it, the arm anywhere
-along its path (before, only the stall rule caught it, after about 4 s; `_frozen_joints`).
+positions moved less than a quarter of what their velocities, integrated over the last
+`joint_state_timeout`, say they moved (`guard.JointFreezeCheck`): a driver that repeats its last
+state with fresh stamps, with or without jitter on it, the arm anywhere along its path (before,
+only the stall rule caught it, after about 4 s).
 
 **One arm, every person.** Each input names its writer by its publication sequence number
 (`core.protocol.StreamLock`; None where the middleware gives none: all one writer). The
@@ -93,8 +93,8 @@ from ..protocol import (OK, UNKNOWN_NODE_NAME, WARN, InputError, Report, SingleW
                         StreamLock)
 from .arm import JOINT_NAMES, Arm, BodyCapsules, Separation, Trajectory, peak_link_speed
 from .arm import people, segment_duration
-from .guard import (JUMP_SLACK, MeasuredSpeed, SkeletonCheck, SpeedEnvelope, across_path,
-                    nearest_on_path)
+from .guard import (JUMP_SLACK, JointFreezeCheck, MeasuredSpeed, SkeletonCheck, SpeedEnvelope,
+                    across_path, nearest_on_path)
 from .ssm import (MOVING_SPEED, SpeedSeparationMonitor, SsmParameters, SsmState,
                   directed_speeds, max_speed)
 
@@ -109,12 +109,6 @@ OTHER_BODIES = 64                  # skeletons of other writers kept (each count
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
 STALL_RESENDS = 3                  # ... at most this many times in a row, then hold and report
-FROZEN_JOINT_TOLERANCE = 1e-4      # rad: velocities that claim less motion than this over
-                                   # joint_state_timeout claim none (`_frozen_joints`)
-FROZEN_JOINT_SHARE = 0.25          # positions that moved less than this share of the claim are
-                                   # frozen (jitter must fake a quarter of it)
-FROZEN_JOINT_SPACING = 0.001       # s between the joint states kept for that (1 kHz drivers)
-FROZEN_JOINT_RECENT = 3            # of them, the last that must say the arm moves now
 APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
 APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
@@ -571,9 +565,8 @@ class Bridge:
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
         self._joint_stamp: int | None = None
-        # (stamp, q, qd) of the joint states over the last joint_state_timeout and the one
-        # before: the positions' motion against the velocities' (`_frozen_joints`)
-        self._joint_window: deque = deque()
+        # the positions' motion against the velocities' (a frozen driver)
+        self.joint_freeze = JointFreezeCheck(d.joint_state_timeout, d.rest_speed)
         self._joints_frozen = False
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
@@ -629,14 +622,7 @@ class Bridge:
         check_stamp('joint state', stamp_ns, now_ns, self.description.clock_skew)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
-        window = self._joint_window
-        # one stamped out of order, or within FROZEN_JOINT_SPACING of the last kept, is not
-        # kept (a flood cannot grow the window past joint_state_timeout / the spacing)
-        if not window or stamp_ns >= window[-1][0] + FROZEN_JOINT_SPACING * 1e9:
-            window.append((int(stamp_ns), self.q, self.qd))
-            horizon = stamp_ns - self.description.joint_state_timeout * 1e9
-            while len(window) > 2 and window[1][0] <= horizon:
-                window.popleft()
+        self.joint_freeze.update(int(stamp_ns), self.q, self.qd)
         self.measured.update(self.q, self.qd, stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
@@ -855,7 +841,7 @@ class Bridge:
                       else f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
         else:
-            frozen = self._frozen_joints()
+            frozen = self.joint_freeze.reason()
             if frozen and not self._joints_frozen:
                 self.counts['frozen_joint_states'] += 1
             self._joints_frozen = bool(frozen)
@@ -924,7 +910,7 @@ class Bridge:
         if ahead <= self.description.clock_skew:
             return ''
         self._joint_stamp = None      # its configuration stays: where the arm was last seen
-        self._joint_window.clear()
+        self.joint_freeze.clear()
         self.envelope.rebase(now_ns)
         self.body, self._body_stamp, self._content_stamp = None, None, None
         self._others.clear()
@@ -941,34 +927,6 @@ class Bridge:
         return (f'the clock stepped back: data held is stamped {ahead:.3f} s ahead of it (more '
                 f'than clock_skew {self.description.clock_skew} s); the joint state and '
                 'skeletons held are dropped and the arm holds until fresh ones come')
-
-    def _frozen_joints(self) -> str:
-        """Why the joint states are no data though fresh: over the last joint_state_timeout
-        their positions moved less than FROZEN_JOINT_SHARE of what their velocities say (the
-        velocities integrated over the samples' stamps, as a vector: jitter or a flip between
-        two states adds no motion along them, and a lone message at rest takes little off the
-        claim). '' otherwise, and while the samples span less than the window."""
-        window = self._joint_window
-        span = (window[-1][0] - window[0][0]) * 1e-9 if window else 0.0
-        if span < self.description.joint_state_timeout:
-            return ''
-        steps = np.diff(np.array([t for t, _, _ in window], dtype=np.int64)) * 1e-9
-        velocities = np.array([qd for _, _, qd in window])
-        # trapezoids: the motion the velocities claim from the first sample to the last
-        claimed = float(np.linalg.norm(
-            ((velocities[1:] + velocities[:-1]) * 0.5 * steps[:, None]).sum(axis=0)))
-        moved = float(np.linalg.norm(window[-1][1] - window[0][1]))
-        # ... and the velocities say the arm moves now (any of the last FROZEN_JOINT_RECENT
-        # samples faster than rest_speed): a driver whose velocities lag its positions (a
-        # low-pass filter) claims motion for a while after the arm came to rest
-        now_moving = (np.abs(velocities[-FROZEN_JOINT_RECENT:])
-                      > self.description.rest_speed).any()
-        if claimed <= FROZEN_JOINT_TOLERANCE or moved >= FROZEN_JOINT_SHARE * claimed \
-                or not now_moving:
-            return ''
-        return (f'the joint states\' positions moved {moved:.4f} rad in {span:.3f} s where their '
-                f'velocities say {claimed:.4f} rad (up to {np.abs(self.qd).max():.3f} rad/s): a '
-                'frozen driver, the arm may be anywhere along its path')
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input

@@ -40,6 +40,11 @@ of its own (ISO 13849: a stuck sensor must be detected):
   below that noise floor. A frame that puts the person farther from the arm than they can have
   walked since the held one (`max_body_speed` plus `JUMP_SLACK`) is not trusted: it counts
   beside the held body (the nearer wins) until the held one has aged out.
+- `JointFreezeCheck`: joint states whose positions moved less than `share` of what their
+  velocities, integrated over the last `window` s, say they moved, while the last `recent`
+  samples say the arm moves, are a driver that froze (it repeats its last state with fresh
+  stamps, with jitter on it, flipping between two states, or with a message at rest among
+  them: none of that adds motion along what the velocities claim).
 """
 
 from __future__ import annotations
@@ -203,5 +208,70 @@ class SkeletonCheck:
             + JUMP_SLACK
 
 
-__all__ = ['JUMP_SLACK', 'MeasuredSpeed', 'SkeletonCheck', 'SpeedEnvelope', 'across_path',
-           'nearest_on_path', 'path_deviation']
+class JointFreezeCheck:
+    """The joint states' positions against their velocities over the last `window` s (module
+    docstring): `update` with each sample, `reason()` why they are no data ('' while they
+    agree, or span less than the window). Samples are kept at least `spacing` s apart and in
+    stamp order (one out of order is not kept), so the window holds at most window / spacing
+    of them; the velocities' integral is kept as a running sum, so a check costs the same
+    at any rate. `tolerance` rad: a claim below it is no claim; `rest_speed` rad/s."""
+
+    RESUM = 1024          # samples between recomputing the running sum (its rounding)
+
+    def __init__(self, window: float, rest_speed: float, tolerance: float = 1e-4,
+                 share: float = 0.25, spacing: float = 0.001, recent: int = 3):
+        self.window_ns = int(window * 1e9)
+        self.rest_speed, self.tolerance, self.share = rest_speed, tolerance, share
+        self.spacing_ns, self.recent = int(spacing * 1e9), recent
+        self._samples: deque = deque()     # (stamp ns, q, qd, the step into it: qd dt)
+        self._claim: np.ndarray | None = None
+        self._added = 0
+
+    def clear(self) -> None:
+        self._samples.clear()
+        self._claim, self._added = None, 0
+
+    def update(self, stamp_ns: int, q: np.ndarray, qd: np.ndarray) -> None:
+        samples = self._samples
+        if samples and stamp_ns < samples[-1][0] + self.spacing_ns:
+            return
+        if samples:
+            last_t, _, last_qd, _ = samples[-1]
+            step = (last_qd + qd) * (0.5e-9 * (stamp_ns - last_t))      # a trapezoid
+            self._claim = step if self._claim is None else self._claim + step
+        else:
+            step = None
+        samples.append((int(stamp_ns), q, qd, step))
+        horizon = stamp_ns - self.window_ns
+        while len(samples) > 2 and samples[1][0] <= horizon:
+            samples.popleft()
+            self._claim = self._claim - samples[0][3]     # its step came from the one dropped
+        self._added += 1
+        if self._added >= self.RESUM:
+            self._added = 0
+            self._claim = np.sum([sample[3] for sample in list(samples)[1:]], axis=0)
+
+    def reason(self) -> str:
+        samples = self._samples
+        if len(samples) < 2 or samples[-1][0] - samples[0][0] < self.window_ns:
+            return ''
+        claimed = float(np.linalg.norm(self._claim))
+        if claimed <= self.tolerance:
+            return ''
+        moved = float(np.linalg.norm(samples[-1][1] - samples[0][1]))
+        if moved >= self.share * claimed:
+            return ''
+        # the velocities must say the arm moves now: a driver whose velocities lag its
+        # positions (a low-pass filter) claims motion for a while after the arm came to rest
+        fastest = max(float(np.abs(samples[-k][2]).max())
+                      for k in range(1, min(self.recent, len(samples)) + 1))
+        if fastest <= self.rest_speed:
+            return ''
+        span = (samples[-1][0] - samples[0][0]) * 1e-9
+        return (f'the joint states\' positions moved {moved:.4f} rad in {span:.3f} s where their '
+                f'velocities say {claimed:.4f} rad (up to {fastest:.3f} rad/s): a frozen '
+                'driver, the arm may be anywhere along its path')
+
+
+__all__ = ['JUMP_SLACK', 'JointFreezeCheck', 'MeasuredSpeed', 'SkeletonCheck', 'SpeedEnvelope',
+           'across_path', 'nearest_on_path', 'path_deviation']
