@@ -194,9 +194,13 @@ def test_record_fit_solve_and_swap_the_running_suite(tmp_path, policy_path, ros_
         first = int(swaps[0][3]['epoch'])
 
         def decided(last: int) -> bool:
-            # the decisions (diagnostics) and the actions (hrc/action) come on two topics:
-            # wait for both (a run stopped with the last action not yet taken, 16 of 17)
-            return (all(k in watcher.decisions for k in range(1, last + 1))
+            # the epoch signals (hrc/epoch), the decisions (diagnostics) and the actions
+            # (hrc/action) come on three topics from two nodes, in no order between them at
+            # the listener: wait for all three (a run stopped with the last action not yet
+            # taken, 16 of 17; one with the last epoch's signal not yet taken, its decision
+            # and action in, at load 6 with two test workers, 2026-12-07)
+            signalled = {k for _, k in watcher.signals}
+            return (all(k in watcher.decisions and k in signalled for k in range(1, last + 1))
                     and len(watcher.actions) >= last)
         # AFTER epochs with the fitted policy, and more (up to MAX_AFTER) until one of them is
         # an epoch where the two policies differ: when the swap lands depends on the load
