@@ -359,13 +359,16 @@ def test_joint_states_frozen_while_the_arm_moves_stop_it_and_a_slow_honest_arm_d
         cell.t += 10 * MS
 
 
-@pytest.mark.parametrize('disguise', ['jitter', 'two_states', 'rest_blips'])
+@pytest.mark.parametrize('disguise', ['jitter', 'two_states', 'rest_blips', 'rest_runs'])
 def test_a_frozen_driver_that_jitters_flips_or_blips_rest_is_still_frozen(setup, disguise):
     """An adversarial review of the first rule (positions within 1e-4 rad for 0.1 s): 2e-4
     rad of jitter on the frozen positions, or a flip between two states 1.5e-4 rad apart, or
     every 9th message at rest, restarted its clock at every message, escaped the stall rule
     too (its velocities never read as rest), and ran the arm 0.17 m/s faster than SSM allowed
-    a person 1.2 m away. Such motion adds nothing along what the velocities claim."""
+    a person 1.2 m away. Such motion adds nothing along what the velocities claim. A second
+    review: three messages at rest in every four cleared the stop whenever the last three were
+    at rest (153 of 600 ticks free): a stop now holds until the checks agree for
+    joint_state_timeout."""
     cell = Cell(setup)
     program_running(cell)
     q, qd = cell.follower.q.copy(), cell.follower.qd.copy()
@@ -376,8 +379,11 @@ def test_a_frozen_driver_that_jitters_flips_or_blips_rest_is_still_frozen(setup,
             messages.append((q + rng.uniform(-2e-4, 2e-4, 6), qd))
         elif disguise == 'two_states':
             messages.append((q + 1.5e-4 * (k % 2), qd))
-        else:
+        elif disguise == 'rest_blips':
             messages.append((q, np.zeros(6) if k % 9 == 0 else qd))
+        else:
+            messages.append((q, qd if k % 4 == 0 else np.zeros(6)))
+    messages *= 3
     steps = []
     for frozen in messages:
         cell.frozen = frozen
@@ -385,7 +391,32 @@ def test_a_frozen_driver_that_jitters_flips_or_blips_rest_is_still_frozen(setup,
     stopped = [i for i, (c, _, _) in enumerate(steps) if c.stop]
     assert stopped and stopped[0] * 0.01 <= cell.description.joint_state_timeout + 0.02, \
         [c.reason for c, _, _ in steps[:12]]
-    assert 'a frozen driver' in steps[-1][0].reason and steps[-1][0].override == 0.0
+    assert all(c.stop and c.override == 0.0 for c, _, _ in steps[stopped[0]:]), \
+        [i for i, (c, _, _) in enumerate(steps) if not c.stop]
+    assert 'a frozen driver' in steps[-1][0].reason
+    assert cell.bridge.counts['frozen_joint_states'] == 1
+
+
+def test_positions_that_fall_ever_further_behind_stop_the_arm(setup):
+    """A driver whose positions lag ever further behind (a backlog, a replay at half the real
+    rate) with fresh stamps: over 0.1 s they move half of what their velocities claim, more
+    than the quarter the short check asks, and nothing else saw it (an adversarial review: the
+    arm ran 2.3 s with the reported positions up to 0.38 rad behind). Over LAG_WINDOW they
+    fall behind the claim: a stop within it (1 s)."""
+    cell = Cell(setup)
+    program_running(cell)
+    history = []                                # what the arm did: (t, q, qd)
+    start = cell.t
+    steps = []
+    for _ in range(200):
+        history.append((cell.t, cell.follower.q.copy(), cell.follower.qd.copy()))
+        past = start + (cell.t - start) // 2    # the arm's state at half the real rate
+        _, q, qd = next(h for h in reversed(history) if h[0] <= past)
+        cell.frozen = (q, qd)
+        steps += cell.run(0.01)
+    stopped = [i for i, (c, _, _) in enumerate(steps) if c.stop]
+    assert stopped and stopped[0] * 0.01 <= 1.05, [c.reason for c, _, _ in steps[:3]]
+    assert 'a frozen driver' in steps[stopped[0]][0].reason
 
 
 def test_the_override_needs_a_consumer_not_only_a_reader():
@@ -419,6 +450,24 @@ def test_joint_names_given_twice_are_refused(setup):
     names = list(JOINT_NAMES) + ['gripper_joint', 'gripper_joint']
     bridge.joint_state(names, q[:6] + [0.0, 0.1], [0.0] * len(names), 0, 0)
     np.testing.assert_array_equal(bridge.q, setup[0].poses['home'])
+
+
+def test_a_velocity_no_arm_can_have_is_refused(setup):
+    """A joint state whose velocity is finite but beyond any arm (an adversarial review: one
+    of 1e18 rad/s swallowed the frozen-driver check's running sum, which then read no claim
+    and let a frozen driver's stop clear) is refused whole, like a position beyond the
+    limits; ten times a joint's limit is still taken (a driver's noise at speed)."""
+    description = setup[0]
+    bridge = Bridge(description, setup[1], setup[2])
+    qd = np.zeros(6)
+    qd[1] = 10.5 * description.velocity[1]
+    with pytest.raises(InputError, match=f'{JOINT_NAMES[1]} velocity .* more than 10 times its '
+                                         'limit'):
+        bridge.joint_state(JOINT_NAMES, description.poses['home'], qd, 0, 0)
+    assert bridge.q is None
+    qd[1] = 9.5 * description.velocity[1]
+    bridge.joint_state(JOINT_NAMES, description.poses['home'], qd, 0, 0)
+    np.testing.assert_array_equal(bridge.qd, qd)
 
 
 def test_after_a_clock_step_the_writers_that_restart_with_it_are_followed(setup):

@@ -52,9 +52,10 @@ SSM's, the action's (dn: 0; a switch waiting for its safe point: 0; dm: collabor
 and 1. No skeleton, a skeleton older than `ssm.human_timeout`, no joint state or one older
 than `joint_state_timeout`: a protective stop with its reason. So are joint states whose
 positions moved less than a quarter of what their velocities, integrated over the last
-`joint_state_timeout`, say they moved (`guard.JointFreezeCheck`): a driver that repeats its last
-state with fresh stamps, with or without jitter on it, the arm anywhere along its path (before,
-only the stall rule caught it, after about 4 s).
+`joint_state_timeout`, say they moved, or less than LAG_SHARE of it and LAG_GAP behind it
+over LAG_WINDOW (`guard.JointFreezeCheck`): a driver that repeats its last state with fresh
+stamps, with or without jitter on it, or whose positions fall ever further behind, the arm
+anywhere along its path (before, only the stall rule caught it, after about 4 s).
 
 **One arm, every person.** Each input names its writer by its publication sequence number
 (`core.protocol.StreamLock`; None where the middleware gives none: all one writer). The
@@ -103,12 +104,17 @@ LIMITS = ('lower', 'upper', 'velocity', 'acceleration')
 NATURES = {0: 'robot only', 1: 'human only', 2: 'either', 3: 'both together'}
 ROBOT_NATURES = (0, 2, 3)          # tasks with a robot share: they need a program
 LIMIT_SLACK = 1e-3                 # rad a joint state may lie beyond a position limit
+VELOCITY_SLACK = 10.0              # times a joint's velocity limit a joint state may report
 FUTURE_SLACK = 0.05                # s a sample's stamp may lie ahead of the bridge's clock
 SECOND_WRITER_HOLD = 1.0           # s a second joint_states writer holds the arm after its last
 OTHER_BODIES = 64                  # skeletons of other writers kept (each counts human_timeout)
 WRITER_HOLD = 3.0                  # s a second writer of hrc/action or hrc/task_state holds it
 STALL_RESEND = 1.0                 # s at rest on an unfinished goal of its own: send it again
 STALL_RESENDS = 3                  # ... at most this many times in a row, then hold and report
+LAG_WINDOW = 1.0                   # s: the longer check of the joint states' positions against
+LAG_SHARE = 0.8                    # their velocities, the share they must move of the claim,
+LAG_GAP = 0.05                     # and the rad they may fall behind it in any case (a velocity
+                                   # filter's lag, a step of the velocities)
 APPROACH_WINDOW = 0.1              # s over which the person's directed speed is measured
 APPROACH_NOISE = 0.1               # m/s added to it: 1.5 mm of jitter on two frames over 0.1 s
 DESCRIPTION_DEFAULTS = {
@@ -521,6 +527,12 @@ class JointStateReader:
             raise InputError(f'joint state refused: {why}')
         if not np.isfinite(qd).all():
             raise InputError(f'joint state refused: velocities {qd.tolist()} are not finite')
+        beyond = np.abs(qd) > VELOCITY_SLACK * self.description.velocity
+        if beyond.any():
+            i = int(np.argmax(beyond))
+            raise InputError(f'joint state refused: {self.description.joint_names[i]} velocity '
+                             f'{qd[i]:.6g} rad/s is more than {VELOCITY_SLACK:g} times its limit '
+                             f'({self.description.velocity[i]:g} rad/s): no arm moves so')
         return q, qd
 
 
@@ -565,9 +577,11 @@ class Bridge:
         self.q: np.ndarray | None = None
         self.qd = np.zeros(len(self.index))
         self._joint_stamp: int | None = None
-        # the positions' motion against the velocities' (a frozen driver)
-        self.joint_freeze = JointFreezeCheck(d.joint_state_timeout, d.rest_speed)
-        self._joints_frozen = False
+        # the positions' motion against the velocities' (a frozen driver: `_frozen_joints`)
+        self.joint_freeze = (JointFreezeCheck(d.joint_state_timeout, d.rest_speed),
+                             JointFreezeCheck(LAG_WINDOW, d.rest_speed, share=LAG_SHARE,
+                                              gap=LAG_GAP))
+        self._joints_frozen, self._joints_clear_since = '', None
         self.body: BodyCapsules | None = None
         self._body_stamp: int | None = None
         self._content_stamp: int | None = None   # the stamp of the last skeleton that changed
@@ -622,7 +636,8 @@ class Bridge:
         check_stamp('joint state', stamp_ns, now_ns, self.description.clock_skew)
         self.q, self.qd = self.joint_states.read(names, positions, velocities)
         self._joint_stamp = int(stamp_ns)
-        self.joint_freeze.update(int(stamp_ns), self.q, self.qd)
+        for check in self.joint_freeze:
+            check.update(int(stamp_ns), self.q, self.qd)
         self.measured.update(self.q, self.qd, stamp_ns)
 
     def skeleton(self, body: BodyCapsules | None, stamp_ns: int, now_ns: int,
@@ -841,11 +856,7 @@ class Bridge:
                       else f'joint state {(now_ns - self._joint_stamp) * 1e-9:.3f} s old '
                       f'(joint_state_timeout {self.description.joint_state_timeout} s)')
         else:
-            frozen = self.joint_freeze.reason()
-            if frozen and not self._joints_frozen:
-                self.counts['frozen_joint_states'] += 1
-            self._joints_frozen = bool(frozen)
-            reason = frozen or self._hold_reason(now_ns)
+            reason = self._frozen_joints(now_ns) or self._hold_reason(now_ns)
         if reason:
             self._note_stop(reason, reports)
             self.envelope.command(now_ns, 0.0)
@@ -910,7 +921,9 @@ class Bridge:
         if ahead <= self.description.clock_skew:
             return ''
         self._joint_stamp = None      # its configuration stays: where the arm was last seen
-        self.joint_freeze.clear()
+        for check in self.joint_freeze:
+            check.clear()
+        self._joints_frozen, self._joints_clear_since = '', None
         self.envelope.rebase(now_ns)
         self.body, self._body_stamp, self._content_stamp = None, None, None
         self._others.clear()
@@ -927,6 +940,32 @@ class Bridge:
         return (f'the clock stepped back: data held is stamped {ahead:.3f} s ahead of it (more '
                 f'than clock_skew {self.description.clock_skew} s); the joint state and '
                 'skeletons held are dropped and the arm holds until fresh ones come')
+
+    def _frozen_joints(self, now_ns: int) -> str:
+        """Why the joint states are no data though fresh (module docstring): over
+        joint_state_timeout their positions moved less than a quarter of what their velocities
+        claim, or over LAG_WINDOW less than LAG_SHARE of it and LAG_GAP behind (positions that
+        lag ever further behind: a backlog, a replay slower than real time). A stop holds until
+        both checks have agreed for joint_state_timeout (messages at rest among frozen ones
+        clear a check now and then), and counts once; then both checks start again from the
+        next sample."""
+        reason = next((r for r in (check.reason() for check in self.joint_freeze) if r), '')
+        if reason:
+            if not self._joints_frozen:
+                self.counts['frozen_joint_states'] += 1
+            self._joints_frozen, self._joints_clear_since = reason, None
+            return reason
+        if not self._joints_frozen:
+            return ''
+        if self._joints_clear_since is None:
+            self._joints_clear_since = now_ns
+        if (now_ns - self._joints_clear_since) * 1e-9 >= self.description.joint_state_timeout:
+            # the windows start again: the frozen samples in them would read as a lag
+            for check in self.joint_freeze:
+                check.clear()
+            self._joints_frozen, self._joints_clear_since = '', None
+            return ''
+        return self._joints_frozen
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input

@@ -214,14 +214,16 @@ class JointFreezeCheck:
     agree, or span less than the window). Samples are kept at least `spacing` s apart and in
     stamp order (one out of order is not kept), so the window holds at most window / spacing
     of them; the velocities' integral is kept as a running sum, so a check costs the same
-    at any rate. `tolerance` rad: a claim below it is no claim; `rest_speed` rad/s."""
+    at any rate. `tolerance` rad: a claim below it is no claim; `gap` rad: positions that fell
+    no further than this behind the claim are not frozen; `rest_speed` rad/s."""
 
     RESUM = 1024          # samples between recomputing the running sum (its rounding)
 
     def __init__(self, window: float, rest_speed: float, tolerance: float = 1e-4,
-                 share: float = 0.25, spacing: float = 0.001, recent: int = 3):
+                 share: float = 0.25, spacing: float = 0.001, recent: int = 3, gap: float = 0.0):
         self.window_ns = int(window * 1e9)
         self.rest_speed, self.tolerance, self.share = rest_speed, tolerance, share
+        self.gap = gap
         self.spacing_ns, self.recent = int(spacing * 1e9), recent
         self._samples: deque = deque()     # (stamp ns, q, qd, the step into it: qd dt)
         self._claim: np.ndarray | None = None
@@ -259,7 +261,7 @@ class JointFreezeCheck:
         if claimed <= self.tolerance:
             return ''
         moved = float(np.linalg.norm(samples[-1][1] - samples[0][1]))
-        if moved >= self.share * claimed:
+        if moved >= self.share * claimed or claimed - moved <= self.gap:
             return ''
         # the velocities must say the arm moves now: a driver whose velocities lag its
         # positions (a low-pass filter) claims motion for a while after the arm came to rest
