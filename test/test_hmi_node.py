@@ -567,6 +567,9 @@ def test_off_loopback_every_request_needs_the_token(served):
             async with s.get(url + f'?token={TOKEN}', allow_redirects=False,
                              headers={'X-Forwarded-Proto': 'https'}) as r:
                 assert r.status == 303 and r.cookies['hrc_hmi_token']['secure']
+            async with s.get(url + f'?token={TOKEN}', allow_redirects=False,   # a chain's
+                             headers={'X-Forwarded-Proto': 'https, http'}) as r:
+                assert r.status == 303 and r.cookies['hrc_hmi_token']['secure']
             s.cookie_jar.clear()
             async with s.get(url + f'operator?token={TOKEN}', allow_redirects=False) as r:
                 assert r.status == 303

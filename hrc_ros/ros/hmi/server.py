@@ -311,10 +311,11 @@ class HmiServer:
             query = urlencode([(k, v) for k, v in request.query.items() if k != 'token'])
             page = request.path if request.path in PAGES else '/'
             response = web.HTTPSeeOther(page + (f'?{query}' if query else ''))
-            # Secure over HTTPS, the proxy's too (docs/HMI.md's nginx sets X-Forwarded-Proto):
-            # a forged header only keeps the forger's own cookie off plain HTTP
-            secure = request.secure or \
-                request.headers.get('X-Forwarded-Proto', '').strip().lower() == 'https'
+            # Secure over HTTPS, the proxy's too (docs/HMI.md's nginx sets X-Forwarded-Proto;
+            # proxies in a chain list theirs after the client's): a forged header only keeps
+            # the forger's own cookie off plain HTTP
+            forwarded = request.headers.get('X-Forwarded-Proto', '').split(',')[0]
+            secure = request.secure or forwarded.strip().lower() == 'https'
             response.set_cookie(COOKIE, verdict.token, httponly=True, samesite='Strict',
                                 path='/', secure=secure)
             return response

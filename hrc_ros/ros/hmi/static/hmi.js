@@ -51,14 +51,15 @@ const HMI = (() => {
         clearTimeout(watchdog);
         socket = null;
         client = null;
-        show('disconnected', NO_CELL);
+        // a refused handshake looks like no server at all: ask the page itself why (a page
+        // already refused keeps saying so until the answer changes: no flicker)
+        if (opened || connection.dataset.state !== 'refused') show('disconnected', NO_CELL);
         if (!opened) {
-          // a refused handshake looks like no server at all: ask the page itself why
           fetch(location.pathname, {cache: 'no-store'}).then((response) => {
-            if ((response.status === 401 || response.status === 403) && !opened) {
-              show('refused', REFUSED);
-            }
-          }, () => {});
+            if (opened) return;
+            if (response.status === 401 || response.status === 403) show('refused', REFUSED);
+            else show('disconnected', NO_CELL);
+          }, () => { if (!opened) show('disconnected', NO_CELL); });
         }
         if (handlers.down) handlers.down();
         setTimeout(open, backoff + Math.random() * 250);
