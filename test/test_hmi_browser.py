@@ -175,6 +175,21 @@ WATCH_OUTCOMES = """() => {
 }"""
 
 
+WATCH_CONNECTION = """() => {
+  window.__connection = [];
+  new MutationObserver(() => window.__connection.push(
+      document.getElementById('connection').textContent)).observe(
+      document.getElementById('connection'), {childList: true, characterData: true,
+                                              subtree: true});
+}"""
+# how many times the page asked for itself (hmi.js, after a handshake that never opened)
+COUNT_ASKING = """() => {
+  window.__asked = 0;
+  const fetch = window.fetch;
+  window.fetch = (...args) => { window.__asked += 1; return fetch(...args); };
+}"""
+
+
 def wait_for_outcome(page, words: str, timeout=REQUEST_TIMEOUT) -> None:
     """The page showed `words` as a request's outcome (it may show the next request at once:
     the robot can ask again in the next epoch, so every text it showed is recorded)."""
@@ -333,6 +348,15 @@ def test_the_page_recovers_when_the_hmi_restarts(cell, pages):
     expect(page.locator('#connection')).to_have_text(re.compile('^access refused: open this '),
                                                      timeout=START_TIMEOUT * MS)
     expect(page.locator('#accept')).to_be_disabled()
+    # ... and keeps saying so through its retries (each asks for the page itself), where it
+    # said "no connection" for a moment at every retry
+    page.evaluate(WATCH_CONNECTION)
+    page.evaluate(COUNT_ASKING)
+    deadline = time.monotonic() + REQUEST_TIMEOUT
+    while page.evaluate('window.__asked') < 2:
+        assert time.monotonic() < deadline, 'the page did not try again'
+        time.sleep(0.05)
+    assert page.evaluate('window.__connection') == [], page.evaluate('window.__connection')
     process = suite.processes.pop('hmi_node')
     os.killpg(process.pid, signal.SIGINT)
     assert process.wait(10) == 0
