@@ -166,22 +166,15 @@ def pages(browser, cell):
     context.close()
 
 
-WATCH_OUTCOMES = """() => {
-  window.__outcomes = [];
-  new MutationObserver(() => window.__outcomes.push(
-      document.getElementById('request-outcome').textContent)).observe(
-      document.getElementById('request-outcome'), {childList: true, characterData: true,
-                                                   subtree: true});
+# every text an element shows from now on, into window[name]: page.evaluate(WATCH_TEXT,
+# [element id, name])
+WATCH_TEXT = """([id, name]) => {
+  window[name] = [];
+  const element = document.getElementById(id);
+  new MutationObserver(() => window[name].push(element.textContent)).observe(
+      element, {childList: true, characterData: true, subtree: true});
 }"""
-
-
-WATCH_CONNECTION = """() => {
-  window.__connection = [];
-  new MutationObserver(() => window.__connection.push(
-      document.getElementById('connection').textContent)).observe(
-      document.getElementById('connection'), {childList: true, characterData: true,
-                                              subtree: true});
-}"""
+WATCH_OUTCOMES = ['request-outcome', '__outcomes']
 # how many times the page asked for itself (hmi.js, after a handshake that never opened)
 COUNT_ASKING = """() => {
   window.__asked = 0;
@@ -214,7 +207,7 @@ def tap_the_next_request(page, listener, button: str, double: bool = False,
     next request is tapped, at most `attempts` requests."""
     seen = []
     for _ in range(attempts):
-        page.evaluate(WATCH_OUTCOMES)
+        page.evaluate(WATCH_TEXT, WATCH_OUTCOMES)
         answers = len(listener.responses)
         shown = page.evaluate('window.__outcomes.length')
         target = page.locator(f'#{button}')
@@ -286,7 +279,7 @@ def test_the_worker_accepts_and_the_task_manager_commits_the_task(cell, pages):
     page = pages.pages[0]
     second_tab = pages.new_page()
     second_tab.goto(url)
-    second_tab.evaluate(WATCH_OUTCOMES)
+    second_tab.evaluate(WATCH_TEXT, WATCH_OUTCOMES)
     outcome, answers = tap_the_next_request(page, listener, 'accept')
     assert outcome == "Let's do task 1 together: accepted: we do task 1 together"
     listener.wait(lambda: any(s['ty'] == 3 for s in listener.task_states), 5,
@@ -350,7 +343,7 @@ def test_the_page_recovers_when_the_hmi_restarts(cell, pages):
     expect(page.locator('#accept')).to_be_disabled()
     # ... and keeps saying so through its retries (each asks for the page itself), where it
     # said "no connection" for a moment at every retry
-    page.evaluate(WATCH_CONNECTION)
+    page.evaluate(WATCH_TEXT, ['connection', '__connection'])
     page.evaluate(COUNT_ASKING)
     deadline = time.monotonic() + REQUEST_TIMEOUT
     while page.evaluate('window.__asked') < 2:
