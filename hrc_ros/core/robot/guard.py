@@ -41,10 +41,11 @@ of its own (ISO 13849: a stuck sensor must be detected):
   walked since the held one (`max_body_speed` plus `JUMP_SLACK`) is not trusted: it counts
   beside the held body (the nearer wins) until the held one has aged out.
 - `JointFreezeCheck`: joint states whose positions moved less than `share` of what their
-  velocities, integrated over the last `window` s, say they moved, while the last `recent`
-  samples say the arm moves, are a driver that froze (it repeats its last state with fresh
-  stamps, with jitter on it, flipping between two states, or with a message at rest among
-  them: none of that adds motion along what the velocities claim).
+  velocities, integrated over the last `window` s, say they moved (and more than `gap` less),
+  while the last `recent` samples say the arm moves, are a driver that froze (it repeats its
+  last state with fresh stamps, with jitter on it, flipping between two states, or with a
+  message at rest among them: none of that adds motion along what the velocities claim) or
+  whose positions fall ever further behind (the bridge's second check, over a second).
 """
 
 from __future__ import annotations

@@ -85,5 +85,5 @@ const HMI = (() => {
     text('distance', d.text);
   }
 
-  return {connect, text, band, NO_CELL, REFUSED};
+  return {connect, text, band, NO_CELL};
 })();
