@@ -36,15 +36,23 @@ class SpunNode:
 
     def wait(self, predicate, what: str, timeout: float | None = None):
         """predicate()'s first true value, polled every 20 ms; an AssertionError naming `what`
-        after `timeout` s (default `wait_timeout`)."""
+        after `timeout` s (default `wait_timeout`), and what `context()` says then (a wait that
+        fails under load must name the state it left the graph in)."""
         timeout = self.wait_timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
         while True:
             value = predicate()
             if value:
                 return value
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            if time.monotonic() >= deadline:
+                said = self.context_now()
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}'
+                                     + (f'; {said}' if said else ''))
             time.sleep(0.02)
+
+    def context_now(self) -> str:
+        """What a timed-out `wait` adds to its message ('' here)."""
+        return ''
 
     def call(self, service_type, name: str, request=None, timeout: float | None = None):
         """The answer of service `name` to `request` (default: an empty request), waiting
@@ -64,3 +72,13 @@ class SpunNode:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def last_statuses(statuses, parts=('robot_bridge', 'cobot_sim'), scan: int = 400) -> str:
+    """The last /diagnostics status of every component whose name holds one of `parts`, among
+    the last `scan` of `statuses`: level and message, for a timed-out wait's message."""
+    last = {}
+    for status in statuses[-scan:]:
+        if any(part in status.name for part in parts):
+            last[status.name] = f'{status.level!r} {status.message[:200]}'
+    return '; '.join(f'{k}: {v}' for k, v in sorted(last.items()))

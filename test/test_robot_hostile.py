@@ -27,7 +27,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
 from hrc_ros.ros.processes import NodeProcesses
-from spun import SpunNode
+from spun import SpunNode, last_statuses
 
 START_TIMEOUT = 90.0        # the bridge imports rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 20.0
@@ -106,6 +106,11 @@ class Feeder(SpunNode):
         if distance > 0:
             self._at = self._at + step * min(1.0, WALK / 30 / distance)
         self.skeleton.publish(conv.keypoints_to_msg(body_at(self._at), self._now(-0.03)))
+
+    def context_now(self) -> str:
+        """What the bridge said last, for a timed-out wait (as test_robot_nodes' cell)."""
+        return (f'stops {self.stops[-3:]}, overrides {self.overrides[-3:]}; last statuses: '
+                f'{last_statuses(self.statuses)}')
 
     def retreat(self) -> None:
         """dp: the bridge plans the retreat and runs it at SSM's override. This arm never

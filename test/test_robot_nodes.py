@@ -38,7 +38,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.processes import NodeProcesses, node_command
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
-from spun import SpunNode
+from spun import SpunNode, last_statuses
 
 START_TIMEOUT = 90.0        # both nodes import rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 30.0
@@ -177,21 +177,11 @@ class Cell(SpunNode):
                 return status
         return None
 
-    def wait(self, predicate, what: str, timeout: float | None = None):
-        """SpunNode.wait, and on a timeout what the cell said last: the last status of every
-        robot component and the last protective-stop and override values (a wait that fails
-        under load must name the state the module's shared nodes were left in)."""
-        try:
-            return super().wait(predicate, what, timeout)
-        except AssertionError as exc:
-            last = {}
-            for status in self.statuses[-400:]:
-                if status.name.startswith(('robot_bridge', 'cobot_sim')):
-                    last[status.name] = f'{status.level!r} {status.message[:200]}'
-            context = '; '.join(f'{k}: {v}' for k, v in sorted(last.items()))
-            raise AssertionError(f'{exc}; stops {self.stops[-3:]}, overrides '
-                                 f'{[v for _, v in self.overrides[-3:]]}; last statuses: '
-                                 f'{context}') from None
+    def context_now(self) -> str:
+        """What the cell said last, for a timed-out wait: the last protective-stop and override
+        values and the last status of every robot component."""
+        return (f'stops {self.stops[-3:]}, overrides {[v for _, v in self.overrides[-3:]]}; '
+                f'last statuses: {last_statuses(self.statuses)}')
 
 
 
