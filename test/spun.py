@@ -36,7 +36,7 @@ class SpunNode:
 
     def wait(self, predicate, what: str, timeout: float | None = None):
         """predicate()'s first true value, polled every 20 ms; an AssertionError naming `what`
-        after `timeout` s (default `wait_timeout`), and what `context()` says then (a wait that
+        after `timeout` s (default `wait_timeout`), and what `context_now()` says then (a wait that
         fails under load must name the state it left the graph in)."""
         timeout = self.wait_timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout

@@ -921,9 +921,7 @@ class Bridge:
         if ahead <= self.description.clock_skew:
             return ''
         self._joint_stamp = None      # its configuration stays: where the arm was last seen
-        for check in self.joint_freeze:
-            check.clear()
-        self._joints_frozen, self._joints_clear_since = '', None
+        self._restart_joint_checks()
         self.envelope.rebase(now_ns)
         self.body, self._body_stamp, self._content_stamp = None, None, None
         self._others.clear()
@@ -961,11 +959,15 @@ class Bridge:
             self._joints_clear_since = now_ns
         if (now_ns - self._joints_clear_since) * 1e-9 >= self.description.joint_state_timeout:
             # the windows start again: the frozen samples in them would read as a lag
-            for check in self.joint_freeze:
-                check.clear()
-            self._joints_frozen, self._joints_clear_since = '', None
+            self._restart_joint_checks()
             return ''
         return self._joints_frozen
+
+    def _restart_joint_checks(self) -> None:
+        """Both frozen-driver checks from the next joint state on, no stop held."""
+        for check in self.joint_freeze:
+            check.clear()
+        self._joints_frozen, self._joints_clear_since = '', None
 
     def _hold_reason(self, now_ns: int) -> str:
         """Why the arm holds whatever SSM says: the graph shows another writer of an input
