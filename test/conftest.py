@@ -36,6 +36,24 @@ ROS_DOMAIN_RANGE = (30, 99)
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+# The suite's CPU (it is bound by CPU on two cores: bench/README.md, "The test suite"):
+# - numba kernels serial. Each parallel kernel of core/ is compiled twice, parallel and
+#   serial (core/parallel.py), and the parallel build is the costly one: 49 of the 60 CPU
+#   seconds of the MDP kernels' first compile on a fresh clone, 20 of 30 for the POMDP's
+#   (2026-12-07). Two workers on two cores leave a parallel call no free core to win with,
+#   so the suite's processes (workers, nodes, commands, Ray's tasks) run the serial build;
+#   test_parallel and test_tie_rule set the modes they test (serial, parallel, auto) and
+#   hold both builds equal. An explicit HRC_KERNEL_THREADS wins.
+# - compiled Python kept. An environment with PYTHONDONTWRITEBYTECODE (this machine's has it)
+#   makes every node process and command of the suite compile hrc_ros again, about 0.1 CPU
+#   seconds each, hundreds of times a run; the suite writes its bytecode under a folder of
+#   its own (PYTHONPYCACHEPREFIX, never the source tree) and reads it from there.
+os.environ.setdefault('HRC_KERNEL_THREADS', 'serial')
+if not os.environ.get('PYTHONPYCACHEPREFIX'):
+    os.environ['PYTHONPYCACHEPREFIX'] = str(Path(tempfile.gettempdir())
+                                            / f'hrc_ros_pycache_{os.getuid()}')
+os.environ.pop('PYTHONDONTWRITEBYTECODE', None)
+
 
 def worker_domain(base: int, worker: str) -> int:
     """The DDS domain of a pytest-xdist worker (`PYTEST_XDIST_WORKER`, gw0, gw1, ...) in a run

@@ -22,3 +22,28 @@ def rule_q(model, value, sources, each_transition=None):
         q[:, a] = -model.flat_cost(sources, a) + model.gamma * expected
     q[~model.availability[:, states[:, 10]].T] = -np.inf      # an action not available there
     return q
+
+
+def assert_shipped_policy_solves_todays_model(name):
+    """policies/<name>.npz is value iteration's answer for today's shipped configuration
+    `name`, checked at the fixed point instead of by a solve from zero: its values move by
+    less than the configuration's eta under one Bellman update of today's model (the solve's
+    own stopping rule, MODEL.md 5), and its policy is, action for action, the greedy policy
+    of today's Q at those values. A change of the model that moves the values by eta or more,
+    or that changes any state's best action, fails it, as it fails a fresh solve; the update
+    costs one sweep where a solve takes hundreds (the arm's fresh solve alone was 45 s of the
+    suite's CPU, 2026-12-07). test_config_policy still solves the default from zero and holds
+    it bit for bit to its file, which ties the two checks together."""
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.mdp.policy import load_policy
+    from hrc_ros.core.mdp.solver import FactoredBellman, greedy_policy
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.paths import share_dir, shipped_config_path
+    config = load_config(shipped_config_path(name))
+    assert config.sweeps is None, f'{name} solves a fixed number of sweeps: solve it afresh'
+    shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
+    q = FactoredBellman(HRCModel(config)).q(shipped.value)
+    change = float(np.max(np.abs(q.max(axis=0) - shipped.value)))
+    assert change < config.eta, (name, change, config.eta)
+    np.testing.assert_array_equal(greedy_policy(q), shipped.policy)
+    return config, shipped

@@ -262,10 +262,14 @@ def test_shared_backups_equal_the_full_ones(small, small_start):
     np.testing.assert_allclose(runs[1][1], runs[0][1], atol=1e-9)
 
 
+@pytest.mark.parametrize('small', [1], indirect=True)
 def test_perseus_sweeps_keep_the_bounds_and_lift_every_point(small, small_start, small_mdp):
     """The randomised sweep of the queue's solve (`perseus`): the lower bound never falls at a
     point, stays below the upper bound and the MDP, and reaches the full sweeps' values within
-    a small margin, with fewer vectors."""
+    a small margin, with fewer vectors. On the L = 1 queue only: both runs go to convergence
+    (about 250 sweeps each), 58 of the suite's CPU seconds at L = 2 against 38 at L = 1 for
+    the same check of the sweep, which does not depend on L (the solved states' levels are
+    checked at L = 2 by the tests above)."""
     import copy
 
     from hrc_ros.core.pomdp.solver import backup_sweeps

@@ -3,7 +3,7 @@ MDP solver against them, and the paper's model left exactly as it was."""
 
 import numpy as np
 import pytest
-from reference import rule_q
+from reference import assert_shipped_policy_solves_todays_model, rule_q
 
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
@@ -125,22 +125,16 @@ def test_the_stream_changes_what_an_idle_cell_expects(small_stream):
 
 
 def test_shipped_policies_of_the_paper_model_are_unchanged_by_the_stream_code():
-    """The solver with the stream code solves every shipped configuration without a stream to
-    its shipped policy, action for action."""
+    """The operator with the stream code keeps every shipped configuration without a stream
+    at its shipped policy, action for action (at the fixed point:
+    reference.assert_shipped_policy_solves_todays_model)."""
     for name in ('default', 'paper', 'fail_safe_unaware'):
-        config = load_config(shipped_config_path(name))
-        shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
-        fresh = solve(HRCModel(config))
-        np.testing.assert_array_equal(fresh.policy, shipped.policy)
-        np.testing.assert_allclose(fresh.value, shipped.value, atol=1e-9)
+        assert_shipped_policy_solves_todays_model(name)
 
 
 @pytest.mark.parametrize('name', ['stream', 'case_study_stream', 'case_study_stream150'])
-def test_shipped_stream_policies_load_and_are_fresh_solves(name):
-    config = load_config(shipped_config_path(name))
-    shipped = load_policy(share_dir() / 'policies' / f'{name}.npz', config)
-    fresh = solve(HRCModel(config))
-    np.testing.assert_array_equal(fresh.policy, shipped.policy)
+def test_shipped_stream_policies_load_and_solve_todays_model(name):
+    config, shipped = assert_shipped_policy_solves_todays_model(name)
     assert shipped.meta['config']['stream'] == config.data['stream']
 
 
