@@ -404,9 +404,9 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     driver.wait(driver.moving, 'the arm to run the program again')
     since = len(driver.statuses)
     # another publisher of the goal topic: the bridge stops the arm (its override bounds only
-    # its own goals), and cobot_sim refuses the bad goals on its own too
-    publisher = driver.node.create_publisher(JointTrajectory, DEFAULT_TRAJECTORY_TOPIC,
-                                             qos.RELIABLE)
+    # its own goals), and cobot_sim refuses the bad goals on its own too. The publisher is
+    # another node's, in a participant of its own, gone with it (FORGER_NOTE)
+    other, publisher = forger('goal_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
     driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'other publisher(s) of the '
                                       'goal topic', since), 'the bridge\'s stop for it')
     goal = conv.trajectory_to_msg(JOINTS[:5] + ('gripper_joint',),
@@ -430,7 +430,7 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
                 'the refusal of a malformed goal')
     driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
     assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
-    driver.node.destroy_publisher(publisher)
+    other.close()
     driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))       # the bridge holds it too
     assert driver.stops[-1] is True
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to end with the other publisher')
@@ -438,9 +438,15 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     assert_alive(suite)
 
 
+# FORGER_NOTE. A publisher made on the test's own long-lived node and destroyed with
+# destroy_publisher stayed in the bridge's graph twice in about ten suite runs (quiet CI,
+# 2026-12-07: "1 other publisher(s) of the goal topic" for the rest of the module, ten tests
+# timed out one after another behind it; the same in test_robot_hostile the day before), so
+# the arm stayed stopped, the safe way, with nobody there. A forger is another node with a
+# participant of its own, closed when it leaves: what a stray script or an attacker is.
 def forger(name: str, msg_type, topic: str, matches: int = 1):
     """Another node on the cell (a stray script, an attacker): its publisher of `topic`, once
-    `matches` subscriptions have matched it."""
+    `matches` subscriptions have matched it (FORGER_NOTE)."""
     node = SpunNode(name)
     publisher = node.node.create_publisher(msg_type, topic, qos.RELIABLE)
     node.start()
