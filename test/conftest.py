@@ -46,12 +46,13 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 #   hold both builds equal. An explicit HRC_KERNEL_THREADS wins.
 # - compiled Python kept. An environment with PYTHONDONTWRITEBYTECODE (this machine's has it)
 #   makes every node process and command of the suite compile hrc_ros again, about 0.1 CPU
-#   seconds each, hundreds of times a run; the suite writes its bytecode under a folder of
-#   its own (PYTHONPYCACHEPREFIX, never the source tree) and reads it from there.
+#   seconds each, hundreds of times a run; the suite writes its bytecode under the checkout's
+#   .pytest_cache (PYTHONPYCACHEPREFIX: never the source tree, never a shared folder another
+#   user could fill, gone with the checkout) and reads it from there.
 os.environ.setdefault('HRC_KERNEL_THREADS', 'serial')
 if not os.environ.get('PYTHONPYCACHEPREFIX'):
-    os.environ['PYTHONPYCACHEPREFIX'] = str(Path(tempfile.gettempdir())
-                                            / f'hrc_ros_pycache_{os.getuid()}')
+    os.environ['PYTHONPYCACHEPREFIX'] = str(Path(__file__).resolve().parents[1]
+                                            / '.pytest_cache' / 'pycache')
 os.environ.pop('PYTHONDONTWRITEBYTECODE', None)
 
 

@@ -13,7 +13,7 @@ session's embedded Ray (one per test process, 2 CPUs, a small object store, no d
   promoted, the unchanged one kept, the corrupt one reported, every output there and
   loadable, and each node reports the new policy (and the POMDP cell's node the new POMDP
   policy); the POMDP cell is small because a full-size POMDP solve takes half a minute and
-  the cell solves seven (the fit's, and an MDP and a POMDP for each of its three refits:
+  the cell solves eight (an MDP and a POMDP for the fit and for each of its three refits:
   three, not the plant's five, which were 55 of its 82 s, 2026-12-07; the drifted cell keeps
   five, with three its interval reached above zero);
 - a worker SIGKILLed in the middle of a drift simulation (its pid recorded from inside the
@@ -995,6 +995,7 @@ def test_a_pomdp_cell_is_solved_checked_with_its_selector_and_swapped_with_its_p
     entry, files = entry_of(plant_run['report'], 'pomdp'), plant_run['files']['pomdp']
     assert entry['decision'] == PROMOTE and entry['drift']['drifted'], entry['reason']
     assert entry['selector'] == 'pomdp' and entry['shadow']['selector'] == 'pomdp'
+    assert entry['cost_difference']['refits'] == 3         # the cell's own evaluate.refits
     assert set(entry['solve']) == {'mdp', 'pomdp'}
     folder = plant_run['out'] / 'cells' / 'pomdp'
     assert {'policy.npz', 'pomdp.npz', 'fitted.yaml'} <= {p.name for p in folder.iterdir()}

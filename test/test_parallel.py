@@ -138,24 +138,48 @@ def _variants(run):
         before = {k.name: dict(k.calls) for k in parallel.KERNELS}
         with parallel.mode(mode):
             out = run()
-        ran = {k.name: {v: k.calls[v] - before[k.name][v] for v in k.calls}
+        # (a kernel module imported by run() is in KERNELS only from then on)
+        ran = {k.name: {v: k.calls[v] - before.get(k.name, {}).get(v, 0) for v in k.calls}
                for k in parallel.KERNELS}
         results[mode] = (out, ran)
     return results
 
 
-def test_the_mdp_sweep_is_the_same_serial_and_parallel(real_threads):
+# The sweep's branches: the paper's model; a task stream; a queue (its own continuation kernel);
+# the arm's keys (the robot's measured progress, the pauses under dp and dm, and its queue).
+# The suite's other processes run the serial builds only (conftest.py), so these are the runs
+# of the parallel builds that hold them to the serial ones
+SWEEP_MODELS = {
+    'paper': ('default', {}),
+    'stream': ('default', {'stream': {'arrival_idle': 0.3, 'arrival_complete': 0.25,
+                                      'q': [[1, 1, 0, 0.5], [1, 1, 3, 0.5]]}}),
+    'queue': ('default', {'stream': {'arrival_idle': 0.3, 'arrival_busy': 0.25,
+                                     'waiting_cost': 2.0, 'queue': 2,
+                                     'q': [[1, 1, 0, 0.5], [1, 1, 3, 0.5]]}}),
+    'arm': ('arm', {}),
+}
+
+
+@pytest.mark.parametrize('name', SWEEP_MODELS)
+def test_the_mdp_sweep_is_the_same_serial_and_parallel(real_threads, name):
     from hrc_ros.core.config import load_config
     from hrc_ros.core.mdp.solver import solve
     from hrc_ros.core.model import HRCModel
-    from hrc_ros.core.paths import default_config_path
-    model = HRCModel(load_config(default_config_path(), overrides={'model': {'rho': 1,
-                                                                             'sigma': 1}}))
+    from hrc_ros.core.paths import shipped_config_path
+    config, overrides = SWEEP_MODELS[name]
+    model = HRCModel(load_config(shipped_config_path(config),
+                                 overrides={'model': {'rho': 1, 'sigma': 1}, **overrides}))
     results = _variants(lambda: solve(model, sweeps=40))
     (serial, ran_serial), (par, ran_par) = results['serial'], results['2']
-    name = 'hrc_ros.core.mdp._kernels.sweep'
-    assert ran_serial[name] == {'serial': 41, 'parallel': 0}   # + the residual's sweep
-    assert ran_par[name] == {'serial': 0, 'parallel': 41}
+    kernels = ['hrc_ros.core.mdp._kernels.sweep']
+    if model.n_levels > 1:
+        kernels.append('hrc_ros.core.mdp._kernels.queue_continuations')
+    assert (model.n_levels > 1) == (name in ('queue', 'arm'))
+    for kernel in kernels:
+        assert ran_serial[kernel]['serial'] > 0 and ran_serial[kernel]['parallel'] == 0, kernel
+        assert ran_par[kernel]['parallel'] > 0 and ran_par[kernel]['serial'] == 0, kernel
+    # 40 sweeps and the residual's, each a call per queue level
+    assert ran_serial[kernels[0]]['serial'] == 41 * model.n_levels
     np.testing.assert_array_equal(serial.value, par.value)
     np.testing.assert_array_equal(serial.policy, par.policy)
 
@@ -191,6 +215,13 @@ def test_the_pomdp_backups_are_the_same_serial_and_parallel(real_threads):
     np.testing.assert_array_equal(u_s.values, u_p.values)
     np.testing.assert_array_equal(u_s.corner, u_p.corner)
     np.testing.assert_array_equal(e_s, e_p)
+    # the sparse successors' sums (a queue's bounds: mdp_q, fib and the blind vectors, fast)
+    results = _variants(lambda: pomdp_solver.mdp_q(hrc.pomdp, tol=1e-6, fast=True))
+    (q_s, ran_serial), (q_p, ran_par) = results['serial'], results['2']
+    name = 'hrc_ros.core.pomdp._kernels.successor_sums'
+    assert ran_serial[name]['serial'] > 0 and ran_serial[name]['parallel'] == 0
+    assert ran_par[name]['parallel'] > 0 and ran_par[name]['serial'] == 0
+    np.testing.assert_array_equal(q_s, q_p)
 
 
 def test_the_fit_e_step_is_the_same_serial_and_parallel(real_threads):

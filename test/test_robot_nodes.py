@@ -407,30 +407,32 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     # its own goals), and cobot_sim refuses the bad goals on its own too. The publisher is
     # another node's, in a participant of its own, gone with it (FORGER_NOTE)
     other, publisher = forger('goal_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
-    driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'other publisher(s) of the '
-                                      'goal topic', since), 'the bridge\'s stop for it')
-    goal = conv.trajectory_to_msg(JOINTS[:5] + ('gripper_joint',),
-                                  [driver.q, DESCRIPTION.poses['retreat']], [2.0])
-    publisher.publish(goal)
-    driver.wait(lambda: driver.status('cobot_sim: trajectory input', WARN, 'unknown joints',
-                                      since), 'the refusal of an unknown joint')
-    assert 'gripper_joint' in driver.status('cobot_sim: trajectory input').message
-    driver.wait(driver.at_rest, 'the arm to stand')
-    held, states = driver.q, len(driver.joint_states)
-    # a goal whose first point is 1.2 rad away in 0.1 s does not start at the arm
-    away = conv.trajectory_to_msg(JOINTS, [held, held + [1.2, 0, 0, 0, 0, 0]], [0.1])
-    publisher.publish(away)
-    driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'does not start at the arm',
-                                     since), 'the refusal of a goal away from the arm')
-    # a malformed goal (times that go back) is refused by the conversion, and holds the arm too
-    back = conv.trajectory_to_msg(JOINTS, [held, held, held], [1.0, 1.0])
-    back.points[1].time_from_start = conv.seconds_to_duration(0.5)
-    publisher.publish(back)
-    driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'increase strictly', since),
-                'the refusal of a malformed goal')
-    driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
-    assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
-    other.close()
+    try:
+        driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'other publisher(s) of the '
+                                          'goal topic', since), 'the bridge\'s stop for it')
+        goal = conv.trajectory_to_msg(JOINTS[:5] + ('gripper_joint',),
+                                      [driver.q, DESCRIPTION.poses['retreat']], [2.0])
+        publisher.publish(goal)
+        driver.wait(lambda: driver.status('cobot_sim: trajectory input', WARN, 'unknown joints',
+                                          since), 'the refusal of an unknown joint')
+        assert 'gripper_joint' in driver.status('cobot_sim: trajectory input').message
+        driver.wait(driver.at_rest, 'the arm to stand')
+        held, states = driver.q, len(driver.joint_states)
+        # a goal whose first point is 1.2 rad away in 0.1 s does not start at the arm
+        away = conv.trajectory_to_msg(JOINTS, [held, held + [1.2, 0, 0, 0, 0, 0]], [0.1])
+        publisher.publish(away)
+        driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'does not start at the arm',
+                                         since), 'the refusal of a goal away from the arm')
+        # a malformed goal (times that go back) is refused by the conversion, and holds the arm too
+        back = conv.trajectory_to_msg(JOINTS, [held, held, held], [1.0, 1.0])
+        back.points[1].time_from_start = conv.seconds_to_duration(0.5)
+        publisher.publish(back)
+        driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'increase strictly', since),
+                    'the refusal of a malformed goal')
+        driver.wait(lambda: len(driver.joint_states) > states + 50, '50 more joint states')
+        assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
+    finally:
+        other.close()
     driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))       # the bridge holds it too
     assert driver.stops[-1] is True
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to end with the other publisher')
@@ -467,9 +469,11 @@ def test_a_forged_transient_goal_beyond_the_limits_is_refused_and_the_arm_stays(
     swing = held + [0, 2.5, 0, 0, 0, 0]
     goal = conv.trajectory_to_msg(JOINTS, [held, first, swing, first], [0.3, 0.005, 0.005])
     node, publisher = forger('transient_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
-    publisher.publish(goal)
-    publisher.wait_for_all_acked(Duration(seconds=5))
-    node.close()                                   # gone at once
+    try:
+        publisher.publish(goal)
+        publisher.wait_for_all_acked(Duration(seconds=5))
+    finally:
+        node.close()                               # gone at once
     status = driver.wait(lambda: driver.value('cobot_sim: arm', 'held', 'segment 2 moves',
                                               since), 'cobot_sim to refuse the forged goal')
     assert 'faster than the joint speed and acceleration limits' in \

@@ -127,9 +127,16 @@ def test_the_stream_changes_what_an_idle_cell_expects(small_stream):
 def test_shipped_policies_of_the_paper_model_are_unchanged_by_the_stream_code():
     """The operator with the stream code keeps every shipped configuration without a stream
     at its shipped policy, action for action (at the fixed point:
-    reference.assert_shipped_policy_solves_todays_model)."""
+    reference.assert_shipped_policy_solves_todays_model); the fail-safe-unaware one, the only
+    shipped model of that branch (test_config_policy solves the default afresh), is also
+    solved from zero and held to its file value for value."""
     for name in ('default', 'paper', 'fail_safe_unaware'):
         assert_shipped_policy_solves_todays_model(name)
+    config = load_config(shipped_config_path('fail_safe_unaware'))
+    shipped = load_policy(share_dir() / 'policies' / 'fail_safe_unaware.npz', config)
+    fresh = solve(HRCModel(config))
+    np.testing.assert_array_equal(fresh.policy, shipped.policy)
+    np.testing.assert_allclose(fresh.value, shipped.value, atol=1e-9)
 
 
 @pytest.mark.parametrize('name', ['stream', 'case_study_stream', 'case_study_stream150'])
