@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import PLANT_TIMEOUT
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.learning import fit as fitting
@@ -1088,6 +1089,10 @@ cells:
     seed: 3
     generate: {{world: {eager_close}, episodes: 80, epochs: 50, seed: 3}}
 """
+# a whole plant on the defaults (ten refits a cell), in this process: 80 s on a quiet machine
+# of 2026-12-07, beyond the suite's 300 s at load 13 there (the worker ended, "node down");
+# it gets the plant's time, as the --apply run does
+@pytest.mark.timeout(PLANT_TIMEOUT)
 def test_a_truly_better_cell_is_promoted_and_a_cell_of_the_default_world_kept(
         ray_session, tmp_path, policy_path):
     """The issue's two cases. A cell of the default's people, fitted from its 1000 epochs: the
