@@ -433,8 +433,10 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
         assert max(np.abs(q - held).max() for _, q, _ in driver.joint_states[states:]) == 0.0
     finally:
         other.close()
-    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))       # the bridge holds it too
-    assert driver.stops[-1] is True
+    # the bridge holds the arm on dn too. (Whether its stop for the other publisher still
+    # stands here is a race: the forger's participant leaves at once; the test asserted it
+    # when the publisher was destroyed on the test's own node, which left later.)
+    driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
     driver.wait(lambda: driver.stops[-1] is False, 'the stop to end with the other publisher')
     driver.wait(lambda: driver.overrides[-1][1] == 0.0, 'override 0 on dn')
     assert_alive(suite)
