@@ -74,6 +74,27 @@ class SpunNode:
         rclpy.try_shutdown(context=self.context)
 
 
+def forger(name: str, msg_type, topic: str, matches: int = 0, timeout: float = 30.0):
+    """Another node on the cell (a stray script, an attacker): a SpunNode, with a DDS
+    participant of its own, and its reliable publisher of `topic`, returned once `matches`
+    subscriptions have matched it (at most `timeout` s). `close()` it when it leaves: its
+    participant leaves with it. (A publisher made on a test's own long-lived node and destroyed
+    with destroy_publisher stayed in the bridge's graph twice in about ten suite runs,
+    2026-12-06 and 07: "1 other publisher(s) of the goal topic" for the rest of the module,
+    whose next ten tests timed out behind the arm's stop, the safe way, with nobody there.)"""
+    from hrc_ros.ros import qos
+    node = SpunNode(name)
+    try:
+        publisher = node.node.create_publisher(msg_type, topic, qos.RELIABLE)
+        node.start()
+        node.wait(lambda: publisher.get_subscription_count() >= matches,
+                  f'{topic} to match the forger', timeout)
+    except BaseException:
+        node.close()
+        raise
+    return node, publisher
+
+
 def last_statuses(statuses, parts=('robot_bridge', 'cobot_sim'), scan: int = 400) -> str:
     """The last /diagnostics status of every component whose name holds one of `parts`, among
     the last `scan` of `statuses`: level and message, for a timed-out wait's message."""

@@ -27,7 +27,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
 from hrc_ros.ros.processes import NodeProcesses
-from spun import SpunNode, last_statuses
+from spun import SpunNode, forger, last_statuses
 
 START_TIMEOUT = 90.0        # the bridge imports rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 20.0
@@ -261,19 +261,14 @@ def test_another_publisher_of_the_goal_topic_stops_the_arm(feeder):
     driver.person = FAR
     driver.wait(driver.free, 'no stop for a person far away, the retreat at speed')
     since = len(driver.statuses)
-    # another node, in a participant of its own, gone with it: a publisher made on the
-    # feeder's long-lived node and destroyed stayed in the bridge's graph once in about ten
-    # runs (test_robot_nodes.FORGER_NOTE)
-    forger = SpunNode('goal_forger')
+    # another node, in a participant of its own, gone with it (spun.forger)
+    other, _ = forger('goal_forger', JointTrajectory, f'{NS}/{DEFAULT_TRAJECTORY_TOPIC}')
     try:
-        forger.node.create_publisher(JointTrajectory, f'{NS}/{DEFAULT_TRAJECTORY_TOPIC}',
-                                     qos.RELIABLE)
-        forger.start()
         driver.wait(lambda: driver.status('other publisher(s) of the goal topic', since),
                     'a protective stop for another goal publisher')
         driver.wait(lambda: driver.stops[-1] is True and driver.overrides[-1] == 0.0,
                     'a latched stop with override 0')
     finally:
-        forger.close()
+        other.close()
     driver.wait(driver.free, 'the stop to clear once the other publisher is gone')
     assert not suite.dead(), suite.logs()

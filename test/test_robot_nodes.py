@@ -38,7 +38,7 @@ from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.processes import NodeProcesses, node_command
 from hrc_ros.ros.nodes.robot_bridge_node import DEFAULT_OVERRIDE_TOPIC, DEFAULT_TRAJECTORY_TOPIC
-from spun import SpunNode, last_statuses
+from spun import SpunNode, forger, last_statuses
 
 START_TIMEOUT = 90.0        # both nodes import rclpy, MuJoCo and numba: slow on a loaded machine
 TIMEOUT = 30.0
@@ -405,8 +405,9 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     since = len(driver.statuses)
     # another publisher of the goal topic: the bridge stops the arm (its override bounds only
     # its own goals), and cobot_sim refuses the bad goals on its own too. The publisher is
-    # another node's, in a participant of its own, gone with it (FORGER_NOTE)
-    other, publisher = forger('goal_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
+    # another node's, in a participant of its own, gone with it (spun.forger)
+    other, publisher = forger('goal_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2,
+                              START_TIMEOUT)
     try:
         driver.wait(lambda: driver.status('robot_bridge: ssm', WARN, 'other publisher(s) of the '
                                           'goal topic', since), 'the bridge\'s stop for it')
@@ -442,23 +443,6 @@ def test_a_trajectory_to_an_unknown_joint_or_away_from_the_arm_is_refused(cell):
     assert_alive(suite)
 
 
-# FORGER_NOTE. A publisher made on the test's own long-lived node and destroyed with
-# destroy_publisher stayed in the bridge's graph twice in about ten suite runs (quiet CI,
-# 2026-12-07: "1 other publisher(s) of the goal topic" for the rest of the module, ten tests
-# timed out one after another behind it; the same in test_robot_hostile the day before), so
-# the arm stayed stopped, the safe way, with nobody there. A forger is another node with a
-# participant of its own, closed when it leaves: what a stray script or an attacker is.
-def forger(name: str, msg_type, topic: str, matches: int = 1):
-    """Another node on the cell (a stray script, an attacker): its publisher of `topic`, once
-    `matches` subscriptions have matched it (FORGER_NOTE)."""
-    node = SpunNode(name)
-    publisher = node.node.create_publisher(msg_type, topic, qos.RELIABLE)
-    node.start()
-    node.wait(lambda: publisher.get_subscription_count() >= matches,
-              f'{topic} to match the forger', START_TIMEOUT)
-    return node, publisher
-
-
 def test_a_forged_transient_goal_beyond_the_limits_is_refused_and_the_arm_stays(cell):
     """Issue 33's first attack: a publisher appears on the goal topic, sends one goal and is
     gone: its first segment 0.02 rad in 0.3 s, its second the shoulder 2.5 rad in 5 ms.
@@ -470,7 +454,8 @@ def test_a_forged_transient_goal_beyond_the_limits_is_refused_and_the_arm_stays(
     first = held + [0, 0.02, 0, 0, 0, 0]
     swing = held + [0, 2.5, 0, 0, 0, 0]
     goal = conv.trajectory_to_msg(JOINTS, [held, first, swing, first], [0.3, 0.005, 0.005])
-    node, publisher = forger('transient_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
+    node, publisher = forger('transient_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2,
+                             START_TIMEOUT)
     try:
         publisher.publish(goal)
         publisher.wait_for_all_acked(Duration(seconds=5))
@@ -495,7 +480,8 @@ def test_a_forged_goal_within_the_limits_only_stops_the_arm(cell):
     since, held, states = len(driver.statuses), driver.q, len(driver.joint_states)
     goal = conv.trajectory_to_msg(JOINTS, [held, held + [0, 0, 0, 0, 1.0, 0]], [3.0])
     goals = len(driver.trajectories)
-    node, publisher = forger('slow_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2)
+    node, publisher = forger('slow_forger', JointTrajectory, DEFAULT_TRAJECTORY_TOPIC, 2,
+                             START_TIMEOUT)
     try:
         publisher.publish(goal)
         publisher.wait_for_all_acked(Duration(seconds=5))
@@ -527,7 +513,7 @@ def test_a_second_writer_of_the_actions_only_holds_the_arm(cell):
     driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
     driver.wait(lambda: driver.at_rest() and driver.stops[-1] is False, 'the arm to stand')
     since, held, states = len(driver.statuses), driver.q, len(driver.joint_states)
-    node, publisher = forger('action_forger', String, 'hrc/action')
+    node, publisher = forger('action_forger', String, 'hrc/action', 1, START_TIMEOUT)
     try:
         for action in ('dm', 'dp', 'dm', 'dp'):
             driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
