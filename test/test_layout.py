@@ -113,6 +113,21 @@ def test_an_explicit_ros_domain_id_wins_over_the_test_sessions_own():
     assert domain == same and 30 <= int(domain) <= 99, chosen.stderr
 
 
+def test_the_test_sessions_dds_profile_is_written_and_removed_when_the_process_exits(tmp_path):
+    """conftest writes the tests' Fast DDS profile into a folder of its own for each pytest
+    process; every run of the suite left those folders in /tmp (20 after a day's runs)."""
+    probe = ('import os, conftest; print(os.environ["FASTDDS_DEFAULT_PROFILES_FILE"]); '
+             'print(os.path.isfile(os.environ["FASTDDS_DEFAULT_PROFILES_FILE"]))')
+    env = {k: v for k, v in os.environ.items()
+           if k not in ('FASTDDS_DEFAULT_PROFILES_FILE', 'FASTRTPS_DEFAULT_PROFILES_FILE')}
+    result = subprocess.run([sys.executable, '-c', probe], cwd=REPO / 'test', text=True,
+                            capture_output=True, env={**env, 'TMPDIR': str(tmp_path)},
+                            timeout=60)
+    profile, written = result.stdout.split()
+    assert written == 'True' and Path(profile).parent.parent == tmp_path, result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 HANGING_TEST = ('import threading, time\n\n'
                 'def test_hangs():\n'
                 '    threading.Thread(target=time.sleep, args=(60,), name="helper",\n'
