@@ -1498,16 +1498,24 @@ def test_timeouts_that_break_the_nesting_are_refused_with_the_reason(graph, poli
     assert not result.successful
     assert "belief_estimator's task_state_timeout (0.4 x the period = 0.08 s) must be " \
         "shorter than decision's input_timeout (0.07 s)" in result.reason
-    tasks = Tasks(graph, input_timeout=0.1)       # accepted: no period known yet
+    # The period the task manager learns is the median gap between the epochs' source stamps:
+    # at least the 0.45 s the test waits, more on a loaded machine (at load 9 the 0.2 s gaps
+    # this test had read longer, and 0.1 s no longer broke the order, 2026-12-07). 0.4 s
+    # breaks the nesting (>= 0.4 x the period) but not the period (< it) for any period in
+    # (0.4, 1.0] s: gaps up to 0.55 s longer than asked still give the warning
+    tasks = Tasks(graph, input_timeout=0.4)       # accepted: no period known yet
     for k in (1, 2, 3):
         start = time.monotonic()
-        assert graph.spin_until(lambda t=start: time.monotonic() > t + 0.2)   # 0.2 s apart
+        assert graph.spin_until(lambda t=start: time.monotonic() > t + 0.45)  # >= 0.45 s apart
         tasks.epoch(k, 'dn' if k > 1 else None)
     assert graph.spin_until(lambda: graph.diagnostics('task_manager: timeouts', WARN))
     warning = graph.diagnostics('task_manager: timeouts', WARN)[0].message
-    assert "task_manager's input_timeout (0.1 s) must be shorter than belief_estimator's" \
+    period = tasks.node.tasks.epochs.period.period_ns * 1e-9
+    assert 0.4 < period <= 1.0, period
+    assert "task_manager's input_timeout (0.4 s) must be shorter than belief_estimator's" \
         in warning
-    result = tasks.node.set_parameters([Parameter('input_timeout', value=0.15)])[0]
+    # refused: 0.42 s is >= 0.4 x a period up to 1.05 s and < any period from 0.45 s
+    result = tasks.node.set_parameters([Parameter('input_timeout', value=0.42)])[0]
     assert not result.successful and 'the holds nest' in result.reason
     assert tasks.node.set_parameters([Parameter('input_timeout', value=0.04)])[0].successful
 
