@@ -667,10 +667,11 @@ DECISION_PARAMS = """\
 """
 
 
-# s: the plant run of plant_run (about 60 s alone, up to 180 s beside the suite's other
-# worker in a quiet CI run); its test's timeout,
+# s: the plant run of plant_run (about 40 s alone, up to 180 s beside the suite's other
+# worker in a quiet CI run; at load 8, ci_bench --busy 6, it was killed at the 360 s this
+# was, 2026-12-07: every process there gets about a fifth of a core); its test's timeout,
 # conftest.PLANT_TIMEOUT, leaves room for small_cell's solves and the nodes before it
-FLEET_TIMEOUT = 360
+FLEET_TIMEOUT = 600
 
 
 @pytest.fixture(scope='module')
