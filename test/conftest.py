@@ -90,8 +90,9 @@ FAST_DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
 """
 if not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
         or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
-    # one folder per pytest process (the controller and each xdist worker), removed when that
-    # process exits: every run left one per process in /tmp
+    # one folder per run (pytest-xdist's workers inherit the controller's variable), removed
+    # when the process that made it exits, after its workers: every run left one in /tmp.
+    # Fast DDS reads the file when a process makes its first participant
     _folder = tempfile.mkdtemp(prefix='hrc_ros_dds_')
     atexit.register(shutil.rmtree, _folder, True)
     _profile = Path(_folder) / 'fastdds_profile.xml'

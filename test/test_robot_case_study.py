@@ -80,6 +80,9 @@ MOVING_SAMPLES = 25
 # machine (125 Hz, 1 s epochs); at load 9-13 cobot_sim, at a fifth of a core, fell under 10
 # in 4 epochs (2026-12-07): its rate on a loaded host is bench/robot_bench.py's to measure
 STREAM_PER_EPOCH = 2
+# ... and in the median epoch, so that a stream that runs at a small fraction of its rate
+# throughout fails: at load about 10 the median was 36 a topic (the least epoch 24; 2026-12-07)
+STREAM_MEDIAN = 10
 
 
 @pytest.fixture(scope='module')
@@ -140,9 +143,11 @@ def test_the_cell_with_the_arm_completes_the_case_study_and_stops_cleanly(run):
     signals = [(t, msg.data) for topic, msg, t, _ in rows if topic == '/hrc/epoch']
     placed = place_in_epochs(signals, [(topic, None, t) for topic, _, t, _ in rows
                                        if topic != '/hrc/epoch'])
-    for k in range(1, EPOCHS):               # the last epoch ends with the run
-        for topic in ('/joint_states', '/hrc/separation', '/hrc/speed_override'):
-            assert len(placed.get((topic, k), [])) >= STREAM_PER_EPOCH, (topic, k)
+    for topic in ('/joint_states', '/hrc/separation', '/hrc/speed_override'):
+        # the last epoch ends with the run
+        per_epoch = [len(placed.get((topic, k), [])) for k in range(1, EPOCHS)]
+        assert min(per_epoch) >= STREAM_PER_EPOCH, (topic, per_epoch)
+        assert np.median(per_epoch) >= STREAM_MEDIAN, (topic, per_epoch)
 
 
 def test_ssm_is_never_violated_while_the_arm_moves(run):

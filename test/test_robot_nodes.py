@@ -398,14 +398,19 @@ def test_a_person_the_tracker_loses_near_the_arm_holds_it_until_the_operator_cle
 def test_dn_holds_the_arm_and_sends_no_trajectory(cell):
     driver, suite = cell
     driver.wait(driver.moving, 'the arm to run the program')
-    since = len(driver.statuses)
+    since, sent = len(driver.statuses), time.time_ns()
     driver.epoch('dn', task(tp=2, tc=120, ty=2, bc=120))
+
+    def dn_taken():
+        """A status published after dn was sent that says the bridge took it (not one of a
+        backlog from before), or None."""
+        status = driver.value('robot_bridge: bridge', 'last_action', 'dn', since)
+        return status if status is not None and driver.published(status) > sent else None
     # the bridge took dn, then the arm stands: an arm at rest alone is no proof (at load 9
     # cobot_sim braked on an override that came late while the bridge had not yet taken dn,
     # and the program's overrides followed, 2026-12-07)
-    driver.wait(lambda: driver.value('robot_bridge: bridge', 'last_action', 'dn', since),
-                'the bridge to take dn')
-    taken = driver.published(driver.value('robot_bridge: bridge', 'last_action', 'dn', since))
+    driver.wait(dn_taken, 'the bridge to take dn')
+    taken = driver.published(dn_taken())
     driver.wait(driver.at_rest, 'the arm to stand on dn')
     goals, states = len(driver.trajectories), len(driver.joint_states)
     held = driver.q
