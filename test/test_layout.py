@@ -247,3 +247,31 @@ def test_the_plants_tests_have_time_for_their_fixtures_and_the_plant_run():
     conftest.pytest_collection_modifyitems(None, [plant, *others])
     assert [(m.name, m.args) for m in plant.markers] == [('timeout', (conftest.PLANT_TIMEOUT,))]
     assert all(not item.markers for item in others)
+
+
+def test_the_bootstraps_uv_install_reads_pips_own_index_settings():
+    """scripts/bootstrap.sh installs with uv where it can: uv must resolve from the indexes,
+    links and constraints pip is configured with (pip.conf and PIP_* variables), or a machine
+    whose packages come from a local index would get other versions or none. The environment
+    wins over the files, as in pip."""
+    config = REPO / 'scripts' / 'bootstrap.sh'
+    body = config.read_text()
+    start = body.index('_hrc_uv_flags() {')
+    function = body[start:body.index('\n}\n', start) + 3]
+    env = {key: value for key, value in os.environ.items() if not key.startswith('PIP_')}
+    env.update(PIP_CONFIG_FILE=os.devnull, HRC_VENV=sys.prefix,
+               PIP_EXTRA_INDEX_URL='file:///a/simple file:///b/simple',
+               PIP_FIND_LINKS='/wheels', PIP_CONSTRAINT='/caps.txt', PIP_NO_INDEX='1',
+               PIP_INDEX_URL='https://mirror.example/simple')
+    out = subprocess.run(['bash', '-c', function + '_hrc_uv_flags'], env=env, check=True,
+                         stdout=subprocess.PIPE, text=True, timeout=60).stdout.split('\n')
+    pairs = list(zip(out[0::2], out[1::2]))
+    assert pairs[0] == ('--index-strategy', 'unsafe-best-match')
+    assert out.count('--no-index') == 1
+    flags = [(flag, value) for flag, value in zip(out, out[1:]) if flag.startswith('--')
+             and not value.startswith('--')]
+    assert ('--index-url', 'https://mirror.example/simple') in flags
+    assert ('--extra-index-url', 'file:///a/simple') in flags
+    assert ('--extra-index-url', 'file:///b/simple') in flags
+    assert ('--find-links', '/wheels') in flags
+    assert ('--constraint', '/caps.txt') in flags
