@@ -12,7 +12,7 @@
 #
 # The caller sets ROS_DOMAIN_ID (tests: one per run; the case study: a fixed one).
 # Set HRC_BOOTSTRAP_FORCE=1 to reinstall even if the stamp matches, HRC_BOOTSTRAP_PIP=1 to
-# install with pip alone (uv, below, is the default where the index has it).
+# install with pip alone (uv, below, is the default where it can be had and works).
 
 HRC_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 HRC_VENV="$HRC_ROOT/.venv"
@@ -45,57 +45,40 @@ EOF
   )
 }
 
-# pip's own index settings (pip.conf and PIP_* variables: index-url, extra-index-url,
-# find-links, no-index, constraint) as uv's flags, one to a line, so that uv resolves from the
-# same places with the same caps as pip would; pip's rule that every index counts alike is
-# uv's --index-strategy unsafe-best-match.
-_hrc_uv_flags() {
-  "$HRC_VENV/bin/python" -m pip config list 2>/dev/null | "$HRC_VENV/bin/python" -c '
-import ast, sys
-flags = {"index-url": "--index-url", "extra-index-url": "--extra-index-url",
-         "find-links": "--find-links", "constraint": "--constraint"}
-found, no_index = {}, False
-for line in sys.stdin:
-    key, sep, value = line.strip().partition("=")
-    if not sep:
-        continue
-    scope, _, name = key.rpartition(".")
-    try:
-        value = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-        continue
-    if name == "no-index":
-        no_index = str(value).lower() in ("1", "true", "yes", "on")
-    elif name in flags:
-        found.setdefault(name, {})[scope] = str(value).split()
-print("--index-strategy\nunsafe-best-match")
-if no_index:
-    print("--no-index")
-for name, scopes in found.items():
-    # The environment (":env:") wins over the files, as in pip.
-    for value in scopes.get(":env:", [v for s in scopes.values() for v in s]):
-        print(flags[name]); print(value)
-'
-}
-
-# uv installs what pip would, from the same indexes, in about a fifth of the time (12 s against
-# 65 s for this package's 230 distributions on the 2-core machine, cold cache; bench/README.md,
-# "The fresh clone's install"). It is itself a wheel from the package index, put into .venv;
-# where it cannot be had (no index that has it) or fails, pip does the install as before.
-# HRC_BOOTSTRAP_PIP=1 skips uv.
+# uv installs what pip would, from the same indexes, in a fraction of the time (20 s against
+# 70 s for this package's 230 distributions on the 2-core machine with an empty cache; 72 s
+# against 256-357 s at load 8: bench/README.md, "The fresh clone's install"). uv itself is a
+# wheel from the package index (requirements-bootstrap.txt, pinned), put into .venv; its flags
+# are pip's own settings as pip's parser reads them (scripts/uv_flags.py). Returns non-zero
+# (and the caller installs with pip) where uv cannot be had, pip is set up in a way uv would
+# not follow, or uv's install fails or leaves hrc_ros unusable. HRC_BOOTSTRAP_PIP=1 skips uv.
 _hrc_uv_install() {
-  local flags=()
-  if [ ! -x "$HRC_VENV/bin/uv" ]; then
-    "$HRC_VENV/bin/python" -m pip install --quiet --progress-bar off --timeout 20 --retries 1 \
-        uv >/dev/null 2>&1 || { _hrc_say "uv is not installable here; pip installs"; return 1; }
-  fi
-  mapfile -t flags < <(_hrc_uv_flags) || return 1
+  local out line flags=() envs=()
+  "$HRC_VENV/bin/python" -m pip install --quiet --progress-bar off --timeout 20 --retries 1 \
+      -r "$HRC_ROOT/requirements-bootstrap.txt" >/dev/null 2>&1 ||
+    { _hrc_say "uv is not installable here; pip installs"; return 1; }
+  out="$("$HRC_VENV/bin/python" "$HRC_ROOT/scripts/uv_flags.py")" ||
+    { _hrc_say "pip installs (above)"; return 1; }
+  while IFS= read -r line; do
+    if [[ "$line" == "env "* ]]; then envs+=("${line#env }"); else flags+=("$line"); fi
+  done <<<"$out"
   _hrc_say "installing requirements-dev.txt and hrc_ros (uv pip install -e .) into .venv"
-  if ! "$HRC_VENV/bin/uv" pip install --quiet --python "$HRC_VENV/bin/python" "${flags[@]}" \
+  if ! env "${envs[@]}" "$HRC_VENV/bin/uv" pip install --quiet \
+      --python "$HRC_VENV/bin/python" "${flags[@]}" \
       -r "$HRC_ROOT/requirements-dev.txt" -e "$HRC_ROOT"; then
     _hrc_say "uv pip install failed (above); pip installs instead"
     return 1
   fi
+  _hrc_check_install 2>/dev/null || { _hrc_say "uv's install is not usable; pip installs"; return 1; }
+}
+
+# The editable install must put the console scripts in .venv/bin (not setup.cfg's script_dir,
+# which is for colcon) and make the package importable from anywhere.
+_hrc_check_install() {
+  [ -x "$HRC_VENV/bin/hrc-solve" ] ||
+    _hrc_die "the install did not create .venv/bin/hrc-solve" || return 1
+  (cd / && "$HRC_VENV/bin/python" -c 'import hrc_ros') ||
+    _hrc_die "hrc_ros is not importable after the install" || return 1
 }
 
 _hrc_bootstrap() {
@@ -126,19 +109,12 @@ _hrc_bootstrap() {
   fi
 
   rm -f "$stamp"
-  if [ -z "${HRC_BOOTSTRAP_PIP:-}" ] && _hrc_uv_install; then
-    :
-  else
+  if [ -n "${HRC_BOOTSTRAP_PIP:-}" ] || ! _hrc_uv_install; then
     _hrc_say "installing requirements-dev.txt and hrc_ros (pip install -e .) into .venv"
     "$HRC_VENV/bin/python" -m pip install --quiet --progress-bar off \
         -r "$HRC_ROOT/requirements-dev.txt" -e "$HRC_ROOT" || return 1
+    _hrc_check_install || return 1
   fi
-  # The editable install must put the console scripts in .venv/bin (not setup.cfg's
-  # script_dir, which is for colcon) and make the package importable from anywhere.
-  [ -x "$HRC_VENV/bin/hrc-solve" ] ||
-    _hrc_die "pip install -e . did not create .venv/bin/hrc-solve" || return 1
-  (cd / && "$HRC_VENV/bin/python" -c 'import hrc_ros') ||
-    _hrc_die "hrc_ros is not importable after pip install -e ." || return 1
   printf '%s\n' "$want" >"$stamp"
   _hrc_say "installed in $((SECONDS - started)) s"
 }

@@ -249,29 +249,63 @@ def test_the_plants_tests_have_time_for_their_fixtures_and_the_plant_run():
     assert all(not item.markers for item in others)
 
 
-def test_the_bootstraps_uv_install_reads_pips_own_index_settings():
+
+def uv_flags(tmp_path, environment: dict, config: str = '') -> subprocess.CompletedProcess:
+    """scripts/uv_flags.py run by this interpreter with pip's settings from `config` (a pip.conf
+    of the test's) and `environment` alone: no PIP_* variable of the caller's, no user or XDG
+    file (the machine's /etc/pip.conf is still read, as pip always does)."""
+    env = {key: value for key, value in os.environ.items()
+           if not key.startswith(('PIP_', 'UV_', 'SSL_CERT'))}
+    (tmp_path / 'pip.conf').write_text(config)
+    (tmp_path / 'home').mkdir(exist_ok=True)
+    env.update(PIP_CONFIG_FILE=str(tmp_path / 'pip.conf'), HOME=str(tmp_path / 'home'),
+               XDG_CONFIG_HOME=str(tmp_path / 'home'), XDG_CONFIG_DIRS=str(tmp_path / 'home'),
+               **environment)
+    return subprocess.run([sys.executable, str(REPO / 'scripts' / 'uv_flags.py')], env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60)
+
+
+def flag_values(stdout: str, flag: str) -> list[str]:
+    items = stdout.splitlines()
+    return [items[i + 1] for i, item in enumerate(items) if item == flag]
+
+
+def test_the_bootstraps_uv_install_gets_what_pip_install_would_use(tmp_path):
     """scripts/bootstrap.sh installs with uv where it can: uv must resolve from the indexes,
-    links and constraints pip is configured with (pip.conf and PIP_* variables), or a machine
-    whose packages come from a local index would get other versions or none. The environment
-    wins over the files, as in pip."""
-    config = REPO / 'scripts' / 'bootstrap.sh'
-    body = config.read_text()
-    start = body.index('_hrc_uv_flags() {')
-    function = body[start:body.index('\n}\n', start) + 3]
-    env = {key: value for key, value in os.environ.items() if not key.startswith('PIP_')}
-    env.update(PIP_CONFIG_FILE=os.devnull, HRC_VENV=sys.prefix,
-               PIP_EXTRA_INDEX_URL='file:///a/simple file:///b/simple',
-               PIP_FIND_LINKS='/wheels', PIP_CONSTRAINT='/caps.txt', PIP_NO_INDEX='1',
-               PIP_INDEX_URL='https://mirror.example/simple')
-    out = subprocess.run(['bash', '-c', function + '_hrc_uv_flags'], env=env, check=True,
-                         stdout=subprocess.PIPE, text=True, timeout=60).stdout.split('\n')
-    pairs = list(zip(out[0::2], out[1::2]))
-    assert pairs[0] == ('--index-strategy', 'unsafe-best-match')
-    assert out.count('--no-index') == 1
-    flags = [(flag, value) for flag, value in zip(out, out[1:]) if flag.startswith('--')
-             and not value.startswith('--')]
-    assert ('--index-url', 'https://mirror.example/simple') in flags
-    assert ('--extra-index-url', 'file:///a/simple') in flags
-    assert ('--extra-index-url', 'file:///b/simple') in flags
-    assert ('--find-links', '/wheels') in flags
-    assert ('--constraint', '/caps.txt') in flags
+    links and constraints `pip install` would use, as pip's own parser reads them: the
+    [install] section over [global], a variable over the files, an empty variable ignored.
+    uv takes --index-url once only (twice is an error that sends the bootstrap to pip)."""
+    config = ('[global]\nindex-url = https://global.example/simple\n'
+              'extra-index-url = file:///file-extra/simple\nfind-links = /file-links\n'
+              'timeout = 42\ncert = /file/ca.crt\n'
+              '[install]\nindex-url = https://install.example/simple\n'
+              '[download]\nno-index = true\n')
+    run = uv_flags(tmp_path, {'PIP_EXTRA_INDEX_URL': '', 'PIP_FIND_LINKS': '/env-links',
+                              'PIP_CONSTRAINT': '/caps.txt', 'PIP_PRE': '1'}, config)
+    assert run.returncode == 0, run.stderr
+    out = run.stdout
+    assert flag_values(out, '--index-strategy') == ['unsafe-best-match']
+    assert flag_values(out, '--index-url') == ['https://install.example/simple']
+    assert flag_values(out, '--extra-index-url') == ['file:///file-extra/simple']
+    assert flag_values(out, '--find-links') == ['/env-links']
+    assert flag_values(out, '--constraint') == ['/caps.txt']
+    assert flag_values(out, '--prerelease') == ['allow']
+    assert '--no-index' not in out.splitlines()          # [download]'s, not install's
+    assert out.splitlines()[:2] == ['env SSL_CERT_FILE=/file/ca.crt', 'env UV_HTTP_TIMEOUT=42']
+
+    offline = uv_flags(tmp_path, {'PIP_NO_INDEX': '1', 'PIP_FIND_LINKS': '/wheels'})
+    assert offline.returncode == 0, offline.stderr
+    assert '--no-index' in offline.stdout.splitlines()
+    assert flag_values(offline.stdout, '--index-url') == []
+    assert flag_values(offline.stdout, '--find-links') == ['/wheels']
+
+
+def test_a_pip_setting_uv_is_not_handed_sends_the_bootstrap_to_pip(tmp_path):
+    for environment, name in (({'PIP_PROXY': 'http://proxy.example:3128'}, 'proxy'),
+                              ({'PIP_ONLY_BINARY': ':all:'}, 'only-binary'),
+                              ({'PIP_REQUIRE_HASHES': '1'}, 'require-hashes')):
+        run = uv_flags(tmp_path, environment)
+        assert run.returncode == 3, (name, run.stdout)
+        assert run.stdout == ''
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1 and name in lines[0], (name, run.stderr)
