@@ -249,7 +249,6 @@ def test_the_plants_tests_have_time_for_their_fixtures_and_the_plant_run():
     assert all(not item.markers for item in others)
 
 
-
 def uv_flags(tmp_path, environment: dict, config: str = '') -> subprocess.CompletedProcess:
     """scripts/uv_flags.py run by this interpreter with pip's settings from `config` (a pip.conf
     of the test's) and `environment` alone: no PIP_* variable of the caller's, no user or XDG

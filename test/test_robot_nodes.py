@@ -409,8 +409,7 @@ def test_dn_holds_the_arm_and_sends_no_trajectory(cell):
     # the bridge took dn, then the arm stands: an arm at rest alone is no proof (at load 9
     # cobot_sim braked on an override that came late while the bridge had not yet taken dn,
     # and the program's overrides followed, 2026-12-07)
-    driver.wait(dn_taken, 'the bridge to take dn')
-    taken = driver.published(dn_taken())
+    taken = driver.published(driver.wait(dn_taken, 'the bridge to take dn'))
     driver.wait(driver.at_rest, 'the arm to stand on dn')
     goals, states = len(driver.trajectories), len(driver.joint_states)
     held = driver.q
