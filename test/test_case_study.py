@@ -75,6 +75,10 @@ def test_the_main_job_runs_and_says_where_it_wrote(run):
     assert 'tasks completed 3/3' in proc.stdout
     assert 'cell_sim_node exit 0, task_manager_node exit 0, belief_estimator_node exit 0, ' \
            'cell_view_node exit 0, decision_node exit 0' in proc.stdout
+    # epoch 1 came when the graph was ready: the four listeners' readers had matched the clock
+    # (hrc/_epoch_ready), not after the graph wait ran out
+    assert 'starting the epoch clock after' not in \
+        (out / 'logs' / 'decision_node.log').read_text()
     info = bag_info(out / 'bag')
     counts = {t.topic: t.message_count for t in info.topics}
     assert counts['/hrc/action'] == counts['/hrc/epoch'] == 20

@@ -14,6 +14,7 @@ from std_msgs.msg import (Bool, Float64MultiArray, MultiArrayDimension, String, 
 from hrc_ros.core.decision.observation import (MAX_JOINT_SPEED, MAX_JOINTS, MAX_KEYPOINT_RANGE,
                                                MAX_KEYPOINTS, distance_level, velocity_level)
 from hrc_ros.core.model import ACTIONS, STATE_VARIABLES, TASK_VARIABLES
+from hrc_ros.core.protocol import ReadyMark
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros.conversions import MessageError
 
@@ -314,3 +315,18 @@ def test_diagnostic_builders_format_values():
 def test_pose_array_uses_identity_orientation():
     msg = conv.keypoints_to_msg([[1, 2, 3]])
     assert isinstance(msg.poses[0], Pose) and msg.poses[0].orientation.w == 1.0
+
+
+def test_an_epoch_ready_mark_round_trips_and_a_bad_one_is_refused_quoted():
+    gids = frozenset({'010f78fd5937b7010000010000002d03', 'ab' * 16})
+    mark = ReadyMark('/ns/task_manager', gids)
+    assert conv.epoch_ready_from_msg(conv.epoch_ready_to_msg(mark)) == mark
+    assert conv.epoch_ready_from_msg(String(data='/view')) == ReadyMark('/view', frozenset())
+    for data in ('task_manager ' + 'ab' * 16,          # not a fully qualified node name
+                 '/tm ' + 'AB' * 16, '/tm ' + 'ab' * 15, '/tm  ' + 'ab' * 16, '',
+                 '/tm' + (' ' + 'ab' * 16) * (conv.READY_WRITERS_MAX + 1),
+                 '/' + 'x' * 300):
+        with pytest.raises(MessageError, match='epoch ready mark'):
+            conv.epoch_ready_from_msg(String(data=data))
+    with pytest.raises(MessageError, match='too long'):
+        conv.epoch_ready_from_msg(String(data='/' + 'x' * 100_000))

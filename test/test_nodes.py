@@ -44,12 +44,15 @@ from hrc_ros.core.decision.observation import (distance_level, synthesize_joint_
 from hrc_ros.core.mdp.policy import load_policy
 from hrc_ros.core.decision.selection import ActionSelector
 from hrc_ros.core.tasks import TaskBook
+from hrc_ros.core.protocol import ReadyMark
 from hrc_ros.ros import conversions as conv
 from hrc_ros.ros import qos
 from hrc_ros.ros.nodes.belief_estimator_node import BeliefEstimatorNode
 from hrc_ros.ros.nodes.cell_sim_node import CellSimNode
+from hrc_ros.ros.nodes.cell_view_node import CellViewNode
 from hrc_ros.ros.nodes.decision_node import DecisionNode
 from hrc_ros.ros.nodes.task_manager_node import TaskManagerNode
+from hrc_ros.ros.sources import READY_TOPIC, endpoint_node, gid_text
 
 TIMEOUT = 5.0
 EPOCH_PERIOD = 0.2
@@ -500,8 +503,11 @@ class Decision:
 
     def __init__(self, graph, policy_path, respond=None, **parameters):
         self.graph = graph
+        # the probe answers for the task manager and the belief estimator and says no ready
+        # mark (hrc/_epoch_ready): epoch 1 waits for its reader as the writer counts it only
         parameters = {'policy': policy_path, 'epoch_period': EPOCH_PERIOD,
-                      'input_timeout': INPUT_TIMEOUT, 'stale_timeout': 2.0, **parameters}
+                      'input_timeout': INPUT_TIMEOUT, 'stale_timeout': 2.0,
+                      'min_epoch_ready': 0, **parameters}
         self.belief = graph.probe.create_publisher(Float64MultiArray, 'hrc/belief',
                                                    qos.LATCHED)
         self.task = graph.probe.create_publisher(UInt8MultiArray, 'hrc/task_state',
@@ -757,6 +763,71 @@ def test_decision_waits_for_the_graph_then_fails_safe(graph, policy_path):
     assert float(conv.diagnostic_values(waiting[-1])['waited_s']) < 0.5
     assert [m.data for m in epochs[:1]] == [1] and actions[0].data == 'dn'
     assert 'hrc/task_state missing' in graph.diagnostics('decision: decision', ERROR)[0].message
+
+
+def _waiting(graph) -> list[dict]:
+    return [conv.diagnostic_values(s) for s in graph.diagnostics('decision: decision', WARN)
+            if 'waiting for the graph' in s.message]
+
+
+def _clock_gid(graph, node='/decision') -> str:
+    gids = [gid_text(info.endpoint_gid)
+            for info in graph.probe.get_publishers_info_by_topic('/hrc/epoch')
+            if endpoint_node(info) == node]
+    assert len(gids) == 1, gids
+    return gids[0]
+
+
+def test_decision_waits_for_its_listeners_readers_to_match_its_clock(graph, policy_path):
+    """Issue 37 (the main job at load 9: epoch 1 lost to the task manager): the clock's writer
+    counted the task manager's reader before that reader had matched the writer, and a reader
+    that matches after the sample was sent never gets it. With min_epoch_ready, epoch 1 waits
+    for a listener's own mark naming this clock; a mark for another clock, or from a node the
+    clock's graph shows no reader of, does not count."""
+    dec = Decision(graph, policy_path, min_epoch_ready=1, stale_timeout=60.0)
+    inputs = ('belief', 'task_state', 'distance_level')
+    # every input has a publisher and the probe's reader of hrc/epoch is counted: only the
+    # listener's mark is missing
+    assert graph.spin_until(lambda: any(
+        v['epoch_subscribers'] != '0' and all(v[f'{n}_publishers'] != '0' for n in inputs)
+        for v in _waiting(graph)))
+    clock = _clock_gid(graph)
+    marks = graph.probe.create_publisher(String, READY_TOPIC, qos.LATCHED)
+    ghost = graph.probe.create_publisher(String, READY_TOPIC, qos.LATCHED)
+    marks.publish(conv.epoch_ready_to_msg(ReadyMark('/probe', frozenset({'0' * 32}))))
+    ghost.publish(conv.epoch_ready_to_msg(ReadyMark('/no_reader', frozenset({clock}))))
+    assert graph.spin_until(lambda: set(dec.node.epoch_listeners.marks)
+                            == {'/probe', '/no_reader'})
+    seen = len(_waiting(graph))
+    assert graph.spin_until(lambda: len(_waiting(graph)) >= seen + 3)   # three ticks later
+    assert dec.epochs == [] and dec.actions == []
+    assert _waiting(graph)[-1]['epoch_ready'] == 'none'
+    marks.publish(conv.epoch_ready_to_msg(ReadyMark('/probe', frozenset({clock}))))
+    assert dec.run(1)
+    assert [m.data for m in dec.epochs[:1]] == [1]
+    assert dec.node._ready_listeners() == ['/probe']
+
+
+@pytest.mark.parametrize('node_class, reader', [
+    (TaskManagerNode, '/task_manager'), (BeliefEstimatorNode, '/belief_estimator'),
+    (CellViewNode, '/cell_view_inputs')], ids=['task_manager', 'belief_estimator', 'view'])
+def test_listeners_say_which_epoch_clocks_their_reader_has_matched(graph, node_class, reader):
+    """The other half: each listener says on hrc/_epoch_ready which epoch writers its own
+    reader has matched (the view's reader is on its sampled-inputs node), and says it again
+    for a second writer (a restarted clock)."""
+    marks = graph.collect(String, READY_TOPIC, qos.READY_MARKS)
+    graph.start(node_class)
+
+    def said(writers):
+        return any(conv.epoch_ready_from_msg(m) == ReadyMark(reader, frozenset(writers))
+                   for m in marks)
+    first = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    one = _clock_gid(graph, '/probe')
+    assert graph.spin_until(lambda: said({one})), [m.data for m in marks]
+    graph.probe.destroy_publisher(first)
+    graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+    two = _clock_gid(graph, '/probe')
+    assert two != one and graph.spin_until(lambda: said({two})), [m.data for m in marks]
 
 
 @pytest.mark.parametrize('name, value, reason', [

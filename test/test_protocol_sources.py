@@ -11,8 +11,9 @@ import pytest
 
 from hrc_ros.core.protocol import (CLAIM_LIFETIME_S, DECISION_WAIT, ERROR, ESTIMATOR_HOLD,
                                    STALE, TASK_HOLD, Claim, ClockOwner, ClockStart, Endpoint,
-                                   EpochFollower, InputError, RequestCounts, Stamp, StreamLock,
-                                   TaskEpochs, check_timeout_order)
+                                   EpochFollower, EpochListeners, InputError, ReadyMark,
+                                   RequestCounts, Stamp, StreamLock, TaskEpochs,
+                                   check_timeout_order)
 from hrc_ros.core.tasks import TaskBook
 
 MS = 1_000_000
@@ -195,6 +196,26 @@ def test_an_unclaimed_source_keeps_a_clock_from_starting_and_is_named_only_once_
 
 
 # -- two body-tracking streams ----------------------------------------------------------------
+def test_a_listener_is_ready_for_a_clock_once_both_ends_have_matched():
+    """Issue 37: a reader that matches the clock's writer after epoch 1 was sent misses it, so
+    a listener counts for a clock only when its own mark names that clock's writer and the
+    clock's graph shows the listener's reader; the latest mark of a listener counts."""
+    listeners = EpochListeners(limit=3)
+    listeners.heard(ReadyMark('/task_manager', frozenset({'a'})))
+    listeners.heard(ReadyMark('/belief_estimator', frozenset({'b'})))   # another clock's
+    listeners.heard(ReadyMark('/view_inputs', frozenset({'a', 'b'})))
+    readers = ['/task_manager', '/belief_estimator']        # the view's reader not discovered
+    assert listeners.ready('a', readers) == ['/task_manager']
+    assert listeners.ready('a', readers + ['/view_inputs']) == ['/task_manager', '/view_inputs']
+    assert listeners.ready(None, readers) == []               # this clock's GID not known yet
+    listeners.heard(ReadyMark('/task_manager', frozenset()))  # its writer left: not ready
+    assert listeners.ready('a', readers) == []
+    with pytest.raises(InputError, match='3 listeners already'):
+        listeners.heard(ReadyMark('/a_fourth', frozenset({'a'})))   # bounded, not grown
+    listeners.heard(ReadyMark('/belief_estimator', frozenset({'a'})))  # a known one still is
+    assert listeners.ready('a', readers) == ['/belief_estimator']
+
+
 def test_the_stream_lock_follows_one_writer_and_the_next_after_silence():
     lock = StreamLock(max_skip=64)
     assert lock.classify(5000, 0.0, 0.5) == StreamLock.FOLLOWED

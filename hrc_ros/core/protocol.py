@@ -952,6 +952,50 @@ class ClockOwner:
         return out
 
 
+EPOCH_LISTENERS_KEPT = 256   # listeners' ready marks a decision node keeps (hrc/_epoch_ready)
+
+
+@dataclass(frozen=True)
+class ReadyMark:
+    """A listener of hrc/epoch says which epoch writers its reader has matched
+    (`hrc/_epoch_ready`): `reader` is the fully qualified name of the node that holds the
+    reader, `writers` the writers' GIDs."""
+
+    reader: str
+    writers: frozenset[str]
+
+
+class EpochListeners:
+    """Which listeners of hrc/epoch are ready for one epoch clock (issue 37: epoch 1 lost).
+
+    A reliable, volatile reader that matches a writer after the writer's sample was sent never
+    gets it, and DDS discovery is not symmetric: the clock's writer can count a listener's
+    reader (`get_subscription_count`) before that reader has matched the writer. Epoch 1 is
+    certain to reach a listener only once both sides have matched. The writer side is the
+    clock's graph (the node holding the reader is among the topic's subscribers there); the
+    reader side is the listener's mark, kept here, the latest of each listener, at most
+    `limit` listeners (a flood of invented names is refused, not grown without bound)."""
+
+    def __init__(self, limit: int = EPOCH_LISTENERS_KEPT):
+        self.limit = limit
+        self.marks: dict[str, frozenset[str]] = {}
+
+    def heard(self, mark: ReadyMark) -> None:
+        if mark.reader not in self.marks and len(self.marks) >= self.limit:
+            raise InputError(f'{mark.reader} said it is ready for hrc/epoch, but {self.limit} '
+                             'listeners already have: not counted')
+        self.marks[mark.reader] = mark.writers
+
+    def ready(self, writer: str | None, readers) -> list[str]:
+        """The listeners ready for the clock whose writer has GID `writer` (None: not known
+        yet, nobody is): their reader has matched it, and `readers` (the nodes that the
+        clock's graph shows with a reader of hrc/epoch) include them."""
+        if writer is None:
+            return []
+        readers = set(readers)
+        return sorted(r for r, writers in self.marks.items() if writer in writers and r in readers)
+
+
 @dataclass(frozen=True)
 class Tick:
     """What a tick of the decision node's clock does: start an epoch or wait (with a report)."""
@@ -963,9 +1007,10 @@ class Tick:
 class ClockStart:
     """When the decision node's epoch clock starts (timer mode), and a second epoch source.
 
-    Epoch 1 comes one tick after the graph is ready (every input has a publisher and enough
-    `hrc/epoch` subscribers are discovered), so that the first epochs are not lost to DDS
-    discovery, or, at the latest, at the first tick after `stale_timeout_ns`, with a warning.
+    Epoch 1 comes one tick after the graph is ready (every input has a publisher, enough
+    `hrc/epoch` subscribers are discovered and enough listeners are ready, `EpochListeners`),
+    so that the first epochs are not lost to DDS discovery, or, at the latest, at the first
+    tick after `stale_timeout_ns`, with a warning.
     Until then each tick reports that the node waits and publishes no action.
 
     One cell has one decision node. With an `owner` (`ClockOwner`), a node that is not the
@@ -1053,15 +1098,17 @@ class ClockStart:
                 self._ready = True          # epoch 1 at the next tick
                 return Tick(False, rival)
             return Tick(False, rival or Report(
-                WARN, 'decision', 'waiting for the graph: no hrc/epoch subscriber or no input '
-                'publisher discovered yet; no action published',
+                WARN, 'decision', 'waiting for the graph: not every input publisher, '
+                'hrc/epoch subscriber and ready listener (hrc/_epoch_ready) discovered yet; no '
+                'action published',
                 {'waited_s': waited, **graph()}, log=False, kind='waiting'))
         self.running = True
         if self._ready:
             return Tick(True, rival)
         return Tick(True, rival or Report(WARN, 'clock', f'starting the epoch clock after '
                                           f'{waited:.1f} s without having discovered every '
-                                          'input publisher', {'waited_s': waited},
+                                          'input publisher, hrc/epoch subscriber and ready '
+                                          'listener', {'waited_s': waited},
                                           kind='forced_start'))
 
     def _yield(self, now: int, me: str, sources: list[str]) -> Tick:

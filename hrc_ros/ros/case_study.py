@@ -171,6 +171,8 @@ def write_run_params(path: Path, args) -> Path:
             # every listener that must not miss epoch 1: the task manager, the belief
             # estimator, this observer and the view
             'min_epoch_subscribers': 3 + bool(args.view),
+            # ... each of them with its own reader matched to the clock (hrc/_epoch_ready)
+            'min_epoch_ready': 3 + bool(args.view),
             'selector': args.selector,
             'policy': args.policy or ''}},
         '/**/cell_sim': {'ros__parameters': {'seed': args.seed}},
@@ -271,7 +273,10 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from . import conversions
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
     from .bag import BagWriter, Recorder, message_class
+    from .sources import EpochReady
 
     node = rclpy.create_node('case_study_observer')
     executor = SingleThreadedExecutor()
@@ -311,10 +316,17 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     types = recorded_topics(args)
+    # this observer is a listener that must not miss epoch 1: it says when its reader has
+    # matched the decision node's clock (hrc/_epoch_ready, min_epoch_ready)
+    ready = EpochReady(node)
     for topic in WATCHED + ROBOT_WATCHED * (args.robot == 'sim'):
-        node.create_subscription(
+        subscription = node.create_subscription(
             message_class(types[topic]), topic, watcher(topic),
-            latched if topic in LATCHED_TOPICS else reliable)
+            latched if topic in LATCHED_TOPICS else reliable,
+            event_callbacks=SubscriptionEventCallbacks(matched=ready.update)
+            if topic == 'hrc/epoch' else None)
+        if topic == 'hrc/epoch':
+            ready.reader = subscription
     try:
         with BagWriter(bag_dir) as writer:
             recorder = Recorder(node, recorded_topics(args), writer)

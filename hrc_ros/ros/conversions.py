@@ -36,6 +36,9 @@ Wire formats (INTERFACES.md, plus the decisions below):
   (64 hex digits) of the configuration the belief estimator runs, a space, and its file.
 - `hrc/_clock_claim` (std_msgs/String, hidden): a decision node's claim to decide for the
   cell, ``"<started_ns> <id> <timer|topic> <node>"`` (`core.protocol.Claim`).
+- `hrc/_epoch_ready` (std_msgs/String, hidden): a listener of `hrc/epoch` names the node that
+  holds its reader and the epoch writers that reader has matched, ``"<node> <gid> ..."``
+  (`core.protocol.ReadyMark`).
 - `hrc/observation`, `hrc/distance_level` (std_msgs/UInt8), `hrc/epoch` (std_msgs/UInt32),
   `hrc/human_response` (std_msgs/Bool).
 - `/diagnostics` (diagnostic_msgs/DiagnosticArray): `diagnostic_status` formats key-values.
@@ -69,7 +72,7 @@ from ..core.model import (ACTION_INDEX, ACTIONS, DISTANCE_LEVELS, N_HIDDEN, OBSE
 from ..core.decision.observation import HUMAN_JOINTS  # noqa: F401 - the joint names, re-exported
 from ..core.decision.observation import (MAX_JOINTS, MAX_KEYPOINTS, check_joint_speeds,
                                          check_keypoint_range)
-from ..core.protocol import Claim, InputError
+from ..core.protocol import Claim, InputError, ReadyMark
 from ..core.quoting import QUOTE_LIMIT, cap, quote  # noqa: F401 - the one home, re-exported
 from ..core.cell.tracking import (K4ABT_JOINTS, MARKER_ID_STRIDE, MAX_BODIES, MAX_RANGE, BodyFrame,
                                   split_marker_id)
@@ -573,6 +576,27 @@ def claim_from_msg(msg: String) -> Claim:
             or not node.startswith('/') or len(node) > 256:
         raise MessageError(f'not a decision node claim: {quote(msg.data)}')
     return claim
+
+
+# -- hrc/_epoch_ready --------------------------------------------------------------------------
+READY_WRITERS_MAX = 32      # epoch writers one mark may name (sources.PUBLISHERS_KEPT)
+GID_HEX = 32                # a GID as text: 16 bytes (sources.gid_text)
+
+
+def epoch_ready_to_msg(mark: ReadyMark) -> String:
+    return String(data=' '.join([mark.reader, *sorted(mark.writers)]))
+
+
+def epoch_ready_from_msg(msg: String) -> ReadyMark:
+    """A listener's ready mark: ``"<reader node> <writer GID> ..."`` (GIDs as 32 hex digits)."""
+    if len(msg.data) > 256 + (GID_HEX + 1) * READY_WRITERS_MAX:
+        raise MessageError(f'epoch ready mark of {len(msg.data)} characters: too long')
+    reader, *writers = msg.data.split(' ')
+    if not reader.startswith('/') or len(reader) > 256 or len(writers) > READY_WRITERS_MAX \
+            or any(len(w) != GID_HEX or w.strip('0123456789abcdef') for w in writers):
+        raise MessageError('expected an epoch ready mark "<reader node> <writer gid> ...", '
+                           f'got {quote(msg.data)}')
+    return ReadyMark(reader, frozenset(writers))
 
 
 # -- body tracking: visualization_msgs/MarkerArray of the Azure Kinect / Orbbec drivers -------

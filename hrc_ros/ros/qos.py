@@ -49,6 +49,13 @@ CLAIMS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                     reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+# Listeners' ready marks for the epoch clock (`hrc/_epoch_ready`, `core.protocol.EpochListeners`):
+# reliable and transient local, so a decision node started after its listeners hears each one's
+# latest mark at once; a reader keeps enough for every listener of a cell arriving together.
+READY_MARKS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
 # Orders that must not be lost (`hrc/task_request`): reliable and keep-all, so a burst is taken
 # whole (what the task queue cannot hold is refused with a report), never overwritten unseen in
 # the reader's history. Fast DDS bounds a keep-all reader by its resource limits; beyond them a

@@ -19,6 +19,13 @@ of 0) are noted by the `EpochFollower` too (`refused`: they can show a second wr
 an epoch refused as another source's names the publishers other than the one followed, on
 /diagnostics (WARN `<node>: epoch source`), at once for a publisher not named before and at
 most once per `WARNING_THROTTLE_SEC` otherwise.
+
+`EpochReady` is a listener's ready mark on `hrc/_epoch_ready` (`core.protocol.EpochListeners`):
+the node that holds its `hrc/epoch` reader and the GIDs of the reliable epoch writers that
+reader has matched, said again whenever they change (a matched event, or the check every
+`READY_CHECK_SEC`), so the decision node starts its clock only once that reader has
+discovered the clock, not only once the clock has discovered the reader. `subscribe_epochs`
+gives every follower one; the view and `hrc-case-study`'s observer make their own.
 """
 
 from __future__ import annotations
@@ -26,10 +33,12 @@ from __future__ import annotations
 import time
 from typing import Callable
 
-from std_msgs.msg import UInt32
+from rclpy.clock import Clock, ClockType
+from rclpy.qos import ReliabilityPolicy
+from std_msgs.msg import String, UInt32
 
 from ..core.protocol import (UNKNOWN_NODE_NAME, WARN, Endpoint, EpochFollower, InputError,
-                             Report, Stamp)
+                             ReadyMark, Report, Stamp)
 from . import conversions as conv
 from . import qos
 
@@ -37,6 +46,8 @@ UNKNOWN_NODE_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'
 GID_BYTES = 16           # a Fast DDS GUID: 12 bytes of participant prefix, 4 of entity id
 PUBLISHERS_KEPT = 32     # publishers remembered per topic, present or gone
 NAMING_THROTTLE_SEC = 5.0
+READY_TOPIC = 'hrc/_epoch_ready'   # hidden: not recorded by a bag of every topic, not replayed
+READY_CHECK_SEC = 0.5
 
 
 def gid_text(gid) -> str:
@@ -138,12 +149,55 @@ class _Naming:
         return True
 
 
+class EpochReady:
+    """A listener's ready mark for `hrc/epoch` (module docstring). `reader` is the
+    subscription, held by `reader_node` (the node by default; the view's sampled inputs live on
+    a helper node); `update` reads its matched count and the graph, and publishes when the mark
+    changes. A reader that counts fewer matched writers than the graph shows says nothing new
+    until they match: it cannot tell which are not matched yet."""
+
+    def __init__(self, node, reader_node=None, check_sec: float = READY_CHECK_SEC):
+        self.node = node
+        self.reader_node = reader_node or node
+        self.topic = node.resolve_topic_name('hrc/epoch')
+        self.reader = None
+        self.publisher = node.create_publisher(String, READY_TOPIC, qos.LATCHED)
+        self.said: ReadyMark | None = None
+        self.timer = node.create_timer(check_sec, self.update,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def update(self, *_event) -> None:
+        if self.reader is None:
+            return
+        # read each time, not skipped for an unchanged count: a writer replaced keeps it
+        matched = self.reader.get_publisher_count()
+        writers = {gid_text(info.endpoint_gid)
+                   for info in self.node.get_publishers_info_by_topic(self.topic)
+                   if info.qos_profile.reliability == ReliabilityPolicy.RELIABLE}
+        if matched < len(writers):
+            return                  # not all matched yet (or one leaving): the next check
+        mark = ReadyMark(self.reader_node.get_fully_qualified_name(),
+                         frozenset(sorted(writers)[:conv.READY_WRITERS_MAX]))
+        if mark != self.said:
+            self.publisher.publish(conv.epoch_ready_to_msg(mark))
+            self.said = mark
+
+
 def subscribe_epochs(inputs, follower: Callable[[], EpochFollower],
-                     handle: Callable[[int, Stamp], None]) -> TopicPublishers:
+                     handle: Callable[[int, Stamp], None],
+                     ready_mark: bool = True) -> TopicPublishers:
     """Subscribe `hrc/epoch` for a follower (module docstring): `handle(k, stamp)` feeds the
-    follower's machine (which raises `InputError` for another source's epoch)."""
+    follower's machine (which raises `InputError` for another source's epoch). With
+    `ready_mark`, the follower says on `hrc/_epoch_ready` which epoch clocks its reader has
+    matched (`EpochReady`)."""
     node = inputs.node
     publishers = TopicPublishers(node, 'hrc/epoch')
+    ready = EpochReady(node) if ready_mark else None
+
+    def on_matched(*event) -> None:
+        publishers.refresh()
+        if ready is not None:
+            ready.update()
     naming = _Naming()
 
     def name_others(what: str) -> None:
@@ -174,6 +228,9 @@ def subscribe_epochs(inputs, follower: Callable[[], EpochFollower],
             publishers.new_line()
         publishers.taken()
 
-    inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, lambda msg: msg, on_epoch,
-                     with_stamp=True, on_matched=publishers.refresh)
+    reader = inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, lambda msg: msg, on_epoch,
+                              with_stamp=True, on_matched=on_matched)
+    if ready is not None:
+        ready.reader = reader
+        ready.update()
     return publishers

@@ -45,6 +45,7 @@ from .. import conversions as conv
 from .. import qos
 from ..node_support import (STATUS_PERIOD_SEC, Inputs, NodeParameters, ParamSpec, SampledInputs,
                             run)
+from ..sources import EpochReady
 from .belief_estimator_node import (ROBOT_FRAME, ROBOT_REFERENCE_POINT, SAFETY_RADII,
                                     check_motion_parameters)
 from .robot_bridge_node import KEYPOINT_JOINTS, ROBOT_DESCRIPTION, check_names, load_description
@@ -88,7 +89,9 @@ class CellViewNode(Node):
         self.inputs = Inputs(self)
         self.sampled = SampledInputs(self, self.inputs)
         subscribe = self.sampled.subscribe
-        subscribe(UInt32, 'hrc/epoch', SAMPLED, conv.epoch_from_msg)
+        # a listener that must not miss epoch 1 says when its reader has matched the clock
+        self.epoch_ready = EpochReady(self, reader_node=self.sampled.helper)
+        self.epoch_ready.reader = subscribe(UInt32, 'hrc/epoch', SAMPLED, conv.epoch_from_msg)
         subscribe(String, 'hrc/action', SAMPLED,
                   lambda msg: ACTIONS[conv.action_from_msg(msg)])
         subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg)

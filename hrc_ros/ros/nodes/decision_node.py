@@ -32,6 +32,12 @@ actions: a newer one stays silent (or stops a clock it started before it heard t
 with an ERROR status naming the owner, and so does a follower (`epoch_source: topic`), which
 is an action source too. Other publishers of `hrc/epoch` or `hrc/action` are named from the
 graph, by node once the graph knows it, by GID until then.
+
+Epoch 1 (timer mode) waits for the graph (`ClockStart`): a publisher of every input,
+`min_epoch_subscribers` readers of `hrc/epoch` counted by this node's writer, and
+`min_epoch_ready` listeners whose own reader has matched this writer, as they say on the hidden
+latched topic `hrc/_epoch_ready` (`core.protocol.EpochListeners`, `sources.EpochReady`): a
+reader that matches the writer after epoch 1 was sent never gets it (issue 37).
 """
 
 from __future__ import annotations
@@ -49,8 +55,8 @@ from ...core.config import Config
 from ...core.model import HRCModel
 from ...core.mdp.policy import Policy, PolicyError, load_policy
 from ...core.protocol import (CLAIM_PERIOD_S, DECISION_WAIT, ERROR, OK, STALE, WARN, Claim,
-                              ClockOwner, ClockStart, DecisionGate, EpochFollower, Report, Stamp,
-                              check_timeout_order)
+                              ClockOwner, ClockStart, DecisionGate, EpochFollower, EpochListeners,
+                              Report, Stamp, check_timeout_order)
 from ...core.decision.selection import POMDP_SELECTORS, SELECTORS, ActionSelector
 from ...core.swap import SAME, STAGED, check_swap, policy_path
 from .. import conversions as conv
@@ -58,7 +64,7 @@ from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
                             StartupError, config_path, control_clock, load_node_config, node_setup,
                             run)
-from ..sources import endpoints, subscribe_epochs
+from ..sources import READY_TOPIC, endpoint_node, endpoints, gid_text, subscribe_epochs
 
 EPOCH_SOURCES = ('timer', 'topic')
 INPUT_FRACTION = DECISION_WAIT.fraction   # input_timeout 0: this fraction of the epoch period
@@ -98,6 +104,11 @@ PARAMETERS = (
               'to discover before epoch 1 (e.g. 3 with a recorder besides the task manager and '
               'the belief estimator); the clock starts anyway after stale_timeout',
               read_only=True, range=(1, 1000)),
+    ParamSpec('min_epoch_ready', T.INTEGER, 2, 'timer mode: listeners of hrc/epoch (task '
+              'manager, belief estimator, view, hrc-case-study) whose reader must have matched '
+              'this clock, as they say on hrc/_epoch_ready, before epoch 1 (a reader that matches '
+              'later misses it; 0: none); the clock starts anyway after stale_timeout',
+              read_only=True, range=(0, 1000)),
 )
 
 
@@ -187,6 +198,8 @@ class DecisionNode(Node):
         self.estimator_config: tuple[str, str] | None = None   # (belief sha256, source)
         self.epoch_source = values['epoch_source']
         self.min_epoch_subscribers = values['min_epoch_subscribers']
+        self.min_epoch_ready = values['min_epoch_ready']
+        self.epoch_listeners = EpochListeners()
         self.clock = control_clock(self)   # epochs, waits and input ages
         self.running = Running(values['config'], values['policy'], config, model, policy,
                                selector, values['pomdp_policy'])
@@ -226,12 +239,16 @@ class DecisionNode(Node):
         self.deadline = DeadlineTimer(self, lambda now: self._act(self.gate.expire(now)))
         if self.epoch_source == 'timer':
             self.epoch_pub = self.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
+            self.inputs.subscribe(String, READY_TOPIC, qos.READY_MARKS,
+                                  conv.epoch_ready_from_msg, self.epoch_listeners.heard,
+                                  name='epoch_ready')
             self.epoch_timer = self.create_timer(values['epoch_period'], self._on_tick,
                                                  clock=self.clock)
         else:
             self.epoch_pub = None
             self.epoch_timer = None
-            subscribe_epochs(self.inputs, lambda: self.epochs, self._on_epoch)
+            subscribe_epochs(self.inputs, lambda: self.epochs, self._on_epoch,
+                             ready_mark=False)
         self.inputs.subscribe(String, 'hrc/estimator_config', qos.STATE_INPUT,
                               conv.config_identity_from_msg, self._on_estimator_config)
         self._show_in_use()
@@ -364,12 +381,26 @@ class DecisionNode(Node):
     # -- the epoch clock -------------------------------------------------------------------
     def _graph(self) -> dict:
         return {'epoch_subscribers': self.epoch_pub.get_subscription_count(),
+                'epoch_ready': ', '.join(self._ready_listeners()) or 'none',
                 **{f'{name}_publishers': sub.get_publisher_count()
                    for name, sub in zip(self.gate.slots, self.input_subscriptions)}}
 
     def _graph_ready(self) -> bool:
         return (self.epoch_pub.get_subscription_count() >= self.min_epoch_subscribers
-                and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions))
+                and all(sub.get_publisher_count() > 0 for sub in self.input_subscriptions)
+                and (self.min_epoch_ready == 0
+                     or len(self._ready_listeners()) >= self.min_epoch_ready))
+
+    def _ready_listeners(self) -> list[str]:
+        """The listeners ready for this clock (`EpochListeners.ready`): this node's epoch
+        writer is the one publisher of hrc/epoch of this node's name (none while two nodes
+        share the name: they do not start a clock anyway)."""
+        topic = self.resolve_topic_name('hrc/epoch')
+        me = self.get_fully_qualified_name()
+        mine = [gid_text(info.endpoint_gid) for info in self.get_publishers_info_by_topic(topic)
+                if endpoint_node(info) == me]
+        readers = {endpoint_node(info) for info in self.get_subscriptions_info_by_topic(topic)}
+        return self.epoch_listeners.ready(mine[0] if len(mine) == 1 else None, readers - {None})
 
     def _other_sources(self) -> list:
         """Other publishers of hrc/epoch or hrc/action (`Endpoint`s): a second decision node,
