@@ -325,7 +325,7 @@ def test_an_epoch_ready_mark_round_trips_and_a_bad_one_is_refused_quoted():
     for data in ('task_manager ' + 'ab' * 16,          # not a fully qualified node name
                  '/tm ' + 'AB' * 16, '/tm ' + 'ab' * 15, '/tm  ' + 'ab' * 16, '',
                  '/tm' + (' ' + 'ab' * 16) * (conv.READY_WRITERS_MAX + 1),
-                 '/' + 'x' * 300):
+                 '/' + 'x' * 300, '/x\n[ERROR] [decision]: forged\x1b[2J', '/a//b', '/9a'):
         with pytest.raises(MessageError, match='epoch ready mark'):
             conv.epoch_ready_from_msg(String(data=data))
     with pytest.raises(MessageError, match='too long'):

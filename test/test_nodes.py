@@ -52,7 +52,7 @@ from hrc_ros.ros.nodes.cell_sim_node import CellSimNode
 from hrc_ros.ros.nodes.cell_view_node import CellViewNode
 from hrc_ros.ros.nodes.decision_node import DecisionNode
 from hrc_ros.ros.nodes.task_manager_node import TaskManagerNode
-from hrc_ros.ros.sources import READY_TOPIC, endpoint_node, gid_text
+from hrc_ros.ros.sources import endpoint_node, gid_text, ready_topic
 
 TIMEOUT = 5.0
 EPOCH_PERIOD = 0.2
@@ -792,8 +792,8 @@ def test_decision_waits_for_its_listeners_readers_to_match_its_clock(graph, poli
         v['epoch_subscribers'] != '0' and all(v[f'{n}_publishers'] != '0' for n in inputs)
         for v in _waiting(graph)))
     clock = _clock_gid(graph)
-    marks = graph.probe.create_publisher(String, READY_TOPIC, qos.LATCHED)
-    ghost = graph.probe.create_publisher(String, READY_TOPIC, qos.LATCHED)
+    marks = graph.probe.create_publisher(String, ready_topic('/hrc/epoch'), qos.LATCHED)
+    ghost = graph.probe.create_publisher(String, ready_topic('/hrc/epoch'), qos.LATCHED)
     marks.publish(conv.epoch_ready_to_msg(ReadyMark('/probe', frozenset({'0' * 32}))))
     ghost.publish(conv.epoch_ready_to_msg(ReadyMark('/no_reader', frozenset({clock}))))
     assert graph.spin_until(lambda: set(dec.node.epoch_listeners.marks)
@@ -813,17 +813,20 @@ def test_decision_waits_for_its_listeners_readers_to_match_its_clock(graph, poli
     (CellViewNode, '/cell_view_inputs')], ids=['task_manager', 'belief_estimator', 'view'])
 def test_listeners_say_which_epoch_clocks_their_reader_has_matched(graph, node_class, reader):
     """The other half: each listener says on hrc/_epoch_ready which epoch writers its own
-    reader has matched (the view's reader is on its sampled-inputs node), and says it again
-    for a second writer (a restarted clock)."""
-    marks = graph.collect(String, READY_TOPIC, qos.READY_MARKS)
+    reader has matched (the view's reader is on its sampled-inputs node), nothing at its start,
+    and says it again for a second writer (a restarted clock)."""
+    marks = graph.collect(String, '/hrc/_epoch_ready', qos.READY_MARKS)
+    first = graph.probe.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)   # the clock first
+    one = _clock_gid(graph, '/probe')
     graph.start(node_class)
 
     def said(writers):
         return any(conv.epoch_ready_from_msg(m) == ReadyMark(reader, frozenset(writers))
                    for m in marks)
-    first = graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-    one = _clock_gid(graph, '/probe')
     assert graph.spin_until(lambda: said({one})), [m.data for m in marks]
+    # its first word is that it has matched nothing, even with the clock already on the graph:
+    # a restarted listener replaces the mark its previous run left at the clock at once
+    assert conv.epoch_ready_from_msg(marks[0]) == ReadyMark(reader, frozenset())
     graph.probe.destroy_publisher(first)
     graph.publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
     two = _clock_gid(graph, '/probe')

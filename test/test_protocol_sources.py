@@ -13,7 +13,7 @@ from hrc_ros.core.protocol import (CLAIM_LIFETIME_S, DECISION_WAIT, ERROR, ESTIM
                                    STALE, TASK_HOLD, Claim, ClockOwner, ClockStart, Endpoint,
                                    EpochFollower, EpochListeners, InputError, ReadyMark,
                                    RequestCounts, Stamp, StreamLock, TaskEpochs,
-                                   check_timeout_order)
+                                   check_timeout_order, ready_writers)
 from hrc_ros.core.tasks import TaskBook
 
 MS = 1_000_000
@@ -214,6 +214,20 @@ def test_a_listener_is_ready_for_a_clock_once_both_ends_have_matched():
         listeners.heard(ReadyMark('/a_fourth', frozenset({'a'})))   # bounded, not grown
     listeners.heard(ReadyMark('/belief_estimator', frozenset({'a'})))  # a known one still is
     assert listeners.ready('a', readers) == ['/belief_estimator']
+
+
+def test_a_listener_says_it_has_matched_the_writers_only_when_each_reader_counts_them_all():
+    """rclpy names no matched endpoint: a reader's count must equal the graph's for the mark to
+    name the graph's writers (the interleavings one process cannot produce on DDS)."""
+    assert ready_writers([0], set()) == frozenset()                    # nothing yet, said
+    assert ready_writers([0], {'w'}) is None                            # w not matched yet
+    assert ready_writers([1], {'w'}) == frozenset({'w'})
+    assert ready_writers([1], {'w', 'v'}) is None                       # which one? wait
+    assert ready_writers([2], {'w'}) is None      # one left the graph, still matched: wait
+    assert ready_writers([1, None], {'w'}) is None                      # the bag's not made yet
+    assert ready_writers([1, 0], {'w'}) is None                         # the bag's not matched
+    assert ready_writers([1, 1], {'w'}) == frozenset({'w'})
+    assert ready_writers([], {'w'}) is None                             # no reader at all
 
 
 def test_the_stream_lock_follows_one_writer_and_the_next_after_silence():

@@ -48,6 +48,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .model import ACTIONS, DN, OBSERVATION_LEVELS, TASK_VARIABLES, request_eligible
+from .quoting import quote
 from .decision.observation import window_level
 from .tasks import TaskBook, TaskRecord, robot_cycle_done
 
@@ -982,8 +983,8 @@ class EpochListeners:
 
     def heard(self, mark: ReadyMark) -> None:
         if mark.reader not in self.marks and len(self.marks) >= self.limit:
-            raise InputError(f'{mark.reader} said it is ready for hrc/epoch, but {self.limit} '
-                             'listeners already have: not counted')
+            raise InputError(f'{quote(mark.reader)} said it is ready for hrc/epoch, but '
+                             f'{self.limit} listeners already have: not counted')
         self.marks[mark.reader] = mark.writers
 
     def ready(self, writer: str | None, readers) -> list[str]:
@@ -994,6 +995,17 @@ class EpochListeners:
             return []
         readers = set(readers)
         return sorted(r for r, writers in self.marks.items() if writer in writers and r in readers)
+
+
+def ready_writers(matched: list[int | None], writers: set[str]) -> frozenset[str] | None:
+    """What a listener may say it has matched (`ReadyMark.writers`), from each of its readers'
+    matched-writer count (None: a reader not created yet) and the GIDs of the epoch writers its
+    graph shows; None: nothing new to say yet. rclpy names no matched endpoint, so the counts
+    must equal the graph's count for every reader: fewer, and some writer is not matched yet;
+    more, and one matched writer has left the graph while another may not be matched."""
+    if not matched or any(count is None or count != len(writers) for count in matched):
+        return None
+    return frozenset(writers)
 
 
 @dataclass(frozen=True)

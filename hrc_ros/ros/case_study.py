@@ -316,8 +316,9 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     types = recorded_topics(args)
-    # this observer is a listener that must not miss epoch 1: it says when its reader has
-    # matched the decision node's clock (hrc/_epoch_ready, min_epoch_ready)
+    # this observer is a listener that must not miss epoch 1: it says when its readers (this
+    # one and the bag's) have matched the decision node's clock (hrc/_epoch_ready,
+    # min_epoch_ready)
     ready = EpochReady(node)
     for topic in WATCHED + ROBOT_WATCHED * (args.robot == 'sim'):
         subscription = node.create_subscription(
@@ -326,10 +327,13 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
             event_callbacks=SubscriptionEventCallbacks(matched=ready.update)
             if topic == 'hrc/epoch' else None)
         if topic == 'hrc/epoch':
-            ready.reader = subscription
+            ready.readers.append(subscription)
     try:
         with BagWriter(bag_dir) as writer:
             recorder = Recorder(node, recorded_topics(args), writer)
+            # the bag's reader of hrc/epoch too (made once the clock is on the graph)
+            epoch_topic = node.resolve_topic_name('hrc/epoch')
+            ready.readers.append(lambda: recorder.subscriptions.get(epoch_topic))
 
             def spin_until(predicate, timeout, what):
                 deadline = time.monotonic() + timeout

@@ -53,6 +53,7 @@ Wire formats (INTERFACES.md, plus the decisions below):
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
 
@@ -580,6 +581,7 @@ def claim_from_msg(msg: String) -> Claim:
 
 # -- hrc/_epoch_ready --------------------------------------------------------------------------
 READY_WRITERS_MAX = 32      # epoch writers one mark may name (sources.PUBLISHERS_KEPT)
+NODE_NAME = re.compile(r'(/[A-Za-z_][A-Za-z0-9_]*)+')    # a fully qualified ROS node name
 GID_HEX = 32                # a GID as text: 16 bytes (sources.gid_text)
 
 
@@ -592,7 +594,7 @@ def epoch_ready_from_msg(msg: String) -> ReadyMark:
     if len(msg.data) > 256 + (GID_HEX + 1) * READY_WRITERS_MAX:
         raise MessageError(f'epoch ready mark of {len(msg.data)} characters: too long')
     reader, *writers = msg.data.split(' ')
-    if not reader.startswith('/') or len(reader) > 256 or len(writers) > READY_WRITERS_MAX \
+    if len(reader) > 256 or not NODE_NAME.fullmatch(reader) or len(writers) > READY_WRITERS_MAX \
             or any(len(w) != GID_HEX or w.strip('0123456789abcdef') for w in writers):
         raise MessageError('expected an epoch ready mark "<reader node> <writer gid> ...", '
                            f'got {quote(msg.data)}')

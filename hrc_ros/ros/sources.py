@@ -20,12 +20,15 @@ an epoch refused as another source's names the publishers other than the one fol
 /diagnostics (WARN `<node>: epoch source`), at once for a publisher not named before and at
 most once per `WARNING_THROTTLE_SEC` otherwise.
 
-`EpochReady` is a listener's ready mark on `hrc/_epoch_ready` (`core.protocol.EpochListeners`):
-the node that holds its `hrc/epoch` reader and the GIDs of the reliable epoch writers that
-reader has matched, said again whenever they change (a matched event, or the check every
-`READY_CHECK_SEC`), so the decision node starts its clock only once that reader has
-discovered the clock, not only once the clock has discovered the reader. `subscribe_epochs`
-gives every follower one; the view and `hrc-case-study`'s observer make their own.
+`EpochReady` is a listener's ready mark on `hrc/_epoch_ready` (`ready_topic`: beside the
+resolved epoch topic; `core.protocol.EpochListeners`): the node that holds its `hrc/epoch`
+readers and the GIDs of the reliable epoch writers they have matched, said again whenever they
+change (a matched event, or the check every `READY_CHECK_SEC`), so that the decision node
+starts its clock only once those readers have discovered the clock, not only once the clock
+has discovered them. `subscribe_epochs` gives every follower one; the view and
+`hrc-case-study`'s observer (its watcher and its bag recorder) make their own. A recorder that
+says nothing (`ros2 bag record`) is not covered: `min_epoch_subscribers` counts it, from the
+clock's side only.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from rclpy.qos import ReliabilityPolicy
 from std_msgs.msg import String, UInt32
 
 from ..core.protocol import (UNKNOWN_NODE_NAME, WARN, Endpoint, EpochFollower, InputError,
-                             ReadyMark, Report, Stamp)
+                             ReadyMark, Report, Stamp, ready_writers)
 from . import conversions as conv
 from . import qos
 
@@ -46,8 +49,8 @@ UNKNOWN_NODE_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'
 GID_BYTES = 16           # a Fast DDS GUID: 12 bytes of participant prefix, 4 of entity id
 PUBLISHERS_KEPT = 32     # publishers remembered per topic, present or gone
 NAMING_THROTTLE_SEC = 5.0
-READY_TOPIC = 'hrc/_epoch_ready'   # hidden: not recorded by a bag of every topic, not replayed
-READY_CHECK_SEC = 0.5
+READY_NAME = '_epoch_ready'   # hidden: not recorded by a bag of every topic, not replayed
+READY_CHECK_SEC = 0.25
 
 
 def gid_text(gid) -> str:
@@ -149,38 +152,47 @@ class _Naming:
         return True
 
 
+def ready_topic(epoch_topic: str) -> str:
+    """The ready marks' topic beside the resolved epoch topic (`/hrc/epoch` ->
+    `/hrc/_epoch_ready`), so that a remapped or namespaced clock has its own."""
+    return f'{epoch_topic.rsplit("/", 1)[0]}/{READY_NAME}'
+
+
 class EpochReady:
-    """A listener's ready mark for `hrc/epoch` (module docstring). `reader` is the
-    subscription, held by `reader_node` (the node by default; the view's sampled inputs live on
-    a helper node); `update` reads its matched count and the graph, and publishes when the mark
-    changes. A reader that counts fewer matched writers than the graph shows says nothing new
-    until they match: it cannot tell which are not matched yet."""
+    """A listener's ready mark for `hrc/epoch` (module docstring). `readers` are the node's
+    readers of the topic (subscriptions, or callables giving one or None while it does not
+    exist yet), held by `reader_node` (the node by default; the view's sampled inputs live on a
+    helper node); `update` reads their matched counts and the graph and publishes the mark when
+    it changes (`core.protocol.ready_writers`). A listener says it has matched nothing as soon
+    as it starts: a restarted one replaces the mark its previous run left at the clock."""
 
     def __init__(self, node, reader_node=None, check_sec: float = READY_CHECK_SEC):
         self.node = node
         self.reader_node = reader_node or node
         self.topic = node.resolve_topic_name('hrc/epoch')
-        self.reader = None
-        self.publisher = node.create_publisher(String, READY_TOPIC, qos.LATCHED)
+        self.readers: list = []
+        self.publisher = node.create_publisher(String, ready_topic(self.topic), qos.LATCHED)
         self.said: ReadyMark | None = None
+        self._say(frozenset())
         self.timer = node.create_timer(check_sec, self.update,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def update(self, *_event) -> None:
-        if self.reader is None:
-            return
-        # read each time, not skipped for an unchanged count: a writer replaced keeps it
-        matched = self.reader.get_publisher_count()
-        writers = {gid_text(info.endpoint_gid)
-                   for info in self.node.get_publishers_info_by_topic(self.topic)
-                   if info.qos_profile.reliability == ReliabilityPolicy.RELIABLE}
-        if matched < len(writers):
-            return                  # not all matched yet (or one leaving): the next check
-        mark = ReadyMark(self.reader_node.get_fully_qualified_name(),
-                         frozenset(sorted(writers)[:conv.READY_WRITERS_MAX]))
+    def _say(self, writers: frozenset[str]) -> None:
+        mark = ReadyMark(self.reader_node.get_fully_qualified_name(), writers)
         if mark != self.said:
             self.publisher.publish(conv.epoch_ready_to_msg(mark))
             self.said = mark
+
+    def update(self, *_event) -> None:
+        # read each time, not skipped for unchanged counts: a writer replaced keeps them
+        readers = [reader() if callable(reader) else reader for reader in self.readers]
+        writers = {gid_text(info.endpoint_gid)
+                   for info in self.node.get_publishers_info_by_topic(self.topic)
+                   if info.qos_profile.reliability == ReliabilityPolicy.RELIABLE}
+        said = ready_writers([None if r is None else r.get_publisher_count() for r in readers],
+                             set(sorted(writers)[:conv.READY_WRITERS_MAX]))
+        if said is not None:
+            self._say(said)
 
 
 def subscribe_epochs(inputs, follower: Callable[[], EpochFollower],
@@ -231,6 +243,6 @@ def subscribe_epochs(inputs, follower: Callable[[], EpochFollower],
     reader = inputs.subscribe(UInt32, 'hrc/epoch', qos.RELIABLE, lambda msg: msg, on_epoch,
                               with_stamp=True, on_matched=on_matched)
     if ready is not None:
-        ready.reader = reader
+        ready.readers.append(reader)
         ready.update()
     return publishers

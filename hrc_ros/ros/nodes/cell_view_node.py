@@ -91,7 +91,8 @@ class CellViewNode(Node):
         subscribe = self.sampled.subscribe
         # a listener that must not miss epoch 1 says when its reader has matched the clock
         self.epoch_ready = EpochReady(self, reader_node=self.sampled.helper)
-        self.epoch_ready.reader = subscribe(UInt32, 'hrc/epoch', SAMPLED, conv.epoch_from_msg)
+        self.epoch_ready.readers.append(subscribe(UInt32, 'hrc/epoch', SAMPLED,
+                                                  conv.epoch_from_msg))
         subscribe(String, 'hrc/action', SAMPLED,
                   lambda msg: ACTIONS[conv.action_from_msg(msg)])
         subscribe(Float64MultiArray, 'hrc/belief', SAMPLED, conv.belief_from_msg)

@@ -64,12 +64,12 @@ from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
                             StartupError, config_path, control_clock, load_node_config, node_setup,
                             run)
-from ..sources import READY_TOPIC, endpoint_node, endpoints, gid_text, subscribe_epochs
+from ..sources import endpoint_node, endpoints, gid_text, ready_topic, subscribe_epochs
 
 EPOCH_SOURCES = ('timer', 'topic')
 INPUT_FRACTION = DECISION_WAIT.fraction   # input_timeout 0: this fraction of the epoch period
 STALE_PERIODS = STALE.fraction            # stale_timeout 0: this many epoch periods
-GRAPH_WAIT_MIN = 3.0   # stale_timeout 0: seconds the clock may wait for DDS discovery at least
+GRAPH_WAIT_MIN = 10.0  # stale_timeout 0: seconds the clock may wait for DDS discovery at least
 CLAIM_TOPIC = 'hrc/_clock_claim'   # hidden: not recorded by a bag of every topic, not replayed
 T = Parameter.Type
 PARAMETERS = (
@@ -237,9 +237,16 @@ class DecisionNode(Node):
                                   self._input('distance_level')),
         ]
         self.deadline = DeadlineTimer(self, lambda now: self._act(self.gate.expire(now)))
+        self.epoch_gid: str | None = None      # this node's epoch writer, as the graph has it
         if self.epoch_source == 'timer':
+            epoch_topic = self.resolve_topic_name('hrc/epoch')
+            before = self._own_writers(epoch_topic)
             self.epoch_pub = self.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
-            self.inputs.subscribe(String, READY_TOPIC, qos.READY_MARKS,
+            # a local writer enters the graph at once: the one new GID of this node's name is
+            # it (not one of a stopped node of the same name the graph still shows)
+            new = self._own_writers(epoch_topic) - before
+            self.epoch_gid = new.pop() if len(new) == 1 else None
+            self.inputs.subscribe(String, ready_topic(epoch_topic), qos.READY_MARKS,
                                   conv.epoch_ready_from_msg, self.epoch_listeners.heard,
                                   name='epoch_ready')
             self.epoch_timer = self.create_timer(values['epoch_period'], self._on_tick,
@@ -391,16 +398,17 @@ class DecisionNode(Node):
                 and (self.min_epoch_ready == 0
                      or len(self._ready_listeners()) >= self.min_epoch_ready))
 
-    def _ready_listeners(self) -> list[str]:
-        """The listeners ready for this clock (`EpochListeners.ready`): this node's epoch
-        writer is the one publisher of hrc/epoch of this node's name (none while two nodes
-        share the name: they do not start a clock anyway)."""
-        topic = self.resolve_topic_name('hrc/epoch')
+    def _own_writers(self, topic: str) -> set[str]:
         me = self.get_fully_qualified_name()
-        mine = [gid_text(info.endpoint_gid) for info in self.get_publishers_info_by_topic(topic)
-                if endpoint_node(info) == me]
+        return {gid_text(info.endpoint_gid) for info in self.get_publishers_info_by_topic(topic)
+                if endpoint_node(info) == me}
+
+    def _ready_listeners(self) -> list[str]:
+        """The listeners ready for this clock (`EpochListeners.ready`): their marks name this
+        node's epoch writer and the graph shows their readers."""
+        topic = self.resolve_topic_name('hrc/epoch')
         readers = {endpoint_node(info) for info in self.get_subscriptions_info_by_topic(topic)}
-        return self.epoch_listeners.ready(mine[0] if len(mine) == 1 else None, readers - {None})
+        return self.epoch_listeners.ready(self.epoch_gid, readers - {None})
 
     def _other_sources(self) -> list:
         """Other publishers of hrc/epoch or hrc/action (`Endpoint`s): a second decision node,
