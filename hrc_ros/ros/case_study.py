@@ -332,8 +332,7 @@ def _watch(args, out: Path, bag_dir: Path, run: NodeProcesses) -> list:
         with BagWriter(bag_dir) as writer:
             recorder = Recorder(node, recorded_topics(args), writer)
             # the bag's reader of hrc/epoch too (made once the clock is on the graph)
-            epoch_topic = node.resolve_topic_name('hrc/epoch')
-            ready.readers.append(lambda: recorder.subscriptions.get(epoch_topic))
+            ready.readers.append(lambda: recorder.subscriptions.get(ready.topic))
 
             def spin_until(predicate, timeout, what):
                 deadline = time.monotonic() + timeout

@@ -64,7 +64,7 @@ from .. import qos
 from ..node_support import (LIVE_CONFIG, BackgroundLoad, DeadlineTimer, Inputs, ParamSpec,
                             StartupError, config_path, control_clock, load_node_config, node_setup,
                             run)
-from ..sources import endpoint_node, endpoints, gid_text, ready_topic, subscribe_epochs
+from ..sources import endpoint_node, endpoints, ready_topic, subscribe_epochs
 
 EPOCH_SOURCES = ('timer', 'topic')
 INPUT_FRACTION = DECISION_WAIT.fraction   # input_timeout 0: this fraction of the epoch period
@@ -239,14 +239,14 @@ class DecisionNode(Node):
         self.deadline = DeadlineTimer(self, lambda now: self._act(self.gate.expire(now)))
         self.epoch_gid: str | None = None      # this node's epoch writer, as the graph has it
         if self.epoch_source == 'timer':
-            epoch_topic = self.resolve_topic_name('hrc/epoch')
-            before = self._own_writers(epoch_topic)
+            before = self._own_writers()
             self.epoch_pub = self.create_publisher(UInt32, 'hrc/epoch', qos.RELIABLE)
             # a local writer enters the graph at once: the one new GID of this node's name is
             # it (not one of a stopped node of the same name the graph still shows)
-            new = self._own_writers(epoch_topic) - before
+            new = self._own_writers() - before
             self.epoch_gid = new.pop() if len(new) == 1 else None
-            self.inputs.subscribe(String, ready_topic(epoch_topic), qos.READY_MARKS,
+            self.inputs.subscribe(String, ready_topic(self.resolve_topic_name('hrc/epoch')),
+                                  qos.READY_MARKS,
                                   conv.epoch_ready_from_msg, self.epoch_listeners.heard,
                                   name='epoch_ready')
             self.epoch_timer = self.create_timer(values['epoch_period'], self._on_tick,
@@ -398,10 +398,10 @@ class DecisionNode(Node):
                 and (self.min_epoch_ready == 0
                      or len(self._ready_listeners()) >= self.min_epoch_ready))
 
-    def _own_writers(self, topic: str) -> set[str]:
+    def _own_writers(self) -> set[str]:
+        """The GIDs of the hrc/epoch publishers of this node's name the graph shows."""
         me = self.get_fully_qualified_name()
-        return {gid_text(info.endpoint_gid) for info in self.get_publishers_info_by_topic(topic)
-                if endpoint_node(info) == me}
+        return {e.gid for e in endpoints(self, 'hrc/epoch', skip_own=False) if e.node == me}
 
     def _ready_listeners(self) -> list[str]:
         """The listeners ready for this clock (`EpochListeners.ready`): their marks name this
