@@ -51,7 +51,10 @@ EPOCHS = ROBOT_EPOCHS
 # completion counted an epoch apart (seed 0's first task ends within tens of ms of the 9/10
 # boundary: the graph counts it in 10, the batch in 10 or 11), and a distance level read at a
 # boundary where the separation lies within EDGE m of a safety radius (CI with two test
-# workers at load 13-16: d 2 against 1 at epoch 7, measured 2026-12-06). Any other difference,
+# workers at load 13-16: d 2 against 1 at epoch 7, measured 2026-12-06). And a third, of the
+# loaded machine only: an epoch whose window holds no skeleton (CI on 2026-12-07: none in epoch
+# 22), where the estimator publishes no d_k and says so, and the decision node holds the last
+# d (`epochs_published`), which may be another circle than the batch's. Any other difference,
 # or any before MIN_AGREE epochs, fails. 20 epochs agreed on a quiet machine before the
 # monitor took the sensors' clock skew as data age.
 MIN_AGREE = 4            # the person's first work, the arm's first program, a handover asked
@@ -172,23 +175,53 @@ def test_ssm_is_never_violated_while_the_arm_moves(run):
 
 
 def per_epoch(out):
-    """Epoch k -> (d_k the estimator published, task state), placed by publication time (the
-    task state's eight variables: the arm's model has a queue, whose ninth value, the tasks
-    waiting, the batch reads from its own task book)."""
+    """`epochs_published` of the run's bag."""
     rows = messages(out, '/hrc/epoch', '/hrc/distance_level', '/hrc/task_state')
-    signals = [(t, msg.data) for topic, msg, t, _ in rows if topic == '/hrc/epoch']
-    placed = place_in_epochs(signals, [(topic, msg, t) for topic, msg, t, _ in rows
+    return epochs_published([(topic, msg.data, t) for topic, msg, t, _ in rows])
+
+
+def epochs_published(rows):
+    """rows (topic, data, publish time ns) -> ({epoch k: (d, task state)}, {k: its signal's
+    time}, the epochs whose window holds no d), placed by publication time (the task state's
+    eight variables: the arm's model has a queue, whose ninth value, the tasks waiting, the
+    batch reads from its own task book). d is d_k the estimator published in epoch k, or,
+    where it published none (no skeleton in the window: a tracker starved on a loaded machine,
+    CI at 2026-12-07), the last one before, which the decision node's latched input holds."""
+    signals = [(t, data) for topic, data, t in rows if topic == '/hrc/epoch']
+    placed = place_in_epochs(signals, [(topic, data, t) for topic, data, t in rows
                                        if topic != '/hrc/epoch'])
-    return {k: (placed[('/hrc/distance_level', k)][0][1].data,
-                tuple(placed[('/hrc/task_state', k)][0][1].data)[:8])
-            for _, k in signals}, dict((k, t) for t, k in signals)
+    published, held, unpublished = {}, None, set()
+    for _, k in sorted(signals):
+        ds = placed.get(('/hrc/distance_level', k), [])
+        if ds:
+            d, held = ds[0][1], ds[-1][1]
+        else:
+            d = held
+            unpublished.add(k)
+        published[k] = (d, tuple(placed[('/hrc/task_state', k)][0][1])[:8])
+    return published, dict((k, t) for t, k in signals), unpublished
+
+
+def test_an_epoch_without_a_distance_level_holds_the_last_published():
+    """A window without d_k (no skeleton) takes the d the decision node held: the last one."""
+    ep, d, x = '/hrc/epoch', '/hrc/distance_level', '/hrc/task_state'
+    state = list(range(9))
+    rows = [(ep, 1, 100), (d, 2, 110), (x, state, 120), (d, 1, 130),
+            (ep, 2, 200), (x, state, 220),
+            (ep, 3, 300), (d, 0, 310), (x, state, 320)]
+    published, signals, unpublished = epochs_published(rows)
+    assert published == {1: (2, tuple(state[:8])), 2: (1, tuple(state[:8])),
+                          3: (0, tuple(state[:8]))}
+    assert signals == {1: 100, 2: 200, 3: 300} and unpublished == {2}
+    with pytest.raises(KeyError):               # a task state is never missing
+        epochs_published(rows[:-1])
 
 
 def graph_epochs(out):
     """Per epoch of the graph's run: (action, answer, task state, (d, task state) published)."""
     with open(out / 'trajectory.csv') as f:
         rows = list(csv.DictReader(f))
-    published, _ = per_epoch(out)
+    published, _, _ = per_epoch(out)
     return [(row['action'], row['accepted'], tuple(int(row[n]) for n in TASK_VARIABLES),
              published[k]) for k, row in enumerate(rows, start=1)]
 
@@ -221,9 +254,18 @@ def test_the_graph_and_the_batch_cell_agree_epoch_by_epoch(run, batch):
     radii = GRAPH_SETTINGS.safety_radii
     edge = min(abs(batch.separations[k - 1] - r) for r in radii)
     shifted = g[0] == b[1] or b[0] == g[1]
-    borderline = g[0] == b[0] and graph[k - 1][3][0] != cell[k - 1][3][0] and edge <= EDGE
-    assert shifted or borderline, (k, graph[k - 1], cell[k - 1],
-                                   f'S {batch.separations[k - 1]:.3f} m')
+    other_d = g[0] == b[0] and graph[k - 1][3][0] != cell[k - 1][3][0]
+    borderline = other_d and edge <= EDGE
+    # or the graph's estimator published no d_k (no skeleton in the window, its warning on
+    # /diagnostics) and the decision node held an older d: the batch's tracker never starves
+    _, _, unpublished = per_epoch(out)
+    warned = {s.message for _, msg, _, _ in messages(out, '/diagnostics') for s in msg.status
+              if s.name.endswith('belief_estimator: epoch')}
+    starved = other_d and k in unpublished and \
+        f'epoch {k}: no skeleton since the last epoch; distance level not published' in warned
+    assert shifted or borderline or starved, (k, graph[k - 1], cell[k - 1],
+                                              f'S {batch.separations[k - 1]:.3f} m',
+                                              sorted(unpublished))
     assert batch.tasks_completed == 3
 
 
@@ -300,7 +342,7 @@ def test_the_arm_follows_the_batch_cells_path_within_the_tolerance(run, followed
     is at (k - 1) + (tau - t_k)."""
     out, proc = run
     assert proc.returncode == 0
-    _, signals = per_epoch(out)
+    _, signals, _ = per_epoch(out)
     start = {k: t * 1e-9 for k, t in signals.items()}
     ks = sorted(start)
     ros = []
