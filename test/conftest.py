@@ -108,6 +108,25 @@ def ros_domain_id() -> int:
     return ROS_DOMAIN_ID
 
 
+# s: how long a module's node processes may take to finish their stop after the module ended
+LEFTOVER_GRACE = 10.0
+
+
+@pytest.fixture(scope='module', autouse=True)
+def _no_node_left_behind(request):
+    """After every module: no process of hrc_ros's commands of this run's DDS domain may be
+    left (test/leftovers.py). One left is killed and fails the module's last test, naming it:
+    else it would write on the next module's graph (a second arm, a second clock)."""
+    yield
+    from leftovers import ancestors, left_behind
+    left = left_behind(ROS_DOMAIN_ID, LEFTOVER_GRACE, ancestors(os.getpid()))
+    if left:
+        pytest.fail(f'{request.module.__name__} left {len(left)} node process(es) running in '
+                    f'DDS domain {ROS_DOMAIN_ID} {LEFTOVER_GRACE:g} s after its last test '
+                    '(killed now): ' + '; '.join(f'pid {pid}: {command[:200]}'
+                                                 for pid, command in left), pytrace=False)
+
+
 @pytest.fixture(scope='session')
 def default_config():
     from hrc_ros.core.config import load_config
@@ -302,7 +321,7 @@ COMPUTE_FILES = frozenset({
     'test_selection.py', 'test_simulator.py', 'test_solver.py', 'test_stream.py',
     'test_stream_fit.py', 'test_stream_queue_fit.py', 'test_tasks.py', 'test_tie_rule.py',
     'test_tracking.py', 'test_cli.py', 'test_fit_rate.py', 'test_hostile_files.py',
-    'test_layout.py', 'test_liveness.py', 'test_fleet.py'})
+    'test_layout.py', 'test_liveness.py', 'test_fleet.py', 'test_leftovers.py'})
 # hrc-fleet's --apply against decision nodes (the plant run's module fixture starts them), and
 # the retry of a killed Ray worker beside them: the rest of test_fleet, the Ray engine's checks
 # without nodes, is a unit of its own, on a Ray of its own where it lands on another worker (a
