@@ -4,6 +4,8 @@ cells whose truth is computed in the world they came from.
     nice -n 10 .venv/bin/python bench/shadow_bench.py --results out/shadow.jsonl   # 250 cells
     nice -n 10 .venv/bin/python bench/shadow_bench.py --results F --shard 1/2      # half of them
     .venv/bin/python bench/shadow_bench.py --table F                               # the table
+    nice -n 10 .venv/bin/python bench/shadow_bench.py --drift --results F2 --episodes 200 \
+        --directions unchanged                          # the defaults' figure (run: on_drift)
 
 A cell runs the default configuration and its shipped policy (the paper selector) and has
 `--episodes` x 50 recorded epochs (the running policy with 20% exploration, hrc-evaluate's
@@ -40,6 +42,12 @@ of each cell's, so the columns are paired cell by cell) and over the cells done:
 - wrong promotions: changed cells promoted whose new policy is truly not cheaper;
 - the in-sample rule (the in-sample interval over the episodes alone, the old rule before the
   held-out check) on the same cells, for comparison.
+
+`--drift` measures the plant on its defaults (`run: on_drift`), where a cell is checked only
+when the drift test calls drift: each cell's drift test as the plant runs it (the last
+`drift.window` epochs of its recordings, the default `simulations`, alpha 0.05, the plant's
+seeds), and the check above only for the cells where it calls drift. Its table: drift called,
+and promotions (the check's, 10 refits) on the defaults, both per world over all the cells run.
 
 Resumable and shardable: a cell is its index (its world, amount and seeds follow from it);
 `--results` gets one JSON line per cell as it finishes, and a run skips the cells already
@@ -152,6 +160,80 @@ def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dic
             'in_sample': {m: inside[m] for m in stages.CHECK_METRICS},
             'rows': done['rows'], 'truth': truth, 'regret': regret,
             'seconds': time.perf_counter() - t0, 'refit_seconds': t_refits}
+
+
+def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dict:
+    """The plant's drift test of the cell's recordings on the defaults (`spec.SECTIONS`'
+    drift: the window, the simulations, alpha, the plant's seeds for the cell), and, when it
+    calls drift, the check (`run_cell`, on the same recordings) under 'check'."""
+    import numba
+
+    from hrc_ros.core.config import load_config
+    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
+    from hrc_ros.core.paths import default_config_path
+    from hrc_ros.core.plant import drift, stages
+    from hrc_ros.core.plant.pipeline import seeds
+    from hrc_ros.core.plant.spec import SECTIONS
+    numba.set_num_threads(1)
+    t0 = time.perf_counter()
+    settings = {k: default for k, (_, default) in SECTIONS['drift'].items()}
+    base = load_config(default_config_path())
+    policy = load_policy(default_policy_path(base), base)
+    generate = {'world': world_of(cell), 'episodes': episodes, 'epochs': 50, 'explore': 0.2,
+                'seed': 1000 + cell['seed']}
+    _, text = stages.generate(base, policy, generate, 'paper')
+    with tempfile.TemporaryDirectory(prefix='shadow_bench_') as folder:
+        path = Path(folder) / 'cell.csv'
+        path.write_text(text)
+        _, data = stages.read([str(path)], base.rho, base.sigma, '/', settings['window'])
+    observed, pi = stages.drift_observed(data, base, settings)
+    null: list = []
+    if not observed['impossible']:
+        for chunk in seeds(cell['seed'], 1, settings['simulations']):
+            null += stages.drift_null(data, base, pi, settings, chunk)[0]['statistics']
+    p = drift.p_value(observed['statistic'], null) if null else 0.0
+    result = {**cell, 'episodes': episodes, 'window': settings['window'],
+              'simulations': len(null), 'alpha': settings['alpha'],
+              'statistic': observed['statistic'], 'drift_p': p,
+              'drift': p < settings['alpha'], 'drift_seconds': time.perf_counter() - t0}
+    if result['drift']:
+        result['check'] = run_cell(cell, episodes, refits, truth_episodes)
+    result['seconds'] = time.perf_counter() - t0
+    return result
+
+
+def drift_table(results: list[dict], refits: int = 10) -> None:
+    """Drift called and promotions on the defaults (a promotion needs drift and the check)."""
+    print(f'{len(results)} cells, the drift test on the defaults (window '
+          f'{results[0]["window"] if results else "-"} epochs, '
+          f'{results[0]["simulations"] if results else "-"} simulations, alpha 0.05); a cell is '
+          f'promoted when the drift test calls drift and the check ({refits} refits) '
+          'promotes\n')
+    print('| world | amount | cells | drift called | promoted on the defaults | of those, truly '
+          'not cheaper |')
+    print('|---|---|---|---|---|---|')
+    for direction, amount in sorted({(r['direction'], r['amount']) for r in results}):
+        rs = [r for r in results if (r['direction'], r['amount']) == (direction, amount)]
+        promoted = [r for r in rs if r['drift']
+                    and decisions(r['check'], min(refits, len(r['check']['rows'])))[0]
+                    == 'promote']
+        worse = sum(r['check']['truth']['discounted_cost']['mean'] >= 0 for r in promoted)
+        print(f'| {direction} | {amount:g} | {len(rs)} | '
+              f'{wilson(sum(r["drift"] for r in rs), len(rs))} | '
+              f'{wilson(len(promoted), len(rs))} | {worse} |')
+    ps = np.array([r['drift_p'] for r in results])
+    seconds = sorted(r['drift_seconds'] for r in results)
+    print(f'\ndrift p quartiles {", ".join(f"{q:.3f}" for q in np.percentile(ps, [25, 50, 75]))}'
+          f'; seconds per drift test, one CPU: median {seconds[len(seconds) // 2]:.0f}, the '
+          f'slowest {seconds[-1]:.0f}')
+    for r in results:
+        if r['drift']:
+            c = decisions(r['check'], min(refits, len(r['check']['rows'])))
+            m = c[1]['discounted_cost']
+            print(f'  cell {r["index"]} ({r["direction"]} {r["amount"]:g}): p = '
+                  f'{r["drift_p"]:.3f}, check: {c[0]} (estimate {m["mean"]:+.2f} '
+                  f'[{m["low"]:+.2f}, {m["high"]:+.2f}], true '
+                  f'{r["check"]["truth"]["discounted_cost"]["mean"]:+.2f})')
 
 
 # -- the table --------------------------------------------------------------------------------
@@ -284,14 +366,27 @@ def main(argv=None) -> int:
     parser.add_argument('--truth-episodes', type=int, default=4000)
     parser.add_argument('--cpus', type=int, default=2)
     parser.add_argument('--table', action='store_true', help='only print the table')
+    parser.add_argument('--drift', action='store_true',
+                        help='the defaults (run: on_drift): the drift test of every cell, the '
+                        'check only where it calls drift')
+    parser.add_argument('--directions', default='unchanged,reluctant,mild',
+                        help='the worlds whose cells run (comma-separated)')
     args = parser.parse_args(argv)
     path = Path(args.results)
+    show = drift_table if args.drift else table
     if args.table:
-        table(load(path))
+        show(load(path))
         return 0
     k, n = (int(v) for v in args.shard.split('/'))
     done = {r['index'] for r in load(path)}
-    todo = [cell_of(i) for i in range(args.cells) if i % n == k - 1 and i not in done]
+    directions = {d.strip() for d in args.directions.split(',')}
+    unknown = directions - {'unchanged', *DIRECTIONS}
+    if unknown:
+        parser.error(f'--directions: no world {", ".join(sorted(unknown))} (unchanged, '
+                     f'{", ".join(DIRECTIONS)})')
+    todo = [cell_of(i) for i in range(args.cells) if i % n == k - 1 and i not in done
+            and cell_of(i)['direction'] in directions]
+    work = drift_cell if args.drift else run_cell
     print(f'command: nice -n 10 .venv/bin/python bench/shadow_bench.py '
           f'{" ".join(sys.argv[1:] if argv is None else argv)}')
     print(f'started {datetime.now(timezone.utc).isoformat(timespec="minutes")}, load average '
@@ -299,7 +394,7 @@ def main(argv=None) -> int:
           flush=True)
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.cpus) as pool:
-        pending = {pool.submit(run_cell, c, args.episodes, args.refits, args.truth_episodes): c
+        pending = {pool.submit(work, c, args.episodes, args.refits, args.truth_episodes): c
                    for c in todo}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -312,6 +407,12 @@ def main(argv=None) -> int:
                           flush=True)
                     continue
                 append(path, json.dumps(r) + '\n')
+                if args.drift:
+                    print(f'  {r["index"]:>3} {r["direction"]:<9} {r["amount"]:.2f}: drift p '
+                          f'{r["drift_p"]:.3f}' + (f', checked: {decisions(r["check"], 10)[0]}'
+                                                   if r['drift'] else '')
+                          + f'  {r["seconds"]:.0f} s', flush=True)
+                    continue
                 _, m = decisions(r, min(10, len(r['rows'])))
                 c = m['discounted_cost']
                 print(f'  {r["index"]:>3} {r["direction"]:<9} {r["amount"]:.2f}: in-sample '
@@ -320,7 +421,7 @@ def main(argv=None) -> int:
                       f'  {r["seconds"]:.0f} s', flush=True)
     print(f'\n{len(todo)} cells in {time.perf_counter() - t0:.0f} s on {args.cpus} CPUs, load '
           f'average at the end {os.getloadavg()[0]:.1f}\n')
-    table(load(path))
+    show(load(path))
     return 0
 
 
