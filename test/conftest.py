@@ -24,6 +24,7 @@ import random
 import shutil
 import signal
 import tempfile
+import uuid
 from pathlib import Path
 
 import pytest
@@ -71,6 +72,9 @@ ROS_DOMAIN_ID = worker_domain(
     int(_given) if _given else random.SystemRandom().randint(*ROS_DOMAIN_RANGE),
     os.environ.get('PYTEST_XDIST_WORKER', ''))
 os.environ['ROS_DOMAIN_ID'] = str(ROS_DOMAIN_ID)
+# this run's name, inherited by its xdist workers and every process they start: the check for
+# node processes left behind (`_no_node_left_behind`) takes only this run's
+os.environ.setdefault('HRC_TEST_RUN', uuid.uuid4().hex)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.pop('ROS_STATIC_PEERS', None)
 os.environ.pop('ROS_LOCALHOST_ONLY', None)   # deprecated; conflicts with the range above
@@ -119,7 +123,8 @@ def _no_node_left_behind(request):
     else it would write on the next module's graph (a second arm, a second clock)."""
     yield
     from leftovers import ancestors, left_behind
-    left = left_behind(ROS_DOMAIN_ID, LEFTOVER_GRACE, ancestors(os.getpid()))
+    left = left_behind(ROS_DOMAIN_ID, LEFTOVER_GRACE, ancestors(os.getpid()),
+                       os.environ['HRC_TEST_RUN'])
     if left:
         pytest.fail(f'{request.module.__name__} left {len(left)} node process(es) running in '
                     f'DDS domain {ROS_DOMAIN_ID} {LEFTOVER_GRACE:g} s after its last test '

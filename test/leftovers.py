@@ -22,6 +22,8 @@ def console_scripts() -> frozenset[str]:
 
 
 SCRIPTS = console_scripts()
+# the variable that names one test run (conftest.py sets it; every process started inherits it)
+RUN_VARIABLE = 'HRC_TEST_RUN'
 
 
 def is_ours(argv: list[str]) -> bool:
@@ -47,10 +49,13 @@ def ancestors(pid: int) -> set[int]:
     return found
 
 
-def graph_processes(domain: int, exclude: set[int]) -> list[tuple[int, str]]:
+def graph_processes(domain: int, exclude: set[int], run: str | None = None
+                    ) -> list[tuple[int, str]]:
     """(pid, command line) of every live process of hrc_ros's commands whose environment says
-    ROS_DOMAIN_ID=`domain`, but those in `exclude`."""
+    ROS_DOMAIN_ID=`domain` (and, given `run`, HRC_TEST_RUN=`run`: one test run's, never
+    another run's that happens to share the domain), but those in `exclude`."""
     wanted = f'ROS_DOMAIN_ID={domain}'.encode()
+    of_run = None if run is None else f'{RUN_VARIABLE}={run}'.encode()
     found = []
     for entry in Path('/proc').iterdir():
         if not entry.name.isdigit() or int(entry.name) in exclude:
@@ -60,19 +65,21 @@ def graph_processes(domain: int, exclude: set[int]) -> list[tuple[int, str]]:
             argv = (entry / 'cmdline').read_bytes().decode(errors='replace').split('\0')
         except OSError:           # gone, or not ours to read
             continue
-        if wanted in environ and is_ours([a for a in argv if a]):
+        if wanted in environ and (of_run is None or of_run in environ) \
+                and is_ours([a for a in argv if a]):
             found.append((int(entry.name), ' '.join(a for a in argv if a)))
     return found
 
 
-def left_behind(domain: int, grace: float, exclude: set[int]) -> list[tuple[int, str]]:
+def left_behind(domain: int, grace: float, exclude: set[int], run: str | None = None
+                ) -> list[tuple[int, str]]:
     """`graph_processes` still there after `grace` seconds (a stop in progress may finish);
     the ones found are killed (SIGKILL) and returned."""
     deadline = time.monotonic() + grace
-    left = graph_processes(domain, exclude)
+    left = graph_processes(domain, exclude, run)
     while left and time.monotonic() < deadline:
         time.sleep(0.1)
-        left = graph_processes(domain, exclude)
+        left = graph_processes(domain, exclude, run)
     for pid, _ in left:
         try:
             os.kill(pid, signal.SIGKILL)

@@ -6,13 +6,14 @@ import subprocess
 import sys
 import time
 
-from leftovers import ancestors, graph_processes, is_ours, left_behind
+from leftovers import RUN_VARIABLE, ancestors, graph_processes, is_ours, left_behind
 
 DOMAIN = 99917          # no real run's domain (1..232): only these tests' processes have it
 
 
-def sleeper(domain: int, *words: str, seconds: float = 60.0) -> subprocess.Popen:
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(domain)}
+def sleeper(domain: int, *words: str, seconds: float = 60.0, run: str = 'this_run'
+            ) -> subprocess.Popen:
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), RUN_VARIABLE: run}
     return subprocess.Popen([sys.executable, '-c', f'import time; time.sleep({seconds})',
                              *words], env=env)
 
@@ -30,22 +31,27 @@ def test_a_node_left_in_the_domain_is_found_killed_and_named():
     other_domain = sleeper(DOMAIN + 1, 'robot_bridge_node')
     not_ours = sleeper(DOMAIN, 'chromium')
     quick = sleeper(DOMAIN, 'decision_node', seconds=0.5)       # its stop ends within the grace
+    other_run = sleeper(DOMAIN, 'robot_bridge_node', run='another_run')   # the same domain
     try:
         deadline = time.monotonic() + 10.0
-        while len(graph_processes(DOMAIN, set())) < 2 and time.monotonic() < deadline:
+        while len(graph_processes(DOMAIN, set())) < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert {pid for pid, _ in graph_processes(DOMAIN, set())} == {left.pid, quick.pid}
-        assert graph_processes(DOMAIN, {left.pid, quick.pid}) == []
+        assert {pid for pid, _ in graph_processes(DOMAIN, set())} == \
+            {left.pid, quick.pid, other_run.pid}
+        assert {pid for pid, _ in graph_processes(DOMAIN, set(), 'this_run')} == \
+            {left.pid, quick.pid}
+        assert graph_processes(DOMAIN, {left.pid, quick.pid}, 'this_run') == []
         # a process whose stop ends within the grace is not left behind (nor killed)
-        assert left_behind(DOMAIN, 60.0, {left.pid}) == []
+        assert left_behind(DOMAIN, 60.0, {left.pid}, 'this_run') == []
         assert quick.wait(5.0) == 0
-        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()))
+        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()), 'this_run')
         assert [pid for pid, _ in found] == [left.pid]
         assert 'robot_bridge_node' in found[0][1]
         assert left.wait(5.0) == -9                 # killed
         assert other_domain.poll() is None and not_ours.poll() is None
+        assert other_run.poll() is None             # another run's, in the same domain: not ours
     finally:
-        for p in (left, other_domain, not_ours, quick):
+        for p in (left, other_domain, not_ours, quick, other_run):
             p.kill()
             p.wait()
 
