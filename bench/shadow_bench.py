@@ -45,8 +45,9 @@ of each cell's, so the columns are paired cell by cell) and over the cells done:
 
 `--drift` measures the plant on its defaults (`run: on_drift`), where a cell is checked only
 when the drift test calls drift: each cell's drift test as the plant runs it (the last
-`drift.window` epochs of its recordings, the default `simulations`, alpha 0.05, the plant's
-seeds), and the check above only for the cells where it calls drift. Its table: drift called,
+`drift.window` epochs of its recordings, the default `simulations`, alpha 0.05; the null
+simulations seeded from the cell's index, as the plant seeds them from a cell's `seed`), and
+the check above only for the cells where it calls drift. Its table: drift called,
 and promotions (the check's, 10 refits) on the defaults, both per world over all the cells run.
 
 Resumable and shardable: a cell is its index (its world, amount and seeds follow from it);
@@ -204,11 +205,14 @@ def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> d
 
 def drift_table(results: list[dict], refits: int = 10) -> None:
     """Drift called and promotions on the defaults (a promotion needs drift and the check)."""
-    print(f'{len(results)} cells, the drift test on the defaults (window '
-          f'{results[0]["window"] if results else "-"} epochs, '
-          f'{results[0]["simulations"] if results else "-"} simulations, alpha 0.05); a cell is '
-          f'promoted when the drift test calls drift and the check ({refits} refits) '
-          'promotes\n')
+    if not results:
+        print('no cells run yet')
+        return
+    first = results[0]
+    print(f'{len(results)} cells, the drift test on the defaults (window {first["window"]} '
+          f'epochs, {max(r["simulations"] for r in results)} simulations, alpha '
+          f'{first["alpha"]:g}); a cell is promoted when the drift test calls drift and the '
+          f'check ({refits} refits) promotes\n')
     print('| world | amount | cells | drift called | promoted on the defaults | of those, truly '
           'not cheaper |')
     print('|---|---|---|---|---|---|')
@@ -224,8 +228,8 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
     ps = np.array([r['drift_p'] for r in results])
     seconds = sorted(r['drift_seconds'] for r in results)
     print(f'\ndrift p quartiles {", ".join(f"{q:.3f}" for q in np.percentile(ps, [25, 50, 75]))}'
-          f'; seconds per drift test, one CPU: median {seconds[len(seconds) // 2]:.0f}, the '
-          f'slowest {seconds[-1]:.0f}')
+          f'; seconds per cell for its recordings and drift test, one CPU: median '
+          f'{seconds[len(seconds) // 2]:.0f}, the slowest {seconds[-1]:.0f}')
     for r in results:
         if r['drift']:
             c = decisions(r['check'], min(refits, len(r['check']['rows'])))
@@ -344,7 +348,8 @@ def append(path: Path, line: str) -> None:
         os.close(fd)
 
 
-def load(path: Path) -> list[dict]:
+def load(path: Path, drift: bool = False) -> list[dict]:
+    """The cells of a results file; a file of the other mode (--drift or not) is refused."""
     if not path.exists():
         return []
     out = []
@@ -353,6 +358,10 @@ def load(path: Path) -> list[dict]:
             out.append(json.loads(line))
         except json.JSONDecodeError:
             pass        # a line cut by a stopped run: that cell runs again
+    other = [r['index'] for r in out if ('drift_p' in r) != drift]
+    if other:
+        sys.exit(f'shadow_bench: {path} holds cells of the {"check" if drift else "--drift"} '
+                 f'mode ({len(other)}, cell {other[0]} first): give this mode a file of its own')
     return out
 
 
@@ -375,10 +384,10 @@ def main(argv=None) -> int:
     path = Path(args.results)
     show = drift_table if args.drift else table
     if args.table:
-        show(load(path))
+        show(load(path, args.drift))
         return 0
     k, n = (int(v) for v in args.shard.split('/'))
-    done = {r['index'] for r in load(path)}
+    done = {r['index'] for r in load(path, args.drift)}
     directions = {d.strip() for d in args.directions.split(',')}
     unknown = directions - {'unchanged', *DIRECTIONS}
     if unknown:
@@ -421,7 +430,7 @@ def main(argv=None) -> int:
                       f'  {r["seconds"]:.0f} s', flush=True)
     print(f'\n{len(todo)} cells in {time.perf_counter() - t0:.0f} s on {args.cpus} CPUs, load '
           f'average at the end {os.getloadavg()[0]:.1f}\n')
-    show(load(path))
+    show(load(path, args.drift))
     return 0
 
 

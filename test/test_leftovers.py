@@ -2,16 +2,21 @@
 (test/leftovers.py): found by its domain and command, given a grace to finish, then killed."""
 
 import os
+import random
 import subprocess
 import sys
 import time
+import uuid
 
 from leftovers import RUN_VARIABLE, ancestors, graph_processes, is_ours, left_behind
 
-DOMAIN = 99917          # no real run's domain (1..232): only these tests' processes have it
+# no real run's domain (1..232), and a run name of these tests' own: a second suite running
+# these tests on the same host never sees this one's processes
+DOMAIN = 100_000 + random.SystemRandom().randrange(10 ** 6)
+RUN = uuid.uuid4().hex
 
 
-def sleeper(domain: int, *words: str, seconds: float = 60.0, run: str = 'this_run'
+def sleeper(domain: int, *words: str, seconds: float = 60.0, run: str = RUN
             ) -> subprocess.Popen:
     env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), RUN_VARIABLE: run}
     return subprocess.Popen([sys.executable, '-c', f'import time; time.sleep({seconds})',
@@ -30,21 +35,21 @@ def test_a_node_left_in_the_domain_is_found_killed_and_named():
     left = sleeper(DOMAIN, 'robot_bridge_node')
     other_domain = sleeper(DOMAIN + 1, 'robot_bridge_node')
     not_ours = sleeper(DOMAIN, 'chromium')
-    quick = sleeper(DOMAIN, 'decision_node', seconds=0.5)       # its stop ends within the grace
-    other_run = sleeper(DOMAIN, 'robot_bridge_node', run='another_run')   # the same domain
+    quick = sleeper(DOMAIN, 'decision_node', seconds=1.0)       # its stop ends within the grace
+    other_run = sleeper(DOMAIN, 'robot_bridge_node', run=uuid.uuid4().hex)   # the same domain
     try:
         deadline = time.monotonic() + 10.0
         while len(graph_processes(DOMAIN, set())) < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert {pid for pid, _ in graph_processes(DOMAIN, set())} == \
             {left.pid, quick.pid, other_run.pid}
-        assert {pid for pid, _ in graph_processes(DOMAIN, set(), 'this_run')} == \
+        assert {pid for pid, _ in graph_processes(DOMAIN, set(), RUN)} == \
             {left.pid, quick.pid}
-        assert graph_processes(DOMAIN, {left.pid, quick.pid}, 'this_run') == []
+        assert graph_processes(DOMAIN, {left.pid, quick.pid}, RUN) == []
         # a process whose stop ends within the grace is not left behind (nor killed)
-        assert left_behind(DOMAIN, 60.0, {left.pid}, 'this_run') == []
+        assert left_behind(DOMAIN, 60.0, {left.pid}, RUN) == []
         assert quick.wait(5.0) == 0
-        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()), 'this_run')
+        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()), RUN)
         assert [pid for pid, _ in found] == [left.pid]
         assert 'robot_bridge_node' in found[0][1]
         assert left.wait(5.0) == -9                 # killed

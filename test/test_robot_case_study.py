@@ -58,6 +58,7 @@ EPOCHS = ROBOT_EPOCHS
 # or any before MIN_AGREE epochs, fails. 20 epochs agreed on a quiet machine before the
 # monitor took the sensors' clock skew as data age.
 MIN_AGREE = 4            # the person's first work, the arm's first program, a handover asked
+MAX_STARVED = 2          # epochs without a skeleton in the run, at most, for that third way
 EDGE = 0.05              # m: 50 ms of a 1 m/s arm or person
 # The arm's path (docs/ROBOT.md): the two runs visit the same configurations in the same order,
 # PATH_TOLERANCE rad on every joint at most, each run at most PATH_SHIFT s ahead of the other
@@ -142,14 +143,18 @@ def test_the_cell_with_the_arm_completes_the_case_study_and_stops_cleanly(run):
     # either-agent task to the person, and the arm runs the joint task's program alone)
     assert counts['/joint_trajectory_controller/joint_trajectory'] >= 1
     assert counts['/hrc/protective_stop'] >= 1 and counts['/hrc/robot_progress'] >= 3
-    rows = messages(out, '/hrc/epoch', '/joint_states', '/hrc/separation', '/hrc/speed_override')
+    rows = messages(out, '/hrc/epoch', '/joint_states', '/hrc/separation', '/hrc/speed_override',
+                    '/human/skeleton')
     signals = [(t, msg.data) for topic, msg, t, _ in rows if topic == '/hrc/epoch']
     placed = place_in_epochs(signals, [(topic, None, t) for topic, _, t, _ in rows
                                        if topic != '/hrc/epoch'])
-    for topic in ('/joint_states', '/hrc/separation', '/hrc/speed_override'):
+    for topic in ('/joint_states', '/hrc/separation', '/hrc/speed_override', '/human/skeleton'):
         # the last epoch ends with the run
         per_epoch = [len(placed.get((topic, k), [])) for k in range(1, EPOCHS)]
-        assert min(per_epoch) >= STREAM_PER_EPOCH, (topic, per_epoch)
+        # (the person's skeletons, 50 Hz from cell_sim, may miss an epoch or two on a loaded
+        # machine: the agreement test's MAX_STARVED)
+        if topic != '/human/skeleton':
+            assert min(per_epoch) >= STREAM_PER_EPOCH, (topic, per_epoch)
         assert np.median(per_epoch) >= STREAM_MEDIAN, (topic, per_epoch)
 
 
@@ -261,7 +266,9 @@ def test_the_graph_and_the_batch_cell_agree_epoch_by_epoch(run, batch):
     _, _, unpublished = per_epoch(out)
     warned = {s.message for _, msg, _, _ in messages(out, '/diagnostics') for s in msg.status
               if s.name.endswith('belief_estimator: epoch')}
-    starved = other_d and k in unpublished and \
+    # (a starved epoch or two of a loaded machine, not a stream that stopped: the skeletons'
+    # rate through the run is test_the_cell_with_the_arm_completes_...'s to check)
+    starved = other_d and k in unpublished and len(unpublished) <= MAX_STARVED and \
         f'epoch {k}: no skeleton since the last epoch; distance level not published' in warned
     assert shifted or borderline or starved, (k, graph[k - 1], cell[k - 1],
                                               f'S {batch.separations[k - 1]:.3f} m',
