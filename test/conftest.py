@@ -124,7 +124,7 @@ def _no_node_left_behind(request):
     yield
     from leftovers import ancestors, left_behind
     left = left_behind(ROS_DOMAIN_ID, LEFTOVER_GRACE, ancestors(os.getpid()),
-                       os.environ['HRC_TEST_RUN'])
+                       os.environ['HRC_TEST_RUN'], os.environ.get('PYTEST_XDIST_WORKER'))
     if left:
         pytest.fail(f'{request.module.__name__} left {len(left)} node process(es) running in '
                     f'DDS domain {ROS_DOMAIN_ID} {LEFTOVER_GRACE:g} s after its last test '

@@ -49,13 +49,16 @@ def ancestors(pid: int) -> set[int]:
     return found
 
 
-def graph_processes(domain: int, exclude: set[int], run: str | None = None
-                    ) -> list[tuple[int, str]]:
+def graph_processes(domain: int, exclude: set[int], run: str | None = None,
+                    worker: str | None = None) -> list[tuple[int, str]]:
     """(pid, command line) of every live process of hrc_ros's commands whose environment says
-    ROS_DOMAIN_ID=`domain` (and, given `run`, HRC_TEST_RUN=`run`: one test run's, never
-    another run's that happens to share the domain), but those in `exclude`."""
+    ROS_DOMAIN_ID=`domain`, and, given `run`, HRC_TEST_RUN=`run` (one test run's, never
+    another run's that happens to share the domain), and, given `worker`,
+    PYTEST_XDIST_WORKER=`worker` (this worker's, never another worker's that started a process
+    in a domain of its own choosing, test_bag's), but those in `exclude`."""
     wanted = f'ROS_DOMAIN_ID={domain}'.encode()
     of_run = None if run is None else f'{RUN_VARIABLE}={run}'.encode()
+    of_worker = None if worker is None else f'PYTEST_XDIST_WORKER={worker}'.encode()
     found = []
     for entry in Path('/proc').iterdir():
         if not entry.name.isdigit() or int(entry.name) in exclude:
@@ -66,20 +69,21 @@ def graph_processes(domain: int, exclude: set[int], run: str | None = None
         except OSError:           # gone, or not ours to read
             continue
         if wanted in environ and (of_run is None or of_run in environ) \
+                and (of_worker is None or of_worker in environ) \
                 and is_ours([a for a in argv if a]):
             found.append((int(entry.name), ' '.join(a for a in argv if a)))
     return found
 
 
-def left_behind(domain: int, grace: float, exclude: set[int], run: str | None = None
-                ) -> list[tuple[int, str]]:
+def left_behind(domain: int, grace: float, exclude: set[int], run: str | None = None,
+                worker: str | None = None) -> list[tuple[int, str]]:
     """`graph_processes` still there after `grace` seconds (a stop in progress may finish);
     the ones found are killed (SIGKILL) and returned."""
     deadline = time.monotonic() + grace
-    left = graph_processes(domain, exclude, run)
+    left = graph_processes(domain, exclude, run, worker)
     while left and time.monotonic() < deadline:
         time.sleep(0.1)
-        left = graph_processes(domain, exclude, run)
+        left = graph_processes(domain, exclude, run, worker)
     for pid, _ in left:
         try:
             os.kill(pid, signal.SIGKILL)

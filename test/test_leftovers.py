@@ -16,9 +16,10 @@ DOMAIN = 100_000 + random.SystemRandom().randrange(10 ** 6)
 RUN = uuid.uuid4().hex
 
 
-def sleeper(domain: int, *words: str, seconds: float = 60.0, run: str = RUN
-            ) -> subprocess.Popen:
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), RUN_VARIABLE: run}
+def sleeper(domain: int, *words: str, seconds: float = 60.0, run: str = RUN,
+            worker: str = 'gw0') -> subprocess.Popen:
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), RUN_VARIABLE: run,
+           'PYTEST_XDIST_WORKER': worker}
     return subprocess.Popen([sys.executable, '-c', f'import time; time.sleep({seconds})',
                              *words], env=env)
 
@@ -37,26 +38,30 @@ def test_a_node_left_in_the_domain_is_found_killed_and_named():
     not_ours = sleeper(DOMAIN, 'chromium')
     quick = sleeper(DOMAIN, 'decision_node', seconds=1.0)       # its stop ends within the grace
     other_run = sleeper(DOMAIN, 'robot_bridge_node', run=uuid.uuid4().hex)   # the same domain
+    other_worker = sleeper(DOMAIN, 'hrc-bag', worker='gw1')    # its own pick of this domain
     try:
         deadline = time.monotonic() + 10.0
-        while len(graph_processes(DOMAIN, set())) < 3 and time.monotonic() < deadline:
+        while len(graph_processes(DOMAIN, set())) < 4 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert {pid for pid, _ in graph_processes(DOMAIN, set())} == \
-            {left.pid, quick.pid, other_run.pid}
-        assert {pid for pid, _ in graph_processes(DOMAIN, set(), RUN)} == \
+            {left.pid, quick.pid, other_run.pid, other_worker.pid}
+        assert {pid for pid, _ in graph_processes(DOMAIN, set(), RUN, 'gw0')} == \
             {left.pid, quick.pid}
-        assert graph_processes(DOMAIN, {left.pid, quick.pid}, RUN) == []
+        assert {pid for pid, _ in graph_processes(DOMAIN, set(), RUN)} == \
+            {left.pid, quick.pid, other_worker.pid}
+        assert graph_processes(DOMAIN, {left.pid, quick.pid}, RUN, 'gw0') == []
         # a process whose stop ends within the grace is not left behind (nor killed)
-        assert left_behind(DOMAIN, 60.0, {left.pid}, RUN) == []
+        assert left_behind(DOMAIN, 60.0, {left.pid}, RUN, 'gw0') == []
         assert quick.wait(5.0) == 0
-        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()), RUN)
+        found = left_behind(DOMAIN, 0.5, ancestors(os.getpid()), RUN, 'gw0')
         assert [pid for pid, _ in found] == [left.pid]
         assert 'robot_bridge_node' in found[0][1]
         assert left.wait(5.0) == -9                 # killed
         assert other_domain.poll() is None and not_ours.poll() is None
         assert other_run.poll() is None             # another run's, in the same domain: not ours
+        assert other_worker.poll() is None          # another worker's: not ours
     finally:
-        for p in (left, other_domain, not_ours, quick, other_run):
+        for p in (left, other_domain, not_ours, quick, other_run, other_worker):
             p.kill()
             p.wait()
 
