@@ -110,30 +110,41 @@ def world_of(cell: dict) -> dict:
                       for k, v in target.items()}}
 
 
-def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dict:
-    """The plant's check of one generated cell and its truth (module docstring)."""
-    import numba
-
+def recorded(cell: dict, episodes: int, window: int = 100_000) -> tuple:
+    """The cell's running configuration and policy, its world's overrides and its generated
+    recordings read as the plant reads them (`stages.read`; `window`: the drift test's last
+    epochs, which only the drift test reads)."""
     from hrc_ros.core.config import load_config
     from hrc_ros.core.mdp.policy import default_policy_path, load_policy
-    from hrc_ros.core.mdp.solver import solve
-    from hrc_ros.core.model import HRCModel
     from hrc_ros.core.paths import default_config_path
     from hrc_ros.core.plant import stages
-    numba.set_num_threads(1)
-    t0 = time.perf_counter()
-    seed = cell['seed']
     base = load_config(default_config_path())
     policy = load_policy(default_policy_path(base), base)
-    running = {'config': base, 'policy': policy, 'pomdp': None}
     world = world_of(cell)
     generate = {'world': world, 'episodes': episodes, 'epochs': 50, 'explore': 0.2,
-                'seed': 1000 + seed}
+                'seed': 1000 + cell['seed']}
     _, text = stages.generate(base, policy, generate, 'paper')
     with tempfile.TemporaryDirectory(prefix='shadow_bench_') as folder:
         path = Path(folder) / 'cell.csv'
         path.write_text(text)
-        _, data = stages.read([str(path)], base.rho, base.sigma, '/', 100_000)
+        _, data = stages.read([str(path)], base.rho, base.sigma, '/', window)
+    return base, policy, world, data
+
+
+def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int,
+             recordings: tuple | None = None) -> dict:
+    """The plant's check of one generated cell and its truth (module docstring);
+    `recordings`: the cell's `recorded` when the caller has them already."""
+    import numba
+
+    from hrc_ros.core.mdp.solver import solve
+    from hrc_ros.core.model import HRCModel
+    from hrc_ros.core.plant import stages
+    numba.set_num_threads(1)
+    t0 = time.perf_counter()
+    seed = cell['seed']
+    base, policy, world, data = recordings or recorded(cell, episodes)
+    running = {'config': base, 'policy': policy, 'pomdp': None}
     _, point = stages.fit_point(data, base, FIT, seed)
     _, summary = stages.fit_summary(point, base, ['generated'], data, FIT, seed)
     _, mdp = stages.solve_mdp(summary, None)
@@ -166,27 +177,17 @@ def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dic
 def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dict:
     """The plant's drift test of the cell's recordings on the defaults (`spec.SECTIONS`'
     drift: the window, the simulations, alpha, the plant's seeds for the cell), and, when it
-    calls drift, the check (`run_cell`, on the same recordings) under 'check'."""
+    calls drift, the check (`run_cell`, on the same recordings, read once) under 'check'."""
     import numba
 
-    from hrc_ros.core.config import load_config
-    from hrc_ros.core.mdp.policy import default_policy_path, load_policy
-    from hrc_ros.core.paths import default_config_path
     from hrc_ros.core.plant import drift, stages
     from hrc_ros.core.plant.pipeline import seeds
     from hrc_ros.core.plant.spec import SECTIONS
     numba.set_num_threads(1)
     t0 = time.perf_counter()
     settings = {k: default for k, (_, default) in SECTIONS['drift'].items()}
-    base = load_config(default_config_path())
-    policy = load_policy(default_policy_path(base), base)
-    generate = {'world': world_of(cell), 'episodes': episodes, 'epochs': 50, 'explore': 0.2,
-                'seed': 1000 + cell['seed']}
-    _, text = stages.generate(base, policy, generate, 'paper')
-    with tempfile.TemporaryDirectory(prefix='shadow_bench_') as folder:
-        path = Path(folder) / 'cell.csv'
-        path.write_text(text)
-        _, data = stages.read([str(path)], base.rho, base.sigma, '/', settings['window'])
+    recordings = recorded(cell, episodes, settings['window'])
+    base, _, _, data = recordings
     observed, pi = stages.drift_observed(data, base, settings)
     null: list = []
     if not observed['impossible']:
@@ -198,7 +199,7 @@ def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> d
               'statistic': observed['statistic'], 'drift_p': p,
               'drift': p < settings['alpha'], 'drift_seconds': time.perf_counter() - t0}
     if result['drift']:
-        result['check'] = run_cell(cell, episodes, refits, truth_episodes)
+        result['check'] = run_cell(cell, episodes, refits, truth_episodes, recordings)
     result['seconds'] = time.perf_counter() - t0
     return result
 
