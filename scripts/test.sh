@@ -26,6 +26,13 @@ for arg in "$@"; do
     break
   fi
 done
+# The whole suite: compile numba's kernels into its cache first, each once and on both cores
+# (hrc_ros/tools/warm.py; about 50 s from a fresh clone, nothing when the cache is current),
+# not once in every test process that reaches them at the same time. A failure is reported and
+# the suite runs anyway: the kernels then compile as the tests reach them.
+if [ "${#targets[@]}" -gt 0 ]; then
+  python -m hrc_ros.tools.warm --if-needed || echo "[test] the warm-up failed (above); the kernels compile as the tests reach them" >&2
+fi
 workers=()
 if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-2}" != 0 ]; then
   workers=(-n "${HRC_TEST_WORKERS:-2}")

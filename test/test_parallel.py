@@ -269,3 +269,29 @@ def test_descendants_names_a_grandchild_and_not_the_parent():
         assert os.getpid() not in found and os.getppid() not in found
     finally:
         child.communicate('', timeout=60)
+
+
+def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path):
+    """`hrc_ros.tools.warm --if-needed` (scripts/test.sh, before the whole suite): a kernel
+    file counts as compiled when its __pycache__ holds a numba index of its own at least as
+    new as the source; an index of another file, or one older than the source, does not."""
+    import os
+    from hrc_ros.tools.warm import KERNEL_FILES, main, needed
+    for name in KERNEL_FILES:
+        (tmp_path / name).parent.mkdir(parents=True)
+        (tmp_path / name).write_text('# kernels\n')
+    assert needed(tmp_path) == list(KERNEL_FILES)
+    mdp = tmp_path / 'core/mdp/_kernels.py'
+    cache = mdp.parent / '__pycache__'
+    cache.mkdir()
+    (cache / 'other._sweep-91.py311.nbi').write_bytes(b'')     # another file's index
+    assert 'core/mdp/_kernels.py' in needed(tmp_path)
+    index = cache / '_kernels._sweep-91.py311.nbi'
+    index.write_bytes(b'')
+    assert needed(tmp_path) == [n for n in KERNEL_FILES if n != 'core/mdp/_kernels.py']
+    source_time = mdp.stat().st_mtime
+    os.utime(index, (source_time - 10, source_time - 10))         # the source changed since
+    assert 'core/mdp/_kernels.py' in needed(tmp_path)
+    with pytest.raises(SystemExit) as refused:
+        main(['--jobs', '0'])
+    assert refused.value.code == 2
