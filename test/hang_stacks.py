@@ -10,6 +10,18 @@ the marker's, else --timeout, PYTEST_TIMEOUT or pytest.ini's), and the controlle
 file to the report of a test whose worker crashed. The file is emptied as each test starts,
 so what it holds is of the test that hung. Without xdist it does nothing (pytest-timeout's
 own dump is in the log).
+
+A hang that holds the GIL. pytest-timeout's timer is a Python thread: it needs the GIL to dump
+and end the process. A worker stuck in native code that holds it never ends: on 2026-12-07 a
+worker of a fresh clone's suite spun for over 30 minutes in Fast DDS 2.14 (the main thread in
+`rcl_node_fini` -> `destroy_participant` -> `DomainParticipant::set_listener`, waiting on a
+listener while the participant's async flow-controller thread looped, the livelock of
+eProsima/Fast-DDS#6513 and ros2/rmw_fastrtps#666; it started when the garbage collector freed
+a node whose construction had failed in test_nodes), and CI would have sat until its own limit.
+faulthandler's watchdog is a C thread that needs no GIL, so on a worker it both writes the
+stacks and ends the process (``exit=True``), `MARGIN` s before pytest-timeout would; in a
+single process, where pytest-timeout's dump is the one the log shows, it ends the process
+`BACKSTOP` s after the timeout in case pytest-timeout could not.
 """
 
 from __future__ import annotations
@@ -17,11 +29,13 @@ from __future__ import annotations
 import faulthandler
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
 ENV = 'HRC_TEST_STACKS_DIR'
 MARGIN = 2.0            # s before pytest-timeout ends the worker
+BACKSTOP = 10.0         # s after the timeout: a single process that pytest-timeout could not end
 LIMIT = 30_000          # characters of stacks at most in a report
 
 
@@ -59,21 +73,31 @@ class HangStacks:
         self.folder = Path(folder) if folder and uses_workers else None
         if worker is not None and self.folder is not None:
             self.file = open(self.folder / f'{worker["workerid"]}.txt', 'w')
+        # the backstop's output: the real stderr (pytest_configure runs with pytest's capture
+        # suspended; during a test fd 2 is pytest's capture file, lost when the process ends)
+        self.stderr = None
+        if self.file is None and self.folder is None:
+            try:
+                self.stderr = os.fdopen(os.dup(sys.__stderr__.fileno()), 'w')
+            except (AttributeError, OSError, ValueError):
+                pass
 
     def pytest_runtest_protocol(self, item, nextitem):
+        seconds = timeout_of(item)
         if self.file is None:
+            if self.stderr is not None and seconds > 0:     # a single process: the backstop
+                faulthandler.dump_traceback_later(seconds + BACKSTOP, exit=True,
+                                                  file=self.stderr)
             return None
         self.file.seek(0)
         self.file.truncate()
-        seconds = timeout_of(item)
         if seconds > 0:
-            faulthandler.dump_traceback_later(max(seconds - MARGIN, seconds / 2),
+            faulthandler.dump_traceback_later(max(seconds - MARGIN, seconds / 2), exit=True,
                                               file=self.file)
         return None
 
     def pytest_runtest_logfinish(self, nodeid, location):
-        if self.file is not None:
-            faulthandler.cancel_dump_traceback_later()
+        faulthandler.cancel_dump_traceback_later()
 
     def pytest_runtest_logreport(self, report):
         node = getattr(report, 'node', None)
@@ -84,13 +108,14 @@ class HangStacks:
         text = path.read_text(errors='replace') if path.exists() else ''
         if text.strip():
             report.longrepr = (f'{report.longrepr}\n\nits threads {MARGIN:.0f} s before the '
-                               f'test\'s timeout (faulthandler, {path.name}):\n'
-                               f'{text[-LIMIT:]}')
+                               f'test\'s timeout, when faulthandler ended the worker '
+                               f'({path.name}):\n{text[-LIMIT:]}')
 
     def pytest_unconfigure(self, config):
-        if self.file is not None:
-            faulthandler.cancel_dump_traceback_later()
-            self.file.close()
+        faulthandler.cancel_dump_traceback_later()
+        for handle in (self.file, self.stderr):
+            if handle is not None:
+                handle.close()
         if self.created is not None:
             shutil.rmtree(self.created, ignore_errors=True)
             os.environ.pop(ENV, None)

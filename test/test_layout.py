@@ -6,6 +6,7 @@ import pkgutil
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -178,6 +179,47 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
     assert 'its threads 2 s before the test\'s timeout' in output, output[-3000:]
     assert 'test_hang.py", line 6 in test_hangs' in output, output[-3000:]
     assert output.count('Thread 0x') >= 2, output[-3000:]      # the helper's stack too
+
+
+# a hang in native code that holds the GIL, as Fast DDS's livelock in destroy_participant did
+# on a worker of the suite (test/hang_stacks.py): the regular expression's backtracking is
+# exponential in the a's, and re does not let go of the GIL while it matches
+GIL_HANGING_TEST = ('import re\n\n'
+                    'def test_hangs_holding_the_gil():\n'
+                    '    re.match(r"(a*)*b", "a" * 60)\n')
+HANG_STACKS_CONFTEST = (f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
+                        'from hang_stacks import HangStacks\n\n\n'
+                        'def pytest_configure(config):\n'
+                        '    config.pluginmanager.register(HangStacks(config), '
+                        '"hrc-hang-stacks")\n')
+
+
+@pytest.mark.parametrize('workers, says', [
+    (['-n', '1'], ("crashed while running 'test_hang.py::test_hangs_holding_the_gil'",
+                   'when faulthandler ended the worker', 'Timeout (0:00:02)!')),
+    ([], ('Timeout (0:00:14)!',)),
+], ids=['xdist', 'one-process'])
+def test_a_hang_that_holds_the_gil_still_ends_with_its_stacks(tmp_path, workers, says):
+    """pytest-timeout's timer thread cannot run while native code holds the GIL; faulthandler's
+    watchdog can: on a worker it writes the stacks and ends the worker before the timeout, in
+    one process it ends it BACKSTOP s after. Without it the run below never ends (the
+    subprocess' 120 s run out)."""
+    from hang_stacks import BACKSTOP, ENV
+    (tmp_path / 'test_hang.py').write_text(GIL_HANGING_TEST)
+    (tmp_path / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
+    env = {k: v for k, v in os.environ.items() if k != ENV}
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
+                             '-o', 'timeout=4', '-p', 'no:cacheprovider', *workers,
+                             '--rootdir', str(tmp_path), str(tmp_path / 'test_hang.py')],
+                            capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+    took = time.monotonic() - started
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert took < 60 + 4 + BACKSTOP, took
+    assert 'test_hang.py", line 4 in test_hangs_holding_the_gil' in output, output[-3000:]
+    for text in says:
+        assert text in output, output[-3000:]
 
 
 def test_importing_a_node_does_not_import_numba():
