@@ -27,11 +27,14 @@ for arg in "$@"; do
   fi
 done
 # The whole suite: compile numba's kernels into its cache first, each once and on both cores
-# (hrc_ros/tools/warm.py; about 50 s from a fresh clone, nothing when the cache is current),
-# not once in every test process that reaches them at the same time. A failure is reported and
-# the suite runs anyway: the kernels then compile as the tests reach them.
+# (hrc_ros/tools/warm.py; nothing when the cache is current), not once in every test process
+# that reaches them at the same time. Their serial builds, which the suite's processes run
+# (test/conftest.py sets HRC_KERNEL_THREADS=serial unless it is set; test_parallel and
+# test_tie_rule compile the parallel ones they compare). A failure is reported and the suite
+# runs anyway: the kernels then compile as the tests reach them.
 if [ "${#targets[@]}" -gt 0 ]; then
-  python -m hrc_ros.tools.warm --if-needed || echo "[test] the warm-up failed (above); the kernels compile as the tests reach them" >&2
+  HRC_KERNEL_THREADS="${HRC_KERNEL_THREADS:-serial}" python -m hrc_ros.tools.warm --if-needed ||
+    echo "[test] the warm-up failed (above); the kernels compile as the tests reach them" >&2
 fi
 workers=()
 if [ "${#targets[@]}" -gt 0 ] && [ "${HRC_TEST_WORKERS:-2}" != 0 ]; then

@@ -9,15 +9,18 @@ and processes that start together (the test suite's two workers, hrc-fleet's Ray
 nodes of one launch) each compile the same kernel at once: the MDP sweep alone takes about 17 s
 of CPU (its ``parallel=True`` build most of it). scripts/test.sh runs this (`--if-needed`)
 before the whole suite: from a fresh clone the suite took 738 s with the kernels compiled as
-the tests reached them and 601 s from a warm cache (bench/README.md, "The suite"); the warm-up
-itself takes about 50 s on two cores. Run it after an install before a plant run
+the tests reached them and 589 s after this warm-up (bench/README.md, "The test suite"); the
+warm-up itself takes about 35 s on two cores for the serial builds the suite runs, 59 s for
+both builds. Run it after an install before a plant run
 (hrc-fleet's Ray workers would each compile the MDP sweep otherwise).
 
 How. Small instances of the real work, each in its own process (`GROUPS`), `--jobs` at a time:
 the same call paths as the real runs, so the kernels are compiled for the types those runs
-pass (a signature the warm-up misses is compiled on first use, as without it). Auto mode
-(core/parallel.py) runs each parallel kernel's serial build first and its parallel one on a
-later call, so both builds are cached. Prints one line per group and the total on stderr;
+pass (a signature the warm-up misses is compiled on first use, as without it: arrays that are
+read-only or not contiguous, as some callers pass, are other signatures). It compiles the
+builds the mode in force runs (``HRC_KERNEL_THREADS``, core/parallel.py): in auto mode each
+parallel kernel's serial build on its first call and its parallel one on a later call, so
+both; with ``serial`` (the test suite's) the serial builds alone, a fraction of the time. Prints one line per group and the total on stderr;
 exit 1 if a group failed (its last line of error with it: its kernels then compile on first
 use, as without the warm-up; nothing else is lost).
 """
@@ -95,7 +98,8 @@ def warm_robot() -> None:
                  episodes=1, epochs=3, selectors=('ssm_only',))
 
 
-# the longest first (seconds on the 2-core machine with an empty cache: 38, 24, 16, 10, 8);
+# the longest first (seconds on the 2-core machine with an empty cache, both builds: 52, 28, 18,
+# 8, 7; the serial builds alone: 35, 10, 7, 6, 9);
 # no two groups compile the same kernel for the same types, so none waits on another's work
 GROUPS = {'pomdp': warm_pomdp, 'queue_mdp': warm_queue_mdp, 'mdp': warm_mdp,
           'fit': warm_fit, 'robot': warm_robot}
