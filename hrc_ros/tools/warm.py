@@ -20,9 +20,10 @@ pass (a signature the warm-up misses is compiled on first use, as without it: ar
 read-only or not contiguous, as some callers pass, are other signatures). It compiles the
 builds the mode in force runs (``HRC_KERNEL_THREADS``, core/parallel.py): in auto mode each
 parallel kernel's serial build on its first call and its parallel one on a later call, so
-both; with ``serial`` (the test suite's) the serial builds alone, a fraction of the time. Prints one line per group and the total on stderr;
-exit 1 if a group failed (its last line of error with it: its kernels then compile on first
-use, as without the warm-up; nothing else is lost).
+both; with ``serial`` (the test suite's) the serial builds alone, a fraction of the time.
+Prints one line per group and the total on stderr; exit 1 if a group failed (its last
+line of error with it: its kernels then compile on first use, as without the warm-up; nothing
+else is lost).
 """
 
 from __future__ import annotations
