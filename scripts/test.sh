@@ -27,13 +27,14 @@ for arg in "$@"; do
   fi
 done
 # The whole suite: compile numba's kernels into its cache first, each once and on both cores
-# (hrc_ros/tools/warm.py; nothing when the cache is current), not once in every test process
-# that reaches them at the same time. Their serial builds, which the suite's processes run
-# (test/conftest.py sets HRC_KERNEL_THREADS=serial unless it is set; test_parallel and
-# test_tie_rule compile the parallel ones they compare). A failure is reported and the suite
-# runs anyway: the kernels then compile as the tests reach them.
+# (hrc_ros/tools/warm.py; about 60 s from a fresh clone, nothing when the cache is current),
+# not once in every test process that reaches them at the same time. Both builds of each
+# parallel kernel: the serial builds alone (the suite's processes run HRC_KERNEL_THREADS=serial)
+# left the parallel ones to the tests that compare or time them, 677 s of pytest against 589 s
+# (bench/README.md). A failure is reported and the suite runs anyway: the kernels then compile
+# as the tests reach them.
 if [ "${#targets[@]}" -gt 0 ]; then
-  HRC_KERNEL_THREADS="${HRC_KERNEL_THREADS:-serial}" python -m hrc_ros.tools.warm --if-needed ||
+  HRC_KERNEL_THREADS=auto python -m hrc_ros.tools.warm --if-needed ||
     echo "[test] the warm-up failed (above); the kernels compile as the tests reach them" >&2
 fi
 workers=()

@@ -10,8 +10,8 @@ nodes of one launch) each compile the same kernel at once: the MDP sweep alone t
 of CPU (its ``parallel=True`` build most of it). scripts/test.sh runs this (`--if-needed`)
 before the whole suite: from a fresh clone the suite took 738 s with the kernels compiled as
 the tests reached them and 589 s after this warm-up (bench/README.md, "The test suite"); the
-warm-up itself takes about 35 s on two cores for the serial builds the suite runs, 59 s for
-both builds. Run it after an install before a plant run
+warm-up itself takes about 59 s on two cores (35 s for the serial builds alone, which left the
+parallel ones to the tests: 677 s). Run it after an install before a plant run
 (hrc-fleet's Ray workers would each compile the MDP sweep otherwise).
 
 How. Small instances of the real work, each in its own process (`GROUPS`), `--jobs` at a time:
