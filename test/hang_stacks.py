@@ -21,7 +21,10 @@ a node whose construction had failed in test_nodes), and CI would have sat until
 faulthandler's watchdog is a C thread that needs no GIL, so on a worker it both writes the
 stacks and ends the process (``exit=True``), `MARGIN` s before pytest-timeout would; in a
 single process, where pytest-timeout's dump is the one the log shows, it ends the process
-`BACKSTOP` s after the timeout in case pytest-timeout could not.
+`BACKSTOP` s after the timeout in case pytest-timeout could not (not under a debugger, as
+pytest-timeout). After a failed setup or call, when pytest and pytest-timeout stop their
+timers, the watchdog is armed again for the teardown. Arming it replaces pytest's own
+`faulthandler_timeout` dump, which this suite does not set.
 """
 
 from __future__ import annotations
@@ -31,7 +34,10 @@ import os
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
+
+import pytest
 
 ENV = 'HRC_TEST_STACKS_DIR'
 MARGIN = 2.0            # s before pytest-timeout ends the worker
@@ -42,6 +48,8 @@ LIMIT = 30_000          # characters of stacks at most in a report
 def timeout_of(item) -> float:
     """The test's timeout in seconds as pytest-timeout takes it: its timeout marker's, else
     --timeout, PYTEST_TIMEOUT or the ini's (pytest_timeout.get_env_settings); 0: none."""
+    if not item.config.pluginmanager.has_plugin('timeout'):      # -p no:timeout: no limit
+        return 0.0
     from pytest_timeout import get_env_settings
     marker = item.get_closest_marker('timeout')
     value = None
@@ -60,6 +68,7 @@ class HangStacks:
 
     def __init__(self, config):
         self.file = None
+        self.deadline = None        # monotonic time the watchdog ends this test's process
         self.created = None
         worker = getattr(config, 'workerinput', None)
         uses_workers = worker is not None or bool(getattr(config.option, 'numprocesses', 0))
@@ -82,21 +91,40 @@ class HangStacks:
             except (AttributeError, OSError, ValueError):
                 pass
 
+    def _arm(self, seconds: float) -> None:
+        """faulthandler's watchdog: the stacks and the end of the process in `seconds`."""
+        sink = self.file if self.file is not None else self.stderr
+        if sink is not None and seconds > 0:
+            faulthandler.dump_traceback_later(seconds, exit=True, file=sink)
+
     def pytest_runtest_protocol(self, item, nextitem):
         seconds = timeout_of(item)
-        if self.file is None:
-            if self.stderr is not None and seconds > 0:     # a single process: the backstop
-                faulthandler.dump_traceback_later(seconds + BACKSTOP, exit=True,
-                                                  file=self.stderr)
-            return None
-        self.file.seek(0)
-        self.file.truncate()
-        if seconds > 0:
-            faulthandler.dump_traceback_later(max(seconds - MARGIN, seconds / 2), exit=True,
-                                              file=self.file)
+        self.deadline = None
+        if self.file is not None:
+            self.file.seek(0)
+            self.file.truncate()
+            after = max(seconds - MARGIN, seconds / 2)
+        else:                               # a single process: the backstop
+            from pytest_timeout import is_debugging
+            if is_debugging():              # pytest-timeout holds off under a debugger too
+                return None
+            after = seconds + BACKSTOP
+        if seconds > 0 and (self.file is not None or self.stderr is not None):
+            self.deadline = time.monotonic() + after
+            self._arm(after)
         return None
 
+    @pytest.hookimpl(trylast=True)
+    def pytest_exception_interact(self, node, call, report):
+        """A setup or a call that failed: pytest's faulthandler plugin and pytest-timeout
+        both stop their timers then, so the watchdog is armed again for the time left, for
+        the teardown (a node's destruction hung there, holding the GIL)."""
+        if self.deadline is None or node.config.option.usepdb:
+            return
+        self._arm(max(self.deadline - time.monotonic(), 0.1))
+
     def pytest_runtest_logfinish(self, nodeid, location):
+        self.deadline = None
         faulthandler.cancel_dump_traceback_later()
 
     def pytest_runtest_logreport(self, report):

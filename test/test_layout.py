@@ -187,37 +187,58 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
 GIL_HANGING_TEST = ('import re\n\n'
                     'def test_hangs_holding_the_gil():\n'
                     '    re.match(r"(a*)*b", "a" * 60)\n')
+# ... in the teardown of a test that failed, when pytest and pytest-timeout stop their timers
+GIL_HANGING_TEARDOWN = ('import re\nimport pytest\n\n'
+                        '@pytest.fixture\n'
+                        'def node():\n'
+                        '    yield\n'
+                        '    re.match(r"(a*)*b", "a" * 60)\n\n'
+                        'def test_hangs_holding_the_gil(node):\n'
+                        '    assert False\n')
 HANG_STACKS_CONFTEST = (f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
                         'from hang_stacks import HangStacks\n\n\n'
                         'def pytest_configure(config):\n'
                         '    config.pluginmanager.register(HangStacks(config), '
                         '"hrc-hang-stacks")\n')
+CRASHED = "crashed while running 'test_hang.py::test_hangs_holding_the_gil'"
 
 
-@pytest.mark.parametrize('workers, says', [
-    (['-n', '1'], ("crashed while running 'test_hang.py::test_hangs_holding_the_gil'",
-                   'when faulthandler ended the worker', 'Timeout (0:00:02)!')),
-    ([], ('Timeout (0:00:14)!',)),
-], ids=['xdist', 'one-process'])
-def test_a_hang_that_holds_the_gil_still_ends_with_its_stacks(tmp_path, workers, says):
+@pytest.mark.parametrize('test, workers, says', [
+    (GIL_HANGING_TEST, ['-n', '1'],
+     (CRASHED, 'when faulthandler ended the worker', 'Timeout (0:00:02)!',
+      'test_hang.py", line 4 in test_hangs_holding_the_gil')),
+    (GIL_HANGING_TEST, [], ('Timeout (0:00:14)!',
+                            'test_hang.py", line 4 in test_hangs_holding_the_gil')),
+    (GIL_HANGING_TEARDOWN, ['-n', '1'], (CRASHED, 'test_hang.py", line 7 in node')),
+], ids=['xdist', 'one-process', 'xdist-teardown-after-a-failure'])
+def test_a_hang_that_holds_the_gil_still_ends_with_its_stacks(tmp_path, test, workers, says):
     """pytest-timeout's timer thread cannot run while native code holds the GIL; faulthandler's
-    watchdog can: on a worker it writes the stacks and ends the worker before the timeout, in
-    one process it ends it BACKSTOP s after. Without it the run below never ends (the
-    subprocess' 120 s run out)."""
+    watchdog can: on a worker it writes the stacks and ends the worker before the timeout (in
+    a teardown after a failure too), in one process it ends it BACKSTOP s after. Without it the
+    run below never ends (the 120 s limit runs out)."""
+    import signal
     from hang_stacks import BACKSTOP, ENV
-    (tmp_path / 'test_hang.py').write_text(GIL_HANGING_TEST)
+    (tmp_path / 'test_hang.py').write_text(test)
     (tmp_path / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
-    env = {k: v for k, v in os.environ.items() if k != ENV}
+    env = {k: v for k, v in os.environ.items()
+           if k not in (ENV, 'PYTEST_TIMEOUT', 'PYTEST_ADDOPTS')}
     started = time.monotonic()
-    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
-                             '-o', 'timeout=4', '-p', 'no:cacheprovider', *workers,
+    proc = subprocess.Popen([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
+                             '--timeout=4', '-p', 'no:cacheprovider', *workers,
                              '--rootdir', str(tmp_path), str(tmp_path / 'test_hang.py')],
-                            capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            cwd=tmp_path, env=env, start_new_session=True)
+    try:
+        output, _ = proc.communicate(timeout=120)
+    finally:                    # a worker that still spins holding the GIL goes with its group
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
     took = time.monotonic() - started
-    output = result.stdout + result.stderr
-    assert result.returncode != 0
+    assert proc.returncode != 0
     assert took < 60 + 4 + BACKSTOP, took
-    assert 'test_hang.py", line 4 in test_hangs_holding_the_gil' in output, output[-3000:]
     for text in says:
         assert text in output, output[-3000:]
 

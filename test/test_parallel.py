@@ -271,16 +271,25 @@ def test_descendants_names_a_grandchild_and_not_the_parent():
         child.communicate('', timeout=60)
 
 
-def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path):
-    """`hrc_ros.tools.warm --if-needed` (scripts/test.sh, before the whole suite): a kernel
-    file counts as compiled when its __pycache__ holds a numba index of its own at least as
-    new as the source; an index of another file, or one older than the source, does not."""
+def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path,
+                                                                         monkeypatch):
+    """`hrc_ros.tools.warm --if-needed` (scripts/test.sh, before the whole suite): due unless
+    the stamp of the last complete warm-up matches today's kernel sources, numba, Python and
+    mode, and each kernel file's __pycache__ holds a numba index of its own at least as new as
+    the source (an index of another file, or an older one, does not count; where
+    NUMBA_CACHE_DIR puts the cache elsewhere only the stamp counts)."""
     import os
-    from hrc_ros.tools.warm import KERNEL_FILES, main, needed
+    from hrc_ros.tools.warm import KERNEL_FILES, STAMP, main, needed, stamp_text
+    monkeypatch.delenv('NUMBA_CACHE_DIR', raising=False)
+    kernels = [n for n in KERNEL_FILES if n.endswith('_kernels.py')]
     for name in KERNEL_FILES:
-        (tmp_path / name).parent.mkdir(parents=True)
-        (tmp_path / name).write_text('# kernels\n')
-    assert needed(tmp_path) == list(KERNEL_FILES)
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(f'# {name}\n')
+    assert needed(tmp_path) == [STAMP, *kernels]
+    stamp = tmp_path / 'core' / '__pycache__' / STAMP
+    stamp.parent.mkdir()
+    stamp.write_text(stamp_text(tmp_path))
+    assert needed(tmp_path) == kernels
     mdp = tmp_path / 'core/mdp/_kernels.py'
     cache = mdp.parent / '__pycache__'
     cache.mkdir()
@@ -288,10 +297,14 @@ def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path
     assert 'core/mdp/_kernels.py' in needed(tmp_path)
     index = cache / '_kernels._sweep-91.py311.nbi'
     index.write_bytes(b'')
-    assert needed(tmp_path) == [n for n in KERNEL_FILES if n != 'core/mdp/_kernels.py']
+    assert needed(tmp_path) == [n for n in kernels if n != 'core/mdp/_kernels.py']
     source_time = mdp.stat().st_mtime
     os.utime(index, (source_time - 10, source_time - 10))         # the source changed since
     assert 'core/mdp/_kernels.py' in needed(tmp_path)
+    monkeypatch.setenv('NUMBA_CACHE_DIR', str(tmp_path / 'elsewhere'))
+    assert needed(tmp_path) == []
+    (tmp_path / 'core/parallel.py').write_text('# changed\n')      # the stamp is of other code
+    assert needed(tmp_path) == [STAMP]
     with pytest.raises(SystemExit) as refused:
         main(['--jobs', '0'])
     assert refused.value.code == 2

@@ -32,6 +32,7 @@ import argparse
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -49,15 +50,12 @@ def _small(name: str | None = None):
 
 
 def warm_mdp() -> None:
-    """The MDP sweep (value iteration) for a model without a queue."""
-    from ..core.mdp.solver import solve
-    solve(_small())
-
-
-def warm_queue_mdp() -> None:
-    """The MDP sweep for a model with a queue (other types), and the queue's continuations."""
+    """The MDP sweep for a model with a queue and for one without (other types), and the
+    queue's continuations: in one process, since both solves write the sweep's numba index,
+    which numba rewrites without a lock."""
     from ..core.mdp.solver import solve
     solve(_small('stream_queue'))
+    solve(_small())
 
 
 def warm_pomdp() -> None:
@@ -99,23 +97,44 @@ def warm_robot() -> None:
                  episodes=1, epochs=3, selectors=('ssm_only',))
 
 
-# the longest first (seconds on the 2-core machine with an empty cache, both builds: 52, 28, 18,
-# 8, 7; the serial builds alone: 35, 10, 7, 6, 9);
-# no two groups compile the same kernel for the same types, so none waits on another's work
-GROUPS = {'pomdp': warm_pomdp, 'queue_mdp': warm_queue_mdp, 'mdp': warm_mdp,
-          'fit': warm_fit, 'robot': warm_robot}
+# the longest first (seconds on the 2-core machine with an empty cache, both builds: 52, 46,
+# 8, 7); no two groups compile the same kernel, so none waits on another's work or rewrites
+# another's numba index
+GROUPS = {'pomdp': warm_pomdp, 'mdp': warm_mdp, 'fit': warm_fit, 'robot': warm_robot}
 KERNEL_FILES = ('core/mdp/_kernels.py', 'core/pomdp/_kernels.py', 'core/learning/_kernels.py',
-                'core/robot/_kernels.py')
+                'core/robot/_kernels.py', 'core/parallel.py')
+GROUP_TIMEOUT = 900.0      # s: a group still compiling then is stopped (its kernels compile later)
+STAMP = 'hrc_warm.stamp'   # in core/__pycache__: what the last complete warm-up compiled
+
+
+def stamp_text(root: Path = PACKAGE) -> str:
+    """What a warm-up compiles: the kernels' sources, numba's and Python's versions, the mode."""
+    import hashlib
+    import numba
+    from ..core.parallel import current_mode
+    digest = hashlib.sha256(f'{numba.__version__} {sys.version} {current_mode()}'.encode())
+    for name in KERNEL_FILES:
+        digest.update(name.encode() + b'\0' + (root / name).read_bytes() + b'\0')
+    return digest.hexdigest() + '\n'
 
 
 def needed(root: Path = PACKAGE) -> list[str]:
-    """The kernel files (relative to the package `root`) with no numba index in their
-    __pycache__ at least as new as the source: not compiled since they last changed."""
+    """What says a warm-up is due, empty if none: the stamp of the last complete warm-up
+    missing or of other sources, versions or mode; a kernel file (relative to the package
+    `root`) without a numba index in its __pycache__ at least as new as the source (the cache
+    deleted; not checked where NUMBA_CACHE_DIR puts the cache elsewhere)."""
     stale = []
+    stamp = root / 'core' / '__pycache__' / STAMP
+    if not stamp.is_file() or stamp.read_text() != stamp_text(root):
+        stale.append(STAMP)
+    if os.environ.get('NUMBA_CACHE_DIR'):
+        return stale
     for name in KERNEL_FILES:
         source = root / name
-        cache = source.parent / '__pycache__'
-        built = [p.stat().st_mtime for p in cache.glob(f'{source.stem}.*.nbi')]
+        if source.name != '_kernels.py':
+            continue
+        built = [p.stat().st_mtime
+                 for p in (source.parent / '__pycache__').glob(f'{source.stem}.*.nbi')]
         if not built or max(built) < source.stat().st_mtime:
             stale.append(name)
     return stale
@@ -124,13 +143,13 @@ def needed(root: Path = PACKAGE) -> list[str]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog='python -m hrc_ros.tools.warm',
-        description="compile the package's numba kernels into numba's cache (run once after "
-                    'an install; scripts/bootstrap.sh does)')
+        description="compile the package's numba kernels into numba's cache (scripts/test.sh "
+                    'runs it with --if-needed before the whole suite)')
     parser.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1),
                         help='groups compiled at once (default: 2, or 1 on one CPU)')
     parser.add_argument('--if-needed', action='store_true',
-                        help='only if a kernel file changed since its cache was written (or '
-                             'has none): what scripts/test.sh runs before the whole suite')
+                        help='only if the kernels changed since the last complete warm-up, or '
+                             'their cache is gone: what scripts/test.sh runs before the suite')
     parser.add_argument('--group', choices=sorted(GROUPS), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.jobs < 1:
@@ -142,30 +161,55 @@ def main(argv=None) -> int:
         return 0
     t0 = time.monotonic()
     waiting, running, failed = list(GROUPS), {}, []
-    while waiting or running:
-        while waiting and len(running) < args.jobs:
-            name = waiting.pop(0)
-            running[name] = (time.monotonic(), subprocess.Popen(
-                [sys.executable, '-m', 'hrc_ros.tools.warm', '--group', name],
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
-        for name, (started, proc) in list(running.items()):
-            if proc.poll() is None:
-                continue
-            del running[name]
-            err = proc.stderr.read()
-            if proc.returncode:
-                failed.append(name)
-                last = err.strip().splitlines()[-1:] or ['no output']
-                print(f'warm: {name}: failed (exit {proc.returncode}): {last[0][:300]}',
-                      file=sys.stderr)
-            else:
-                print(f'warm: {name} kernels ready in {time.monotonic() - started:.1f} s',
-                      file=sys.stderr)
-        time.sleep(0.05)
+    try:
+        while waiting or running:
+            while waiting and len(running) < args.jobs:
+                name = waiting.pop(0)
+                err = tempfile.TemporaryFile('w+')      # not a pipe: nothing can fill it
+                running[name] = (time.monotonic(), err, subprocess.Popen(
+                    [sys.executable, '-m', 'hrc_ros.tools.warm', '--group', name],
+                    stdout=subprocess.DEVNULL, stderr=err, text=True))
+            for name, (started, err, proc) in list(running.items()):
+                late = time.monotonic() - started > GROUP_TIMEOUT
+                if proc.poll() is None and not late:
+                    continue
+                if late and proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+                del running[name]
+                err.seek(0)
+                lines = err.read().strip().splitlines()
+                err.close()
+                if proc.returncode:
+                    failed.append(name)
+                    why = (f'stopped after {GROUP_TIMEOUT:.0f} s' if late
+                           else (lines[-1:] or ['no output'])[0][:300])
+                    print(f'warm: {name}: failed (exit {proc.returncode}): {why}',
+                          file=sys.stderr)
+                else:
+                    print(f'warm: {name} kernels ready in {time.monotonic() - started:.1f} s',
+                          file=sys.stderr)
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        print('warm: interrupted; the kernels not cached compile on first use', file=sys.stderr)
+        return 130
+    finally:                                # interrupted: no group is left compiling
+        for _, err, proc in running.values():
+            proc.kill()
+            proc.wait()
+            err.close()
     print(f'warm: numba kernels compiled and cached in {time.monotonic() - t0:.1f} s'
           + (f' ({len(failed)} group(s) failed: they compile on first use)' if failed else ''),
           file=sys.stderr)
-    return 1 if failed else 0
+    if failed:
+        return 1
+    try:
+        stamp = PACKAGE / 'core' / '__pycache__' / STAMP
+        stamp.parent.mkdir(exist_ok=True)
+        stamp.write_text(stamp_text())
+    except OSError as exc:                  # the next --if-needed warms again (a few seconds)
+        print(f'warm: could not write {stamp}: {exc.strerror}', file=sys.stderr)
+    return 0
 
 
 if __name__ == '__main__':
