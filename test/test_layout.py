@@ -135,6 +135,13 @@ HANGING_TEST = ('import threading, time\n\n'
                 '                     daemon=True).start()\n'
                 '    time.sleep(60)\n')
 
+# a test folder's conftest that registers test/hang_stacks.py, as the suite's does
+HANG_STACKS_CONFTEST = (f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
+                        'from hang_stacks import HangStacks\n\n\n'
+                        'def pytest_configure(config):\n'
+                        '    config.pluginmanager.register(HangStacks(config), '
+                        '"hrc-hang-stacks")\n')
+
 
 def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
     """pytest.ini's per-test timeout: a hang is a red test with its stacks, not a stuck CI."""
@@ -156,11 +163,7 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
     stacks before the timeout and the controller adds them to the crashed test's report."""
     hanging = tmp_path / 'test_hang.py'
     hanging.write_text(HANGING_TEST)
-    (tmp_path / 'conftest.py').write_text(
-        f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
-        'from hang_stacks import HangStacks\n\n\n'
-        'def pytest_configure(config):\n'
-        '    config.pluginmanager.register(HangStacks(config), "hrc-hang-stacks")\n')
+    (tmp_path / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
     # a run inside a run of the suite inherits the suite's folder (HRC_TEST_STACKS_DIR): its
     # gw0 wrote to the suite's gw0's file, which that worker emptied as its next test started
     # (CI, 2026-12-06); this run must use a folder of its own and leave the inherited alone
@@ -195,11 +198,6 @@ GIL_HANGING_TEARDOWN = ('import re\nimport pytest\n\n'
                         '    re.match(r"(a*)*b", "a" * 60)\n\n'
                         'def test_hangs_holding_the_gil(node):\n'
                         '    assert False\n')
-HANG_STACKS_CONFTEST = (f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})\n'
-                        'from hang_stacks import HangStacks\n\n\n'
-                        'def pytest_configure(config):\n'
-                        '    config.pluginmanager.register(HangStacks(config), '
-                        '"hrc-hang-stacks")\n')
 CRASHED = "crashed while running 'test_hang.py::test_hangs_holding_the_gil'"
 
 
