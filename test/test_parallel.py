@@ -279,14 +279,15 @@ def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path
     the source (an index of another file, or an older one, does not count; where
     NUMBA_CACHE_DIR puts the cache elsewhere only the stamp counts)."""
     import os
-    from hrc_ros.tools.warm import KERNEL_FILES, STAMP, main, needed, stamp_text
+    from hrc_ros.tools.warm import KERNEL_FILES, STAMP, main, needed, stamp_path, stamp_text
     monkeypatch.delenv('NUMBA_CACHE_DIR', raising=False)
     kernels = [n for n in KERNEL_FILES if n.endswith('_kernels.py')]
     for name in KERNEL_FILES:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(f'# {name}\n')
     assert needed(tmp_path) == [STAMP, *kernels]
-    stamp = tmp_path / 'core' / '__pycache__' / STAMP
+    stamp = stamp_path(tmp_path)
+    assert stamp == tmp_path / 'core' / '__pycache__' / STAMP
     stamp.parent.mkdir()
     stamp.write_text(stamp_text(tmp_path))
     assert needed(tmp_path) == kernels

@@ -107,6 +107,11 @@ GROUP_TIMEOUT = 900.0      # s: a group still compiling then is stopped (its ker
 STAMP = 'hrc_warm.stamp'   # in core/__pycache__: what the last complete warm-up compiled
 
 
+def stamp_path(root: Path = PACKAGE) -> Path:
+    """Where the stamp of the last complete warm-up of the package at `root` is."""
+    return root / 'core' / '__pycache__' / STAMP
+
+
 def stamp_text(root: Path = PACKAGE) -> str:
     """What a warm-up compiles: the kernels' sources, numba's and Python's versions, the mode."""
     import hashlib
@@ -124,7 +129,7 @@ def needed(root: Path = PACKAGE) -> list[str]:
     `root`) without a numba index in its __pycache__ at least as new as the source (the cache
     deleted; not checked where NUMBA_CACHE_DIR puts the cache elsewhere)."""
     stale = []
-    stamp = root / 'core' / '__pycache__' / STAMP
+    stamp = stamp_path(root)
     if not stamp.is_file() or stamp.read_text() != stamp_text(root):
         stale.append(STAMP)
     if os.environ.get('NUMBA_CACHE_DIR'):
@@ -203,8 +208,8 @@ def main(argv=None) -> int:
           file=sys.stderr)
     if failed:
         return 1
+    stamp = stamp_path()
     try:
-        stamp = PACKAGE / 'core' / '__pycache__' / STAMP
         stamp.parent.mkdir(exist_ok=True)
         stamp.write_text(stamp_text())
     except OSError as exc:                  # the next --if-needed warms again (a few seconds)
