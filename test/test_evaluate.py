@@ -32,6 +32,26 @@ def test_random_scenarios_are_seeded_and_valid(model):
     assert 0.2 < releases < 0.4
 
 
+
+def test_random_scenarios_kept_for_the_next_call_are_the_fresh_draw_and_a_list_of_its_own(
+        model, monkeypatch):
+    """The episodes kept for the next call with the same arguments (the plant's check draws
+    the same ones four times a refit) are the ones a fresh draw makes, whatever the caller did
+    to the list it got; a set beyond KEPT_EPISODE_EPOCHS is drawn anew and not kept."""
+    from hrc_ros.core.study import evaluation
+    evaluation._kept_scenarios.cache_clear()
+    prior = [0.3, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.05, 0.05]
+    first = random_scenarios(model, 20, 30, seed=8, prior=np.array(prior))
+    fresh = list(evaluation._scenarios(model.rho, model.sigma, 20, 30, 8, 0.2, tuple(prior)))
+    assert first == fresh
+    first.clear()                                      # the caller's list, not the kept one
+    again = random_scenarios(model, 20, 30, seed=8, prior=prior)
+    assert again == fresh and evaluation._kept_scenarios.cache_info().hits == 1
+    assert random_scenarios(model, 20, 30, seed=8) != fresh         # the prior is in the key
+    monkeypatch.setattr(evaluation, 'KEPT_EPISODE_EPOCHS', 20 * 30 - 1)
+    assert random_scenarios(model, 20, 30, seed=8, prior=prior) == fresh
+    assert evaluation._kept_scenarios.cache_info().hits == 1
+
 @pytest.mark.parametrize('mode', ['bayes', 'table', 'posterior'])
 @pytest.mark.parametrize('selector', SELECTORS + ('pomdp', 'fib'))
 def test_batch_reproduces_simulate_episode_by_episode(model, policy, mode, selector):

@@ -39,6 +39,7 @@ of one Bellman step on the solved value (`FactoredBellman.q`), computed once.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, fields
 
@@ -94,6 +95,24 @@ def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
                 or not abs(prior.sum() - 1.0) < 1e-9):
             raise ValueError(f'prior must be {N_HIDDEN} probabilities of h = 3*em + ea summing '
                              f'to 1, got {prior.tolist()!r}')
+        prior = tuple(float(p) for p in prior)
+    args = (int(model.rho), int(model.sigma), int(episodes), int(epochs), int(seed),
+            float(task_rate), prior)
+    if episodes * epochs <= KEPT_EPISODE_EPOCHS:
+        return list(_kept_scenarios(*args))
+    return list(_scenarios(*args))
+
+
+# `random_scenarios` keeps the last few sets of episodes up to this size (episodes x epochs;
+# a plant check's 1000 x 50 is 50,000): the plant's check evaluates the running and the new
+# policy on the same seeded episodes, each refit twice, and drew them anew every time (a
+# seventh of a check's time). Larger sets are drawn every time, not held in memory.
+KEPT_EPISODE_EPOCHS = 200_000
+
+
+def _scenarios(rho: int, sigma: int, episodes: int, epochs: int, seed: int, task_rate: float,
+               prior: tuple | None) -> tuple:
+    """`random_scenarios`' episodes (its arguments checked), as a tuple."""
     scenarios = []
     for e in range(episodes):
         rng = np.random.default_rng([seed, e, 1])
@@ -104,14 +123,18 @@ def random_scenarios(model: HRCModel, episodes: int, epochs: int, seed: int = 0,
         d = int(rng.integers(1, 4))
         release = rng.random(epochs) < task_rate
         release[0] = True
-        tp = rng.integers(1, model.rho + 1, size=epochs)
-        tc = rng.integers(1, model.sigma + 1, size=epochs)
+        tp = rng.integers(1, rho + 1, size=epochs)
+        tc = rng.integers(1, sigma + 1, size=epochs)
         tx = rng.integers(0, 4, size=epochs)
         schedule = tuple((k + 1, (int(tp[k]), int(tc[k]), int(tx[k])))
                          for k in np.flatnonzero(release))
         scenarios.append(Scenario((em, ea, 0, 0, 0, 0, 0, 0, 0, 0, d), schedule, epochs,
                                   name=f'episode {e}'))
-    return scenarios
+    return tuple(scenarios)
+
+
+# the same episodes for the same arguments (Scenario is frozen: sharing them is safe)
+_kept_scenarios = functools.lru_cache(maxsize=8)(_scenarios)
 
 
 def episodes_of(model: HRCModel, scenario: str, episodes: int, epochs: int, seed: int = 0,
