@@ -33,22 +33,64 @@ def small(request):
     return model, hrc_pomdp(model)
 
 
+def _frozen(*arrays):
+    """Arrays shared by several tests, read-only so that none can change them for the next."""
+    for array in arrays:
+        array.flags.writeable = False
+    return arrays
+
+
 @pytest.fixture(scope='module')
-def small_mdp(small):
+def queue_mdp():
+    """levels -> the MDP solve of `queue_model(levels)`, each solved once for the module (the
+    tests below compared with, or selected by, four solves of these two models)."""
+    solved = {}
+
+    def get(levels):
+        if levels not in solved:
+            result = solve(queue_model(levels))
+            _frozen(result.value, result.policy)
+            solved[levels] = result
+        return solved[levels]
+    return get
+
+
+@pytest.fixture(scope='module')
+def small_mdp(small, queue_mdp):
     """The MDP's value of `small`'s model at its solved states (x, h): one solve for the
     tests that compare with it."""
     model, hrc = small
-    return solve(model).value[flat_states(model, hrc)]
+    return queue_mdp(model.queue_length).value[flat_states(model, hrc)]
 
 
 @pytest.fixture(scope='module')
-def small_start(small):
+def small_reference(small):
+    """The reference (dense) forms' MDP Q, blind vectors and FIB Q of `small`'s POMDP, all to
+    the default tol 1e-9, once: the sparse kernels' test holds the first two against the
+    sparse forms, and `small_start` builds the initial bounds from the last two."""
+    from hrc_ros.core.pomdp.solver import blind_alphas
+    pomdp = small[1].pomdp
+    q_mdp = mdp_q(pomdp)
+    q_fib, _ = fib_q(pomdp, start=q_mdp)    # = fib_q(pomdp): it starts from mdp_q(pomdp)
+    return _frozen(q_mdp, blind_alphas(pomdp), q_fib)
+
+
+@pytest.fixture(scope='module')
+def small_start(small, small_reference):
     """The fixed points of `small`'s POMDP and the bounds a solve starts from there (blind
-    vectors and FIB), built once: the sweep tests deep-copy them before they move them."""
-    from hrc_ros.core.pomdp.solver import _fixed_points, initial_bounds
+    vectors and FIB), built once: the sweep tests deep-copy them before they move them.
+    `initial_bounds(hrc.pomdp, points_x, points)` to the bit, from `small_reference`'s
+    arrays (the same calls `initial_bounds` makes) instead of solving them a second time."""
+    from hrc_ros.core.pomdp.solver import AlphaSet, UpperBound, _fixed_points
     _, hrc = small
+    pomdp = hrc.pomdp
     points_x, points = _fixed_points(hrc)
-    return points_x, points, initial_bounds(hrc.pomdp, points_x, points)
+    _, blind, q_fib = small_reference
+    n_x, n_a = pomdp.n_x, pomdp.n_actions
+    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, pomdp.n_hidden),
+                            np.repeat(np.arange(n_a), n_x), n_x)
+    return points_x, points, (alphas, UpperBound.from_fib(q_fib, pomdp.available, points_x,
+                                                          points))
 
 
 @pytest.fixture(scope='module')
@@ -152,14 +194,14 @@ def test_the_queue_pomdp_mdp_value_is_the_mdp_solve(small, small_mdp):
     np.testing.assert_allclose(best, value, atol=1e-4)   # the solve stops at eta = 1e-6
 
 
-def test_the_queue_pomdp_bounds_bracket_and_sit_below_the_mdp():
+def test_the_queue_pomdp_bounds_bracket_and_sit_below_the_mdp(queue_mdp):
     model = queue_model(1)
     result = solve_pomdp(model, episodes=100, per_state=12, rounds=0, seed=3, tol=1e-2)
     assert result.report['observable_states'] == 2 * 4 * 27 == len(result.hrc.columns)
     for target in result.report['targets']:
         assert target['lower'] <= target['upper'] + 1e-9
         assert target['relative_gap'] < 0.05
-    mdp = solve(model).value[flat_states(model, result.hrc)]           # (x, h)
+    mdp = queue_mdp(1).value[flat_states(model, result.hrc)]           # (x, h)
     alphas = result.alphas
     levels = result.points_x // (len(result.hrc.columns) // model.n_levels)
     assert set(np.unique(levels)) == {0, 1}       # points were gathered with tasks waiting
@@ -216,9 +258,11 @@ def test_without_a_queue_the_pomdp_is_the_shipped_one_to_the_bit(name):
     assert np.array_equal(q_fib, shipped.policy.q_fib)
 
 
-def test_the_sparse_bounds_equal_the_reference_forms(small):
-    """The sparse kernels the queue's solve uses give the reference forms on the queue model."""
-    assert_sparse_bounds_are_the_reference_forms(small[1].pomdp)
+def test_the_sparse_bounds_equal_the_reference_forms(small, small_reference):
+    """The sparse kernels the queue's solve uses give the reference forms on the queue model
+    (the reference MDP Q and blind vectors: `small_reference`'s, computed once)."""
+    q_mdp, blind, _ = small_reference
+    assert_sparse_bounds_are_the_reference_forms(small[1].pomdp, q_mdp, blind)
 
 
 def test_the_sparse_bounds_equal_the_reference_forms_without_a_queue():
@@ -228,14 +272,17 @@ def test_the_sparse_bounds_equal_the_reference_forms_without_a_queue():
                                                'q': QUEUE['q']}}))).pomdp)
 
 
-def assert_sparse_bounds_are_the_reference_forms(pomdp):
+def assert_sparse_bounds_are_the_reference_forms(pomdp, q_mdp=None, blind=None):
     """The sparse kernels (`fast`) give the reference forms' MDP Q, FIB step and blind
-    vectors."""
+    vectors (`q_mdp`, `blind`: the reference forms `mdp_q(pomdp)` and `blind_alphas(pomdp)`
+    if the caller has them already, else computed here)."""
     from hrc_ros.core.pomdp.solver import blind_alphas, fib_step
-    np.testing.assert_allclose(mdp_q(pomdp, fast=True), mdp_q(pomdp), atol=1e-9)
+    q_mdp = mdp_q(pomdp) if q_mdp is None else q_mdp
+    np.testing.assert_allclose(mdp_q(pomdp, fast=True), q_mdp, atol=1e-9)
     q = pomdp.reward + np.random.default_rng(7).normal(size=pomdp.reward.shape)
     np.testing.assert_allclose(fib_step(pomdp, q, fast=True), fib_step(pomdp, q), atol=1e-12)
-    np.testing.assert_allclose(blind_alphas(pomdp, fast=True), blind_alphas(pomdp), atol=1e-9)
+    blind = blind_alphas(pomdp) if blind is None else blind
+    np.testing.assert_allclose(blind_alphas(pomdp, fast=True), blind, atol=1e-9)
 
 
 def test_shared_backups_equal_the_full_ones(small, small_start):
@@ -297,7 +344,7 @@ def test_perseus_sweeps_keep_the_bounds_and_lift_every_point(small, small_start,
 
 
 def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_length(
-        queue2_solved):
+        queue2_solved, queue_mdp):
     """The pomdp and fib selectors at l: ActionSelector (the decision node's) and the batch
     evaluation ask the alpha policy for the column l * n_task * 4 + y * 4 + d (the episodes'
     actions reproduce the selector's), and a POMDP policy of another state space is refused."""
@@ -306,7 +353,7 @@ def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_lengt
     from hrc_ros.core.study.evaluation import BatchSimulator, human_seed
     model, result = queue2_solved
     alphas = result.policy()
-    mdp = solve(model)
+    mdp = queue_mdp(2)                  # the MDP solve of queue_model(2), `model`'s config
     selector = ActionSelector(model, mdp, pomdp=alphas)
     hrc, n_cols, grid = result.hrc, model.n_task * 4, model.task_grid
     rng = np.random.default_rng(6)
@@ -342,4 +389,4 @@ def test_the_selector_and_the_evaluation_read_the_queue_pomdp_at_the_queue_lengt
     assert differs > 0                  # the check tells l = 2 from l = 0
     plain = queue_model(1)
     with pytest.raises(ValueError, match='observable columns'):
-        ActionSelector(plain, solve(plain), method='pomdp', pomdp=alphas)
+        ActionSelector(plain, queue_mdp(1), method='pomdp', pomdp=alphas)

@@ -22,6 +22,26 @@ def small_stream():
     return HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': STREAM}))
 
 
+def _frozen(result):
+    """A solve shared by several tests, read-only so that none can change it for the next."""
+    result.value.flags.writeable = False
+    result.policy.flags.writeable = False
+    return result
+
+
+@pytest.fixture(scope='module')
+def small_stream_mdp(small_stream):
+    """The MDP solve of `small_stream`, once for the tests that read it."""
+    return _frozen(solve(small_stream))
+
+
+@pytest.fixture(scope='module')
+def small_plain_mdp():
+    """The MDP solve of the small paper's model (no stream), once for the tests that read
+    it."""
+    return _frozen(solve(HRCModel(load_config(CONFIG, overrides=SMALL))))
+
+
 def test_no_stream_section_is_the_papers_model_with_its_hash():
     plain = load_config(CONFIG)
     assert not plain.has_stream and plain.stream is None
@@ -89,7 +109,11 @@ def test_arrivals_rule_by_rule(small_stream):
             assert got[(tp, tc, tx)] == pytest.approx(p_arrive * q)
         # an arrived task is uncommitted and the emotions move as without the stream
         assert np.all(nxt[nxt[:, 2] > 0, 5] == 0)
-    assert np.allclose(m.sparse_matrices()[CT].sum(axis=1), 1.0)
+    # every row of ct's explicit transition matrix sums to 1: the row sums of
+    # `sparse_matrices()[CT]` (its CSR of these same rows; test_solver checks the assembly),
+    # summed from the rows themselves without building the other seven actions' matrices
+    t = m.transition(np.arange(m.n_states), CT)
+    assert np.allclose(np.bincount(t.source, weights=t.probability, minlength=m.n_states), 1.0)
 
 
 @pytest.mark.parametrize('aware', [True, False])
@@ -115,11 +139,11 @@ def test_factored_q_equals_rule_by_rule_on_sampled_full_stream_states():
     np.testing.assert_allclose(q[:, sample].T, rule_q(model, value, sample), atol=1e-10)
 
 
-def test_the_stream_changes_what_an_idle_cell_expects(small_stream):
+def test_the_stream_changes_what_an_idle_cell_expects(small_stream, small_stream_mdp,
+                                                     small_plain_mdp):
     """Tasks that will come cost: every idle state is worth less with the stream, and the
     same state without one is the paper's value."""
-    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
-    v_plain, v_stream = solve(plain).value, solve(small_stream).value
+    v_plain, v_stream = small_plain_mdp.value, small_stream_mdp.value
     idle = small_stream.state(np.arange(small_stream.n_states))[:, 2] == 0
     assert np.all(v_stream[idle] < v_plain[idle] - 1e-6)
 
@@ -145,24 +169,24 @@ def test_shipped_stream_policies_load_and_solve_todays_model(name):
     assert shipped.meta['config']['stream'] == config.data['stream']
 
 
-def test_a_stream_policy_is_refused_against_the_papers_model_saying_which_is_which(tmp_path):
+def test_a_stream_policy_is_refused_against_the_papers_model_saying_which_is_which(
+        tmp_path, small_stream_mdp, small_plain_mdp):
     stream = load_config(CONFIG, overrides={**SMALL, 'stream': STREAM})
     plain = load_config(CONFIG, overrides=SMALL)
-    path = save_policy(tmp_path / 'stream.npz', solve(HRCModel(stream)), stream)
+    path = save_policy(tmp_path / 'stream.npz', small_stream_mdp, stream)   # solved for stream
     with pytest.raises(PolicyError, match=r'plans a task stream .* describes no task stream'):
         load_policy(path, plain)
-    path = save_policy(tmp_path / 'plain.npz', solve(HRCModel(plain)), plain)
+    path = save_policy(tmp_path / 'plain.npz', small_plain_mdp, plain)      # solved for plain
     with pytest.raises(PolicyError, match=r'plans no task stream .* describes a task stream.*'
                        r'hrc-solve --config'):
         load_policy(path, stream)
 
 
-def test_the_stream_policy_waits_for_nothing_when_no_task_can_come(small_stream):
+def test_the_stream_policy_waits_for_nothing_when_no_task_can_come(small_plain_mdp):
     """arrival 0: the stream model is the paper's model (same values, same policy)."""
     zero = HRCModel(load_config(CONFIG, overrides={**SMALL, 'stream': {
         'arrival_idle': 0.0, 'arrival_complete': 0.0, 'q': None}}))
-    plain = HRCModel(load_config(CONFIG, overrides=SMALL))
-    a, b = solve(zero), solve(plain)
+    a, b = solve(zero), small_plain_mdp
     np.testing.assert_allclose(a.value, b.value, atol=1e-9)
     np.testing.assert_array_equal(a.policy, b.policy)
     assert {DN, RH2} <= set(np.unique(a.policy))
@@ -180,19 +204,22 @@ def test_pomdp_successors_are_the_rule_by_rule_stream_transition(small_stream, s
     summed over h', at every solved state."""
     hrc, pomdp, m = small_stream_hrc, small_stream_hrc.pomdp, small_stream
     n_columns = m.n_task * 4
-    arrived = 0
-    for i in range(pomdp.n_x):
-        for h in (0, 4, 8):
-            for a in range(8):
-                t = m.transition([h * n_columns + hrc.columns[i]], a)
-                expected = np.bincount(t.target % n_columns, weights=t.probability,
-                                       minlength=n_columns)
-                got = np.zeros(n_columns)
-                for k in np.flatnonzero(pomdp.succ_x[i, a] >= 0):
-                    got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
-                np.testing.assert_allclose(got, expected, atol=1e-12)
-                arrived += int(np.count_nonzero(pomdp.succ_x[i, a] >= 0) > 6)
-    assert arrived > 0      # some successors are arrivals: more than the 2 x 3 of no stream
+    rows = np.arange(pomdp.n_x)
+    for h in (0, 4, 8):
+        for a in range(8):
+            # every solved state at once: row i of `expected` / `got` is state i's P(x' | .)
+            t = m.transition(h * n_columns + hrc.columns, a)
+            expected = np.zeros((pomdp.n_x, n_columns))
+            np.add.at(expected, (t.source, t.target % n_columns), t.probability)
+            got = np.zeros((pomdp.n_x, n_columns))
+            for k in range(pomdp.succ_x.shape[2]):
+                has = pomdp.succ_x[:, a, k] >= 0
+                np.add.at(got, (rows[has], hrc.columns[pomdp.succ_x[has, a, k]]),
+                          pomdp.succ_l[has, a, k, h])
+            np.testing.assert_allclose(got, expected, atol=1e-12)
+    # some successors are arrivals: more than the 2 x 3 of no stream
+    arrived = np.count_nonzero(np.count_nonzero(pomdp.succ_x >= 0, axis=2) > 6)
+    assert arrived > 0
 
 
 def test_pomdp_mdp_over_the_solved_states_is_the_stream_factored_q(small_stream,
@@ -207,7 +234,7 @@ def test_pomdp_mdp_over_the_solved_states_is_the_stream_factored_q(small_stream,
                                np.where(available, q.transpose(2, 0, 1), 0.0), atol=1e-10)
 
 
-def test_the_stream_pomdp_bounds_bracket_and_sit_below_the_mdp(small_stream):
+def test_the_stream_pomdp_bounds_bracket_and_sit_below_the_mdp(small_stream, small_stream_mdp):
     from hrc_ros.core.pomdp.solver import solve_pomdp
     result = solve_pomdp(small_stream, episodes=100, per_state=15, rounds=0, seed=2,
                          tol=1e-2)
@@ -215,7 +242,7 @@ def test_the_stream_pomdp_bounds_bracket_and_sit_below_the_mdp(small_stream):
         assert target['lower'] <= target['upper'] + 1e-9
         assert target['relative_gap'] < 0.05
     # the POMDP's lower bound is no better than the fully informed MDP at any point
-    mdp = solve(small_stream).value.reshape(9, -1)[:, result.hrc.columns].T   # (x, h)
+    mdp = small_stream_mdp.value.reshape(9, -1)[:, result.hrc.columns].T   # (x, h)
     alphas = result.alphas
     for x, b in zip(result.points_x[:400], result.points[:400]):
         lower = (alphas.alpha[alphas.offsets[x]:alphas.offsets[x + 1]] @ b).max()
