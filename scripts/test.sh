@@ -16,6 +16,9 @@ source scripts/bootstrap.sh
 # do not see each other's nodes; an explicit ROS_DOMAIN_ID wins (the first worker's; worker k
 # takes (ROS_DOMAIN_ID - 1 + 37 k) mod 100 + 1, so a run of N workers uses N domains of 1..100).
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 1 ))}"
+# numpy's BLAS on one thread in every process of the run, the warm-up's too (test/conftest.py:
+# OpenBLAS's spinning threads took the core the other worker needed, 5x slower at load)
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE" >&2
 
 # Test paths given (test/x.py, test/x.py::name): run those; otherwise the whole test/ folder.

@@ -52,7 +52,14 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 #   seconds each, hundreds of times a run; the suite writes its bytecode under the checkout's
 #   .pytest_cache (PYTHONPYCACHEPREFIX: never the source tree, never a shared folder another
 #   user could fill, gone with the checkout) and reads it from there.
+# - numpy's BLAS (OpenBLAS) on one thread, as the kernels. OpenBLAS starts a thread per core
+#   in every process, and its threads wait spinning: beside the suite's other worker they
+#   take the core the work needs. test_fit_prior's recovery test alone, with two busy loops
+#   beside it: 58.5 s with OpenBLAS's default threads, 11.3 s with one (10.8 s and 10.2 s on
+#   a quiet machine, where the second thread only burned 50% more CPU; 2026-12-07). An
+#   explicit OPENBLAS_NUM_THREADS wins (scripts/test.sh sets it before the warm-up too).
 os.environ.setdefault('HRC_KERNEL_THREADS', 'serial')
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 if not os.environ.get('PYTHONPYCACHEPREFIX'):
     os.environ['PYTHONPYCACHEPREFIX'] = str(Path(__file__).resolve().parents[1]
                                             / '.pytest_cache' / 'pycache')

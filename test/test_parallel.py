@@ -309,3 +309,24 @@ def test_the_warm_up_runs_only_where_a_kernel_file_has_no_current_cache(tmp_path
     with pytest.raises(SystemExit) as refused:
         main(['--jobs', '0'])
     assert refused.value.code == 2
+
+
+def test_the_suites_processes_run_numpys_blas_on_one_thread():
+    """conftest.py and scripts/test.sh: OpenBLAS's spinning threads took the core the other
+    worker needed (test_fit_prior's recovery test 58.5 s beside two busy loops, 11.3 s with
+    one thread). This process and a node or command it starts both run one BLAS thread."""
+    import ctypes
+    import glob
+    import os
+    import subprocess
+    import sys
+    query = ('import ctypes, glob, os, numpy\n'
+             'lib, = glob.glob(os.path.join(os.path.dirname(numpy.__file__), "..", '
+             '"numpy.libs", "libscipy_openblas*"))\n'
+             'print(ctypes.CDLL(lib).scipy_openblas_get_num_threads64_())\n')
+    lib, = glob.glob(os.path.join(os.path.dirname(np.__file__), '..', 'numpy.libs',
+                                  'libscipy_openblas*'))
+    assert ctypes.CDLL(lib).scipy_openblas_get_num_threads64_() == 1
+    child = subprocess.run([sys.executable, '-c', query], capture_output=True, text=True,
+                           timeout=60)
+    assert child.returncode == 0 and child.stdout.strip() == '1', child.stderr
