@@ -4,8 +4,10 @@ passes the linter (ruff, configured in ruff.toml)."""
 import os
 import pkgutil
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -143,41 +145,118 @@ HANG_STACKS_CONFTEST = (f'import sys\nsys.path.insert(0, {str(REPO / "test")!r})
                         '"hrc-hang-stacks")\n')
 
 
-def test_a_hanging_test_fails_with_the_stacks_of_every_thread(tmp_path):
+class HangRun:
+    """A pytest run of a hanging test in a session of its own, started at once and waited for
+    on a thread: `hang_runs` starts every run the module's selected tests read before the
+    first of them, so that their waits for the timeouts overlap (one after the other they
+    were 30 s of the module's 37, the one-process backstop alone 14)."""
+
+    def __init__(self, folder: Path, test: str, args: list, env: dict, conftest: bool,
+                 merge_stderr: bool):
+        (folder / 'test_hang.py').write_text(test)
+        if conftest:
+            (folder / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
+        self.folder, self.ended = folder, threading.Event()
+        self.started = time.monotonic()
+        self.proc = subprocess.Popen(
+            [sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'), *args,
+             '-p', 'no:cacheprovider', '--rootdir', str(folder), str(folder / 'test_hang.py')],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT if merge_stderr else subprocess.PIPE,
+            text=True, cwd=folder, env=env, start_new_session=True)
+        threading.Thread(target=self._wait, daemon=True).start()
+
+    def _wait(self):
+        self.stdout, self.stderr = self.proc.communicate()
+        self.took = time.monotonic() - self.started
+        self.kill()             # a worker that still spins holding the GIL goes with its group
+        self.ended.set()
+
+    def kill(self):
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+    def result(self, timeout: float) -> subprocess.CompletedProcess:
+        """The run's result once it ended, `timeout` s after it started at most (then it is
+        killed: subprocess.TimeoutExpired, as subprocess.run's timeout)."""
+        if not self.ended.wait(max(self.started + timeout - time.monotonic(), 0)):
+            self.kill()
+            raise subprocess.TimeoutExpired(self.proc.args, timeout)
+        return subprocess.CompletedProcess(self.proc.args, self.proc.returncode, self.stdout,
+                                           self.stderr or '')
+
+
+HANGING_TEST_NAME = 'test_a_hanging_test_fails_with_the_stacks_of_every_thread'
+XDIST_HANG_TEST_NAME = 'test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks'
+GIL_TEST_NAME = 'test_a_hang_that_holds_the_gil_still_ends_with_its_stacks'
+
+
+def without(*names: str) -> dict:
+    return {k: v for k, v in os.environ.items() if k not in names}
+
+
+@pytest.fixture(scope='module', autouse=True)
+def hang_runs(request, tmp_path_factory):
+    """name of a selected hang test -> its HangRun, all started as the module's first test
+    starts (they wait on timeouts, in sleeps that take no CPU: see GIL_HANGING_TEST)."""
+    from hang_stacks import ENV
+    selected = {item.name for item in request.session.items
+                if getattr(item, 'module', None) is request.module}
+    runs = {}
+    if HANGING_TEST_NAME in selected:
+        runs[HANGING_TEST_NAME] = HangRun(
+            tmp_path_factory.mktemp('hang'), HANGING_TEST, ['-o', f'timeout={HANG_TIMEOUT}'],
+            dict(os.environ), conftest=False, merge_stderr=False)
+    if XDIST_HANG_TEST_NAME in selected:
+        # a run inside a run of the suite inherits the suite's folder (HRC_TEST_STACKS_DIR):
+        # its gw0 wrote to the suite's gw0's file, which that worker emptied as its next test
+        # started (CI, 2026-12-06); this run must use a folder of its own and leave the
+        # inherited alone
+        folder = tmp_path_factory.mktemp('xdist_hang')
+        (folder / 'the_suites_stacks').mkdir()
+        runs[XDIST_HANG_TEST_NAME] = HangRun(
+            folder, HANGING_TEST, ['-o', 'timeout=4', '-n', '1'],
+            {**os.environ, ENV: str(folder / 'the_suites_stacks')}, conftest=True,
+            merge_stderr=False)
+    for case in GIL_CASES:
+        name = f'{GIL_TEST_NAME}[{case}]'
+        if name in selected:
+            test, workers, timeout, _ = GIL_CASES[case]
+            runs[name] = HangRun(tmp_path_factory.mktemp('gil_hang'), test,
+                                 [f'--timeout={timeout}', *workers],
+                                 without(ENV, 'PYTEST_TIMEOUT', 'PYTEST_ADDOPTS'),
+                                 conftest=True, merge_stderr=True)
+    yield runs
+    for run in runs.values():
+        run.kill()
+        run.ended.wait(60)
+
+
+# pytest-timeout's timeout of the one-process runs: the shortest whole second (the hang
+# starts as the test does; what is checked is that the dump comes, not when)
+HANG_TIMEOUT = 1
+
+
+def test_a_hanging_test_fails_with_the_stacks_of_every_thread(hang_runs):
     """pytest.ini's per-test timeout: a hang is a red test with its stacks, not a stuck CI."""
-    hanging = tmp_path / 'test_hang.py'
-    hanging.write_text(HANGING_TEST)
-    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
-                             '-o', 'timeout=3', '-p', 'no:cacheprovider',
-                             '--rootdir', str(tmp_path), str(hanging)],
-                            capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    result = hang_runs[HANGING_TEST_NAME].result(timeout=60)
     output = result.stdout + result.stderr
     assert result.returncode != 0
     assert 'Timeout' in output and 'test_hangs' in output
     assert 'helper' in output and 'MainThread' in output, output[-3000:]
 
 
-def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
+def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(hang_runs):
     """The suite runs on xdist workers, where pytest-timeout's own dump never reaches the log
     (the worker ends with os._exit: "worker 'gw0' crashed"): hang_stacks writes the threads'
-    stacks before the timeout and the controller adds them to the crashed test's report."""
-    hanging = tmp_path / 'test_hang.py'
-    hanging.write_text(HANGING_TEST)
-    (tmp_path / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
-    # a run inside a run of the suite inherits the suite's folder (HRC_TEST_STACKS_DIR): its
-    # gw0 wrote to the suite's gw0's file, which that worker emptied as its next test started
-    # (CI, 2026-12-06); this run must use a folder of its own and leave the inherited alone
-    inherited = tmp_path / 'the_suites_stacks'
-    inherited.mkdir()
-    from hang_stacks import ENV
-    result = subprocess.run([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
-                             '-o', 'timeout=4', '-p', 'no:cacheprovider', '-n', '1',
-                             '--rootdir', str(tmp_path), str(hanging)],
-                            capture_output=True, text=True, timeout=120, cwd=tmp_path,
-                            env={**os.environ, ENV: str(inherited)})
+    stacks before the timeout and the controller adds them to the crashed test's report
+    (the run's timeout, 4 s, is the shortest whose dump comes MARGIN s before it)."""
+    run = hang_runs[XDIST_HANG_TEST_NAME]
+    result = run.result(timeout=120)
     output = result.stdout + result.stderr
     assert result.returncode != 0
-    assert list(inherited.iterdir()) == []
+    assert list((run.folder / 'the_suites_stacks').iterdir()) == []
     assert "crashed while running 'test_hang.py::test_hangs'" in output, output[-3000:]
     assert 'its threads 2 s before the test\'s timeout' in output, output[-3000:]
     assert 'test_hang.py", line 6 in test_hangs' in output, output[-3000:]
@@ -185,58 +264,49 @@ def test_a_hang_on_an_xdist_worker_is_reported_with_its_stacks(tmp_path):
 
 
 # a hang in native code that holds the GIL, as Fast DDS's livelock in destroy_participant did
-# on a worker of the suite (test/hang_stacks.py): the regular expression's backtracking is
-# exponential in the a's, and re does not let go of the GIL while it matches
-GIL_HANGING_TEST = ('import re\n\n'
+# on a worker of the suite (test/hang_stacks.py): libc's sleep called through ctypes.PyDLL,
+# which keeps the GIL for the whole call (a spinning regular expression did the same, at 14 s
+# of CPU for the one-process case alone)
+GIL_HANGING_TEST = ('import ctypes\n\n'
                     'def test_hangs_holding_the_gil():\n'
-                    '    re.match(r"(a*)*b", "a" * 60)\n')
+                    '    ctypes.PyDLL(None).sleep(60)\n')
 # ... in the teardown of a test that failed, when pytest and pytest-timeout stop their timers
-GIL_HANGING_TEARDOWN = ('import re\nimport pytest\n\n'
+GIL_HANGING_TEARDOWN = ('import ctypes\nimport pytest\n\n'
                         '@pytest.fixture\n'
                         'def node():\n'
                         '    yield\n'
-                        '    re.match(r"(a*)*b", "a" * 60)\n\n'
+                        '    ctypes.PyDLL(None).sleep(60)\n\n'
                         'def test_hangs_holding_the_gil(node):\n'
                         '    assert False\n')
 CRASHED = "crashed while running 'test_hang.py::test_hangs_holding_the_gil'"
+# case -> (test, workers, --timeout, what the output says). On a worker the timeout is 4 s,
+# the shortest whose dump comes MARGIN s before it; in one process HANG_TIMEOUT (the backstop
+# then ends it at HANG_TIMEOUT + BACKSTOP = 11 s)
+GIL_CASES = {
+    'xdist': (GIL_HANGING_TEST, ['-n', '1'], 4,
+              (CRASHED, 'when faulthandler ended the worker', 'Timeout (0:00:02)!',
+               'test_hang.py", line 4 in test_hangs_holding_the_gil')),
+    'one-process': (GIL_HANGING_TEST, [], HANG_TIMEOUT,
+                    ('Timeout (0:00:11)!',
+                     'test_hang.py", line 4 in test_hangs_holding_the_gil')),
+    'xdist-teardown-after-a-failure': (GIL_HANGING_TEARDOWN, ['-n', '1'], 4,
+                                       (CRASHED, 'test_hang.py", line 7 in node')),
+}
 
 
-@pytest.mark.parametrize('test, workers, says', [
-    (GIL_HANGING_TEST, ['-n', '1'],
-     (CRASHED, 'when faulthandler ended the worker', 'Timeout (0:00:02)!',
-      'test_hang.py", line 4 in test_hangs_holding_the_gil')),
-    (GIL_HANGING_TEST, [], ('Timeout (0:00:14)!',
-                            'test_hang.py", line 4 in test_hangs_holding_the_gil')),
-    (GIL_HANGING_TEARDOWN, ['-n', '1'], (CRASHED, 'test_hang.py", line 7 in node')),
-], ids=['xdist', 'one-process', 'xdist-teardown-after-a-failure'])
-def test_a_hang_that_holds_the_gil_still_ends_with_its_stacks(tmp_path, test, workers, says):
+@pytest.mark.parametrize('case', GIL_CASES)
+def test_a_hang_that_holds_the_gil_still_ends_with_its_stacks(hang_runs, case):
     """pytest-timeout's timer thread cannot run while native code holds the GIL; faulthandler's
     watchdog can: on a worker it writes the stacks and ends the worker before the timeout (in
     a teardown after a failure too), in one process it ends it BACKSTOP s after. Without it the
     run below never ends (the 120 s limit runs out)."""
-    import signal
-    from hang_stacks import BACKSTOP, ENV
-    (tmp_path / 'test_hang.py').write_text(test)
-    (tmp_path / 'conftest.py').write_text(HANG_STACKS_CONFTEST)
-    env = {k: v for k, v in os.environ.items()
-           if k not in (ENV, 'PYTEST_TIMEOUT', 'PYTEST_ADDOPTS')}
-    started = time.monotonic()
-    proc = subprocess.Popen([sys.executable, '-m', 'pytest', '-c', str(REPO / 'pytest.ini'),
-                             '--timeout=4', '-p', 'no:cacheprovider', *workers,
-                             '--rootdir', str(tmp_path), str(tmp_path / 'test_hang.py')],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            cwd=tmp_path, env=env, start_new_session=True)
-    try:
-        output, _ = proc.communicate(timeout=120)
-    finally:                    # a worker that still spins holding the GIL goes with its group
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        proc.wait()
-    took = time.monotonic() - started
-    assert proc.returncode != 0
-    assert took < 60 + 4 + BACKSTOP, took
+    from hang_stacks import BACKSTOP
+    _, _, timeout, says = GIL_CASES[case]
+    run = hang_runs[f'{GIL_TEST_NAME}[{case}]']
+    result = run.result(timeout=120)
+    output = result.stdout
+    assert result.returncode != 0
+    assert run.took < 60 + timeout + BACKSTOP, run.took
     for text in says:
         assert text in output, output[-3000:]
 
