@@ -49,3 +49,16 @@ def assert_shipped_policy_solves_todays_model(name):
     assert change < config.eta, (name, change, config.eta)
     np.testing.assert_array_equal(greedy_policy(q), shipped.policy)
     return config, shipped
+
+
+def solved_successors(pomdp, columns, a, h, n_keys):
+    """P(x' | x, a, h) of every solved state x as the POMDP's successor lists hold it, shape
+    (n_x, n_keys): row x, column `columns[x']` (the observable key of x'), summed over the
+    lists' entries, for a test to hold against the rule-by-rule transition."""
+    rows = np.arange(pomdp.n_x)
+    got = np.zeros((pomdp.n_x, n_keys))
+    for k in range(pomdp.succ_x.shape[2]):
+        has = pomdp.succ_x[:, a, k] >= 0
+        np.add.at(got, (rows[has], columns[pomdp.succ_x[has, a, k]]),
+                  pomdp.succ_l[has, a, k, h])
+    return got

@@ -6,6 +6,7 @@ what it was (the shipped policies' fast informed bound recomputed to the bit).""
 
 import numpy as np
 import pytest
+from reference import solved_successors
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.mdp.policy import PolicyError
@@ -134,7 +135,6 @@ def test_queue_pomdp_successors_are_the_rule_by_rule_transition(small):
     n_cols = model.n_task * 4
     n_keys = model.n_levels * n_cols
     flat = flat_states(model, hrc)
-    rows = np.arange(pomdp.n_x)
     queued = 0
     for h in (0, 4, 8):
         for a in range(8):
@@ -142,11 +142,7 @@ def test_queue_pomdp_successors_are_the_rule_by_rule_transition(small):
             level, base = model.split(t.target)
             expected = np.zeros((pomdp.n_x, n_keys))
             np.add.at(expected, (t.source, level * n_cols + base % n_cols), t.probability)
-            got = np.zeros((pomdp.n_x, n_keys))
-            for k in range(pomdp.succ_x.shape[2]):
-                has = pomdp.succ_x[:, a, k] >= 0
-                np.add.at(got, (rows[has], hrc.columns[pomdp.succ_x[has, a, k]]),
-                          pomdp.succ_l[has, a, k, h])
+            got = solved_successors(pomdp, hrc.columns, a, h, n_keys)
             np.testing.assert_allclose(got, expected, atol=1e-12)
             queued += int(np.count_nonzero(got[:, n_cols:] > 0))
     assert queued > 0          # some successors have tasks waiting

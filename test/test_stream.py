@@ -3,7 +3,7 @@ MDP solver against them, and the paper's model left exactly as it was."""
 
 import numpy as np
 import pytest
-from reference import assert_shipped_policy_solves_todays_model, rule_q
+from reference import assert_shipped_policy_solves_todays_model, rule_q, solved_successors
 
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
@@ -204,18 +204,13 @@ def test_pomdp_successors_are_the_rule_by_rule_stream_transition(small_stream, s
     summed over h', at every solved state."""
     hrc, pomdp, m = small_stream_hrc, small_stream_hrc.pomdp, small_stream
     n_columns = m.n_task * 4
-    rows = np.arange(pomdp.n_x)
     for h in (0, 4, 8):
         for a in range(8):
             # every solved state at once: row i of `expected` / `got` is state i's P(x' | .)
             t = m.transition(h * n_columns + hrc.columns, a)
             expected = np.zeros((pomdp.n_x, n_columns))
             np.add.at(expected, (t.source, t.target % n_columns), t.probability)
-            got = np.zeros((pomdp.n_x, n_columns))
-            for k in range(pomdp.succ_x.shape[2]):
-                has = pomdp.succ_x[:, a, k] >= 0
-                np.add.at(got, (rows[has], hrc.columns[pomdp.succ_x[has, a, k]]),
-                          pomdp.succ_l[has, a, k, h])
+            got = solved_successors(pomdp, hrc.columns, a, h, n_columns)
             np.testing.assert_allclose(got, expected, atol=1e-12)
     # some successors are arrivals: more than the 2 x 3 of no stream
     arrived = np.count_nonzero(np.count_nonzero(pomdp.succ_x >= 0, axis=2) > 6)
