@@ -82,16 +82,13 @@ def small_start(small, small_reference):
     vectors and FIB), built once: the sweep tests deep-copy them before they move them.
     `initial_bounds(hrc.pomdp, points_x, points)` to the bit, from `small_reference`'s
     arrays (the same calls `initial_bounds` makes) instead of solving them a second time."""
-    from hrc_ros.core.pomdp.solver import AlphaSet, UpperBound, _fixed_points
+    from hrc_ros.core.pomdp.solver import UpperBound, _fixed_points, blind_alpha_set
     _, hrc = small
     pomdp = hrc.pomdp
     points_x, points = _fixed_points(hrc)
     _, blind, q_fib = small_reference
-    n_x, n_a = pomdp.n_x, pomdp.n_actions
-    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, pomdp.n_hidden),
-                            np.repeat(np.arange(n_a), n_x), n_x)
-    return points_x, points, (alphas, UpperBound.from_fib(q_fib, pomdp.available, points_x,
-                                                          points))
+    return points_x, points, (blind_alpha_set(pomdp, blind),
+                              UpperBound.from_fib(q_fib, pomdp.available, points_x, points))
 
 
 @pytest.fixture(scope='module')

@@ -707,11 +707,16 @@ def initial_bounds(pomdp: MixedPOMDP, points_x: np.ndarray, points: np.ndarray,
                    tol: float = 1e-9) -> tuple[AlphaSet, UpperBound]:
     """The blind policies' vectors (lower bound) and FIB with the points' values (upper)."""
     q_fib, _ = fib_q(pomdp, tol)
-    blind = blind_alphas(pomdp, tol)
+    return (blind_alpha_set(pomdp, blind_alphas(pomdp, tol)),
+            UpperBound.from_fib(q_fib, pomdp.available, points_x, points))
+
+
+def blind_alpha_set(pomdp: MixedPOMDP, blind: np.ndarray) -> AlphaSet:
+    """The lower bound a solve starts from: `blind_alphas`' values (A, X, H), one vector per
+    action at every observable state x."""
     n_x, n_a = pomdp.n_x, pomdp.n_actions
-    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, pomdp.n_hidden),
-                            np.repeat(np.arange(n_a), n_x), n_x)
-    return alphas, UpperBound.from_fib(q_fib, pomdp.available, points_x, points)
+    return AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, pomdp.n_hidden),
+                          np.repeat(np.arange(n_a), n_x), n_x)
 
 
 def shared_actions(pomdp: MixedPOMDP, share: bool = True) -> np.ndarray:
@@ -971,10 +976,8 @@ def solve_pomdp(model: HRCModel, episodes: int = 2000, epochs: int = 50,
     fast = model.queue is not None
     q_mdp = mdp_q(pomdp, tol=1e-9, fast=fast)
     q_fib, fib_sweeps = fib_q(pomdp, tol=1e-9, start=q_mdp, fast=fast)
-    blind = blind_alphas(pomdp, tol=1e-9, fast=fast)
-    n_x, n_a = pomdp.n_x, pomdp.n_actions
-    alphas = AlphaSet.build(np.tile(np.arange(n_x), n_a), blind.reshape(-1, N_HIDDEN),
-                            np.repeat(np.arange(n_a), n_x), n_x)
+    alphas = blind_alpha_set(pomdp, blind_alphas(pomdp, tol=1e-9, fast=fast))
+    n_x = pomdp.n_x
     t_bounds = time.perf_counter()
     levels = '' if model.queue is None else f' x {model.n_levels} queue lengths'
     say(f'{n_x} observable states ({n_x // N_DISTANCE // model.n_levels} task states x '
