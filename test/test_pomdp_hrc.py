@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 import yaml
+from reference import solved_successors
 
 from hrc_ros.core.pomdp.belief import BeliefFilter
 from hrc_ros.core.config import load_config
@@ -78,15 +79,12 @@ def test_successors_are_the_rule_by_rule_transition(config, reduced, reduced_hrc
         t = reduced.transition(sources, a)
         level_next, base = divmod(t.target, reduced.n_base)
         columns_next = level_next * n_columns + base % n_columns
+        got = {h: solved_successors(pomdp, hrc.columns, a, h, all_columns) for h in hs}
         for j, (i, h) in enumerate((int(i), h) for i in xs for h in hs):
             row = t.source == j
             expected = np.bincount(columns_next[row], weights=t.probability[row],
                                    minlength=all_columns)
-            got = np.zeros(all_columns)
-            for k in range(pomdp.succ_x.shape[2]):
-                if pomdp.succ_x[i, a, k] >= 0:
-                    got[hrc.columns[pomdp.succ_x[i, a, k]]] += pomdp.succ_l[i, a, k, h]
-            np.testing.assert_allclose(got, expected, atol=1e-12)
+            np.testing.assert_allclose(got[h][i], expected, atol=1e-12)
 
 
 def test_the_mdp_over_the_solved_states_is_the_factored_bellman_q(reduced, reduced_hrc):
