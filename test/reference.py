@@ -62,3 +62,11 @@ def solved_successors(pomdp, columns, a, h, n_keys):
         np.add.at(got, (rows[has], columns[pomdp.succ_x[has, a, k]]),
                   pomdp.succ_l[has, a, k, h])
     return got
+
+
+def read_only(*arrays):
+    """`arrays` made read-only, for a module fixture that several tests share: none can change
+    them for the next."""
+    for array in arrays:
+        array.flags.writeable = False
+    return arrays

@@ -6,7 +6,7 @@ what it was (the shipped policies' fast informed bound recomputed to the bit).""
 
 import numpy as np
 import pytest
-from reference import solved_successors
+from reference import read_only, solved_successors
 
 from hrc_ros.core.config import load_config
 from hrc_ros.core.mdp.policy import PolicyError
@@ -34,13 +34,6 @@ def small(request):
     return model, hrc_pomdp(model)
 
 
-def _frozen(*arrays):
-    """Arrays shared by several tests, read-only so that none can change them for the next."""
-    for array in arrays:
-        array.flags.writeable = False
-    return arrays
-
-
 @pytest.fixture(scope='module')
 def queue_mdp():
     """levels -> the MDP solve of `queue_model(levels)`, each solved once for the module (the
@@ -50,7 +43,7 @@ def queue_mdp():
     def get(levels):
         if levels not in solved:
             result = solve(queue_model(levels))
-            _frozen(result.value, result.policy)
+            read_only(result.value, result.policy)
             solved[levels] = result
         return solved[levels]
     return get
@@ -73,7 +66,7 @@ def small_reference(small):
     pomdp = small[1].pomdp
     q_mdp = mdp_q(pomdp)
     q_fib, _ = fib_q(pomdp, start=q_mdp)    # = fib_q(pomdp): it starts from mdp_q(pomdp)
-    return _frozen(q_mdp, blind_alphas(pomdp), q_fib)
+    return read_only(q_mdp, blind_alphas(pomdp), q_fib)
 
 
 @pytest.fixture(scope='module')

@@ -3,7 +3,8 @@ MDP solver against them, and the paper's model left exactly as it was."""
 
 import numpy as np
 import pytest
-from reference import assert_shipped_policy_solves_todays_model, rule_q, solved_successors
+from reference import (assert_shipped_policy_solves_todays_model, read_only, rule_q,
+                       solved_successors)
 
 from hrc_ros.core.config import ConfigError, load_config
 from hrc_ros.core.mdp.policy import PolicyError, load_policy, save_policy
@@ -24,8 +25,7 @@ def small_stream():
 
 def _frozen(result):
     """A solve shared by several tests, read-only so that none can change it for the next."""
-    result.value.flags.writeable = False
-    result.policy.flags.writeable = False
+    read_only(result.value, result.policy)
     return result
 
 
