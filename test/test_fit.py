@@ -461,18 +461,11 @@ def em_shown_recordings(config, episodes=120, epochs=40):
 
 def chain_loglik(theta, counts):
     """Log likelihood of a bounded (down, stay, up) chain from level-pair counts C[i, j]."""
-    total = 0.0
-    for i in range(3):
-        targets = (max(i - 1, 0), i, min(i + 1, 2))
-        for j in range(3):
-            p = sum(theta[m] for m in range(3) if targets[m] == j)
-            if counts[i, j]:
-                total += counts[i, j] * np.log(p)
-    return total
+    return float(chain_logliks(np.asarray(theta, dtype=float)[None], counts)[0])
 
 
 def chain_logliks(thetas, counts):
-    """chain_loglik of each row of thetas (n, 3) at once: the same sums in the same order."""
+    """`chain_loglik` of each row of thetas (n, 3) at once."""
     total = np.zeros(len(thetas))
     for i in range(3):
         targets = (max(i - 1, 0), i, min(i + 1, 2))
