@@ -315,18 +315,16 @@ def test_the_suites_processes_run_numpys_blas_on_one_thread():
     """conftest.py and scripts/test.sh: OpenBLAS's spinning threads took the core the other
     worker needed (test_fit_prior's recovery test 58.5 s beside two busy loops, 11.3 s with
     one thread). This process and a node or command it starts both run one BLAS thread."""
-    import ctypes
-    import glob
-    import os
     import subprocess
     import sys
+    # OpenBLAS's thread count, asked of the library numpy's wheel bundles (as `threads`)
     query = ('import ctypes, glob, os, numpy\n'
              'lib, = glob.glob(os.path.join(os.path.dirname(numpy.__file__), "..", '
              '"numpy.libs", "libscipy_openblas*"))\n'
-             'print(ctypes.CDLL(lib).scipy_openblas_get_num_threads64_())\n')
-    lib, = glob.glob(os.path.join(os.path.dirname(np.__file__), '..', 'numpy.libs',
-                                  'libscipy_openblas*'))
-    assert ctypes.CDLL(lib).scipy_openblas_get_num_threads64_() == 1
-    child = subprocess.run([sys.executable, '-c', query], capture_output=True, text=True,
-                           timeout=60)
+             'threads = ctypes.CDLL(lib).scipy_openblas_get_num_threads64_()\n')
+    here: dict = {}
+    exec(query, here)
+    assert here['threads'] == 1
+    child = subprocess.run([sys.executable, '-c', query + 'print(threads)\n'],
+                           capture_output=True, text=True, timeout=60)
     assert child.returncode == 0 and child.stdout.strip() == '1', child.stderr
