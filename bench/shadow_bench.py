@@ -6,6 +6,8 @@ cells whose truth is computed in the world they came from.
     .venv/bin/python bench/shadow_bench.py --table F                               # the table
     nice -n 10 .venv/bin/python bench/shadow_bench.py --drift --results F2 --episodes 200 \
         --directions unchanged                          # the defaults' figure (run: on_drift)
+    nice -n 10 .venv/bin/python bench/shadow_bench.py --drift --check-all --results F3 \
+        --episodes 200                                  # power on the defaults
 
 A cell runs the default configuration and its shipped policy (the paper selector) and has
 `--episodes` x 50 recorded epochs (the running policy with 20% exploration, hrc-evaluate's
@@ -49,6 +51,9 @@ when the drift test calls drift: each cell's drift test as the plant runs it (th
 simulations seeded from the cell's index, as the plant seeds them from a cell's `seed`), and
 the check above only for the cells where it calls drift. Its table: drift called,
 and promotions (the check's, 10 refits) on the defaults, both per world over all the cells run.
+`--drift --check-all` runs the check on every cell as well, so that the truth of the cells the
+drift test lets pass is known: its table adds false promotions, power and wrong promotions on
+the defaults beside the check alone's, over the same cells.
 
 Resumable and shardable: a cell is its index (its world, amount and seeds follow from it);
 `--results` gets one JSON line per cell as it finishes, and a run skips the cells already
@@ -67,6 +72,7 @@ import tempfile
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -174,10 +180,12 @@ def run_cell(cell: dict, episodes: int, refits: int, truth_episodes: int,
             'seconds': time.perf_counter() - t0, 'refit_seconds': t_refits}
 
 
-def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> dict:
+def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int,
+               check_all: bool = False) -> dict:
     """The plant's drift test of the cell's recordings on the defaults (`spec.SECTIONS`'
     drift: the window, the simulations, alpha, the plant's seeds for the cell), and, when it
-    calls drift, the check (`run_cell`, on the same recordings, read once) under 'check'."""
+    calls drift (`check_all`: always, so that the truth of the cells it lets pass is known
+    too), the check (`run_cell`, on the same recordings, read once) under 'check'."""
     import numba
 
     from hrc_ros.core.plant import drift, stages
@@ -198,8 +206,9 @@ def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int) -> d
               'simulations': len(null), 'alpha': settings['alpha'],
               'statistic': observed['statistic'], 'drift_p': p,
               'drift': p < settings['alpha'], 'drift_seconds': time.perf_counter() - t0}
-    if result['drift']:
+    if result['drift'] or check_all:
         result['check'] = run_cell(cell, episodes, refits, truth_episodes, recordings)
+    result['check_all'] = check_all
     result['seconds'] = time.perf_counter() - t0
     return result
 
@@ -226,17 +235,57 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
         print(f'| {direction} | {amount:g} | {len(rs)} | '
               f'{wilson(sum(r["drift"] for r in rs), len(rs))} | '
               f'{wilson(len(promoted), len(rs))} | {worse} |')
+    known = [r for r in results if r.get('check_all')]
+    if known:
+        # --check-all: the check ran on every cell, so the truth of the cells the drift test
+        # let pass is known, and power on the defaults can be counted over all of them
+        def on_defaults(r):
+            return r['drift'] and made(r) == 'promote'
+
+        def made(r):
+            return decisions(r['check'], min(refits, len(r['check']['rows'])))[0]
+        better = [r for r in known if r['check']['truth']['discounted_cost']['mean'] <= -1.0]
+        unchanged = [r for r in known if r['direction'] == 'unchanged']
+        not_cheaper = [r for r in known if r['direction'] != 'unchanged'
+                       and r['check']['truth']['discounted_cost']['mean'] >= 0]
+        print(f'\nWith the truth of every cell ({len(known)} cells checked whatever the drift '
+              f'test said, {len(better)} truly better by >= 1.0 per episode):\n')
+        print('| run mode | false promotions (unchanged) | power (truly better by >= 1.0) | '
+              'wrong promotions (changed, truly not cheaper) |')
+        print('|---|---|---|---|')
+        for name, rule in (('on_drift (the defaults)', on_defaults),
+                           ('always (the check alone)', lambda r: made(r) == 'promote')):
+            print(f'| {name} | {wilson(sum(map(rule, unchanged)), len(unchanged))} | '
+                  f'{wilson(sum(map(rule, better)), len(better))} | '
+                  f'{wilson(sum(map(rule, not_cheaper)), len(not_cheaper))} |')
+        def covered(rs):
+            hits = 0
+            for r in rs:
+                m = decisions(r['check'], min(refits, len(r['check']['rows'])))[1]
+                t = r['check']['truth']['discounted_cost']['mean']
+                hits += m['discounted_cost']['low'] <= t <= m['discounted_cost']['high']
+            return wilson(hits, len(rs))
+        print(f'\nCoverage of the check\'s 95% interval (the same in both modes): all '
+              f'{covered(known)}, unchanged {covered(unchanged)}, changed '
+              f'{covered([r for r in known if r["direction"] != "unchanged"])}')
+        missed = [r for r in better if not on_defaults(r)]
+        print('Truly better by >= 1.0 and not promoted on the defaults: '
+              + (', '.join(f'cell {r["index"]} ({r["direction"]} {r["amount"]:g}, true '
+                           f'{r["check"]["truth"]["discounted_cost"]["mean"]:+.2f}, drift p '
+                           f'{r["drift_p"]:.3f}, check: {made(r)})' for r in missed)
+                 or 'none'))
     ps = np.array([r['drift_p'] for r in results])
     seconds = sorted(r['drift_seconds'] for r in results)
     print(f'\ndrift p quartiles {", ".join(f"{q:.3f}" for q in np.percentile(ps, [25, 50, 75]))}'
           f'; seconds per cell for its recordings and drift test, one CPU: median '
           f'{seconds[len(seconds) // 2]:.0f}, the slowest {seconds[-1]:.0f}')
     for r in results:
-        if r['drift']:
+        if 'check' in r:
             c = decisions(r['check'], min(refits, len(r['check']['rows'])))
             m = c[1]['discounted_cost']
             print(f'  cell {r["index"]} ({r["direction"]} {r["amount"]:g}): p = '
-                  f'{r["drift_p"]:.3f}, check: {c[0]} (estimate {m["mean"]:+.2f} '
+                  f'{r["drift_p"]:.3f}{"" if r["drift"] else " (no drift)"}, check: {c[0]} '
+                  f'(estimate {m["mean"]:+.2f} '
                   f'[{m["low"]:+.2f}, {m["high"]:+.2f}], true '
                   f'{r["check"]["truth"]["discounted_cost"]["mean"]:+.2f})')
 
@@ -379,6 +428,10 @@ def main(argv=None) -> int:
     parser.add_argument('--drift', action='store_true',
                         help='the defaults (run: on_drift): the drift test of every cell, the '
                         'check only where it calls drift')
+    parser.add_argument('--check-all', action='store_true',
+                        help='with --drift: the check on every cell, also where the drift test '
+                        'calls none, so that power on the defaults is counted over the truth '
+                        'of every cell')
     parser.add_argument('--directions', default='unchanged,reluctant,mild',
                         help='the worlds whose cells run (comma-separated)')
     args = parser.parse_args(argv)
@@ -396,7 +449,10 @@ def main(argv=None) -> int:
                      f'{", ".join(DIRECTIONS)})')
     todo = [cell_of(i) for i in range(args.cells) if i % n == k - 1 and i not in done
             and cell_of(i)['direction'] in directions]
-    work = drift_cell if args.drift else run_cell
+    if args.check_all and not args.drift:
+        parser.error('--check-all goes with --drift (without it every cell is checked anyway)')
+    work = partial(drift_cell, check_all=True) if args.check_all else (
+        drift_cell if args.drift else run_cell)
     print(f'command: nice -n 10 .venv/bin/python bench/shadow_bench.py '
           f'{" ".join(sys.argv[1:] if argv is None else argv)}')
     print(f'started {datetime.now(timezone.utc).isoformat(timespec="minutes")}, load average '
