@@ -406,6 +406,27 @@ def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
     assert outputs[0].args[-1] == Ref('shadow')
 
 
+def test_a_cell_of_too_few_episodes_is_checked_without_refits_and_its_report_says_so(tmp_path):
+    """Fewer than stages.MIN_EPISODES episodes: the shadow check runs alone, the cell is kept,
+    and the entry's shadow world says that nothing corrected the interval (it said, as for a
+    refitted cell, that the interval carries the fitting error)."""
+    from hrc_ros.core.plant import check
+    from hrc_ros.core.plant.stages import MIN_EPISODES
+    p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9)
+    p.start()
+    p.done('read', {**READ, 'episodes': MIN_EPISODES - 1})
+    p.done('fit', {'iterations': 3, 'loglik': -1.0})
+    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
+    p.done('drift', DRIFT)
+    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
+    assert keys(p.done('null.0', {'statistics': [100.0] * 9})) == ['shadow']   # no refits
+    outputs = p.done('shadow', paired_figures(-3.0))
+    assert keys(outputs) == ['outputs'] and p.entry['decision'] == KEEP
+    assert p.entry['shadow']['world'] == check.WORLD_UNCORRECTED
+    assert 'leaves the fitting error out' in p.entry['shadow']['world']
+    assert p.entry['cost_difference']['optimism'] is None
+
+
 def test_a_cheaper_policy_with_more_collision_epochs_is_kept_by_the_safety_guard(tmp_path):
     """In-sample -3, refits' errors -0.5 +- 0.3: the estimate -2.5 with an interval below
     zero, and the collision epochs higher with 95% confidence keep it, named in the reason."""
@@ -548,6 +569,41 @@ def test_the_markdown_says_the_run_mode_warnings_guards_and_retries_and_the_plot
     assert any(t.startswith('promote') for t in legend) and any(t.startswith('keep')
                                                                 for t in legend)
     assert any('in-sample' in t for t in legend)
+
+
+def test_a_cell_without_refits_shows_its_interval_as_the_episodes_alone_everywhere():
+    """A cell of too few episodes for refits is kept on an interval over the episodes alone
+    (check.corrected): the table, the check's section and the plot say so, not that the
+    interval carries the fitting error; the table counts every warning its section lists."""
+    from hrc_ros.core.plant import check
+    from hrc_ros.core.plant import report as reporting
+    in_sample = {'mean': -2.86, 'half_width': 0.98, 'new': 10.0, 'running': 12.86}
+    cost = check.corrected(in_sample, [], [])
+    assert cost['optimism'] is None and cost['half_width'] == 0.98
+    entry = {'cell': 'case_study', 'namespace': '/', 'decision': KEEP, 'reason': 'kept',
+             'run': 'always', 'drift_p': 0.5, 'cost_difference': cost, 'moved': [],
+             'read': {'epochs': 20, 'episodes': 1, 'issues': 1,
+                      'first_issues': ['x.csv:7: the episode is cut there']},
+             'fit': {'warnings': ['only 1 episode']},
+             'shadow': {'world': check.WORLD_UNCORRECTED, 'refits': 0, 'episodes': 1000,
+                        'epochs': 50, 'seed': 0, 'selector': 'paper'}}
+    plant = {'plant': 'p', 'started': 'now', 'seconds': 1.0, 'engine': 'serial',
+             'decisions': {'promote': 0, 'keep': 1, 'failed': 0}, 'cells': [entry],
+             'lost_nodes': [], 'retried_tasks': 0}
+    text = reporting.markdown(plant)
+    marked = '-2.860 [-3.840, -1.880] (episodes only: no refits, fitting error not bounded)'
+    row = next(line for line in text.splitlines() if line.startswith('| case_study |'))
+    assert marked in row
+    assert row.split(' | ')[-2] == '3'         # the fit's, the keep on 1 episode, the read's
+    assert text.count('\n- ') >= 3
+    assert marked in text.split('## case_study')[1]          # the check's section too
+    assert 'leaves the fitting error out' in text
+    assert 'refits of recordings simulated' not in text      # the method that was dropped
+    legend = [t.get_text() for t in reporting.plant_figure([entry]).axes[0]
+              .get_legend().get_texts()]
+    assert any('no refits, fitting error not bounded' in t for t in legend)
+    refitted = {**entry, 'cost_difference': corrected_figure(-2.86, 1.5)}
+    assert '(episodes only' not in reporting.markdown({**plant, 'cells': [refitted]})
 
 
 def episode(name: str, epochs: int, first: int = 1):

@@ -82,6 +82,10 @@ GUARDS = ('refused_requests', 'tasks_completed', 'collision_stuck')    # promote
 WORLD = ('the world fitted from all the recordings (in-sample), corrected for the fit\'s '
          'optimism by refits of resampled episodes (each fitted from the base and solved as '
          'the cell was); the interval carries the fitting error and the episodes\' noise')
+# the same without refits (too few episodes to resample): nothing corrects the figures
+WORLD_UNCORRECTED = ('the world fitted from all the recordings (in-sample), not corrected: too '
+                     'few episodes for refits, so the interval is the episodes\' alone and leaves '
+                     'the fitting error out; the cell is kept')
 
 
 def t_quantile(dof: int) -> float:

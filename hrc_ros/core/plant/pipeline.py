@@ -16,11 +16,13 @@ resamples and refits, what a failure stops and the decision are unit tests, what
     (run always: the fit starts beside the drift test instead of after it.)
 
 The promotion rule (`check.decide`): promote when the new policy's discounted cost minus the
-running one's, in-sample and corrected for the fit's optimism by R refits of recordings
-simulated from the fit, has a 95% interval below zero (an interval that carries the fitting
-error as well as the episodes' noise), unless its collision epochs are higher with 95%
-confidence (the safety guard) or a guard the plant file sets (`promote.guards`, none by
-default) finds the new policy worse; otherwise keep, with the figures. A failed stage fails
+running one's, in-sample and corrected for the fit's optimism by R refits (the recorded
+episodes resampled with replacement, each fitted and solved as the cell was), has a 95%
+interval below zero (an interval that carries the fitting error as well as the episodes'
+noise), unless its collision epochs are higher with 95% confidence (the safety guard) or a
+guard the plant file sets (`promote.guards`, none by default) finds the new policy worse;
+otherwise keep, with the figures (a cell of too few episodes for refits: keep, its interval
+the episodes' alone). A failed stage fails
 the cell with its reason (decision `failed`); the other cells go on.
 """
 
@@ -287,7 +289,8 @@ class CellPipeline:
                                              'cost_given_up': b['cost_given_up']}
                                             for b in blocked]}
         self.entry['shadow'] = {
-            'world': check.WORLD, 'refits': len(rows),
+            'world': check.WORLD if len(rows) >= 2 else check.WORLD_UNCORRECTED,
+            'refits': len(rows),
             'refits_not_converged': sum(not r['converged'] for r in rows),
             'errors': {m: [r[m][0] - r[m][1] for r in rows] for m in check.METRICS},
             'in_sample': {**{k: inside[k] for k in ('world', 'episodes') + SHADOW_METRICS}},

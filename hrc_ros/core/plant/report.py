@@ -104,7 +104,8 @@ def plant_figure(entries: list[dict]):
         colour = COLOURS.get(e['decision'], 'k')
         if c:
             ax.errorbar(c['mean'], i, xerr=[[c['mean'] - c['low']], [c['high'] - c['mean']]],
-                        fmt='o', color=colour, capsize=3)
+                        fmt='o', color=colour, capsize=3, ls='--' if episodes_only(c) else '-',
+                        mfc='white' if episodes_only(c) else colour)
             if c.get('in_sample') is not None:
                 ax.plot(c['in_sample'], i, 'x', color='tab:orange')
         else:
@@ -117,6 +118,9 @@ def plant_figure(entries: list[dict]):
     handles = [Line2D([], [], color=COLOURS[d], marker='o', label=f'{d}: estimate, 95% '
                       'interval (fitting error and episodes)')
                for d in ('promote', 'keep') if any(e['decision'] == d for e in entries)]
+    if any(episodes_only(e.get('cost_difference')) for e in entries):
+        handles.append(Line2D([], [], color='0.3', marker='o', mfc='white', ls='--',
+                              label=f'open: {EPISODES_ONLY} (too few episodes: kept)'))
     handles.append(Line2D([], [], color='tab:orange', marker='x', ls='',
                           label='in-sample (optimistic, does not decide)'))
     ax.legend(handles=handles, fontsize=7, loc='best')
@@ -124,10 +128,20 @@ def plant_figure(entries: list[dict]):
     return fig
 
 
+EPISODES_ONLY = 'episodes only: no refits, fitting error not bounded'
+
+
+def episodes_only(m: dict | None) -> bool:
+    """A figure the check could not correct (fewer than 2 refits, `check.corrected`): its
+    interval is the episodes' alone and leaves the fitting error out."""
+    return bool(m) and m.get('optimism') is None and 'in_sample' in m
+
+
 def _interval(m: dict | None, digits: int = 3) -> str:
     if not m:
         return '-'
-    return f'{m["mean"]:+.{digits}f} [{m["low"]:+.{digits}f}, {m["high"]:+.{digits}f}]'
+    text = f'{m["mean"]:+.{digits}f} [{m["low"]:+.{digits}f}, {m["high"]:+.{digits}f}]'
+    return f'{text} ({EPISODES_ONLY})' if episodes_only(m) else text
 
 
 def _both(m: dict | None) -> str:
@@ -181,6 +195,15 @@ POWER_EPISODES = 200
 
 
 def _warning_lines(entry: dict) -> list[str]:
+    warnings = cell_warnings(entry)
+    if not warnings:
+        return []
+    return ['Warnings:', ''] + [f'- {w}' for w in warnings] + ['']
+
+
+def cell_warnings(entry: dict) -> list[str]:
+    """Every warning of a cell: the fit's, a keep on few episodes, the stream fit's, the rows
+    the read left out (the table's count and the cell's Warnings section)."""
     read = entry.get('read') or {}
     warnings = list((entry.get('fit') or {}).get('warnings') or [])
     episodes = read.get('episodes')
@@ -199,9 +222,7 @@ def _warning_lines(entry: dict) -> list[str]:
         warnings.append(f'{read["issues"]} row{"s" if read["issues"] != 1 else ""} of the '
                         'recordings left out or episodes cut (the fit\'s rules): '
                         + '; '.join(read.get('first_issues') or []))
-    if not warnings:
-        return []
-    return ['Warnings:', ''] + [f'- {w}' for w in warnings] + ['']
+    return warnings
 
 
 def _retry_lines(entry: dict) -> list[str]:
@@ -254,8 +275,11 @@ def markdown(plant: dict) -> str:
               'prices requests, refusals and the person\'s emotions) minus the running one\'s '
               'over the same episodes, per episode. In-sample (both in the world fitted from '
               'the recordings) it is optimistic for the new policy; the estimate subtracts '
-              'the optimism measured by refits of recordings simulated from the fit, and its '
-              '95% interval carries the fitting error as well as the episodes\' noise. '
+              'the optimism measured by refits (resamples of the recordings\' episodes, drawn '
+              'with replacement, each fitted and solved as the cell was), and its 95% '
+              'interval carries the fitting error as well as the episodes\' noise (a cell with '
+              'too few episodes for refits is kept, and its interval is marked as the '
+              'episodes\' alone). '
               'Promote when that interval is below zero, unless the collision epochs are '
               'higher with 95% confidence (the safety guard) or a guard of the plant file '
               'says the new policy is worse (docs/FLEET.md).', '',
@@ -268,7 +292,7 @@ def markdown(plant: dict) -> str:
         reason = str(e.get('reason') or '').replace('|', '/')
         cost = e.get('cost_difference') or {}
         inside = '-' if cost.get('in_sample') is None else f'{cost["in_sample"]:+.3f}'
-        warnings = len((e.get('fit') or {}).get('warnings') or [])
+        warnings = len(cell_warnings(e))
         lines.append(f'| {e["cell"]} | {e["namespace"]} | {e.get("run", "-")} | '
                      f'**{e["decision"]}** | {p} | {_interval(cost or None)} | {inside} | '
                      f'{_interval(e.get("collision_epochs"))} | '
