@@ -1312,6 +1312,27 @@ def test_a_cluster_that_refuses_the_token_is_named_as_such(ray_session, tmp_path
     assert "refused this driver's authentication token" in line and not out.exists()
 
 
+def test_any_error_of_ray_joining_a_cluster_is_one_line(monkeypatch):
+    """Ray's own errors on joining (AuthenticationError, RpcError: RayError, not
+    ConnectionError or RuntimeError) went through as a traceback and left OUT behind; every
+    error of ray.init on an address the check passed is now the one line (ToolError)."""
+    import ray
+    import ray.exceptions
+
+    from hrc_ros.tools import fleet
+    from hrc_ros.tools.common import ToolError
+
+    def refuse(**kwargs):
+        raise ray.exceptions.AuthenticationError('the token does not match the cluster\'s')
+    monkeypatch.setattr(ray, 'is_initialized', lambda: False)
+    monkeypatch.setattr(ray, 'init', refuse)
+    with pytest.raises(ToolError) as refused:
+        fleet.start_ray('10.0.0.9:6379', None, None, checked=True)
+    line = str(refused.value)
+    assert line.startswith('cannot join the Ray cluster at 10.0.0.9:6379')
+    assert 'AuthenticationError' in line and 'does not match' in line and '\n' not in line
+
+
 def test_ctrl_c_on_an_embedded_cluster_exits_130_and_leaves_no_process(tmp_path):
     """Ctrl-C (SIGINT to the foreground process group) as the embedded cluster starts: exit
     130 and one line, no process of the cluster left. Before, a KeyboardInterrupt raised

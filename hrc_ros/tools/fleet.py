@@ -283,8 +283,10 @@ def start_ray(address: str | None, num_cpus: int | None, object_store_mb: int | 
         target = address if checked else fleet_ray.check_address(address)
         try:
             ray.init(address=address, logging_level='warning')
-        except (ConnectionError, ValueError, RuntimeError) as exc:
+        except Exception as exc:   # noqa: BLE001 - Ray's own errors (AuthenticationError,
+            # RpcError) are RayError(Exception), beside ConnectionError and RuntimeError
             raise ToolError(f'cannot join the Ray cluster at {address} ({target}): '
+                            f'{type(exc).__name__}: '
                             f'{" ".join(str(exc).split())[:300]}') from None
         return True, address.startswith('ray://')
     for attempt in range(STARTS):
