@@ -3,7 +3,7 @@ cells whose truth is computed in the world they came from.
 
     nice -n 10 .venv/bin/python bench/shadow_bench.py --results out/shadow.jsonl   # 250 cells
     nice -n 10 .venv/bin/python bench/shadow_bench.py --results F --shard 1/2      # half of them
-    .venv/bin/python bench/shadow_bench.py --table F                               # the table
+    .venv/bin/python bench/shadow_bench.py --table --results F                     # the table
     nice -n 10 .venv/bin/python bench/shadow_bench.py --drift --results F2 --episodes 200 \
         --directions unchanged                          # the defaults' figure (run: on_drift)
     nice -n 10 .venv/bin/python bench/shadow_bench.py --drift --check-all --results F3 \
