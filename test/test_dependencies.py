@@ -52,6 +52,7 @@ DEPENDENCIES = {
     'mcap_ros2': ('mcap-ros2-support', 'python3-mcap-ros2-support-pip'),
     'aiohttp': ('aiohttp', 'python3-aiohttp-pip'),
     'ray': ('ray', 'python3-ray-pip'),
+    'grpc': ('grpcio', 'python3-grpcio-pip'),
     'mujoco': ('mujoco', 'python3-mujoco-pip'),
     'playwright': ('playwright', 'python3-playwright-pip'),
     'rclpy': ('ros-jazzy-rclpy', ROS),

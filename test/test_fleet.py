@@ -1293,6 +1293,43 @@ def test_a_cluster_that_refuses_the_connection_is_one_line_in_seconds_and_leaves
     assert 'connection refused' in line and not out.exists()
 
 
+def test_a_ray_client_address_is_pinged_once_and_a_port_of_another_kind_refused_in_seconds(
+        ray_session, tmp_path):
+    """`--address ray://host:port` whose port answers TCP but is no Ray Client server (here a
+    socket that listens and never speaks): Ray's client retried 30 s and said only 'ray client
+    connection timeout' (without grpcio installed: a ModuleNotFoundError traceback). One line
+    naming the address and the cause, in seconds, and no --out. A real Ray Client server (Ray's
+    own, serving the session's cluster) passes the same ping."""
+    import socket
+
+    from ray.util.client.server.server import serve
+
+    from hrc_ros.tools import fleet_ray
+    silent = socket.create_server(('127.0.0.1', 0))
+    try:
+        address = f'ray://127.0.0.1:{silent.getsockname()[1]}'
+        out = tmp_path / 'out'
+        t0 = time.monotonic()
+        run = fleet_process([str(REPO / 'config' / 'plant_example.yaml'), '--out', str(out),
+                             '--address', address])
+        stdout, stderr = run.communicate(timeout=60)
+        assert run.returncode == 2, (stdout, stderr)
+        assert time.monotonic() - t0 < 30
+        (line,) = stderr.strip().splitlines()
+        assert line.startswith(f'hrc-fleet: error: cannot join the Ray cluster at {address}')
+        assert 'no gRPC server within 5 s' in line and not out.exists()
+    finally:
+        silent.close()
+    free = socket.create_server(('127.0.0.1', 0))
+    port = free.getsockname()[1]
+    free.close()
+    server = serve('127.0.0.1', port)
+    try:
+        assert fleet_ray.check_address(f'ray://127.0.0.1:{port}') == f'127.0.0.1:{port}'
+    finally:
+        server.stop(0)
+
+
 def test_a_cluster_that_refuses_the_token_is_named_as_such(ray_session, tmp_path):
     """A driver without the cluster's token: Ray said only 'Failed to connect' after 20 s of
     warnings; the line says the token was refused. The cluster is the session's own (Ray

@@ -5,8 +5,10 @@ and lost nodes were, and stopping an embedded cluster whole (docs/FLEET.md "Engi
   cause, in seconds, before anything is started or written. `ray.init` itself retries an
   unreachable GCS for minutes (824 s measured, with 60 warnings naming the address Ray
   resolved to) and says only "Failed to connect" when the cluster refuses the driver's token;
-  so the address is resolved as Ray resolves it, its port tried over TCP, and a GCS address
-  asked for its cluster id with the driver's credentials (Ray's own client, a 5 s timeout).
+  so the address is resolved as Ray resolves it, its port tried over TCP, a GCS address
+  asked for its cluster id with the driver's credentials (Ray's own client, a 5 s timeout),
+  and a Ray Client address (ray://) pinged once as Ray's client pings it (its own retries
+  take 30 s and end in "ray client connection timeout").
 - `RayLog`: file descriptors 1 and 2 go to OUT/ray.log while Ray runs in this process, so
   that Ray's warnings, its workers' forwarded output and its raylet's messages (the memory
   monitor's dumps) land there and not between the decision lines; the progress bar writes to
@@ -95,10 +97,17 @@ def check_address(address: str, timeout: float = PROBE_TIMEOUT) -> str:
     except OSError as exc:
         cause = exc.strerror or str(exc)
     else:
-        cause = None if client else _gcs_refusal(target, timeout, address == 'auto')
+        cause = (_client_refusal(target, timeout) if client
+                 else _gcs_refusal(target, timeout, address == 'auto'))
     if cause:
         raise ToolError(f'cannot join the Ray cluster at {where}: {cause}')
     return target
+
+
+TOKEN_REFUSED = ("the cluster refused this driver's authentication token (Ray's token "
+                 "authentication: give hrc-fleet the cluster's token in RAY_AUTH_TOKEN, in a "
+                 'file named by RAY_AUTH_TOKEN_PATH or in ~/.ray/auth_token, with '
+                 'RAY_AUTH_MODE=token)')
 
 
 def _gcs_refusal(target: str, timeout: float, auto: bool) -> str | None:
@@ -115,13 +124,41 @@ def _gcs_refusal(target: str, timeout: float, auto: bool) -> str | None:
                 maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
             InnerGcsClient.standalone(target, None, int(timeout * 1000))
     except AuthenticationError:
-        return ("the cluster refused this driver's authentication token (Ray's token "
-                'authentication: give hrc-fleet the cluster\'s token in RAY_AUTH_TOKEN, in a '
-                'file named by RAY_AUTH_TOKEN_PATH or in ~/.ray/auth_token, with '
-                'RAY_AUTH_MODE=token)')
+        return TOKEN_REFUSED
     except RpcError as exc:
         return (f'no Ray GCS answers there ({" ".join(str(exc).split())[:200]}; is this the '
                 'GCS port?)')
+    return None
+
+
+def _client_refusal(target: str, timeout: float) -> str | None:
+    """Why the Ray Client server at `target` does not answer this driver (None when it does):
+    pinged as `ray.init('ray://...')` pings it before connecting (the same channel, with Ray's
+    TLS and token settings), but once and within `timeout`: Ray's own client retries for 30 s
+    (5 + 10 + 15) and then says only 'ray client connection timeout'."""
+    import grpc
+    from ray._private.grpc_utils import init_grpc_channel
+    from ray.core.generated import ray_client_pb2, ray_client_pb2_grpc
+    from ray.util.client.common import GRPC_OPTIONS
+    with _Quiet():
+        channel = init_grpc_channel(target, options=GRPC_OPTIONS)
+        try:
+            grpc.channel_ready_future(channel).result(timeout=timeout)
+            ray_client_pb2_grpc.RayletDriverStub(channel).ClusterInfo(
+                ray_client_pb2.ClusterInfoRequest(type=ray_client_pb2.ClusterInfoType.PING),
+                timeout=timeout, metadata=[('client_id', 'hrc-fleet-probe')])
+        except grpc.FutureTimeoutError:
+            return (f'the port answers but no gRPC server within {timeout:g} s: is this the '
+                    "cluster's Ray Client port (10001 by default), and TLS set as the server "
+                    'wants it (RAY_USE_TLS)?')
+        except grpc.RpcError as exc:
+            if exc.code() == grpc.StatusCode.UNAUTHENTICATED:
+                return TOKEN_REFUSED
+            return (f'no Ray Client server answers there ({exc.code().name}: '
+                    f'{" ".join(str(exc.details()).split())[:200]}; is this the Ray Client '
+                    'port?)')
+        finally:
+            channel.close()
     return None
 
 
