@@ -220,6 +220,11 @@ def figures(cost, collisions=(0.0, 0.1), refused=(0.0, 0.1), tasks=(0.0, 0.1)):
      'more collision epochs with 95% confidence, the safety guard'),
     # within noise of no change it does not block what is cheaper
     (figures((-2.0, 1.0), collisions=(0.05, 0.1)), (), PROMOTE, 'cheaper'),
+    # not cheaper and more collision epochs: the keep's reason names both (the issue: a keep
+    # named only the cost, not the held-out collisions)
+    (figures((+1.0, 0.5), collisions=(5.34, 0.4)), (), KEEP,
+     'collision epochs new - running +5.340 [+4.940, +5.740] per episode (95%), more with 95% '
+     'confidence'),
     # refused requests are priced by the cost: no guard on them unless the plant sets one
     (figures((-3.0, 0.5), refused=(1.04, 0.3)), (), PROMOTE, 'cheaper'),
     (figures((-3.0, 0.5), refused=(1.04, 0.3)), ('refused_requests',), KEEP,
@@ -288,9 +293,9 @@ def test_the_estimate_subtracts_the_refits_mean_error_and_its_interval_predicts_
 
 
 # -- the pipeline as a state machine ----------------------------------------------------------
-def pipeline_of(tmp_path, run='on_drift', bootstrap=25, simulations=39):
+def pipeline_of(tmp_path, run='on_drift', bootstrap=25, simulations=39, extra=''):
     path = write_plant(tmp_path, f'cells:\n{CELL}    run: {run}\n    fit: {{bootstrap: '
-                       f'{bootstrap}}}\n    drift: {{simulations: {simulations}}}\n')
+                       f'{bootstrap}}}\n    drift: {{simulations: {simulations}}}\n{extra}')
     spec = load_plant(path).cells[0]
     return CellPipeline(spec, str(tmp_path / 'cells' / 'a'), rho=3, sigma=3)
 
@@ -425,6 +430,31 @@ def test_a_cell_of_too_few_episodes_is_checked_without_refits_and_its_report_say
     assert p.entry['shadow']['world'] == check.WORLD_UNCORRECTED
     assert 'leaves the fitting error out' in p.entry['shadow']['world']
     assert p.entry['cost_difference']['optimism'] is None
+
+
+def test_a_guard_the_plant_file_sets_keeps_a_cheaper_cell_and_its_entry_has_the_cost_given_up(
+        tmp_path):
+    """`promote: {guards: [refused_requests]}` in the plant file, through the cell's pipeline:
+    in-sample -3 cheaper with refits' errors about -0.5 (promote on the cost alone), but 1.0
+    more refused requests per episode: kept, and the entry names the guard and the cost."""
+    p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9,
+                    extra='    promote: {guards: [refused_requests]}\n')
+    p.start()
+    p.done('read', READ)
+    p.done('fit', {'iterations': 3, 'loglik': -1.0})
+    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
+    p.done('drift', DRIFT)
+    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
+    p.done('null.0', {'statistics': [100.0] * 9})
+    p.done('shadow', paired_figures(-3.0, refused=1.0))
+    errors = [-0.5, -0.4, -0.6, -0.5, -0.45, -0.55, -0.5, -0.5, -0.4, -0.6]
+    for i in range(10):
+        p.done(f'refit.{i}', refit_rows([i], errors[i:i + 1]))
+    assert p.entry['decision'] == KEEP
+    assert "kept by the plant's guard (refused_requests)" in p.entry['reason']
+    (kept,) = p.entry['guards']['kept_by']
+    assert kept['guard'] == 'refused_requests' and kept['cost_given_up']['high'] < 0
+    assert p.entry['guards']['plant'] == ['refused_requests']
 
 
 def test_a_cheaper_policy_with_more_collision_epochs_is_kept_by_the_safety_guard(tmp_path):
