@@ -594,6 +594,9 @@ def test_the_markdown_says_the_run_mode_warnings_guards_and_retries_and_the_plot
     assert 'the cost it gave up: -3.010 [-3.480, -2.540] per episode' in text
     assert 'Ray ran null.2 2 times (workers pid 11 on n1, pid 12 on n2)' in text
     assert 'nodes lost: n2n2n2n2n2n2 (10.0.0.2) after 31 s: raylet died' in text
+    assert '[ray.log](ray.log)' in text
+    serial = reporting.markdown({**plant, 'engine': reporting.SERIAL_ENGINE})
+    assert 'ray.log' not in serial and 'without Ray' in serial      # --serial writes none
     figure = reporting.plant_figure([entry, {**entry, 'cell': 'b', 'decision': PROMOTE}])
     legend = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
     assert any(t.startswith('promote') for t in legend) and any(t.startswith('keep')
@@ -831,7 +834,7 @@ def plant_run(ray_session, plant_dir, policy_path, small_cell, ros_domain_id):
         suite.stop(10.0)
     report = json.loads((out / 'plant_report.json').read_text())
     return {'code': code, 'out': out, 'report': report, 'seen': seen, 'files': files,
-            'lives': lives,
+            'lives': lives, 'stdout': stdout,
             'new_policy': files['drifted']['policy'], 'alive': alive, 'logs': suite.logs(),
             'pomdp_log': suite.log('decision_fleet_pomdp', 10 ** 6)}
 
@@ -846,6 +849,13 @@ def test_the_plant_promotes_the_drifted_cell_keeps_the_unchanged_and_reports_the
     assert plant_run['code'] == 1                    # a cell failed: the exit status says so
     assert [e['cell'] for e in report['cells']] == ['drifted', 'unchanged', 'corrupt', 'pomdp']
     assert report['decisions'] == {'promote': 2, 'keep': 1, 'failed': 1}
+    # stdout is the decisions and where the report went, nothing of Ray's (its output of the
+    # whole run, the stages' workers included, goes to OUT/ray.log)
+    lines = plant_run['stdout'].splitlines()
+    assert [line.split(':', 2)[:2] for line in lines[:-1]] == [
+        [e['cell'], f' {e["decision"]}'] for e in report['cells']]
+    assert lines[-1].startswith(f'wrote {out / "plant_report.md"}')
+    assert (out / 'ray.log').is_file()
     for e in report['cells']:
         assert {'cell', 'decision', 'reason', 'drift_p', 'cost_difference'} <= set(e)
 

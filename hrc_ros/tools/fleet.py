@@ -414,7 +414,7 @@ def run_plant(plant: Plant, out: Path, address: str | None = None, serial: bool 
     progress = progress or Progress()
     if serial:
         output_folder(out)
-        engine, done = 'one process (serial)', {}
+        engine, done = reporting.SERIAL_ENGINE, {}
         run_serially(pipelines, objects, progress)
     else:
         done, engine = _run_on_own_ray(pipelines, objects, out, address, num_cpus,

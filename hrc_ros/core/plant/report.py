@@ -251,6 +251,9 @@ def _moved_lines(entry: dict) -> list[str]:
                for m in moved] + [''])
 
 
+SERIAL_ENGINE = 'one process (serial)'     # hrc-fleet --serial's engine
+
+
 def _engine_lines(plant: dict) -> list[str]:
     lost = plant.get('lost_nodes') or []
     retried = plant.get('retried_tasks', 0)
@@ -259,6 +262,8 @@ def _engine_lines(plant: dict) -> list[str]:
         for n in lost))
     words += ('; no task retried' if not retried else
               f'; {retried} stage task{"s" if retried != 1 else ""} retried (per cell below)')
+    if plant['engine'] == SERIAL_ENGINE:         # no Ray, no ray.log
+        return [f'Engine: {plant["engine"]}, without Ray.', '']
     return [f'Engine: {plant["engine"]}; {words}. Ray\'s own output: [ray.log](ray.log) '
             '(when this run started or joined Ray).', '']
 
