@@ -453,7 +453,7 @@ def main(argv=None) -> int:
         parser.error('--check-all goes with --drift (without it every cell is checked anyway)')
     work = partial(drift_cell, check_all=True) if args.check_all else (
         drift_cell if args.drift else run_cell)
-    print(f'command: nice -n 10 .venv/bin/python bench/shadow_bench.py '
+    print(f'command: nice -n {os.nice(0)} .venv/bin/python bench/shadow_bench.py '
           f'{" ".join(sys.argv[1:] if argv is None else argv)}')
     print(f'started {datetime.now(timezone.utc).isoformat(timespec="minutes")}, load average '
           f'{os.getloadavg()[0]:.1f}; {len(todo)} cells to run, {len(done)} already done',
