@@ -411,6 +411,24 @@ def test_run_always_fits_beside_the_drift_test_and_waits_for_it(tmp_path):
     assert outputs[0].args[-1] == Ref('shadow')
 
 
+def through_the_check(p, shadow, errors=(), collision_errors=None, read=READ):
+    """A `run: always` pipeline driven through read, fit, the drift test (no drift), the solve
+    and the shadow check with these in-sample figures and refits' cost (and collision)
+    errors: (the jobs after the drift test, the jobs after the last result)."""
+    p.start()
+    p.done('read', read)
+    p.done('fit', {'iterations': 3, 'loglik': -1.0})
+    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
+    p.done('drift', DRIFT)
+    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
+    checks = p.done('null.0', {'statistics': [100.0] * 9})
+    last = p.done('shadow', shadow)
+    collisions = collision_errors or [0.0] * len(errors)
+    for i, (error, collision) in enumerate(zip(errors, collisions)):
+        last = p.done(f'refit.{i}', refit_rows([i], [error], [collision]))
+    return checks, last
+
+
 def test_a_cell_of_too_few_episodes_is_checked_without_refits_and_its_report_says_so(tmp_path):
     """Fewer than stages.MIN_EPISODES episodes: the shadow check runs alone, the cell is kept,
     and the entry's shadow world says that nothing corrected the interval (it said, as for a
@@ -418,14 +436,9 @@ def test_a_cell_of_too_few_episodes_is_checked_without_refits_and_its_report_say
     from hrc_ros.core.plant import check
     from hrc_ros.core.plant.stages import MIN_EPISODES
     p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9)
-    p.start()
-    p.done('read', {**READ, 'episodes': MIN_EPISODES - 1})
-    p.done('fit', {'iterations': 3, 'loglik': -1.0})
-    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
-    p.done('drift', DRIFT)
-    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
-    assert keys(p.done('null.0', {'statistics': [100.0] * 9})) == ['shadow']   # no refits
-    outputs = p.done('shadow', paired_figures(-3.0))
+    checks, outputs = through_the_check(p, paired_figures(-3.0),
+                                        read={**READ, 'episodes': MIN_EPISODES - 1})
+    assert keys(checks) == ['shadow']                           # no refits
     assert keys(outputs) == ['outputs'] and p.entry['decision'] == KEEP
     assert p.entry['shadow']['world'] == check.WORLD_UNCORRECTED
     assert 'leaves the fitting error out' in p.entry['shadow']['world']
@@ -439,17 +452,8 @@ def test_a_guard_the_plant_file_sets_keeps_a_cheaper_cell_and_its_entry_has_the_
     more refused requests per episode: kept, and the entry names the guard and the cost."""
     p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9,
                     extra='    promote: {guards: [refused_requests]}\n')
-    p.start()
-    p.done('read', READ)
-    p.done('fit', {'iterations': 3, 'loglik': -1.0})
-    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
-    p.done('drift', DRIFT)
-    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
-    p.done('null.0', {'statistics': [100.0] * 9})
-    p.done('shadow', paired_figures(-3.0, refused=1.0))
-    errors = [-0.5, -0.4, -0.6, -0.5, -0.45, -0.55, -0.5, -0.5, -0.4, -0.6]
-    for i in range(10):
-        p.done(f'refit.{i}', refit_rows([i], errors[i:i + 1]))
+    through_the_check(p, paired_figures(-3.0, refused=1.0),
+                      [-0.5, -0.4, -0.6, -0.5, -0.45, -0.55, -0.5, -0.5, -0.4, -0.6])
     assert p.entry['decision'] == KEEP
     assert "kept by the plant's guard (refused_requests)" in p.entry['reason']
     (kept,) = p.entry['guards']['kept_by']
@@ -461,17 +465,8 @@ def test_a_cheaper_policy_with_more_collision_epochs_is_kept_by_the_safety_guard
     """In-sample -3, refits' errors -0.5 +- 0.3: the estimate -2.5 with an interval below
     zero, and the collision epochs higher with 95% confidence keep it, named in the reason."""
     p = pipeline_of(tmp_path, run='always', bootstrap=0, simulations=9)
-    p.start()
-    p.done('read', READ)
-    p.done('fit', {'iterations': 3, 'loglik': -1.0})
-    p.done('summary', {'moved': [], 'warnings': [], 'bootstrap': 0, 'config_sha256': 'abc'})
-    p.done('drift', DRIFT)
-    p.done('mdp', {'iterations': 1, 'converged': True, 'residual': 0.0})
-    p.done('null.0', {'statistics': [100.0] * 9})
-    p.done('shadow', paired_figures(-3.0, collisions=0.8))
-    errors = [-0.5, -0.2, -0.8, -0.5, -0.4, -0.6, -0.5, -0.3, -0.7, -0.5]
-    for i in range(10):
-        p.done(f'refit.{i}', refit_rows([i], errors[i:i + 1], [0.1] * 10))
+    through_the_check(p, paired_figures(-3.0, collisions=0.8),
+                      [-0.5, -0.2, -0.8, -0.5, -0.4, -0.6, -0.5, -0.3, -0.7, -0.5], [0.1] * 10)
     assert p.entry['cost_difference']['high'] < 0
     assert p.entry['decision'] == KEEP
     assert p.entry['reason'].startswith('more collision epochs with 95% confidence')
