@@ -22,8 +22,8 @@ interval below zero (an interval that carries the fitting error as well as the e
 noise), unless its collision epochs are higher with 95% confidence (the safety guard) or a
 guard the plant file sets (`promote.guards`, none by default) finds the new policy worse;
 otherwise keep, with the figures (a cell of too few episodes for refits: keep, its interval
-the episodes' alone). A failed stage fails
-the cell with its reason (decision `failed`); the other cells go on.
+the episodes' alone). A failed stage fails the cell with its reason (decision `failed`); the
+other cells go on.
 """
 
 from __future__ import annotations
