@@ -213,6 +213,22 @@ def drift_cell(cell: dict, episodes: int, refits: int, truth_episodes: int,
     return result
 
 
+def true_cost(r: dict) -> float:
+    """A checked cell's true cost difference, new - running, per episode."""
+    return r['truth']['discounted_cost']['mean']
+
+
+def checked(r: dict, refits: int) -> tuple[str, dict]:
+    """The check of a --drift cell decided on its first `refits` refits (all, if fewer)."""
+    return decisions(r['check'], min(refits, len(r['check']['rows'])))
+
+
+def covers(figures: dict, truth: float) -> bool:
+    """The 95% interval of the cost difference holds the truth."""
+    m = figures['discounted_cost']
+    return m['low'] <= truth <= m['high']
+
+
 def drift_table(results: list[dict], refits: int = 10) -> None:
     """Drift called and promotions on the defaults (a promotion needs drift and the check)."""
     if not results:
@@ -228,10 +244,8 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
     print('|---|---|---|---|---|---|')
     for direction, amount in sorted({(r['direction'], r['amount']) for r in results}):
         rs = [r for r in results if (r['direction'], r['amount']) == (direction, amount)]
-        promoted = [r for r in rs if r['drift']
-                    and decisions(r['check'], min(refits, len(r['check']['rows'])))[0]
-                    == 'promote']
-        worse = sum(r['check']['truth']['discounted_cost']['mean'] >= 0 for r in promoted)
+        promoted = [r for r in rs if r['drift'] and checked(r, refits)[0] == 'promote']
+        worse = sum(true_cost(r['check']) >= 0 for r in promoted)
         print(f'| {direction} | {amount:g} | {len(rs)} | '
               f'{wilson(sum(r["drift"] for r in rs), len(rs))} | '
               f'{wilson(len(promoted), len(rs))} | {worse} |')
@@ -239,15 +253,15 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
     if known:
         # --check-all: the check ran on every cell, so the truth of the cells the drift test
         # let pass is known, and power on the defaults can be counted over all of them
+        def made(r):
+            return checked(r, refits)[0]
+
         def on_defaults(r):
             return r['drift'] and made(r) == 'promote'
-
-        def made(r):
-            return decisions(r['check'], min(refits, len(r['check']['rows'])))[0]
-        better = [r for r in known if r['check']['truth']['discounted_cost']['mean'] <= -1.0]
+        better = [r for r in known if true_cost(r['check']) <= -1.0]
         unchanged = [r for r in known if r['direction'] == 'unchanged']
-        not_cheaper = [r for r in known if r['direction'] != 'unchanged'
-                       and r['check']['truth']['discounted_cost']['mean'] >= 0]
+        changed = [r for r in known if r['direction'] != 'unchanged']
+        not_cheaper = [r for r in changed if true_cost(r['check']) >= 0]
         print(f'\nWith the truth of every cell ({len(known)} cells checked whatever the drift '
               f'test said, {len(better)} truly better by >= 1.0 per episode):\n')
         print('| run mode | false promotions (unchanged) | power (truly better by >= 1.0) | '
@@ -259,19 +273,14 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
                   f'{wilson(sum(map(rule, better)), len(better))} | '
                   f'{wilson(sum(map(rule, not_cheaper)), len(not_cheaper))} |')
         def covered(rs):
-            hits = 0
-            for r in rs:
-                m = decisions(r['check'], min(refits, len(r['check']['rows'])))[1]
-                t = r['check']['truth']['discounted_cost']['mean']
-                hits += m['discounted_cost']['low'] <= t <= m['discounted_cost']['high']
-            return wilson(hits, len(rs))
+            return wilson(sum(covers(checked(r, refits)[1], true_cost(r['check'])) for r in rs),
+                          len(rs))
         print(f'\nCoverage of the check\'s 95% interval (the same in both modes): all '
-              f'{covered(known)}, unchanged {covered(unchanged)}, changed '
-              f'{covered([r for r in known if r["direction"] != "unchanged"])}')
+              f'{covered(known)}, unchanged {covered(unchanged)}, changed {covered(changed)}')
         missed = [r for r in better if not on_defaults(r)]
         print('Truly better by >= 1.0 and not promoted on the defaults: '
               + (', '.join(f'cell {r["index"]} ({r["direction"]} {r["amount"]:g}, true '
-                           f'{r["check"]["truth"]["discounted_cost"]["mean"]:+.2f}, drift p '
+                           f'{true_cost(r["check"]):+.2f}, drift p '
                            f'{r["drift_p"]:.3f}, check: {made(r)})' for r in missed)
                  or 'none'))
     ps = np.array([r['drift_p'] for r in results])
@@ -281,13 +290,13 @@ def drift_table(results: list[dict], refits: int = 10) -> None:
           f'{seconds[len(seconds) // 2]:.0f}, the slowest {seconds[-1]:.0f}')
     for r in results:
         if 'check' in r:
-            c = decisions(r['check'], min(refits, len(r['check']['rows'])))
+            c = checked(r, refits)
             m = c[1]['discounted_cost']
             print(f'  cell {r["index"]} ({r["direction"]} {r["amount"]:g}): p = '
                   f'{r["drift_p"]:.3f}{"" if r["drift"] else " (no drift)"}, check: {c[0]} '
                   f'(estimate {m["mean"]:+.2f} '
                   f'[{m["low"]:+.2f}, {m["high"]:+.2f}], true '
-                  f'{r["check"]["truth"]["discounted_cost"]["mean"]:+.2f})')
+                  f'{true_cost(r["check"]):+.2f})')
 
 
 # -- the table --------------------------------------------------------------------------------
@@ -315,8 +324,8 @@ def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
     refit_counts = [k for k in refit_counts if all(len(r['rows']) >= k for r in results)]
     unchanged = [r for r in results if r['direction'] == 'unchanged']
     changed = [r for r in results if r['direction'] != 'unchanged']
-    better = [r for r in results if r['truth']['discounted_cost']['mean'] <= -1.0]
-    not_cheaper = [r for r in changed if r['truth']['discounted_cost']['mean'] >= 0]
+    better = [r for r in results if true_cost(r) <= -1.0]
+    not_cheaper = [r for r in changed if true_cost(r) >= 0]
     truth_half = np.median([r['truth']['discounted_cost']['half_width'] for r in results])
     print(f'{len(results)} cells ({len(unchanged)} unchanged, {len(changed)} changed; '
           f'{len(better)} truly better by >= 1.0 per episode); the truth\'s own 95% half-width '
@@ -329,11 +338,7 @@ def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
         made = {id(r): decisions(r, refits) for r in results}
 
         def covered(rs, made=made):
-            hits = 0
-            for r in rs:
-                m, t = made[id(r)][1]['discounted_cost'], r['truth']['discounted_cost']['mean']
-                hits += m['low'] <= t <= m['high']
-            return wilson(hits, len(rs))
+            return wilson(sum(covers(made[id(r)][1], true_cost(r)) for r in rs), len(rs))
 
         def promoted(rs, made=made):
             return wilson(sum(made[id(r)][0] == 'promote' for r in rs), len(rs))
@@ -347,7 +352,7 @@ def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
     print('|---|---|---|')
     for low, high in ((-math.inf, -3.0), (-3.0, -2.0), (-2.0, -1.0), (-1.0, 0.0),
                       (0.0, math.inf)):
-        rs = [r for r in results if low < r['truth']['discounted_cost']['mean'] <= high]
+        rs = [r for r in results if low < true_cost(r) <= high]
         print(f'| ({low:+.0f}, {high:+.0f}] | {len(rs)} | '
               f'{wilson(sum(decisions(r, k)[0] == "promote" for r in rs), len(rs))} |')
     print(f'\nBy world ({k} refits): mean in-sample / estimate / true difference, promoted\n')
@@ -360,19 +365,19 @@ def table(results: list[dict], refit_counts=(5, 10, 20)) -> None:
         est = np.mean([decisions(r, k)[1]['discounted_cost']['mean'] for r in rs])
         print(f'| {direction} | {amount:g} | {len(rs)} | '
               f'{np.mean([r["in_sample"]["discounted_cost"]["mean"] for r in rs]):+.2f} | '
-              f'{est:+.2f} | {np.mean([r["truth"]["discounted_cost"]["mean"] for r in rs]):+.2f}'
+              f'{est:+.2f} | {np.mean([true_cost(r) for r in rs]):+.2f}'
               f' | {np.mean([r["regret"]["running"] for r in rs]):+.2f} / '
               f'{np.mean([r["regret"]["new"] for r in rs]):+.2f} | '
               f'{wilson(sum(decisions(r, k)[0] == "promote" for r in rs), len(rs))} |')
     z = []
     for r in results:
         m = decisions(r, k)[1]['discounted_cost']
-        z.append((m['mean'] - r['truth']['discounted_cost']['mean']) / (m['half_width'] / 1.96))
+        z.append((m['mean'] - true_cost(r)) / (m['half_width'] / 1.96))
     z = np.array(z)
     print(f'\nThe estimate\'s error in units of its own standard error ({k} refits): mean '
           f'{z.mean():+.2f}, sd {z.std(ddof=1):.2f}, quartiles '
           + ', '.join(f'{q:+.2f}' for q in np.percentile(z, [25, 50, 75])))
-    false = [r['truth']['discounted_cost']['mean'] for r in unchanged
+    false = [true_cost(r) for r in unchanged
              if decisions(r, k)[0] == 'promote']
     print(f'Unchanged cells promoted ({k} refits): {len(false)}, of which truly not cheaper '
           f'(the truth\'s mean >= 0): {sum(t >= 0 for t in false)}; their true differences '
@@ -483,7 +488,7 @@ def main(argv=None) -> int:
                 c = m['discounted_cost']
                 print(f'  {r["index"]:>3} {r["direction"]:<9} {r["amount"]:.2f}: in-sample '
                       f'{c["in_sample"]:+6.2f}, estimate {c["mean"]:+6.2f} [{c["low"]:+6.2f}, '
-                      f'{c["high"]:+6.2f}], true {r["truth"]["discounted_cost"]["mean"]:+6.2f}'
+                      f'{c["high"]:+6.2f}], true {true_cost(r):+6.2f}'
                       f'  {r["seconds"]:.0f} s', flush=True)
     print(f'\n{len(todo)} cells in {time.perf_counter() - t0:.0f} s on {args.cpus} CPUs, load '
           f'average at the end {os.getloadavg()[0]:.1f}\n')
