@@ -17,16 +17,21 @@ MODULES = {'hrc-simulate': 'hrc_ros.tools.simulate', 'hrc-evaluate': 'hrc_ros.to
            'hrc-bag': 'hrc_ros.ros.bag', 'hrc-fit': 'hrc_ros.tools.fit'}
 
 
+def one_line_refusal(command, code, out, err) -> str:
+    """A refusal as every command gives it: exit 2, exactly one line on stderr naming the
+    command, nothing on stdout; the line."""
+    assert code == 2, (code, out[-2000:], err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(command) and ': error: ' in lines[0], err
+    assert out == ''
+    return lines[0]
+
+
 def refused(command, *args, cwd=None):
-    """Run a command that must refuse: exit 2, exactly one line on stderr, nothing on stdout."""
+    """Run a command that must refuse (`one_line_refusal`) as a process of its own."""
     result = subprocess.run([sys.executable, '-m', MODULES[command], *map(str, args)],
                             capture_output=True, text=True, timeout=120, cwd=cwd)
-    assert result.returncode == 2, (result.returncode, result.stdout[-2000:], result.stderr)
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(command) and ': error: ' in lines[0], \
-        result.stderr
-    assert result.stdout == ''
-    return lines[0]
+    return one_line_refusal(command, result.returncode, result.stdout, result.stderr)
 
 
 # the commands whose out-of-range refusals below run as a process of their own: each other
@@ -44,12 +49,7 @@ def refused_in_this_process(command, args, capfd) -> str:
         code = main([str(a) for a in args])
     except SystemExit as exit_:          # argparse's error
         code = exit_.code
-    out, err = capfd.readouterr()
-    assert code == 2, (code, out[-2000:], err)
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(command) and ': error: ' in lines[0], err
-    assert out == ''
-    return lines[0]
+    return one_line_refusal(command, code, *capfd.readouterr())
 
 
 @pytest.fixture
