@@ -37,8 +37,12 @@ TRUTH = {'episodes': 1000, 'epochs': 50, 'task_rate': 0.2}
 TRUTH_SEED = 10_003
 
 
-def interval(x: np.ndarray) -> str:
-    return f'{x.mean():+.3f} +- {1.96 * x.std(ddof=1) / np.sqrt(x.size):.3f}'
+def interval(new: np.ndarray, reference: np.ndarray) -> str:
+    """new - reference, paired per episode, with its 95% interval (`stages.paired`, the
+    plant's own rule)."""
+    from hrc_ros.core.plant.stages import paired
+    d = paired(new, reference)
+    return f'{d["mean"]:+.3f} +- {d["half_width"]:.3f}'
 
 
 def main(argv=None) -> int:
@@ -76,7 +80,7 @@ def main(argv=None) -> int:
     best = stages._both_in(world, running, world, optimum, None, 'paper', TRUTH, TRUTH_SEED)
     print(f'\nthe optimum refuses {best["refused_requests"][0].mean():.2f} requests per '
           f'episode, the running policy {best["refused_requests"][1].mean():.2f}; the running '
-          f'policy\'s regret {interval(best["discounted_cost"][1] - best["discounted_cost"][0])}'
+          f'policy\'s regret {interval(best["discounted_cost"][1], best["discounted_cost"][0])}'
           '\n')
     print('| seed | decision | estimate (95%) | true new - running | regret of the new policy '
           '| refused requests, new |')
@@ -89,8 +93,8 @@ def main(argv=None) -> int:
                                None, 'paper', TRUTH, TRUTH_SEED)
         new, old = both['discounted_cost']
         print(f'| {seed} | {entry["decision"]} | {c["mean"]:+.2f} [{c["low"]:+.2f}, '
-              f'{c["high"]:+.2f}] | {interval(new - old)} | '
-              f'{interval(new - best["discounted_cost"][0])} | '
+              f'{c["high"]:+.2f}] | {interval(new, old)} | '
+              f'{interval(new, best["discounted_cost"][0])} | '
               f'{both["refused_requests"][0].mean():.2f} |')
     return 0
 
